@@ -1,0 +1,319 @@
+"""Loading and validating datasets in the native format (see docs/dataset-format.md)."""
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat.data.png import png_size, read_png
+from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
+from meshsplat.drivers.base import SequenceDriver
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["Frame", "AvatarDataset", "open_dataset"]
+
+_MAX_LISTED = 25
+
+
+@dataclass
+class Frame:
+    """One training/test view: ``image [H,W,3]`` float32 in [0,1], ``mask [H,W,1]`` float32 or None,
+    ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV), driving ``vertices [V,3]``."""
+
+    image: torch.Tensor
+    mask: torch.Tensor | None
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    vertices: torch.Tensor
+    width: int
+    height: int
+    index: int
+    name: str
+    camera_id: str
+    clip: str | None = None
+    time: float | None = None
+
+
+class _Problems:
+    def __init__(self, root: Path):
+        self.root, self.items = root, []
+
+    def add(self, where: str, what: str) -> None:
+        self.items.append(f"{where}: {what}")
+
+    def raise_if_any(self) -> None:
+        if self.items:
+            lines = self.items[:_MAX_LISTED]
+            more = len(self.items) - len(lines)
+            msg = f"invalid dataset {self.root} ({len(self.items)} problem{'s' if len(self.items) > 1 else ''}):\n  - "
+            msg += "\n  - ".join(lines) + (f"\n  - ... and {more} more" if more else "")
+            raise MeshsplatError(msg)
+
+
+def _check_camera(cid: str, cam: dict, problems: _Problems) -> tuple[np.ndarray, np.ndarray] | None:
+    where = f"camera {cid!r}"
+    try:
+        K = np.asarray(cam["K"], np.float64)
+        vm = np.asarray(cam["viewmat"], np.float64)
+        w, h = int(cam["width"]), int(cam["height"])
+    except (KeyError, TypeError, ValueError) as exc:
+        problems.add(where, f"needs K [3,3], viewmat [4,4], width, height ({exc})")
+        return None
+    ok = True
+    if K.shape != (3, 3) or not np.isfinite(K).all():
+        problems.add(where, f"K must be a finite 3x3 matrix, got shape {list(K.shape)}")
+        return None
+    if vm.shape != (4, 4) or not np.isfinite(vm).all():
+        problems.add(where, f"viewmat must be a finite 4x4 matrix, got shape {list(vm.shape)}")
+        return None
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        problems.add(where, f"non-positive focal length (fx={K[0, 0]:g}, fy={K[1, 1]:g})")
+        ok = False
+    if not np.allclose(K[2], [0, 0, 1], atol=1e-6):
+        problems.add(where, f"K last row must be [0, 0, 1], got {K[2].tolist()}")
+        ok = False
+    if w <= 0 or h <= 0:
+        problems.add(where, f"non-positive image size {w}x{h}")
+        ok = False
+    elif not (0 < K[0, 2] < w and 0 < K[1, 2] < h):
+        problems.add(where, f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {w}x{h} image")
+        ok = False
+    R = vm[:3, :3]
+    if not np.allclose(vm[3], [0, 0, 0, 1], atol=1e-6):
+        problems.add(where, f"viewmat last row must be [0, 0, 0, 1], got {vm[3].tolist()}")
+        ok = False
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        problems.add(where, "viewmat rotation is not a rotation matrix (R R^T != I or det(R) != +1)")
+        ok = False
+    return (K, vm) if ok else None
+
+
+class AvatarDataset:
+    """A validated dataset; frames load lazily (``cache_size`` most recent kept in memory)."""
+
+    def __init__(self, root: Path, manifest: dict, canonical: np.ndarray, faces: np.ndarray,
+                 vertices: np.ndarray, cameras: dict, cache_size: int = 8):
+        self.root = root
+        self.manifest = manifest
+        self.canonical_vertices = torch.from_numpy(canonical.astype(np.float32))
+        self.faces = torch.from_numpy(faces.astype(np.int64))
+        self._verts = vertices
+        self._cameras = cameras  # id -> (K, viewmat, width, height)
+        self._frames = manifest["frames"]
+        self._splits = {k: [int(i) for i in v] for k, v in manifest.get("splits", {}).items()}
+        self._cache: OrderedDict[int, Frame] = OrderedDict()
+        self._cache_size = int(cache_size)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def split_names(self) -> list[str]:
+        return list(self._splits)
+
+    @property
+    def meta(self) -> dict:
+        return dict(self.manifest.get("meta", {}))
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.canonical_vertices.shape[0])
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return list(self._cameras)
+
+    def split(self, name: str) -> list[int]:
+        if name not in self._splits:
+            raise MeshsplatError(f"split: {name!r} not in {self.split_names}")
+        return list(self._splits[name])
+
+    def frame_info(self, i: int) -> dict:
+        """Manifest record of frame ``i`` (no image decoding)."""
+        return dict(self._frames[self._index(i)])
+
+    def camera(self, camera_id) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+        """``(K [3,3], viewmat [4,4], width, height)`` of a camera."""
+        K, vm, w, h = self._cameras[str(camera_id)]
+        return torch.from_numpy(K.astype(np.float32)), torch.from_numpy(vm.astype(np.float32)), w, h
+
+    def vertices(self, i: int) -> torch.Tensor:
+        """Driving vertices ``[V,3]`` of frame ``i`` without loading its image."""
+        rec = self._frames[self._index(i)]
+        return torch.from_numpy(np.array(self._verts[rec["mesh"]], dtype=np.float32))
+
+    def driver(self) -> SequenceDriver:
+        """All stored meshes as a :class:`SequenceDriver` (rest = canonical)."""
+        return SequenceDriver(self._verts, self.faces, rest=self.canonical_vertices)
+
+    def _index(self, i: int) -> int:
+        n = len(self._frames)
+        if not -n <= i < n:
+            raise IndexError(f"frame index {i} out of range for {n} frames")
+        return i % n
+
+    def __getitem__(self, i: int) -> Frame:
+        i = self._index(int(i))
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        rec = self._frames[i]
+        K, vm, w, h = self.camera(rec["camera"])
+        img = torch.from_numpy(read_png(self.root / rec["image"], 3)).float().div_(255.0)
+        mask = None
+        if rec.get("mask"):
+            mask = torch.from_numpy(read_png(self.root / rec["mask"], 1)).float().div_(255.0)
+        fr = Frame(img, mask, K, vm, self.vertices(i), w, h, i, rec["name"], str(rec["camera"]),
+                   rec.get("clip"), rec.get("time"))
+        if self._cache_size > 0:
+            self._cache[i] = fr
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return fr
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+
+def _load_canonical(root: Path, rel: str, problems: _Problems):
+    p = root / rel
+    if not p.is_file():
+        problems.add(rel, "canonical mesh file is missing")
+        return None, None
+    try:
+        if p.suffix == ".obj":
+            import trimesh
+
+            m = trimesh.load(p, process=False, force="mesh")
+            v, f = np.asarray(m.vertices), np.asarray(m.faces)
+        else:
+            with np.load(p) as z:
+                v, f = z["vertices"], z["faces"]
+    except Exception as exc:
+        problems.add(rel, f"cannot read canonical mesh ({exc})")
+        return None, None
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        problems.add(rel, f"expected vertices [V,3] and faces [F,3], got {list(v.shape)} and {list(f.shape)}")
+        return None, None
+    if not np.isfinite(v).all():
+        problems.add(rel, f"canonical vertices contain {int((~np.isfinite(v)).sum())} NaN/Inf values")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        problems.add(rel, f"face indices out of range [0, {len(v)})")
+    return v, f
+
+
+def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+    """Open and validate a dataset folder (or its ``manifest.json``).
+
+    Checks files, PNG sizes (headers only) against the cameras, principal points, camera
+    rotations and focal lengths, vertex counts and finiteness, split indices and (when
+    ``check_masks``) that no mask is empty. All problems are reported in one MeshsplatError.
+    """
+    root = Path(path)
+    if root.is_file() and root.name == "manifest.json":
+        root = root.parent
+    if not root.is_dir():
+        raise MeshsplatError(f"dataset folder not found: {root}")
+    mpath = root / "manifest.json"
+    if not mpath.is_file():
+        raise MeshsplatError(f"{root}: no manifest.json (not a meshsplat dataset)")
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise MeshsplatError(f"{mpath}: invalid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
+        raise MeshsplatError(f"{mpath}: 'format' must be {FORMAT_NAME!r}")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise MeshsplatError(f"{mpath}: unsupported format version {manifest.get('version')!r} (this reader: {FORMAT_VERSION})")
+    for key in ("canonical", "vertices", "cameras", "frames"):
+        if key not in manifest:
+            raise MeshsplatError(f"{mpath}: missing key {key!r}")
+    frames = manifest["frames"]
+    if not isinstance(frames, list) or not frames:
+        raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list")
+
+    problems = _Problems(root)
+    canonical, faces = _load_canonical(root, manifest["canonical"], problems)
+    verts = None
+    vpath = root / manifest["vertices"]
+    if not vpath.is_file():
+        problems.add(manifest["vertices"], "posed vertices file is missing")
+    else:
+        try:
+            verts = np.load(vpath, mmap_mode="r")
+        except Exception as exc:
+            problems.add(manifest["vertices"], f"cannot read ({exc})")
+        if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
+            problems.add(manifest["vertices"], f"expected shape [T,V,3], got {list(verts.shape)}")
+            verts = None
+        if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
+            problems.add(manifest["vertices"], f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+                         f"frame but the canonical mesh has {canonical.shape[0]}")
+    bad_meshes: dict[int, int] = {}
+    if verts is not None:
+        for s in range(0, verts.shape[0], 256):
+            nonfinite = (~np.isfinite(np.asarray(verts[s:s + 256]))).sum(axis=(1, 2))
+            for j in np.nonzero(nonfinite)[0]:
+                bad_meshes[s + int(j)] = int(nonfinite[j])
+
+    cameras = {}
+    for cid, cam in (manifest["cameras"] or {}).items():
+        ok = _check_camera(str(cid), cam, problems)
+        if ok is not None:
+            cameras[str(cid)] = (ok[0], ok[1], int(cam["width"]), int(cam["height"]))
+
+    names = set()
+    for i, rec in enumerate(frames):
+        name = rec.get("name", str(i)) if isinstance(rec, dict) else str(i)
+        where = f"frame {i} ({name!r})"
+        if not isinstance(rec, dict) or "image" not in rec or "camera" not in rec or "mesh" not in rec:
+            problems.add(where, "needs 'image', 'camera' and 'mesh'")
+            continue
+        rec.setdefault("name", name)
+        if name in names:
+            problems.add(where, "duplicate frame name")
+        names.add(name)
+        cid = str(rec["camera"])
+        if cid not in manifest["cameras"]:
+            problems.add(where, f"unknown camera {cid!r}")
+        m = rec["mesh"]
+        if verts is not None and not (isinstance(m, int) and 0 <= m < verts.shape[0]):
+            problems.add(where, f"mesh index {m!r} out of range [0, {verts.shape[0]})")
+        elif m in bad_meshes:
+            problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
+        size = (manifest["cameras"].get(cid, {}).get("width"), manifest["cameras"].get(cid, {}).get("height"))
+        for kind in ("image", "mask"):
+            rel = rec.get(kind)
+            if not rel:
+                continue
+            p = root / rel
+            if not p.is_file():
+                problems.add(where, f"{kind} file {rel} is missing")
+                continue
+            try:
+                wh = png_size(p)
+            except MeshsplatError:
+                problems.add(where, f"{kind} file {rel} is not a PNG")
+                continue
+            if cid in manifest["cameras"] and wh != size:
+                problems.add(where, f"{kind} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {cid!r} "
+                             f"says {size[0]}x{size[1]}")
+            elif kind == "mask" and check_masks:
+                try:
+                    empty = int(read_png(p, 1).max()) == 0
+                except MeshsplatError as exc:
+                    problems.add(where, str(exc))
+                    continue
+                if empty:
+                    problems.add(where, f"empty mask {rel} (no foreground pixel)")
+    for sname, idx in (manifest.get("splits") or {}).items():
+        bad = [j for j in idx if not (isinstance(j, int) and 0 <= j < len(frames))]
+        if bad:
+            problems.add(f"split {sname!r}", f"frame indices out of range: {bad[:5]}")
+    problems.raise_if_any()
+    return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size)

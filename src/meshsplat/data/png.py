@@ -1,0 +1,45 @@
+"""PNG reading/writing helpers: header-only size query, lazy decode, fast encode."""
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["png_size", "read_png", "write_png"]
+
+_SIG = b"\x89PNG\r\n\x1a\n"
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` from the IHDR chunk, reading 24 bytes."""
+    with open(path, "rb") as fh:
+        head = fh.read(24)
+    if len(head) < 24 or head[:8] != _SIG or head[12:16] != b"IHDR":
+        raise MeshsplatError(f"{path}: not a PNG file")
+    w, h = struct.unpack(">II", head[16:24])
+    return int(w), int(h)
+
+
+def read_png(path: Path, channels: int) -> np.ndarray:
+    """Decode to uint8 ``[H, W, channels]`` (1 = grey, 3 = RGB)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            im = im.convert("L" if channels == 1 else "RGB")
+            arr = np.array(im, dtype=np.uint8)
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: cannot decode PNG ({exc})") from None
+    return arr[..., None] if channels == 1 else arr
+
+
+def write_png(path: Path, img: np.ndarray, compress_level: int = 3) -> None:
+    """Write uint8 ``[H,W]``, ``[H,W,1]`` or ``[H,W,3]``."""
+    from PIL import Image
+
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    Image.fromarray(np.ascontiguousarray(img)).save(path, compress_level=compress_level)

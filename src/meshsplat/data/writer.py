@@ -1,0 +1,156 @@
+"""Writing datasets in the native format (see docs/dataset-format.md)."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat.data.png import write_png
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["DatasetWriter", "write_dataset", "FORMAT_NAME", "FORMAT_VERSION"]
+
+FORMAT_NAME = "meshsplat-dataset"
+FORMAT_VERSION = 1
+
+
+def _np(x, dtype=np.float32) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=dtype)
+
+
+def _to_uint8(img) -> np.ndarray:
+    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
+    if a.dtype != np.uint8:
+        a = np.clip(np.rint(a.astype(np.float32) * 255.0), 0, 255).astype(np.uint8)
+    return a
+
+
+class DatasetWriter:
+    """Streams frames to ``root``: images and masks are written at once, meshes and the manifest
+    on :meth:`close` (atomic manifest write). Use as a context manager.
+
+    ``canonical_vertices [V,3]``, ``faces [F,3]``: the rest (canonical) driving mesh.
+    """
+
+    def __init__(self, root, canonical_vertices, faces, overwrite: bool = False, meta: dict | None = None):
+        self.root = Path(root)
+        if (self.root / "manifest.json").exists() and not overwrite:
+            raise MeshsplatError(f"{self.root}: a dataset already exists here (pass overwrite=True)")
+        (self.root / "images").mkdir(parents=True, exist_ok=True)
+        self.canonical = _np(canonical_vertices)
+        self.faces = _np(faces, np.int32)
+        if self.canonical.ndim != 2 or self.canonical.shape[1] != 3:
+            raise MeshsplatError(f"canonical_vertices: expected shape [V,3], got {list(self.canonical.shape)}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise MeshsplatError(f"faces: expected shape [F,3], got {list(self.faces.shape)}")
+        self.meta = dict(meta or {})
+        self.cameras: dict[str, dict] = {}
+        self.frames: list[dict] = []
+        self.meshes: list[np.ndarray] = []
+        self.splits: dict[str, list[int]] = {}
+        self.driver: dict | None = None
+
+    def add_camera(self, camera_id, K, viewmat, width: int, height: int) -> str:
+        """Register a camera: ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV axes)."""
+        cid = str(camera_id)
+        self.cameras[cid] = {"K": _np(K, np.float64).tolist(), "viewmat": _np(viewmat, np.float64).tolist(),
+                             "width": int(width), "height": int(height)}
+        return cid
+
+    def add_mesh(self, vertices) -> int:
+        """Store one posed driving mesh ``[V,3]``; returns its index (frames may share it)."""
+        v = _np(vertices)
+        if v.shape != self.canonical.shape:
+            raise MeshsplatError(f"vertices: expected shape {list(self.canonical.shape)}, got {list(v.shape)}")
+        self.meshes.append(v)
+        return len(self.meshes) - 1
+
+    def add_frame(self, image, camera_id, vertices=None, mesh: int | None = None, mask=None,
+                  name: str | None = None, clip: str | None = None, time: float | None = None,
+                  extra: dict | None = None) -> int:
+        """Write one frame: ``image [H,W,3]`` (uint8 or float in [0,1]), optional ``mask [H,W]|[H,W,1]``;
+        the driving mesh is ``vertices [V,3]`` or an index from :meth:`add_mesh`. Returns the frame index."""
+        cid = str(camera_id)
+        if cid not in self.cameras:
+            raise MeshsplatError(f"camera_id: {cid!r} was not added with add_camera")
+        if (vertices is None) == (mesh is None):
+            raise MeshsplatError("add_frame: pass exactly one of vertices or mesh")
+        if mesh is None:
+            mesh = self.add_mesh(vertices)
+        elif not 0 <= mesh < len(self.meshes):
+            raise MeshsplatError(f"mesh: index {mesh} out of range (have {len(self.meshes)})")
+        index = len(self.frames)
+        name = name or f"{index:06d}"
+        img = _to_uint8(image)
+        cam = self.cameras[cid]
+        if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (cam["height"], cam["width"]):
+            raise MeshsplatError(f"image: expected [{cam['height']},{cam['width']},3], got {list(img.shape)}")
+        rec = {"name": name, "image": f"images/{name}.png", "camera": cid, "mesh": int(mesh)}
+        write_png(self.root / rec["image"], img)
+        if mask is not None:
+            (self.root / "masks").mkdir(exist_ok=True)
+            m = _to_uint8(mask)
+            rec["mask"] = f"masks/{name}.png"
+            write_png(self.root / rec["mask"], m.reshape(cam["height"], cam["width"]))
+        if clip is not None:
+            rec["clip"] = clip
+        if time is not None:
+            rec["time"] = float(time)
+        if extra:
+            rec.update(extra)
+        self.frames.append(rec)
+        return index
+
+    def set_split(self, name: str, indices) -> None:
+        idx = [int(i) for i in indices]
+        bad = [i for i in idx if not 0 <= i < len(self.frames)]
+        if bad:
+            raise MeshsplatError(f"split {name!r}: frame indices out of range: {bad[:5]}")
+        self.splits[name] = idx
+
+    def close(self) -> Path:
+        if not self.frames:
+            raise MeshsplatError("DatasetWriter: no frames were added")
+        np.savez(self.root / "canonical.npz", vertices=self.canonical, faces=self.faces)
+        np.save(self.root / "vertices.npy", np.stack(self.meshes).astype(np.float32))
+        splits = dict(self.splits)
+        splits.setdefault("train", list(range(len(self.frames))))
+        manifest = {
+            "format": FORMAT_NAME, "version": FORMAT_VERSION,
+            "canonical": "canonical.npz", "vertices": "vertices.npy",
+            "num_vertices": int(self.canonical.shape[0]), "num_faces": int(self.faces.shape[0]),
+            "cameras": self.cameras, "frames": self.frames, "splits": splits, "meta": self.meta,
+        }
+        if self.driver is not None:
+            manifest["driver"] = self.driver
+        tmp = self.root / "manifest.json.tmp"
+        tmp.write_text(json.dumps(manifest, indent=1))
+        os.replace(tmp, self.root / "manifest.json")
+        return self.root
+
+    def __enter__(self) -> "DatasetWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+
+
+def write_dataset(root, canonical_vertices, faces, cameras: dict, frames: list[dict],
+                  splits: dict | None = None, overwrite: bool = False, meta: dict | None = None) -> Path:
+    """One-call writer. ``cameras``: id -> dict(K, viewmat, width, height); ``frames``: dicts with
+    ``image``, ``camera_id``, ``vertices`` and optional ``mask``, ``name``, ``clip``, ``time``."""
+    w = DatasetWriter(root, canonical_vertices, faces, overwrite=overwrite, meta=meta)
+    for cid, cam in cameras.items():
+        w.add_camera(cid, cam["K"], cam["viewmat"], cam["width"], cam["height"])
+    for fr in frames:
+        w.add_frame(fr["image"], fr["camera_id"], vertices=fr.get("vertices"), mesh=fr.get("mesh"),
+                    mask=fr.get("mask"), name=fr.get("name"), clip=fr.get("clip"), time=fr.get("time"))
+    for k, v in (splits or {}).items():
+        w.set_split(k, v)
+    return w.close()

@@ -1,0 +1,132 @@
+"""Blendshape driver: neutral + weighted expression deltas + rigid head pose.
+
+``posed = R @ (neutral + sum_i w_i * delta_i - pivot) + pivot + t`` with ``pivot`` the neutral's
+bounding-box centre. Loads the ICT FaceKit ARKit npz (keys: neutral, faces, expr_names, expr_deltas).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat._checks import check_tensor
+from meshsplat.drivers.base import as_faces, as_vertices
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["BlendshapeDriver", "axis_angle_to_matrix"]
+
+
+def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: ``aa [...,3]`` -> ``[...,3,3]``."""
+    theta = aa.norm(dim=-1, keepdim=True)
+    k = aa / theta.clamp_min(1e-12)
+    kx, ky, kz = k.unbind(-1)
+    z = torch.zeros_like(kx)
+    Kx = torch.stack([z, -kz, ky, kz, z, -kx, -ky, kx, z], -1).reshape(aa.shape[:-1] + (3, 3))
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(Kx)
+    return eye + s * Kx + (1 - c) * (Kx @ Kx)
+
+
+class BlendshapeDriver:
+    """Linear blendshape model with a per-frame rigid pose.
+
+    Args: ``neutral [V,3]``, ``faces [F,3]``, ``deltas [E,V,3]``, ``names`` (E), and a sequence:
+    ``weights [T,E]``, ``rotations [T,3]`` (axis-angle, radians), ``translations [T,3]`` (each optional;
+    T taken from whichever is given, default 1 neutral frame).
+    """
+
+    def __init__(self, neutral, faces, deltas, names=None, weights=None, rotations=None, translations=None,
+                 face_material=None, material_names=None):
+        self.neutral = as_vertices("neutral", neutral)
+        dims = {"V": self.neutral.shape[0]}
+        d = deltas if isinstance(deltas, torch.Tensor) else torch.from_numpy(np.asarray(deltas, np.float32))
+        self.deltas = check_tensor("deltas", d.float(), "E,V,3", dims, finite=True)
+        self.faces = as_faces("faces", faces, self.neutral.shape[0])
+        self.names = list(names) if names is not None else [f"e{i}" for i in range(self.deltas.shape[0])]
+        self.face_material = None if face_material is None else torch.as_tensor(np.asarray(face_material)).long()
+        self.material_names = list(material_names) if material_names is not None else []
+        self.pivot = (self.neutral.min(0).values + self.neutral.max(0).values) / 2
+        self.set_sequence(weights, rotations, translations)
+
+    @classmethod
+    def from_npz(cls, path=None, **sequence) -> "BlendshapeDriver":
+        """Load the ICT FaceKit npz (default: shared asset ``ict_facekit/ict_face_arkit53.npz``)."""
+        if path is None:
+            from meshsplat.paths import asset
+
+            path = asset("ict_facekit/ict_face_arkit53.npz")
+        p = Path(path)
+        if not p.is_file():
+            raise MeshsplatError(f"blendshape file not found: {p}")
+        with np.load(p) as z:
+            missing = [k for k in ("neutral", "faces", "expr_deltas") if k not in z]
+            if missing:
+                raise MeshsplatError(f"{p}: missing keys {missing}")
+            return cls(z["neutral"], z["faces"].astype(np.int64), z["expr_deltas"].astype(np.float32),
+                       names=[str(s) for s in z["expr_names"]] if "expr_names" in z else None,
+                       face_material=z["face_material"] if "face_material" in z else None,
+                       material_names=[str(s) for s in z["material_names"]] if "material_names" in z else None,
+                       **sequence)
+
+    def set_sequence(self, weights=None, rotations=None, translations=None) -> None:
+        e = self.deltas.shape[0]
+        lens = [len(x) for x in (weights, rotations, translations) if x is not None]
+        t = lens[0] if lens else 1
+        dims = {"T": t, "E": e}
+        as_t = lambda x: x.float() if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, np.float32))  # noqa: E731
+        self.weights = check_tensor("weights", as_t(weights), "T,E", dims, finite=True) if weights is not None \
+            else torch.zeros(t, e)
+        self.rotations = check_tensor("rotations", as_t(rotations), "T,3", dims, finite=True) if rotations is not None \
+            else torch.zeros(t, 3)
+        self.translations = check_tensor("translations", as_t(translations), "T,3", dims, finite=True) \
+            if translations is not None else torch.zeros(t, 3)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.weights.shape[0])
+
+    def rest_vertices(self) -> torch.Tensor:
+        return self.neutral.clone()
+
+    def pose(self, weights, rotation=None, translation=None) -> torch.Tensor:
+        """Vertices ``[V,3]`` for ``weights [E]``, axis-angle ``rotation [3]``, ``translation [3]``."""
+        w = check_tensor("weights", torch.as_tensor(weights, dtype=torch.float32), "E", {"E": self.deltas.shape[0]})
+        v = self.neutral + torch.einsum("e,evc->vc", w, self.deltas)
+        if rotation is not None:
+            R = axis_angle_to_matrix(torch.as_tensor(rotation, dtype=torch.float32).reshape(3))
+            v = (v - self.pivot) @ R.T + self.pivot
+        if translation is not None:
+            v = v + torch.as_tensor(translation, dtype=torch.float32).reshape(3)
+        return v
+
+    def vertices(self, frame: int) -> torch.Tensor:
+        if not 0 <= frame < self.num_frames:
+            raise MeshsplatError(f"frame: expected 0 <= frame < {self.num_frames}, got {frame}")
+        return self.pose(self.weights[frame], self.rotations[frame], self.translations[frame])
+
+    def talking_params(self, times) -> tuple[torch.Tensor, torch.Tensor]:
+        """Deterministic procedural talking curves at ``times [T]`` seconds: ``(weights [T,E], rotations [T,3])``
+        (jaw, smile, brow and blink curves; a gentle head sway)."""
+        t = np.asarray(times, np.float64).reshape(-1)
+        w = np.zeros((len(t), self.deltas.shape[0]), np.float32)
+        blink = np.clip(1 - np.abs((t % 3.1) - 1.5) / 0.12, 0, 1)
+        curves = {"jawOpen": 0.35 * (1 - np.cos(2 * math.pi * 1.3 * t)) / 2,
+                  "mouthSmile_L": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t)) / 2,
+                  "mouthSmile_R": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t + 0.3)) / 2,
+                  "browInnerUp_L": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
+                  "browInnerUp_R": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
+                  "eyeBlink_L": blink, "eyeBlink_R": blink}
+        for name, c in curves.items():
+            if name in self.names:
+                w[:, self.names.index(name)] = c
+        rot = np.stack([0.12 * np.sin(2 * math.pi * 0.25 * t + 0.7), 0.35 * np.sin(2 * math.pi * 0.15 * t + 1.9),
+                        0.06 * np.sin(2 * math.pi * 0.2 * t + 4.0)], 1).astype(np.float32)
+        return torch.from_numpy(w), torch.from_numpy(rot)
+
+    def talking_sequence(self, num_frames: int, fps: float = 25.0) -> None:
+        """Set ``num_frames`` frames of :meth:`talking_params` sampled at ``fps``."""
+        w, rot = self.talking_params(np.arange(num_frames) / fps)
+        self.set_sequence(w, rot, torch.zeros(num_frames, 3))

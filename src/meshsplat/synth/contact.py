@@ -1,0 +1,36 @@
+"""Contact sheet: a grid of sample frames (image row over mask row) from a dataset."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["contact_sheet"]
+
+
+def contact_sheet(dataset, out_png, indices=None, count: int = 8, tile: int = 128) -> Path:
+    """Save a PNG grid: for each chosen frame its image (top) and mask (bottom), ``tile`` px each."""
+    from PIL import Image
+
+    from meshsplat.data import open_dataset
+
+    ds = open_dataset(dataset, check_masks=False) if not hasattr(ds_attr := dataset, "split") else ds_attr
+    if indices is None:
+        indices = np.linspace(0, len(ds) - 1, min(count, len(ds))).round().astype(int).tolist()
+    cols = []
+    for i in indices:
+        fr = ds[int(i)]
+        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize((tile, tile), Image.BILINEAR)
+        m = fr.mask if fr.mask is not None else fr.image.mean(-1, keepdim=True) * 0
+        msk = Image.fromarray((m[..., 0].numpy() * 255).round().astype(np.uint8)).convert("RGB").resize((tile, tile))
+        col = Image.new("RGB", (tile, 2 * tile))
+        col.paste(img, (0, 0))
+        col.paste(msk, (0, tile))
+        cols.append(col)
+    sheet = Image.new("RGB", (tile * len(cols) + 2 * (len(cols) - 1), 2 * tile), (255, 255, 255))
+    for k, c in enumerate(cols):
+        sheet.paste(c, (k * (tile + 2), 0))
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out, optimize=True)
+    return out

@@ -1,0 +1,281 @@
+"""Ground-truth generator: renders an animated textured mesh into a dataset in the native format.
+
+Rigs: ``monocular-turn`` (one fixed camera, subject turning about the vertical axis while it
+animates, like PeopleSnapshot), ``orbit`` (camera circles a non-turning subject) and ``multiview``
+(fixed ring of cameras). Splits: ``train``; ``test_frames`` (the last ``1 - train_fraction`` of the
+clip); ``test_views`` (cameras never used for training); ``test_clip`` (other clips, novel poses).
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat.data.writer import DatasetWriter
+from meshsplat.errors import MeshsplatError
+from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
+from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
+from meshsplat.synth.rigs import intrinsics, look_at, orbit_position, yaw_matrix
+from meshsplat.synth.sources import load_source
+
+__all__ = ["generate", "render_view", "RIGS", "Shot"]
+
+RIGS = ("monocular-turn", "orbit", "multiview")
+_LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
+
+
+@dataclass
+class Shot:
+    """One frame to render: pose (clip, time, subject yaw) seen by a camera, in a split."""
+
+    clip: str | None
+    time: float
+    yaw: float
+    camera: str
+    split: str
+
+
+def render_view(source, verts: torch.Tensor, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                weld_group: torch.Tensor | None = None, background=(0.0, 0.0, 0.0), supersample: int = 2,
+                light_dir=_LIGHT, ambient: float = 0.4) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render ``verts [V,3]`` (world) of ``source``: returns ``(rgb [H,W,3], alpha [H,W,1])`` in [0,1]."""
+    s = int(supersample)
+    R = torch.from_numpy(viewmat[:3, :3]).float()
+    t = torch.from_numpy(viewmat[:3, 3]).float()
+    Ks = torch.from_numpy(K).float().clone()
+    Ks[:2] *= s
+    vc = verts @ R.T + t
+    faces = source.faces
+    frags = rasterize_triangles(vc, faces, Ks, width * s, height * s)
+    m = frags.mask
+    fid = frags.face[m]
+    bary = frags.bary[m]
+    fv = faces[fid]
+
+    def interp(attr):
+        return (bary[..., None] * attr[fv]).sum(1)
+
+    albedo = interp(source.vertex_colors)
+    mat = source.face_material[fid]
+    uv = None
+    for mi, (base, tex) in enumerate(source.materials):
+        sel = mat == mi
+        if not bool(sel.any()):
+            continue
+        col = base.expand(int(sel.sum()), 3)
+        if tex is not None:
+            if uv is None:
+                uv = interp(source.uvs)
+            col = col * sample_texture(tex, uv[sel])
+        albedo[sel] = albedo[sel] * col
+    normals = vertex_normals(verts, faces, weld_group) @ R.T
+    n = interp(normals)
+    pos = interp(vc)
+    light = torch.from_numpy(viewmat[:3, :3] @ np.asarray(light_dir, np.float64)).float()
+    rgb_fg = lambert(albedo, n, pos, light, ambient=ambient, diffuse=1.0 - ambient)
+    hs, ws = height * s, width * s
+    rgb = torch.tensor(background, dtype=torch.float32).expand(hs, ws, 3).clone()
+    rgb[m] = rgb_fg
+    alpha = m.float()[..., None]
+    if s > 1:
+        rgb = rgb.view(height, s, width, s, 3).mean((1, 3))
+        alpha = alpha.view(height, s, width, s, 1).mean((1, 3))
+    return rgb, alpha
+
+
+def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames: int, views: int, n_test_views: int,
+          turns: float) -> tuple[list[Shot], dict]:
+    """Shots and camera placements (azimuth, elevation) per camera id."""
+    train_clip, (t0, t1), t_split = clips["train"]
+    tests = clips["tests"]
+    shots: list[Shot] = []
+    cams: dict[str, tuple[float, float]] = {}
+    train_times = [t0 + (t_split - t0) * i / frames for i in range(frames)]
+    test_times = [t_split + (t1 - t_split) * (j + 0.5) / test_frames for j in range(test_frames)] if t1 > t_split else []
+    view_elev = [math.radians(35), math.radians(-12), math.radians(60), math.radians(20)]
+    pick = np.linspace(0, frames - 1, test_view_frames).round().astype(int) if test_view_frames else []
+    if rig == "monocular-turn":
+        cams["0"] = (0.0, math.radians(5))
+        yaw = lambda k, n: 2 * math.pi * turns * k / n  # noqa: E731
+        shots += [Shot(train_clip, tt, yaw(i, frames), "0", "train") for i, tt in enumerate(train_times)]
+        shots += [Shot(train_clip, tt, yaw(j + 0.5, len(test_times)), "0", "test_frames") for j, tt in enumerate(test_times)]
+        for v in range(n_test_views):
+            cid = f"view{v + 1}"
+            cams[cid] = (math.radians(25) * (v + 1), view_elev[v % len(view_elev)])
+            shots += [Shot(train_clip, train_times[i], yaw(i, frames), cid, "test_views") for i in pick]
+        for c, (a, b) in tests:
+            shots += [Shot(c, a + (b - a) * (j + 0.5) / test_frames, yaw(j + 0.25, test_frames), "0", "test_clip")
+                      for j in range(test_frames)]
+    elif rig == "orbit":
+        for i, tt in enumerate(train_times):
+            cams[f"orbit{i:03d}"] = (2 * math.pi * i / frames, math.radians(8))
+            shots.append(Shot(train_clip, tt, 0.0, f"orbit{i:03d}", "train"))
+        for j, tt in enumerate(test_times):
+            cams[f"testf{j:03d}"] = (2 * math.pi * (j + 0.5) / len(test_times), math.radians(8))
+            shots.append(Shot(train_clip, tt, 0.0, f"testf{j:03d}", "test_frames"))
+        for v in range(n_test_views):
+            for k, i in enumerate(pick):
+                cid = f"view{v + 1}_{k:03d}"
+                cams[cid] = (2 * math.pi * (i + 0.5) / frames, view_elev[v % len(view_elev)])
+                shots.append(Shot(train_clip, train_times[i], 0.0, cid, "test_views"))
+        for c, (a, b) in tests:
+            for j in range(test_frames):
+                cid = f"clip_{c}_{j:03d}"
+                cams[cid] = (2 * math.pi * (j + 0.25) / test_frames, math.radians(8))
+                shots.append(Shot(c, a + (b - a) * (j + 0.5) / test_frames, 0.0, cid, "test_clip"))
+    elif rig == "multiview":
+        if views < 2 or n_test_views >= views:
+            raise MeshsplatError(f"views: multiview needs views >= 2 and more views than test views, got {views}")
+        held = set(np.linspace(0, views - 1, n_test_views + 2).round().astype(int)[1:-1].tolist()) if n_test_views else set()
+        for c in range(views):
+            cams[f"cam{c:02d}"] = (2 * math.pi * c / views, math.radians(5 if c % 2 == 0 else 25))
+        for c in range(views):
+            cid = f"cam{c:02d}"
+            if c in held:
+                shots += [Shot(train_clip, train_times[i], 0.0, cid, "test_views") for i in pick]
+                continue
+            shots += [Shot(train_clip, tt, 0.0, cid, "train") for tt in train_times]
+            shots += [Shot(train_clip, tt, 0.0, cid, "test_frames") for tt in test_times]
+            shots += [Shot(c_, a + (b - a) * (j + 0.5) / test_frames, 0.0, cid, "test_clip")
+                      for c_, (a, b) in tests for j in range(test_frames)]
+    else:
+        raise MeshsplatError(f"rig: expected one of {RIGS}, got {rig!r}")
+    return shots, cams
+
+
+def _driving_mesh(source, smooth: int, decimate: float | None):
+    """Weld seams, then optionally Taubin-smooth and/or decimate; returns (driving source, render weld group)."""
+    rest = source.rest().numpy().astype(np.float64)
+    faces = source.faces.numpy()
+    clip = source.clips[0]
+    a, b = source.time_range(clip)
+    probes = [rest] + [source.pose(clip, a + (b - a) * f).numpy().astype(np.float64) for f in (0.3, 0.7)]
+    tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    group, rep, wfaces = weld(probes, faces, tol)
+    wrest = rest[rep]
+    if decimate is not None and decimate < 1.0:
+        wrest, wfaces, near = cluster_decimate(wrest, wfaces, decimate)
+        rep = rep[near]
+    if smooth > 0:
+        wrest = taubin_smooth(wrest, wfaces, smooth)
+    changed = smooth > 0 or (decimate is not None and decimate < 1.0)
+    drive = source.derive(rep, wfaces, wrest if changed else None)
+    return drive, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
+
+
+def _default_clips(source, clip, test_clips, train_fraction):
+    names = [c for c in source.clips if c is not None]
+    if clip is None:
+        clip = "Walking" if "Walking" in names else (names[0] if names else None)
+    elif clip not in names:
+        raise MeshsplatError(f"clip: {clip!r} not in {names}")
+    if test_clips is None:
+        test_clips = [c for c in ("Wave", "Dance") if c in names and c != clip]
+    for c in test_clips:
+        if c not in names:
+            raise MeshsplatError(f"test clip {c!r} not in {names}")
+    t0, t1 = source.time_range(clip)
+    if not 0 < train_fraction <= 1:
+        raise MeshsplatError(f"train_fraction: expected in (0, 1], got {train_fraction}")
+    return {"train": (clip, (t0, t1), t0 + (t1 - t0) * train_fraction),
+            "tests": [(c, source.time_range(c)) for c in test_clips]}
+
+
+def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, resolution: int = 256,
+             clip: str | None = None, test_clips: list[str] | None = None, train_fraction: float = 0.7,
+             test_frames: int | None = None, test_views: int = 2, test_view_frames: int | None = None,
+             views: int = 8, turns: float = 1.0, driver_smooth: int = 0, driver_decimate: float | None = None,
+             supersample: int | None = None, background=(0.0, 0.0, 0.0), fov_deg: float = 30.0,
+             overwrite: bool = False, progress: bool = False, threads: int | None = 1) -> Path:
+    """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
+
+    ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
+    per test clip and for the held-out end of the clip; ``test_views`` extra cameras seeing
+    ``test_view_frames`` (default frames//8) training poses. ``driver_smooth`` Taubin iterations and
+    ``driver_decimate`` vertex ratio make the stored driving mesh differ from the rendered surface.
+    ``supersample`` (default 2 up to 384 px, else 1) anti-aliases images and masks. ``threads``: torch
+    CPU threads while rendering (1 is fastest for these small kernels on a busy machine; None = keep).
+    Returns the dataset folder.
+    """
+    old_threads = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    try:
+        return _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames,
+                         test_views, test_view_frames, views, turns, driver_smooth, driver_decimate,
+                         supersample if supersample else (2 if resolution <= 384 else 1), background, fov_deg,
+                         overwrite, progress)
+    finally:
+        torch.set_num_threads(old_threads)
+
+
+def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames, test_views,
+              test_view_frames, views, turns, driver_smooth, driver_decimate, supersample, background, fov_deg,
+              overwrite, progress) -> Path:
+    if frames < 1 or resolution < 8:
+        raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
+    t_start = _time.perf_counter()
+    source = load_source(asset)
+    clips = _default_clips(source, clip, test_clips, train_fraction)
+    n_test = test_frames if test_frames is not None else max(2, frames // 4)
+    n_tv = test_view_frames if test_view_frames is not None else max(2, frames // 8)
+    shots, cams = _plan(rig, clips, frames, n_test, min(n_tv, frames), views, test_views, turns)
+
+    drive, weld_group = _driving_mesh(source, int(driver_smooth), driver_decimate)
+    poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+    for s in shots:
+        key = (s.clip, round(s.time, 9))
+        if key not in poses:
+            poses[key] = (source.pose(s.clip, s.time), drive.pose(s.clip, s.time))
+    allv = torch.cat([p[0] for p in poses.values()]).numpy().astype(np.float64)
+    lo, hi = allv.min(0), allv.max(0)
+    pivot = np.array([(lo[0] + hi[0]) / 2, 0.0, (lo[2] + hi[2]) / 2])
+    center = np.array([pivot[0], (lo[1] + hi[1]) / 2, pivot[2]])
+    half_h = (hi[1] - lo[1]) / 2
+    radius = float(np.linalg.norm((allv - pivot)[:, [0, 2]], axis=1).max())
+    half_fov = math.radians(fov_deg) / 2
+    distance = 1.1 * max(half_h, radius) / math.tan(half_fov) + 0.5 * radius
+    K = intrinsics(resolution, resolution, fov_deg)
+    viewmats = {cid: look_at(orbit_position(center, distance, az, el), center) for cid, (az, el) in cams.items()}
+
+    def place(v: torch.Tensor, yaw: float) -> torch.Tensor:
+        if yaw == 0.0:
+            return v
+        Ry = torch.from_numpy(yaw_matrix(yaw)).float()
+        p = torch.from_numpy(pivot).float()
+        return (v - p) @ Ry.T + p
+
+    out = Path(out_dir)
+    meta = {"generator": "meshsplat.synth", "asset": str(asset), "rig": rig, "resolution": resolution,
+            "train_clip": clips["train"][0], "train_time_range": [clips["train"][1][0], clips["train"][2]],
+            "test_clips": [c for c, _ in clips["tests"]], "driver_smooth": int(driver_smooth),
+            "driver_decimate": driver_decimate, "render_vertices": int(source.rest().shape[0]),
+            "driver_vertices": int(drive.rest().shape[0]), "light_dir": _LIGHT.tolist(), "fov_deg": fov_deg,
+            "background": list(background), "up": [0, 1, 0], "attribution": getattr(source, "attribution", "")}
+    writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta)
+    for cid in cams:
+        writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
+    splits: dict[str, list[int]] = {}
+    mesh_ids: dict[tuple, int] = {}
+    for k, s in enumerate(shots):
+        rv, dv = poses[(s.clip, round(s.time, 9))]
+        mkey = (s.clip, round(s.time, 9), round(s.yaw, 9))
+        if mkey not in mesh_ids:
+            mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
+        rgb, alpha = render_view(source, place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution,
+                                 weld_group, background, supersample)
+        if float(alpha.max()) == 0.0:
+            raise MeshsplatError(f"shot {k} ({s.split}, camera {s.camera}): subject not visible")
+        idx = writer.add_frame(rgb, s.camera, mesh=mesh_ids[mkey], mask=alpha, clip=s.clip, time=s.time,
+                               extra={"yaw": s.yaw, "split": s.split})
+        splits.setdefault(s.split, []).append(idx)
+        if progress and (k + 1) % 20 == 0:
+            print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
+    for name, idx in splits.items():
+        writer.set_split(name, idx)
+    writer.meta["seconds"] = round(_time.perf_counter() - t_start, 2)
+    return writer.close()

@@ -1,0 +1,139 @@
+"""Animated, coloured surfaces the generator renders: glTF assets and the ICT blendshape head.
+
+A source exposes ``faces [F,3]``, ``clips``, ``time_range(clip)``, ``pose(clip, time) -> [V,3]``,
+``rest() -> [V,3]``, surface colour data (``uvs``, ``vertex_colors``, ``face_material``,
+``materials`` as (base rgb [3], texture [Ht,Wt,3] float or None)) and ``derive(src, faces, rest)``
+giving a re-skinned driving mesh with the same ``pose``/``rest``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat.drivers.blendshape import BlendshapeDriver
+from meshsplat.drivers.gltf import GltfDriver
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["GltfSource", "BlendshapeSource", "load_source"]
+
+
+class GltfSource:
+    attribution = ""
+
+    def __init__(self, driver: GltfDriver):
+        self.driver = driver
+        self.faces = driver.faces
+        self.uvs = driver.uvs
+        self.vertex_colors = driver.vertex_colors[:, :3]
+        self.face_material = driver.face_material
+        self.materials = [(torch.from_numpy(m.base_color[:3].astype(np.float32)),
+                           None if m.texture is None else torch.from_numpy(m.texture[..., :3]).float() / 255.0)
+                          for m in driver.materials]
+        self.clips = driver.clips or [None]
+
+    def time_range(self, clip):
+        return self.driver.time_range(clip) if clip is not None else (0.0, 0.0)
+
+    def pose(self, clip, time) -> torch.Tensor:
+        return self.driver.vertices_at(time, clip) if clip is not None else self.driver.rest_vertices()
+
+    def rest(self) -> torch.Tensor:
+        return self.driver.rest_vertices()
+
+    def derive(self, src, faces, rest=None) -> "GltfSource":
+        return GltfSource(self.driver.derive(src, faces, rest))
+
+
+class BlendshapeSource:
+    """ICT head with a procedural talking clip ``"talk"`` and a procedural skin texture."""
+
+    attribution = "ICT FaceKit head (MIT, (c) 2020 USC Institute for Creative Technologies)"
+    _HIDDEN = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")  # transparent shells in ICT
+    _COLORS = {"M_EyeLashes": (0.08, 0.06, 0.05), "M_GumsTongue": (0.75, 0.35, 0.35), "M_IrisLeft": (0.25, 0.35, 0.55),
+               "M_IrisRight": (0.25, 0.35, 0.55), "M_ScleraLeft": (0.92, 0.9, 0.88), "M_ScleraRight": (0.92, 0.9, 0.88),
+               "M_Teeth": (0.93, 0.9, 0.82)}
+
+    def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep=None):
+        self.driver = driver
+        self.duration = duration
+        faces = driver.faces
+        names = driver.material_names
+        fm = driver.face_material if driver.face_material is not None else torch.zeros(len(faces), dtype=torch.long)
+        if keep is None:
+            hidden = [i for i, n in enumerate(names) if n in self._HIDDEN]
+            keep = ~torch.isin(fm, torch.tensor(hidden, dtype=torch.long))
+        self.faces = faces[keep]
+        self.face_material = fm[keep]
+        self.materials = [(torch.tensor(self._COLORS.get(n, (1.0, 1.0, 1.0))), None) for n in (names or ["skin"])]
+        rest = driver.neutral
+        self.uvs = torch.zeros(rest.shape[0], 2)
+        self.vertex_colors = self._skin_texture(rest)
+        self.clips = ["talk"]
+
+    @staticmethod
+    def _skin_texture(rest: torch.Tensor) -> torch.Tensor:
+        """Procedural skin: a warm tone with smooth blotches and fine stripes fixed to the rest surface."""
+        p = (rest - rest.mean(0)) / (rest.max(0).values - rest.min(0).values).max()
+        base = torch.tensor([0.85, 0.62, 0.50])
+        blotch = torch.sin(9 * p[:, 0] + 2) * torch.sin(7 * p[:, 1] + 1) * torch.sin(8 * p[:, 2])
+        fine = torch.sin(60 * p[:, 1]) * torch.sin(45 * p[:, 0] + 20 * p[:, 2])
+        shade = 1 + 0.12 * blotch[:, None] + 0.06 * fine[:, None]
+        return (base * shade * torch.tensor([1.0, 0.97, 0.95])).clamp(0, 1)
+
+    def time_range(self, clip):
+        return 0.0, self.duration
+
+    def pose(self, clip, time) -> torch.Tensor:
+        w, rot = self.driver.talking_params([time])
+        return self.driver.pose(w[0], rot[0])
+
+    def rest(self) -> torch.Tensor:
+        return self.driver.neutral.clone()
+
+    def derive(self, src, faces, rest=None) -> "BlendshapeSource":
+        src_t = torch.as_tensor(np.asarray(src), dtype=torch.long)
+        d = self.driver
+        neutral = d.neutral[src_t] if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32)
+        new = BlendshapeDriver(neutral, np.asarray(faces), d.deltas[:, src_t], names=d.names)
+        new.pivot = d.pivot.clone()
+        out = BlendshapeSource.__new__(BlendshapeSource)
+        out.driver, out.duration, out.clips = new, self.duration, self.clips
+        out.faces = new.faces
+        out.face_material = torch.zeros(len(new.faces), dtype=torch.long)
+        out.materials, out.uvs, out.vertex_colors = self.materials[:1], self.uvs[src_t], self.vertex_colors[src_t]
+        return out
+
+
+_ATTRIBUTION = {
+    "cesiumman": "CesiumMan (CC-BY 4.0, (c) 2017 Cesium; Khronos glTF sample model)",
+    "robotexpressive": "RobotExpressive (CC0 1.0, Tomas Laulhe / Quaternius; morph targets Don McCurdy)",
+    "riggedsimple": "RiggedSimple (CC-BY 4.0, Khronos glTF sample model)",
+}
+
+
+def load_source(asset):
+    """Load ``asset``: a .glb/.gltf path, an .npz blendshape file, or a shared-asset name
+    (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``)."""
+    from meshsplat.paths import asset as shared_asset
+
+    p = Path(asset)
+    if not p.exists():
+        key = str(asset).lower()
+        if key in ("ict", "ict_face", "ict_facekit"):
+            p = shared_asset("ict_facekit/ict_face_arkit53.npz")
+        else:
+            names = {"cesiumman": "CesiumMan", "robotexpressive": "RobotExpressive", "riggedsimple": "RiggedSimple"}
+            stem = names.get(Path(key).stem)
+            if stem is None:
+                raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path or one of "
+                                     "CesiumMan, RobotExpressive, RiggedSimple, ict)")
+            p = shared_asset(f"gltf/{stem}.glb")
+    if p.suffix.lower() == ".npz":
+        return BlendshapeSource(BlendshapeDriver.from_npz(p))
+    if p.suffix.lower() not in (".glb", ".gltf"):
+        raise MeshsplatError(f"asset: expected a .glb, .gltf or .npz file, got {p}")
+    src = GltfSource(GltfDriver(p))
+    src.attribution = _ATTRIBUTION.get(p.stem.lower(), "")
+    return src

@@ -1,0 +1,118 @@
+"""Ground-truth generator: rasterizer correctness, driving meshes, a small end-to-end run."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from meshsplat.cli.main import main as cli_main
+from meshsplat.data import open_dataset
+from meshsplat.synth import generate, rasterize_triangles
+from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
+from meshsplat.synth.raster import sample_texture
+from meshsplat.synth.rigs import look_at
+
+K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
+
+
+def test_zbuffer_two_overlapping_triangles():
+    # a big far triangle (z=4) and a small near one (z=2) drawn first / last in both orders
+    far = [[-3, -3, 4], [3, -3, 4], [0, 3, 4]]
+    near = [[-0.5, -0.5, 2], [0.5, -0.5, 2], [0, 0.5, 2]]
+    for order in ([far, near], [near, far]):
+        verts = torch.tensor(order[0] + order[1], dtype=torch.float32)
+        faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
+        fr = rasterize_triangles(verts, faces, K, 64, 64)
+        near_id = 0 if order[0] is near else 1
+        centre = fr.face[32, 32]
+        assert int(centre) == near_id and abs(float(fr.depth[32, 32]) - 2.0) < 1e-5
+        # a pixel covered only by the far triangle
+        assert int(fr.face[32, 45]) == 1 - near_id and abs(float(fr.depth[32, 45]) - 4.0) < 1e-4
+        assert int(fr.face[63, 0]) == -1 and torch.isinf(fr.depth[63, 0])
+        # near triangle area in pixels ~ (50 * 1 / 2)^2 / 2
+        assert abs(int((fr.face == near_id).sum()) - 312.5) < 30  # edge rows on pixel centres count
+
+
+def test_perspective_correct_interpolation_analytic():
+    # a plane tilted in depth: z = 2 + y, x in [-1, 1], y in [-1, 1]; attribute = world y
+    verts = torch.tensor([[-1, -1, 1], [1, -1, 1], [1, 1, 3], [-1, 1, 3]], dtype=torch.float32)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    fr = rasterize_triangles(verts, faces, K, 64, 64)
+    m = fr.mask
+    ys = (fr.bary[m][..., None] * verts[faces[fr.face[m]]]).sum(1)[:, 1]
+    # ray through pixel centre: y/z = (py + 0.5 - cy) / f; on the plane z = 2 + y  =>  y = 2 r / (1 - r)
+    py = torch.nonzero(m)[:, 0].float()
+    r = (py + 0.5 - 32) / 50
+    expected = 2 * r / (1 - r)
+    assert float((ys - expected).abs().max()) < 1e-4
+    # depth is the true camera z
+    assert float((fr.depth[m] - (2 + expected)).abs().max()) < 1e-4
+    # screen-space (affine) interpolation would be visibly wrong here
+    assert float((expected - (r * 0 + ys.mean())).abs().max()) > 0.1
+
+
+def test_texture_bilinear_and_wrap():
+    tex = torch.tensor([[[0.0], [1.0]], [[2.0], [3.0]]])  # 2x2
+    got = sample_texture(tex, torch.tensor([[0.25, 0.25], [0.5, 0.25], [0.5, 0.5], [1.25, 0.25]]))
+    torch.testing.assert_close(got[:, 0], torch.tensor([0.0, 0.5, 1.5, 0.0]))
+
+
+def test_look_at_is_opencv():
+    vm = look_at([0, 0, 5], [0, 0, 0])
+    p = vm @ np.array([1.0, 1.0, 0, 1])  # world +x right, +y up
+    assert p[0] > 0 and p[1] < 0 and abs(p[2] - 5) < 1e-12
+    np.testing.assert_allclose(vm[:3, :3] @ vm[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_driving_mesh_helpers():
+    import trimesh
+
+    m = trimesh.creation.icosphere(3)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    dup = np.concatenate([v, v[:10]])
+    f2 = f.copy()
+    f2[f2 < 10] += len(v)  # faces use the duplicated copies
+    group, rep, wf = weld([dup], np.concatenate([f, f2[:5]]), 1e-9)
+    assert len(rep) == len(v) and wf.max() < len(v)
+    noisy = v + np.random.default_rng(0).normal(0, 0.02, v.shape)
+    s = taubin_smooth(noisy, f, 10)
+    assert np.linalg.norm(s, axis=1).std() < 0.5 * np.linalg.norm(noisy, axis=1).std()
+    assert abs(np.linalg.norm(s, axis=1).mean() - 1) < 0.02  # no shrinkage
+    nv, nf, near = cluster_decimate(v, f, 0.25)
+    assert 0.1 * len(v) < len(nv) < 0.4 * len(v) and nf.max() < len(nv) and len(near) == len(nv)
+
+
+@pytest.mark.slow
+def test_small_synth_round_trip(assets, tmp_path):
+    out = generate(assets / "gltf" / "CesiumMan.glb", tmp_path / "cm", frames=4, resolution=64, test_frames=2,
+                   test_views=1, test_view_frames=2)
+    ds = open_dataset(out)
+    assert {k: len(ds.split(k)) for k in ds.split_names} == {"train": 4, "test_frames": 2, "test_views": 2}
+    fr = ds[0]
+    assert fr.image.shape == (64, 64, 3) and fr.vertices.shape == ds.canonical_vertices.shape
+    fg = fr.mask[..., 0] > 0.5
+    assert 0.05 < float(fg.float().mean()) < 0.6
+    assert float(fr.image[~(fr.mask[..., 0] > 0)].abs().max()) == 0.0  # black background outside the mask
+    assert float(fr.image[fg].mean()) > 0.1
+    # upright: the head (max y) projects above the feet (min y)
+    v = fr.vertices
+    top, bottom = v[v[:, 1].argmax()], v[v[:, 1].argmin()]
+    pix = lambda p: (fr.K @ (fr.viewmat[:3, :3] @ p + fr.viewmat[:3, 3]))  # noqa: E731
+    assert (pix(top)[1] / pix(top)[2]) < (pix(bottom)[1] / pix(bottom)[2])
+    # the driving mesh projects inside the mask
+    proj = (fr.K @ (v @ fr.viewmat[:3, :3].T + fr.viewmat[:3, 3]).T).T
+    px = (proj[:, :2] / proj[:, 2:]).long().clamp(0, 63)
+    assert float(fr.mask[px[:, 1], px[:, 0], 0].gt(0).float().mean()) > 0.9
+    assert ds.meta["train_clip"] == "clip0" and "CesiumMan" in ds.meta["attribution"]
+
+
+@pytest.mark.slow
+def test_synth_cli_smoothed_decimated_driver(assets, tmp_path):
+    rc = cli_main(["synth", str(assets / "gltf" / "RiggedSimple.glb"), "--out", str(tmp_path / "rs"),
+                   "--frames", "3", "--resolution", "48", "--rig", "orbit", "--test-views", "1",
+                   "--driver-smooth", "3", "--driver-decimate", "0.5"])
+    assert rc == 0
+    ds = open_dataset(tmp_path / "rs")
+    assert ds.num_vertices < 0.6 * ds.meta["render_vertices"]
+    assert len({ds.frame_info(i)["camera"] for i in ds.split("train")}) == 3
+    assert cli_main(["synth", "nope.glb", "--out", str(tmp_path / "x")]) == 2
