@@ -1,0 +1,98 @@
+"""Benchmark walk_on_triangles: 100k embeddings on a ~10k-face closed mesh, three step sizes, both modes.
+
+Usage: python bench/walk.py [--quick] [--out bench/results/walk-<host>.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from meshsplat.embedding import sample_surface, walk_on_triangles
+from meshsplat.mesh import TriMesh
+
+
+def machine_info() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info = {"host": socket.gethostname(), "cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "python": platform.python_version()}
+    if torch.cuda.is_available():
+        info["cuda_device"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def bench_mesh(quick: bool) -> TriMesh:
+    """Closed, deformed UV sphere: 10,400 faces of mixed shape and size (quick: 1,200)."""
+    s = trimesh.creation.uv_sphere(count=[21, 31] if quick else [51, 51])
+    v = s.vertices * (1 + 0.15 * np.sin(3 * s.vertices[:, :1]) * np.cos(2 * s.vertices[:, 1:2]))
+    return TriMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(s.faces))
+
+
+def timed(fn, repeats: int, device: torch.device) -> list[float]:
+    out = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true", help="tiny run (smoke test)")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    n, repeats = (5000, 3) if args.quick else (100_000, 15)
+    mesh = bench_mesh(args.quick)
+    # mean edge length in barycentric units is ~1: steps of 0.1 stay inside, ~1 cross 1-2 edges, ~5 cross several
+    sizes = {"small (inside)": 0.1, "medium (1-2 edges)": 1.0, "large (several)": 5.0}
+    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
+    gen = torch.Generator().manual_seed(0)
+    face, uv = sample_surface(mesh.vertices, mesh.faces, n, generator=gen)
+    direction = torch.nn.functional.normalize(torch.randn(n, 2, generator=gen), dim=1)
+    rows = []
+    for dev in devices:
+        verts, f, u = mesh.vertices.to(dev), face.to(dev), uv.to(dev)
+        for mode in ("paper", "unfold"):
+            for label, size in sizes.items():
+                step = (direction * size * torch.rand(n, 1, generator=gen)).to(dev)
+                res = walk_on_triangles(mesh, verts, f, u, step, mode=mode)          # warm-up
+                times = timed(lambda: walk_on_triangles(mesh, verts, f, u, step, mode=mode), repeats, dev)
+                med = statistics.median(times)
+                rows.append({"device": dev.type, "mode": mode, "step": label, "step_size": size, "n": n,
+                             "faces": mesh.num_faces, "median_ms": med, "min_ms": min(times),
+                             "points_per_s": n / (med / 1e3), "changed_frac": float(res.changed.float().mean())})
+    print(f"walk_on_triangles: N={n}, F={mesh.num_faces}, repeats={repeats}")
+    print(f"{'device':6} {'mode':6} {'step':20} {'median ms':>10} {'Mpts/s':>8} {'changed':>8}")
+    for r in rows:
+        print(f"{r['device']:6} {r['mode']:6} {r['step']:20} {r['median_ms']:10.2f} "
+              f"{r['points_per_s'] / 1e6:8.2f} {r['changed_frac']:8.3f}")
+    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"walk-{socket.gethostname()}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"bench": "walk", "quick": args.quick, "machine": machine_info(), "rows": rows},
+                              indent=2))
+    print(f"saved {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""Differentiable per-face / per-vertex geometry, batched over leading dims.
+
+``verts`` is ``[..., V, 3]``, ``faces`` is ``[F, 3]`` long on the same device.
+Every normalization is eps-guarded, so degenerate (zero-area) faces give
+finite values and finite gradients, never NaN.
+"""
+from __future__ import annotations
+
+import torch
+
+from meshsplat.mesh.quaternion import matrix_to_quat, quat_normalize
+
+__all__ = [
+    "safe_normalize", "face_corners", "face_normals", "face_areas", "vertex_normals", "face_frames",
+    "face_rotations", "vertex_quaternions", "face_area_ratio", "degenerate_faces",
+]
+
+_EPS = 1e-12
+
+
+def safe_normalize(x: torch.Tensor, eps: float = _EPS) -> torch.Tensor:
+    """x / |x| along the last dim; zero vectors stay zero (finite gradient)."""
+    return x * torch.rsqrt((x * x).sum(-1, keepdim=True).clamp_min(eps * eps))
+
+
+def _safe_norm(x: torch.Tensor, eps: float = _EPS) -> torch.Tensor:
+    return (x * x).sum(-1).clamp_min(eps * eps).sqrt()
+
+
+def face_corners(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Corner positions ``a, b, c`` each ``[..., F, 3]``."""
+    return verts[..., faces[:, 0], :], verts[..., faces[:, 1], :], verts[..., faces[:, 2], :]
+
+
+def _face_cross(verts, faces):
+    a, b, c = face_corners(verts, faces)
+    return torch.linalg.cross(b - a, c - a, dim=-1)
+
+
+def face_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Unit face normals ``[..., F, 3]`` (zero for degenerate faces)."""
+    return safe_normalize(_face_cross(verts, faces))
+
+
+def face_areas(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Face areas ``[..., F]``."""
+    return 0.5 * _safe_norm(_face_cross(verts, faces))
+
+
+def _scatter_to_vertices(values: torch.Tensor, faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """values ``[..., F, 3, C]`` (per corner) -> summed per vertex ``[..., V, C]``."""
+    lead = values.shape[:-3]
+    c = values.shape[-1]
+    flat = values.reshape(-1, faces.shape[0] * 3, c)
+    out = flat.new_zeros(flat.shape[0], num_vertices, c)
+    out = out.index_add(1, faces.reshape(-1), flat)
+    return out.reshape(lead + (num_vertices, c))
+
+
+def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, weighting: str = "area") -> torch.Tensor:
+    """Unit vertex normals ``[..., V, 3]``, ``weighting`` "area" or "angle".
+
+    Vertices without (non-degenerate) faces get a zero normal.
+    """
+    cross = _face_cross(verts, faces)  # [..., F, 3], |cross| = 2 * area
+    if weighting == "area":
+        corner = cross.unsqueeze(-2).expand(cross.shape[:-1] + (3, 3))
+    elif weighting == "angle":
+        a, b, c = face_corners(verts, faces)
+        n = safe_normalize(cross)
+        angles = []
+        for p, q, r in ((a, b, c), (b, c, a), (c, a, b)):
+            e1, e2 = q - p, r - p
+            sin = _safe_norm(torch.linalg.cross(e1, e2, dim=-1))
+            angles.append(torch.atan2(sin, (e1 * e2).sum(-1)))
+        corner = torch.stack(angles, -1).unsqueeze(-1) * n.unsqueeze(-2)
+    else:
+        from meshsplat.errors import MeshsplatError
+
+        raise MeshsplatError(f"weighting: expected 'area' or 'angle', got {weighting!r}")
+    return safe_normalize(_scatter_to_vertices(corner, faces, verts.shape[-2]))
+
+
+def _frame_ok(verts, faces, rel: float = 1e-10) -> torch.Tensor:
+    """[..., F] True where a face is not degenerate (relative to its edge lengths)."""
+    a, b, c = face_corners(verts, faces)
+    e0, e2 = b - a, c - a
+    cross2 = (torch.linalg.cross(e0, e2, dim=-1) ** 2).sum(-1)
+    scale = (e0 * e0).sum(-1) * (e2 * e2).sum(-1)
+    return (cross2 > rel * scale) & (scale > 0)
+
+
+def face_frames(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Orthonormal frames ``[..., F, 3, 3]`` with columns (tangent, bitangent, normal).
+
+    tangent = normalized first edge (a -> b), normal = face normal, bitangent = n x t.
+    Degenerate faces get the identity frame.
+    """
+    a, b, c = face_corners(verts, faces)
+    t = safe_normalize(b - a)
+    n = safe_normalize(torch.linalg.cross(b - a, c - a, dim=-1))
+    bt = torch.linalg.cross(n, t, dim=-1)
+    frame = torch.stack([t, bt, n], dim=-1)
+    eye = torch.eye(3, dtype=frame.dtype, device=frame.device).expand_as(frame)
+    ok = _frame_ok(verts, faces)[..., None, None]
+    return torch.where(ok, frame, eye)
+
+
+def face_rotations(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Rotation ``[..., F, 3, 3]`` taking each canonical face frame to its posed frame."""
+    return face_frames(v_posed, faces) @ face_frames(v_cano, faces).transpose(-1, -2)
+
+
+def vertex_quaternions(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Per-vertex rotations ``[..., V, 4]`` (wxyz): area-weighted average of incident face quaternions.
+
+    Signs are aligned per vertex to the quaternion of its largest incident face
+    (posed area) before averaging; vertices with no usable face get identity.
+    """
+    q_face = matrix_to_quat(face_rotations(v_cano, v_posed, faces))           # [..., F, 4]
+    w_face = face_areas(v_posed, faces)                                        # [..., F]
+    lead = q_face.shape[:-2]
+    nf, nv = faces.shape[0], v_posed.shape[-2]
+    q = q_face.reshape(-1, nf, 4)
+    w = w_face.expand(lead + (nf,)).reshape(-1, nf)
+    bsz = q.shape[0]
+    vidx = faces.reshape(-1)                                                   # corner -> vertex
+    fidx = torch.arange(nf, device=faces.device).repeat_interleave(3)          # corner -> face
+    wc = w[:, fidx].detach()                                                   # [B, 3F]
+    # reference face per vertex: largest weight, ties -> largest face index
+    wmax = wc.new_full((bsz, nv), -1.0).scatter_reduce(1, vidx.expand(bsz, -1), wc, "amax")
+    is_max = wc >= wmax[:, vidx]
+    cand = torch.where(is_max, fidx.expand(bsz, -1), torch.full_like(wc, -1, dtype=torch.long))
+    ref_face = torch.full((bsz, nv), -1, dtype=torch.long, device=faces.device)
+    ref_face = ref_face.scatter_reduce(1, vidx.expand(bsz, -1), cand, "amax").clamp_min(0)
+    q_ref = torch.gather(q.detach(), 1, ref_face[..., None].expand(-1, -1, 4))   # [B, V, 4]
+    qc = q[:, fidx]                                                            # [B, 3F, 4]
+    sign = torch.where((qc.detach() * q_ref[:, vidx]).sum(-1) < 0, -1.0, 1.0).to(q.dtype)
+    contrib = (w[:, fidx] * sign)[..., None] * qc
+    acc = q.new_zeros(bsz, nv, 4).index_add(1, vidx, contrib)
+    norm2 = (acc * acc).sum(-1, keepdim=True)
+    ident = torch.zeros_like(acc)
+    ident[..., 0] = 1.0
+    out = torch.where(norm2 > 1e-30, quat_normalize(acc, eps=1e-15), ident)
+    return out.reshape(lead + (nv, 4))
+
+
+def face_area_ratio(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Posed / canonical face area ``[..., F]``; 1 where the canonical face is degenerate."""
+    a0 = face_areas(v_cano, faces)
+    a1 = face_areas(v_posed, faces)
+    ok = a0 > eps
+    return torch.where(ok, a1 / torch.where(ok, a0, torch.ones_like(a0)), torch.ones_like(a1))
+
+
+def degenerate_faces(verts: torch.Tensor, faces: torch.Tensor, rel: float = 1e-10) -> torch.Tensor:
+    """[F] bool: repeated vertex index or (near) zero area in any leading batch entry."""
+    bad = ~_frame_ok(verts.detach(), faces, rel)
+    while bad.ndim > 1:
+        bad = bad.any(0)
+    idx = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    return bad | idx
