@@ -1,0 +1,364 @@
+"""Render an avatar through any mesh animation to PNG frames and an MP4.
+
+    frames = gltf_animation(avatar, "walk.glb", clip="Walk", fps=25)        # list of [V,3]
+    cams = orbit_cameras(frames, 512, 512, orbit_deg=360)                   # auto-framed
+    render_animation(avatar, frames, cams, "out/", fps=25)                  # out/frames/*.png, out/animation.mp4
+
+Drivers whose mesh is not the avatar's canonical mesh vertex for vertex (e.g. the raw glTF of a
+synthetic dataset whose driving mesh had seams welded) are mapped by rest position (coincident
+vertices told apart by their triangles): every canonical vertex must coincide (within ``1e-5`` of
+the mesh size) with a driver vertex, or a clear error says so. Smoothed or decimated driving meshes
+cannot be matched this way: render them from a vertex sequence instead.
+Cameras follow the project convention (world->camera ``viewmat`` in OpenCV axes, world +y up).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from meshsplat._checks import check_tensor
+from meshsplat.errors import MeshsplatError
+
+__all__ = [
+    "Camera", "AnimationResult", "render_animation", "orbit_cameras", "dataset_camera",
+    "match_vertices", "gltf_animation", "blendshape_animation", "sequence_animation", "dataset_animation",
+]
+
+
+@dataclass
+class Camera:
+    """``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, image ``width`` x ``height``."""
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """Same view at another resolution (intrinsics scaled per axis)."""
+        K = self.K.clone()
+        K[0] *= width / self.width
+        K[1] *= height / self.height
+        K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
+        return Camera(self.viewmat, K, int(width), int(height))
+
+
+@dataclass
+class AnimationResult:
+    """``mp4`` path (None when it could not be written, see ``error``), ``pngs``, timing."""
+
+    mp4: Path | None
+    pngs: list[Path] = field(default_factory=list)
+    num_frames: int = 0
+    render_ms_mean: float = 0.0
+    error: str | None = None
+
+
+# ---------------------------------------------------------------- cameras
+def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, height: int, num_frames: int | None = None,
+                  orbit_deg: float = 0.0, azimuth_deg: float = 0.0, elevation_deg: float = 10.0,
+                  distance: float | None = None, fov_deg: float = 30.0, margin: float = 1.05) -> list[Camera]:
+    """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), +y up.
+
+    The camera turns ``orbit_deg`` in total about the vertical axis through the box centre over
+    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from +z, the glTF
+    front). ``distance`` defaults to fitting the box's bounding sphere (times ``margin``) in the view.
+    """
+    from meshsplat.synth.rigs import intrinsics, look_at, orbit_position
+
+    if width < 1 or height < 1:
+        raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
+    if not 1.0 <= fov_deg < 179.0:
+        raise MeshsplatError(f"fov_deg: expected in [1, 179), got {fov_deg}")
+    lo = hi = None
+    count = 0
+    for v in vertices:
+        v = v.detach().float().reshape(-1, 3)
+        lo = v.min(0).values if lo is None else torch.minimum(lo, v.min(0).values)
+        hi = v.max(0).values if hi is None else torch.maximum(hi, v.max(0).values)
+        count += 1
+    if count == 0:
+        raise MeshsplatError("vertices: no frames to frame the camera on")
+    n = count if num_frames is None else int(num_frames)
+    center = ((lo + hi) / 2).double().numpy()
+    radius = max(float((hi - lo).norm()) / 2, 1e-6)
+    K = intrinsics(width, height, fov_deg)
+    half = min(math.atan(0.5 * height / K[1, 1]), math.atan(0.5 * width / K[0, 0]))
+    dist = margin * radius / math.sin(half) if distance is None else float(distance)
+    if not dist > 0:
+        raise MeshsplatError(f"distance: expected > 0, got {distance}")
+    Kt = torch.from_numpy(K).float()
+    el = math.radians(elevation_deg)
+    cams = []
+    for i in range(n):
+        az = math.radians(azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0))
+        vm = look_at(orbit_position(center, dist, az, el), center)
+        cams.append(Camera(torch.from_numpy(vm).float(), Kt, int(width), int(height)))
+    return cams
+
+
+def dataset_camera(dataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
+    """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
+    if str(camera_id) not in dataset.camera_ids:
+        shown = ", ".join(dataset.camera_ids[:20]) + (" ..." if len(dataset.camera_ids) > 20 else "")
+        raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {dataset.root} (cameras: {shown})")
+    K, vm, w, h = dataset.camera(camera_id)
+    cam = Camera(vm, K, w, h)
+    return cam.resized(*size) if size is not None and tuple(size) != (w, h) else cam
+
+
+# ---------------------------------------------------------------- drivers -> vertex frames
+def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: float = 1e-5,
+                   driver_faces: torch.Tensor | None = None, canonical_faces: torch.Tensor | None = None
+                   ) -> torch.Tensor:
+    """Index ``[V]`` of the driver vertex that is each canonical vertex, matched by rest position.
+
+    ``driver_rest [Vd,3]``, ``canonical [V,3]``; a match lies within ``rel_tol`` times the canonical
+    bounding-box diagonal. Where several driver vertices coincide (seams, parts touching at rest),
+    the faces (``driver_faces [Fd,3]``, ``canonical_faces [F,3]``) pick the one whose triangles
+    connect to the candidates of the canonical triangle's other corners. Raises when a canonical
+    vertex has no candidate.
+    """
+    from scipy.spatial import cKDTree
+
+    check_tensor("driver_rest", driver_rest, "Vd,3", dtype="float", finite=True)
+    check_tensor("canonical", canonical, "V,3", dtype="float", finite=True)
+    c = canonical.detach().double().cpu().numpy()
+    d = driver_rest.detach().double().cpu().numpy()
+    tol = max(rel_tol * float(np.linalg.norm(c.max(0) - c.min(0))), 1e-12)
+    dist, nearest = cKDTree(d).query(c, k=1)
+    bad = int((dist > tol).sum())
+    if bad:
+        raise MeshsplatError(
+            f"driver mesh has {d.shape[0]} vertices, the avatar's canonical mesh {c.shape[0]}, "
+            f"and {bad} canonical vertices match no driver vertex at rest (largest gap {float(dist.max()):.3g}, "
+            f"tolerance {tol:.3g}): this animation does not drive the avatar's mesh")
+    idx = np.asarray(nearest, np.int64)
+    cands = cKDTree(d).query_ball_point(c, r=tol)
+    ambiguous = [i for i, cs in enumerate(cands) if len(cs) > 1]
+    if ambiguous and driver_faces is not None and canonical_faces is not None:
+        dfaces = driver_faces.detach().cpu().long().numpy()
+        cfaces = canonical_faces.detach().cpu().long().numpy()
+        d_of = [[] for _ in range(d.shape[0])]  # driver vertex -> its faces
+        for f in dfaces:
+            for j in f:
+                d_of[j].append(f)
+        c_of = [[] for _ in range(c.shape[0])]
+        for f in cfaces:
+            for i in f:
+                c_of[i].append(f)
+        sets = [set(cs) for cs in cands]
+        for i in ambiguous:
+            def score(j: int) -> int:
+                hit = 0
+                for f in c_of[i]:
+                    p, q = [k for k in f if k != i][:2]
+                    for g in d_of[j]:
+                        o = [k for k in g if k != j]
+                        if len(o) == 2 and ((o[0] in sets[p] and o[1] in sets[q]) or
+                                            (o[1] in sets[p] and o[0] in sets[q])):
+                            hit += 1
+                            break
+                return hit
+            idx[i] = max(sorted(cands[i]), key=score)
+    return torch.from_numpy(idx)
+
+
+def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> list[torch.Tensor]:
+    if not frames:
+        raise MeshsplatError(f"{what}: no frames")
+    for i, v in enumerate(frames):
+        check_tensor(f"{what} frame {i}", v, "V,3", {"V": num_vertices}, dtype="float", finite=True)
+    return frames
+
+
+def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, seconds: float | None = None,
+                   start: float = 0.0) -> list[torch.Tensor]:
+    """Vertex frames ``[V,3]`` of glTF ``clip`` (default the first) sampled at ``fps`` for ``seconds``
+    (default the clip's length) from ``start``. The glTF mesh must be the avatar's canonical mesh
+    (same vertex count) or contain its vertices at rest (see :func:`match_vertices`)."""
+    from meshsplat.drivers import GltfDriver
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshsplatError(f"glTF file not found: {path}")
+    if fps <= 0:
+        raise MeshsplatError(f"fps: expected > 0, got {fps}")
+    drv = GltfDriver(path, clip=clip, fps=fps)
+    if drv.clip is None:
+        raise MeshsplatError(f"{path}: the file has no animation clip")
+    v_avatar = avatar.mesh.num_vertices
+    if drv.num_vertices != v_avatar:
+        canonical = avatar.mesh.vertices.detach().cpu().float()
+        src = match_vertices(drv.rest_vertices(), canonical, driver_faces=drv.faces, canonical_faces=avatar.mesh.faces)
+        drv = drv.derive(src.numpy(), avatar.mesh.faces.cpu().numpy())
+    t0, _ = drv.time_range()
+    length = drv.duration() if seconds is None else float(seconds)
+    if length < 0:
+        raise MeshsplatError(f"seconds: expected >= 0, got {seconds}")
+    n = max(1, int(math.floor(length * fps + 1e-6)) + (1 if seconds is None else 0))
+    return _check_frames([drv.vertices_at(t0 + start + i / fps) for i in range(n)], v_avatar, "glTF animation")
+
+
+def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
+    """Frames of a vertex sequence: ``[T,V,3]`` array/tensor or a ``.npy`` path."""
+    if isinstance(vertices, (str, Path)):
+        p = Path(vertices)
+        if not p.is_file():
+            raise MeshsplatError(f"vertex sequence file not found: {p}")
+        try:
+            vertices = np.load(p, mmap_mode="r")
+        except Exception as exc:  # noqa: BLE001 - one clear message
+            raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
+    shape = tuple(vertices.shape)
+    v = avatar.mesh.num_vertices
+    if len(shape) != 3 or shape[1:] != (v, 3):
+        raise MeshsplatError(f"vertices: expected shape [T,{v},3] (the avatar's {v} canonical vertices), got {list(shape)}")
+    frames = [torch.as_tensor(np.array(vertices[i], dtype=np.float32)) for i in range(shape[0])]
+    return _check_frames(frames, v, "vertex sequence")
+
+
+def _read_weights(weights, names: list[str]) -> np.ndarray:
+    """``[T,K]`` from an array, a ``.npy``, or a ``.json`` holding ``[[...], ...]`` or
+    ``{"names": [...], "weights": [[...], ...]}`` (columns matched to the model's names)."""
+    import json
+
+    if isinstance(weights, (str, Path)):
+        p = Path(weights)
+        if not p.is_file():
+            raise MeshsplatError(f"weights file not found: {p}")
+        if p.suffix.lower() == ".json":
+            try:
+                doc = json.loads(p.read_text())
+            except ValueError as exc:
+                raise MeshsplatError(f"{p}: not valid JSON ({exc})") from None
+            if isinstance(doc, dict):
+                if "weights" not in doc:
+                    raise MeshsplatError(f"{p}: expected a list [T][K] or an object with 'weights' (and 'names')")
+                w = np.asarray(doc["weights"], np.float32)
+                if "names" in doc:
+                    cols = [str(s) for s in doc["names"]]
+                    unknown = [c for c in cols if c not in names]
+                    if unknown:
+                        raise MeshsplatError(f"{p}: unknown blend-shape names {unknown[:5]}")
+                    if w.ndim != 2 or w.shape[1] != len(cols):
+                        raise MeshsplatError(f"{p}: 'weights' must be [T,{len(cols)}] to match 'names'")
+                    full = np.zeros((w.shape[0], len(names)), np.float32)
+                    full[:, [names.index(c) for c in cols]] = w
+                    w = full
+            else:
+                w = np.asarray(doc, np.float32)
+        else:
+            try:
+                w = np.load(p).astype(np.float32)
+            except Exception as exc:  # noqa: BLE001
+                raise MeshsplatError(f"cannot read {p} as a .npy array [T,K]: {exc}") from None
+    else:
+        w = np.asarray(weights.detach().cpu() if isinstance(weights, torch.Tensor) else weights, np.float32)
+    if w.ndim == 1:
+        w = w[None]
+    if w.ndim != 2 or w.shape[1] != len(names) or w.shape[0] < 1:
+        raise MeshsplatError(f"weights: expected shape [T,{len(names)}] (one column per blend shape), "
+                             f"got {list(w.shape)}")
+    if not np.isfinite(w).all():
+        raise MeshsplatError("weights: contain NaN/Inf values")
+    return w
+
+
+def blendshape_animation(avatar, model, weights, rotations=None, translations=None) -> list[torch.Tensor]:
+    """Frames of a blend-shape model (``.npz`` path, None for the shared ICT head, or a
+    ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
+    from meshsplat.drivers import BlendshapeDriver
+
+    drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
+    w = _read_weights(weights, drv.names)
+    v_avatar = avatar.mesh.num_vertices
+    if drv.neutral.shape[0] != v_avatar:
+        src = match_vertices(drv.neutral, avatar.mesh.vertices.detach().cpu().float(), driver_faces=drv.faces,
+                             canonical_faces=avatar.mesh.faces)
+        drv = BlendshapeDriver(drv.neutral[src], avatar.mesh.faces.cpu(), drv.deltas[:, src], names=drv.names)
+    drv.set_sequence(w, rotations, translations)
+    return _check_frames([drv.vertices(i) for i in range(drv.num_frames)], v_avatar, "blend-shape animation")
+
+
+def dataset_animation(avatar, dataset, split: str) -> tuple[list[torch.Tensor], list[Camera]]:
+    """Driving meshes of a dataset split, with each frame's own camera."""
+    ids = dataset.split(split)
+    if not ids:
+        raise MeshsplatError(f"split {split!r} of {dataset.root} is empty")
+    if dataset.num_vertices != avatar.mesh.num_vertices:
+        raise MeshsplatError(f"dataset meshes have {dataset.num_vertices} vertices, the avatar's canonical mesh "
+                             f"{avatar.mesh.num_vertices}")
+    cams = []
+    for i in ids:
+        K, vm, w, h = dataset.camera(dataset.frame_info(i)["camera"])
+        cams.append(Camera(vm, K, w, h))
+    return [dataset.vertices(i) for i in ids], cams
+
+
+# ---------------------------------------------------------------- rendering
+@torch.no_grad()
+def render_animation(avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
+                     cameras: Camera | Sequence[Camera] | Callable[[int], Camera], out_dir, fps: float = 25.0,
+                     background=(1.0, 1.0, 1.0), name: str = "animation", write_pngs: bool = True,
+                     write_mp4: bool = True, backend: str = "auto", progress: bool = False) -> AnimationResult:
+    """Render ``avatar`` at every frame of ``vertices`` (each ``[V,3]``) to ``out_dir``.
+
+    ``cameras``: one :class:`Camera` for all frames, one per frame, or ``frame -> Camera``.
+    Writes ``out_dir/frames/frame_00000.png ...`` and ``out_dir/<name>.mp4`` (PNG frames are kept as
+    the fallback when no ffmpeg is available). ``background``: ``[3]`` in [0, 1] or white/black.
+    """
+    from meshsplat.eval.evaluate import background_color
+    from meshsplat.io.video import to_uint8, write_png_frames, write_video
+
+    if fps <= 0:
+        raise MeshsplatError(f"fps: expected > 0, got {fps}")
+    if not (write_pngs or write_mp4):
+        raise MeshsplatError("render_animation: nothing to write (write_pngs and write_mp4 are both False)")
+    if isinstance(cameras, Camera):
+        cam_at = lambda i: cameras  # noqa: E731
+    elif callable(cameras):
+        cam_at = cameras
+    else:
+        cam_list = list(cameras)
+
+        def cam_at(i: int) -> Camera:
+            if i >= len(cam_list):
+                raise MeshsplatError(f"cameras: {len(cam_list)} given, but the animation has more frames")
+            return cam_list[i]
+    bg = background_color(background)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames, times = [], []
+    seq = list(vertices) if not isinstance(vertices, torch.Tensor) else list(vertices.unbind(0))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(seq), desc="render", dynamic_ncols=True)
+    for i, v in enumerate(seq):
+        cam = cam_at(i)
+        t0 = time.perf_counter()
+        r = avatar.render(v, cam.viewmat, cam.K, cam.width, cam.height, bg, backend=backend)
+        frames.append(to_uint8(r.image.float().clamp(0, 1)))
+        times.append(time.perf_counter() - t0)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    if not frames:
+        raise MeshsplatError("vertices: the animation has no frames")
+    result = AnimationResult(mp4=None, num_frames=len(frames), render_ms_mean=1000.0 * float(np.mean(times)))
+    png_dir = out / "frames"
+    if write_mp4:
+        vr = write_video(frames, out / f"{name}.mp4", fps=fps, png_dir=png_dir if write_pngs else None)
+        result.mp4, result.pngs, result.error = vr.mp4, vr.pngs, vr.error
+    else:
+        result.pngs = write_png_frames(frames, png_dir)
+    return result

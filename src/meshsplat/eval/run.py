@@ -1,0 +1,93 @@
+"""Open a training run folder: newest valid checkpoint -> Avatar, its iteration, the run config.
+
+Run layout (written by ``meshsplat.train``): ``RUN/config.json``, ``RUN/checkpoints/ckpt_*.pt``,
+``RUN/log.csv``, ``RUN/previews/``. A checkpoint file may be given instead of the folder.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.avatar import Avatar
+
+__all__ = ["LoadedRun", "load_run", "run_dataset_path", "resolve_device"]
+
+
+@dataclass
+class LoadedRun:
+    """``avatar`` of the newest valid checkpoint of ``run_dir``; ``config`` is the run's config dict."""
+
+    run_dir: Path
+    checkpoint: Path
+    iteration: int | None
+    avatar: Avatar
+    config: dict[str, Any] = field(default_factory=dict)
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """``None``/``"auto"``: CUDA when available, else CPU."""
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise MeshsplatError(f"device: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise MeshsplatError(f"device: {device!r} requested but CUDA is not available")
+    return dev
+
+
+def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> LoadedRun:
+    """Load the avatar of a run folder (newest valid ``checkpoints/ckpt_*.pt``) or of one checkpoint file."""
+    from meshsplat.io.checkpoint import load_checkpoint, load_latest_checkpoint
+
+    path = Path(run)
+    if not path.exists():
+        raise MeshsplatError(f"run not found: {path} (expected a training run folder or a checkpoint file)")
+    if path.is_dir():
+        found = None
+        for folder in (path / "checkpoints", path):
+            if folder.is_dir():
+                found = load_latest_checkpoint(folder)
+                if found is not None:
+                    break
+        if found is None:
+            raise MeshsplatError(f"no valid checkpoint in {path} (looked for {path / 'checkpoints'}/ckpt_*.pt); "
+                                 "is this a training run folder?")
+        ckpt, state = found
+        run_dir = path
+    else:
+        ckpt, state = path, load_checkpoint(path)
+        run_dir = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    if not isinstance(state, dict) or "avatar" not in state:
+        raise MeshsplatError(f"{ckpt}: checkpoint holds no avatar")
+    avatar = Avatar.from_state_dict(state["avatar"], resolve_device(device))
+    config: dict[str, Any] = {}
+    cfg_path = run_dir / "config.json"
+    if cfg_path.is_file():
+        try:
+            config = json.loads(cfg_path.read_text())
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise MeshsplatError(f"{cfg_path}: not valid JSON ({exc})") from None
+    elif isinstance(state.get("config"), dict):
+        config = dict(state["config"])
+    it = state.get("iteration")
+    return LoadedRun(run_dir, Path(ckpt), int(it) if it is not None else None, avatar, config)
+
+
+def run_dataset_path(run: LoadedRun, dataset: str | Path | None = None) -> Path:
+    """``dataset`` if given, else the ``data`` entry of the run's config (relative paths as stored)."""
+    if dataset is not None:
+        return Path(dataset)
+    data = run.config.get("data")
+    if not data:
+        raise MeshsplatError(f"{run.run_dir}: config.json names no dataset; pass --dataset PATH")
+    p = Path(data)
+    if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
+        p = run.run_dir / p
+    return p

@@ -1,0 +1,135 @@
+"""Export an avatar: a standard 3DGS ``.ply`` in the canonical pose, the mesh embedding as JSON and
+the canonical mesh as OBJ, with a README; and load such an export back into an :class:`Avatar`.
+
+The embedding JSON stores the effective barycentric coordinate the renderer uses (``uv + duv``,
+projected onto the triangle for ``clamp_to_face`` avatars), so the re-loaded avatar has ``duv = 0``
+and ``clamp_to_face = False`` and composes bit-identical Gaussians in every pose.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["ExportResult", "export_avatar", "load_exported_avatar", "canonical_gaussians",
+           "PLY_NAME", "EMBEDDING_NAME", "MESH_NAME"]
+
+PLY_NAME = "avatar.ply"
+EMBEDDING_NAME = "embedding.json"
+MESH_NAME = "canonical_mesh.obj"
+
+
+@dataclass
+class ExportResult:
+    folder: Path
+    ply: Path
+    embedding: Path
+    mesh: Path
+    readme: Path
+
+
+_README = """meshsplat avatar export
+=======================
+
+Source: {source}
+Gaussians: {n}, SH degree {sh}, scale mode {scale_mode}{clamp}.
+
+{ply}  Standard 3D Gaussian Splatting PLY (binary little endian) in the CANONICAL pose,
+    loadable by 3DGS viewers. Per Gaussian: x y z (mean), nx ny nz (Phong normal of the
+    mesh at the Gaussian), f_dc_0..2 (SH DC colour: rgb = 0.5 + 0.28209479 * f_dc),
+    f_rest_0..44 (higher SH bands, channel-major, zero-padded to degree 3), opacity
+    (logit: alpha = sigmoid(opacity)), scale_0..2 (log of the axis lengths), rot_0..3
+    (unit quaternion w x y z). A static snapshot: it does not animate.
+
+{emb}  The animatable avatar: each Gaussian embedded on the canonical mesh (format
+    "meshsplat-embedding" v1, arrays little-endian base64). face [N] (triangle index),
+    uv [N,2] (barycentric: P = u*V[a] + v*V[b] + (1-u-v)*V[c] for face (a,b,c); already
+    includes the trained offset duv{uv_note}), d [N] (displacement along the interpolated
+    vertex normal), rotation [N,4] (canonical quaternion wxyz, unnormalised), log_scale [N,3]
+    (canonical log-scale), opacity_logit [N], sh0 [N,1,3] and shN [N,K,3] (colour as SH).
+    meta.scale_mode says how posing scales the Gaussians: sqrt_area (by sqrt of the triangle
+    area ratio), area, or none. In a pose, mean = P + d*n on the posed mesh, rotation =
+    (rotation of the triangle's frame from canonical to posed) * normalize(rotation).
+
+{mesh}  The canonical driving mesh (vertices and triangles) the embedding refers to. Drive it
+    with any animation of the same mesh (same vertex order) to animate the avatar.
+
+Load the avatar back: meshsplat.export.load_exported_avatar("<this folder>").
+"""
+
+
+def canonical_gaussians(avatar):
+    """Composed Gaussians and Phong normals ``[N,3]`` of ``avatar`` in its canonical pose (no SH view term)."""
+    from meshsplat.embedding import embed
+    from meshsplat.gaussians.compose import effective_uv
+
+    v = avatar.mesh.vertices
+    with torch.no_grad():
+        # campos only feeds the view-dependent colour, which the PLY does not store (it stores SH)
+        campos = torch.zeros(3, device=v.device, dtype=v.dtype) if avatar.sh_degree > 0 else None
+        g = avatar.compose(v, campos=campos).detach()
+        uv = effective_uv(avatar.params, avatar.clamp_to_face)
+        _, normals = embed(avatar.pose(v), avatar.params["face"], uv, avatar.params["d"].detach())
+    return g, normals.detach()
+
+
+def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = None) -> ExportResult:
+    """Write ``avatar.ply``, ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
+    from meshsplat.gaussians.avatar import Avatar
+    from meshsplat.gaussians.compose import effective_uv
+    from meshsplat.io import write_embedding_json, write_gaussian_ply, write_obj
+
+    if not isinstance(avatar, Avatar):
+        raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = {k: v.detach() for k, v in avatar.params.items()}
+    g, normals = canonical_gaussians(avatar)
+    ply = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"], p["sh0"],
+                             p.get("shN"), sh_degree_pad=3, normals=normals)
+    with torch.no_grad():
+        uv = effective_uv(avatar.params, avatar.clamp_to_face).detach()
+    emb_params = {"face": p["face"], "uv": uv, "d": p["d"], "rotation": p["rotation"],
+                  "log_scale": p["log_scale"], "opacity_logit": p["opacity_logit"], "sh0": p["sh0"]}
+    if "shN" in p:
+        emb_params["shN"] = p["shN"]
+    meta = {"scale_mode": avatar.scale_mode, "uv_includes_duv": True,
+            "uv_clamped_to_face": bool(avatar.clamp_to_face), "num_vertices": avatar.mesh.num_vertices,
+            "num_faces": avatar.mesh.num_faces, "mesh": MESH_NAME, "source": str(source),
+            "iteration": iteration, "color": "rgb = 0.5 + 0.28209479177387814 * sh0 (+ SH bands)",
+            "opacity": "sigmoid(opacity_logit)", "scale": "exp(log_scale) * pose scale factor",
+            "quaternion": "wxyz"}
+    emb = write_embedding_json(out / EMBEDDING_NAME, emb_params, meta)
+    mesh = write_obj(out / MESH_NAME, avatar.mesh.vertices.detach(), avatar.mesh.faces)
+    readme = out / "README.txt"
+    readme.write_text(_README.format(
+        source=source or "(in-memory avatar)", n=avatar.num_gaussians, sh=avatar.sh_degree,
+        scale_mode=avatar.scale_mode, clamp=", trained without walking (uv clamped to the face)"
+        if avatar.clamp_to_face else "", ply=PLY_NAME, emb=EMBEDDING_NAME, mesh=MESH_NAME,
+        uv_note=", projected onto the triangle" if avatar.clamp_to_face else ""))
+    return ExportResult(out, ply, emb, mesh, readme)
+
+
+def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu"):
+    """Avatar from an export folder (or its ``embedding.json``), mesh from ``canonical_mesh.obj``."""
+    from meshsplat.gaussians.avatar import Avatar
+    from meshsplat.gaussians.params import make_params
+    from meshsplat.io import read_embedding_json, read_obj
+    from meshsplat.mesh import TriMesh
+
+    path = Path(path)
+    emb_path = path / EMBEDDING_NAME if path.is_dir() else path
+    if not emb_path.is_file():
+        raise MeshsplatError(f"no {EMBEDDING_NAME} at {path} (expected a meshsplat export folder)")
+    arrays, meta = read_embedding_json(emb_path)
+    obj = read_obj(Path(mesh_path) if mesh_path is not None else emb_path.parent / meta.get("mesh", MESH_NAME))
+    mesh = TriMesh(obj.vertices.to(device), obj.faces.to(device))
+    a = {k: v.to(device) for k, v in arrays.items()}
+    shN = a.get("shN")
+    params = make_params(a["face"], a["uv"], d=a["d"], log_scale=a["log_scale"], rotation=a["rotation"],
+                         opacity_logit=a["opacity_logit"], sh0=a["sh0"],
+                         shN=shN if shN is not None and shN.shape[1] > 0 else None)
+    return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False)
