@@ -1,0 +1,74 @@
+"""Train a mesh-embedded Gaussian avatar on a dataset (writes RUN/{config.json,checkpoints,log.csv,previews}).
+
+Configuration precedence: defaults, then --config FILE (or RUN/config.json with --resume), then
+--set KEY=VALUE overrides (e.g. --set strategy.refine_every=200 --set walk.enabled=false), then flags.
+--resume continues bit for bit from the newest checkpoint in RUN/checkpoints.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_arguments", "run", "build_config"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset folder (native format, see docs/dataset-format.md)")
+    parser.add_argument("--out", required=True, help="run directory")
+    parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
+    parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
+    parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config value, e.g. strategy.refine_every=200 (repeatable)")
+    parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 or auto (default auto)")
+    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def build_config(args: argparse.Namespace):
+    """TrainConfig from defaults, the config file, --set overrides and flags."""
+    from meshsplat.train.config import TrainConfig, apply_overrides, load_config
+
+    out = Path(args.out)
+    if args.config:
+        cfg = load_config(args.config)
+    elif args.resume and (out / "config.json").is_file():
+        cfg = load_config(out / "config.json")
+    else:
+        cfg = TrainConfig()
+    cfg = apply_overrides(cfg, args.set)
+    cfg.data = str(args.dataset)
+    cfg.out = str(out)
+    if args.iters is not None:
+        cfg.iterations = args.iters
+    if args.device is not None:
+        cfg.device = args.device
+    if args.seed is not None:
+        cfg.seed = args.seed
+    if args.no_progress:
+        cfg.progress = False
+    return cfg.validate()
+
+
+def run(args: argparse.Namespace) -> int:
+    from meshsplat.errors import MeshsplatError
+    from meshsplat.train.trainer import Trainer
+
+    if not Path(args.dataset).exists():
+        raise MeshsplatError(f"dataset not found: {args.dataset}")
+    cfg = build_config(args)
+    trainer = Trainer(cfg, resume=args.resume)
+    if trainer.resumed_from is not None:
+        print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
+    elif args.resume:
+        print(f"no checkpoint in {Path(cfg.out) / 'checkpoints'}: starting a new run")
+    if trainer.iteration >= cfg.iterations:
+        print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
+        return 0
+    run_dir = trainer.train()
+    last = trainer.history[-1] if trainer.history else {}
+    summary = f"done: {run_dir} (iteration {trainer.iteration}, {trainer.num_gaussians} Gaussians"
+    if last:
+        summary += f", last PSNR {last['psnr']:.2f} dB"
+    print(summary + ")")
+    return 0

@@ -1,0 +1,150 @@
+"""A trained avatar: canonical mesh + embedded Gaussian parameters, renderable in any pose.
+
+    avatar = Avatar.from_checkpoint("runs/demo")            # run dir or a ckpt_*.pt file
+    out = avatar.render(verts_posed, viewmat, K, width, height, background=torch.ones(3))
+    out.image  # [H,W,3] in [0,1]; out.alpha [H,W,1]; out.meta (rasterizer meta)
+
+``Avatar.state_dict()`` is what training checkpoints store under ``"avatar"``: canonical mesh
+(``vertices``, ``faces``), ``params`` (see ``meshsplat.gaussians.params``), ``scale_mode``,
+``sh_degree`` and ``clamp_to_face`` (True for avatars trained without walking).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from meshsplat._checks import check_tensor
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.compose import ComposedGaussians, compose
+from meshsplat.gaussians.params import check_params, num_gaussians, sh_degree_of
+
+__all__ = ["Avatar", "AvatarRender"]
+
+
+@dataclass
+class AvatarRender:
+    image: torch.Tensor  # [H,W,3]
+    alpha: torch.Tensor  # [H,W,1]
+    meta: dict[str, Any]
+
+
+class Avatar:
+    """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
+
+    def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
+                 clamp_to_face: bool = False):
+        from meshsplat.mesh import TriMesh
+
+        if not isinstance(mesh, TriMesh):
+            raise MeshsplatError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
+        check_params(params)
+        if int(params["face"].max()) >= mesh.num_faces or int(params["face"].min()) < 0:
+            raise MeshsplatError(f"params['face']: indices must lie in [0, {mesh.num_faces})")
+        self.mesh = mesh
+        self.params = params
+        self.scale_mode = scale_mode
+        self.clamp_to_face = bool(clamp_to_face)
+
+    # ---- properties ------------------------------------------------------------------
+    @property
+    def num_gaussians(self) -> int:
+        return num_gaussians(self.params)
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_of(self.params)
+
+    @property
+    def device(self) -> torch.device:
+        return self.params["uv"].device
+
+    def to(self, device: torch.device | str) -> "Avatar":
+        """A copy on ``device`` (parameters detached)."""
+        from meshsplat.mesh import TriMesh
+
+        params = {k: v.detach().to(device) for k, v in self.params.items()}
+        mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
+        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face)
+
+    # ---- posing and rendering --------------------------------------------------------
+    def pose(self, verts_posed: torch.Tensor):
+        """``MeshPose`` for ``verts_posed [V,3]`` (moved to the avatar's device and dtype)."""
+        from meshsplat.mesh import MeshPose
+
+        check_tensor("verts_posed", verts_posed, "V,3", {"V": self.mesh.num_vertices}, dtype="float", finite=True)
+        return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=self.params["uv"].dtype))
+
+    def compose(self, verts_posed: torch.Tensor, campos: torch.Tensor | None = None) -> ComposedGaussians:
+        """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]``."""
+        return compose(self.params, self.pose(verts_posed), self.scale_mode, campos=campos,
+                       clamp_to_face=self.clamp_to_face)
+
+    def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+               background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
+        """Render one view: ``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, ``background [3]``."""
+        from meshsplat.render import rasterize
+
+        check_tensor("viewmat", viewmat, "4,4", dtype="float", finite=True)
+        check_tensor("K", K, "3,3", dtype="float", finite=True)
+        dev, dt = self.device, self.params["uv"].dtype
+        viewmat = viewmat.to(device=dev, dtype=dt)
+        K = K.to(device=dev, dtype=dt)
+        campos = torch.linalg.inv(viewmat)[:3, 3] if self.sh_degree > 0 else None
+        g = self.compose(verts_posed, campos=campos)
+        bg = None
+        if background is not None:
+            check_tensor("background", background, "3", dtype="float")
+            bg = background.to(device=dev, dtype=dt)[None]
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None],
+                        int(width), int(height), backgrounds=bg, backend=backend)
+        return AvatarRender(out.colors[0], out.alphas[0], out.meta)
+
+    # ---- persistence -----------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "vertices": self.mesh.vertices.detach().cpu(),
+            "faces": self.mesh.faces.detach().cpu(),
+            "params": {k: v.detach().cpu().clone() for k, v in self.params.items()},
+            "scale_mode": self.scale_mode,
+            "sh_degree": self.sh_degree,
+            "clamp_to_face": self.clamp_to_face,
+        }
+
+    @classmethod
+    def from_state_dict(cls, sd: dict[str, Any], device: torch.device | str = "cpu") -> "Avatar":
+        from meshsplat.mesh import TriMesh
+
+        try:
+            mesh = TriMesh(sd["vertices"].to(device), sd["faces"].to(device))
+            params = {k: v.to(device) for k, v in sd["params"].items()}
+            return cls(mesh, params, sd.get("scale_mode", "sqrt_area"), sd.get("clamp_to_face", False))
+        except (KeyError, AttributeError) as exc:
+            raise MeshsplatError(f"avatar state is incomplete (missing {exc})") from None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
+        """Load from a training checkpoint file, or the newest valid one of a run dir."""
+        from meshsplat.io.checkpoint import load_checkpoint, load_latest_checkpoint
+
+        path = Path(path)
+        if path.is_dir():
+            found = None
+            for folder in (path / "checkpoints", path):
+                found = load_latest_checkpoint(folder)
+                if found is not None:
+                    break
+            if found is None:
+                raise MeshsplatError(f"no valid checkpoint found in {path} (looked in {path / 'checkpoints'})")
+            state = found[1]
+        else:
+            state = load_checkpoint(path)
+        if "avatar" not in state:
+            raise MeshsplatError(f"{path}: checkpoint holds no avatar")
+        return cls.from_state_dict(state["avatar"], device)
+
+    def __repr__(self) -> str:
+        return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
+                f"sh_degree={self.sh_degree})")

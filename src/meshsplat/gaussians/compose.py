@@ -1,0 +1,115 @@
+"""Compose renderable Gaussians from embedded parameters and one posed mesh.
+
+``mu = embed(pose, face, uv + duv, d)``, ``q = delta_q ⊗ normalize(rotation)``,
+``scale = exp(log_scale) * scale_factor``, ``opacity = sigmoid(opacity_logit)``,
+``colour = max(0, 0.5 + SH(sh0, shN; view direction))``.
+
+The position uses ``uv + duv`` so that the trainable offsets receive gradients; between walks
+``uv + duv`` may leave the triangle (linear extrapolation of the face). ``clamp_to_face=True``
+(the no-walking ablation) projects ``uv + duv`` back onto the triangle instead.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.params import SH_C0, check_params
+from meshsplat.mesh.quaternion import quat_multiply, quat_normalize
+
+__all__ = ["ComposedGaussians", "compose", "effective_uv", "project_uv_to_triangle", "eval_sh"]
+
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+@dataclass
+class ComposedGaussians:
+    means: torch.Tensor  # [N,3]
+    quats: torch.Tensor  # [N,4] wxyz, unit
+    scales: torch.Tensor  # [N,3]
+    opacities: torch.Tensor  # [N]
+    colors: torch.Tensor  # [N,3]
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    def detach(self) -> "ComposedGaussians":
+        return ComposedGaussians(*(t.detach() for t in (self.means, self.quats, self.scales,
+                                                         self.opacities, self.colors)))
+
+
+def project_uv_to_triangle(uv: torch.Tensor) -> torch.Tensor:
+    """[N,2] barycentric (u, v) -> nearest point (in (u,v,w) space) of the triangle u,v,w >= 0.
+
+    Euclidean projection onto the probability simplex of (u, v, 1-u-v); differentiable almost
+    everywhere (zero gradient along clipped directions).
+    """
+    bary = torch.cat([uv, 1 - uv.sum(-1, keepdim=True)], dim=-1)
+    srt, _ = bary.sort(dim=-1, descending=True)
+    css = srt.cumsum(-1) - 1
+    ks = torch.arange(1, 4, device=uv.device, dtype=uv.dtype)
+    cond = srt - css / ks > 0
+    rho = cond.to(torch.int64).cumsum(-1).argmax(-1, keepdim=True)  # last index where cond holds
+    theta = css.gather(-1, rho) / (rho + 1).to(uv.dtype)
+    return (bary - theta).clamp_min(0)[..., :2]
+
+
+def effective_uv(params: dict[str, torch.Tensor], clamp_to_face: bool = False) -> torch.Tensor:
+    """``uv + duv`` [N,2] (projected onto the triangle when ``clamp_to_face``)."""
+    uv = params["uv"] + params["duv"]
+    return project_uv_to_triangle(uv) if clamp_to_face else uv
+
+
+def eval_sh(sh0: torch.Tensor, shN: torch.Tensor | None, dirs: torch.Tensor | None) -> torch.Tensor:
+    """Colour [N,3] = 0.5 + sum_l SH_l(dirs) * coeffs, clamped at 0. ``dirs`` [N,3] (any length).
+
+    Without ``dirs`` only the DC band is used (the view-independent colour).
+    """
+    rgb = SH_C0 * sh0[:, 0]
+    if shN is not None and shN.shape[1] > 0 and dirs is not None:
+        x, y, z = torch.nn.functional.normalize(dirs, dim=-1).unbind(-1)
+        x, y, z = x[:, None], y[:, None], z[:, None]
+        k = shN.shape[1]
+        rgb = rgb - _C1 * y * shN[:, 0] + _C1 * z * shN[:, 1] - _C1 * x * shN[:, 2]
+        if k >= 8:
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            rgb = (rgb + _C2[0] * xy * shN[:, 3] + _C2[1] * yz * shN[:, 4]
+                   + _C2[2] * (2 * zz - xx - yy) * shN[:, 5] + _C2[3] * xz * shN[:, 6]
+                   + _C2[4] * (xx - yy) * shN[:, 7])
+            if k >= 15:
+                rgb = (rgb + _C3[0] * y * (3 * xx - yy) * shN[:, 8] + _C3[1] * xy * z * shN[:, 9]
+                       + _C3[2] * y * (4 * zz - xx - yy) * shN[:, 10]
+                       + _C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * shN[:, 11]
+                       + _C3[4] * x * (4 * zz - xx - yy) * shN[:, 12]
+                       + _C3[5] * z * (xx - yy) * shN[:, 13] + _C3[6] * x * (xx - 3 * yy) * shN[:, 14])
+    return (rgb + 0.5).clamp_min(0.0)
+
+
+def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area", *,
+            campos: torch.Tensor | None = None, clamp_to_face: bool = False) -> ComposedGaussians:
+    """Renderable Gaussians for one posed mesh (``pose``: a ``MeshPose``).
+
+    campos [3]: camera centre for view-dependent colour (SH degree > 0); without it only the
+    DC band is used.
+    """
+    from meshsplat.embedding import embed, pose_frame
+
+    check_params(params)
+    if scale_mode not in ("sqrt_area", "area", "none"):
+        raise MeshsplatError(f"scale_mode: expected 'sqrt_area', 'area' or 'none', got {scale_mode!r}")
+    face = params["face"]
+    uv = effective_uv(params, clamp_to_face)
+    means, _ = embed(pose, face, uv, params["d"])
+    delta_q, scale_factor = pose_frame(pose, face, uv, scale_mode=scale_mode)
+    quats = quat_normalize(quat_multiply(delta_q, quat_normalize(params["rotation"])))
+    scales = params["log_scale"].exp() * scale_factor.reshape(-1, 1)
+    opacities = torch.sigmoid(params["opacity_logit"])
+    dirs = None
+    if "shN" in params and campos is not None:
+        dirs = means - campos.to(means).reshape(1, 3)
+    colors = eval_sh(params["sh0"], params.get("shN"), dirs)
+    return ComposedGaussians(means, quats, scales, opacities, colors)

@@ -1,0 +1,218 @@
+"""Training configuration: one dataclass per component, composed in ``TrainConfig``.
+
+Configs round-trip through plain JSON dicts (``to_dict`` / ``from_dict``; unknown keys are an
+error, nothing is ever evaluated) and accept command-line overrides such as
+``strategy.refine_every=200`` or ``walk.enabled=false`` (``apply_overrides``).
+
+Sizes marked "relative" are multiplied by the canonical mesh extent (half the diagonal of its
+bounding box) so that the same defaults work for a head in metres and a body in centimetres.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = [
+    "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "TrainConfig",
+    "apply_overrides", "load_config",
+]
+
+
+@dataclass
+class ModelConfig:
+    """Gaussian model. Colour is SH: ``sh0`` is the DC term (colour = 0.5 + C0*sh0, as 3DGS)."""
+
+    n_init: int = 10_000
+    sh_degree: int = 0
+    scale_mode: str = "sqrt_area"  # "sqrt_area" | "area" | "none": pose scale modulation
+    init_opacity: float = 0.1
+    init_color: str = "image"  # "image": colour from the first training frame; "grey"
+    init_knn: int = 3  # initial isotropic scale = mean distance to this many nearest neighbours
+    freeze_embedding: bool = False  # ablation: (duv, d) not optimised, Gaussians stay at (face, uv, 0)
+
+
+@dataclass
+class OptimConfig:
+    """Adam (one optimizer per parameter key) with the paper's learning rates."""
+
+    lr_embedding: float = 1.6e-4  # relative: times extent for d; see uv_lr_units for duv
+    lr_embedding_final: float = 1.6e-6
+    lr_delay_mult: float = 0.01
+    lr_delay_steps: int = 0  # 3DGS default: the delay multiplier acts only when this is > 0
+    uv_lr_units: str = "world"  # "world": duv lr * extent / mean edge length; "barycentric": raw lr
+    lr_color: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20.0
+    lr_opacity: float = 5e-2
+    lr_scale: float = 5e-3
+    lr_rotation: float = 1e-3
+    eps: float = 1e-15
+
+
+@dataclass
+class LossConfig:
+    """L1 + lambda_lpips * LPIPS + lambda_scale * L_scaling (+ optional MSE / SSIM terms)."""
+
+    lambda_l1: float = 1.0
+    lambda_lpips: float = 0.01
+    lambda_scale: float = 1.0
+    scale_max: float = 0.008  # relative: T_s (times extent = 0.004 x bbox diagonal, as losses.SCALE_THRESH_FRACTION)
+    scale_ratio: float = 10.0  # T_r: thin when largest / smallest > this
+    lambda_mse: float = 0.0
+    lambda_ssim: float = 0.0
+
+
+@dataclass
+class StrategyConfig:
+    """Adaptive density control (3DGS), see ``meshsplat.train.strategy.DensifyStrategy``."""
+
+    refine_start: int = 600
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01  # relative: clone below, split above (3DGS percent_dense)
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1  # relative: world-size prune after the first opacity reset
+    prune_scale2d: float = 20.0  # pixels: screen-size prune after the first opacity reset
+    reset_opa: float = 0.01
+    split_n: int = 2
+    max_gaussians: int = 150_000
+    enabled: bool = True
+
+
+@dataclass
+class WalkConfig:
+    """Walking on triangles (Algorithm 1). ``enabled=False``: clip (uv + duv) to the triangle."""
+
+    enabled: bool = True
+    every: int = 100
+    mode: str = "paper"  # "paper" | "unfold"
+    max_crossings: int = 64
+
+
+@dataclass
+class TrainConfig:
+    data: str = ""
+    out: str = "runs/train"
+    iterations: int = 30_000
+    seed: int = 0
+    device: str = "auto"  # "auto" = cuda when available
+    backend: str = "auto"  # rasterizer backend
+    background: str = "random"  # "random" per iteration | "white" | "black"
+    checkpoint_every: int = 5000
+    keep_checkpoints: int = 3
+    preview_every: int = 1000
+    log_every: int = 10
+    progress: bool = True
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    strategy: StrategyConfig = field(default_factory=StrategyConfig)
+    walk: WalkConfig = field(default_factory=WalkConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+        return _from_dict(cls, d, "")
+
+    def to_json(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    def validate(self) -> "TrainConfig":
+        checks = [
+            (self.iterations >= 1, "iterations must be >= 1"),
+            (self.model.n_init >= 1, "model.n_init must be >= 1"),
+            (0 <= self.model.sh_degree <= 3, "model.sh_degree must be in 0..3"),
+            (self.model.scale_mode in ("sqrt_area", "area", "none"), "model.scale_mode: sqrt_area|area|none"),
+            (self.model.init_color in ("image", "grey"), "model.init_color: image|grey"),
+            (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
+            (self.optim.uv_lr_units in ("world", "barycentric"), "optim.uv_lr_units: world|barycentric"),
+            (self.background in ("random", "white", "black"), "background: random|white|black"),
+            (self.walk.mode in ("paper", "unfold"), "walk.mode: paper|unfold"),
+            (self.walk.every >= 1, "walk.every must be >= 1"),
+            (self.strategy.refine_every >= 1, "strategy.refine_every must be >= 1"),
+            (self.strategy.split_n >= 1, "strategy.split_n must be >= 1"),
+            (self.checkpoint_every >= 1 and self.keep_checkpoints >= 1, "checkpoint_every/keep_checkpoints >= 1"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise MeshsplatError(f"config: {msg}")
+        return self
+
+
+def _from_dict(cls, d: Any, prefix: str):
+    if not isinstance(d, dict):
+        raise MeshsplatError(f"config: {prefix or 'root'} must be an object, got {type(d).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise MeshsplatError(f"config: unknown key(s) {', '.join(prefix + k for k in unknown)}")
+    kwargs = {}
+    for name, value in d.items():
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = _from_dict(tp, value, f"{prefix}{name}.")
+        else:
+            kwargs[name] = _coerce(value, tp, prefix + name)
+    return cls(**kwargs)
+
+
+def _coerce(value: Any, tp: Any, key: str):
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
+            return value.lower() in ("true", "1", "yes", "on")
+        raise MeshsplatError(f"config: {key} expects true/false, got {value!r}")
+    try:
+        if tp is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+        if tp is float:
+            return float(value)
+        if tp is str:
+            return str(value)
+    except (TypeError, ValueError):
+        raise MeshsplatError(f"config: {key} expects {tp.__name__}, got {value!r}") from None
+    return value
+
+
+def apply_overrides(cfg: TrainConfig, overrides: list[str] | None) -> TrainConfig:
+    """Return a copy of ``cfg`` with ``section.key=value`` strings applied (values parsed by type)."""
+    d = cfg.to_dict()
+    for item in overrides or []:
+        if "=" not in item:
+            raise MeshsplatError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        parts = key.strip().split(".")
+        node = d
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                raise MeshsplatError(f"config: unknown section {p!r} in {key!r}")
+            node = node[p]
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise MeshsplatError(f"config: unknown key {key!r}")
+        node[parts[-1]] = value.strip()
+    return TrainConfig.from_dict(d)
+
+
+def load_config(path: str | Path) -> TrainConfig:
+    """Read a JSON config file (a full or partial ``TrainConfig`` dict)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshsplatError(f"config file not found: {path}")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise MeshsplatError(f"config file {path} is not valid JSON: {exc}") from None
+    return TrainConfig.from_dict(d)

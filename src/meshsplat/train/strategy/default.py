@@ -1,0 +1,189 @@
+"""Adaptive density control for mesh-embedded Gaussians (3DGS / gsplat ``DefaultStrategy`` API).
+
+Usage, per training iteration ``step`` (1-based), after ``info = rasterize(...).meta``::
+
+    strategy.step_pre_backward(params, optimizers, state, step, info)   # retain means2d grad
+    loss.backward(); optimizer steps
+    strategy.step_post_backward(params, optimizers, state, step, info, mesh=canonical_mesh)
+
+Statistics: for every Gaussian visible in a view, the norm of the screen-space mean gradient
+(``info["means2d"].grad`` scaled by ``0.5 * width`` / ``0.5 * height``, i.e. in NDC units as
+3DGS) is summed with a count, and the largest screen radius (pixels) is kept.
+
+Every ``refine_every`` steps in ``[refine_start, refine_stop]``: Gaussians whose mean gradient
+exceeds ``grow_grad2d`` are cloned when their largest canonical scale is at most
+``grow_scale3d * extent`` and split otherwise (within the ``max_gaussians`` budget, highest
+gradients first); then Gaussians with opacity below ``prune_opa`` are removed and, after the
+first opacity reset, those larger than ``prune_scale2d`` pixels on screen or
+``prune_scale3d * extent`` in the world. Every ``reset_every`` steps (until ``refine_stop``)
+opacities are reset to ``min(opacity, reset_opa)``.
+
+Clone copies the embedding. Split works at the canonical pose: ``split_n`` points are sampled
+from each parent Gaussian (mean + R(q) diag(scale) z, z ~ N(0, I)), and RE-EMBEDDED by projecting
+them onto the canonical Phong surface (``project_to_surface`` -> face, uv, d); children keep the
+parent's rotation, opacity and colour, with canonical scale / (0.8 * split_n).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.train.strategy.ops import duplicate, remove, reset_opacity, split_append
+
+__all__ = ["DensifyStrategy"]
+
+
+@dataclass
+class DensifyStrategy:
+    refine_start: int = 600
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    prune_scale2d: float = 20.0
+    reset_opa: float = 0.01
+    split_n: int = 2
+    max_gaussians: int = 150_000
+    enabled: bool = True
+    key_for_gradient: str = "means2d"
+
+    # ---- state -----------------------------------------------------------------------
+    def initialize_state(self, extent: float = 1.0) -> dict[str, Any]:
+        """Accumulators are allocated lazily on the first update (sized to the params)."""
+        return {"grad2d": None, "count": None, "radii": None, "extent": float(extent)}
+
+    def check_sanity(self, params: dict[str, torch.Tensor], optimizers: dict[str, torch.optim.Optimizer]) -> None:
+        for key, opt in optimizers.items():
+            if key not in params or opt.param_groups[0]["params"][0] is not params[key]:
+                raise MeshsplatError(f"optimizers[{key!r}] must hold exactly params[{key!r}]")
+
+    # ---- hooks -----------------------------------------------------------------------
+    def step_pre_backward(self, params, optimizers, state, step: int, info: dict) -> None:
+        m2d = info[self.key_for_gradient]
+        if m2d.requires_grad:
+            m2d.retain_grad()
+
+    @torch.no_grad()
+    def step_post_backward(self, params, optimizers, state, step: int, info: dict, *, mesh=None,
+                           scale_mode: str = "sqrt_area") -> dict[str, int]:
+        """Update statistics, then refine / reset on schedule. Returns counts of what changed."""
+        out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        if not self.enabled or step > self.refine_stop:
+            return out
+        self._update_state(params, state, info)
+        if step >= self.refine_start and step % self.refine_every == 0:
+            if mesh is None:
+                raise MeshsplatError("step_post_backward: mesh (the canonical TriMesh) is needed to split")
+            out["cloned"], out["split"] = self._grow(params, optimizers, state, mesh, scale_mode)
+            out["pruned"] = self._prune(params, optimizers, state, step)
+            n = params["face"].shape[0]
+            dev = params["face"].device
+            state["grad2d"] = torch.zeros(n, device=dev)
+            state["count"] = torch.zeros(n, device=dev)
+            state["radii"] = torch.zeros(n, device=dev)
+        if self.reset_every > 0 and step % self.reset_every == 0:
+            reset_opacity(params, optimizers, self.reset_opa)
+            out["reset"] = 1
+        return out
+
+    # ---- internals -------------------------------------------------------------------
+    def _update_state(self, params, state, info: dict) -> None:
+        m2d = info[self.key_for_gradient]
+        if m2d.grad is None:
+            return
+        n = params["face"].shape[0]
+        dev = m2d.device
+        if state["grad2d"] is None or state["grad2d"].shape[0] != n:
+            state["grad2d"] = torch.zeros(n, device=dev)
+            state["count"] = torch.zeros(n, device=dev)
+            state["radii"] = torch.zeros(n, device=dev)
+        grads = m2d.grad.detach().clone()  # [C,N,2]
+        n_cams = int(info.get("n_cameras", grads.shape[0]))
+        grads[..., 0] *= 0.5 * info["width"] * n_cams
+        grads[..., 1] *= 0.5 * info["height"] * n_cams
+        radii = info["radii"]
+        if radii.ndim == 3:  # [C,N,2]
+            sel = (radii > 0).all(-1)
+            rmax = radii.amax(-1)
+        else:
+            sel = radii > 0
+            rmax = radii
+        cam_ids, gs_ids = torch.nonzero(sel, as_tuple=True)
+        state["grad2d"].index_add_(0, gs_ids, grads[cam_ids, gs_ids].norm(dim=-1).float())
+        state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
+        state["radii"][gs_ids] = torch.maximum(state["radii"][gs_ids], rmax[cam_ids, gs_ids].float())
+
+    def _grow(self, params, optimizers, state, mesh, scale_mode) -> tuple[int, int]:
+        if state["grad2d"] is None:
+            return 0, 0
+        extent = state["extent"]
+        avg = state["grad2d"] / state["count"].clamp_min(1)
+        high = avg > self.grow_grad2d
+        smax = params["log_scale"].detach().exp().amax(-1)
+        small = smax <= self.grow_scale3d * extent
+        is_dupli = high & small
+        is_split = high & ~small
+        # budget: a clone adds 1, a split adds split_n - 1; keep the highest gradients
+        n = params["face"].shape[0]
+        budget = max(self.max_gaussians - n, 0)
+        cost = is_dupli.long() + is_split.long() * max(self.split_n - 1, 0)
+        if int(cost.sum()) > budget:
+            cand = torch.nonzero(high).squeeze(1)
+            order = cand[torch.argsort(avg[cand], descending=True, stable=True)]
+            fits = cost[order].cumsum(0) <= budget
+            keep = torch.zeros_like(high)
+            keep[order[fits]] = True
+            is_dupli &= keep
+            is_split &= keep
+        n_dupli = int(is_dupli.sum())
+        if n_dupli:
+            duplicate(params, optimizers, state, is_dupli)
+            is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
+        n_split = int(is_split.sum())
+        if n_split:
+            self._split(params, optimizers, state, is_split, mesh, scale_mode)
+        return n_dupli, n_split
+
+    def _split(self, params, optimizers, state, mask, mesh, scale_mode) -> None:
+        from meshsplat.embedding import project_to_surface
+        from meshsplat.gaussians.compose import compose
+        from meshsplat.mesh import MeshPose
+        from meshsplat.mesh.quaternion import quat_to_matrix
+
+        sub = {k: v.detach()[mask] for k, v in params.items()}
+        verts = mesh.vertices.to(device=params["uv"].device, dtype=params["uv"].dtype)
+        g = compose(sub, MeshPose.from_vertices(mesh, verts), scale_mode)
+        k = self.split_n
+        rot = quat_to_matrix(g.quats)  # [M,3,3]
+        z = torch.randn((k,) + g.means.shape, device=g.means.device, dtype=g.means.dtype)
+        pts = torch.einsum("mij,kmj->kmi", rot, g.scales * z) + g.means  # [k,M,3]
+        face, uv, d = project_to_surface(mesh, verts, pts.reshape(-1, 3))
+        new = {
+            "face": face.long(),
+            "uv": uv,
+            "d": d,
+            "log_scale": (sub["log_scale"] - torch.log(torch.tensor(0.8 * k, dtype=sub["log_scale"].dtype,
+                                                                       device=sub["log_scale"].device))
+                          ).repeat(k, 1),
+        }
+        split_append(params, optimizers, state, mask, new, k)
+
+    def _prune(self, params, optimizers, state, step: int) -> int:
+        prune = torch.sigmoid(params["opacity_logit"].detach()) < self.prune_opa
+        if self.reset_every > 0 and step > self.reset_every:
+            smax = params["log_scale"].detach().exp().amax(-1)
+            prune |= smax > self.prune_scale3d * state["extent"]
+            if state["radii"] is not None:
+                prune |= state["radii"] > self.prune_scale2d
+        n_prune = int(prune.sum())
+        if n_prune == prune.shape[0]:  # never remove every Gaussian
+            return 0
+        if n_prune:
+            remove(params, optimizers, state, prune)
+        return n_prune

@@ -1,0 +1,411 @@
+"""Training loop: mesh-embedded Gaussians fitted to images of a posed mesh sequence.
+
+Run directory layout (``config.out``)::
+
+    RUN/config.json                       resolved TrainConfig (JSON)
+    RUN/checkpoints/ckpt_<iter:08d>.pt    atomic checkpoints (meshsplat.io), last ``keep_checkpoints`` kept
+    RUN/log.csv                           one row per ``log_every`` iterations (see LOG_COLUMNS)
+    RUN/previews/preview_<iter:06d>.png   render | ground truth of a fixed training frame
+
+A checkpoint (``meshsplat.io.load_checkpoint``) holds ``iteration``, ``config`` (dict),
+``avatar`` (``Avatar.state_dict()``: canonical mesh, params, scale_mode, ...), ``optimizers``
+(per key ``Adam.state_dict()``), ``strategy_state``, ``rng`` (torch CPU/CUDA, numpy, python,
+background and data-order generators), ``data_order`` and ``elapsed_s``. Resuming from it on CPU
+continues bit for bit.
+
+Per iteration (1-based ``it``): set lrs; next training frame (shuffled without replacement per
+epoch, seeded); pose the canonical mesh with the frame's vertices; compose; rasterize with a
+random background (also blended into the ground truth through the mask); loss
+``L1 + λ_lpips LPIPS + λ_scale L_scale (+ λ_mse MSE + λ_ssim D-SSIM)``, L_scale on the canonical
+(pose-independent) scales with T_s = ``loss.scale_max * extent``; backward; Adam steps;
+densification strategy; every ``walk.every`` iterations walking on triangles.
+"""
+from __future__ import annotations
+
+import csv
+import random
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.avatar import Avatar
+from meshsplat.gaussians.compose import compose
+from meshsplat.gaussians.params import init_params, num_gaussians
+from meshsplat.train.config import TrainConfig
+from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
+from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
+
+__all__ = ["Trainer", "train", "resolve_device", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
+
+LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psnr", "n_gaussians",
+               "walked", "lr_duv", "lr_d", "time_s")
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise MeshsplatError(f"device: unknown device {name!r}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise MeshsplatError(f"device: {name!r} requested but CUDA is not available")
+    return dev
+
+
+def mesh_extent(vertices: torch.Tensor) -> float:
+    """Half the bounding-box diagonal: the 'scene extent' of an avatar (≈1 for a 1.7 m body)."""
+    return 0.5 * float((vertices.amax(0) - vertices.amin(0)).norm())
+
+
+def mean_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
+    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return float((vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1).mean())
+
+
+class Trainer:
+    """Builds everything from a ``TrainConfig``; ``train()`` runs to ``config.iterations``.
+
+    ``resume=True`` continues from the newest valid checkpoint in ``RUN/checkpoints`` (starts
+    fresh when there is none). The run uses ``config`` as given; the CLI resumes with the run's
+    own ``config.json``.
+    """
+
+    def __init__(self, config: TrainConfig, resume: bool = False):
+        from meshsplat.data import open_dataset
+        from meshsplat.mesh import TriMesh
+
+        self.cfg = config.validate()
+        if not self.cfg.data:
+            raise MeshsplatError("config: data (the dataset folder) is not set")
+        self.run_dir = Path(self.cfg.out)
+        self.ckpt_dir = self.run_dir / "checkpoints"
+        self.preview_dir = self.run_dir / "previews"
+        self.device = resolve_device(self.cfg.device)
+        self.dataset = open_dataset(self.cfg.data)
+        self.train_ids = list(self.dataset.split("train"))
+        if not self.train_ids:
+            raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")
+        cano = torch.as_tensor(self.dataset.canonical_vertices, dtype=torch.float32)
+        self.mesh = TriMesh(cano.to(self.device), torch.as_tensor(self.dataset.faces).long().to(self.device))
+        self.extent = mesh_extent(self.mesh.vertices)
+        self.mean_edge = mean_edge_length(self.mesh.vertices, self.mesh.faces)
+        self.strategy = DensifyStrategy(**{k: v for k, v in vars(self.cfg.strategy).items()})
+        self.lrs = base_learning_rates(self.cfg.optim, self.extent, self.mean_edge)
+        self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
+        self.perceptual = None
+        if self.cfg.loss.lambda_lpips:
+            from meshsplat.train.losses import make_perceptual_loss
+
+            self.perceptual = make_perceptual_loss("alex")
+        self._frame_cache: dict[int, tuple] = {}
+        self._cache_bytes = 0
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.history: list[dict[str, float]] = []
+        self.walked_total = 0  # embeddings that changed face (this session)
+
+        loaded = None
+        if resume:
+            from meshsplat.io.checkpoint import load_latest_checkpoint
+
+            loaded = load_latest_checkpoint(self.ckpt_dir)
+        if loaded is not None:
+            self._restore(loaded[1])
+            self.resumed_from: Path | None = loaded[0]
+        else:
+            self.resumed_from = None
+            self._fresh_start()
+
+    # ---- setup -----------------------------------------------------------------------
+    def _fresh_start(self) -> None:
+        cfg = self.cfg
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed % 2**32)
+        random.seed(cfg.seed)
+        if self.device.type == "cuda":
+            torch.cuda.manual_seed_all(cfg.seed)
+        gen = torch.Generator().manual_seed(cfg.seed)
+        colors_fn = self._first_image_colors if cfg.model.init_color == "image" else None
+        self.params = init_params(self.mesh, cfg.model.n_init, sh_degree=cfg.model.sh_degree,
+                                  init_opacity=cfg.model.init_opacity, knn=cfg.model.init_knn,
+                                  colors_fn=colors_fn, generator=gen,
+                                  trainable_embedding=not cfg.model.freeze_embedding)
+        self.optimizers = build_optimizers(self.params, self.lrs, cfg.optim.eps)
+        self.strategy_state = self.strategy.initialize_state(self.extent)
+        self.order_gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.bg_gen = torch.Generator().manual_seed(cfg.seed + 2)
+        self.order = torch.randperm(len(self.train_ids), generator=self.order_gen)
+        self.order_pos = 0
+
+    def _first_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """Colour of each embedded point seen in the first training frame (grey where unseen)."""
+        image, mask, K, viewmat, verts = self._frame(self.train_ids[0])
+        tri = verts[self.mesh.faces[face]]  # [N,3,3]
+        w = torch.cat([uv, 1 - uv.sum(-1, keepdim=True)], -1)
+        pts = (w[..., None] * tri).sum(1)
+        cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
+        z = cam[:, 2]
+        pix = cam @ K.T
+        px = pix[:, 0] / z.clamp_min(1e-9)
+        py = pix[:, 1] / z.clamp_min(1e-9)
+        h, wd = image.shape[:2]
+        ix, iy = px.floor().long(), py.floor().long()
+        ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h)
+        rgb = torch.full((face.shape[0], 3), 0.5, dtype=uv.dtype, device=uv.device)
+        ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
+        if mask is not None:
+            ok &= mask[iyc, ixc, 0] > 0.5
+        rgb[ok] = image[iyc[ok], ixc[ok]].to(rgb)
+        return rgb
+
+    # ---- data ------------------------------------------------------------------------
+    def _frame(self, idx: int) -> tuple:
+        """(image [H,W,3], mask [H,W,1]|None, K [3,3], viewmat [4,4], vertices [V,3]) on device."""
+        hit = self._frame_cache.get(idx)
+        if hit is not None:
+            return hit
+        fr = self.dataset[idx]
+        dev = self.device
+        item = (fr.image.to(dev, torch.float32), None if fr.mask is None else fr.mask.to(dev, torch.float32),
+                fr.K.to(dev, torch.float32), fr.viewmat.to(dev, torch.float32), fr.vertices.to(dev, torch.float32))
+        size = sum(t.numel() * 4 for t in item if t is not None)
+        if self._cache_bytes + size <= 2 * 1024**3:  # keep up to 2 GiB of decoded frames
+            self._frame_cache[idx] = item
+            self._cache_bytes += size
+        return item
+
+    def _next_index(self) -> int:
+        if self.order_pos >= len(self.order):
+            self.order = torch.randperm(len(self.train_ids), generator=self.order_gen)
+            self.order_pos = 0
+        idx = self.train_ids[int(self.order[self.order_pos])]
+        self.order_pos += 1
+        return idx
+
+    def _background(self) -> torch.Tensor:
+        if self.cfg.background == "random":
+            bg = torch.rand(3, generator=self.bg_gen)
+        elif self.cfg.background == "white":
+            bg = torch.ones(3)
+        else:
+            bg = torch.zeros(3)
+        return bg.to(self.device)
+
+    # ---- one iteration ---------------------------------------------------------------
+    @property
+    def clamp_to_face(self) -> bool:
+        return not self.cfg.walk.enabled
+
+    def render_frame(self, idx: int, background: torch.Tensor, campos_needed: bool | None = None):
+        """Render training frame ``idx``: returns (render [H,W,3], gt [H,W,3], meta, composed)."""
+        from meshsplat.mesh import MeshPose
+        from meshsplat.render import rasterize
+
+        image, mask, K, viewmat, verts = self._frame(idx)
+        h, w = image.shape[:2]
+        pose = MeshPose.from_vertices(self.mesh, verts)
+        campos = torch.linalg.inv(viewmat)[:3, 3] if "shN" in self.params else None
+        g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face)
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None], w, h,
+                        backgrounds=background[None], backend=self.cfg.backend)
+        gt = image if mask is None else image * mask + background * (1 - mask)
+        return out.colors[0], gt, out.meta, g
+
+    def step(self) -> dict[str, float]:
+        """Run one training iteration; returns its logged values."""
+        from meshsplat.metrics import psnr
+        from meshsplat.train.losses import avatar_loss
+
+        cfg = self.cfg
+        self.iteration += 1
+        it = self.iteration
+        lrs = self.schedule.apply(self.optimizers, it)
+        idx = self._next_index()
+        _, mask, _, _, _ = self._frame(idx)
+        bg = self._background() if mask is not None else torch.zeros(3, device=self.device)
+        render, gt, meta, g = self.render_frame(idx, bg)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
+        L = cfg.loss
+        loss, parts = avatar_loss(
+            render, gt, self.params["log_scale"].exp(),
+            thresh_scale=L.scale_max * self.extent, thresh_ratio=L.scale_ratio,
+            lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale,
+            lambda_mse=L.lambda_mse, lambda_dssim=L.lambda_ssim, perceptual=self.perceptual)
+        if not torch.isfinite(loss):
+            raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
+        loss.backward()
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, it, meta,
+                                         mesh=self.mesh, scale_mode=cfg.model.scale_mode)
+        walked = 0
+        if it % cfg.walk.every == 0 and not cfg.model.freeze_embedding:
+            changed = walk_embeddings(self.params, self.optimizers, self.mesh, walk=cfg.walk.enabled,
+                                      mode=cfg.walk.mode, max_crossings=cfg.walk.max_crossings)
+            walked = int(changed.sum())
+            self.walked_total += walked
+        with torch.no_grad():
+            p = float(psnr(render.detach().clamp(0, 1), gt))
+        row = {"iteration": it, "loss": float(loss.detach()), "psnr": p, "n_gaussians": num_gaussians(self.params),
+               "walked": walked,
+               "lr_duv": lrs.get("duv", 0.0), "lr_d": lrs.get("d", 0.0)}
+        for k in ("l1", "lpips", "scale", "mse", "dssim"):
+            row[k] = float(parts[k]) if k in parts else 0.0
+        return row
+
+    # ---- loop ------------------------------------------------------------------------
+    def train(self, until: int | None = None) -> Path:
+        """Train up to iteration ``until`` (default ``config.iterations``); returns the run dir."""
+        cfg = self.cfg
+        end = cfg.iterations if until is None else min(int(until), cfg.iterations)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        cfg.to_json(self.run_dir / "config.json")
+        self._open_log()
+        bar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
+        t0 = time.perf_counter() - self.elapsed
+        ema_loss = ema_psnr = None
+        try:
+            while self.iteration < end:
+                row = self.step()
+                it = self.iteration
+                self.elapsed = time.perf_counter() - t0
+                row["time_s"] = self.elapsed
+                ema_loss = row["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * row["loss"]
+                ema_psnr = row["psnr"] if ema_psnr is None else 0.9 * ema_psnr + 0.1 * row["psnr"]
+                if it % cfg.log_every == 0 or it == end:
+                    self._log(row)
+                if it % cfg.preview_every == 0 or it == cfg.iterations:
+                    self.save_preview()
+                if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+                    self.save_checkpoint()
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=row["n_gaussians"])
+        finally:
+            if bar is not None:
+                bar.close()
+        return self.run_dir
+
+    @property
+    def num_gaussians(self) -> int:
+        return num_gaussians(self.params)
+
+    # ---- outputs ---------------------------------------------------------------------
+    def _open_log(self) -> None:
+        path = self.run_dir / "log.csv"
+        rows = []
+        if path.exists():  # keep the rows up to the resumed iteration
+            with open(path, newline="") as fh:
+                rows = [r for r in csv.DictReader(fh) if r.get("iteration", "").isdigit()
+                        and int(r["iteration"]) <= self.iteration]
+        with open(path, "w", newline="") as fh:
+            wr = csv.DictWriter(fh, fieldnames=LOG_COLUMNS)
+            wr.writeheader()
+            for r in rows:
+                wr.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
+
+    def _log(self, row: dict[str, float]) -> None:
+        self.history.append(row)
+        with open(self.run_dir / "log.csv", "a", newline="") as fh:
+            csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow(
+                {k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in LOG_COLUMNS})
+
+    @torch.no_grad()
+    def save_preview(self, idx: int | None = None) -> Path:
+        from PIL import Image
+
+        idx = self.train_ids[0] if idx is None else idx
+        bg = torch.ones(3, device=self.device)
+        render, gt, _, _ = self.render_frame(idx, bg)
+        pair = torch.cat([render.clamp(0, 1), gt], dim=1)
+        img = (pair.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        self.preview_dir.mkdir(parents=True, exist_ok=True)
+        path = self.preview_dir / f"preview_{self.iteration:06d}.png"
+        Image.fromarray(img).save(path)
+        return path
+
+    def avatar(self) -> Avatar:
+        """The current model as an ``Avatar`` (shares the parameter tensors)."""
+        return Avatar(self.mesh, self.params, self.cfg.model.scale_mode, clamp_to_face=self.clamp_to_face)
+
+    def state_dict(self) -> dict[str, Any]:
+        np_state = np.random.get_state()
+        rng = {
+            "torch": torch.get_rng_state(),
+            "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
+                      int(np_state[3]), float(np_state[4])],
+            "python": random.getstate(),
+            "order": self.order_gen.get_state(),
+            "background": self.bg_gen.get_state(),
+        }
+        if self.device.type == "cuda":
+            rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        strat = {k: (v.detach().cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.strategy_state.items()}
+        return {
+            "iteration": self.iteration,
+            "elapsed_s": self.elapsed,
+            "config": self.cfg.to_dict(),
+            "avatar": self.avatar().state_dict(),
+            "trainable": sorted(k for k, v in self.params.items() if getattr(v, "requires_grad", False)),
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            "strategy_state": strat,
+            "rng": rng,
+            "data_order": {"order": self.order.clone(), "pos": self.order_pos},
+        }
+
+    def save_checkpoint(self) -> Path:
+        from meshsplat.io.checkpoint import checkpoint_path, save_checkpoint
+
+        return save_checkpoint(checkpoint_path(self.ckpt_dir, self.iteration), self.state_dict(),
+                               keep_last=self.cfg.keep_checkpoints)
+
+    def _restore(self, st: dict[str, Any]) -> None:
+        dev = self.device
+        av = st["avatar"]
+        trainable = set(st.get("trainable", []))
+        self.params = {}
+        for k, v in av["params"].items():
+            v = v.to(dev)
+            self.params[k] = torch.nn.Parameter(v, requires_grad=k in trainable) if k not in ("face", "uv") else v
+        self.optimizers = build_optimizers(self.params, self.lrs, self.cfg.optim.eps)
+        if set(self.optimizers) != set(st["optimizers"]):
+            raise MeshsplatError("checkpoint: optimizer keys do not match the configuration "
+                                 f"({sorted(st['optimizers'])} vs {sorted(self.optimizers)})")
+        for k, opt in self.optimizers.items():
+            opt.load_state_dict(st["optimizers"][k])
+        self.strategy_state = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v)
+                               for k, v in st["strategy_state"].items()}
+        rng = st["rng"]
+        torch.set_rng_state(rng["torch"])
+        n = rng["numpy"]
+        np.random.set_state((n[0], n[1].numpy().astype(np.uint32), n[2], n[3], n[4]))
+        random.setstate(_tuplify(rng["python"]))
+        if dev.type == "cuda" and "cuda" in rng:
+            torch.cuda.set_rng_state(rng["cuda"], dev)
+        self.order_gen = torch.Generator()
+        self.order_gen.set_state(rng["order"])
+        self.bg_gen = torch.Generator()
+        self.bg_gen.set_state(rng["background"])
+        self.order = st["data_order"]["order"].clone()
+        self.order_pos = int(st["data_order"]["pos"])
+        self.iteration = int(st["iteration"])
+        self.elapsed = float(st.get("elapsed_s", 0.0))
+
+
+def _tuplify(x):
+    return tuple(_tuplify(v) for v in x) if isinstance(x, (list, tuple)) else x
+
+
+def train(config: TrainConfig, resume: bool = False) -> Path:
+    """Train (or resume) the run described by ``config``; returns the run directory."""
+    return Trainer(config, resume=resume).train()

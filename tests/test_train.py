@@ -1,0 +1,169 @@
+"""Trainer end to end on a tiny dataset: run layout, learning, bit-exact resume, CLI."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+
+import pytest
+import torch
+
+from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
+from meshsplat.mesh import TriMesh
+from meshsplat.train import LOG_COLUMNS, Trainer, TrainConfig, apply_overrides
+
+W = H = 32
+VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
+K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]])
+
+
+def posed(verts: torch.Tensor, t: float) -> torch.Tensor:
+    a = 0.6 * t
+    R = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    return (verts * torch.tensor([1.0, 1.0 + 0.15 * math.sin(2 * t), 1.0])) @ R.T
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    return make_tiny_dataset(tmp_path_factory.mktemp("ds") / "sphere")
+
+
+def make_tiny_dataset(root):
+    """A deforming, turning icosphere textured by a teacher Gaussian avatar (alpha = mask)."""
+    import trimesh
+
+    from meshsplat.data import write_dataset
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    mesh = TriMesh(torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces))
+    gen = torch.Generator().manual_seed(123)
+    teacher = init_params(mesh, 800, generator=gen)
+    with torch.no_grad():
+        from meshsplat.gaussians import compose
+        from meshsplat.mesh import MeshPose
+
+        pos = compose(teacher, MeshPose.canonical(mesh)).means
+        rgb = torch.stack([0.5 + 0.5 * torch.sin(5 * pos[:, 0]), 0.5 + 0.5 * torch.cos(4 * pos[:, 1]),
+                           (pos[:, 2] > 0).float()], -1)
+        teacher["sh0"].copy_(rgb_to_sh0(rgb))
+        teacher["opacity_logit"].fill_(3.0)
+        teacher["log_scale"].fill_(math.log(0.09))
+    av = Avatar(mesh, teacher)
+    frames = []
+    for i in range(6):
+        v = posed(mesh.vertices, float(i))
+        with torch.no_grad():
+            out = av.render(v, VIEWMAT, K, W, H, background=torch.zeros(3), backend="torch")
+        frames.append({"image": out.image.clamp(0, 1), "mask": out.alpha, "camera_id": "cam0", "vertices": v})
+    cams = {"cam0": {"K": K, "viewmat": VIEWMAT, "width": W, "height": H}}
+    return write_dataset(root, mesh.vertices, mesh.faces, cams, frames, splits={"train": list(range(6))})
+
+
+def small_config(data, out, iterations, extra=()):
+    cfg = TrainConfig(data=str(data), out=str(out), iterations=iterations, device="cpu", backend="torch",
+                      progress=False)
+    return apply_overrides(cfg, [
+        "model.n_init=200", "checkpoint_every=10", "keep_checkpoints=5", "preview_every=10", "log_every=1",
+        "strategy.refine_start=4", "strategy.refine_every=4", "strategy.reset_every=12",
+        "strategy.grow_grad2d=1e-5", "strategy.max_gaussians=500", "walk.every=5", *extra])
+
+
+def _psnr_on_train(avatar: Avatar, ds) -> float:
+    from meshsplat.metrics import psnr
+
+    vals = []
+    for i in ds.split("train"):
+        fr = ds[i]
+        with torch.no_grad():
+            out = avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, background=torch.zeros(3),
+                                backend="torch")
+        gt = fr.image * fr.mask
+        vals.append(float(psnr(out.image.clamp(0, 1), gt)))
+    return sum(vals) / len(vals)
+
+
+def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
+    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20))
+    n0 = full.num_gaussians
+    full.train()
+    assert full.num_gaussians != n0  # densification really ran
+    assert full.num_gaussians <= 500  # within the budget
+    # "killed" after the checkpoint at 10: a run dir that holds only that checkpoint
+    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt", tmp_path / "resumed" / "checkpoints")
+    res = Trainer(small_config(tiny_dataset, tmp_path / "resumed", 20), resume=True)
+    assert res.iteration == 10 and res.resumed_from is not None
+    res.train()
+    assert res.iteration == 20
+    assert set(full.params) == set(res.params)
+    for k in full.params:
+        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
+    for k, opt in full.optimizers.items():
+        a, b = opt.state[full.params[k]], res.optimizers[k].state[res.params[k]]
+        assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"]), k
+    assert [r["loss"] for r in full.history[10:]] == [r["loss"] for r in res.history]
+
+
+@pytest.mark.slow
+def test_training_learns_and_writes_run_dir(tiny_dataset, tmp_path):
+    from meshsplat.data import open_dataset
+
+    ds = open_dataset(tiny_dataset)
+    cfg = small_config(tiny_dataset, tmp_path / "run", 60,
+                       ["model.init_color=grey", "optim.lr_color=0.03", "model.n_init=400",
+                        "strategy.grow_grad2d=2e-4", "strategy.reset_every=1000", "strategy.max_gaussians=800"])
+    tr = Trainer(cfg)
+    before = _psnr_on_train(tr.avatar(), ds)
+    run = tr.train()
+    avatar = Avatar.from_checkpoint(run)
+    after = _psnr_on_train(avatar, ds)
+    assert after > before + 3.0, (before, after)
+    assert avatar.num_gaussians == tr.num_gaussians
+    assert (run / "config.json").is_file()
+    assert TrainConfig.from_dict(json.loads((run / "config.json").read_text())) == cfg
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
+        "ckpt_00000010.pt", "ckpt_00000020.pt", "ckpt_00000030.pt", "ckpt_00000040.pt", "ckpt_00000050.pt",
+        "ckpt_00000060.pt"][-5:]
+    assert (run / "previews" / "preview_000060.png").is_file()
+    with open(run / "log.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0].keys()) == LOG_COLUMNS and len(rows) == 60
+    first = sum(float(r["loss"]) for r in rows[:10]) / 10
+    last = sum(float(r["loss"]) for r in rows[-10:]) / 10
+    assert last < 0.7 * first
+    assert sum(int(r["walked"]) for r in rows) > 0  # embeddings changed face during training
+
+
+def test_ablation_switches(tiny_dataset, tmp_path):
+    frozen = Trainer(small_config(tiny_dataset, tmp_path / "frozen", 10, ["model.freeze_embedding=true"]))
+    frozen.train()
+    assert "duv" not in frozen.optimizers and "d" not in frozen.optimizers
+    assert torch.all(frozen.params["d"] == 0) and torch.all(frozen.params["duv"] == 0)
+    nowalk = Trainer(small_config(tiny_dataset, tmp_path / "nowalk", 10,
+                                  ["walk.enabled=false", "strategy.enabled=false"]))
+    face0 = nowalk.params["face"].clone()
+    nowalk.train()
+    assert torch.equal(nowalk.params["face"], face0)
+    bary = torch.cat([nowalk.params["uv"], 1 - nowalk.params["uv"].sum(-1, keepdim=True)], -1)
+    assert torch.all(bary >= -1e-6)
+    assert Avatar.from_checkpoint(tmp_path / "nowalk").clamp_to_face
+
+
+def test_cli_train_and_resume(tiny_dataset, tmp_path, capsys):
+    from meshsplat.cli.main import main
+
+    out = tmp_path / "cli"
+    args = ["train", str(tiny_dataset), "--out", str(out), "--iters", "6", "--device", "cpu", "--no-progress",
+            "--set", "model.n_init=100", "--set", "backend=torch", "--set", "checkpoint_every=3",
+            "--set", "log_every=1"]
+    assert main(args) == 0
+    assert (out / "checkpoints" / "ckpt_00000006.pt").is_file()
+    assert main(["train", str(tiny_dataset), "--out", str(out), "--iters", "8", "--resume", "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "resuming from" in text and "iteration 8" in text
+    with open(out / "log.csv", newline="") as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert main(args[:6] + ["--set", "strategy.bogus=1"]) == 2
+    assert "unknown key" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "nothing"), "--out", str(out)]) == 2

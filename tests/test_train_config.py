@@ -1,0 +1,94 @@
+"""Training config (JSON round trip, --set overrides) and learning-rate schedule."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.train.config import OptimConfig, TrainConfig, apply_overrides, load_config
+from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers, expon_lr
+
+
+def test_defaults_are_the_papers():
+    c = TrainConfig()
+    assert c.iterations == 30_000 and c.model.n_init == 10_000 and c.model.sh_degree == 0
+    assert (c.optim.lr_embedding, c.optim.lr_embedding_final, c.optim.lr_delay_mult) == (1.6e-4, 1.6e-6, 0.01)
+    assert (c.optim.lr_color, c.optim.lr_opacity, c.optim.lr_scale, c.optim.lr_rotation) == (2.5e-3, 5e-2, 5e-3, 1e-3)
+    assert c.optim.eps == 1e-15
+    assert (c.loss.lambda_lpips, c.loss.lambda_scale, c.loss.lambda_mse) == (0.01, 1.0, 0.0)
+    s = c.strategy
+    assert (s.refine_start, s.refine_stop, s.refine_every, s.reset_every) == (600, 15_000, 100, 3000)
+    assert (s.grow_grad2d, s.prune_opa, s.prune_scale2d, s.prune_scale3d) == (2e-4, 0.005, 20.0, 0.1)
+    assert c.walk.every == 100 and c.walk.enabled
+
+
+def test_json_roundtrip(tmp_path):
+    c = apply_overrides(TrainConfig(), ["strategy.refine_every=200", "walk.enabled=false", "loss.lambda_mse=10",
+                                        "model.scale_mode=area", "iterations=1e3", "seed=7"])
+    assert c.strategy.refine_every == 200 and c.walk.enabled is False and c.loss.lambda_mse == 10.0
+    assert c.model.scale_mode == "area" and c.iterations == 1000 and c.seed == 7
+    c.to_json(tmp_path / "c.json")
+    c2 = load_config(tmp_path / "c.json")
+    assert c2 == c
+    (tmp_path / "partial.json").write_text(json.dumps({"strategy": {"max_gaussians": 5000}}))
+    p = load_config(tmp_path / "partial.json")
+    assert p.strategy.max_gaussians == 5000 and p.strategy.refine_every == 100
+
+
+@pytest.mark.parametrize("item, match", [
+    ("strategy.nope=1", "unknown key"),
+    ("nope.x=1", "unknown section"),
+    ("walk.enabled=maybe", "true/false"),
+    ("strategy.refine_every=1.5", "expects int"),
+    ("loss.lambda_l1=abc", "expects float"),
+    ("strategy", "key=value"),
+    ("model=3", "unknown key"),
+])
+def test_override_errors(item, match):
+    with pytest.raises(MeshsplatError, match=match):
+        apply_overrides(TrainConfig(), [item])
+
+
+def test_validate_and_bad_files(tmp_path):
+    with pytest.raises(MeshsplatError, match="scale_mode"):
+        apply_overrides(TrainConfig(), ["model.scale_mode=cube"]).validate()
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(MeshsplatError, match="not valid JSON"):
+        load_config(tmp_path / "bad.json")
+    with pytest.raises(MeshsplatError, match="not found"):
+        load_config(tmp_path / "missing.json")
+    with pytest.raises(MeshsplatError, match="unknown key"):
+        TrainConfig.from_dict({"model": {"colour": 1}})
+
+
+def test_expon_lr_matches_3dgs_schedule():
+    assert expon_lr(0, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-4)
+    assert expon_lr(100, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-6)
+    assert expon_lr(50, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-5)  # geometric midpoint
+    assert expon_lr(500, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-6)
+    # delay multiplier: warm-up from 0.01x to 1x over the delay steps (3DGS)
+    assert expon_lr(0, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(0.01)
+    assert expon_lr(5, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(
+        0.01 + 0.99 * math.sin(math.pi / 4))
+    assert expon_lr(10, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(1.0)
+
+
+def test_embedding_lrs_scale_with_mesh_and_decay():
+    cfg = OptimConfig()
+    lrs = base_learning_rates(cfg, extent=2.0, mean_edge=0.05)
+    assert lrs["d"] == pytest.approx(1.6e-4 * 2.0)
+    assert lrs["duv"] == pytest.approx(1.6e-4 * 2.0 / 0.05)
+    bary = base_learning_rates(OptimConfig(uv_lr_units="barycentric"), 2.0, 0.05)
+    assert bary["duv"] == pytest.approx(1.6e-4)
+    params = {k: torch.nn.Parameter(torch.zeros(3, 2)) for k in ("duv", "d", "sh0", "rotation")}
+    params["uv"] = torch.zeros(3, 2)
+    opts = build_optimizers(params, lrs)
+    assert set(opts) == {"duv", "d", "sh0", "rotation"}
+    assert all(o.defaults["eps"] == 1e-15 for o in opts.values())
+    sched = LrSchedule(cfg, lrs, max_steps=1000)
+    got = sched.apply(opts, 1000)
+    assert got["d"] == pytest.approx(1.6e-6 * 2.0) and got["sh0"] == pytest.approx(2.5e-3)
+    assert opts["duv"].param_groups[0]["lr"] == pytest.approx(1.6e-6 * 2.0 / 0.05)
