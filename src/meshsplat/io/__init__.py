@@ -1,1 +1,25 @@
-"""io."""
+"""File formats: atomic checkpoints, 3DGS .ply, embedding JSON, OBJ meshes, video."""
+from __future__ import annotations
+
+from meshsplat.io.checkpoint import (
+    checkpoint_path,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    load_latest_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+)
+from meshsplat.io.embedding_json import read_embedding_json, write_embedding_json
+from meshsplat.io.obj import ObjMesh, read_obj, write_obj
+from meshsplat.io.ply import read_gaussian_ply, write_gaussian_ply
+from meshsplat.io.video import VideoResult, write_mp4, write_png_frames, write_video
+
+__all__ = [
+    "save_checkpoint", "load_checkpoint", "latest_checkpoint", "load_latest_checkpoint",
+    "list_checkpoints", "prune_checkpoints", "checkpoint_path",
+    "write_gaussian_ply", "read_gaussian_ply",
+    "write_embedding_json", "read_embedding_json",
+    "ObjMesh", "read_obj", "write_obj",
+    "write_video", "write_mp4", "write_png_frames", "VideoResult",
+]

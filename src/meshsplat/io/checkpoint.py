@@ -1,0 +1,162 @@
+"""Atomic training checkpoints.
+
+A checkpoint is ``torch.save({"format": FORMAT_TAG, "version": FORMAT_VERSION, "state": state})``
+written to a temporary file in the target folder, flushed, fsynced and moved into place
+with ``os.replace``: a reader sees either the previous file or the complete new one.
+``state`` may hold tensors, dicts, lists, tuples, numbers, strings, bytes and None (numpy
+arrays must be converted to tensors); it is loaded with ``torch.load(weights_only=True)``.
+
+Run folders name checkpoints ``ckpt_<step:08d>.pt`` (:func:`checkpoint_path`).
+"""
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = [
+    "FORMAT_TAG",
+    "FORMAT_VERSION",
+    "save_checkpoint",
+    "load_checkpoint",
+    "checkpoint_path",
+    "list_checkpoints",
+    "latest_checkpoint",
+    "load_latest_checkpoint",
+    "prune_checkpoints",
+]
+
+FORMAT_TAG = "meshsplat-checkpoint"
+FORMAT_VERSION = 1
+_NAME = re.compile(r"^ckpt_(\d+)\.pt$")
+_PLAIN = (bool, int, float, complex, str, bytes, type(None), torch.dtype, torch.device, torch.Size)
+
+
+def _check_state(obj, where: str = "state") -> None:
+    if isinstance(obj, torch.Tensor) or isinstance(obj, _PLAIN):
+        return
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if not isinstance(k, (str, int, float, bool, type(None))):
+                raise MeshsplatError(f"{where}: key {k!r} of type {type(k).__name__} is not storable")
+            _check_state(v, f"{where}[{k!r}]")
+        return
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        for i, v in enumerate(obj):
+            _check_state(v, f"{where}[{i}]")
+        return
+    hint = " (convert numpy arrays with torch.from_numpy)" if type(obj).__module__.startswith("numpy") else ""
+    raise MeshsplatError(f"{where}: type {type(obj).__name__} cannot be stored in a checkpoint{hint}")
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # e.g. platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict, keep_last: int | None = None) -> Path:
+    """Write ``state`` atomically to ``path``; with ``keep_last`` prune older ``ckpt_*.pt`` siblings."""
+    if not isinstance(state, dict):
+        raise MeshsplatError(f"state: expected a dict, got {type(state).__name__}")
+    _check_state(state)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save({"format": FORMAT_TAG, "version": FORMAT_VERSION, "state": state}, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(path.parent)
+    if keep_last is not None:
+        prune_checkpoints(path.parent, keep_last)
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """Load the ``state`` dict saved by :func:`save_checkpoint`; clear errors for bad files."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshsplatError(f"checkpoint {str(path)!r} not found")
+    try:
+        blob = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # truncated zip, garbage, unpickling refusals
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise MeshsplatError(f"checkpoint {str(path)!r} is corrupt or truncated ({first[:200]})") from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT_TAG:
+        raise MeshsplatError(f"checkpoint {str(path)!r} is not a meshsplat checkpoint")
+    if blob.get("version") != FORMAT_VERSION:
+        raise MeshsplatError(f"checkpoint {str(path)!r} has format version {blob.get('version')!r}; "
+                             f"this meshsplat reads version {FORMAT_VERSION}")
+    state = blob.get("state")
+    if not isinstance(state, dict):
+        raise MeshsplatError(f"checkpoint {str(path)!r} holds no state dict")
+    return state
+
+
+def checkpoint_path(run_dir: str | os.PathLike, step: int) -> Path:
+    """``run_dir/ckpt_<step:08d>.pt``."""
+    if int(step) < 0:
+        raise MeshsplatError(f"step: expected a non-negative integer, got {step}")
+    return Path(run_dir) / f"ckpt_{int(step):08d}.pt"
+
+
+def list_checkpoints(run_dir: str | os.PathLike) -> list[tuple[int, Path]]:
+    """``(step, path)`` of ``ckpt_*.pt`` files in ``run_dir``, oldest first (not validated)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return []
+    found = []
+    for p in run_dir.iterdir():
+        m = _NAME.match(p.name)
+        if m and p.is_file():
+            found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def load_latest_checkpoint(run_dir: str | os.PathLike,
+                           map_location: str | torch.device = "cpu") -> tuple[Path, dict] | None:
+    """Newest checkpoint of ``run_dir`` that loads, as ``(path, state)``; corrupt ones are skipped."""
+    for _, p in reversed(list_checkpoints(run_dir)):
+        try:
+            return p, load_checkpoint(p, map_location)
+        except MeshsplatError:
+            continue
+    return None
+
+
+def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
+    """Path of the newest valid checkpoint in ``run_dir`` (None when there is none)."""
+    found = load_latest_checkpoint(run_dir)
+    return None if found is None else found[0]
+
+
+def prune_checkpoints(run_dir: str | os.PathLike, keep_last: int) -> list[Path]:
+    """Delete all but the ``keep_last`` newest ``ckpt_*.pt``; returns the deleted paths."""
+    if keep_last < 1:
+        raise MeshsplatError(f"keep_last: expected >= 1, got {keep_last}")
+    ckpts = list_checkpoints(run_dir)
+    doomed = [p for _, p in ckpts[:-keep_last]]
+    for p in doomed:
+        p.unlink(missing_ok=True)
+    return doomed

