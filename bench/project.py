@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import sys
 import time
 from pathlib import Path
@@ -14,7 +13,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from walk import bench_mesh, machine_info  # noqa: E402
+from _machine import machine_info, results_path  # noqa: E402
+from walk import bench_mesh  # noqa: E402
 
 from meshsplat.embedding import embed, project_to_surface, sample_surface  # noqa: E402
 from meshsplat.mesh import MeshPose  # noqa: E402
@@ -49,7 +49,7 @@ def main() -> None:
     for r in rows:
         print(f"{r['k']:3d} {r['n_starts']:6d} {r['seconds']:8.2f} {r['points_per_s'] / 1e3:8.1f} "
               f"{r['frac_err_below_1e-4_diag']:11.4f} {r['median_rel_err']:11.2e}")
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"project-{socket.gethostname()}.json"
+    out = Path(args.out) if args.out else results_path("project")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"bench": "project", "quick": args.quick, "machine": machine_info(), "rows": rows},
                               indent=2))

@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import socket
 import tempfile
 import time
 from pathlib import Path
 
-import torch
 
 from meshsplat.data import open_dataset
 from meshsplat.synth import generate
+
+from _machine import machine_info, results_path  # noqa: E402
 
 
 def main() -> int:
@@ -34,12 +33,9 @@ def main() -> int:
         n = len(open_dataset(out, check_masks=False))
     result = {"benchmark": "synth", "asset": "CesiumMan", "frames": n, "resolution": res, "seconds": round(secs, 2),
               "seconds_per_frame": round(secs / n, 4), "goal_seconds_100_frames_512": 60,
-              "torch": torch.__version__, "cpu_count": torch.get_num_threads(), "machine": platform.machine(),
-              "quick": bool(args.quick)}
+              "machine": machine_info(), "quick": bool(args.quick)}
     print(f"synth: {n} frames of CesiumMan at {res}x{res} in {secs:.1f} s ({secs / n * 1000:.0f} ms/frame)")
-    out_dir = Path(__file__).resolve().parent / "results"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"synth-{socket.gethostname()}.json").write_text(json.dumps(result, indent=1))
+    results_path("synth").write_text(json.dumps(result, indent=1))
     return 0
 
 

@@ -6,9 +6,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import socket
 import statistics
 import time
 from pathlib import Path
@@ -20,21 +17,7 @@ import trimesh
 from meshsplat.embedding import sample_surface, walk_on_triangles
 from meshsplat.mesh import TriMesh
 
-
-def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    info = {"host": socket.gethostname(), "cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "python": platform.python_version()}
-    if torch.cuda.is_available():
-        info["cuda_device"] = torch.cuda.get_device_name(0)
-    return info
+from _machine import machine_info, results_path  # noqa: E402
 
 
 def bench_mesh(quick: bool) -> TriMesh:
@@ -87,7 +70,7 @@ def main() -> None:
     for r in rows:
         print(f"{r['device']:6} {r['mode']:6} {r['step']:20} {r['median_ms']:10.2f} "
               f"{r['points_per_s'] / 1e6:8.2f} {r['changed_frac']:8.3f}")
-    out = Path(args.out) if args.out else Path(__file__).parent / "results" / f"walk-{socket.gethostname()}.json"
+    out = Path(args.out) if args.out else results_path("walk")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"bench": "walk", "quick": args.quick, "machine": machine_info(), "rows": rows},
                               indent=2))

@@ -20,6 +20,7 @@ COMMANDS = {
     "render": "render_cmd",
     "export": "export_cmd",
     "demo": "demo_cmd",
+    "view": "view_cmd",
 }
 
 
@@ -28,7 +29,8 @@ def _load(name: str):
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="meshsplat", description="Mesh-embedded Gaussian avatars.")
+    parser = argparse.ArgumentParser(prog="meshsplat", description="Mesh-embedded Gaussian avatars.",
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--debug", action="store_true", help="show full tracebacks")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
@@ -40,7 +42,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         except ModuleNotFoundError:
             continue
         doc = (mod.__doc__ or "").strip().splitlines()
-        p = sub.add_parser(name, help=doc[0] if doc else None, description=(mod.__doc__ or "").strip())
+        p = sub.add_parser(name, help=doc[0] if doc else None, description=(mod.__doc__ or "").strip(),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
     return parser
 
