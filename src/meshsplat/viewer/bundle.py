@@ -1,0 +1,228 @@
+"""Write a self-contained WebGL2 viewer bundle that animates an avatar in a browser.
+
+    write_viewer_bundle(avatar, frames, "out/viewer", fps=25)   # -> out/viewer/index.html
+
+The bundle folder holds ``index.html`` (self-contained: viewer code, ``avatar.json`` and base64
+``avatar.bin`` inlined, so it opens from ``file://``), plus ``viewer.js``, ``avatar.bin`` and
+``avatar.json`` as separate files for tools and tests. ``avatar.bin`` is little-endian; each
+section of ``avatar.json["sections"]`` gives its byte ``offset`` (4-byte aligned), ``dtype``
+(float32, uint32, int16) and ``shape``. The browser poses the Gaussians from the mesh each frame
+exactly as :func:`meshsplat.gaussians.compose` does (DC colour only). See docs/viewer.md.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from meshsplat._checks import check_tensor
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
+
+BUNDLE_VERSION = 1
+VERTEX_ENCODINGS = ("int16", "float32")
+_STATIC = Path(__file__).parent / "static"
+_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2")}
+
+
+def _as_frames(frames, num_vertices: int) -> np.ndarray:
+    """[T,V,3] float64 numpy from a tensor/array [T,V,3] or a sequence of [V,3]."""
+    if isinstance(frames, (torch.Tensor, np.ndarray)):
+        if frames.ndim != 3:
+            raise MeshsplatError(f"frames: expected shape [T,{num_vertices},3], got {list(frames.shape)}")
+        seq = list(frames)
+    elif isinstance(frames, Sequence):
+        seq = list(frames)
+    else:
+        raise MeshsplatError(f"frames: expected a [T,V,3] tensor or a list of [V,3], got {type(frames).__name__}")
+    if not seq:
+        raise MeshsplatError("frames: the animation has no frames")
+    out = []
+    for i, v in enumerate(seq):
+        v = torch.as_tensor(np.asarray(v)) if not isinstance(v, torch.Tensor) else v
+        check_tensor(f"frames[{i}]", v, "V,3", {"V": num_vertices}, dtype="float", finite=True)
+        out.append(v.detach().cpu().double().numpy())
+    return np.stack(out)
+
+
+def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azimuth_deg: float = 0.0,
+                   elevation_deg: float = 10.0, fov_deg: float = 30.0) -> dict[str, Any]:
+    """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.animate.orbit_cameras``)."""
+    from meshsplat.animate import orbit_cameras
+
+    lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
+    cam = orbit_cameras([torch.from_numpy(np.stack([lo, hi]))], width, height, azimuth_deg=azimuth_deg,
+                        elevation_deg=elevation_deg, fov_deg=fov_deg)[0]
+    center = (lo + hi) / 2
+    eye = -cam.viewmat[:3, :3].double().T @ cam.viewmat[:3, 3].double()
+    return _camera_dict(center, float(np.linalg.norm(eye.numpy() - center)), azimuth_deg, elevation_deg, fov_deg,
+                        width, height)
+
+
+def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, height) -> dict[str, Any]:
+    from meshsplat.synth.rigs import intrinsics, look_at, orbit_position
+
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    vm = look_at(orbit_position(center, distance, az, el), center)
+    return {
+        "center": [float(x) for x in center], "distance": float(distance), "azimuth_deg": float(azimuth_deg),
+        "elevation_deg": float(elevation_deg), "fov_deg": float(fov_deg), "width": int(width), "height": int(height),
+        "viewmat": vm.tolist(), "K": intrinsics(width, height, fov_deg).tolist(),
+    }
+
+
+def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
+    """Orbit description of ``camera``: None (auto), a dict of overrides, or an ``animate.Camera``."""
+    if camera is None:
+        return default_camera(frames)
+    if isinstance(camera, dict):
+        allowed = {"width", "height", "azimuth_deg", "elevation_deg", "fov_deg", "distance", "center"}
+        unknown = set(camera) - allowed
+        if unknown:
+            raise MeshsplatError(f"camera: unknown key(s) {sorted(unknown)} (allowed: {sorted(allowed)})")
+        base = default_camera(frames, camera.get("width", 800), camera.get("height", 800),
+                              camera.get("azimuth_deg", 0.0), camera.get("elevation_deg", 10.0),
+                              camera.get("fov_deg", 30.0))
+        center = np.asarray(camera.get("center", base["center"]), np.float64)
+        return _camera_dict(center, float(camera.get("distance", base["distance"])), base["azimuth_deg"],
+                            base["elevation_deg"], base["fov_deg"], base["width"], base["height"])
+    if hasattr(camera, "viewmat") and hasattr(camera, "K"):
+        # world->camera (OpenCV, no roll) -> orbit about the point of the view axis nearest the animation centre
+        vm = camera.viewmat.detach().cpu().double().numpy()
+        R, t = vm[:3, :3], vm[:3, 3]
+        eye, fwd = -R.T @ t, R[2]
+        mid = (frames.reshape(-1, 3).min(0) + frames.reshape(-1, 3).max(0)) / 2
+        dist = max(float(np.dot(mid - eye, fwd)), 1e-6)
+        el = math.degrees(math.asin(float(np.clip(-fwd[1], -1, 1))))
+        az = math.degrees(math.atan2(-fwd[0], -fwd[2]))
+        fov = math.degrees(2 * math.atan(0.5 * camera.height / float(camera.K[1, 1])))
+        return _camera_dict(eye + dist * fwd, dist, az, el, fov, camera.width, camera.height)
+    raise MeshsplatError(f"camera: expected None, a dict or an animate.Camera, got {type(camera).__name__}")
+
+
+def _encode_vertices(frames: np.ndarray, encoding: str) -> tuple[np.ndarray, dict[str, Any]]:
+    if encoding == "float32":
+        return frames.astype("<f4"), {}
+    lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
+    offset = (lo + hi) / 2
+    step = np.maximum((hi - lo) / 2 / 32767.0, 1e-12)
+    q = np.clip(np.rint((frames - offset) / step), -32767, 32767).astype("<i2")
+    return q, {"vertex_offset": offset.tolist(), "vertex_step": step.tolist()}
+
+
+def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
+    from meshsplat.gaussians.compose import effective_uv
+    from meshsplat.gaussians.params import SH_C0
+
+    p = avatar.params
+    with torch.no_grad():
+        rot = p["rotation"].detach().double()
+        rot = rot / rot.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        arrays = {
+            "gaussian_face": p["face"].detach().cpu().numpy().astype("<u4"),
+            "gaussian_uv": effective_uv(p, avatar.clamp_to_face).detach().cpu().numpy(),
+            "gaussian_d": p["d"].detach().cpu().numpy(),
+            "gaussian_rotation": rot.cpu().numpy(),
+            "gaussian_scale": p["log_scale"].detach().double().exp().cpu().numpy(),
+            "gaussian_opacity": torch.sigmoid(p["opacity_logit"].detach().double()).cpu().numpy(),
+            "gaussian_rgb": (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0).cpu().numpy(),
+        }
+    return {k: (v if v.dtype == np.dtype("<u4") else v.astype("<f4")) for k, v in arrays.items()}
+
+
+def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
+    chunks, layout, offset = [], {}, 0
+    for name, arr in sections.items():
+        arr = np.ascontiguousarray(arr)
+        dtype = next(k for k, d in _DTYPES.items() if arr.dtype == d)
+        raw = arr.tobytes()
+        layout[name] = {"offset": offset, "dtype": dtype, "shape": list(arr.shape)}
+        pad = (-len(raw)) % 4
+        chunks.append(raw + b"\0" * pad)
+        offset += len(raw) + pad
+    return b"".join(chunks), layout
+
+
+def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None, title: str = "meshsplat avatar",
+                        vertex_encoding: str = "int16", background: str = "white") -> Path:
+    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``).
+
+    ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
+    ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
+    ``animate.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
+    (per-axis step over the animation's box, error <= step/2) or "float32". Returns ``index.html``.
+    """
+    from meshsplat.gaussians.avatar import Avatar
+
+    if not isinstance(avatar, Avatar):
+        raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise MeshsplatError(f"fps: expected > 0, got {fps}")
+    if vertex_encoding not in VERTEX_ENCODINGS:
+        raise MeshsplatError(f"vertex_encoding: expected one of {VERTEX_ENCODINGS}, got {vertex_encoding!r}")
+    if background not in ("white", "black"):
+        raise MeshsplatError(f"background: expected 'white' or 'black', got {background!r}")
+    mesh = avatar.mesh
+    verts = _as_frames(frames, mesh.num_vertices)
+    encoded, quant = _encode_vertices(verts, vertex_encoding)
+    sections = {
+        "faces": mesh.faces.detach().cpu().numpy().astype("<u4"),
+        "canonical_vertices": mesh.vertices.detach().cpu().numpy().astype("<f4"),
+        "frames": encoded,
+        **_gaussian_arrays(avatar),
+    }
+    blob, layout = _pack(sections)
+    header = {
+        "format": "meshsplat-viewer", "version": BUNDLE_VERSION, "title": str(title),
+        "num_vertices": mesh.num_vertices, "num_faces": mesh.num_faces, "num_gaussians": avatar.num_gaussians,
+        "num_frames": int(verts.shape[0]), "fps": float(fps), "scale_mode": avatar.scale_mode,
+        "vertex_encoding": vertex_encoding, **quant, "background": background,
+        "camera": _camera_from(camera, verts), "sections": layout,
+    }
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    viewer_js = (_STATIC / "viewer.js").read_text(encoding="utf-8")
+    if "</script" in viewer_js.lower():
+        raise MeshsplatError("viewer.js must not contain '</script' (it is inlined into index.html)")
+    header_json = json.dumps(header, indent=1)
+    page = (_STATIC / "index.html").read_text(encoding="utf-8")
+    page = (page.replace("__TITLE__", html.escape(str(title)))
+                .replace("__AVATAR_HEADER__", header_json.replace("<", "\\u003c"))  # no "</script" inside
+                .replace("__AVATAR_DATA__", base64.b64encode(blob).decode("ascii"))
+                .replace("__VIEWER_JS__", viewer_js))
+    (out / "avatar.bin").write_bytes(blob)
+    (out / "avatar.json").write_text(header_json + "\n", encoding="utf-8")
+    (out / "viewer.js").write_text(viewer_js, encoding="utf-8")
+    index = out / "index.html"
+    index.write_text(page, encoding="utf-8")
+    return index
+
+
+def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``(header, arrays)`` of a bundle folder; ``arrays["vertices"]`` holds the decoded frames ``[T,V,3]``."""
+    root = Path(out_dir)
+    try:
+        header = json.loads((root / "avatar.json").read_text(encoding="utf-8"))
+        blob = (root / "avatar.bin").read_bytes()
+    except FileNotFoundError as exc:
+        raise MeshsplatError(f"{root}: not a viewer bundle ({exc.filename} missing)") from None
+    arrays = {}
+    for name, s in header["sections"].items():
+        dt = _DTYPES[s["dtype"]]
+        count = int(np.prod(s["shape"])) if s["shape"] else 1
+        if s["offset"] + count * dt.itemsize > len(blob):
+            raise MeshsplatError(f"{root / 'avatar.bin'}: section {name!r} runs past the end of the file")
+        arrays[name] = np.frombuffer(blob, dt, count, s["offset"]).reshape(s["shape"])
+    frames = arrays["frames"].astype(np.float64)
+    if header["vertex_encoding"] == "int16":
+        frames = np.asarray(header["vertex_offset"]) + frames * np.asarray(header["vertex_step"])
+    arrays["vertices"] = frames
+    return header, arrays

@@ -1,0 +1,297 @@
+"""Viewer bundle: binary layout round trip, the JS posing/sorting math under Node vs compose, CLI,
+and (slow, when chromium is installed) a headless-browser screenshot vs the Python rasterizer."""
+from __future__ import annotations
+
+import base64
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_eval_kit import deform, make_avatar, make_run
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
+from meshsplat.gaussians.compose import effective_uv
+from meshsplat.gaussians.params import SH_C0
+from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
+
+NODE = shutil.which("node")
+CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
+needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
+
+
+def _frames(avatar, ts=(0.0, 0.4, 1.0)):
+    return [deform(avatar.mesh.vertices, t) for t in ts]
+
+
+def _with_scale_mode(avatar, mode):
+    return Avatar(avatar.mesh, avatar.params, mode, avatar.clamp_to_face)
+
+
+def _node(script: str, cwd: Path) -> dict:
+    path = cwd / "check.mjs"
+    path.write_text(script)
+    r = subprocess.run([NODE, str(path)], check=False, capture_output=True, text=True, cwd=cwd, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def _js_pose(bundle: Path) -> list[dict]:
+    script = f"""
+import {{ decodeBundle, poseGaussians }} from {json.dumps((bundle / "viewer.js").as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(bundle / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(bundle / "avatar.bin"))}));
+const out = [];
+for (let t = 0; t < b.T; t++) {{
+  const p = poseGaussians(b, t);
+  out.push({{ means: Array.from(p.means), quats: Array.from(p.quats), scales: Array.from(p.scales),
+              cov: Array.from(p.cov) }});
+}}
+console.log(JSON.stringify(out));
+"""
+    return _node(script, bundle)
+
+
+# ---------------------------------------------------------------- Python: layout round trip
+@pytest.mark.parametrize("clamp", [False, True])
+def test_bundle_round_trip(tmp_path, clamp):
+    av = make_avatar(n=200, clamp_to_face=clamp)
+    frames = _frames(av)
+    index = write_viewer_bundle(av, frames, tmp_path, fps=12.5, title="tiny <test>", vertex_encoding="float32")
+    assert index == tmp_path / "index.html"
+    h, a = read_viewer_bundle(tmp_path)
+    p = av.params
+    assert (h["num_vertices"], h["num_faces"], h["num_gaussians"], h["num_frames"]) == (42, 80, 200, 3)
+    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 1
+    assert all(s["offset"] % 4 == 0 for s in h["sections"].values())
+    assert np.array_equal(a["faces"], av.mesh.faces.numpy())
+    assert np.array_equal(a["canonical_vertices"], av.mesh.vertices.numpy())
+    assert np.array_equal(a["vertices"], torch.stack(frames).numpy().astype(np.float64))
+    assert np.array_equal(a["gaussian_face"], p["face"].numpy())
+    with torch.no_grad():
+        uv = effective_uv(p, clamp).numpy()
+        rot = torch.nn.functional.normalize(p["rotation"], dim=-1).numpy()
+        rgb = (0.5 + SH_C0 * p["sh0"][:, 0]).clamp_min(0).numpy()
+        np.testing.assert_allclose(a["gaussian_uv"], uv, atol=1e-7)
+        np.testing.assert_allclose(a["gaussian_d"], p["d"].numpy(), atol=1e-7)
+        np.testing.assert_allclose(a["gaussian_rotation"], rot, atol=1e-6)
+        np.testing.assert_allclose(a["gaussian_scale"], p["log_scale"].exp().numpy(), rtol=1e-6)
+        np.testing.assert_allclose(a["gaussian_opacity"], torch.sigmoid(p["opacity_logit"]).numpy(), atol=1e-6)
+        np.testing.assert_allclose(a["gaussian_rgb"], rgb, atol=1e-6)
+    if clamp:  # projected onto the triangle
+        assert (a["gaussian_uv"] >= -1e-6).all() and (a["gaussian_uv"].sum(1) <= 1 + 1e-6).all()
+    # index.html embeds the same header and bytes, and escapes the title
+    page = index.read_text()
+    data = re.search(r'id="avatar-data">([^<]*)<', page).group(1)
+    assert base64.b64decode(data) == (tmp_path / "avatar.bin").read_bytes()
+    header = json.loads(re.search(r'id="avatar-header">([^<]*)<', page).group(1))
+    assert header == h
+    assert "<title>tiny &lt;test&gt;</title>" in page and "__VIEWER_JS__" not in page
+
+
+def test_int16_vertices_within_half_a_step(tmp_path):
+    av = make_avatar(n=50)
+    frames = torch.stack(_frames(av, ts=np.linspace(0, 1, 7)))
+    write_viewer_bundle(av, frames, tmp_path)  # a [T,V,3] tensor, int16 by default
+    h, a = read_viewer_bundle(tmp_path)
+    assert h["vertex_encoding"] == "int16" and a["frames"].dtype == np.int16
+    err = np.abs(a["vertices"] - frames.double().numpy()).max(axis=(0, 1))
+    assert (err <= 0.5 * np.asarray(h["vertex_step"]) + 1e-7).all()
+    assert (tmp_path / "avatar.bin").stat().st_size < 50 * 60 + 7 * 42 * 6 + 80 * 12 + 42 * 12 + 64
+
+
+def test_default_camera_frames_the_animation(tmp_path):
+    from meshsplat.animate import orbit_cameras
+
+    av = make_avatar(n=30)
+    frames = _frames(av)
+    write_viewer_bundle(av, frames, tmp_path)
+    cam = read_viewer_bundle(tmp_path)[0]["camera"]
+    ref = orbit_cameras(frames, 800, 800)[0]
+    np.testing.assert_allclose(np.asarray(cam["viewmat"]), ref.viewmat.numpy(), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(cam["K"]), ref.K.numpy(), rtol=1e-6)
+    # an explicit Camera is kept (no roll) through its orbit description
+    other = orbit_cameras(frames, 320, 240, azimuth_deg=70, elevation_deg=-20, fov_deg=45, distance=9.0)[0]
+    write_viewer_bundle(av, frames, tmp_path / "b", camera=other)
+    cam = read_viewer_bundle(tmp_path / "b")[0]["camera"]
+    np.testing.assert_allclose(np.asarray(cam["viewmat"]), other.viewmat.numpy(), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(cam["K"]), other.K.numpy(), rtol=1e-5)
+    assert (cam["width"], cam["height"]) == (320, 240)
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    av = make_avatar(n=10)
+    v = av.mesh.vertices
+    with pytest.raises(MeshsplatError, match=r"frames\[1\].*\[V,3\]|frames\[1\].*42"):
+        write_viewer_bundle(av, [v, v[:-1]], tmp_path)
+    with pytest.raises(MeshsplatError, match="no frames"):
+        write_viewer_bundle(av, [], tmp_path)
+    with pytest.raises(MeshsplatError, match="frames"):
+        write_viewer_bundle(av, [v * float("nan")], tmp_path)
+    with pytest.raises(MeshsplatError, match="fps"):
+        write_viewer_bundle(av, [v], tmp_path, fps=0)
+    with pytest.raises(MeshsplatError, match="vertex_encoding"):
+        write_viewer_bundle(av, [v], tmp_path, vertex_encoding="float16")
+    with pytest.raises(MeshsplatError, match="camera"):
+        write_viewer_bundle(av, [v], tmp_path, camera={"zoom": 2})
+    with pytest.raises(MeshsplatError, match="not a viewer bundle"):
+        read_viewer_bundle(tmp_path / "missing")
+
+
+# ---------------------------------------------------------------- JS math under Node
+@needs_node
+@pytest.mark.parametrize("mode,encoding", [("sqrt_area", "int16"), ("area", "float32"), ("none", "float32")])
+def test_js_pose_matches_compose(tmp_path, mode, encoding):
+    av = _with_scale_mode(make_avatar(n=300), mode)
+    write_viewer_bundle(av, _frames(av), tmp_path, vertex_encoding=encoding)
+    _, a = read_viewer_bundle(tmp_path)
+    js = _js_pose(tmp_path)
+    p64 = {k: v.detach().double() if v.is_floating_point() else v for k, v in av.params.items()}
+    from meshsplat.mesh import TriMesh
+
+    av64 = Avatar(TriMesh(av.mesh.vertices.double(), av.mesh.faces), p64, mode)
+    for t, out in enumerate(js):
+        ref = av64.compose(torch.from_numpy(a["vertices"][t]))  # the vertices the bundle stores
+        means = np.asarray(out["means"]).reshape(-1, 3)
+        quats = np.asarray(out["quats"]).reshape(-1, 4)
+        scales = np.asarray(out["scales"]).reshape(-1, 3)
+        extent = float(np.abs(a["vertices"][t]).max())
+        np.testing.assert_allclose(means, ref.means.numpy(), atol=1e-4 * extent, rtol=1e-4)
+        rq = ref.quats.numpy()
+        sign = np.where((quats * rq).sum(1, keepdims=True) < 0, -1.0, 1.0)  # q and -q: the same rotation
+        np.testing.assert_allclose(quats * sign, rq, atol=1e-5)
+        np.testing.assert_allclose(scales, ref.scales.numpy(), rtol=1e-4)
+        from meshsplat.render.projection import covariance_3d
+
+        cov = covariance_3d(ref.quats, ref.scales).numpy()[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+        scale2 = ref.scales.numpy().max(1, keepdims=True) ** 2
+        np.testing.assert_allclose(np.asarray(out["cov"]).reshape(-1, 6), cov, atol=1e-4 * scale2.max())
+    assert not np.allclose(js[0]["means"], js[-1]["means"])  # the pose moves the Gaussians
+
+
+@needs_node
+def test_js_sort_and_camera(tmp_path):
+    av = make_avatar(n=50)
+    write_viewer_bundle(av, _frames(av), tmp_path, camera={"azimuth_deg": 30, "elevation_deg": 25,
+                                                           "width": 640, "height": 480, "fov_deg": 40})
+    h = read_viewer_bundle(tmp_path)[0]
+    cam = h["camera"]
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(3000, 3)) * [1, 1, 3] + [0, 0, 2.0]  # some behind the near plane
+    means[:40] = means[40]  # exact ties
+    script = f"""
+import {{ sortByDepth, orbitViewmat, intrinsics }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+const c = {json.dumps(cam)};
+const means = Float32Array.from({json.dumps(means.ravel().tolist())});
+const vm = [0.6, 0, 0.8, 0, 0, 1, 0, 0, -0.8, 0, 0.6, 0.1, 0, 0, 0, 1];  // rotated: float32 depth rounding
+const order = new Uint32Array(means.length / 3);
+const n = sortByDepth(means, order.length, vm, order);
+console.log(JSON.stringify({{ n, order: Array.from(order.subarray(0, n)),
+  viewmat: Array.from(orbitViewmat(c.center, c.distance, c.azimuth_deg, c.elevation_deg)),
+  K: intrinsics(c.width, c.height, c.fov_deg) }}));
+"""
+    out = _node(script, tmp_path)
+    m32 = means.astype(np.float32).astype(np.float64)
+    z = (-0.8 * m32[:, 0] + 0.6 * m32[:, 2] + 0.1).astype(np.float32)
+    visible = np.nonzero(z >= 0.01)[0]
+    order = np.asarray(out["order"])
+    assert out["n"] == len(visible) and sorted(order.tolist()) == visible.tolist()  # a permutation of the visible
+    bin_width = (z[visible].max() - z[visible].min()) / 65535
+    assert (np.diff(z[order]) <= bin_width * 1.01).all()  # back to front up to one 16-bit depth bin
+    np.testing.assert_allclose(np.asarray(out["viewmat"]).reshape(4, 4), np.asarray(cam["viewmat"]), atol=1e-9)
+    K = np.asarray(cam["K"])
+    np.testing.assert_allclose(out["K"], [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
+
+
+# ---------------------------------------------------------------- CLI
+def test_view_cli_vertices_and_dataset(tmp_path, capsys):
+    from test_eval_kit import make_dataset
+
+    from meshsplat.cli.main import main
+
+    av = make_avatar(n=80)
+    ds = make_dataset(av, tmp_path / "ds")
+    run = make_run(av, tmp_path / "run", ds)
+    seq = torch.stack(_frames(av, ts=(0.0, 0.2, 0.5, 0.9)))
+    np.save(tmp_path / "seq.npy", seq.numpy())
+    assert main(["view", str(run), "--out", str(tmp_path / "v1"), "--animation", "vertices",
+                 str(tmp_path / "seq.npy"), "--frames", "3", "--fps", "10", "--vertex-encoding", "float32"]) == 0
+    h, a = read_viewer_bundle(tmp_path / "v1")
+    assert h["num_frames"] == 3 and h["fps"] == 10.0 and h["title"] == "run"
+    np.testing.assert_array_equal(a["vertices"], seq[:3].double().numpy())
+    assert "open file://" in capsys.readouterr().out
+    # default: the dataset's stored meshes, in order; --split picks one split's frames
+    assert main(["view", str(run), "--out", str(tmp_path / "v2")]) == 0
+    assert read_viewer_bundle(tmp_path / "v2")[0]["num_frames"] == 5
+    assert main(["view", str(run), "--out", str(tmp_path / "v3"), "--split", "test_frames"]) == 0
+    _, a3 = read_viewer_bundle(tmp_path / "v3")
+    np.testing.assert_allclose(a3["vertices"][0], deform(av.mesh.vertices, 0.6).numpy(), atol=1e-4)
+    # user errors: one line, exit 2
+    assert main(["view", str(run), "--out", str(tmp_path / "v4"), "--animation", "gltf"]) == 2
+    assert main(["view", str(run), "--out", str(tmp_path / "v4"), "--animation", "bvh", "x"]) == 2
+    assert main(["view", str(tmp_path / "nope"), "--out", str(tmp_path / "v4")]) == 2
+    err = capsys.readouterr().err
+    assert "needs exactly one FILE" in err and "expected one of" in err and "run not found" in err
+
+
+def test_view_cli_gltf(tmp_path, assets):
+    """A CesiumMan avatar driven by its glTF clip; the bundle stays small."""
+    from meshsplat.cli.main import main
+    from meshsplat.drivers import GltfDriver
+    from meshsplat.gaussians import init_params
+    from meshsplat.mesh import TriMesh
+
+    glb = assets / "gltf" / "CesiumMan.glb"
+    drv = GltfDriver(glb, fps=25)
+    mesh = TriMesh(drv.rest_vertices(), drv.faces)
+    av = Avatar(mesh, init_params(mesh, 2000, generator=torch.Generator().manual_seed(0)))
+    run = make_run(av, tmp_path / "run", None)
+    assert main(["view", str(run), "--out", str(tmp_path / "v"), "--animation", "gltf", str(glb),
+                 "--frames", "20"]) == 0
+    h, a = read_viewer_bundle(tmp_path / "v")
+    assert h["num_frames"] == 20 and h["num_vertices"] == mesh.num_vertices
+    assert np.abs(a["vertices"][10] - a["vertices"][0]).max() > 1e-2  # it moves
+    assert (tmp_path / "v" / "index.html").stat().st_size < 2_000_000
+
+
+# ---------------------------------------------------------------- headless browser (slow, optional)
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
+def test_browser_screenshot_matches_rasterizer(tmp_path):
+    from PIL import Image
+
+    av = make_avatar(n=400)
+    frames = _frames(av)
+    write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256})
+    h, a = read_viewer_bundle(tmp_path / "b")
+    cam = h["camera"]
+    ref = av.render(torch.from_numpy(a["vertices"][1]).float(), torch.tensor(cam["viewmat"]).float(),
+                    torch.tensor(cam["K"]).float(), 256, 256, background=torch.ones(3)).image
+    ref = ref.detach().clamp(0, 1).numpy() * 255
+    shot = tmp_path / "shot.png"
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
+           "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
+           "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars",
+           "--window-size=256,256", "--virtual-time-budget=3000", f"--screenshot={shot}",
+           (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0"]
+    for _ in range(2):  # headless start-up is occasionally flaky on a loaded machine
+        try:
+            subprocess.run(cmd, check=False, capture_output=True, timeout=90)
+        except subprocess.TimeoutExpired:
+            continue
+        if shot.is_file():
+            break
+    if not shot.is_file():
+        pytest.skip("chromium produced no screenshot")
+    img = np.asarray(Image.open(shot).convert("RGB"), dtype=np.float64)
+    assert img.shape == ref.shape
+    psnr = 10 * np.log10(255.0**2 / max(((img - ref) ** 2).mean(), 1e-10))
+    print(f"browser vs rasterizer PSNR {psnr:.1f} dB")
+    assert psnr > 35.0, psnr
+    assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
