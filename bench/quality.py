@@ -7,6 +7,8 @@ Variants (same data, same seed, same schedule):
   full        lifted optimization with walking on triangles (the method)
   no_walk     walking disabled: (u+du, v+dv) clipped to the embedding triangle (paper, Table A2)
   frozen      embedding frozen: no du, dv, d (paper, Fig. 7 "w/o trainable embedding")
+  scale_area  the paper's pose scale (times the area ratio) instead of our sqrt_area default
+  unfold      walking with the exact unfold mode instead of the paper's re-expression
 
 Prints a table of PSNR / SSIM / LPIPS per test split and saves bench/results/quality-<host>.json.
 """
@@ -23,6 +25,8 @@ VARIANTS = {
     "full": [],
     "no_walk": ["walk.enabled=false"],
     "frozen": ["model.freeze_embedding=true"],
+    "scale_area": ["model.scale_mode=area"],
+    "unfold": ["walk.mode=unfold"],
 }
 
 
@@ -31,7 +35,7 @@ def main() -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--work", default="runs/bench-quality", help="scratch folder (dataset + runs)")
-    ap.add_argument("--variants", nargs="*", default=list(VARIANTS))
+    ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     args = ap.parse_args()
 
     from dataclasses import replace

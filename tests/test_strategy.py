@@ -5,27 +5,22 @@ import math
 
 import pytest
 import torch
+from _meshes import plane
 
 from meshsplat.gaussians import compose, init_params
-from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.mesh import MeshPose
 from meshsplat.train.optim import build_optimizers
-from meshsplat.train.strategy import DensifyStrategy, duplicate, remove, reset_opacity, walk_embeddings
+from meshsplat.train.strategy import (
+    DensifyStrategy,
+    duplicate,
+    remove,
+    reset_opacity,
+    walk_embeddings,
+)
 from meshsplat.train.strategy.ops import split_append
 
 LRS = {"duv": 1e-3, "d": 1e-3, "sh0": 1e-3, "shN": 1e-3, "opacity_logit": 1e-3, "log_scale": 1e-3, "rotation": 1e-3}
 FLOAT_KEYS = ("rotation", "log_scale", "opacity_logit", "sh0", "shN", "duv", "d", "uv")
-
-
-def plane(n: int = 6) -> TriMesh:
-    t = torch.linspace(0, 1, n + 1)
-    yy, xx = torch.meshgrid(t, t, indexing="ij")
-    verts = torch.stack([xx.reshape(-1), yy.reshape(-1), torch.zeros((n + 1) ** 2)], -1)
-    faces = []
-    for i in range(n):
-        for j in range(n):
-            a, b, c, d = i * (n + 1) + j, i * (n + 1) + j + 1, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1
-            faces += [[a, b, d], [a, d, c]]
-    return TriMesh(verts, torch.tensor(faces))
 
 
 def tagged_setup(n: int = 40, sh_degree: int = 1):

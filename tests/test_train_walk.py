@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import torch
+from _meshes import plane
 
 from meshsplat.gaussians import compose, make_params, rgb_to_sh0
 from meshsplat.mesh import MeshPose, TriMesh
@@ -10,18 +11,6 @@ from meshsplat.train.optim import build_optimizers
 from meshsplat.train.strategy import walk_embeddings
 
 W = H = 32
-
-
-def plane(n: int) -> TriMesh:
-    t = torch.linspace(0, 1, n + 1)
-    yy, xx = torch.meshgrid(t, t, indexing="ij")
-    verts = torch.stack([xx.reshape(-1), yy.reshape(-1), torch.zeros((n + 1) ** 2)], -1)
-    faces = []
-    for i in range(n):
-        for j in range(n):
-            a, b, c, d = i * (n + 1) + j, i * (n + 1) + j + 1, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1
-            faces += [[a, b, d], [a, d, c]]
-    return TriMesh(verts, torch.tensor(faces))
 
 
 def top_camera():

@@ -133,7 +133,8 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     test_ids = [i for name in ds.split_names if name != "train" for i in ds.split(name)]
     ids = sorted(set(test_ids))[: p.animation_frames] or list(range(min(len(ds), p.animation_frames)))
     verts = [ds.vertices(i) for i in ids]
-    cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts))
+    cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts), orbit_deg=360.0,
+                         elevation_deg=15.0)
     anim = render_animation(avatar, verts, cams, out / "animation", fps=12.0, name="avatar_orbit")
     timings["render_s"] = time.perf_counter() - t
 
