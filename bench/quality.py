@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--work", default="runs/bench-quality", help="scratch folder (dataset + runs)")
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--name", default="quality", help="results file bench/results/<name>-<host>.json")
     args = ap.parse_args()
 
     from dataclasses import replace
@@ -71,7 +72,7 @@ def main() -> None:
             fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
             print(f"{name:<10}{s:<14}{fmt(m.get('psnr'), 2):>8}{fmt(m.get('ssim'), 4):>8}"
                   f"{fmt(m.get('lpips'), 4):>8}{r['gaussians']:>8}{r['train_s']:>9.0f}")
-    out = results_path("quality")
+    out = results_path(args.name)
     out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset,
                                "iterations": preset.iterations, "resolution": preset.resolution,
                                "variants": rows}, indent=2) + "\n")

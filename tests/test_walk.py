@@ -8,6 +8,7 @@ import trimesh
 from hypothesis import given, strategies as st
 
 from meshsplat.embedding import walk_on_triangles
+from meshsplat.embedding._walk_reference import walk_on_triangles_reference
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh import TriMesh
 
@@ -118,15 +119,24 @@ def test_unfold_is_straight_on_flat_grids(seed, n, scale):
     back = walk_on_triangles(mesh, mesh.vertices, res.face, res.uv, step_for(mesh, res.face, p0 - target),
                              mode="unfold", max_crossings=256)
     assert torch.allclose(point(mesh, back.face, back.uv), p0, atol=1e-7)
+    ref = walk_on_triangles_reference(mesh, mesh.vertices, face[:20], uv[:20], step[:20], mode="unfold",
+                                      max_crossings=256)
+    assert torch.allclose(point(mesh, ref.face, ref.uv), target[:20], atol=1e-7)
 
 
-@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["paper", "unfold"]),
-       kind=st.sampled_from(["sphere", "cylinder", "holes", "nonmanifold", "degenerate", "grid"]),
+MESH_KINDS = ["sphere", "cylinder", "holes", "nonmanifold", "degenerate", "grid"]
+
+
+def mesh_of_kind(kind: str, seed: int) -> TriMesh:
+    return {"sphere": lambda: sphere(1), "cylinder": open_cylinder, "holes": lambda: flat_grid(6, seed, holes=8),
+            "nonmanifold": three_quads, "degenerate": with_degenerate, "grid": lambda: flat_grid(5, seed)}[kind]()
+
+
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["paper", "unfold"]), kind=st.sampled_from(MESH_KINDS),
        scale=st.sampled_from([0.01, 0.3, 3.0, 30.0]))
 def test_always_valid_output(seed, mode, kind, scale):
     rng = np.random.default_rng(seed)
-    mesh = {"sphere": lambda: sphere(1), "cylinder": open_cylinder, "holes": lambda: flat_grid(6, seed, holes=8),
-            "nonmanifold": three_quads, "degenerate": with_degenerate, "grid": lambda: flat_grid(5, seed)}[kind]()
+    mesh = mesh_of_kind(kind, seed)
     face, uv = random_starts(mesh, 300, rng)
     step = torch.as_tensor(rng.normal(size=(300, 2))) * scale
     res = walk_on_triangles(mesh, mesh.vertices, face, uv, step, mode=mode, max_crossings=32)
@@ -134,6 +144,48 @@ def test_always_valid_output(seed, mode, kind, scale):
     if kind == "sphere":  # points never leave the surface
         p = point(mesh, res.face, res.uv)
         assert bool((p.norm(dim=1) > 0.9).all() and (p.norm(dim=1) <= 1.0 + 1e-9).all())
+
+
+def assert_matches_reference(mesh, fast, ref, uv_atol, rel3d):
+    """Same face for >= 99% of points; there uv agree, elsewhere (vertex/edge ties) the 3D points agree."""
+    same = fast.face == ref.face
+    assert float(same.double().mean()) >= 0.99, f"{int((~same).sum())} of {len(same)} end faces differ"
+    assert torch.allclose(fast.uv[same].double(), ref.uv[same].double(), atol=uv_atol, rtol=0)
+    p_fast, p_ref = point(mesh, fast.face, fast.uv.double()), point(mesh, ref.face, ref.uv.double())
+    assert torch.allclose(p_fast, p_ref, atol=rel3d * mesh.bbox_diagonal(), rtol=0)
+    assert torch.equal(fast.changed[same], ref.changed[same])
+
+
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["paper", "unfold"]), kind=st.sampled_from(MESH_KINDS),
+       scale=st.sampled_from([0.05, 0.5, 3.0, 30.0]), max_crossings=st.sampled_from([0, 1, 3, 64]))
+def test_matches_reference(seed, mode, kind, scale, max_crossings):
+    # the per-point reference works from the 3D geometry (edge lookup, Rodrigues unfolding), not the rate maps
+    rng = np.random.default_rng(seed)
+    mesh = mesh_of_kind(kind, seed)
+    face, uv = random_starts(mesh, 150, rng)                 # a quarter on vertices, a quarter on edges
+    step = torch.as_tensor(rng.normal(size=(150, 2))) * scale
+    # a third graze the edge w2 = 0 (rate of corner 2 = du * eps): tests the tolerance rule. Not for unfold on
+    # the sphere: a walk along an edge runs exactly through vertices, and round-off picks the side; around a
+    # curved vertex the two sides lead to different geodesics (on flat or developable meshes they coincide).
+    graze = torch.as_tensor(rng.random(150) < (0.0 if (mode, kind) == ("unfold", "sphere") else 1 / 3))
+    eps = torch.as_tensor(rng.choice([0.0, 1e-15, -1e-15, 1e-13, -1e-13, 1e-10, -1e-10, 1e-6, -1e-6], 150))
+    step[graze, 1] = -step[graze, 0] * (1 + eps[graze])
+    fast = walk_on_triangles(mesh, mesh.vertices, face, uv, step, mode=mode, max_crossings=max_crossings)
+    ref = walk_on_triangles_reference(mesh, mesh.vertices, face, uv, step, mode=mode, max_crossings=max_crossings)
+    assert_matches_reference(mesh, fast, ref, uv_atol=1e-7, rel3d=1e-7)
+
+
+@pytest.mark.parametrize("mode", ["paper", "unfold"])
+def test_matches_reference_float32(mode):
+    mesh = sphere(3)
+    rng = np.random.default_rng(7)
+    face, uv = random_starts(mesh, 400, rng, snap=False)
+    step = torch.as_tensor(rng.normal(size=(400, 2))).float()
+    v32 = mesh.vertices.float()
+    fast = walk_on_triangles(mesh, v32, face, uv.float(), step, mode=mode)
+    ref = walk_on_triangles_reference(mesh, v32, face, uv.float(), step, mode=mode)
+    assert fast.uv.dtype == ref.uv.dtype == torch.float32
+    assert_matches_reference(mesh, fast, ref, uv_atol=1e-4, rel3d=1e-5)
 
 
 def test_float32_and_zero_steps():
@@ -185,8 +237,8 @@ def test_paper_mode_follows_algorithm_1_on_a_folded_pair():
     face = torch.tensor([0])
     uv = torch.tensor([[0.6, 0.3]], dtype=torch.float64)        # weights: v0 0.6, v1 0.3, v2 0.1
     step = torch.tensor([[-0.1, -0.5]], dtype=torch.float64)    # rates (-0.1, -0.5, +0.6): exits via edge (v2, v0)
-    for verts in (v, v_fold):
-        r = walk_on_triangles(TriMesh(verts, faces), verts, face, uv, step, mode="paper")
+    for verts, walk in ((v, walk_on_triangles), (v_fold, walk_on_triangles), (v_fold, walk_on_triangles_reference)):
+        r = walk(TriMesh(verts, faces), verts, face, uv, step, mode="paper")
         # exit at t=0.6 -> (0.54, 0, 0.46); remaining (-0.04, -0.2, 0.24) re-expressed in face 1 corners
         # (v0, v2, v3): v0 += -0.04 - 0.2, v2 += 0.24 - 0.2, v3 = 0.2  => (0.30, 0.50, 0.20)
         assert int(r.face) == 1 and torch.allclose(r.uv, torch.tensor([[0.30, 0.50]], dtype=torch.float64))

@@ -40,19 +40,21 @@ class WalkResult(NamedTuple):
     changed: torch.Tensor  # [N] bool, face differs from the start face
 
 
-def _clamp_bary(b: torch.Tensor) -> torch.Tensor:
+def _clamp_bary_t(b: torch.Tensor) -> torch.Tensor:
+    """Barycentrics ``[3, n]`` clamped to [0, 1] and renormalized to sum 1."""
     b = b.clamp(0.0, 1.0)
-    return b / b.sum(-1, keepdim=True).clamp_min(1e-30)
+    return b.div_(b.sum(0).clamp_min_(1e-30))
 
 
 def _tables(mesh: TriMesh, verts: torch.Tensor, dtype: torch.dtype, mode: str) -> dict:
     """Per half-edge ``h = 3*f + j`` tables, cached on the mesh per (verts version, dtype, mode).
 
     adj [3F]: neighbour face (-1 = wall: boundary, non-manifold, degenerate face on either side);
-    src [3F,3]: for each corner of the neighbour, the corner of f it takes its weight from
+    src_t [3,3F]: for each corner of the neighbour, the corner of f it takes its weight from
     (the neighbour's far corner reads f's exit coordinate, which is 0);
-    entry [3F]: the neighbour's far corner; rate_map [3F,3,3]: linear map of the remaining
-    barycentric rates of f into the neighbour (paper re-expression or unfolding).
+    allow_t [3,3F]: 0 at the neighbour's far corner (no exit back through the entry edge), else 1;
+    rate_map_t [9,3F]: row-major 3x3 linear map of the remaining barycentric rates of f into
+    the neighbour (paper re-expression or unfolding).
     """
     key = ("walk", mode, str(verts.device), dtype, verts.data_ptr(), verts._version, tuple(verts.shape))
     cache = mesh.__dict__.setdefault("_walk_cache", {})
@@ -98,8 +100,12 @@ def _tables(mesh: TriMesh, verts: torch.Tensor, dtype: torch.dtype, mode: str) -
         # rates in f -> 3D (sum_c rate_c p_c) -> rotate about the edge -> rates in g
         m = grad[g] @ rot @ p.transpose(-1, -2).unsqueeze(1)
     m = torch.where(wall[..., None, None], torch.zeros_like(m), m)
-    out = {"adj": adj.reshape(-1), "src": src.reshape(-1, 3), "entry": k2.reshape(-1),
-           "rate_map": m.reshape(-1, 3, 3), "deg": deg}
+    allow = torch.ones(nf, 3, 3, dtype=dtype, device=dev)
+    allow.scatter_(2, k2.unsqueeze(2), 0.0)
+    # corner-major copies for the walk: [3, 3F] / [9, 3F]
+    out = {"adj": adj.reshape(-1), "src_t": src.reshape(-1, 3).t().contiguous(),
+           "allow_t": allow.reshape(-1, 3).t().contiguous(), "rate_map_t": m.reshape(-1, 9).t().contiguous(),
+           "deg": deg, "any_deg": bool(deg.any())}
     cache[key] = out
     return out
 
@@ -139,58 +145,60 @@ def walk_on_triangles(
 
 
 def _walk(mesh, verts, face0, uv, step, mode, max_crossings, dev) -> WalkResult:
+    """Rounds over the moving points, corner-major ``[3, n]`` layout (contiguous per corner).
+
+    Branch-free arithmetic replaces masks where torch's CPU kernels are slow on random
+    masks (``where``, ``min`` with indices, bool casts); one compaction per round.
+    """
     dtype = uv.dtype
     tb = _tables(mesh, verts, dtype, mode)
-    adj, src, entry_t, rate_map = tb["adj"], tb["src"], tb["entry"], tb["rate_map"]
-    b0 = _clamp_bary(torch.cat([uv, 1.0 - uv.sum(-1, keepdim=True)], -1))
-    out_face, out_b = face0.clone(), b0.clone()
+    adj, src_t, allow_t, map_t = tb["adj"], tb["src_t"], tb["allow_t"], tb["rate_map_t"]
     tol = torch.finfo(dtype).eps ** 0.75  # relative: grazing rates below this count as zero
-    inf = torch.tensor(float("inf"), dtype=dtype, device=dev)
-    nxt = torch.tensor([1, 2, 0], device=dev)
-    ar3 = torch.arange(3, device=dev)
-
-    rate_all = torch.cat([step, -step.sum(-1, keepdim=True)], -1)                # barycentric rates
-    if mode == "unfold":  # the 3D step is undefined on a degenerate face: it does not move
-        rate_all = rate_all.masked_fill(tb["deg"][face0].unsqueeze(1), 0.0)
-    idx = torch.nonzero(rate_all.abs().amax(-1) > 0).squeeze(1)
-    f, b, rate = face0.index_select(0, idx), b0.index_select(0, idx), rate_all.index_select(0, idx)
-    entry = torch.full_like(f, -1)
-
-    def take(i, *xs):
-        return [x.index_select(0, i) for x in xs]
-
+    u, v = uv.unbind(1)
+    b = _clamp_bary_t(torch.stack([u, v, 1.0 - (u + v)]))                        # [3, N]
+    du, dv = step.unbind(1)
+    r = torch.stack([du, dv, -(du + dv)])                                         # barycentric rates [3, N]
+    if mode == "unfold" and tb["any_deg"]:  # the 3D step is undefined on a degenerate face: it does not move
+        r = r.masked_fill(tb["deg"][face0].unsqueeze(0), 0.0)
+    f, idx, allow = face0, None, None
+    out_face, out_b = face0, b
     for rnd in range(max_crossings + 1):
-        if idx.numel() == 0:
-            break
-        neg = (rate < -tol * rate.abs().amax(-1, keepdim=True)) & (ar3 != entry.unsqueeze(1))
-        t, i_opp = torch.where(neg, b / -rate, inf).min(-1)
-        inside = t >= 1.0
-        ins = torch.nonzero(inside).squeeze(1)
-        if ins.numel():
-            sel, f_in, b_in, r_in = take(ins, idx, f, b, rate)
-            out_face.index_copy_(0, sel, f_in)
-            out_b.index_copy_(0, sel, _clamp_bary(b_in + r_in))
-        if ins.numel() == idx.numel():
-            break
-        cr = torch.nonzero(~inside).squeeze(1)
-        idx, f, b, rate, t, i_opp = take(cr, idx, f, b, rate, t, i_opp)
-        b_exit = b + t.unsqueeze(1) * rate
-        b_exit = _clamp_bary(b_exit.scatter(1, i_opp.unsqueeze(1), 0.0))
-        h = f * 3 + nxt.index_select(0, i_opp)                                  # exit half-edge
+        # candidate exit corners: rate clearly negative (and not the corner we entered opposite to)
+        neg = (r.abs().amax(0) * -tol - r).sign_().clamp_min_(0.0)              # 1.0 where r < -tol*max|r|
+        if allow is not None:
+            neg.mul_(allow)
+        other = 1.0 - neg
+        # t_c = b_c / -r_c for candidates, b_c + 2 >= 2 (never an exit before t = 1) otherwise
+        t3 = b.add(other, alpha=2.0).div_(torch.addcmul(other, neg, r, value=-1.0))
+        t = t3.amin(0)
+        cross = t < 1.0
+        first = (t - t3).sign_().add_(1.0)                                        # 1.0 at the minimum
+        first[1].mul_(1.0 - first[0])                                             # ties: first index wins
+        first[2] = 1.0 - first[0] - first[1]
+        b_end = torch.addcmul(b, r, t.clamp_max(1.0))                            # inside: b + r; else exit point
+        b_end.mul_(1.0 - first * cross.to(dtype))                                 # exit coordinate := 0
+        b_end = _clamp_bary_t(b_end)
+        h = f * 3 + (first[0] + 2.0 * first[1]).long()                            # exit half-edge (edge (i+1)%3)
         nb = adj.index_select(0, h)
-        stop = nb < 0 if rnd < max_crossings else torch.ones_like(nb, dtype=torch.bool)
-        st = torch.nonzero(stop).squeeze(1)
-        if st.numel():
-            sel, f_st, b_st = take(st, idx, f, b_exit)
-            out_face.index_copy_(0, sel, f_st)
-            out_b.index_copy_(0, sel, b_st)
-        if st.numel() == idx.numel():
-            break
-        go = torch.nonzero(~stop).squeeze(1)
-        idx, h, nb, b_exit, rate, t = take(go, idx, h, nb, b_exit, rate, t)
-        rate = torch.bmm(rate_map.index_select(0, h), ((1.0 - t).unsqueeze(1) * rate).unsqueeze(-1)).squeeze(-1)
-        b = torch.gather(b_exit, 1, src.index_select(0, h))
-        f, entry = nb, entry_t.index_select(0, h)
-
-    out_b = _clamp_bary(out_b)
-    return WalkResult(out_face, out_b[:, :2].contiguous(), out_face != face0)
+        keep = None if rnd == max_crossings else torch.nonzero(cross & (nb >= 0)).squeeze(1)
+        n = f.shape[0]
+        if keep is None or keep.numel() < n or n == 0:  # someone stops here: record all (movers are overwritten later)
+            if idx is None:
+                out_face, out_b = face0.clone(), b_end
+            else:
+                out_face.index_copy_(0, idx, f)
+                out_b.index_copy_(1, idx, b_end)
+            if keep is None or keep.numel() == 0:
+                break
+            idx = keep if idx is None else idx.index_select(0, keep)
+            h, f = h.index_select(0, keep), nb.index_select(0, keep)
+            r, t, b_end = r.index_select(1, keep), t.index_select(0, keep), b_end.index_select(1, keep)
+        else:  # everyone crosses: no compaction
+            f = nb
+            if idx is None:
+                idx, out_face, out_b = torch.arange(n, device=dev), face0.clone(), b_end
+        m = map_t.index_select(1, h).view(3, 3, -1)                               # [row, col, n]
+        r = (m * (r * (1.0 - t)).unsqueeze(0)).sum(1)                             # remaining rates, re-expressed
+        b = b_end.gather(0, src_t.index_select(1, h))
+        allow = allow_t.index_select(1, h)
+    return WalkResult(out_face, out_b[:2].t().contiguous(), out_face != face0)
