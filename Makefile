@@ -32,7 +32,7 @@ demo: $(STAMP)
 	$(VENV)/bin/meshsplat demo --out runs/demo
 
 bench: $(STAMP)
-	for b in bench/*.py; do $(PY) $$b || exit 1; done
+	for b in bench/[!_]*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs
