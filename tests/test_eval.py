@@ -70,8 +70,12 @@ def test_evaluate_errors(setup, tmp_path):
     with pytest.raises(MeshsplatError, match="run not found"):
         load_run(tmp_path / "missing")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(MeshsplatError, match="no valid checkpoint"):
+    with pytest.raises(MeshsplatError, match="no checkpoint in"):
         load_run(tmp_path / "empty")
+    (tmp_path / "corrupt" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "corrupt" / "checkpoints" / "ckpt_00000010.pt").write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(MeshsplatError, match=r"all 1 checkpoint\(s\) .* unreadable; newest: .*ckpt_00000010.pt"):
+        load_run(tmp_path / "corrupt")
     no_data = make_run(av, tmp_path / "nodata", None)
     with pytest.raises(MeshsplatError, match="--dataset"):
         evaluate_run(no_data, report=False)

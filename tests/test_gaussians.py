@@ -172,5 +172,5 @@ def test_avatar_state_roundtrip_and_compose(tmp_path):
     save_checkpoint(checkpoint_path(tmp_path / "run" / "checkpoints", 7), {"avatar": sd})
     av3 = Avatar.from_checkpoint(tmp_path / "run")
     assert torch.equal(av3.params["uv"], p["uv"])
-    with pytest.raises(MeshsplatError, match="no valid checkpoint"):
+    with pytest.raises(MeshsplatError, match="no checkpoint in"):
         Avatar.from_checkpoint(tmp_path)

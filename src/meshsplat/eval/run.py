@@ -44,25 +44,13 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 
 def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> LoadedRun:
     """Load the avatar of a run folder (newest valid ``checkpoints/ckpt_*.pt``) or of one checkpoint file."""
-    from meshsplat.io.checkpoint import load_checkpoint, load_latest_checkpoint
+    from meshsplat.io.checkpoint import load_run_checkpoint
 
     path = Path(run)
-    if not path.exists():
-        raise MeshsplatError(f"run not found: {path} (expected a training run folder or a checkpoint file)")
+    ckpt, state = load_run_checkpoint(path)
     if path.is_dir():
-        found = None
-        for folder in (path / "checkpoints", path):
-            if folder.is_dir():
-                found = load_latest_checkpoint(folder)
-                if found is not None:
-                    break
-        if found is None:
-            raise MeshsplatError(f"no valid checkpoint in {path} (looked for {path / 'checkpoints'}/ckpt_*.pt); "
-                                 "is this a training run folder?")
-        ckpt, state = found
         run_dir = path
     else:
-        ckpt, state = path, load_checkpoint(path)
         run_dir = path.parent.parent if path.parent.name == "checkpoints" else path.parent
     if not isinstance(state, dict) or "avatar" not in state:
         raise MeshsplatError(f"{ckpt}: checkpoint holds no avatar")

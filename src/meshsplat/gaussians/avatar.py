@@ -127,20 +127,9 @@ class Avatar:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
         """Load from a training checkpoint file, or the newest valid one of a run dir."""
-        from meshsplat.io.checkpoint import load_checkpoint, load_latest_checkpoint
+        from meshsplat.io.checkpoint import load_run_checkpoint
 
-        path = Path(path)
-        if path.is_dir():
-            found = None
-            for folder in (path / "checkpoints", path):
-                found = load_latest_checkpoint(folder)
-                if found is not None:
-                    break
-            if found is None:
-                raise MeshsplatError(f"no valid checkpoint found in {path} (looked in {path / 'checkpoints'})")
-            state = found[1]
-        else:
-            state = load_checkpoint(path)
+        _, state = load_run_checkpoint(path)
         if "avatar" not in state:
             raise MeshsplatError(f"{path}: checkpoint holds no avatar")
         return cls.from_state_dict(state["avatar"], device)

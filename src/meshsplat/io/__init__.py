@@ -4,6 +4,7 @@ from __future__ import annotations
 from meshsplat.io.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
+    load_run_checkpoint,
     list_checkpoints,
     load_checkpoint,
     load_latest_checkpoint,
@@ -16,7 +17,7 @@ from meshsplat.io.ply import read_gaussian_ply, write_gaussian_ply
 from meshsplat.io.video import VideoResult, write_mp4, write_png_frames, write_video
 
 __all__ = [
-    "save_checkpoint", "load_checkpoint", "latest_checkpoint", "load_latest_checkpoint",
+    "save_checkpoint", "load_checkpoint", "latest_checkpoint", "load_latest_checkpoint", "load_run_checkpoint",
     "list_checkpoints", "prune_checkpoints", "checkpoint_path",
     "write_gaussian_ply", "read_gaussian_ply",
     "write_embedding_json", "read_embedding_json",

@@ -145,6 +145,30 @@ def load_latest_checkpoint(run_dir: str | os.PathLike,
     return None
 
 
+def load_run_checkpoint(path: str | os.PathLike,
+                        map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
+    """``(checkpoint, state)`` for a checkpoint file, or the newest loadable one of a run folder
+    (``RUN/checkpoints/ckpt_*.pt``, else ``RUN/ckpt_*.pt``). Errors say what was found and why it failed."""
+    path = Path(path)
+    if not path.exists():
+        raise MeshsplatError(f"run not found: {path} (expected a training run folder or a checkpoint file)")
+    if path.is_file():
+        return path, load_checkpoint(path, map_location)
+    for folder in (path / "checkpoints", path):
+        ckpts = list_checkpoints(folder)
+        if not ckpts:
+            continue
+        problems = []
+        for _, p in reversed(ckpts):
+            try:
+                return p, load_checkpoint(p, map_location)
+            except MeshsplatError as exc:
+                problems.append(str(exc))
+        raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {problems[0]}")
+    raise MeshsplatError(f"no checkpoint in {path} (looked for {path / 'checkpoints'}/ckpt_*.pt); "
+                         "is this a training run folder?")
+
+
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     """Path of the newest valid checkpoint in ``run_dir`` (None when there is none)."""
     found = load_latest_checkpoint(run_dir)
