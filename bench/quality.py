@@ -65,12 +65,12 @@ def main() -> None:
 
     splits = sorted({s for r in rows.values() for s in r["splits"]})
     print(f"\nquality on {args.preset} preset ({preset.iterations} iterations, {preset.resolution}px)")
-    print(f"{'variant':<10}{'split':<14}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'N':>8}{'train s':>9}")
+    print(f"{'variant':<12}{'split':<14}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'N':>8}{'train s':>9}")
     for name, r in rows.items():
         for s in splits:
             m = r["splits"].get(s, {})
             fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
-            print(f"{name:<10}{s:<14}{fmt(m.get('psnr'), 2):>8}{fmt(m.get('ssim'), 4):>8}"
+            print(f"{name:<12}{s:<14}{fmt(m.get('psnr'), 2):>8}{fmt(m.get('ssim'), 4):>8}"
                   f"{fmt(m.get('lpips'), 4):>8}{r['gaussians']:>8}{r['train_s']:>9.0f}")
     out = results_path(args.name)
     out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset,
