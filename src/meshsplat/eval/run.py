@@ -12,10 +12,11 @@ from typing import Any
 
 import torch
 
+from meshsplat._device import resolve_device
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 
-__all__ = ["LoadedRun", "load_run", "run_dataset_path", "resolve_device"]
+__all__ = ["LoadedRun", "load_run", "run_dataset_path"]
 
 
 @dataclass
@@ -27,19 +28,6 @@ class LoadedRun:
     iteration: int | None
     avatar: Avatar
     config: dict[str, Any] = field(default_factory=dict)
-
-
-def resolve_device(device: str | torch.device | None) -> torch.device:
-    """``None``/``"auto"``: CUDA when available, else CPU."""
-    if device is None or str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise MeshsplatError(f"device: {exc}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise MeshsplatError(f"device: {device!r} requested but CUDA is not available")
-    return dev
 
 
 def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> LoadedRun:

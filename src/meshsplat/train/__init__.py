@@ -10,10 +10,10 @@ from meshsplat.train.config import (
 )
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers, expon_lr
 from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
-from meshsplat.train.trainer import LOG_COLUMNS, Trainer, mesh_extent, resolve_device, train
+from meshsplat.train.trainer import LOG_COLUMNS, Trainer, mesh_extent, train
 
 __all__ = [
     "TrainConfig", "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig",
     "apply_overrides", "load_config", "expon_lr", "base_learning_rates", "build_optimizers", "LrSchedule",
-    "DensifyStrategy", "walk_embeddings", "Trainer", "train", "resolve_device", "mesh_extent", "LOG_COLUMNS",
+    "DensifyStrategy", "walk_embeddings", "Trainer", "train", "mesh_extent", "LOG_COLUMNS",
 ]

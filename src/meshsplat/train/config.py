@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.train.strategy.default import DensifyStrategy
 
 __all__ = [
     "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "TrainConfig",
@@ -67,23 +68,8 @@ class LossConfig:
     lambda_ssim: float = 0.0
 
 
-@dataclass
-class StrategyConfig:
-    """Adaptive density control (3DGS), see ``meshsplat.train.strategy.DensifyStrategy``."""
-
-    refine_start: int = 600
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    grow_grad2d: float = 2e-4
-    grow_scale3d: float = 0.01  # relative: clone below, split above (3DGS percent_dense)
-    prune_opa: float = 0.005
-    prune_scale3d: float = 0.1  # relative: world-size prune after the first opacity reset
-    prune_scale2d: float = 20.0  # pixels: screen-size prune after the first opacity reset
-    reset_opa: float = 0.01
-    split_n: int = 2
-    max_gaussians: int = 150_000
-    enabled: bool = True
+# Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
+StrategyConfig = DensifyStrategy
 
 
 @dataclass

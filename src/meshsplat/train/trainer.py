@@ -31,30 +31,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from meshsplat._device import resolve_device
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import compose
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.train.config import TrainConfig
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
-from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
+from meshsplat.train.strategy import walk_embeddings
 
-__all__ = ["Trainer", "train", "resolve_device", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
+__all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
 
 LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psnr", "n_gaussians",
                "walked", "lr_duv", "lr_d", "time_s")
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError:
-        raise MeshsplatError(f"device: unknown device {name!r}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise MeshsplatError(f"device: {name!r} requested but CUDA is not available")
-    return dev
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -94,7 +83,7 @@ class Trainer:
         self.mesh = TriMesh(cano.to(self.device), torch.as_tensor(self.dataset.faces).long().to(self.device))
         self.extent = mesh_extent(self.mesh.vertices)
         self.mean_edge = mean_edge_length(self.mesh.vertices, self.mesh.faces)
-        self.strategy = DensifyStrategy(**{k: v for k, v in vars(self.cfg.strategy).items()})
+        self.strategy = self.cfg.strategy
         self.lrs = base_learning_rates(self.cfg.optim, self.extent, self.mean_edge)
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
         self.perceptual = None

@@ -43,10 +43,10 @@ class DensifyStrategy:
     refine_every: int = 100
     reset_every: int = 3000
     grow_grad2d: float = 2e-4
-    grow_scale3d: float = 0.01
+    grow_scale3d: float = 0.01  # relative: clone below, split above (3DGS percent_dense), times extent
     prune_opa: float = 0.005
-    prune_scale3d: float = 0.1
-    prune_scale2d: float = 20.0
+    prune_scale3d: float = 0.1  # relative: world-size prune after the first opacity reset, times extent
+    prune_scale2d: float = 20.0  # pixels: screen-size prune after the first opacity reset
     reset_opa: float = 0.01
     split_n: int = 2
     max_gaussians: int = 150_000
