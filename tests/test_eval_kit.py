@@ -50,7 +50,7 @@ def deform(verts: torch.Tensor, t: float) -> torch.Tensor:
 
 
 def camera(azimuth_deg: float, size: int = SIZE) -> tuple[np.ndarray, np.ndarray]:
-    from meshsplat.synth.rigs import intrinsics, look_at, orbit_position
+    from meshsplat.camera import intrinsics, look_at, orbit_position
 
     vm = look_at(orbit_position(np.zeros(3), 4.5, math.radians(azimuth_deg), math.radians(15)), np.zeros(3))
     return intrinsics(size, size, 35.0), vm

@@ -10,7 +10,7 @@ import torch
 
 from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
-from meshsplat import animate
+from meshsplat import animate, camera
 from meshsplat.errors import MeshsplatError
 
 
@@ -27,7 +27,7 @@ def _project(cam, pts):
 
 def test_orbit_cameras_frame_the_animation(avatar):
     frames = [deform(avatar.mesh.vertices, t) for t in (0.0, 0.5, 1.0)]
-    cams = animate.orbit_cameras(frames, 64, 48, orbit_deg=360, elevation_deg=20)
+    cams = camera.orbit_cameras(frames, 64, 48, orbit_deg=360, elevation_deg=20)
     assert len(cams) == 3
     centres = torch.stack([-c.viewmat[:3, :3].T @ c.viewmat[:3, 3] for c in cams])
     allv = torch.cat(frames)
@@ -44,7 +44,7 @@ def test_orbit_cameras_frame_the_animation(avatar):
 
 def test_render_animation_writes_frames_and_video(avatar, tmp_path):
     frames = [deform(avatar.mesh.vertices, t) for t in (0.0, 0.5, 1.0)]
-    cam = animate.orbit_cameras(frames, SIZE, SIZE)[0]
+    cam = camera.orbit_cameras(frames, SIZE, SIZE)[0]
     res = animate.render_animation(avatar, frames, cam, tmp_path, fps=10, background="black")
     assert res.num_frames == 3 and len(res.pngs) == 3
     from PIL import Image

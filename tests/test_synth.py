@@ -10,7 +10,7 @@ from meshsplat.data import open_dataset
 from meshsplat.synth import generate, rasterize_triangles
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import sample_texture
-from meshsplat.synth.rigs import look_at
+from meshsplat.camera import look_at
 
 K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
 

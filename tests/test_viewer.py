@@ -107,7 +107,7 @@ def test_int16_vertices_within_half_a_step(tmp_path):
 
 
 def test_default_camera_frames_the_animation(tmp_path):
-    from meshsplat.animate import orbit_cameras
+    from meshsplat.camera import orbit_cameras
 
     av = make_avatar(n=30)
     frames = _frames(av)

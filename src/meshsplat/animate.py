@@ -23,30 +23,13 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
-    "Camera", "AnimationResult", "render_animation", "orbit_cameras", "dataset_camera",
+    "AnimationResult", "render_animation",
     "match_vertices", "gltf_animation", "blendshape_animation", "sequence_animation", "dataset_animation",
 ]
-
-
-@dataclass
-class Camera:
-    """``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, image ``width`` x ``height``."""
-
-    viewmat: torch.Tensor
-    K: torch.Tensor
-    width: int
-    height: int
-
-    def resized(self, width: int, height: int) -> "Camera":
-        """Same view at another resolution (intrinsics scaled per axis)."""
-        K = self.K.clone()
-        K[0] *= width / self.width
-        K[1] *= height / self.height
-        K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
-        return Camera(self.viewmat, K, int(width), int(height))
 
 
 @dataclass
@@ -58,59 +41,6 @@ class AnimationResult:
     num_frames: int = 0
     render_ms_mean: float = 0.0
     error: str | None = None
-
-
-# ---------------------------------------------------------------- cameras
-def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, height: int, num_frames: int | None = None,
-                  orbit_deg: float = 0.0, azimuth_deg: float = 0.0, elevation_deg: float = 10.0,
-                  distance: float | None = None, fov_deg: float = 30.0, margin: float = 1.05) -> list[Camera]:
-    """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), +y up.
-
-    The camera turns ``orbit_deg`` in total about the vertical axis through the box centre over
-    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from +z, the glTF
-    front). ``distance`` defaults to fitting the box's bounding sphere (times ``margin``) in the view.
-    """
-    from meshsplat.synth.rigs import intrinsics, look_at, orbit_position
-
-    if width < 1 or height < 1:
-        raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
-    if not 1.0 <= fov_deg < 179.0:
-        raise MeshsplatError(f"fov_deg: expected in [1, 179), got {fov_deg}")
-    lo = hi = None
-    count = 0
-    for v in vertices:
-        v = v.detach().float().reshape(-1, 3)
-        lo = v.min(0).values if lo is None else torch.minimum(lo, v.min(0).values)
-        hi = v.max(0).values if hi is None else torch.maximum(hi, v.max(0).values)
-        count += 1
-    if count == 0:
-        raise MeshsplatError("vertices: no frames to frame the camera on")
-    n = count if num_frames is None else int(num_frames)
-    center = ((lo + hi) / 2).double().numpy()
-    radius = max(float((hi - lo).norm()) / 2, 1e-6)
-    K = intrinsics(width, height, fov_deg)
-    half = min(math.atan(0.5 * height / K[1, 1]), math.atan(0.5 * width / K[0, 0]))
-    dist = margin * radius / math.sin(half) if distance is None else float(distance)
-    if not dist > 0:
-        raise MeshsplatError(f"distance: expected > 0, got {distance}")
-    Kt = torch.from_numpy(K).float()
-    el = math.radians(elevation_deg)
-    cams = []
-    for i in range(n):
-        az = math.radians(azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0))
-        vm = look_at(orbit_position(center, dist, az, el), center)
-        cams.append(Camera(torch.from_numpy(vm).float(), Kt, int(width), int(height)))
-    return cams
-
-
-def dataset_camera(dataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
-    """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
-    if str(camera_id) not in dataset.camera_ids:
-        shown = ", ".join(dataset.camera_ids[:20]) + (" ..." if len(dataset.camera_ids) > 20 else "")
-        raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {dataset.root} (cameras: {shown})")
-    K, vm, w, h = dataset.camera(camera_id)
-    cam = Camera(vm, K, w, h)
-    return cam.resized(*size) if size is not None and tuple(size) != (w, h) else cam
 
 
 # ---------------------------------------------------------------- drivers -> vertex frames

@@ -92,7 +92,8 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     from the last checkpoint if an earlier demo in the same folder was interrupted."""
     from dataclasses import replace
 
-    from meshsplat.animate import orbit_cameras, render_animation
+    from meshsplat.animate import render_animation
+    from meshsplat.camera import orbit_cameras
     from meshsplat.data import open_dataset
     from meshsplat.eval import evaluate_run
     from meshsplat.export import export_avatar

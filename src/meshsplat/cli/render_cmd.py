@@ -64,7 +64,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from meshsplat import animate
+    from meshsplat import animate, camera
     from meshsplat.eval.run import load_run, run_dataset_path
 
     r = load_run(args.run, device=args.device)
@@ -99,12 +99,12 @@ def run(args: argparse.Namespace) -> int:
             raise MeshsplatError(f"--camera: expected dataset:<camera_id>, got {args.camera!r}")
         if orbit_opts:
             raise MeshsplatError("--camera and --orbit/--distance/--elevation exclude each other")
-        cameras = animate.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
+        cameras = camera.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
     elif frame_cams is not None and not orbit_opts:
         cameras = [c.resized(*size) for c in frame_cams] if size else frame_cams
     else:
         w, h = size or (512, 512)
-        cameras = animate.orbit_cameras(frames, w, h, orbit_deg=args.orbit or 0.0, azimuth_deg=args.azimuth,
+        cameras = camera.orbit_cameras(frames, w, h, orbit_deg=args.orbit or 0.0, azimuth_deg=args.azimuth,
                                         elevation_deg=10.0 if args.elevation is None else args.elevation,
                                         distance=args.distance, fov_deg=args.fov)
     res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=args.background,

@@ -19,7 +19,7 @@ from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
-from meshsplat.synth.rigs import intrinsics, look_at, orbit_position, yaw_matrix
+from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
 from meshsplat.synth.sources import load_source
 
 __all__ = ["generate", "render_view", "RIGS", "Shot"]

@@ -55,8 +55,8 @@ def _as_frames(frames, num_vertices: int) -> np.ndarray:
 
 def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azimuth_deg: float = 0.0,
                    elevation_deg: float = 10.0, fov_deg: float = 30.0) -> dict[str, Any]:
-    """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.animate.orbit_cameras``)."""
-    from meshsplat.animate import orbit_cameras
+    """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.camera.orbit_cameras``)."""
+    from meshsplat.camera import orbit_cameras
 
     lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
     cam = orbit_cameras([torch.from_numpy(np.stack([lo, hi]))], width, height, azimuth_deg=azimuth_deg,
@@ -68,7 +68,7 @@ def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azim
 
 
 def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, height) -> dict[str, Any]:
-    from meshsplat.synth.rigs import intrinsics, look_at, orbit_position
+    from meshsplat.camera import intrinsics, look_at, orbit_position
 
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     vm = look_at(orbit_position(center, distance, az, el), center)
@@ -80,7 +80,7 @@ def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, h
 
 
 def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
-    """Orbit description of ``camera``: None (auto), a dict of overrides, or an ``animate.Camera``."""
+    """Orbit description of ``camera``: None (auto), a dict of overrides, or a ``camera.Camera``."""
     if camera is None:
         return default_camera(frames)
     if isinstance(camera, dict):
@@ -105,7 +105,7 @@ def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
         az = math.degrees(math.atan2(-fwd[0], -fwd[2]))
         fov = math.degrees(2 * math.atan(0.5 * camera.height / float(camera.K[1, 1])))
         return _camera_dict(eye + dist * fwd, dist, az, el, fov, camera.width, camera.height)
-    raise MeshsplatError(f"camera: expected None, a dict or an animate.Camera, got {type(camera).__name__}")
+    raise MeshsplatError(f"camera: expected None, a dict or a meshsplat.camera.Camera, got {type(camera).__name__}")
 
 
 def _encode_vertices(frames: np.ndarray, encoding: str) -> tuple[np.ndarray, dict[str, Any]]:
@@ -157,7 +157,7 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
 
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
     ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
-    ``animate.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
+    ``camera.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
     (per-axis step over the animation's box, error <= step/2) or "float32". Returns ``index.html``.
     """
     from meshsplat.gaussians.avatar import Avatar

@@ -1,0 +1,208 @@
+"""Cameras: the one home of meshsplat's camera convention and of converters from other conventions.
+
+Inside meshsplat a camera is a world->camera ``viewmat [4,4]`` in OpenCV axes (x right, y down,
+z forward) and a pinhole ``K [3,3]`` with pixel centres at +0.5. Captures arrive in other
+conventions; convert them here, once:
+
+- OpenGL / Blender / NeRF / instant-ngp / VHAP ``transform_matrix``: camera->world with the camera
+  looking down -z and y up -> :func:`viewmat_from_opengl_c2w`.
+- Intrinsics normalised by the image size (IMavatar/DECA ``[fx/W, fy/H, cx/W, cy/H]``, fx stored
+  negative) -> :func:`K_from_normalized`.
+- Rodrigues vector + translation (PeopleSnapshot ``camera.pkl``) -> :func:`viewmat_from_rodrigues`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from meshsplat.errors import MeshsplatError
+
+__all__ = [
+    "Camera", "look_at", "intrinsics", "orbit_position", "yaw_matrix", "orbit_cameras", "dataset_camera",
+    "viewmat_from_opengl_c2w", "opengl_c2w_from_viewmat", "K_from_normalized", "K_from_focal",
+    "rodrigues", "viewmat_from_rodrigues", "camera_center",
+]
+
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
+
+
+@dataclass
+class Camera:
+    """``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, image ``width`` x ``height``."""
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+
+    @classmethod
+    def from_numpy(cls, viewmat, K, width: int, height: int) -> "Camera":
+        return cls(torch.as_tensor(np.asarray(viewmat), dtype=torch.float32),
+                   torch.as_tensor(np.asarray(K), dtype=torch.float32), int(width), int(height))
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera position in world coordinates ``[3]``."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """Same view at another resolution (intrinsics scaled per axis)."""
+        K = self.K.clone()
+        K[0] *= width / self.width
+        K[1] *= height / self.height
+        K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
+        return Camera(self.viewmat, K, int(width), int(height))
+
+
+# ---------------------------------------------------------------- constructing cameras
+def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """World->camera ``[4,4]``: camera at ``eye`` looking at ``target``; image y points along -up."""
+    eye, target, up = (np.asarray(x, np.float64) for x in (eye, target, up))
+    fwd = target - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    if np.linalg.norm(right) < 1e-8:
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])
+    m = np.eye(4)
+    m[:3, :3] = R
+    m[:3, 3] = -R @ eye
+    return m
+
+
+def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
+    """Square pixels, vertical field of view ``fov_deg``, principal point at the image centre."""
+    f = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
+    return np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float64)
+
+
+def orbit_position(center, distance: float, azimuth: float, elevation: float) -> np.ndarray:
+    """Point at ``distance`` from ``center``; azimuth 0 is +z (the glTF front), angles in radians."""
+    c = np.asarray(center, np.float64)
+    return c + distance * np.array([math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
+                                    math.cos(elevation) * math.cos(azimuth)])
+
+
+def yaw_matrix(angle: float) -> np.ndarray:
+    """Rotation about +y by ``angle`` radians ``[3,3]``."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, height: int,
+                  num_frames: int | None = None, orbit_deg: float = 0.0, azimuth_deg: float = 0.0,
+                  elevation_deg: float = 10.0, distance: float | None = None, fov_deg: float = 30.0,
+                  margin: float = 1.05) -> list[Camera]:
+    """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), +y up.
+
+    The camera turns ``orbit_deg`` in total about the vertical axis through the box centre over
+    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from +z, the glTF
+    front). ``distance`` defaults to fitting the box's bounding sphere (times ``margin``) in the view.
+    """
+    if width < 1 or height < 1:
+        raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
+    if not 1.0 <= fov_deg < 179.0:
+        raise MeshsplatError(f"fov_deg: expected in [1, 179), got {fov_deg}")
+    lo = hi = None
+    count = 0
+    for v in vertices:
+        v = v.detach().float().reshape(-1, 3)
+        lo = v.min(0).values if lo is None else torch.minimum(lo, v.min(0).values)
+        hi = v.max(0).values if hi is None else torch.maximum(hi, v.max(0).values)
+        count += 1
+    if count == 0 or lo is None or hi is None:
+        raise MeshsplatError("vertices: no frames to frame the camera on")
+    n = count if num_frames is None else int(num_frames)
+    center = ((lo + hi) / 2).double().numpy()
+    radius = max(float((hi - lo).norm()) / 2, 1e-6)
+    K = intrinsics(width, height, fov_deg)
+    half = min(math.atan(0.5 * height / K[1, 1]), math.atan(0.5 * width / K[0, 0]))
+    dist = margin * radius / math.sin(half) if distance is None else float(distance)
+    if not dist > 0:
+        raise MeshsplatError(f"distance: expected > 0, got {distance}")
+    el = math.radians(elevation_deg)
+    cams = []
+    for i in range(n):
+        az = math.radians(azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0))
+        cams.append(Camera.from_numpy(look_at(orbit_position(center, dist, az, el), center), K, width, height))
+    return cams
+
+
+def dataset_camera(dataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
+    """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
+    if str(camera_id) not in dataset.camera_ids:
+        shown = ", ".join(dataset.camera_ids[:20]) + (" ..." if len(dataset.camera_ids) > 20 else "")
+        raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {dataset.root} (cameras: {shown})")
+    K, vm, w, h = dataset.camera(camera_id)
+    cam = Camera(vm, K, w, h)
+    return cam.resized(*size) if size is not None and tuple(size) != (w, h) else cam
+
+
+# ---------------------------------------------------------------- converters from other conventions
+def _mat(name: str, m, shape: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(m, np.float64)
+    if a.shape != shape or not np.isfinite(a).all():
+        raise MeshsplatError(f"{name}: expected a finite {'x'.join(map(str, shape))} matrix, got shape {list(a.shape)}")
+    return a
+
+
+def viewmat_from_opengl_c2w(c2w) -> np.ndarray:
+    """World->camera OpenCV ``[4,4]`` from an OpenGL camera->world ``[4,4]`` (or ``[3,4]``).
+
+    OpenGL cameras look down -z with y up; flipping the camera's y and z axes gives OpenCV's.
+    """
+    a = np.asarray(c2w, np.float64)
+    if a.shape == (3, 4):
+        a = np.vstack([a, [0.0, 0.0, 0.0, 1.0]])
+    a = _mat("transform_matrix", a, (4, 4))
+    return np.linalg.inv(a @ _GL_TO_CV)
+
+
+def opengl_c2w_from_viewmat(viewmat) -> np.ndarray:
+    """Inverse of :func:`viewmat_from_opengl_c2w`."""
+    return np.linalg.inv(_mat("viewmat", viewmat, (4, 4))) @ _GL_TO_CV
+
+
+def K_from_focal(fl_x: float, fl_y: float, cx: float, cy: float) -> np.ndarray:
+    """Pinhole ``K [3,3]`` from focal lengths and principal point in pixels."""
+    return np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
+
+
+def K_from_normalized(intr, width: int, height: int) -> np.ndarray:
+    """``K`` from ``[fx/W, fy/H, cx/W, cy/H]`` (IMavatar/DECA; signs are dropped: DECA stores fx < 0)."""
+    a = np.abs(np.asarray(intr, np.float64).reshape(-1))
+    if a.shape != (4,) or not np.isfinite(a).all():
+        raise MeshsplatError(f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {list(np.shape(intr))}")
+    return K_from_focal(a[0] * width, a[1] * height, a[2] * width, a[3] * height)
+
+
+def rodrigues(rvec) -> np.ndarray:
+    """Rotation matrix ``[3,3]`` of an axis-angle vector ``[3]`` (radians)."""
+    r = _mat("rvec", np.asarray(rvec, np.float64).reshape(-1), (3,))
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = r / theta
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * (Kx @ Kx)
+
+
+def viewmat_from_rodrigues(rvec, t) -> np.ndarray:
+    """World->camera ``[4,4]`` from a Rodrigues rotation vector and a translation (OpenCV ``rvec, tvec``)."""
+    m = np.eye(4)
+    m[:3, :3] = rodrigues(rvec)
+    m[:3, 3] = _mat("t", np.asarray(t, np.float64).reshape(-1), (3,))
+    return m
+
+
+def camera_center(viewmat) -> np.ndarray:
+    """Camera position ``[3]`` in world coordinates of a world->camera ``[4,4]``."""
+    vm = _mat("viewmat", viewmat, (4, 4))
+    return -vm[:3, :3].T @ vm[:3, 3]
