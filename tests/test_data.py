@@ -68,8 +68,8 @@ def test_round_trip(ds_root):
 
 def test_images_load_lazily(ds_root, monkeypatch):
     calls = []
-    real = dataset_mod.read_png
-    monkeypatch.setattr(dataset_mod, "read_png", lambda p, c: calls.append((p.name, c)) or real(p, c))
+    real = dataset_mod.read_image
+    monkeypatch.setattr(dataset_mod, "read_image", lambda p, c: calls.append((p.name, c)) or real(p, c))
     ds = open_dataset(ds_root)
     assert all(c == 1 for _, c in calls)  # only masks (emptiness check), no RGB image decoded
     calls.clear()

@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.png import png_size, read_png
+from meshsplat.data.png import image_size, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["Frame", "AvatarDataset", "open_dataset"]
+__all__ = ["Frame", "AvatarDataset", "open_dataset", "MASK_KINDS"]
+
+MASK_KINDS = ("png", "npy", "alpha")  # a mask file (any image), a numpy array, the image's 4th channel
 
 _MAX_LISTED = 25
 
@@ -96,9 +98,12 @@ class AvatarDataset:
     """A validated dataset; frames load lazily (``cache_size`` most recent kept in memory)."""
 
     def __init__(self, root: Path, manifest: dict, canonical: np.ndarray, faces: np.ndarray,
-                 vertices: np.ndarray, cameras: dict, cache_size: int = 8):
+                 vertices: np.ndarray, cameras: dict, cache_size: int = 8,
+                 driver_params: dict[str, np.ndarray] | None = None, format_name: str = "native"):
         self.root = root
         self.manifest = manifest
+        self.format_name = format_name
+        self.driver_params = driver_params
         self.canonical_vertices = torch.from_numpy(canonical.astype(np.float32))
         self.faces = torch.from_numpy(faces.astype(np.int64))
         self._verts = vertices
@@ -118,6 +123,20 @@ class AvatarDataset:
     @property
     def meta(self) -> dict:
         return dict(self.manifest.get("meta", {}))
+
+    @property
+    def driver_info(self) -> dict | None:
+        """The body/head model record (``type``, ``gender``, ...) when the meshes come from one."""
+        d = self.manifest.get("driver")
+        return dict(d) if isinstance(d, dict) else None
+
+    def frame_params(self, i: int) -> dict[str, np.ndarray] | None:
+        """Model parameters of frame ``i`` (per-frame rows ``[1,k]``, shared ones as stored)."""
+        if self.driver_params is None or self.driver_info is None:
+            return None
+        row = self._frames[self._index(i)]["mesh"]
+        per_frame = set(self.driver_info.get("per_frame", []))
+        return {k: (v[row:row + 1] if k in per_frame else v) for k, v in self.driver_params.items()}
 
     @property
     def num_vertices(self) -> int:
@@ -163,10 +182,8 @@ class AvatarDataset:
             return self._cache[i]
         rec = self._frames[i]
         K, vm, w, h = self.camera(rec["camera"])
-        img = torch.from_numpy(read_png(self.root / rec["image"], 3)).float().div_(255.0)
-        mask = None
-        if rec.get("mask"):
-            mask = torch.from_numpy(read_png(self.root / rec["mask"], 1)).float().div_(255.0)
+        img = torch.from_numpy(read_image(self.root / rec["image"], 3)).float().div_(255.0)
+        mask = self._load_mask(rec)
         fr = Frame(img, mask, K, vm, self.vertices(i), w, h, i, rec["name"], str(rec["camera"]),
                    rec.get("clip"), rec.get("time"))
         if self._cache_size > 0:
@@ -175,9 +192,34 @@ class AvatarDataset:
                 self._cache.popitem(last=False)
         return fr
 
+    def _load_mask(self, rec: dict) -> torch.Tensor | None:
+        kind = rec.get("mask_kind", "png")
+        if kind == "alpha":
+            return torch.from_numpy(read_image(self.root / rec["image"], 4)[..., 3:]).float().div_(255.0)
+        if not rec.get("mask"):
+            return None
+        if kind == "npy":
+            return torch.from_numpy(_read_npy_mask(self.root / rec["mask"]))
+        return torch.from_numpy(read_image(self.root / rec["mask"], 1)).float().div_(255.0)
+
     def __iter__(self):
         for i in range(len(self)):
             yield self[i]
+
+
+def _read_npy_mask(path: Path) -> np.ndarray:
+    """Mask ``[H,W,1]`` float32 in [0,1] from an ``.npy`` of 0/1, bool or 0-255 values."""
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: cannot read mask array ({exc})") from None
+    a = np.squeeze(np.asarray(a))
+    if a.ndim != 2 or not np.issubdtype(a.dtype, np.number) and a.dtype != bool:
+        raise MeshsplatError(f"{path}: expected a numeric [H,W] mask array, got {a.dtype} {list(a.shape)}")
+    a = a.astype(np.float32)
+    if a.max(initial=0.0) > 1.0:
+        a = a / 255.0
+    return np.clip(a, 0.0, 1.0)[..., None]
 
 
 def _load_canonical(root: Path, rel: str, problems: _Problems):
@@ -248,12 +290,47 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
             verts = np.load(vpath, mmap_mode="r")
         except Exception as exc:
             problems.add(manifest["vertices"], f"cannot read ({exc})")
-        if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
-            problems.add(manifest["vertices"], f"expected shape [T,V,3], got {list(verts.shape)}")
-            verts = None
-        if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
-            problems.add(manifest["vertices"], f"vertex count mismatch: {verts.shape[1]} posed vertices per "
-                         f"frame but the canonical mesh has {canonical.shape[0]}")
+    driver_params = None
+    driver = manifest.get("driver")
+    if driver is not None:
+        driver_params = _load_driver_params(root, driver, problems)
+    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
+                         cache_size=cache_size, driver_params=driver_params)
+
+
+def _load_driver_params(root: Path, driver, problems: _Problems) -> dict[str, np.ndarray] | None:
+    if not isinstance(driver, dict) or not isinstance(driver.get("type"), str) or not isinstance(driver.get("params"), str):
+        problems.add("manifest 'driver'", "must be an object with 'type' and 'params' (file name)")
+        return None
+    p = root / driver["params"]
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError) as exc:
+        problems.add(driver["params"], f"cannot read driver parameters ({exc})")
+        return None
+
+
+def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems: _Problems | None = None,
+                  check_masks: bool = True, cache_size: int = 8, driver_params: dict | None = None,
+                  format_name: str = "native") -> AvatarDataset:
+    """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
+
+    The one validation path of every reader: ``manifest`` has ``cameras`` (id -> K, viewmat, width,
+    height), ``frames`` (records with ``image``, ``camera``, ``mesh``, optional ``mask``/``mask_kind``),
+    ``splits`` and ``meta``; ``canonical [V,3]``, ``faces [F,3]``, ``verts [T,V,3]`` are arrays (or
+    None when they failed to load, with the reason already in ``problems``). All problems end in one
+    MeshsplatError.
+    """
+    problems = problems or _Problems(root)
+    frames = manifest["frames"]
+    vname = manifest.get("vertices", "vertices")
+    if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
+        problems.add(vname, f"expected shape [T,V,3], got {list(verts.shape)}")
+        verts = None
+    if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
+        problems.add(vname, f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+                     f"frame but the canonical mesh has {canonical.shape[0]}")
     bad_meshes: dict[int, int] = {}
     if verts is not None:
         for s in range(0, verts.shape[0], 256):
@@ -287,33 +364,62 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
         elif m in bad_meshes:
             problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
         size = (manifest["cameras"].get(cid, {}).get("width"), manifest["cameras"].get(cid, {}).get("height"))
-        for kind in ("image", "mask"):
-            rel = rec.get(kind)
-            if not rel:
-                continue
-            p = root / rel
-            if not p.is_file():
-                problems.add(where, f"{kind} file {rel} is missing")
-                continue
-            try:
-                wh = png_size(p)
-            except MeshsplatError:
-                problems.add(where, f"{kind} file {rel} is not a PNG")
-                continue
-            if cid in manifest["cameras"] and wh != size:
-                problems.add(where, f"{kind} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {cid!r} "
-                             f"says {size[0]}x{size[1]}")
-            elif kind == "mask" and check_masks:
-                try:
-                    empty = int(read_png(p, 1).max()) == 0
-                except MeshsplatError as exc:
-                    problems.add(where, str(exc))
-                    continue
-                if empty:
-                    problems.add(where, f"empty mask {rel} (no foreground pixel)")
+        _check_frame_files(root, rec, where, size if cid in manifest["cameras"] else None, check_masks, problems)
     for sname, idx in (manifest.get("splits") or {}).items():
         bad = [j for j in idx if not (isinstance(j, int) and 0 <= j < len(frames))]
         if bad:
             problems.add(f"split {sname!r}", f"frame indices out of range: {bad[:5]}")
     problems.raise_if_any()
-    return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size)
+    return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size,
+                         driver_params=driver_params, format_name=format_name)
+
+
+def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: _Problems) -> None:
+    """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
+    kind = rec.get("mask_kind", "png")
+    if kind not in MASK_KINDS:
+        problems.add(where, f"mask_kind {kind!r} is not one of {list(MASK_KINDS)}")
+        return
+    checks = [("image", rec.get("image"))]
+    if rec.get("mask") and kind != "alpha":
+        checks.append(("mask", rec["mask"]))
+    for what, rel in checks:
+        p = root / rel
+        if not p.is_file():
+            problems.add(where, f"{what} file {rel} is missing")
+            return
+        try:
+            if what == "mask" and kind == "npy":
+                arr = np.load(p, mmap_mode="r", allow_pickle=False)
+                shape = tuple(int(x) for x in np.squeeze(np.empty(arr.shape, np.uint8)).shape)
+                wh = (shape[1], shape[0]) if len(shape) == 2 else None
+                if wh is None:
+                    problems.add(where, f"mask {rel} has shape {list(arr.shape)}, expected [H,W]")
+                    continue
+            else:
+                wh = image_size(p)
+        except (MeshsplatError, OSError, ValueError):
+            problems.add(where, f"{what} file {rel} is not a readable {'array' if kind == 'npy' and what == 'mask' else 'image'}")
+            return
+        if size is not None and wh != size:
+            problems.add(where, f"{what} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {rec['camera']!r} "
+                         f"says {size[0]}x{size[1]}")
+            return
+    if not check_masks or not (rec.get("mask") or kind == "alpha"):
+        return
+    try:
+        if kind == "alpha":
+            img = read_image(root / rec["image"], 4)
+            m = img[..., 3]
+            if (m == 255).all():
+                problems.add(where, f"mask_kind 'alpha' but {rec['image']} has no alpha channel (or it is all opaque)")
+                return
+        elif kind == "npy":
+            m = _read_npy_mask(root / rec["mask"])
+        else:
+            m = read_image(root / rec["mask"], 1)
+    except MeshsplatError as exc:
+        problems.add(where, str(exc))
+        return
+    if float(m.max()) == 0:
+        problems.add(where, f"empty mask {rec.get('mask') or rec['image']} (no foreground pixel)")

@@ -8,7 +8,7 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["png_size", "read_png", "write_png"]
+__all__ = ["png_size", "read_png", "write_png", "image_size", "read_image"]
 
 _SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -32,8 +32,37 @@ def read_png(path: Path, channels: int) -> np.ndarray:
             im = im.convert("L" if channels == 1 else "RGB")
             arr = np.array(im, dtype=np.uint8)
     except (OSError, ValueError) as exc:
-        raise MeshsplatError(f"{path}: cannot decode PNG ({exc})") from None
+        raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
     return arr[..., None] if channels == 1 else arr
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of a PNG (header only) or any image PIL reads (JPEG, ...)."""
+    with open(path, "rb") as fh:
+        is_png = fh.read(8) == _SIG
+    if is_png:
+        return png_size(path)
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: not an image ({exc})") from None
+
+
+def read_image(path: Path, channels: int) -> np.ndarray:
+    """Decode a PNG/JPEG/... to uint8 ``[H, W, channels]`` (1 grey, 3 RGB, 4 RGBA; missing alpha = 255)."""
+    from PIL import Image
+
+    if channels != 4:
+        return read_png(path, channels)
+    try:
+        with Image.open(path) as im:
+            arr = np.array(im.convert("RGBA"), dtype=np.uint8)
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
+    return arr
 
 
 def write_png(path: Path, img: np.ndarray, compress_level: int = 3) -> None:

@@ -54,6 +54,16 @@ class DatasetWriter:
         self.meshes: list[np.ndarray] = []
         self.splits: dict[str, list[int]] = {}
         self.driver: dict | None = None
+        self.driver_params: dict[str, np.ndarray] | None = None
+
+    def set_driver(self, record: dict, params: dict) -> None:
+        """Store the body/head model parameters the meshes were posed with (``driver_params.npz``).
+
+        ``record``: ``{"type": "smpl"|"smplx"|"flame", "gender", ...}``; ``params``: name -> array,
+        per-frame arrays with one row per mesh added with :meth:`add_mesh` (checked on close).
+        """
+        self.driver = {**dict(record), "params": "driver_params.npz"}
+        self.driver_params = {k: _np(v) for k, v in params.items()}
 
     def add_camera(self, camera_id, K, viewmat, width: int, height: int) -> str:
         """Register a camera: ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV axes)."""
@@ -126,7 +136,14 @@ class DatasetWriter:
             "num_vertices": int(self.canonical.shape[0]), "num_faces": int(self.faces.shape[0]),
             "cameras": self.cameras, "frames": self.frames, "splits": splits, "meta": self.meta,
         }
-        if self.driver is not None:
+        if self.driver is not None and self.driver_params is not None:
+            per_frame = self.driver.get("per_frame", [k for k, v in self.driver_params.items()
+                                                      if v.ndim == 2 and len(v) == len(self.meshes)])
+            bad = [k for k in per_frame if len(self.driver_params[k]) != len(self.meshes)]
+            if bad:
+                raise MeshsplatError(f"driver params {bad}: expected one row per mesh ({len(self.meshes)})")
+            self.driver["per_frame"] = list(per_frame)
+            np.savez(self.root / "driver_params.npz", **self.driver_params)
             manifest["driver"] = self.driver
         tmp = self.root / "manifest.json.tmp"
         tmp.write_text(json.dumps(manifest, indent=1))

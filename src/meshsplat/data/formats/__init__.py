@@ -1,0 +1,49 @@
+"""Readers (and writers) for the capture layouts people already have.
+
+Each format module has ``NAME``, ``DESCRIPTION``, ``detect(root) -> bool``,
+``read(root, model_dir=None, **options) -> AvatarDataset`` (lazy, validating, every problem of the
+folder in one error) and ``write(dataset, out, **options) -> Path`` (that layout from a native dataset
+with driver parameters; used by ``meshsplat synth --format``). Pages: ``docs/formats/``.
+"""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from types import ModuleType
+
+from meshsplat.data.dataset import AvatarDataset, open_dataset
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture"]
+
+# detection order: the most specific layouts first
+FORMAT_NAMES = ("native", "vhap", "insta", "imavatar", "peoplesnapshot")
+
+
+def format_module(name: str) -> ModuleType:
+    """The module implementing capture format ``name``."""
+    if name not in FORMAT_NAMES:
+        raise MeshsplatError(f"format: {name!r} is not one of {', '.join(FORMAT_NAMES)}")
+    return importlib.import_module(f"meshsplat.data.formats.{name}")
+
+
+def detect_format(root) -> str:
+    """Name of the layout of the folder ``root`` (one line saying what was looked for if none fits)."""
+    root = Path(root)
+    if root.is_file() and root.name == "manifest.json":
+        root = root.parent
+    if not root.is_dir():
+        raise MeshsplatError(f"capture folder not found: {root}")
+    for name in FORMAT_NAMES:
+        if format_module(name).detect(root):
+            return name
+    looked = "; ".join(f"{n}: {format_module(n).SIGNATURE}" for n in FORMAT_NAMES)
+    raise MeshsplatError(f"{root}: not a capture layout meshsplat reads (looked for {looked})")
+
+
+def open_capture(root, format: str | None = None, model_dir=None, **options) -> AvatarDataset:
+    """Open a capture folder of any supported layout as an :class:`AvatarDataset` (``format`` auto-detected)."""
+    name = format or detect_format(root)
+    if name == "native":
+        return open_dataset(root, **options)
+    return format_module(name).read(Path(root), model_dir=model_dir, **options)

@@ -1,0 +1,29 @@
+"""meshsplat's own layout (docs/dataset-format.md): ``manifest.json`` + meshes + images."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from meshsplat.data.dataset import AvatarDataset, open_dataset
+from meshsplat.errors import MeshsplatError
+
+NAME = "native"
+DESCRIPTION = "meshsplat native dataset"
+SIGNATURE = "manifest.json"
+
+
+def detect(root: Path) -> bool:
+    return (Path(root) / "manifest.json").is_file()
+
+
+def read(root: Path, model_dir=None, **options) -> AvatarDataset:
+    return open_dataset(root, **options)
+
+
+def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
+    """Copy a native dataset folder (as written; nothing is re-encoded)."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    shutil.copytree(dataset.root, out, dirs_exist_ok=True)
+    return out
