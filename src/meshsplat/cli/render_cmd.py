@@ -65,7 +65,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def run(args: argparse.Namespace) -> int:
     from meshsplat import animate, camera
-    from meshsplat.eval.run import load_run, run_dataset_path
+    from meshsplat.eval.run import load_run, open_run_dataset
 
     r = load_run(args.run, device=args.device)
     avatar = r.avatar
@@ -75,9 +75,7 @@ def run(args: argparse.Namespace) -> int:
     def dataset():
         nonlocal ds
         if ds is None:
-            from meshsplat.data import open_dataset
-
-            ds = open_dataset(run_dataset_path(r, args.dataset), check_masks=False)
+            ds = open_run_dataset(r, args.dataset, check_masks=False)
         return ds
 
     frame_cams = None

@@ -13,7 +13,14 @@ __all__ = ["add_arguments", "run", "build_config"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", help="dataset folder (native format, see docs/dataset-format.md)")
+    parser.add_argument("dataset", help="capture folder: native (docs/dataset-format.md) or PeopleSnapshot, "
+                        "IMavatar, INSTA, VHAP/GaussianAvatars (docs/formats/); the layout is detected")
+    parser.add_argument("--format", default=None, help="capture layout (default: detect); one of "
+                        "native, peoplesnapshot, imavatar, insta, vhap")
+    parser.add_argument("--model-dir", default=None,
+                        help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)")
+    parser.add_argument("--refine-pose", action="store_true",
+                        help="optimise the tracker's per-frame pose/expression parameters of the training frames")
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
@@ -38,6 +45,12 @@ def build_config(args: argparse.Namespace):
         cfg = TrainConfig()
     cfg = apply_overrides(cfg, args.set)
     cfg.data = str(args.dataset)
+    if args.format is not None:
+        cfg.data_format = args.format
+    if args.model_dir is not None:
+        cfg.model_dir = str(args.model_dir)
+    if args.refine_pose:
+        cfg.pose_refine.enabled = True
     cfg.out = str(out)
     if args.iters is not None:
         cfg.iterations = args.iters
@@ -57,6 +70,11 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
     cfg = build_config(args)
+    from meshsplat.data.formats import detect_format, format_module
+
+    fmt = cfg.data_format or detect_format(cfg.data)
+    print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
+    cfg.data_format = fmt
     trainer = Trainer(cfg, resume=args.resume)
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")

@@ -53,10 +53,9 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
     if kind == "dataset":
         if rest:
             raise MeshsplatError("--animation dataset takes no file (use --dataset PATH)")
-        from meshsplat.data import open_dataset
-        from meshsplat.eval.run import run_dataset_path
+        from meshsplat.eval.run import open_run_dataset
 
-        ds = open_dataset(run_dataset_path(run_info, args.dataset), check_masks=False)
+        ds = open_run_dataset(run_info, args.dataset, check_masks=False)
         if args.split:
             frames, _ = animate.dataset_animation(avatar, ds, args.split)
         else:

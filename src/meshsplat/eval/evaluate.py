@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.eval.run import load_run, run_dataset_path
+from meshsplat.eval.run import load_run, open_run_dataset, run_dataset_path
 
 __all__ = ["evaluate_run", "evaluate_avatar", "background_color", "BACKGROUNDS"]
 
@@ -162,12 +162,10 @@ def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
-    from meshsplat.data import open_dataset
-
     run = load_run(run_dir, device)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run_dataset_path(run, dataset)
-        ds = open_dataset(ds_path)
+        ds = open_run_dataset(run, dataset)
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(run.avatar, ds, splits, background, max_frames_per_split, lpips_net,

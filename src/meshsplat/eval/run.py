@@ -16,7 +16,7 @@ from meshsplat._device import resolve_device
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 
-__all__ = ["LoadedRun", "load_run", "run_dataset_path"]
+__all__ = ["LoadedRun", "load_run", "run_dataset_path", "open_run_dataset"]
 
 
 @dataclass
@@ -67,3 +67,17 @@ def run_dataset_path(run: LoadedRun, dataset: str | Path | None = None) -> Path:
     if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
         p = run.run_dir / p
     return p
+
+
+def open_run_dataset(run: LoadedRun, dataset: str | Path | None = None, model_dir: str | Path | None = None,
+                     check_masks: bool = True):
+    """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
+
+    ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``.
+    """
+    from meshsplat.data.formats import open_capture
+
+    path = run_dataset_path(run, dataset)
+    fmt = run.config.get("data_format") or None if dataset is None else None
+    mdir = model_dir if model_dir is not None else (run.config.get("model_dir") or None)
+    return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks)

@@ -20,7 +20,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.train.strategy.default import DensifyStrategy
 
 __all__ = [
-    "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "TrainConfig",
+    "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "PoseRefineConfig", "TrainConfig",
     "apply_overrides", "load_config",
 ]
 
@@ -83,8 +83,24 @@ class WalkConfig:
 
 
 @dataclass
+class PoseRefineConfig:
+    """Per-frame refinement of the tracker's body/head model parameters (training frames only).
+
+    Each training frame's parameters named in ``params`` (those the dataset's model has) get a
+    trainable offset, starting at zero, optimised with Adam at ``lr`` (radians for poses, model
+    units for translation and expression). Test frames keep the tracker's parameters.
+    """
+
+    enabled: bool = False
+    lr: float = 1e-4
+    params: str = "global_orient,body_pose,transl,neck_pose,jaw_pose,expression"
+
+
+@dataclass
 class TrainConfig:
     data: str = ""
+    data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
+    model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
     out: str = "runs/train"
     iterations: int = 30_000
     seed: int = 0
@@ -101,6 +117,7 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     strategy: StrategyConfig = field(default_factory=StrategyConfig)
     walk: WalkConfig = field(default_factory=WalkConfig)
+    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -127,6 +144,7 @@ class TrainConfig:
             (self.strategy.refine_every >= 1, "strategy.refine_every must be >= 1"),
             (self.strategy.split_n >= 1, "strategy.split_n must be >= 1"),
             (self.checkpoint_every >= 1 and self.keep_checkpoints >= 1, "checkpoint_every/keep_checkpoints >= 1"),
+            (self.pose_refine.lr > 0, "pose_refine.lr must be > 0"),
         ]
         for ok, msg in checks:
             if not ok:

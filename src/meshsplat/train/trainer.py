@@ -65,7 +65,7 @@ class Trainer:
     """
 
     def __init__(self, config: TrainConfig, resume: bool = False):
-        from meshsplat.data import open_dataset
+        from meshsplat.data.formats import open_capture
         from meshsplat.mesh import TriMesh
 
         self.cfg = config.validate()
@@ -75,7 +75,8 @@ class Trainer:
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.preview_dir = self.run_dir / "previews"
         self.device = resolve_device(self.cfg.device)
-        self.dataset = open_dataset(self.cfg.data)
+        self.dataset = open_capture(self.cfg.data, format=self.cfg.data_format or None,
+                                    model_dir=self.cfg.model_dir or None)
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
             raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")
@@ -86,6 +87,13 @@ class Trainer:
         self.strategy = self.cfg.strategy
         self.lrs = base_learning_rates(self.cfg.optim, self.extent, self.mean_edge)
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
+        self.refiner = None
+        if self.cfg.pose_refine.enabled:
+            from meshsplat.train.pose_refine import PoseRefiner
+
+            pr = self.cfg.pose_refine
+            self.refiner = PoseRefiner(self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None,
+                                       self.device)
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
             from meshsplat.train.losses import make_perceptual_loss
@@ -197,6 +205,10 @@ class Trainer:
 
         image, mask, K, viewmat, verts = self._frame(idx)
         h, w = image.shape[:2]
+        if self.refiner is not None:
+            row = int(self.dataset.frame_info(idx)["mesh"])
+            if self.refiner.refines(row):
+                verts = self.refiner.vertices(row)
         pose = MeshPose.from_vertices(self.mesh, verts)
         campos = torch.linalg.inv(viewmat)[:3, 3] if "shN" in self.params else None
         g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face)
@@ -231,6 +243,8 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if self.refiner is not None:
+            self.refiner.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, it, meta,
                                          mesh=self.mesh, scale_mode=cfg.model.scale_mode)
         walked = 0
@@ -350,11 +364,14 @@ class Trainer:
             "strategy_state": strat,
             "rng": rng,
             "data_order": {"order": self.order.clone(), "pos": self.order_pos},
+            "pose_refine": None if self.refiner is None else self.refiner.state_dict(),
         }
 
     def save_checkpoint(self) -> Path:
         from meshsplat.io.checkpoint import checkpoint_path, save_checkpoint
 
+        if self.refiner is not None:  # the refined parameters, readable without torch
+            np.savez(self.run_dir / "refined_params.npz", **self.refiner.refined_params())
         return save_checkpoint(checkpoint_path(self.ckpt_dir, self.iteration), self.state_dict(),
                                keep_last=self.cfg.keep_checkpoints)
 
@@ -385,6 +402,11 @@ class Trainer:
         self.order_gen.set_state(rng["order"])
         self.bg_gen = torch.Generator()
         self.bg_gen.set_state(rng["background"])
+        if self.refiner is not None:
+            if not st.get("pose_refine"):
+                raise MeshsplatError("checkpoint: it was trained without pose refinement; resume without "
+                                     "pose_refine.enabled or start a new run")
+            self.refiner.load_state_dict(st["pose_refine"])
         self.order = st["data_order"]["order"].clone()
         self.order_pos = int(st["data_order"]["pos"])
         self.iteration = int(st["iteration"])
