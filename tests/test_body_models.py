@@ -1,0 +1,293 @@
+"""BodyModel (SMPL / SMPL-X / FLAME over smplx LBS): golden hand-made models, file lookup, params files."""
+from __future__ import annotations
+
+import math
+import pickle
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from meshsplat.drivers.body_models import (
+    REGISTER_SITES, BodyModel, ParametricDriver, driver_record, find_model_file, join_flame_pose15,
+    join_smpl_thetas, load_driver_params, resolve_model_dir, save_driver_params, split_flame_pose15,
+    split_smpl_thetas)
+from meshsplat.errors import MeshsplatError
+
+SMPL_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
+L_SHOULDER, L_ELBOW = 16, 18
+
+
+def _kintree(parents):
+    p = np.array(parents, np.int64)
+    p[0] = 4294967295  # as in the official files
+    return np.stack([p, np.arange(len(parents))])
+
+
+def _tiny_smpl() -> dict:
+    """24 joints, one vertex per joint (one-hot J_regressor) + vertex 24 at (0.8,0,0) skinned to the
+    left elbow and vertex 25 at (0.8,0,0) skinned to the left shoulder."""
+    J = 24
+    joints = np.zeros((J, 3))
+    joints[L_SHOULDER] = (0.2, 0, 0)
+    joints[L_ELBOW] = (0.5, 0, 0)
+    v = np.concatenate([joints, [[0.8, 0, 0], [0.8, 0, 0]]])
+    V = len(v)
+    w = np.zeros((V, J))
+    w[np.arange(J), np.arange(J)] = 1
+    w[24, L_ELBOW] = 1
+    w[25, L_SHOULDER] = 1
+    jreg = np.zeros((J, V))
+    jreg[np.arange(J), np.arange(J)] = 1
+    shapedirs = np.zeros((V, 3, 10))
+    shapedirs[L_ELBOW, 0, 0] = 0.5  # beta0 moves the elbow (vertex and regressed joint) along +x
+    return {"v_template": v, "f": np.array([[0, 16, 18], [16, 18, 24]], np.uint32), "shapedirs": shapedirs,
+            "posedirs": np.zeros((V, 3, 207)), "J_regressor": jreg, "weights": w, "kintree_table": _kintree(SMPL_PARENTS)}
+
+
+def _tiny_flame() -> dict:
+    """FLAME layout: joints root(0,0,0), neck(0,0.1,0), jaw(0,0.15,0.05), eyes (+-0.03,0.2,0.05);
+    vertex 5 at (0,0.1,0.15) on the jaw, vertex 6 at (0.03,0.2,0.1) on the left eye; 400 shape columns."""
+    joints = np.array([[0, 0, 0], [0, 0.1, 0], [0, 0.15, 0.05], [0.03, 0.2, 0.05], [-0.03, 0.2, 0.05]])
+    v = np.concatenate([joints, [[0, 0.1, 0.15], [0.03, 0.2, 0.1]]])
+    V, J = len(v), 5
+    w = np.zeros((V, J))
+    w[np.arange(J), np.arange(J)] = 1
+    w[5, 2] = 1
+    w[6, 3] = 1
+    jreg = np.zeros((J, V))
+    jreg[np.arange(J), np.arange(J)] = 1
+    sd = np.zeros((V, 3, 400))
+    sd[5, 2, 300] = 0.01  # expression 0 pushes the chin vertex forward by 1 cm
+    sd[5, 1, 0] = 0.02  # beta 0 lifts it by 2 cm
+    return {"v_template": v, "f": np.array([[0, 1, 5], [1, 5, 6]], np.int64), "shapedirs": sd,
+            "posedirs": np.zeros((V, 3, 36)), "J_regressor": jreg, "weights": w,
+            "kintree_table": _kintree([-1, 0, 1, 1, 1])}
+
+
+def _write(path, data):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        pickle.dump(data, fh, protocol=2)
+    return path
+
+
+@pytest.fixture()
+def tiny_dir(tmp_path):
+    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", _tiny_smpl())
+    _write(tmp_path / "flame" / "FLAME_NEUTRAL.pkl", _tiny_flame())
+    return tmp_path
+
+
+def _rz(deg):
+    return [0.0, 0.0, math.radians(deg)]
+
+
+def _body_pose(joint, aa):
+    bp = torch.zeros(1, 69)
+    bp[0, (joint - 1) * 3:(joint - 1) * 3 + 3] = torch.tensor(aa)
+    return bp
+
+
+def test_elbow_rotation_golden(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90)), "transl": torch.tensor([[1.0, 2.0, 3.0]])})
+    # vertex 24 = elbow (0.5,0,0) + Rz(90) (0.3,0,0) = (0.5,0.3,0); plus transl
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([1.5, 2.3, 3.0]), atol=1e-5)
+    assert torch.allclose(out.vertices[0, 25], torch.tensor([1.8, 2.0, 3.0]), atol=1e-5)  # shoulder-skinned: still
+    assert torch.allclose(out.joints[0, L_ELBOW], torch.tensor([1.5, 2.0, 3.0]), atol=1e-5)
+
+
+def test_shoulder_rotation_carries_child(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    out = m.forward({"body_pose": _body_pose(L_SHOULDER, _rz(90))})
+    # about the shoulder (0.2,0,0): elbow -> (0.2,0.3,0), vertex 24 -> (0.2,0.6,0)
+    assert torch.allclose(out.joints[0, L_ELBOW], torch.tensor([0.2, 0.3, 0.0]), atol=1e-5)
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([0.2, 0.6, 0.0]), atol=1e-5)
+
+
+def test_global_orient_and_scale_golden(tiny_dir):
+    m = BodyModel("smpl", tiny_dir, scale=4.0)
+    out = m.forward({"global_orient": torch.tensor([_rz(-90)]), "transl": torch.tensor([[1.0, 0, 0]])})
+    # Rz(-90) about the root at the origin: (0.8,0,0) -> (0,-0.8,0); x4; transl not scaled
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([1.0, -3.2, 0.0]), atol=1e-5)
+    assert torch.allclose(out.joints[0, L_ELBOW], torch.tensor([1.0, -2.0, 0.0]), atol=1e-5)
+
+
+def test_posedirs_layout_golden(tmp_path):
+    d = _tiny_smpl()
+    k = (L_ELBOW - 1) * 9 + 0 * 3 + 1  # feature (R - I)[0, 1] of the elbow
+    d["posedirs"][24, 1, k] = 0.1
+    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    m = BodyModel("smpl", tmp_path)
+    out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90))})
+    # Rz(90)[0,1] - 0 = -1 -> rest offset y -0.1: (0.3,-0.1,0) rotated -> (0.1,0.3,0) from the elbow
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([0.6, 0.3, 0.0]), atol=1e-5)
+
+
+def test_betas_move_vertices_and_joints(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    assert m.num_betas == 10 and m.num_expression == 0 and m.num_joints == 24
+    rest = m.rest_vertices({"betas": np.array([0.2], np.float32)})  # shorter betas are zero-padded
+    assert torch.allclose(rest[L_ELBOW], torch.tensor([0.6, 0.0, 0.0]), atol=1e-6)
+    out = m.forward({"betas": torch.tensor([0.2]), "body_pose": _body_pose(L_ELBOW, _rz(90))})
+    assert torch.allclose(out.joints[0, L_ELBOW], torch.tensor([0.6, 0.0, 0.0]), atol=1e-6)
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([0.6, 0.2, 0.0]), atol=1e-5)
+
+
+def test_static_offset_before_posing(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    off = torch.zeros(m.num_vertices, 3)
+    off[24, 0] = 0.1
+    out = m.forward({"static_offset": off, "body_pose": _body_pose(L_ELBOW, _rz(90))})
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([0.5, 0.4, 0.0]), atol=1e-5)
+    assert torch.allclose(m.rest_vertices({"static_offset": off})[24], torch.tensor([0.9, 0.0, 0.0]))
+
+
+def test_flame_pose15_jaw_eyes_expression_golden(tiny_dir):
+    m = BodyModel("flame", tiny_dir)
+    assert (m.num_betas, m.num_expression, m.num_joints) == (300, 100, 5)
+    pose = torch.zeros(1, 15)
+    pose[0, 6:9] = torch.tensor([math.radians(90), 0, 0])  # jaw +90 deg about x
+    pose[0, 9:12] = torch.tensor([0, math.radians(90), 0])  # left eye +90 deg about y
+    parts = split_flame_pose15(pose)
+    assert torch.equal(parts["jaw_pose"], pose[:, 6:9]) and torch.equal(parts["reye_pose"], pose[:, 12:15])
+    assert torch.equal(join_flame_pose15(parts), pose)
+    out = m.forward(parts)
+    # chin (0,0.1,0.15) about jaw (0,0.15,0.05): offset (0,-0.05,0.1) -> Rx(90) -> (0,-0.1,-0.05)
+    assert torch.allclose(out.vertices[0, 5], torch.tensor([0.0, 0.05, 0.0]), atol=1e-5)
+    # left-eye vertex (0.03,0.2,0.1) about (0.03,0.2,0.05): (0,0,0.05) -> Ry(90) -> (0.05,0,0)
+    assert torch.allclose(out.vertices[0, 6], torch.tensor([0.08, 0.2, 0.05]), atol=1e-5)
+    e = m.forward({"expression": torch.tensor([[1.0]]), "betas": torch.tensor([1.0])}).vertices[0, 5]
+    assert torch.allclose(e, torch.tensor([0.0, 0.12, 0.16]), atol=1e-6)
+
+
+def test_split_smpl_thetas():
+    th = np.arange(2 * 72, dtype=np.float32).reshape(2, 72)
+    g, b = split_smpl_thetas(th)
+    assert np.array_equal(g, th[:, :3]) and np.array_equal(b, th[:, 3:]) and b.shape == (2, 69)
+    assert np.array_equal(join_smpl_thetas(g, b), th)
+    with pytest.raises(MeshsplatError, match=r"\[T, 72\]"):
+        split_smpl_thetas(np.zeros((2, 69)))
+
+
+def test_gradients_reach_pose_and_expression(tiny_dir):
+    m = BodyModel("flame", tiny_dir)
+    jaw = torch.tensor([[0.3, 0.0, 0.0]], requires_grad=True)
+    expr = torch.zeros(1, 10, requires_grad=True)
+    out = m.forward({"jaw_pose": jaw, "expression": expr})
+    out.vertices[0, 5].sum().backward()
+    assert jaw.grad is not None and jaw.grad.abs().sum() > 0
+    assert expr.grad[0, 0] != 0
+
+
+def test_batched_equals_per_frame(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    bp = torch.randn(5, 69) * 0.3
+    drv = ParametricDriver(m, {"body_pose": bp, "betas": torch.zeros(10), "transl": torch.randn(5, 3)})
+    allv = drv.all_vertices()
+    assert allv.shape == (5, m.num_vertices, 3) and drv.num_frames == 5
+    for t in (0, 4):
+        assert torch.allclose(allv[t], drv.vertices(t), atol=1e-6)
+    assert drv.faces.dtype == torch.long and drv.rest_vertices().shape == (m.num_vertices, 3)
+
+
+def test_check_params_lists_every_problem(tiny_dir):
+    m = BodyModel("smpl", tiny_dir)
+    bad = {"body_pose": np.zeros((3, 63)), "transl": np.full((4, 3), np.nan), "jaw_pose": np.zeros((3, 3)),
+           "betas": np.zeros(11)}
+    with pytest.raises(MeshsplatError) as e:
+        m.check_params(bad)
+    msg = str(e.value)
+    assert "\n" not in msg
+    for part in ("body_pose", "transl: contains NaN", "jaw_pose", "betas"):
+        assert part in msg
+    with pytest.raises(MeshsplatError, match="disagree"):
+        m.check_params({"body_pose": np.zeros((3, 69)), "transl": np.zeros((4, 3))})
+
+
+def test_missing_file_error_names_file_dirs_and_site(tmp_path):
+    (tmp_path / "smpl").mkdir()
+    for kind, name in (("smpl", "SMPL_MALE.pkl"), ("smplx", "SMPLX_MALE.npz"), ("flame", "FLAME_MALE.pkl")):
+        with pytest.raises(MeshsplatError) as e:
+            BodyModel(kind, tmp_path, gender="male")
+        msg = str(e.value)
+        assert "\n" not in msg and name in msg and str(tmp_path / kind) in msg and REGISTER_SITES[kind] in msg
+    with pytest.raises(MeshsplatError, match="flame2023.pkl.*flame.is.tue.mpg.de"):
+        find_model_file("flame", tmp_path, flame_version="2023")
+
+
+def test_model_dir_resolution(tmp_path, monkeypatch):
+    monkeypatch.delenv("MESHSPLAT_MODEL_DIR", raising=False)
+    with pytest.raises(MeshsplatError, match="--model-dir.*MESHSPLAT_MODEL_DIR"):
+        resolve_model_dir(None)
+    with pytest.raises(MeshsplatError, match="does not exist"):
+        resolve_model_dir(tmp_path / "nope")
+    monkeypatch.setenv("MESHSPLAT_MODEL_DIR", str(tmp_path))
+    assert resolve_model_dir(None) == tmp_path
+
+
+def test_official_flame_names_and_env(tmp_path, monkeypatch):
+    _write(tmp_path / "FLAME2020" / "generic_model.pkl", _tiny_flame())
+    _write(tmp_path / "FLAME2023" / "flame2023.pkl", _tiny_flame())
+    monkeypatch.setenv("MESHSPLAT_MODEL_DIR", str(tmp_path))
+    assert find_model_file("flame", None).name == "generic_model.pkl"
+    assert BodyModel("flame", flame_version="2023").path.name == "flame2023.pkl"
+
+
+def test_unreadable_and_wrong_files(tmp_path):
+    p = tmp_path / "smpl" / "SMPL_NEUTRAL.pkl"
+    p.parent.mkdir()
+    p.write_bytes(b"not a pickle")
+    with pytest.raises(MeshsplatError, match="cannot read the model file"):
+        BodyModel("smpl", tmp_path)
+    d = _tiny_smpl()
+    d["posedirs"] = np.zeros((26, 3, 36))
+    _write(p, d)
+    with pytest.raises(MeshsplatError, match=r"posedirs \[26, 3, 36\]"):
+        BodyModel("smpl", tmp_path)
+    _write(p, {"x": np.zeros(3), "obj": types.SimpleNamespace()})
+    with pytest.raises(MeshsplatError, match="refusing to load"):
+        BodyModel("smpl", tmp_path)
+
+
+def test_chumpy_and_sparse_pickles_load_without_chumpy(tmp_path, monkeypatch):
+    """Official pickles hold chumpy ``Ch`` leaves and a scipy sparse J_regressor; read them without chumpy."""
+    from scipy import sparse
+
+    mod = types.ModuleType("chumpy.ch")
+
+    class Ch:  # the pickled state of a chumpy leaf carries its array under "x"
+        def __init__(self, x):
+            self.x = x
+
+    Ch.__module__, Ch.__qualname__ = "chumpy.ch", "Ch"
+    mod.Ch = Ch
+    monkeypatch.setitem(sys.modules, "chumpy", types.ModuleType("chumpy"))
+    monkeypatch.setitem(sys.modules, "chumpy.ch", mod)
+    d = _tiny_smpl()
+    for k in ("v_template", "shapedirs", "posedirs", "weights"):
+        d[k] = Ch(d[k])
+    d["J_regressor"] = sparse.csc_matrix(d["J_regressor"])
+    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    monkeypatch.delitem(sys.modules, "chumpy.ch")
+    m = BodyModel("smpl", tmp_path)
+    out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90))})
+    assert torch.allclose(out.vertices[0, 24], torch.tensor([0.5, 0.3, 0.0]), atol=1e-5)
+
+
+def test_params_roundtrip_and_record(tiny_dir, tmp_path):
+    m = BodyModel("smpl", tiny_dir, scale=2.0)
+    params = {"betas": np.ones(10), "body_pose": np.zeros((3, 69)), "transl": torch.zeros(3, 3)}
+    p = save_driver_params(tmp_path / "driver_params.npz", params)
+    back = load_driver_params(p)
+    assert set(back) == set(params) and back["body_pose"].shape == (3, 69) and back["betas"].dtype == np.float32
+    assert driver_record(m) == {"type": "smpl", "gender": "neutral", "flame_version": "2020", "scale": 2.0,
+                                "params": "driver_params.npz"}
+    np.savez(tmp_path / "bad.npz", body_pose=np.zeros((3, 69)), names=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(MeshsplatError, match="bad.npz"):
+        load_driver_params(tmp_path / "bad.npz")
+    with pytest.raises(MeshsplatError, match="unknown key"):
+        save_driver_params(tmp_path / "x.npz", {"pose": np.zeros(3)})
