@@ -88,3 +88,30 @@ def test_ssim_properties():
         ssim(torch.rand(8, 8, 3), torch.rand(8, 8, 3))
     with pytest.raises(MeshsplatError, match="padding"):
         ssim(x, x, padding="reflect")
+
+
+def test_subject_metrics_score_only_the_subject():
+    from meshsplat.metrics.subject import subject_box, subject_metrics
+
+    gen = torch.Generator().manual_seed(0)
+    gt = torch.ones(64, 48, 3)
+    mask = torch.zeros(64, 48, 1)
+    mask[20:40, 10:30] = 1.0
+    gt[20:40, 10:30] = torch.rand(20, 20, 3, generator=gen)
+    img = gt.clone()
+    img[20:40, 10:30] += 0.1 * torch.randn(20, 20, 3, generator=gen)
+    img = img.clamp(0, 1)
+    m = subject_metrics(img, gt, mask)
+    inside = float(((img - gt) ** 2)[20:40, 10:30].mean())
+    assert abs(m["psnr_mask"] - (-10 * math.log10(inside))) < 1e-4
+    full = float(psnr(img, gt))
+    assert full > m["psnr_mask"] + 5  # the easy background inflates the full-image figure
+    assert m["psnr_crop"] < full and m["ssim_mask"] < 1.0
+    assert m["mask_fraction"] == pytest.approx(400 / (64 * 48))
+    y0, y1, x0, x1 = subject_box(mask)
+    assert y0 <= 20 and y1 >= 40 and x0 <= 10 and x1 >= 30 and (y1 - y0) < 64
+    # an error outside the mask does not change the subject metrics
+    img2 = img.clone()
+    img2[:5] = 0.0
+    assert subject_metrics(img2, gt, mask)["psnr_mask"] == pytest.approx(m["psnr_mask"])
+    assert subject_metrics(img, gt, torch.zeros(64, 48, 1))["psnr_mask"] is None

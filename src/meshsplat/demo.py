@@ -148,7 +148,7 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
         "asset": "CesiumMan (CC-BY 4.0, (c) 2017 Cesium)",
         "iterations": trainer.iteration,
         "gaussians": avatar.num_gaussians,
-        "metrics": {name: {k: s.get(k) for k in ("psnr", "ssim", "lpips")}
+        "metrics": {name: {k: s.get(k) for k in ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")}
                     for name, s in metrics.get("splits", {}).items()},
         "timings_s": {k: round(v, 1) for k, v in timings.items()},
         "outputs": {

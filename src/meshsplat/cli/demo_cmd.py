@@ -29,9 +29,11 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f"meshsplat demo — {s['asset']}")
     print(f"  trained {s['iterations']} iterations, {s['gaussians']} Gaussians")
-    print(f"  {'split':<14}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}")
+    print(f"  {'':<14}{'full image':^24}{'subject (in mask)':^24}")
+    print(f"  {'split':<14}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}")
     for name, m in s["metrics"].items():
-        print(f"  {name:<14}{_fmt(m['psnr']):>8}{_fmt(m['ssim']):>8}{_fmt(m['lpips']):>8}")
+        print(f"  {name:<14}{_fmt(m['psnr']):>8}{_fmt(m['ssim']):>8}{_fmt(m['lpips']):>8}"
+              f"{_fmt(m.get('psnr_mask')):>8}{_fmt(m.get('ssim_mask')):>8}{_fmt(m.get('lpips_mask')):>8}")
     print("  time (s): " + ", ".join(f"{k[:-2]} {v}" for k, v in s["timings_s"].items()))
     for k, v in s["outputs"].items():
         print(f"  {k:<14}{v}")

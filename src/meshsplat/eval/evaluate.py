@@ -3,8 +3,9 @@
 Background: each frame is rendered on one fixed colour (``background``, default white) and the
 ground truth is composited onto the same colour through its mask (``gt = image*mask + bg*(1-mask)``),
 so the metrics score the avatar, not the background. Frames without a mask keep their recorded
-background; they are rendered on black, as the trainer does for them. Metrics cover the full image
-(no masking); the render is clamped to [0, 1].
+background; they are rendered on black, as the trainer does for them. ``psnr``/``ssim``/``lpips`` cover
+the full image; frames with a mask also get subject metrics (``meshsplat.metrics.subject``: inside the
+mask, ``*_mask``, and on the crop around the subject, ``*_crop``). The render is clamped to [0, 1].
 
 Outputs (``out_dir``, default ``RUN/eval``): ``metrics.json`` and, with ``report=True``,
 ``samples_<split>.png`` (ground truth | render | error heat-map), ``curves.png`` (from ``RUN/log.csv``)
@@ -76,6 +77,7 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
     ``splits`` defaults to every split except ``"train"``.
     """
     from meshsplat.metrics import lpips, lpips_available, psnr, ssim
+    from meshsplat.metrics.subject import SUBJECT_KEYS, subject_metrics
 
     names = [s for s in dataset.split_names if s != "train"] if splits is None else list(splits)
     unknown = [s for s in names if s not in dataset.split_names]
@@ -127,6 +129,9 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
                    "psnr": _finite(float(psnr(img, gt))), "ssim": float(ssim(img, gt)),
                    "lpips": float(lpips(img, gt, net=lpips_net)) if use_lpips else None,
                    "render_ms": ms}
+            if fr.mask is not None:
+                rec.update(subject_metrics(img, gt, fr.mask.to(dev),
+                                           (lambda a, b: lpips(a, b, net=lpips_net)) if use_lpips else None))
             frames.append(rec)
             if pos in keep:
                 label = f"{name} #{i} ({fr.name}, cam {fr.camera_id})"
@@ -137,6 +142,7 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
             "n_frames": len(frames),
             "psnr": _mean([f["psnr"] for f in frames]), "ssim": _mean([f["ssim"] for f in frames]),
             "lpips": _mean([f["lpips"] for f in frames]), "render_ms": _mean([f["render_ms"] for f in frames]),
+            **{k: _mean([f.get(k) for f in frames]) for k in SUBJECT_KEYS},
             "frames": frames,
         }
     if bar is not None:

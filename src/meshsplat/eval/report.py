@@ -138,7 +138,9 @@ def write_report(out_dir, metrics: dict, samples: dict, log_csv) -> dict[str, st
     e = html.escape
     rows = "".join(
         f"<tr><td>{e(n)}</td><td>{s['n_frames']}</td><td>{_fmt(s['psnr'], 2)}</td><td>{_fmt(s['ssim'])}</td>"
-        f"<td>{_fmt(s['lpips'])}</td><td>{_fmt(s['render_ms'], 1)}</td></tr>"
+        f"<td>{_fmt(s['lpips'])}</td><td>{_fmt(s.get('psnr_mask'), 2)}</td><td>{_fmt(s.get('ssim_mask'))}</td>"
+        f"<td>{_fmt(s.get('lpips_mask'))}</td><td>{_fmt(s.get('psnr_crop'), 2)}</td><td>{_fmt(s.get('ssim_crop'))}</td>"
+        f"<td>{_fmt(s.get('lpips_crop'))}</td><td>{_fmt(s['render_ms'], 1)}</td></tr>"
         for n, s in metrics["splits"].items())
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>meshsplat evaluation</title><style>",
@@ -150,10 +152,13 @@ def write_report(out_dir, metrics: dict, samples: dict, log_csv) -> dict[str, st
         f"{metrics.get('n_gaussians')} Gaussians, dataset <code>{e(str(metrics.get('dataset')))}</code>, "
         f"device {e(str(metrics.get('device')))}.</p>",
         f"<p>Renders and ground truth share one background, {e(str(metrics.get('background')))} "
-        f"(ground truth composited through its mask); metrics over the full image. "
+        f"(ground truth composited through its mask). Full image: metrics over the whole frame; subject: "
+        f"inside the ground-truth mask and on the crop around it (the honest figures when the subject is small). "
         f"LPIPS: {e(str(metrics.get('lpips_net') or metrics.get('lpips_note')))}.</p>",
-        "<table><tr><th>split</th><th>frames</th><th>PSNR (dB)</th><th>SSIM</th><th>LPIPS</th>"
-        f"<th>render ms/frame</th></tr>{rows}</table>",
+        "<table><tr><th rowspan=2>split</th><th rowspan=2>frames</th><th colspan=3>full image</th>"
+        "<th colspan=3>subject: in mask</th><th colspan=3>subject: crop</th><th rowspan=2>render ms/frame</th></tr>"
+        "<tr><th>PSNR (dB)</th><th>SSIM</th><th>LPIPS</th><th>PSNR (dB)</th><th>SSIM</th><th>LPIPS</th>"
+        f"<th>PSNR (dB)</th><th>SSIM</th><th>LPIPS</th></tr>{rows}</table>",
     ]
     if curves is not None:
         parts += ["<h2>Training curves</h2>", _img_tag(curves)]
