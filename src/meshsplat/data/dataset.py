@@ -130,12 +130,24 @@ class AvatarDataset:
         d = self.manifest.get("driver")
         return dict(d) if isinstance(d, dict) else None
 
+    @property
+    def per_frame_param_names(self) -> list[str]:
+        """Driver parameters with one row per mesh (the rest, e.g. ``betas``, are shared)."""
+        if self.driver_params is None:
+            return []
+        info = self.driver_info or {}
+        if "per_frame" in info:
+            return [k for k in info["per_frame"] if k in self.driver_params]
+        n = self._verts.shape[0] if self._verts is not None else -1
+        return [k for k, v in self.driver_params.items()
+                if k not in ("betas", "static_offset") and v.ndim == 2 and v.shape[0] == n]
+
     def frame_params(self, i: int) -> dict[str, np.ndarray] | None:
         """Model parameters of frame ``i`` (per-frame rows ``[1,k]``, shared ones as stored)."""
         if self.driver_params is None or self.driver_info is None:
             return None
         row = self._frames[self._index(i)]["mesh"]
-        per_frame = set(self.driver_info.get("per_frame", []))
+        per_frame = set(self.per_frame_param_names)
         return {k: (v[row:row + 1] if k in per_frame else v) for k, v in self.driver_params.items()}
 
     @property

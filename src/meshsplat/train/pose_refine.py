@@ -31,7 +31,7 @@ class PoseRefiner:
         self.model = BodyModel(info["type"], model_dir, gender=info.get("gender", "neutral"),
                                flame_version=str(info.get("flame_version", "2020")),
                                scale=float(info.get("scale", 1.0)), device=device)
-        per_frame = set(info.get("per_frame", []))
+        per_frame = set(dataset.per_frame_param_names)
         params = dataset.driver_params
         rows = sorted({int(dataset.frame_info(i)["mesh"]) for i in train_ids})
         self.row_of = {row: j for j, row in enumerate(rows)}
