@@ -27,7 +27,7 @@ from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
-    "AnimationResult", "render_animation",
+    "AnimationResult", "render_animation", "motion_animation",
     "match_vertices", "gltf_animation", "blendshape_animation", "sequence_animation", "dataset_animation",
 ]
 
@@ -152,6 +152,35 @@ def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
         raise MeshsplatError(f"vertices: expected shape [T,{v},3] (the avatar's {v} canonical vertices), got {list(shape)}")
     frames = [torch.as_tensor(np.array(vertices[i], dtype=np.float32)) for i in range(shape[0])]
     return _check_frames(frames, v, "vertex sequence")
+
+
+def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | None = None) -> list[torch.Tensor]:
+    """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
+
+    ``motion``: an SMPL ``.npz`` (``poses [S,72]``, ``trans [S,3]``), an SMPL-X/AMASS ``.npz``, an IMavatar
+    ``flame_params.json`` or a VHAP ``flame_param/`` folder (``meshsplat.drivers.motion.load_motion``).
+    Cross-identity reenactment: the avatar keeps its own shape (``betas``, ``static_offset`` from its
+    capture) and takes the motion's pose and expression.
+    """
+    from meshsplat.drivers.body_models import BodyModel, ParametricDriver
+    from meshsplat.drivers.motion import load_motion, reenact
+
+    info = dataset.driver_info
+    if info is None or dataset.driver_params is None:
+        raise MeshsplatError(f"--motion needs an avatar trained on SMPL/SMPL-X/FLAME-tracked data, but its capture "
+                             f"{dataset.root} ({dataset.format_name}) has no model parameters; use --gltf or --vertices")
+    model = BodyModel(info["type"], model_dir, gender=info.get("gender", "neutral"),
+                      flame_version=str(info.get("flame_version", "2020")), scale=float(info.get("scale", 1.0)))
+    if model.num_vertices != avatar.mesh.num_vertices:
+        raise MeshsplatError(f"the {info['type']} model in {model.path} has {model.num_vertices} vertices but the "
+                             f"avatar's mesh {avatar.mesh.num_vertices}: not the model it was trained with")
+    params = load_motion(motion, model)
+    if max_frames is not None:
+        params = {k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
+                  for k, v in params.items()}
+    subject = {k: dataset.driver_params[k] for k in ("betas", "static_offset") if k in dataset.driver_params}
+    verts = ParametricDriver(model, reenact(params, subject)).all_vertices()
+    return _check_frames(list(verts), avatar.mesh.num_vertices, f"motion {motion}")
 
 
 def _read_weights(weights, names: list[str]) -> np.ndarray:

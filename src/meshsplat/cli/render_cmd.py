@@ -5,6 +5,8 @@ Drivers (pick one):
   --vertices FILE.npy                              a vertex sequence [T,V,3]
   --blendshapes FILE.npz|ict --weights W.json|W.npy   blend-shape weights [T,K] (ICT head)
   --dataset-split NAME                             the driving meshes of a dataset split
+  --motion FILE [--model-dir DIR]                  SMPL/SMPL-X motion .npz, IMavatar flame_params.json or a
+                                                   VHAP flame_param/ folder (avatars of SMPL/FLAME captures)
 Cameras: --camera dataset:<camera_id>, or an orbit auto-framed on the animation
 (--orbit DEG total turn, --elevation DEG, --azimuth DEG, --distance D, --fov DEG); with
 --dataset-split and no camera option each frame uses its own dataset camera.
@@ -31,6 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     drv.add_argument("--vertices", help=".npy vertex sequence [T,V,3]")
     drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the shared ICT head)")
     drv.add_argument("--dataset-split", help="render the driving meshes of this dataset split")
+    drv.add_argument("--motion", help="SMPL/SMPL-X motion .npz (poses, trans), FLAME flame_params.json or a "
+                     "VHAP flame_param/ folder; the avatar keeps its own shape")
+    parser.add_argument("--model-dir", default=None,
+                        help="--motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
+    parser.add_argument("--frames", type=int, default=None, help="--motion: render at most N frames")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--fps", type=float, default=25.0, help="frame rate (default 25)")
     parser.add_argument("--seconds", type=float, default=None, help="glTF: seconds to render (default the clip)")
@@ -88,6 +95,11 @@ def run(args: argparse.Namespace) -> int:
             raise MeshsplatError("--blendshapes needs --weights FILE (.npy or .json, [T,K])")
         model = None if args.blendshapes.lower() == "ict" else args.blendshapes
         frames = animate.blendshape_animation(avatar, model, args.weights)
+    elif args.motion:
+        if args.frames is not None and args.frames < 1:
+            raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
+        frames = animate.motion_animation(avatar, dataset(), args.motion, args.model_dir or r.config.get("model_dir") or None,
+                                          max_frames=args.frames)
     else:
         frames, frame_cams = animate.dataset_animation(avatar, dataset(), args.dataset_split)
 

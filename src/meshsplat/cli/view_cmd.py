@@ -4,6 +4,8 @@ Animation (default: the run's dataset meshes, all stored frames in order):
   --animation dataset [--split NAME]     the dataset's meshes (or those of one split)
   --animation gltf FILE [--clip NAME]    a glTF/GLB clip driving the avatar's mesh
   --animation vertices FILE.npy          a vertex sequence [T,V,3]
+  --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
+                                         flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
 folder on http://127.0.0.1:PORT until Ctrl-C.
 
@@ -20,14 +22,16 @@ from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "load_frames"]
 
-_KINDS = ("dataset", "gltf", "vertices")
+_KINDS = ("dataset", "gltf", "vertices", "motion")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE or vertices FILE.npy")
+                        help="dataset (default), gltf FILE, vertices FILE.npy or motion FILE")
+    parser.add_argument("--model-dir", default=None,
+                        help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--split", default=None, help="dataset: only the frames of this split")
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
@@ -67,6 +71,12 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
         if kind == "gltf":
             frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps)
+        elif kind == "motion":
+            from meshsplat.eval.run import open_run_dataset
+
+            ds = open_run_dataset(run_info, args.dataset, check_masks=False)
+            mdir = args.model_dir or run_info.config.get("model_dir") or None
+            frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
             frames = animate.sequence_animation(avatar, rest[0])
     if args.frames is not None:

@@ -5,7 +5,8 @@ Full-image metrics flatter an avatar that fills a tenth of the frame over an eas
 - ``*_mask``: PSNR over the mask's pixels only (mask-weighted MSE); SSIM as the mask-weighted mean of
   the SSIM map ("same" padding, so every pixel has a value); LPIPS of the crop with the render's
   pixels outside the mask replaced by the ground truth (no error counted there).
-- ``*_crop``: the plain metrics on the mask's bounding box, padded by ``pad`` of its size.
+- ``*_crop``: the plain metrics on the mask's bounding box, padded by ``pad`` of its size (and to at
+  least 32 pixels a side where the image allows; LPIPS is None on smaller crops).
 """
 from __future__ import annotations
 
@@ -21,7 +22,10 @@ __all__ = ["subject_box", "subject_metrics", "SUBJECT_KEYS"]
 SUBJECT_KEYS = ("psnr_mask", "ssim_mask", "lpips_mask", "psnr_crop", "ssim_crop", "lpips_crop")
 
 
-def subject_box(mask: torch.Tensor, pad: float = 0.08, min_size: int = 16) -> tuple[int, int, int, int] | None:
+_LPIPS_MIN = 32  # AlexNet-LPIPS needs at least 31 pixels a side
+
+
+def subject_box(mask: torch.Tensor, pad: float = 0.08, min_size: int = _LPIPS_MIN) -> tuple[int, int, int, int] | None:
     """``(y0, y1, x0, x1)`` of the pixels with ``mask [H,W,1] > 0.5``, padded; None when empty."""
     m = mask[..., 0] > 0.5
     if not bool(m.any()):
@@ -55,7 +59,7 @@ def subject_metrics(img: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor,
     ci, cg, cm = img[y0:y1, x0:x1], gt[y0:y1, x0:x1], m[y0:y1, x0:x1]
     out["psnr_crop"] = float(psnr(ci, cg))
     out["ssim_crop"] = float(ssim(ci, cg)) if min(ci.shape[:2]) >= 11 else None
-    if lpips_fn is not None:
+    if lpips_fn is not None and min(ci.shape[:2]) >= _LPIPS_MIN:
         out["lpips_crop"] = float(lpips_fn(ci, cg))
         out["lpips_mask"] = float(lpips_fn(ci * cm + cg * (1 - cm), cg))
     return out
