@@ -1,0 +1,220 @@
+"""Pieces shared by the head-capture layouts (IMavatar, INSTA, GaussianAvatars/VHAP).
+
+Reading: JSON with one-line errors, image/mask lookup, a fast vertices-only OBJ reader, FLAME posing,
+the "mesh in front of its camera" sanity check and the tail test split. Writing: the FLAME parameters
+of a native dataset per mesh row and the frames' pixels as uint8.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshsplat.data.dataset import AvatarDataset, _Problems
+from meshsplat.data.png import write_png
+from meshsplat.drivers.body_models import BodyModel, driver_record
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["Problems", "read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
+           "obj_face_count", "flame_model", "fit_coeffs", "pose_model", "flame_driver_record", "check_in_front",
+           "mask_choice", "flame_rows", "frame_pixels", "write_json", "MASK_MODES", "IMAGE_EXTS"]
+
+Problems = _Problems  # one MeshsplatError listing every problem of a folder
+MASK_MODES = ("auto", "alpha", "folder", "none")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test frames
+SMALL_TEST_FRACTION = 0.2  # captures with <= 350 frames: the last 20% are test frames
+
+
+def read_json(path: Path) -> dict:
+    """A JSON object from ``path`` (one-line MeshsplatError if missing or malformed)."""
+    if not path.is_file():
+        raise MeshsplatError(f"{path}: file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise MeshsplatError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise MeshsplatError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def prepare_out(out, overwrite: bool) -> Path:
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise MeshsplatError(f"{out}: exists and is not empty (pass overwrite=True / --overwrite)")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def tail_split(n: int, test_frames: int | None) -> tuple[list[int], list[int]]:
+    """``(train, test)`` frame positions: the last ``test_frames`` frames are test frames.
+
+    Default (None): the last 350 when there are more than 350 frames, else the last 20% (at least one
+    when there are two or more frames, none for a single frame).
+    """
+    if test_frames is None:
+        k = DEFAULT_TEST_FRAMES if n > DEFAULT_TEST_FRAMES else (max(1, round(SMALL_TEST_FRACTION * n)) if n > 1 else 0)
+    else:
+        k = int(test_frames)
+        if k < 0 or k >= n:
+            raise MeshsplatError(f"test_frames: expected 0 <= test_frames < {n} (the number of frames), got {k}")
+    return list(range(n - k)), list(range(n - k, n))
+
+
+def has_alpha(path: Path) -> bool:
+    """Whether an image file carries an alpha channel (PNG: colour type from the header)."""
+    with open(path, "rb") as fh:
+        head = fh.read(26)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 26:
+        if head[25] in (4, 6):
+            return True
+        if head[25] != 3:
+            return False
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
+    except (OSError, ValueError):
+        return False
+
+
+def find_file(root: Path, rel: str, exts=IMAGE_EXTS) -> str | None:
+    """``rel`` (relative to ``root``, POSIX) if it exists, else ``rel`` + one of ``exts``; None if absent."""
+    rel = rel.replace("\\", "/")
+    while rel.startswith("./"):
+        rel = rel[2:]
+    if (root / rel).is_file():
+        return rel
+    for e in exts:
+        if (root / (rel + e)).is_file():
+            return rel + e
+    return None
+
+
+def mask_choice(mode: str) -> str:
+    if mode not in MASK_MODES:
+        raise MeshsplatError(f"mask: expected one of {list(MASK_MODES)}, got {mode!r}")
+    return mode
+
+
+# ---------------------------------------------------------------- meshes
+def obj_vertices(path: Path) -> np.ndarray:
+    """Vertex positions ``[V,3]`` float64 of an OBJ file, reading only its ``v`` lines (fast path)."""
+    data = path.read_bytes()
+    lines = [ln for ln in data.split(b"\n") if ln.startswith(b"v ")]
+    if not lines:
+        raise MeshsplatError(f"{path}: no vertices")
+    try:
+        tok = b" ".join(ln[2:] for ln in lines).split()
+        arr = np.array(tok, dtype=np.float64)
+        if arr.size == 3 * len(lines):
+            return arr.reshape(-1, 3)
+        # some lines carry colours (v x y z r g b): take the first three numbers of each line
+        return np.array([ln.split()[1:4] for ln in lines], dtype=np.float64)
+    except ValueError:
+        raise MeshsplatError(f"{path}: malformed vertex line") from None
+
+
+def obj_face_count(path: Path) -> int:
+    return sum(1 for ln in path.read_bytes().split(b"\n") if ln.startswith(b"f "))
+
+
+# ---------------------------------------------------------------- FLAME
+def flame_model(model_dir, flame_version: str, scale: float, problems: Problems) -> BodyModel | None:
+    """The user's FLAME model (its error, e.g. the file is missing, becomes one of ``problems``)."""
+    try:
+        return BodyModel("flame", model_dir, flame_version=str(flame_version), scale=scale)
+    except MeshsplatError as exc:
+        problems.add("FLAME model", str(exc))
+        return None
+
+
+def fit_coeffs(name: str, a: np.ndarray, width: int, problems: Problems) -> np.ndarray:
+    """Coefficients ``[..., k]`` for a model with ``width`` of them: zero-padded, or trimmed when the
+    extra trailing coefficients are all zero (they add nothing); a problem otherwise."""
+    k = a.shape[-1]
+    if k > width:
+        if np.any(a[..., width:] != 0):
+            problems.add(name, f"{k} coefficients, but the FLAME model file has {width}; "
+                         f"non-zero coefficients beyond {width} cannot be used (use a full FLAME model file)")
+        return a[..., :width]
+    if k < width:
+        pad = np.zeros(a.shape[:-1] + (width - k,), a.dtype)
+        return np.concatenate([a, pad], -1)
+    return a
+
+
+def pose_model(model: BodyModel, params: dict, chunk: int = 128) -> np.ndarray:
+    """Posed vertices ``[T,V,3]`` float32 of per-frame ``params`` (shared ones broadcast)."""
+    T = model.check_params(params)
+    out = np.empty((T, model.num_vertices, 3), np.float32)
+    with torch.no_grad():
+        for s in range(0, T, chunk):
+            e = min(T, s + chunk)
+            p = {k: (v[s:e] if k != "static_offset" and np.ndim(v) == 2 and len(v) == T else v)
+                 for k, v in params.items()}
+            out[s:e] = model.forward(p).vertices.cpu().numpy()
+    return out
+
+
+def flame_driver_record(model: BodyModel, source: str, per_frame: list[str]) -> dict:
+    """Manifest ``driver`` entry for meshes posed from a capture's FLAME parameters."""
+    rec = driver_record(model, source)
+    rec["per_frame"] = list(per_frame)
+    return rec
+
+
+def check_in_front(cameras: dict, frames: list[dict], verts: np.ndarray | None, problems: Problems,
+                   hint: str) -> None:
+    """Every frame's mesh centre must lie in front of its camera (catches a flipped camera convention)."""
+    if verts is None:
+        return
+    centres = np.asarray(verts, np.float64).mean(axis=1)
+    for i, rec in enumerate(frames):
+        cam = cameras.get(str(rec.get("camera")))
+        row = rec.get("mesh")
+        if cam is None or not isinstance(row, int) or not 0 <= row < len(centres):
+            continue
+        vm = np.asarray(cam["viewmat"], np.float64)
+        if vm.shape != (4, 4):
+            continue
+        z = float(vm[2, :3] @ centres[row] + vm[2, 3])
+        if not z > 0:
+            problems.add(f"frame {i} ({rec.get('name')!r})", f"the mesh lies behind its camera (depth {z:.3g}); {hint}")
+
+
+# ---------------------------------------------------------------- writing from a native dataset
+def flame_rows(dataset: AvatarDataset, fmt: str) -> tuple[dict, dict[str, np.ndarray], set[str]]:
+    """``(driver_info, params, per_frame names)`` of a dataset whose meshes are FLAME-posed."""
+    info, params = dataset.driver_info, dataset.driver_params
+    if info is None or params is None or info.get("type") != "flame":
+        kind = info.get("type") if info else "no body/head model"
+        raise MeshsplatError(f"{fmt} writer: {dataset.root} must carry FLAME parameters (driver type 'flame'), "
+                             f"it has {kind}; generate it from a FLAME source")
+    return info, {k: np.asarray(v, np.float64) for k, v in params.items()}, set(info.get("per_frame", []))
+
+
+def frame_pixels(dataset: AvatarDataset, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frame ``i``'s image ``[H,W,3]`` and mask ``[H,W]`` (or None) as uint8, exactly as stored."""
+    fr = dataset[i]
+    rgb = np.clip(np.rint(fr.image.numpy() * 255.0), 0, 255).astype(np.uint8)
+    mask = None
+    if fr.mask is not None:
+        mask = np.clip(np.rint(fr.mask.numpy()[..., 0] * 255.0), 0, 255).astype(np.uint8)
+    return rgb, mask
+
+
+def save_png(path: Path, img: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_png(path, img)
