@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from meshsplat.paths import assets_dir
+from meshsplat.synth.standin_models import write_standin_models
 
 os.environ.setdefault("HYPOTHESIS_PROFILE", "ci")
 try:
@@ -40,3 +41,9 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def standin_model_dir(tmp_path_factory, assets):
+    """Stand-in SMPL / SMPL-X / FLAME model files (generated once per session; use as --model-dir)."""
+    return write_standin_models(tmp_path_factory.mktemp("standin_models"))

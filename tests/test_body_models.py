@@ -291,3 +291,86 @@ def test_params_roundtrip_and_record(tiny_dir, tmp_path):
         load_driver_params(tmp_path / "bad.npz")
     with pytest.raises(MeshsplatError, match="unknown key"):
         save_driver_params(tmp_path / "x.npz", {"pose": np.zeros(3)})
+
+
+# ---------------------------------------------------------------- stand-in model files
+STANDIN = {  # kind: (V, J, posedirs P, shapedirs S, faces or None)
+    "smpl": (6890, 24, 207, 10, 13776),
+    "smplx": (10475, 55, 486, 20, None),
+    "flame": (5023, 5, 36, 400, None),
+}
+
+
+@pytest.mark.parametrize("kind", ["smpl", "smplx", "flame"])
+def test_standin_files_load_in_smplx_and_match(standin_model_dir, kind):
+    smplx = pytest.importorskip("smplx")
+    V, J, P, S, F = STANDIN[kind]
+    kw = {"smplx": dict(use_pca=False, flat_hand_mean=True, num_expression_coeffs=10),
+          "flame": dict(num_betas=300, num_expression_coeffs=100)}.get(kind, {})
+    ref = smplx.create(str(standin_model_dir), model_type=kind, gender="neutral", **kw)
+    assert ref.v_template.shape == (V, 3) and ref.posedirs.shape == (P, 3 * V) and ref.J_regressor.shape == (J, V)
+    bm = BodyModel(kind, standin_model_dir)
+    assert (bm.num_vertices, bm.num_joints) == (V, J)
+    assert bm.num_betas + bm.num_expression == (S if kind != "flame" else 400)
+    if F is not None:
+        assert bm.faces.shape == (F, 3)
+    g = torch.Generator().manual_seed(1)
+    params = {k: torch.randn(2, w, generator=g) * 0.3 for k, w in bm.param_shapes.items() if k != "betas"}
+    params["betas"] = torch.randn(bm.num_betas, generator=g)
+    out = bm.forward(params)
+    ref_params = {k: (v.expand(2, -1) if v.ndim == 1 else v) for k, v in params.items()}
+    assert torch.allclose(out.vertices, ref(**ref_params).vertices, atol=1e-5)
+    assert out.joints.shape == (2, J, 3)
+
+
+def test_standin_file_layout(standin_model_dir):
+    from meshsplat.drivers.model_files import read_model_file
+
+    smpl = read_model_file(standin_model_dir / "smpl" / "SMPL_FEMALE.pkl")
+    assert smpl["f"].dtype == np.uint32 and smpl["kintree_table"].shape == (2, 24)
+    assert all(isinstance(x, np.ndarray) for x in smpl.values())  # plain numpy, no chumpy
+    with np.load(standin_model_dir / "smplx" / "SMPLX_NEUTRAL.npz", allow_pickle=False) as z:
+        assert z["lmk_faces_idx"].shape == (51,) and z["lmk_bary_coords"].shape == (51, 3)
+        assert z["hands_componentsl"].shape == (45, 45) and z["hands_meanr"].shape == (45,)
+        assert int(z["lmk_faces_idx"].max()) < len(z["f"])
+    with open(standin_model_dir / "flame" / "flame_static_embedding.pkl", "rb") as fh:
+        emb = pickle.load(fh)
+    assert emb["lmk_face_idx"].shape == (51,) and emb["lmk_b_coords"].shape == (51, 3)
+    assert BodyModel("flame", standin_model_dir, flame_version="2023").path.name == "flame2023.pkl"
+    for kind, (V, *_rest) in STANDIN.items():
+        with np.load(standin_model_dir / kind / "appearance.npz") as z:
+            c = z["vertex_colors"]
+        assert c.shape == (V, 3) and c.min() >= 0 and c.max() <= 1 and c.std(0).min() > 0.05
+
+
+def test_standin_body_is_human_like(standin_model_dir):
+    bm = BodyModel("smpl", standin_model_dir)
+    rest = bm.rest_vertices()
+    J = bm.forward({}).joints[0]
+    assert abs(float(rest[:, 1].max() - rest[:, 1].min()) - 1.70) < 0.01
+    # left side is +x; arms out along x (T-pose); head above neck above pelvis; knees below hips
+    assert 0 < J[16, 0] < J[18, 0] < J[20, 0] < J[22, 0] and 0 > J[17, 0] > J[19, 0] > J[21, 0]
+    assert J[15, 1] > J[12, 1] > J[9, 1] > J[6, 1] > J[3, 1] > J[0, 1] > J[1, 1] > J[4, 1] > J[7, 1]
+    # +60 degrees about z at the left shoulder lifts the left hand (+x arm), the right hand stays
+    lift = bm.forward({"body_pose": _body_pose(L_SHOULDER, _rz(60))}).joints[0]
+    assert lift[22, 1] > J[22, 1] + 0.3 and torch.allclose(lift[23], J[23], atol=1e-5)
+    male, female = (BodyModel("smpl", standin_model_dir, gender=g).rest_vertices() for g in ("male", "female"))
+    height = lambda v: float(v[:, 1].max() - v[:, 1].min())  # noqa: E731
+    assert height(male) > height(rest) > height(female)
+
+
+def test_standin_head_jaw_opens_mouth(standin_model_dir):
+    bm = BodyModel("flame", standin_model_dir)
+    rest = bm.rest_vertices()
+    moved = bm.forward({"jaw_pose": torch.tensor([[0.3, 0.0, 0.0]])}).vertices[0]
+    jaw_open = bm.forward({"expression": torch.tensor([[1.0]])}).vertices[0]  # expression 0 = ICT jawOpen
+    chin = int((jaw_open - rest).norm(dim=1).argmax())
+    assert moved[chin, 1] < rest[chin, 1] - 0.01  # positive jaw pitch drops the chin
+    top = int(torch.argmax(rest[:, 1]))
+    assert torch.allclose(moved[top], rest[top], atol=1e-6)  # skull stays
+    smile = bm.forward({"expression": torch.tensor([[0.0, 1.0]])}).vertices[0]  # mouthSmile_L
+    d = (smile - rest).norm(dim=1)
+    assert float(d.max()) > 0.003 and float(rest[int(d.argmax()), 0]) > 0  # left corner (+x) moves most
+    eye = bm.forward({"leye_pose": torch.tensor([[0.0, 0.5, 0.0]])}).vertices[0]
+    moved_ids = ((eye - rest).norm(dim=1) > 1e-6).nonzero().squeeze(1)
+    assert len(moved_ids) > 50 and bool((rest[moved_ids, 0] > 0).all())  # only the left eyeball
