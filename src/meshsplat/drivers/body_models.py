@@ -272,6 +272,12 @@ class BodyModel:
         problems, frames = [], {}
         V = self.num_vertices
         for k, x in params.items():
+            if not hasattr(x, "shape"):
+                try:
+                    x = np.asarray(x, np.float32)
+                except (TypeError, ValueError):
+                    problems.append(f"{k}: expected numbers, got {type(x).__name__}")
+                    continue
             if k == "static_offset":
                 shape = tuple(x.shape) if hasattr(x, "shape") else None
                 if shape not in ((V, 3), (1, V, 3)):
@@ -322,6 +328,7 @@ class BodyModel:
 
     def forward(self, params: dict) -> BodyOutput:
         """Posed ``vertices [T,V,3]`` and ``joints [T,J,3]``; differentiable w.r.t. every parameter."""
+        params = {k: (v if hasattr(v, "shape") else np.asarray(v, np.float32)) for k, v in params.items()}
         T = self.check_params(params)
         pose = torch.cat([self._frames(params, k, T, w) for k, w in POSE_KEYS[self.kind]], 1)
         coeffs = [self._frames(params, "betas", T, self.num_betas)]

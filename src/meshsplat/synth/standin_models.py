@@ -73,7 +73,7 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-def _body_colors(v: np.ndarray, dom: np.ndarray, head: np.ndarray) -> np.ndarray:
+def _body_colors(v: np.ndarray, dom: np.ndarray) -> np.ndarray:
     skin, shirt = np.array([0.87, 0.68, 0.55]), np.array([0.2, 0.36, 0.66])
     trousers, shoes, hair = np.array([0.3, 0.26, 0.22]), np.array([0.1, 0.1, 0.12]), np.array([0.24, 0.15, 0.08])
     c = np.tile(skin, (len(v), 1))
@@ -84,13 +84,16 @@ def _body_colors(v: np.ndarray, dom: np.ndarray, head: np.ndarray) -> np.ndarray
     c[legs] = trousers * (0.9 + 0.1 * np.sin(v[legs, 0:1] * 120.0))
     c[np.isin(dom, [7, 8, 10, 11])] = shoes
     on_head = dom == 15
-    r = v - head
-    hairy = on_head & ((r[:, 1] > 0.07) | ((r[:, 2] < 0.0) & (r[:, 1] > -0.04)))
+    hv = v[on_head]
+    centre, half = (hv.max(0) + hv.min(0)) / 2, (hv.max(0) - hv.min(0)) / 2
+    r = (v - centre) / half
+    hairy = on_head & ((r[:, 1] > 0.35) | ((r[:, 2] < -0.1) & (r[:, 1] > -0.3)))
     c[hairy] = hair
     for side in (1.0, -1.0):  # eyes
-        eye = head + np.array([0.033 * side, 0.035, 0.0])
-        near = on_head & (np.hypot(v[:, 0] - eye[0], v[:, 1] - eye[1]) < 0.012) & (r[:, 2] > 0.05)
+        near = on_head & (np.hypot(r[:, 0] - 0.3 * side, r[:, 1] - 0.12) < 0.09) & (r[:, 2] > 0.5)
         c[near] = [0.15, 0.1, 0.08]
+    mouth = on_head & (np.hypot(r[:, 0] / 2, r[:, 1] + 0.3) < 0.08) & (r[:, 2] > 0.5)
+    c[mouth] = [0.7, 0.38, 0.38]
     return np.clip(c, 0, 1).astype(np.float32)
 
 
@@ -99,7 +102,7 @@ def _head_colors(v, part, features, joints) -> np.ndarray:
     c = np.tile(skin, (len(v), 1)) * (0.96 + 0.04 * np.sin(v[:, :1] * 300) * np.sin(v[:, 1:2] * 260))
     s = part == 0
     lips, brows = features[:, 0], features[:, 1]
-    c[s & (lips > 0.4) & (v[:, 1] < joints[3, 1] - 0.03)] = [0.72, 0.38, 0.38]
+    c[s & (lips > 0.6) & (v[:, 1] < joints[3, 1] - 0.03)] = [0.72, 0.38, 0.38]
     c[s & (brows > 0.5)] = [0.3, 0.2, 0.12]
     top = s & ((v[:, 1] > joints[3, 1] + 0.06) | ((v[:, 2] < joints[2, 2] - 0.02) & (v[:, 1] > joints[0, 1] + 0.1)))
     c[top] = hair
@@ -117,8 +120,7 @@ def _write_body(out: Path, kind: str) -> None:
     d, dom = body_model_dict(kind)
     folder = out / kind
     folder.mkdir(parents=True, exist_ok=True)
-    head = d["J_regressor"][15] @ d["v_template"]
-    np.savez(folder / "appearance.npz", vertex_colors=_body_colors(d["v_template"], dom, head))
+    np.savez(folder / "appearance.npz", vertex_colors=_body_colors(d["v_template"], dom))
     for gender in ("NEUTRAL", "MALE", "FEMALE"):
         g = dict(d)
         if gender != "NEUTRAL":
