@@ -16,68 +16,15 @@ from meshsplat.drivers.body_models import (
     split_smpl_thetas)
 from meshsplat.errors import MeshsplatError
 
-SMPL_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
+from _body_fixtures import tiny_flame, tiny_smpl, write_pickle
+
 L_SHOULDER, L_ELBOW = 16, 18
-
-
-def _kintree(parents):
-    p = np.array(parents, np.int64)
-    p[0] = 4294967295  # as in the official files
-    return np.stack([p, np.arange(len(parents))])
-
-
-def _tiny_smpl() -> dict:
-    """24 joints, one vertex per joint (one-hot J_regressor) + vertex 24 at (0.8,0,0) skinned to the
-    left elbow and vertex 25 at (0.8,0,0) skinned to the left shoulder."""
-    J = 24
-    joints = np.zeros((J, 3))
-    joints[L_SHOULDER] = (0.2, 0, 0)
-    joints[L_ELBOW] = (0.5, 0, 0)
-    v = np.concatenate([joints, [[0.8, 0, 0], [0.8, 0, 0]]])
-    V = len(v)
-    w = np.zeros((V, J))
-    w[np.arange(J), np.arange(J)] = 1
-    w[24, L_ELBOW] = 1
-    w[25, L_SHOULDER] = 1
-    jreg = np.zeros((J, V))
-    jreg[np.arange(J), np.arange(J)] = 1
-    shapedirs = np.zeros((V, 3, 10))
-    shapedirs[L_ELBOW, 0, 0] = 0.5  # beta0 moves the elbow (vertex and regressed joint) along +x
-    return {"v_template": v, "f": np.array([[0, 16, 18], [16, 18, 24]], np.uint32), "shapedirs": shapedirs,
-            "posedirs": np.zeros((V, 3, 207)), "J_regressor": jreg, "weights": w, "kintree_table": _kintree(SMPL_PARENTS)}
-
-
-def _tiny_flame() -> dict:
-    """FLAME layout: joints root(0,0,0), neck(0,0.1,0), jaw(0,0.15,0.05), eyes (+-0.03,0.2,0.05);
-    vertex 5 at (0,0.1,0.15) on the jaw, vertex 6 at (0.03,0.2,0.1) on the left eye; 400 shape columns."""
-    joints = np.array([[0, 0, 0], [0, 0.1, 0], [0, 0.15, 0.05], [0.03, 0.2, 0.05], [-0.03, 0.2, 0.05]])
-    v = np.concatenate([joints, [[0, 0.1, 0.15], [0.03, 0.2, 0.1]]])
-    V, J = len(v), 5
-    w = np.zeros((V, J))
-    w[np.arange(J), np.arange(J)] = 1
-    w[5, 2] = 1
-    w[6, 3] = 1
-    jreg = np.zeros((J, V))
-    jreg[np.arange(J), np.arange(J)] = 1
-    sd = np.zeros((V, 3, 400))
-    sd[5, 2, 300] = 0.01  # expression 0 pushes the chin vertex forward by 1 cm
-    sd[5, 1, 0] = 0.02  # beta 0 lifts it by 2 cm
-    return {"v_template": v, "f": np.array([[0, 1, 5], [1, 5, 6]], np.int64), "shapedirs": sd,
-            "posedirs": np.zeros((V, 3, 36)), "J_regressor": jreg, "weights": w,
-            "kintree_table": _kintree([-1, 0, 1, 1, 1])}
-
-
-def _write(path, data):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as fh:
-        pickle.dump(data, fh, protocol=2)
-    return path
 
 
 @pytest.fixture()
 def tiny_dir(tmp_path):
-    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", _tiny_smpl())
-    _write(tmp_path / "flame" / "FLAME_NEUTRAL.pkl", _tiny_flame())
+    write_pickle(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", tiny_smpl())
+    write_pickle(tmp_path / "flame" / "FLAME_NEUTRAL.pkl", tiny_flame())
     return tmp_path
 
 
@@ -117,10 +64,10 @@ def test_global_orient_and_scale_golden(tiny_dir):
 
 
 def test_posedirs_layout_golden(tmp_path):
-    d = _tiny_smpl()
+    d = tiny_smpl()
     k = (L_ELBOW - 1) * 9 + 0 * 3 + 1  # feature (R - I)[0, 1] of the elbow
     d["posedirs"][24, 1, k] = 0.1
-    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    write_pickle(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
     m = BodyModel("smpl", tmp_path)
     out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90))})
     # Rz(90)[0,1] - 0 = -1 -> rest offset y -0.1: (0.3,-0.1,0) rotated -> (0.1,0.3,0) from the elbow
@@ -230,8 +177,8 @@ def test_model_dir_resolution(tmp_path, monkeypatch):
 
 
 def test_official_flame_names_and_env(tmp_path, monkeypatch):
-    _write(tmp_path / "FLAME2020" / "generic_model.pkl", _tiny_flame())
-    _write(tmp_path / "FLAME2023" / "flame2023.pkl", _tiny_flame())
+    write_pickle(tmp_path / "FLAME2020" / "generic_model.pkl", tiny_flame())
+    write_pickle(tmp_path / "FLAME2023" / "flame2023.pkl", tiny_flame())
     monkeypatch.setenv("MESHSPLAT_MODEL_DIR", str(tmp_path))
     assert find_model_file("flame", None).name == "generic_model.pkl"
     assert BodyModel("flame", flame_version="2023").path.name == "flame2023.pkl"
@@ -243,12 +190,12 @@ def test_unreadable_and_wrong_files(tmp_path):
     p.write_bytes(b"not a pickle")
     with pytest.raises(MeshsplatError, match="cannot read the model file"):
         BodyModel("smpl", tmp_path)
-    d = _tiny_smpl()
+    d = tiny_smpl()
     d["posedirs"] = np.zeros((26, 3, 36))
-    _write(p, d)
+    write_pickle(p, d)
     with pytest.raises(MeshsplatError, match=r"posedirs \[26, 3, 36\]"):
         BodyModel("smpl", tmp_path)
-    _write(p, {"x": np.zeros(3), "obj": types.SimpleNamespace()})
+    write_pickle(p, {"x": np.zeros(3), "obj": types.SimpleNamespace()})
     with pytest.raises(MeshsplatError, match="refusing to load"):
         BodyModel("smpl", tmp_path)
 
@@ -267,11 +214,11 @@ def test_chumpy_and_sparse_pickles_load_without_chumpy(tmp_path, monkeypatch):
     mod.Ch = Ch
     monkeypatch.setitem(sys.modules, "chumpy", types.ModuleType("chumpy"))
     monkeypatch.setitem(sys.modules, "chumpy.ch", mod)
-    d = _tiny_smpl()
+    d = tiny_smpl()
     for k in ("v_template", "shapedirs", "posedirs", "weights"):
         d[k] = Ch(d[k])
     d["J_regressor"] = sparse.csc_matrix(d["J_regressor"])
-    _write(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    write_pickle(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
     monkeypatch.delitem(sys.modules, "chumpy.ch")
     m = BodyModel("smpl", tmp_path)
     out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90))})
