@@ -10,7 +10,7 @@ import pytest
 from _head_captures import (JAW_VERTS, JOINTS, SURFACE, V, assert_vertices_close, native_flame_dataset, project, rx,
                             ry, same_cameras, write_tiny_flame)
 from meshsplat.data import open_dataset
-from meshsplat.data.formats import imavatar, open_capture
+from meshsplat.data.formats import detect_format, imavatar, open_capture
 from meshsplat.data.formats._heads import tail_split
 from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
@@ -178,8 +178,8 @@ def test_every_problem_in_one_error(tmp_path, model_dir):
 
 def test_detect(tmp_path, model_dir):
     root = _capture(tmp_path / "d", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros())])
-    assert imavatar.detect(root) and not imavatar.detect(tmp_path)
-    assert open_capture(root, format="imavatar", model_dir=model_dir).format_name == "imavatar"
+    assert imavatar.detect(root) and not imavatar.detect(tmp_path) and detect_format(root) == "imavatar"
+    assert open_capture(root, model_dir=model_dir).format_name == "imavatar"
 
 
 def test_write_read_round_trip_exact(tmp_path, model_dir):
