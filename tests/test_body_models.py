@@ -172,6 +172,9 @@ def test_model_dir_resolution(tmp_path, monkeypatch):
         resolve_model_dir(None)
     with pytest.raises(MeshsplatError, match="does not exist"):
         resolve_model_dir(tmp_path / "nope")
+    (tmp_path / "SMPL_NEUTRAL.pkl").write_bytes(b"")
+    with pytest.raises(MeshsplatError, match="is a file"):
+        resolve_model_dir(tmp_path / "SMPL_NEUTRAL.pkl")
     monkeypatch.setenv("MESHSPLAT_MODEL_DIR", str(tmp_path))
     assert resolve_model_dir(None) == tmp_path
 
@@ -188,7 +191,7 @@ def test_unreadable_and_wrong_files(tmp_path):
     p = tmp_path / "smpl" / "SMPL_NEUTRAL.pkl"
     p.parent.mkdir()
     p.write_bytes(b"not a pickle")
-    with pytest.raises(MeshsplatError, match="cannot read the model file"):
+    with pytest.raises(MeshsplatError, match="cannot read the model file.*smpl.is.tue.mpg.de"):
         BodyModel("smpl", tmp_path)
     d = tiny_smpl()
     d["posedirs"] = np.zeros((26, 3, 36))

@@ -63,6 +63,9 @@ def resolve_model_dir(model_dir: str | Path | None) -> Path:
                                  "folder holding your smpl/, smplx/ or flame/ model files")
         model_dir = env
     p = Path(model_dir).expanduser()
+    if p.is_file():
+        raise MeshsplatError(f"model directory {p} is a file; pass the folder that holds smpl/, smplx/ or flame/ "
+                             "(or the model files) as --model-dir")
     if not p.is_dir():
         raise MeshsplatError(f"model directory {p} does not exist; pass --model-dir DIR or set {ENV_MODEL_DIR} to the "
                              "folder holding your smpl/, smplx/ or flame/ model files")
@@ -201,7 +204,13 @@ class BodyModel:
                                  f"{REGISTER_SITES[self.kind]} and download it")
         self._lbs = _import_smplx_lbs()
         self.device = torch.device(device)
-        self._load(read_model_file(self.path))
+        try:
+            data = read_model_file(self.path)
+        except MeshsplatError as e:
+            msg = " ".join(str(e).split())
+            raise MeshsplatError(f"{msg}; expected the {_TITLE[self.kind]} model file from {REGISTER_SITES[self.kind]}") \
+                from None
+        self._load(data)
 
     # ------------------------------------------------------------ loading
     def _load(self, d: dict) -> None:
