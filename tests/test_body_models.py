@@ -221,7 +221,8 @@ def test_chumpy_and_sparse_pickles_load_without_chumpy(tmp_path, monkeypatch):
     for k in ("v_template", "shapedirs", "posedirs", "weights"):
         d[k] = Ch(d[k])
     d["J_regressor"] = sparse.csc_matrix(d["J_regressor"])
-    write_pickle(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    path = write_pickle(tmp_path / "smpl" / "SMPL_NEUTRAL.pkl", d)
+    path.write_bytes(path.read_bytes().replace(b"numpy._core.multiarray", b"numpy.core.multiarray"))  # numpy 1 files
     monkeypatch.delitem(sys.modules, "chumpy.ch")
     m = BodyModel("smpl", tmp_path)
     out = m.forward({"body_pose": _body_pose(L_ELBOW, _rz(90))})
@@ -287,6 +288,10 @@ def test_standin_file_layout(standin_model_dir):
         emb = pickle.load(fh)
     assert emb["lmk_face_idx"].shape == (51,) and emb["lmk_b_coords"].shape == (51, 3)
     assert BodyModel("flame", standin_model_dir, flame_version="2023").path.name == "flame2023.pkl"
+    smplx = pytest.importorskip("smplx")
+    for kind in ("smplx", "flame"):  # the contour landmark files smplx reads with use_face_contour=True
+        m = smplx.create(str(standin_model_dir), model_type=kind, use_face_contour=True, use_pca=False)
+        assert torch.isfinite(m().joints).all()
     for kind, (V, *_rest) in STANDIN.items():
         with np.load(standin_model_dir / kind / "appearance.npz") as z:
             c = z["vertex_colors"]

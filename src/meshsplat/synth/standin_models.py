@@ -29,7 +29,8 @@ human-like geometry so that renders mean something:
   (10 named smooth head deformations, then smooth random fields with decaying amplitude) and 100
   expression, whose first 57 are ICT's ARKit blend shapes (jawOpen, smiles, blinks, brows first).
   ``flame_static_embedding.pkl`` holds 51 face-front landmark triangles (farthest-point spread,
-  centroid barycentrics). The same file is written as ``FLAME_NEUTRAL.pkl`` and ``flame2023.pkl``.
+  centroid barycentrics; ``flame_dynamic_embedding.npy`` repeats 17 of them for smplx's
+  ``use_face_contour``). The same model is written as ``FLAME_NEUTRAL.pkl`` and ``flame2023.pkl``.
 
 Beside each model an ``appearance.npz`` holds ``vertex_colors [V,3]`` (float32, 0..1): skin, hair,
 shirt with soft stripes, trousers and shoes for bodies (by dominant joint); skin, lips, brows, hair,
@@ -53,7 +54,8 @@ __all__ = ["write_standin_models", "STANDIN_FILES"]
 STANDIN_FILES = {
     "smpl": ["smpl/SMPL_NEUTRAL.pkl", "smpl/SMPL_MALE.pkl", "smpl/SMPL_FEMALE.pkl"],
     "smplx": ["smplx/SMPLX_NEUTRAL.npz", "smplx/SMPLX_MALE.npz", "smplx/SMPLX_FEMALE.npz"],
-    "flame": ["flame/FLAME_NEUTRAL.pkl", "flame/flame2023.pkl", "flame/flame_static_embedding.pkl"],
+    "flame": ["flame/FLAME_NEUTRAL.pkl", "flame/flame2023.pkl", "flame/flame_static_embedding.pkl",
+              "flame/flame_dynamic_embedding.npy"],
 }
 _GENDER_BETAS = {"MALE": [0.6, 0.4, 0.3, 1.0, 0.3, 0.2, 0.3, 0.3, -0.8, 0.5],
                  "FEMALE": [-1.2, -0.4, 0.0, -1.0, -0.3, -0.2, -0.4, -0.2, 1.2, 0.4]}
@@ -139,6 +141,9 @@ def _write_head(out: Path) -> None:
     _pickle(folder / "FLAME_NEUTRAL.pkl", d)
     _link_or_copy(folder / "FLAME_NEUTRAL.pkl", folder / "flame2023.pkl")
     _pickle(folder / "flame_static_embedding.pkl", emb)
+    contour = {"lmk_face_idx": np.tile(emb["lmk_face_idx"][:17], (79, 1)),  # smplx use_face_contour=True
+               "lmk_b_coords": np.full((79, 17, 3), 1 / 3)}
+    np.save(folder / "flame_dynamic_embedding.npy", np.array(contour, dtype=object), allow_pickle=True)
     joints = d["J_regressor"] @ d["v_template"]
     np.savez(folder / "appearance.npz", vertex_colors=_head_colors(d["v_template"], part, features, joints))
 
