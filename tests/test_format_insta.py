@@ -157,3 +157,12 @@ def test_write_read_round_trip(tmp_path):
     # written with OpenGL axes, read back with the matching option
     back = insta.read(insta.write(src, tmp_path / "gl", camera_convention="opengl"), camera_convention="opengl")
     same_cameras(src, back, 0)
+
+
+def test_standin_flame_meshes_round_trip(tmp_path, standin_model_dir):
+    src = open_dataset(native_flame_dataset(tmp_path / "native", standin_model_dir, rows=4, views=1))
+    back = insta.read(insta.write(src, tmp_path / "insta"))
+    assert back.num_vertices == 5023 and back.faces.tolist() == src.faces.tolist()
+    for i in range(len(src)):
+        same_cameras(src, back, i)
+        assert_vertices_close(src.vertices(i).numpy(), back.vertices(i).numpy())

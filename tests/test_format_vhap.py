@@ -183,3 +183,16 @@ def test_write_scales_world_to_flame_units(tmp_path, model_dir):
         cb = back.manifest["cameras"][back.frame_info(i)["camera"]]
         for p, q in zip(va, vb):
             np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q), atol=1e-3)
+
+
+def test_standin_flame_round_trip_with_teeth_rows(tmp_path, standin_model_dir):
+    src = open_dataset(native_flame_dataset(tmp_path / "native", standin_model_dir, rows=3, views=2,
+                                            flame_version="2023", static_offset=True))
+    out = vhap.write(src, tmp_path / "vhap")
+    with np.load(out / "flame_param" / "00001.npz") as z:
+        assert z["static_offset"].shape == (1, 5143, 3)  # FLAME's 5023 + VHAP's 120 teeth rows
+    back = vhap.read(out, model_dir=standin_model_dir)
+    assert back.num_vertices == 5023
+    for i in range(len(src)):
+        same_cameras(src, back, i)
+        assert_vertices_close(src.vertices(i).numpy(), back.vertices(i).numpy())
