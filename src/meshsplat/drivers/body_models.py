@@ -80,7 +80,7 @@ def _candidate_names(kind: str, gender: str, flame_version: str) -> list[str]:
     if kind == "smplx":
         return [f"SMPLX_{G}.npz", f"SMPLX_{G}.pkl"]
     if flame_version == "2023":
-        return ["flame2023.pkl"] + ([] if g == "neutral" else [f"flame2023_{g}.pkl"])
+        return ["flame2023.pkl"]  # FLAME 2023 ships one generic model
     return [f"FLAME_{G}.pkl", f"FLAME_{G}.npz", "generic_model.pkl" if g == "neutral" else f"{g}_model.pkl"]
 
 
