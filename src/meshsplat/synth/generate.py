@@ -167,6 +167,17 @@ def _driving_mesh(source, smooth: int, decimate: float | None):
     return drive, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
 
 
+def _model_mesh(source, driver_smooth: int, driver_decimate: float | None):
+    """A body/head model source drives itself (its parameters must reproduce the stored meshes);
+    coincident vertices are welded only for the rendered normals."""
+    if driver_smooth or (driver_decimate is not None and driver_decimate < 1.0):
+        source.derive(None, None)  # raises: not available for model sources
+    rest = source.rest().numpy().astype(np.float64)
+    tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    group, _, _ = weld([rest], source.faces.numpy(), tol)
+    return source, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
+
+
 def _default_clips(source, clip, test_clips, train_fraction):
     names = [c for c in source.clips if c is not None]
     if clip is None:
@@ -174,7 +185,8 @@ def _default_clips(source, clip, test_clips, train_fraction):
     elif clip not in names:
         raise MeshsplatError(f"clip: {clip!r} not in {names}")
     if test_clips is None:
-        test_clips = [c for c in ("Wave", "Dance") if c in names and c != clip]
+        default = getattr(source, "default_test_clips", ("Wave", "Dance"))
+        test_clips = [c for c in default if c in names and c != clip]
     for c in test_clips:
         if c not in names:
             raise MeshsplatError(f"test clip {c!r} not in {names}")
@@ -190,7 +202,8 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
              test_frames: int | None = None, test_views: int = 2, test_view_frames: int | None = None,
              views: int = 8, turns: float = 1.0, driver_smooth: int = 0, driver_decimate: float | None = None,
              supersample: int | None = None, background=(0.0, 0.0, 0.0), fov_deg: float = 30.0,
-             overwrite: bool = False, progress: bool = False, threads: int | None = 1) -> Path:
+             overwrite: bool = False, progress: bool = False, threads: int | None = 1, model_dir=None,
+             gender: str = "neutral") -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
     ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
@@ -199,6 +212,8 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
     ``driver_decimate`` vertex ratio make the stored driving mesh differ from the rendered surface.
     ``supersample`` (default 2 up to 384 px, else 1) anti-aliases images and masks. ``threads``: torch
     CPU threads while rendering (1 is fastest for these small kernels on a busy machine; None = keep).
+    ``asset`` may also be a body/head model (``smpl``, ``smplx``, ``flame``) read from ``model_dir``
+    (default ``$MESHSPLAT_MODEL_DIR``) with ``gender``; its parameters are stored as the dataset's driver.
     Returns the dataset folder.
     """
     old_threads = torch.get_num_threads()
@@ -208,24 +223,28 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
         return _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames,
                          test_views, test_view_frames, views, turns, driver_smooth, driver_decimate,
                          supersample if supersample else (2 if resolution <= 384 else 1), background, fov_deg,
-                         overwrite, progress)
+                         overwrite, progress, model_dir, gender)
     finally:
         torch.set_num_threads(old_threads)
 
 
 def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames, test_views,
               test_view_frames, views, turns, driver_smooth, driver_decimate, supersample, background, fov_deg,
-              overwrite, progress) -> Path:
+              overwrite, progress, model_dir=None, gender="neutral") -> Path:
     if frames < 1 or resolution < 8:
         raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
     t_start = _time.perf_counter()
-    source = load_source(asset)
+    source = load_source(asset, model_dir=model_dir, gender=gender)
+    is_model = hasattr(source, "placed_params")
     clips = _default_clips(source, clip, test_clips, train_fraction)
     n_test = test_frames if test_frames is not None else max(2, frames // 4)
     n_tv = test_view_frames if test_view_frames is not None else max(2, frames // 8)
     shots, cams = _plan(rig, clips, frames, n_test, min(n_tv, frames), views, test_views, turns)
 
-    drive, weld_group = _driving_mesh(source, int(driver_smooth), driver_decimate)
+    if is_model:
+        drive, weld_group = _model_mesh(source, int(driver_smooth), driver_decimate)
+    else:
+        drive, weld_group = _driving_mesh(source, int(driver_smooth), driver_decimate)
     poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
     for s in shots:
         key = (s.clip, round(s.time, 9))
@@ -261,11 +280,14 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
         writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
     splits: dict[str, list[int]] = {}
     mesh_ids: dict[tuple, int] = {}
+    mesh_params: list[dict] = []
     for k, s in enumerate(shots):
         rv, dv = poses[(s.clip, round(s.time, 9))]
         mkey = (s.clip, round(s.time, 9), round(s.yaw, 9))
         if mkey not in mesh_ids:
             mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
+            if is_model:
+                mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
         rgb, alpha = render_view(source, place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution,
                                  weld_group, background, supersample)
         if float(alpha.max()) == 0.0:
@@ -277,5 +299,10 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
             print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
     for name, idx in splits.items():
         writer.set_split(name, idx)
+    if is_model:
+        per_frame = {k: np.stack([p[k] for p in mesh_params]) for k in mesh_params[0]}
+        writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)},
+                          {**source.shared, **per_frame})
+        writer.meta["model"] = {"type": source.kind, "gender": source.model.gender, "fps": source.fps}
     writer.meta["seconds"] = round(_time.perf_counter() - t_start, 2)
     return writer.close()

@@ -15,6 +15,7 @@ import torch
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.synth.body_source import MODEL_SOURCES, load_model_source
 
 __all__ = ["GltfSource", "BlendshapeSource", "load_source"]
 
@@ -113,12 +114,15 @@ _ATTRIBUTION = {
 }
 
 
-def load_source(asset):
-    """Load ``asset``: a .glb/.gltf path, an .npz blendshape file, or a shared-asset name
-    (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``)."""
+def load_source(asset, model_dir=None, gender: str = "neutral"):
+    """Load ``asset``: a .glb/.gltf path, an .npz blendshape file, a shared-asset name
+    (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model
+    (``smpl``, ``smplx``, ``flame``; files from ``model_dir`` or ``$MESHSPLAT_MODEL_DIR``)."""
     from meshsplat.paths import asset as shared_asset
 
     p = Path(asset)
+    if not p.exists() and str(asset).lower() in MODEL_SOURCES:
+        return load_model_source(str(asset).lower(), model_dir, gender)
     if not p.exists():
         key = str(asset).lower()
         if key in ("ict", "ict_face", "ict_facekit"):
@@ -128,7 +132,7 @@ def load_source(asset):
             stem = names.get(Path(key).stem)
             if stem is None:
                 raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path or one of "
-                                     "CesiumMan, RobotExpressive, RiggedSimple, ict)")
+                                     "CesiumMan, RobotExpressive, RiggedSimple, ict, smpl, smplx, flame)")
             p = shared_asset(f"gltf/{stem}.glb")
     if p.suffix.lower() == ".npz":
         return BlendshapeSource(BlendshapeDriver.from_npz(p))

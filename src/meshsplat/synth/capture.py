@@ -1,0 +1,48 @@
+"""Synthetic captures in other layouts: generate a native dataset, then write it with a format's ``write``."""
+from __future__ import annotations
+
+import inspect
+import shutil
+import tempfile
+from pathlib import Path
+
+from meshsplat.data.dataset import open_dataset
+from meshsplat.data.formats import FORMAT_NAMES, format_module
+from meshsplat.errors import MeshsplatError
+from meshsplat.synth.generate import generate
+
+__all__ = ["synth_capture"]
+
+
+def synth_capture(asset, out, format: str = "native", native_dir=None, overwrite: bool = False,
+                  write_options: dict | None = None, **generate_options) -> Path:
+    """Render ``asset`` (see :func:`meshsplat.synth.generate`) and write it at ``out`` in ``format``.
+
+    For a format other than ``native`` the native dataset goes to ``native_dir`` (kept) or a temporary
+    folder (removed), and ``format_module(format).write(dataset, out, **write_options)`` converts it.
+    """
+    if format not in FORMAT_NAMES:
+        raise MeshsplatError(f"format: {format!r} is not one of {', '.join(FORMAT_NAMES)}")
+    if format == "native":
+        return generate(asset, out, overwrite=overwrite, **generate_options)
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    try:
+        writer = format_module(format).write
+    except (ImportError, AttributeError):
+        raise MeshsplatError(f"format {format!r}: this installation has no writer for it") from None
+    tmp = None
+    if native_dir is None:
+        tmp = tempfile.mkdtemp(prefix="meshsplat-synth-")
+        native_dir = Path(tmp) / "native"
+    try:
+        native = generate(asset, native_dir, overwrite=overwrite, **generate_options)
+        opts = dict(write_options or {})
+        params = inspect.signature(writer).parameters
+        if "overwrite" in params or any(p.kind == p.VAR_KEYWORD for p in params.values()):
+            opts["overwrite"] = overwrite
+        return writer(open_dataset(native), out, **opts)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
