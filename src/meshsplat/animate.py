@@ -154,13 +154,16 @@ def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
     return _check_frames(frames, v, "vertex sequence")
 
 
-def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | None = None) -> list[torch.Tensor]:
+def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | None = None,
+                     align: str = "pose") -> list[torch.Tensor]:
     """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
     ``motion``: an SMPL ``.npz`` (``poses [S,72]``, ``trans [S,3]``), an SMPL-X/AMASS ``.npz``, an IMavatar
     ``flame_params.json`` or a VHAP ``flame_param/`` folder (``meshsplat.drivers.motion.load_motion``).
     Cross-identity reenactment: the avatar keeps its own shape (``betas``, ``static_offset`` from its
-    capture) and takes the motion's pose and expression.
+    capture) and takes the motion's pose and expression. ``align="pose"`` (default) starts the motion
+    where and as the subject stood in its first frame, so the capture's cameras frame it; "translation"
+    keeps the motion's orientation; "none" uses its poses as they are (``drivers.motion.reenact``).
     """
     from meshsplat.drivers.body_models import BodyModel, ParametricDriver
     from meshsplat.drivers.motion import load_motion, reenact
@@ -178,8 +181,7 @@ def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | 
     if max_frames is not None:
         params = {k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
                   for k, v in params.items()}
-    subject = {k: dataset.driver_params[k] for k in ("betas", "static_offset") if k in dataset.driver_params}
-    verts = ParametricDriver(model, reenact(params, subject)).all_vertices()
+    verts = ParametricDriver(model, reenact(params, dataset.driver_params, align=align)).all_vertices()
     return _check_frames(list(verts), avatar.mesh.num_vertices, f"motion {motion}")
 
 
