@@ -187,8 +187,12 @@ def _assign_masks(root: Path, mode: str, frames: list[dict], problems: Problems)
     if folder is None:
         if mode == "folder":
             raise MeshsplatError(f"{root}: mask='folder' but none of {list(MASK_FOLDERS)} exists")
+        for r in frames:
+            r.pop("mask", None)
         return "none"
     for i, r in enumerate(frames):
+        if "mask" in r:
+            continue
         m = find_file(root, f"{folder}/{r['name']}", (".png", ".jpg", ".npy"))
         if m is None:
             problems.add(f"frame {i} ({r['name']!r})", f"mask {folder}/{r['name']}.png is missing")
