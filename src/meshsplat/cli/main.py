@@ -15,6 +15,7 @@ from meshsplat.errors import MeshsplatError
 # name -> module under meshsplat.cli (imported only when that command runs, or for --help)
 COMMANDS = {
     "synth": "synth_cmd",
+    "import": "import_cmd",
     "train": "train_cmd",
     "eval": "eval_cmd",
     "render": "render_cmd",

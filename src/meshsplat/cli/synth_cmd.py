@@ -1,6 +1,9 @@
-"""Render an animated glTF/blendshape asset into a ground-truth dataset (images, masks, cameras, meshes).
+"""Render an animated asset or a body/head model into a ground-truth capture (images, masks, cameras, meshes).
 
-ASSET is a .glb/.gltf/.npz path or a shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict).
+SOURCE is a .glb/.gltf/.npz path, a shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
+a parametric model: smpl / smplx (dancing the AIST++ clip) or flame (talking, nodding), read from
+--model-dir or $MESHSPLAT_MODEL_DIR. --format writes the capture in another layout (e.g. peoplesnapshot
+for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.
 """
 from __future__ import annotations
 
@@ -10,10 +13,20 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from meshsplat.data.formats import FORMAT_NAMES
     from meshsplat.synth.generate import RIGS
 
-    parser.add_argument("asset", metavar="ASSET", help="glTF/GLB/npz file or shared asset name")
-    parser.add_argument("--out", required=True, help="output dataset folder")
+    parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB/npz file, shared asset name, or smpl/smplx/flame")
+    parser.add_argument("--out", required=True, help="output capture folder")
+    parser.add_argument("--format", choices=FORMAT_NAMES, default="native", help="layout to write (default native)")
+    parser.add_argument("--model-dir", default=None, help="folder with the smpl/, smplx/, flame/ model files "
+                        "(default $MESHSPLAT_MODEL_DIR)")
+    parser.add_argument("--gender", default="neutral", choices=("neutral", "male", "female"),
+                        help="body model gender (smpl/smplx)")
+    parser.add_argument("--native-out", default=None, metavar="DIR",
+                        help="with --format other than native: also keep the native dataset here")
+    parser.add_argument("--masks", choices=("png", "npy"), default=None,
+                        help="mask files for --format peoplesnapshot (default png)")
     parser.add_argument("--rig", choices=RIGS, default="monocular-turn")
     parser.add_argument("--frames", type=int, default=60, help="training time steps (per camera)")
     parser.add_argument("--resolution", type=int, default=256, help="square image size in pixels")
@@ -28,19 +41,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--driver-decimate", type=float, default=None, metavar="RATIO",
                         help="keep about RATIO of the driving mesh's vertices (vertex clustering)")
     parser.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2 up to 384 px)")
-    parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet")
+    parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet (native only)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
 
 
 def run(args) -> int:
-    from meshsplat.synth import contact_sheet, generate
+    from meshsplat.errors import MeshsplatError
+    from meshsplat.synth import contact_sheet
+    from meshsplat.synth.capture import synth_capture
 
-    out = generate(args.asset, args.out, rig=args.rig, frames=args.frames, resolution=args.resolution,
-                   clip=args.clip, test_clips=args.test_clips, train_fraction=args.train_fraction,
-                   test_frames=args.test_frames, test_views=args.test_views, views=args.views,
-                   driver_smooth=args.driver_smooth, driver_decimate=args.driver_decimate,
-                   supersample=args.supersample, overwrite=args.overwrite, progress=True)
-    print(f"dataset written to {out}")
+    if args.masks is not None and args.format != "peoplesnapshot":
+        raise MeshsplatError("--masks applies to --format peoplesnapshot only")
+    if args.contact_sheet and args.format != "native":
+        raise MeshsplatError("--contact-sheet needs --format native (or use --native-out and `meshsplat synth` output)")
+    write_options = {"masks": args.masks} if args.masks else {}
+    out = synth_capture(args.asset, args.out, format=args.format, native_dir=args.native_out,
+                        overwrite=args.overwrite, write_options=write_options,
+                        rig=args.rig, frames=args.frames, resolution=args.resolution,
+                        clip=args.clip, test_clips=args.test_clips, train_fraction=args.train_fraction,
+                        test_frames=args.test_frames, test_views=args.test_views, views=args.views,
+                        driver_smooth=args.driver_smooth, driver_decimate=args.driver_decimate,
+                        supersample=args.supersample, progress=True, model_dir=args.model_dir, gender=args.gender)
+    print(f"{args.format} capture written to {out}")
     if args.contact_sheet:
         print(f"contact sheet: {contact_sheet(out, args.contact_sheet)}")
     return 0
