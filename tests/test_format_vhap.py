@@ -160,6 +160,10 @@ def test_write_read_round_trip(tmp_path, model_dir):
     with np.load(out / "flame_param" / "00000.npz") as z:
         assert z["static_offset"].shape == (1, V + 120, 3) and z["expr"].shape == (1, 100)
         assert z["shape"].shape == (300,) and z["eyes_pose"].shape == (1, 6)
+    with pytest.raises(MeshsplatError, match="overwrite"):
+        vhap.write(src, out)
+    (out / "transforms_stale.json").write_text('{"frames": []}')
+    assert vhap.write(src, out, overwrite=True) == out and not (out / "transforms_stale.json").exists()
     back = vhap.read(out, model_dir=model_dir)
     assert len(back) == len(src)
     for name in src.split_names:

@@ -49,11 +49,17 @@ def write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def prepare_out(out, overwrite: bool) -> Path:
+def prepare_out(out, overwrite: bool, stale: tuple[str, ...] = ()) -> Path:
+    """Create the output folder; with ``overwrite`` an existing one is reused after removing files
+    matching ``stale`` (globs whose leftovers a reader would pick up, e.g. old split files)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise MeshsplatError(f"{out}: exists and is not empty (pass overwrite=True / --overwrite)")
     out.mkdir(parents=True, exist_ok=True)
+    for pattern in stale:
+        for p in out.glob(pattern):
+            if p.is_file():
+                p.unlink()
     return out
 
 

@@ -230,7 +230,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
         v = params[key]
         return v[row] if key in per_frame else v.reshape(-1)
 
-    out = prepare_out(out, overwrite)
+    out = prepare_out(out, overwrite, ("image/*.png",))
     cams = dataset.manifest["cameras"]
     intr = size = None
     frames = []

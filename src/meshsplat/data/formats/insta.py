@@ -110,6 +110,9 @@ def read(root, model_dir=None, camera_convention: str = "auto", mask: str = "aut
     new = {old: n for n, old in enumerate(order)}
     items = [items[j] for j in order]
     splits = {k: sorted(new[j] for j in v) for k, v in splits.items()}
+    if has_splits and test_frames is not None:
+        raise MeshsplatError(f"{root}: test_frames applies to a folder with only transforms.json; this one has "
+                             "split files (transforms_train.json ...), which set the test frames")
     if not has_splits:
         train, test = tail_split(len(items), test_frames)
         splits = {"train": train, "test_frames": test}
@@ -248,7 +251,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False, camera_conventio
     ``transforms_<name>.json``. Intrinsics of the first frame at top level, per frame where they differ."""
     if camera_convention not in ("opencv", "opengl"):
         raise MeshsplatError(f"camera_convention: expected 'opencv' or 'opengl', got {camera_convention!r}")
-    out = prepare_out(out, overwrite)
+    out = prepare_out(out, overwrite, ("transforms*.json",))
     cams = dataset.manifest["cameras"]
     faces = dataset.faces
     write_obj(out / "canonical.obj", dataset.canonical_vertices, faces)

@@ -267,7 +267,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
     rows for VHAP's teeth."""
     info, params, per_frame = flame_rows(dataset, NAME)
     s = float(info.get("scale", 1.0))
-    out = prepare_out(out, overwrite)
+    out = prepare_out(out, overwrite, ("transforms*.json", "flame_param/*.npz"))
     cams = dataset.manifest["cameras"]
     rows = sorted({int(dataset.frame_info(i)["mesh"]) for i in range(len(dataset))})
     step = {r: t for t, r in enumerate(rows)}
@@ -285,7 +285,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
     if "static_offset" in params:
         so = params["static_offset"].reshape(-1, 3)  # model units: BodyModel scales after posing
         static = np.concatenate([so, np.zeros((TEETH_VERTICES, 3))])[None]
-    (out / "flame_param").mkdir()
+    (out / "flame_param").mkdir(exist_ok=True)
     for r, t in step.items():
         npz = {"translation": value("transl", r, 3)[None] / s, "rotation": value("global_orient", r, 3)[None],
                "neck_pose": value("neck_pose", r, 3)[None], "jaw_pose": value("jaw_pose", r, 3)[None],
