@@ -154,6 +154,9 @@ def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
     return _check_frames(frames, v, "vertex sequence")
 
 
+_TOPOLOGY_KINDS = {6890: "smpl", 10475: "smplx", 5023: "flame"}  # vertex counts of the released models
+
+
 def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | None = None,
                      align: str = "pose") -> list[torch.Tensor]:
     """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
@@ -164,24 +167,35 @@ def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | 
     capture) and takes the motion's pose and expression. ``align="pose"`` (default) starts the motion
     where and as the subject stood in its first frame, so the capture's cameras frame it; "translation"
     keeps the motion's orientation; "none" uses its poses as they are (``drivers.motion.reenact``).
+    A capture with per-frame meshes only (INSTA) on a standard topology (FLAME 5023, SMPL 6890, SMPL-X
+    10475 vertices) is posed by that model with its canonical mesh as the per-vertex offset.
     """
     from meshsplat.drivers.body_models import BodyModel, ParametricDriver
     from meshsplat.drivers.motion import load_motion, reenact
 
-    info = dataset.driver_info
-    if info is None or dataset.driver_params is None:
-        raise MeshsplatError(f"--motion needs an avatar trained on SMPL/SMPL-X/FLAME-tracked data, but its capture "
-                             f"{dataset.root} ({dataset.format_name}) has no model parameters; use --gltf or --vertices")
+    info, subject = dataset.driver_info, dataset.driver_params
+    if info is None or subject is None:
+        # per-frame meshes only (INSTA): a standard topology is posed with the capture's rest mesh as offsets
+        kind = _TOPOLOGY_KINDS.get(avatar.mesh.num_vertices)
+        if kind is None:
+            raise MeshsplatError(f"--motion needs an avatar of a SMPL/SMPL-X/FLAME capture, but {dataset.root} "
+                                 f"({dataset.format_name}) has no model parameters and its {avatar.mesh.num_vertices}-vertex "
+                                 f"mesh is no standard topology; use --gltf or --vertices")
+        info = {"type": kind}
     model = BodyModel(info["type"], model_dir, gender=info.get("gender", "neutral"),
                       flame_version=str(info.get("flame_version", "2020")), scale=float(info.get("scale", 1.0)))
     if model.num_vertices != avatar.mesh.num_vertices:
         raise MeshsplatError(f"the {info['type']} model in {model.path} has {model.num_vertices} vertices but the "
                              f"avatar's mesh {avatar.mesh.num_vertices}: not the model it was trained with")
+    if subject is None:
+        with torch.no_grad():
+            template = model.rest_vertices({}).cpu() / model.scale
+        subject = {"static_offset": (dataset.canonical_vertices / model.scale - template).numpy()}
     params = load_motion(motion, model)
     if max_frames is not None:
         params = {k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
                   for k, v in params.items()}
-    verts = ParametricDriver(model, reenact(params, dataset.driver_params, align=align)).all_vertices()
+    verts = ParametricDriver(model, reenact(params, subject, align=align)).all_vertices()
     return _check_frames(list(verts), avatar.mesh.num_vertices, f"motion {motion}")
 
 
