@@ -59,7 +59,7 @@ def read(root: Path, model_dir=None, gender: str | None = None, check_masks: boo
     cfg_gender, ranges = _read_config(root, problems)
     gender = (gender or cfg_gender or "neutral").lower()
     if gender not in GENDERS:
-        problems.add("config.json", f"unknown gender {gender!r} (expected one of {list(GENDERS)})")
+        problems.add("gender", f"unknown gender {gender!r} (expected one of {list(GENDERS)})")
     camera = _read_camera(root, problems)
     has_config = ranges is not None
     if ranges is None:
@@ -188,8 +188,8 @@ def _read_config(root: Path, problems: _Problems) -> tuple[str | None, dict[str,
             problems.add("config.json", f"{s!r}: need 0 <= start <= end and skip >= 1, got {start}, {end}, {skip}")
             continue
         ranges[s] = range(start, end + 1, skip)
-    if "train" not in ranges and not problems.items:
-        problems.add("config.json", "has no 'train' range")
+    if cfg.get("train") is None:
+        problems.add("config.json", "has no 'train' range ({start, end, skip})")
     return gender, ranges
 
 
