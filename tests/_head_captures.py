@@ -96,7 +96,8 @@ def native_flame_dataset(out: Path, model_dir: Path, rows: int = 4, views: int =
     model = BodyModel("flame", model_dir, flame_version=flame_version, scale=scale)
     params = random_params(rows, seed, transl=transl, betas=n_betas, expr=n_expr)
     if static_offset:
-        params["static_offset"] = np.random.default_rng(seed + 1).normal(0, 0.002, (model.num_vertices, 3)).astype(np.float32)
+        g = np.random.default_rng(seed + 1)
+        params["static_offset"] = g.normal(0, 0.002, (model.num_vertices, 3)).astype(np.float32)
     with torch.no_grad():
         verts = model.forward(params).vertices.numpy()
     canonical = model.rest_vertices(params).numpy()

@@ -61,7 +61,8 @@ def test_camera_golden_in_imavatars_own_convention(tmp_path, model_dir):
     root = _capture(tmp_path / "cap", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros()),
                                        (_gl_world_mat(R2, t2), *_zeros())])
     ds = imavatar.read(root, model_dir=model_dir)
-    K, vm, w, h = (np.asarray(x, np.float64) if not isinstance(x, int) else x for x in ds.camera(ds.frame_info(0)["camera"]))
+    K, vm, w, h = ds.camera(ds.frame_info(0)["camera"])
+    K, vm = K.double().numpy(), vm.double().numpy()
     assert (w, h) == (W, H)
     np.testing.assert_allclose(K, [[24, 0, 8], [0, 24, 6], [0, 0, 1]], atol=1e-6)
     # hand-computed: (0.5, 0.25, 0) -> camera (0.5, 0.25, -4); u = W(i0 X/Z + i2) = 11, v = H(i1 Y/Z + i3) = 4.5
@@ -215,7 +216,8 @@ def test_write_moves_translation_into_the_camera(tmp_path, model_dir):
         ca = src.manifest["cameras"][src.frame_info(i)["camera"]]
         cb = back.manifest["cameras"][back.frame_info(i)["camera"]]
         for p, q in zip(va, vb):
-            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q), atol=1e-3)
+            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q),
+                                       atol=1e-3)
 
 
 def test_writer_refuses_what_the_layout_cannot_hold(tmp_path, model_dir):

@@ -25,7 +25,8 @@ def model_dir(tmp_path_factory):
 
 def _npz(path, **kw):
     p = {"translation": np.zeros((1, 3)), "rotation": np.zeros((1, 3)), "neck_pose": np.zeros((1, 3)),
-         "jaw_pose": np.zeros((1, 3)), "eyes_pose": np.zeros((1, 6)), "shape": np.zeros(300), "expr": np.zeros((1, 100))}
+         "jaw_pose": np.zeros((1, 3)), "eyes_pose": np.zeros((1, 6)), "shape": np.zeros(300),
+         "expr": np.zeros((1, 100))}
     p.update(kw)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **{k: np.asarray(v, np.float32) for k, v in p.items()})
@@ -108,7 +109,8 @@ def test_flame_npz_golden(tmp_path, model_dir):
     # FLAME 2020 on request: no shift
     v2020 = vhap.read(root, model_dir=model_dir, flame_version="2020").vertices(0).numpy()
     np.testing.assert_allclose(v2020 + SHIFT_2023, v0, atol=1e-6)
-    assert ds.driver_info["flame_version"] == "2023" and ds.frame_params(1)["transl"][0].tolist() == pytest.approx(tr[0])
+    assert ds.driver_info["flame_version"] == "2023"
+    assert ds.frame_params(1)["transl"][0].tolist() == pytest.approx(tr[0])
 
 
 def test_splits_views_and_timesteps(tmp_path, model_dir):
@@ -186,7 +188,8 @@ def test_write_scales_world_to_flame_units(tmp_path, model_dir):
         ca = src.manifest["cameras"][src.frame_info(i)["camera"]]
         cb = back.manifest["cameras"][back.frame_info(i)["camera"]]
         for p, q in zip(va, vb):
-            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q), atol=1e-3)
+            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q),
+                                       atol=1e-3)
 
 
 def test_standin_flame_round_trip_with_teeth_rows(tmp_path, standin_model_dir):

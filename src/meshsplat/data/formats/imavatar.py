@@ -61,7 +61,8 @@ def K_from_intrinsics(intr, width: int, height: int) -> np.ndarray:
     units on a 512-pixel base, as IMavatar's own reader treats them)."""
     a = np.asarray(intr, np.float64).reshape(-1)
     if a.shape != (4,) or not np.isfinite(a).all():
-        raise MeshsplatError(f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {list(np.shape(intr))}")
+        raise MeshsplatError("intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], "
+                             f"got {list(np.shape(intr))}")
     if abs(a[3]) > 1:
         a = a / 512.0
     return K_from_normalized(a, width, height)
@@ -206,7 +207,8 @@ def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
     a = np.asarray(a, np.float64).reshape(-1)
     if a.size > width:
         if np.any(a[width:] != 0):
-            raise MeshsplatError(f"imavatar writer: {name} has {a.size} non-zero coefficients, the layout keeps {width}")
+            raise MeshsplatError(f"imavatar writer: {name} has {a.size} non-zero coefficients, "
+                                 f"the layout keeps {width}")
         return a[:width]
     return np.concatenate([a, np.zeros(width - a.size)])
 
@@ -243,7 +245,8 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
         if intr is None:
             intr, size = this, (w, h)
         elif size != (w, h) or not np.allclose(this, intr, rtol=1e-9, atol=1e-12):
-            raise MeshsplatError("imavatar writer: the layout stores one camera intrinsics and image size for all frames; "
+            raise MeshsplatError("imavatar writer: the layout stores one camera intrinsics and image size for all "
+                                 "frames; "
                                  f"frame {i} differs ({w}x{h}, {this} vs {size[0]}x{size[1]}, {intr})")
         R, t = vm[:3, :3], vm[:3, 3]
         new = np.eye(4)

@@ -110,7 +110,8 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
         if k in d:
             a = d[k].reshape(-1, 3) if d[k].size % 3 == 0 else d[k]
             if num_vertices is not None and (a.ndim != 2 or a.shape[0] < num_vertices):
-                problems.add(where, f"{path.name}: {k} has shape {list(d[k].shape)}, expected [1, >= {num_vertices}, 3]")
+                problems.add(where, f"{path.name}: {k} has shape {list(d[k].shape)}, "
+                             f"expected [1, >= {num_vertices}, 3]")
                 return None
             out[k] = a[:num_vertices] if num_vertices is not None else a
     bad = [k for k, a in out.items() if not np.isfinite(a).all()]
@@ -195,7 +196,8 @@ def read(root, model_dir=None, flame_version: str | None = None, mask: str = "au
         params = _params(loaded, model, problems, ignore_dynamic_offset)
         if params is not None:
             verts = pose_model(model, params)
-            canonical = model.rest_vertices({k: params[k] for k in ("betas", "static_offset") if k in params}).cpu().numpy()
+            shared = {k: params[k] for k in ("betas", "static_offset") if k in params}
+            canonical = model.rest_vertices(shared).cpu().numpy()
             faces = model.faces.cpu().numpy()
             check_in_front(cameras, frames, verts, problems, _HINT)
     manifest = {
@@ -290,7 +292,8 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
         npz = {"translation": value("transl", r, 3)[None] / s, "rotation": value("global_orient", r, 3)[None],
                "neck_pose": value("neck_pose", r, 3)[None], "jaw_pose": value("jaw_pose", r, 3)[None],
                "eyes_pose": np.concatenate([value("leye_pose", r, 3), value("reye_pose", r, 3)])[None],
-               "shape": shape, "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None]}
+               "shape": shape,
+               "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None]}
         if static is not None:
             npz["static_offset"] = static
         np.savez(out / "flame_param" / f"{t:05d}.npz", **{k: np.asarray(v, np.float32) for k, v in npz.items()})
