@@ -265,3 +265,13 @@ def test_synth_write_read_parity(tmp_path, standin_model_dir, masks):
         for key in ps.PER_FRAME:
             assert np.allclose(nat.frame_params(i)[key], back.frame_params(k)[key], atol=1e-6)
     assert sorted(p.suffix for p in (out / "masks").iterdir())[0] == f".{masks}"
+
+
+def test_config_problems(tmp_path, standin_model_dir):
+    root = make_capture(tmp_path / "cap", n=4, config={"gender": "male", "test": {"start": 3, "end": 1}})
+    with pytest.raises(MeshsplatError) as e:
+        ps.read(root, model_dir=standin_model_dir)
+    assert "has no 'train' range" in str(e.value) and "'test': need 0 <= start <= end" in str(e.value)
+    (root / "config.json").write_text("{not json")
+    with pytest.raises(MeshsplatError, match="config.json: invalid JSON"):
+        ps.read(root, model_dir=standin_model_dir)
