@@ -14,7 +14,7 @@ def contact_sheet(dataset, out_png, indices=None, count: int = 8, tile: int = 12
 
     from meshsplat.data import open_dataset
 
-    ds = open_dataset(dataset, check_masks=False) if not hasattr(ds_attr := dataset, "split") else ds_attr
+    ds = open_dataset(dataset, check_masks=False) if isinstance(dataset, (str, Path)) else dataset
     if indices is None:
         indices = np.linspace(0, len(ds) - 1, min(count, len(ds))).round().astype(int).tolist()
     cols = []
