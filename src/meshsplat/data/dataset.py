@@ -14,7 +14,7 @@ from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["Frame", "AvatarDataset", "open_dataset", "MASK_KINDS"]
+__all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems", "MASK_KINDS"]
 
 MASK_KINDS = ("png", "npy", "alpha")  # a mask file (any image), a numpy array, the image's 4th channel
 
@@ -40,7 +40,9 @@ class Frame:
     time: float | None = None
 
 
-class _Problems:
+class Problems:
+    """Collects every problem of a folder; ``raise_if_any`` ends them in one MeshsplatError."""
+
     def __init__(self, root: Path):
         self.root, self.items = root, []
 
@@ -56,7 +58,7 @@ class _Problems:
             raise MeshsplatError(msg)
 
 
-def _check_camera(cid: str, cam: dict, problems: _Problems) -> tuple[np.ndarray, np.ndarray] | None:
+def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, np.ndarray] | None:
     where = f"camera {cid!r}"
     try:
         K = np.asarray(cam["K"], np.float64)
@@ -234,7 +236,7 @@ def _read_npy_mask(path: Path) -> np.ndarray:
     return np.clip(a, 0.0, 1.0)[..., None]
 
 
-def _load_canonical(root: Path, rel: str, problems: _Problems):
+def _load_canonical(root: Path, rel: str, problems: Problems):
     p = root / rel
     if not p.is_file():
         problems.add(rel, "canonical mesh file is missing")
@@ -291,7 +293,7 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
     if not isinstance(frames, list) or not frames:
         raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list")
 
-    problems = _Problems(root)
+    problems = Problems(root)
     canonical, faces = _load_canonical(root, manifest["canonical"], problems)
     verts = None
     vpath = root / manifest["vertices"]
@@ -310,7 +312,7 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
                          cache_size=cache_size, driver_params=driver_params)
 
 
-def _load_driver_params(root: Path, driver, problems: _Problems) -> dict[str, np.ndarray] | None:
+def _load_driver_params(root: Path, driver, problems: Problems) -> dict[str, np.ndarray] | None:
     if not isinstance(driver, dict) or not isinstance(driver.get("type"), str) or not isinstance(driver.get("params"), str):
         problems.add("manifest 'driver'", "must be an object with 'type' and 'params' (file name)")
         return None
@@ -323,7 +325,7 @@ def _load_driver_params(root: Path, driver, problems: _Problems) -> dict[str, np
         return None
 
 
-def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems: _Problems | None = None,
+def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems: Problems | None = None,
                   check_masks: bool = True, cache_size: int = 8, driver_params: dict | None = None,
                   format_name: str = "native") -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
@@ -334,7 +336,7 @@ def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems:
     None when they failed to load, with the reason already in ``problems``). All problems end in one
     MeshsplatError.
     """
-    problems = problems or _Problems(root)
+    problems = problems or Problems(root)
     frames = manifest["frames"]
     vname = manifest.get("vertices", "vertices")
     if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
@@ -386,7 +388,7 @@ def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems:
                          driver_params=driver_params, format_name=format_name)
 
 
-def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: _Problems) -> None:
+def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems) -> None:
     """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
     kind = rec.get("mask_kind", "png")
     if kind not in MASK_KINDS:

@@ -14,16 +14,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.dataset import AvatarDataset, _Problems
+from meshsplat.data.dataset import AvatarDataset, Problems
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["Problems", "read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
+__all__ = ["read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
            "flame_model", "fit_coeffs", "pose_model", "flame_driver_record", "check_in_front",
            "mask_choice", "flame_rows", "frame_pixels", "write_json", "save_png", "MASK_MODES", "IMAGE_EXTS"]
 
-Problems = _Problems  # one MeshsplatError listing every problem of a folder
 MASK_MODES = ("auto", "alpha", "folder", "none")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test frames

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    Problems, check_in_front, find_file, frame_pixels, has_alpha, mask_choice, obj_vertices, prepare_out, read_json,
+    check_in_front, find_file, frame_pixels, has_alpha, mask_choice, obj_vertices, prepare_out, read_json,
     save_png, tail_split, write_json)
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj, write_obj

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.dataset import AvatarDataset, _Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError
@@ -55,7 +55,7 @@ def read(root: Path, model_dir=None, gender: str | None = None, check_masks: boo
     root = Path(root)
     if not root.is_dir():
         raise MeshsplatError(f"capture folder not found: {root}")
-    problems = _Problems(root)
+    problems = Problems(root)
     cfg_gender, ranges = _read_config(root, problems)
     gender = (gender or cfg_gender or "neutral").lower()
     if gender not in GENDERS:
@@ -149,7 +149,7 @@ def _range_dict(r: range) -> dict:
     return {"start": r.start, "end": r[-1] if len(r) else r.start, "skip": r.step}
 
 
-def _npz(path: Path, problems: _Problems) -> dict | None:
+def _npz(path: Path, problems: Problems) -> dict | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
@@ -158,7 +158,7 @@ def _npz(path: Path, problems: _Problems) -> dict | None:
         return None
 
 
-def _read_config(root: Path, problems: _Problems) -> tuple[str | None, dict[str, range] | None]:
+def _read_config(root: Path, problems: Problems) -> tuple[str | None, dict[str, range] | None]:
     p = root / "config.json"
     if not p.is_file():
         return None, None
@@ -204,7 +204,7 @@ def _default_ranges(root: Path) -> dict[str, range]:
     return {"train": range(0, n - n_test), "test": range(n - n_test, n)}
 
 
-def _read_camera(root: Path, problems: _Problems) -> dict | None:
+def _read_camera(root: Path, problems: Problems) -> dict | None:
     p = root / "cameras.npz"
     if not p.is_file():
         problems.add("cameras.npz", "is missing (needs intrinsic [3,3], extrinsic [4,4], height, width)")
@@ -237,7 +237,7 @@ def _read_camera(root: Path, problems: _Problems) -> dict | None:
             "width": w, "height": h}
 
 
-def _betas(a: np.ndarray, where: str, problems: _Problems) -> np.ndarray | None:
+def _betas(a: np.ndarray, where: str, problems: Problems) -> np.ndarray | None:
     a = np.asarray(a)
     if a.ndim == 2 and a.shape[0] == 1:
         a = a[0]
@@ -247,7 +247,7 @@ def _betas(a: np.ndarray, where: str, problems: _Problems) -> np.ndarray | None:
     return a.astype(np.float32)
 
 
-def _rows(z: dict, key: str, width: int, where: str, problems: _Problems) -> np.ndarray | None:
+def _rows(z: dict, key: str, width: int, where: str, problems: Problems) -> np.ndarray | None:
     a = z[key]
     if a.ndim != 2 or a.shape[1] != width:
         problems.add(where, f"{key} must be [N,{width}], got {list(a.shape)}")
@@ -258,7 +258,7 @@ def _rows(z: dict, key: str, width: int, where: str, problems: _Problems) -> np.
     return a.astype(np.float32)  # NaN/Inf are reported for the rows in use (_assemble_params)
 
 
-def _read_poses(root: Path, problems: _Problems) -> dict | None:
+def _read_poses(root: Path, problems: Problems) -> dict | None:
     p = root / "poses.npz"
     if not p.is_file():
         problems.add("poses.npz", "is missing (needs betas, thetas [N,72], transl [N,3])")
@@ -284,7 +284,7 @@ def _read_poses(root: Path, problems: _Problems) -> dict | None:
     return {"betas": betas, "global_orient": go, "body_pose": bp, "transl": transl}
 
 
-def _read_refined(path: Path, n: int, problems: _Problems) -> dict | None:
+def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
     where = f"poses/{path.name}"
     z = _npz(path, problems)
     if z is None:
@@ -306,7 +306,7 @@ def _read_refined(path: Path, n: int, problems: _Problems) -> dict | None:
     return out
 
 
-def _assemble_params(order, rows, refined, poses, problems: _Problems) -> dict | None:
+def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | None:
     """Per-frame SMPL parameters in frame order (None when some are unusable; the reasons go to
     ``problems``, except missing pose rows, which the caller reports). Betas: the first refined file
     (train, test, val), else poses.npz."""
@@ -355,7 +355,7 @@ def _pose(model: BodyModel, params: dict) -> tuple[np.ndarray, np.ndarray]:
     return canonical, out
 
 
-def _check_files_exist(root: Path, frames: list[dict], problems: _Problems) -> None:
+def _check_files_exist(root: Path, frames: list[dict], problems: Problems) -> None:
     missing = [r["frame_index"] for r in frames if not (root / r["image"]).is_file()]
     if missing:
         problems.add("images/", f"missing image_%04d.png for frames {_ids(missing)}")

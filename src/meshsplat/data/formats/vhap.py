@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    Problems, check_in_front, find_file, fit_coeffs, flame_driver_record, flame_model, flame_rows, frame_pixels,
+    check_in_front, find_file, fit_coeffs, flame_driver_record, flame_model, flame_rows, frame_pixels,
     has_alpha, mask_choice, pose_model, prepare_out, read_json, save_png, write_json)
 from meshsplat.errors import MeshsplatError
 
