@@ -2,7 +2,10 @@
 
 Configuration precedence: defaults, then --config FILE (or RUN/config.json with --resume), then
 --set KEY=VALUE overrides (e.g. --set strategy.refine_every=200 --set walk.enabled=false), then flags.
---resume continues bit for bit from the newest checkpoint in RUN/checkpoints.
+--resume continues bit for bit from the newest checkpoint in RUN/checkpoints; it refuses unreadable
+checkpoints and config changes other than paths, device/backend, logging/checkpoint cadence and
+--iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
+checkpoint_every_s seconds (default 900).
 """
 from __future__ import annotations
 
@@ -60,6 +63,9 @@ def run(args: argparse.Namespace) -> int:
     trainer = Trainer(cfg, resume=args.resume)
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
+        for note in trainer.resume_notes:
+            print(f"  changed on resume: {note}" + (" (the learning-rate schedule follows the new total)"
+                                                    if note.startswith("iterations:") else ""))
     elif args.resume:
         print(f"no checkpoint in {Path(cfg.out) / 'checkpoints'}: starting a new run")
     if trainer.iteration >= cfg.iterations:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.png import png_size, read_png
+from meshsplat.data.png import png_max, png_size, read_png
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError
@@ -17,6 +18,33 @@ from meshsplat.errors import MeshsplatError
 __all__ = ["Frame", "AvatarDataset", "open_dataset"]
 
 _MAX_LISTED = 25
+ALLOW_OUTSIDE_ENV = "MESHSPLAT_ALLOW_OUTSIDE_FILES"  # "1": manifest paths may leave the dataset folder
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _type_name(x) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
+            int: "a number", float: "a number"}.get(type(x), type(x).__name__)
+
+
+def _relative_path(value, what: str, where: str, problems: "_Problems", allow_outside: bool) -> str | None:
+    """A manifest path: a string naming a file inside the dataset folder (unless allowed)."""
+    if not isinstance(value, str) or not value:
+        problems.add(where, f"{what} must be a file path (a string), got {_type_name(value)}")
+        return None
+    norm = os.path.normpath(value)
+    if not allow_outside and (os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep)):
+        problems.add(where, f"{what} {value!r} lies outside the dataset folder; copy it into the folder, "
+                     f"or set {ALLOW_OUTSIDE_ENV}=1 to allow it")
+        return None
+    return value
 
 
 @dataclass
@@ -56,6 +84,12 @@ class _Problems:
 
 def _check_camera(cid: str, cam: dict, problems: _Problems) -> tuple[np.ndarray, np.ndarray] | None:
     where = f"camera {cid!r}"
+    if not isinstance(cam, dict):
+        problems.add(where, f"must be an object with K, viewmat, width, height, got {_type_name(cam)}")
+        return None
+    if not all(_is_int(cam.get(k)) for k in ("width", "height")):
+        problems.add(where, f"width and height must be integers, got {cam.get('width')!r} and {cam.get('height')!r}")
+        return None
     try:
         K = np.asarray(cam["K"], np.float64)
         vm = np.asarray(cam["viewmat"], np.float64)
@@ -117,7 +151,7 @@ class AvatarDataset:
 
     @property
     def meta(self) -> dict:
-        return dict(self.manifest.get("meta", {}))
+        return dict(self.manifest.get("meta") or {})
 
     @property
     def num_vertices(self) -> int:
@@ -163,10 +197,12 @@ class AvatarDataset:
             return self._cache[i]
         rec = self._frames[i]
         K, vm, w, h = self.camera(rec["camera"])
-        img = torch.from_numpy(read_png(self.root / rec["image"], 3)).float().div_(255.0)
+        arr = read_png(self.root / rec["image"], 3)
+        img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = None
         if rec.get("mask"):
-            mask = torch.from_numpy(read_png(self.root / rec["mask"], 1)).float().div_(255.0)
+            arr = read_png(self.root / rec["mask"], 1)
+            mask = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         fr = Frame(img, mask, K, vm, self.vertices(i), w, h, i, rec["name"], str(rec["camera"]),
                    rec.get("clip"), rec.get("time"))
         if self._cache_size > 0:
@@ -180,7 +216,9 @@ class AvatarDataset:
             yield self[i]
 
 
-def _load_canonical(root: Path, rel: str, problems: _Problems):
+def _load_canonical(root: Path, rel: str | None, problems: _Problems):
+    if rel is None:
+        return None, None
     p = root / rel
     if not p.is_file():
         problems.add(rel, "canonical mesh file is missing")
@@ -192,7 +230,7 @@ def _load_canonical(root: Path, rel: str, problems: _Problems):
             m = trimesh.load(p, process=False, force="mesh")
             v, f = np.asarray(m.vertices), np.asarray(m.faces)
         else:
-            with np.load(p) as z:
+            with np.load(p, allow_pickle=False) as z:
                 v, f = z["vertices"], z["faces"]
     except Exception as exc:
         problems.add(rel, f"cannot read canonical mesh ({exc})")
@@ -200,23 +238,46 @@ def _load_canonical(root: Path, rel: str, problems: _Problems):
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         problems.add(rel, f"expected vertices [V,3] and faces [F,3], got {list(v.shape)} and {list(f.shape)}")
         return None, None
+    if not np.issubdtype(f.dtype, np.integer):
+        problems.add(rel, f"faces must be integers, got {f.dtype} (store them as int32)")
+        return None, None
+    if not np.issubdtype(v.dtype, np.floating) and not np.issubdtype(v.dtype, np.integer):
+        problems.add(rel, f"vertices must be numbers, got {v.dtype}")
+        return None, None
+    if len(v) == 0 or len(f) == 0:
+        problems.add(rel, f"canonical mesh is empty ({len(v)} vertices, {len(f)} faces)")
+        return None, None
     if not np.isfinite(v).all():
         problems.add(rel, f"canonical vertices contain {int((~np.isfinite(v)).sum())} NaN/Inf values")
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
+    elif float(np.ptp(v, axis=0).max()) <= 0:
+        problems.add(rel, "canonical mesh is a single point (all vertices equal)")
+    if f.min() < 0 or f.max() >= len(v):
         problems.add(rel, f"face indices out of range [0, {len(v)})")
+    else:
+        e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+        if np.isfinite(v).all() and not (np.linalg.norm(np.cross(e1, e2), axis=1) > 0).any():
+            problems.add(rel, f"all {len(f)} faces of the canonical mesh have zero area")
     return v, f
 
 
-def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+def open_dataset(path, check_masks: bool = True, cache_size: int = 8,
+                 allow_outside: bool | None = None) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
-    Checks files, PNG sizes (headers only) against the cameras, principal points, camera
-    rotations and focal lengths, vertex counts and finiteness, split indices and (when
-    ``check_masks``) that no mask is empty. All problems are reported in one MeshsplatError.
+    Checks the JSON type of every manifest field, files, PNG sizes (headers only) against the
+    cameras, principal points, camera rotations and focal lengths, vertex counts and finiteness,
+    a non-degenerate integer-faced canonical mesh, split indices and (when ``check_masks``) that no
+    mask is empty. Paths must stay inside the folder unless ``allow_outside`` (default: the
+    ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1`` environment variable). All problems are reported in one
+    MeshsplatError.
     """
+    if allow_outside is None:
+        allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1"
     root = Path(path)
     if root.is_file() and root.name == "manifest.json":
         root = root.parent
+    if root.is_file():
+        raise MeshsplatError(f"{root} is a file; expected a dataset folder (holding manifest.json)")
     if not root.is_dir():
         raise MeshsplatError(f"dataset folder not found: {root}")
     mpath = root / "manifest.json"
@@ -228,31 +289,38 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
         raise MeshsplatError(f"{mpath}: invalid JSON ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise MeshsplatError(f"{mpath}: 'format' must be {FORMAT_NAME!r}")
-    if manifest.get("version") != FORMAT_VERSION:
+    if not _is_int(manifest.get("version")) or manifest.get("version") != FORMAT_VERSION:
         raise MeshsplatError(f"{mpath}: unsupported format version {manifest.get('version')!r} (this reader: {FORMAT_VERSION})")
     for key in ("canonical", "vertices", "cameras", "frames"):
         if key not in manifest:
             raise MeshsplatError(f"{mpath}: missing key {key!r}")
     frames = manifest["frames"]
     if not isinstance(frames, list) or not frames:
-        raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list")
+        raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list, got {_type_name(frames)}")
 
     problems = _Problems(root)
-    canonical, faces = _load_canonical(root, manifest["canonical"], problems)
+    rel_canonical = _relative_path(manifest["canonical"], "canonical", "manifest", problems, allow_outside)
+    rel_vertices = _relative_path(manifest["vertices"], "vertices", "manifest", problems, allow_outside)
+    canonical, faces = _load_canonical(root, rel_canonical, problems)
     verts = None
-    vpath = root / manifest["vertices"]
-    if not vpath.is_file():
-        problems.add(manifest["vertices"], "posed vertices file is missing")
+    vpath = root / rel_vertices if rel_vertices is not None else None
+    if vpath is None:
+        pass
+    elif not vpath.is_file():
+        problems.add(rel_vertices, "posed vertices file is missing")
     else:
         try:
-            verts = np.load(vpath, mmap_mode="r")
+            verts = np.load(vpath, mmap_mode="r", allow_pickle=False)
         except Exception as exc:
-            problems.add(manifest["vertices"], f"cannot read ({exc})")
-        if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
-            problems.add(manifest["vertices"], f"expected shape [T,V,3], got {list(verts.shape)}")
+            problems.add(rel_vertices, f"cannot read ({exc})")
+        if verts is not None and not isinstance(verts, np.ndarray):
+            problems.add(rel_vertices, "expected one .npy array [T,V,3]")
+            verts = None
+        if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3 or verts.dtype.kind not in "fiu"):
+            problems.add(rel_vertices, f"expected a number array [T,V,3], got {verts.dtype} {list(verts.shape)}")
             verts = None
         if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
-            problems.add(manifest["vertices"], f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+            problems.add(rel_vertices, f"vertex count mismatch: {verts.shape[1]} posed vertices per "
                          f"frame but the canonical mesh has {canonical.shape[0]}")
     bad_meshes: dict[int, int] = {}
     if verts is not None:
@@ -261,8 +329,12 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
             for j in np.nonzero(nonfinite)[0]:
                 bad_meshes[s + int(j)] = int(nonfinite[j])
 
+    cams_in = manifest["cameras"]
+    if not isinstance(cams_in, dict):
+        problems.add("manifest", f"'cameras' must be an object mapping camera ids to cameras, got {_type_name(cams_in)}")
+        cams_in = None
     cameras = {}
-    for cid, cam in (manifest["cameras"] or {}).items():
+    for cid, cam in (cams_in or {}).items():
         ok = _check_camera(str(cid), cam, problems)
         if ok is not None:
             cameras[str(cid)] = (ok[0], ok[1], int(cam["width"]), int(cam["height"]))
@@ -272,24 +344,37 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
         name = rec.get("name", str(i)) if isinstance(rec, dict) else str(i)
         where = f"frame {i} ({name!r})"
         if not isinstance(rec, dict) or "image" not in rec or "camera" not in rec or "mesh" not in rec:
-            problems.add(where, "needs 'image', 'camera' and 'mesh'")
+            problems.add(where, f"needs 'image', 'camera' and 'mesh' (got {_type_name(rec)})")
+            continue
+        bad_types = [f"{k} must be {want}, got {_type_name(rec[k])}" for k, want, ok in (
+            ("name", "a string", lambda x: isinstance(x, str)),
+            ("camera", "a camera id (string)", lambda x: isinstance(x, str) or _is_int(x)),
+            ("mesh", "an integer", _is_int),
+            ("clip", "a string or null", lambda x: x is None or isinstance(x, str)),
+            ("time", "a number or null", lambda x: x is None or _is_number(x)),
+        ) if k in rec and not ok(rec[k])]
+        if bad_types:
+            problems.add(where, "; ".join(bad_types))
             continue
         rec.setdefault("name", name)
         if name in names:
             problems.add(where, "duplicate frame name")
         names.add(name)
         cid = str(rec["camera"])
-        if cid not in manifest["cameras"]:
+        if cams_in is not None and cid not in cams_in:
             problems.add(where, f"unknown camera {cid!r}")
         m = rec["mesh"]
-        if verts is not None and not (isinstance(m, int) and 0 <= m < verts.shape[0]):
+        if verts is not None and not (0 <= m < verts.shape[0]):
             problems.add(where, f"mesh index {m!r} out of range [0, {verts.shape[0]})")
         elif m in bad_meshes:
             problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
-        size = (manifest["cameras"].get(cid, {}).get("width"), manifest["cameras"].get(cid, {}).get("height"))
+        cam = (cams_in or {}).get(cid)
+        size = (cam.get("width"), cam.get("height")) if isinstance(cam, dict) else (None, None)
         for kind in ("image", "mask"):
-            rel = rec.get(kind)
-            if not rel:
+            if kind == "mask" and rec.get("mask") is None:
+                continue
+            rel = _relative_path(rec.get(kind), f"{kind} path", where, problems, allow_outside)
+            if rel is None:
                 continue
             p = root / rel
             if not p.is_file():
@@ -300,7 +385,7 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
             except MeshsplatError:
                 problems.add(where, f"{kind} file {rel} is not a PNG")
                 continue
-            if cid in manifest["cameras"] and wh != size:
+            if cid in cameras and wh != size:
                 problems.add(where, f"{kind} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {cid!r} "
                              f"says {size[0]}x{size[1]}")
             elif kind == "mask" and check_masks:
@@ -311,9 +396,22 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
                     continue
                 if empty:
                     problems.add(where, f"empty mask {rel} (no foreground pixel)")
-    for sname, idx in (manifest.get("splits") or {}).items():
-        bad = [j for j in idx if not (isinstance(j, int) and 0 <= j < len(frames))]
+    splits = manifest.get("splits")
+    if splits is None:
+        splits = {}
+    if not isinstance(splits, dict):
+        problems.add("manifest", f"'splits' must be an object mapping names to lists of frame indices, "
+                     f"got {_type_name(splits)}")
+        splits = {}
+    for sname, idx in splits.items():
+        if not isinstance(idx, list):
+            problems.add(f"split {sname!r}", f"must be a list of frame indices, got {_type_name(idx)}")
+            continue
+        bad = [j for j in idx if not (_is_int(j) and 0 <= j < len(frames))]
         if bad:
-            problems.add(f"split {sname!r}", f"frame indices out of range: {bad[:5]}")
+            problems.add(f"split {sname!r}", f"frame indices out of range or not integers: {bad[:5]}")
+    if not isinstance(manifest.get("meta") or {}, dict):
+        problems.add("manifest", f"'meta' must be an object, got {_type_name(manifest.get('meta'))}")
     problems.raise_if_any()
+    manifest["splits"] = splits
     return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size)

@@ -57,13 +57,17 @@ def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> Load
 
 
 def run_dataset_path(run: LoadedRun, dataset: str | Path | None = None) -> Path:
-    """``dataset`` if given, else the ``data`` entry of the run's config (relative paths as stored)."""
+    """``dataset`` if given, else the ``data`` entry of the run's config. Runs store it absolute;
+    a relative one (older runs) is tried from the current folder, then from the run folder."""
     if dataset is not None:
         return Path(dataset)
     data = run.config.get("data")
-    if not data:
+    if not data or not isinstance(data, str):
         raise MeshsplatError(f"{run.run_dir}: config.json names no dataset; pass --dataset PATH")
     p = Path(data)
     if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
         p = run.run_dir / p
+    if not p.exists():
+        raise MeshsplatError(f"the run's dataset {data} (from {run.run_dir / 'config.json'}) is not there: was it "
+                             "moved or deleted? Pass --dataset PATH")
     return p
