@@ -8,8 +8,8 @@ Each case runs in a forked child (the package is imported once) under a 3 GiB ad
 so "allocates until it dies" shows up as a MemoryError traceback instead of taking the machine down.
 Outcomes: ``error`` = exit 2 with one line (what we want for bad input), ``ok`` = exit 0,
 ``traceback``, ``killed``, ``timeout``; a check after the run may append what went wrong silently
-(``ok, but ...``). Read-only cases drop to uid 65534 in the child (root ignores file modes);
-full-disk cases use a 1 MiB tmpfs (root only; skipped otherwise). Signal and kill-and-resume cases
+(``ok, but ...``). Read-only cases use a read-only tmpfs (root ignores file modes) and full-disk
+cases a 1 MiB tmpfs (both need mount rights; skipped otherwise). Signal and kill-and-resume cases
 run real subprocesses.
 """
 from __future__ import annotations
@@ -37,6 +37,9 @@ import torch
 
 torch.set_num_threads(1)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+# subprocesses run from other folders: make the package under test importable from anywhere
+os.environ["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve()) for p in
+                                           os.environ.get("PYTHONPATH", "").split(os.pathsep) if p)
 
 GLB = Path(os.environ.get("MESHSPLAT_ASSETS", Path(__file__).resolve().parents[2] / "shared" / "assets")) / "gltf" / "CesiumMan.glb"
 if not GLB.is_file():
@@ -312,7 +315,7 @@ def _png16(ctx):
         fr = open_dataset(d)[0]
         em = float((fr.mask[..., 0].numpy() - mask / 65535.0).__abs__().max())
         ei = float((fr.image.numpy() - img / 65535.0).__abs__().max())
-        if max(em, ei) > 1.0 / 255:
+        if em > 1e-4 or ei > 1.5 / 255:  # grey: exact; RGB: Pillow keeps the high byte (one 8-bit level)
             sat = float((fr.mask == 1.0).float().mean()) * 100
             print(f"wrong values: max error mask {em:.3f} image {ei:.3f}; {sat:.0f}% of mask saturated",
                   file=sys.stderr)
@@ -415,8 +418,13 @@ def _killresume(ctx):
                 shutil.rmtree(d)
         rc, err = cli_subprocess(["train", str(ctx["ds"]), "--out", str(a), "--iters", "10", *base])
         assert rc == 0, err
-        rc, err = cli_subprocess(["train", str(ctx["ds"]), "--out", str(b), "--iters", "5", *base])
-        assert rc == 0, err
+        code = "import sys; from meshsplat.cli.main import main; sys.exit(main(sys.argv[1:]))"
+        p = subprocess.Popen([sys.executable, "-c", code, "train", str(ctx["ds"]), "--out", str(b), "--iters", "10",
+                              *base], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        while p.poll() is None and not (b / "checkpoints" / "ckpt_00000005.pt").is_file():
+            time.sleep(0.01)
+        p.send_signal(signal.SIGKILL)  # right after the checkpoint at 5 (a few iterations may follow)
+        p.wait()
         rc, err = cli_subprocess(["train", str(ctx["ds"]), "--out", str(b), "--iters", "10", "--resume", "--no-progress"])
         assert rc == 0, err
         sa = torch.load(a / "checkpoints" / "ckpt_00000010.pt", weights_only=True)["state"]["avatar"]["params"]
@@ -453,10 +461,9 @@ for _cmd in ("train", "synth", "eval", "render", "export", "view"):
 
         @case("output location", f"{cmd} --out in a read-only folder")
         def _ro(ctx):
-            ro = ctx["tmp"] / "readonly"
-            ro.mkdir(exist_ok=True)
-            os.chmod(ro, 0o555)
-            return cli(*_out_cmds(ctx, ro / "out")[cmd]), {"uid": NOBODY}, None
+            if ctx.get("rofs") is None:
+                return None
+            return cli(*_out_cmds(ctx, ctx["rofs"] / "out")[cmd]), {}, None
 
         @case("output location", f"{cmd} --out on a full disk")
         def _full(ctx):
@@ -664,6 +671,10 @@ def build_context(tmp: Path) -> dict:
     fs.mkdir()
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(fs)], capture_output=True)
     ctx["tmpfs"] = fs if r.returncode == 0 else None
+    ro = tmp / "rofs"
+    ro.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)], capture_output=True)
+    ctx["rofs"] = ro if r.returncode == 0 else None
     return ctx
 
 
@@ -687,7 +698,7 @@ def main() -> int:
                 continue
             built = builder(ctx)
             if built is None:
-                outcome, line = "skipped (no tmpfs)", ""
+                outcome, line = "skipped (cannot mount a tmpfs)", ""
             else:
                 fn, opts, check = built
                 outcome, line = run_forked(fn, uid=opts.get("uid"))
@@ -699,8 +710,9 @@ def main() -> int:
                             "message": line})
             print(f"{'PASS' if good else 'FAIL'} | {cls} | {name} | {outcome} | {line}", flush=True)
     finally:
-        if (tmp / "tmpfs").is_dir():
-            subprocess.run(["umount", str(tmp / "tmpfs")], capture_output=True)
+        for m in ("tmpfs", "rofs"):
+            if (tmp / m).is_dir():
+                subprocess.run(["umount", str(tmp / m)], capture_output=True)
         shutil.rmtree(tmp, ignore_errors=True)
     n_good = sum(r["good"] for r in results)
     print(f"{n_good}/{len(results)} cases end as expected")

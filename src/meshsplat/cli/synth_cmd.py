@@ -5,6 +5,9 @@ ASSET is a .glb/.gltf/.npz path or a shared asset name (CesiumMan, RobotExpressi
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from meshsplat.cli._guards import check_memory, check_output_dir, check_range, synth_bytes
 
 __all__ = ["add_arguments", "run"]
 
@@ -34,6 +37,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from meshsplat.synth import contact_sheet, generate
+
+    check_range("--resolution", args.resolution, "synth --resolution")
+    check_range("--frames", args.frames, "synth --frames")
+    check_range("--test-frames", args.test_frames, "synth --test-frames")
+    check_range("--views", args.views, "synth --views")
+    check_range("--test-views", args.test_views, "synth --test-views")
+    check_range("--train-fraction", args.train_fraction, "synth --train-fraction")
+    check_range("--driver-smooth", args.driver_smooth, "synth --driver-smooth")
+    check_range("--driver-decimate", args.driver_decimate, "synth --driver-decimate")
+    check_range("--supersample", args.supersample, "synth --supersample")
+    ss = args.supersample or (2 if args.resolution <= 384 else 1)
+    check_range("--resolution x --supersample", args.resolution * ss, "synth resolution x supersample")
+    check_memory(f"synth at {args.resolution} px with supersample {ss}", synth_bytes(args.resolution, ss),
+                 "lower --resolution or --supersample")
+    check_output_dir(args.out)
+    if args.contact_sheet:
+        check_output_dir(Path(args.contact_sheet).parent, "--contact-sheet")
 
     out = generate(args.asset, args.out, rig=args.rig, frames=args.frames, resolution=args.resolution,
                    clip=args.clip, test_clips=args.test_clips, train_fraction=args.train_fraction,

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from meshsplat.cli._guards import check_memory, check_output_dir, check_range
+
 __all__ = ["add_arguments", "run", "build_config"]
 
 
@@ -59,7 +61,12 @@ def run(args: argparse.Namespace) -> int:
 
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
+    check_output_dir(args.out)
+    check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
+    n = max(cfg.model.n_init, min(cfg.strategy.max_gaussians, 4 * cfg.model.n_init))
+    check_memory(f"training with model.n_init={cfg.model.n_init}", 2e8 + 1200.0 * n,
+                 "lower model.n_init / strategy.max_gaussians")
     trainer = Trainer(cfg, resume=args.resume)
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")

@@ -52,7 +52,11 @@ def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> Load
             raise MeshsplatError(f"{cfg_path}: not valid JSON ({exc})") from None
     elif isinstance(state.get("config"), dict):
         config = dict(state["config"])
+    if not isinstance(config, dict):
+        raise MeshsplatError(f"{cfg_path}: expected a JSON object, got {type(config).__name__}")
     it = state.get("iteration")
+    if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 0):
+        raise MeshsplatError(f"{ckpt}: 'iteration' must be a non-negative integer, got {it!r}")
     return LoadedRun(run_dir, Path(ckpt), int(it) if it is not None else None, avatar, config)
 
 
