@@ -479,7 +479,7 @@ for _cmd in ("train", "synth", "eval", "render", "export", "view"):
             else:
                 argv = _out_cmds(ctx, fs / "out")[cmd]
             st = os.statvfs(fs)
-            (fs / "filler").write_bytes(b"\0" * max(0, st.f_bavail * st.f_frsize - 16384))
+            (fs / "filler").write_bytes(b"\0" * max(0, st.f_bavail * st.f_frsize - 8192))
             return cli(*argv), {}, None
     _mk()
 
@@ -662,6 +662,21 @@ def _manifest_garbage(ctx):
     return cli("train", d, "--out", ctx["tmp"] / "mg_out", *TRAIN), {}, None
 
 
+def print_table(before: str, after: str) -> None:
+    b = {r["case"]: r for r in json.loads(Path(before).read_text())}
+    rows = json.loads(Path(after).read_text())
+    print("| class | case | expected | before | after |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        old = b.get(r["case"], {})
+        cell = lambda x: (x.get("outcome", "-") + (f": {x['message']}" if x.get("message") and x.get("outcome") != "ok" else "")
+                          ).replace("|", "/")[:140]  # noqa: E731
+        print(f"| {r['class']} | {r['case']} | {r['expect']} | {cell(old)} | {cell(r)} |")
+    nb = sum(x["good"] for x in b.values())
+    na = sum(x["good"] for x in rows)
+    print(f"\nas expected: before {nb}/{len(b)}, after {na}/{len(rows)}")
+
+
 # ---- main --------------------------------------------------------------------------------
 def build_context(tmp: Path) -> dict:
     ctx = {"tmp": tmp}
@@ -682,7 +697,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=None)
     ap.add_argument("--only", default=None, help="run only cases whose name contains this")
+    ap.add_argument("--compare", nargs=2, metavar=("BEFORE.json", "AFTER.json"), default=None,
+                    help="print the markdown table class | case | before | after of two --json results")
     a = ap.parse_args()
+    if a.compare:
+        print_table(*a.compare)
+        return 0
     import meshsplat
 
     tmp = Path(tempfile.mkdtemp(prefix="badinput_"))

@@ -36,9 +36,9 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import compose
 from meshsplat.gaussians.params import init_params, num_gaussians
+from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.train.config import TrainConfig
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
-from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.train.resume import (StopOnSignal, TrainingInterrupted, check_resume_config, load_resume_checkpoint,
                                     refuse_existing_run, signal_name)
 from meshsplat.train.strategy import walk_embeddings
@@ -111,7 +111,13 @@ class Trainer:
         loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
         if loaded is not None:
             self.resume_notes = check_resume_config(loaded[1].get("config"), self.cfg.to_dict(), loaded[0])
-            self._restore(loaded[1])
+            try:
+                self._restore(loaded[1])
+            except MeshsplatError:
+                raise
+            except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as exc:
+                raise MeshsplatError(f"cannot resume from {loaded[0]}: the checkpoint is incomplete or "
+                                     f"inconsistent ({type(exc).__name__}: {str(exc)[:160]})") from None
             self.resumed_from: Path | None = loaded[0]
         else:
             self.resumed_from = None
