@@ -19,7 +19,7 @@ import io
 import json
 import math
 import os
-import pickle
+import re
 import resource
 import shutil
 import signal
@@ -199,10 +199,13 @@ def case(cls, name, expect="error"):
     return deco
 
 
+_DS: list = []  # the fixture dataset's folder, once built
+
+
 def manifest_case(name, fn):
     @case("manifest type", name)
     def _b(ctx):
-        d = edit_manifest(ctx, "m_" + name.replace(" ", "_")[:40], fn)
+        d = edit_manifest(ctx, "m_" + "".join(c if c.isalnum() else "_" for c in name)[:40], fn)
         return cli("train", d, "--out", ctx["tmp"] / "m_out", *TRAIN), {}, None
 
 
@@ -230,8 +233,9 @@ manifest_case("a split is a number", lambda m: m["splits"].__setitem__("train", 
 manifest_case("a split holds a string", lambda m: m["splits"].__setitem__("train", ["0"]))
 manifest_case("meta is a list", lambda m: m.__setitem__("meta", [1]))
 manifest_case("frames is an object", lambda m: m.__setitem__("frames", {"0": m["frames"][0]}))
-manifest_case("image outside the dataset (../)", lambda m: m["frames"][0].__setitem__("image", "../" + m["frames"][0]["image"]))
+manifest_case("image outside the dataset (../, file exists)", lambda m: m["frames"][0].__setitem__("image", "../ds/" + m["frames"][0]["image"]))
 manifest_case("image at an absolute path", lambda m: m["frames"][0].__setitem__("image", "/etc/passwd"))
+manifest_case("mask at an absolute path (file exists)", lambda m: m["frames"][0].__setitem__("mask", str(_DS[0] / m["frames"][0]["mask"])))
 manifest_case("vertices outside the dataset", lambda m: m.__setitem__("vertices", "/dev/zero"))
 
 
@@ -669,8 +673,10 @@ def print_table(before: str, after: str) -> None:
     print("|---|---|---|---|---|")
     for r in rows:
         old = b.get(r["case"], {})
-        cell = lambda x: (x.get("outcome", "-") + (f": {x['message']}" if x.get("message") and x.get("outcome") != "ok" else "")
-                          ).replace("|", "/")[:140]  # noqa: E731
+        def cell(x):
+            msg = re.sub(r"/tmp/badinput_[^/ ]+/", "", x.get("message", "")).replace("meshsplat ", "")
+            text = x.get("outcome", "-") + (f": {msg}" if msg and x.get("outcome") != "ok" else "")
+            return text.replace("|", "/")[:110]
         print(f"| {r['class']} | {r['case']} | {r['expect']} | {cell(old)} | {cell(r)} |")
     nb = sum(x["good"] for x in b.values())
     na = sum(x["good"] for x in rows)
@@ -681,6 +687,7 @@ def print_table(before: str, after: str) -> None:
 def build_context(tmp: Path) -> dict:
     ctx = {"tmp": tmp}
     ctx["ds"] = make_dataset(tmp / "ds")
+    _DS.append(ctx["ds"])
     ctx["run"] = train_run(ctx["ds"], tmp / "run")
     fs = tmp / "tmpfs"
     fs.mkdir()
