@@ -100,11 +100,16 @@ def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: 
     return torch.from_numpy(idx)
 
 
+MAX_ANIMATION_FRAMES = 100_000  # docs/limits.md
+
+
 def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> list[torch.Tensor]:
     if not frames:
         raise MeshsplatError(f"{what}: no frames")
     for i, v in enumerate(frames):
         check_tensor(f"{what} frame {i}", v, "V,3", {"V": num_vertices}, dtype="float", finite=True)
+        if v.shape[0] > 1 and float((v.amax(0) - v.amin(0)).max()) <= 0:
+            raise MeshsplatError(f"{what} frame {i}: all {v.shape[0]} vertices lie at one point (a degenerate mesh)")
     return frames
 
 
@@ -133,6 +138,9 @@ def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, sec
     if length < 0:
         raise MeshsplatError(f"seconds: expected >= 0, got {seconds}")
     n = max(1, int(math.floor(length * fps + 1e-6)) + (1 if seconds is None else 0))
+    if n > MAX_ANIMATION_FRAMES:
+        raise MeshsplatError(f"{length:g} s at {fps:g} fps is {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} "
+                             "(lower --fps or --seconds)")
     return _check_frames([drv.vertices_at(t0 + start + i / fps) for i in range(n)], v_avatar, "glTF animation")
 
 
@@ -150,6 +158,10 @@ def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
     v = avatar.mesh.num_vertices
     if len(shape) != 3 or shape[1:] != (v, 3):
         raise MeshsplatError(f"vertices: expected shape [T,{v},3] (the avatar's {v} canonical vertices), got {list(shape)}")
+    if isinstance(vertices, np.ndarray) and vertices.dtype.kind not in "fiu":
+        raise MeshsplatError(f"vertices: expected numbers, got dtype {vertices.dtype}")
+    if shape[0] > MAX_ANIMATION_FRAMES:
+        raise MeshsplatError(f"vertices: {shape[0]:,} frames; at most {MAX_ANIMATION_FRAMES:,} (see docs/limits.md)")
     frames = [torch.as_tensor(np.array(vertices[i], dtype=np.float32)) for i in range(shape[0])]
     return _check_frames(frames, v, "vertex sequence")
 

@@ -1,8 +1,33 @@
 """User-facing error type: the CLI prints its message without a traceback."""
 from __future__ import annotations
 
-__all__ = ["MeshsplatError"]
+import errno
+
+__all__ = ["MeshsplatError", "os_error_text"]
 
 
 class MeshsplatError(ValueError):
     """Bad input or state that the user can fix; the message names the problem."""
+
+
+_OS_HINTS = {
+    errno.ENOSPC: "the disk is full; free some space",
+    errno.EDQUOT: "the disk quota is exhausted; free some space",
+    errno.EFBIG: "the file is larger than this system allows",
+    errno.EROFS: "the file system is read-only; choose another location",
+    errno.EACCES: "check the permissions, or choose a location you can write",
+    errno.EPERM: "check the permissions, or choose a location you can write",
+    errno.ENOTDIR: "a file stands where a folder is needed; choose another location",
+    errno.EISDIR: "a folder stands where a file is needed; choose another name",
+    errno.EEXIST: "a file of that name already exists",
+    errno.ENAMETOOLONG: "the name is too long",
+}
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an OS error: what failed, on which path, and what to do."""
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    hint = _OS_HINTS.get(exc.errno)
+    text = str(exc).strip()
+    what = exc.strerror or (text.splitlines()[0] if text else type(exc).__name__)
+    return f"{what}{where}" + (f": {hint}" if hint else "")

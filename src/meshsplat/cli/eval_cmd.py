@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.cli._guards import check_output_dir, check_range
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -29,8 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from meshsplat.eval import evaluate_run
 
+    check_range("--max-frames", args.max_frames, "eval --max-frames")
+    if args.out or Path(args.run).is_dir():
+        check_output_dir(args.out if args.out else Path(args.run) / "eval")
     m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
                      max_frames_per_split=args.max_frames, background=args.background, device=args.device,
                      lpips_net=None if args.no_lpips else "alex", report=not args.no_report,

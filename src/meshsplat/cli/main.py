@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, os_error_text
 
 # name -> module under meshsplat.cli (imported only when that command runs, or for --help)
 COMMANDS = {
@@ -59,14 +60,24 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     try:
         return int(_load(args.command).run(args) or 0)
-    except (MeshsplatError, FileNotFoundError) as exc:
+    except (MeshsplatError, OSError, MemoryError) as exc:
         if args.debug:
             raise
-        print(f"meshsplat {args.command}: error: {exc}", file=sys.stderr)
+        print(f"meshsplat {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"meshsplat {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"meshsplat {args.command}: interrupted" + (f": {exc}" if str(exc) else ""), file=sys.stderr)
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
+def _one_line(exc: BaseException) -> str:
+    """The user-facing text of an error: OS errors (a full disk, a read-only or occupied output
+    location) say what failed on which path and what to do; memory errors say what to reduce."""
+    if isinstance(exc, MemoryError):
+        return "out of memory; reduce the request (image size, frame count, Gaussians; see docs/limits.md)"
+    if isinstance(exc, OSError) and not isinstance(exc, MeshsplatError):
+        return os_error_text(exc)
+    return str(exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

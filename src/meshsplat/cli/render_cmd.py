@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from meshsplat.cli._guards import LIMITS, check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "parse_size"]
@@ -65,8 +66,9 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise MeshsplatError(f"--size: expected WxH such as 512x512, got {text!r}") from None
-    if w < 1 or h < 1 or w > 16384 or h > 16384:
-        raise MeshsplatError(f"--size: expected 1..16384 pixels per side, got {text!r}")
+    lo, hi, _ = LIMITS["render --size"]
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise MeshsplatError(f"--size: expected {lo}..{hi} pixels per side, got {text!r} (see docs/limits.md)")
     return w, h
 
 
@@ -74,9 +76,18 @@ def run(args: argparse.Namespace) -> int:
     from meshsplat import animate, camera
     from meshsplat.eval.run import load_run, open_run_dataset
 
+    check_range("--fps", args.fps, "render --fps")
+    check_range("--seconds", args.seconds, "render --seconds")
+    check_range("--fov", args.fov, "render --fov")
+    check_range("--elevation", args.elevation, "render --elevation")
+    if args.distance is not None and not args.distance > 0:
+        raise MeshsplatError(f"--distance: expected > 0, got {args.distance:g}")
+    if args.seconds is not None:
+        check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
+    size = parse_size(args.size) if args.size else None
+    check_output_dir(args.out)
     r = load_run(args.run, device=args.device)
     avatar = r.avatar
-    size = parse_size(args.size) if args.size else None
     ds = None
 
     def dataset():
@@ -117,6 +128,11 @@ def run(args: argparse.Namespace) -> int:
         cameras = camera.orbit_cameras(frames, w, h, orbit_deg=args.orbit or 0.0, azimuth_deg=args.azimuth,
                                         elevation_deg=10.0 if args.elevation is None else args.elevation,
                                         distance=args.distance, fov_deg=args.fov)
+    check_range("frames to render", len(frames), "render frames")
+    sizes = [(c.width, c.height) for c in (cameras if isinstance(cameras, list) else [cameras])]
+    w, h = max(sizes, key=lambda s: s[0] * s[1])
+    check_memory(f"rendering {len(frames)} frames at {w}x{h}", render_bytes(w, h, len(frames)),
+                 "lower --size, or render fewer frames (--seconds, --fps)")
     res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=args.background,
                                    name=args.name, write_pngs=not args.no_png, write_mp4=not args.no_mp4,
                                    backend=args.backend, progress=not args.no_progress)

@@ -8,6 +8,9 @@ for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from meshsplat.cli._guards import check_memory, check_output_dir, check_range, synth_bytes
 
 __all__ = ["add_arguments", "run"]
 
@@ -49,6 +52,23 @@ def run(args) -> int:
     from meshsplat.errors import MeshsplatError
     from meshsplat.synth import contact_sheet
     from meshsplat.synth.capture import synth_capture
+
+    check_range("--resolution", args.resolution, "synth --resolution")
+    check_range("--frames", args.frames, "synth --frames")
+    check_range("--test-frames", args.test_frames, "synth --test-frames")
+    check_range("--views", args.views, "synth --views")
+    check_range("--test-views", args.test_views, "synth --test-views")
+    check_range("--train-fraction", args.train_fraction, "synth --train-fraction")
+    check_range("--driver-smooth", args.driver_smooth, "synth --driver-smooth")
+    check_range("--driver-decimate", args.driver_decimate, "synth --driver-decimate")
+    check_range("--supersample", args.supersample, "synth --supersample")
+    ss = args.supersample or (2 if args.resolution <= 384 else 1)
+    check_range("--resolution x --supersample", args.resolution * ss, "synth resolution x supersample")
+    check_memory(f"synth at {args.resolution} px with supersample {ss}", synth_bytes(args.resolution, ss),
+                 "lower --resolution or --supersample")
+    check_output_dir(args.out)
+    if args.contact_sheet:
+        check_output_dir(Path(args.contact_sheet).parent, "--contact-sheet")
 
     if args.masks is not None and args.format != "peoplesnapshot":
         raise MeshsplatError("--masks applies to --format peoplesnapshot only")

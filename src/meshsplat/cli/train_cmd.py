@@ -2,12 +2,17 @@
 
 Configuration precedence: defaults, then --config FILE (or RUN/config.json with --resume), then
 --set KEY=VALUE overrides (e.g. --set strategy.refine_every=200 --set walk.enabled=false), then flags.
---resume continues bit for bit from the newest checkpoint in RUN/checkpoints.
+--resume continues bit for bit from the newest checkpoint in RUN/checkpoints; it refuses unreadable
+checkpoints and config changes other than paths, device/backend, logging/checkpoint cadence and
+--iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
+checkpoint_every_s seconds (default 900).
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from meshsplat.cli._guards import check_memory, check_output_dir, check_range
 
 __all__ = ["add_arguments", "run", "build_config"]
 
@@ -69,15 +74,23 @@ def run(args: argparse.Namespace) -> int:
 
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
+    check_output_dir(args.out)
+    check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
     from meshsplat.data.formats import detect_format, format_module
 
     fmt = cfg.data_format or detect_format(cfg.data)
     print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
     cfg.data_format = fmt
+    n = max(cfg.model.n_init, min(cfg.strategy.max_gaussians, 4 * cfg.model.n_init))
+    check_memory(f"training with model.n_init={cfg.model.n_init}", 2e8 + 1200.0 * n,
+                 "lower model.n_init / strategy.max_gaussians")
     trainer = Trainer(cfg, resume=args.resume)
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
+        for note in trainer.resume_notes:
+            print(f"  changed on resume: {note}" + (" (the learning-rate schedule follows the new total)"
+                                                    if note.startswith("iterations:") else ""))
     elif args.resume:
         print(f"no checkpoint in {Path(cfg.out) / 'checkpoints'}: starting a new run")
     if trainer.iteration >= cfg.iterations:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from meshsplat.cli._guards import check_output_dir, check_range
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "load_frames"]
@@ -106,8 +107,11 @@ def run(args: argparse.Namespace) -> int:
     from meshsplat.eval.run import load_run
     from meshsplat.viewer import write_viewer_bundle
 
-    if args.fps <= 0:
-        raise MeshsplatError(f"--fps: expected > 0, got {args.fps}")
+    check_range("--fps", args.fps, "view --fps")
+    check_range("--frames", args.frames, "view --frames")
+    if args.serve:
+        check_range("--port", args.port, "view --port")
+    check_output_dir(args.out)
     r = load_run(args.run, device="cpu")
     frames = load_frames(r.avatar, args, r)
     title = args.title or r.run_dir.resolve().name

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.png import image_size, read_image
+from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError
@@ -19,6 +20,33 @@ __all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems"
 MASK_KINDS = ("png", "npy", "alpha")  # a mask file (any image), a numpy array, the image's 4th channel
 
 _MAX_LISTED = 25
+ALLOW_OUTSIDE_ENV = "MESHSPLAT_ALLOW_OUTSIDE_FILES"  # "1": manifest paths may leave the dataset folder
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _type_name(x) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
+            int: "a number", float: "a number"}.get(type(x), type(x).__name__)
+
+
+def _relative_path(value, what: str, where: str, problems: "Problems", allow_outside: bool) -> str | None:
+    """A manifest path: a string naming a file inside the dataset folder (unless allowed)."""
+    if not isinstance(value, str) or not value:
+        problems.add(where, f"{what} must be a file path (a string), got {_type_name(value)}")
+        return None
+    norm = os.path.normpath(value)
+    if not allow_outside and (os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep)):
+        problems.add(where, f"{what} {value!r} lies outside the dataset folder; copy it into the folder, "
+                     f"or set {ALLOW_OUTSIDE_ENV}=1 to allow it")
+        return None
+    return value
 
 
 @dataclass
@@ -60,6 +88,12 @@ class Problems:
 
 def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, np.ndarray] | None:
     where = f"camera {cid!r}"
+    if not isinstance(cam, dict):
+        problems.add(where, f"must be an object with K, viewmat, width, height, got {_type_name(cam)}")
+        return None
+    if not all(_is_int(cam.get(k)) for k in ("width", "height")):
+        problems.add(where, f"width and height must be integers, got {cam.get('width')!r} and {cam.get('height')!r}")
+        return None
     try:
         K = np.asarray(cam["K"], np.float64)
         vm = np.asarray(cam["viewmat"], np.float64)
@@ -124,7 +158,7 @@ class AvatarDataset:
 
     @property
     def meta(self) -> dict:
-        return dict(self.manifest.get("meta", {}))
+        return dict(self.manifest.get("meta") or {})
 
     @property
     def driver_info(self) -> dict | None:
@@ -196,7 +230,8 @@ class AvatarDataset:
             return self._cache[i]
         rec = self._frames[i]
         K, vm, w, h = self.camera(rec["camera"])
-        img = torch.from_numpy(read_image(self.root / rec["image"], 3)).float().div_(255.0)
+        arr = read_image(self.root / rec["image"], 3)
+        img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = self._load_mask(rec)
         fr = Frame(img, mask, K, vm, self.vertices(i), w, h, i, rec["name"], str(rec["camera"]),
                    rec.get("clip"), rec.get("time"))
@@ -214,7 +249,8 @@ class AvatarDataset:
             return None
         if kind == "npy":
             return torch.from_numpy(_read_npy_mask(self.root / rec["mask"]))
-        return torch.from_numpy(read_image(self.root / rec["mask"], 1)).float().div_(255.0)
+        arr = read_image(self.root / rec["mask"], 1)
+        return torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
 
     def __iter__(self):
         for i in range(len(self)):
@@ -236,7 +272,9 @@ def _read_npy_mask(path: Path) -> np.ndarray:
     return np.clip(a, 0.0, 1.0)[..., None]
 
 
-def _load_canonical(root: Path, rel: str, problems: Problems):
+def _load_canonical(root: Path, rel: str | None, problems: Problems):
+    if rel is None:
+        return None, None
     p = root / rel
     if not p.is_file():
         problems.add(rel, "canonical mesh file is missing")
@@ -248,7 +286,7 @@ def _load_canonical(root: Path, rel: str, problems: Problems):
             m = trimesh.load(p, process=False, force="mesh")
             v, f = np.asarray(m.vertices), np.asarray(m.faces)
         else:
-            with np.load(p) as z:
+            with np.load(p, allow_pickle=False) as z:
                 v, f = z["vertices"], z["faces"]
     except Exception as exc:
         problems.add(rel, f"cannot read canonical mesh ({exc})")
@@ -256,23 +294,46 @@ def _load_canonical(root: Path, rel: str, problems: Problems):
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         problems.add(rel, f"expected vertices [V,3] and faces [F,3], got {list(v.shape)} and {list(f.shape)}")
         return None, None
+    if not np.issubdtype(f.dtype, np.integer):
+        problems.add(rel, f"faces must be integers, got {f.dtype} (store them as int32)")
+        return None, None
+    if not np.issubdtype(v.dtype, np.floating) and not np.issubdtype(v.dtype, np.integer):
+        problems.add(rel, f"vertices must be numbers, got {v.dtype}")
+        return None, None
+    if len(v) == 0 or len(f) == 0:
+        problems.add(rel, f"canonical mesh is empty ({len(v)} vertices, {len(f)} faces)")
+        return None, None
     if not np.isfinite(v).all():
         problems.add(rel, f"canonical vertices contain {int((~np.isfinite(v)).sum())} NaN/Inf values")
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
+    elif float(np.ptp(v, axis=0).max()) <= 0:
+        problems.add(rel, "canonical mesh is a single point (all vertices equal)")
+    if f.min() < 0 or f.max() >= len(v):
         problems.add(rel, f"face indices out of range [0, {len(v)})")
+    else:
+        e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+        if np.isfinite(v).all() and not (np.linalg.norm(np.cross(e1, e2), axis=1) > 0).any():
+            problems.add(rel, f"all {len(f)} faces of the canonical mesh have zero area")
     return v, f
 
 
-def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+def open_dataset(path, check_masks: bool = True, cache_size: int = 8,
+                 allow_outside: bool | None = None) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
-    Checks files, PNG sizes (headers only) against the cameras, principal points, camera
-    rotations and focal lengths, vertex counts and finiteness, split indices and (when
-    ``check_masks``) that no mask is empty. All problems are reported in one MeshsplatError.
+    Checks the JSON type of every manifest field, files, PNG sizes (headers only) against the
+    cameras, principal points, camera rotations and focal lengths, vertex counts and finiteness,
+    a non-degenerate integer-faced canonical mesh, split indices and (when ``check_masks``) that no
+    mask is empty. Paths must stay inside the folder unless ``allow_outside`` (default: the
+    ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1`` environment variable). All problems are reported in one
+    MeshsplatError.
     """
+    if allow_outside is None:
+        allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1"
     root = Path(path)
     if root.is_file() and root.name == "manifest.json":
         root = root.parent
+    if root.is_file():
+        raise MeshsplatError(f"{root} is a file; expected a dataset folder (holding manifest.json)")
     if not root.is_dir():
         raise MeshsplatError(f"dataset folder not found: {root}")
     mpath = root / "manifest.json"
@@ -284,61 +345,76 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8) -> AvatarD
         raise MeshsplatError(f"{mpath}: invalid JSON ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise MeshsplatError(f"{mpath}: 'format' must be {FORMAT_NAME!r}")
-    if manifest.get("version") != FORMAT_VERSION:
+    if not _is_int(manifest.get("version")) or manifest.get("version") != FORMAT_VERSION:
         raise MeshsplatError(f"{mpath}: unsupported format version {manifest.get('version')!r} (this reader: {FORMAT_VERSION})")
     for key in ("canonical", "vertices", "cameras", "frames"):
         if key not in manifest:
             raise MeshsplatError(f"{mpath}: missing key {key!r}")
     frames = manifest["frames"]
     if not isinstance(frames, list) or not frames:
-        raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list")
+        raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list, got {_type_name(frames)}")
 
     problems = Problems(root)
-    canonical, faces = _load_canonical(root, manifest["canonical"], problems)
+    rel_canonical = _relative_path(manifest["canonical"], "canonical", "manifest", problems, allow_outside)
+    rel_vertices = _relative_path(manifest["vertices"], "vertices", "manifest", problems, allow_outside)
+    canonical, faces = _load_canonical(root, rel_canonical, problems)
     verts = None
-    vpath = root / manifest["vertices"]
-    if not vpath.is_file():
-        problems.add(manifest["vertices"], "posed vertices file is missing")
+    vpath = root / rel_vertices if rel_vertices is not None else None
+    if vpath is None:
+        pass
+    elif not vpath.is_file():
+        problems.add(rel_vertices, "posed vertices file is missing")
     else:
         try:
-            verts = np.load(vpath, mmap_mode="r")
+            verts = np.load(vpath, mmap_mode="r", allow_pickle=False)
         except Exception as exc:
-            problems.add(manifest["vertices"], f"cannot read ({exc})")
+            problems.add(rel_vertices, f"cannot read ({exc})")
+        if verts is not None and not isinstance(verts, np.ndarray):
+            problems.add(rel_vertices, "expected one .npy array [T,V,3]")
+            verts = None
+        if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3 or verts.dtype.kind not in "fiu"):
+            problems.add(rel_vertices, f"expected a number array [T,V,3], got {verts.dtype} {list(verts.shape)}")
+            verts = None
+        if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
+            problems.add(rel_vertices, f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+                         f"frame but the canonical mesh has {canonical.shape[0]}")
     driver_params = None
-    driver = manifest.get("driver")
-    if driver is not None:
-        driver_params = _load_driver_params(root, driver, problems)
+    if manifest.get("driver") is not None:
+        driver_params = _load_driver_params(root, manifest["driver"], problems, allow_outside)
     return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, driver_params=driver_params)
+                         cache_size=cache_size, driver_params=driver_params, allow_outside=allow_outside)
 
 
-def _load_driver_params(root: Path, driver, problems: Problems) -> dict[str, np.ndarray] | None:
-    if not isinstance(driver, dict) or not isinstance(driver.get("type"), str) or not isinstance(driver.get("params"), str):
+def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: bool) -> dict[str, np.ndarray] | None:
+    if not isinstance(driver, dict) or not isinstance(driver.get("type"), str):
         problems.add("manifest 'driver'", "must be an object with 'type' and 'params' (file name)")
         return None
-    p = root / driver["params"]
+    rel = _relative_path(driver.get("params"), "driver params", "manifest 'driver'", problems, allow_outside)
+    if rel is None:
+        return None
     try:
-        with np.load(p, allow_pickle=False) as z:
+        with np.load(root / rel, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
     except (OSError, ValueError) as exc:
-        problems.add(driver["params"], f"cannot read driver parameters ({exc})")
+        problems.add(rel, f"cannot read driver parameters ({exc})")
         return None
 
 
 def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems: Problems | None = None,
                   check_masks: bool = True, cache_size: int = 8, driver_params: dict | None = None,
-                  format_name: str = "native") -> AvatarDataset:
+                  format_name: str = "native", allow_outside: bool = True) -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
 
     The one validation path of every reader: ``manifest`` has ``cameras`` (id -> K, viewmat, width,
     height), ``frames`` (records with ``image``, ``camera``, ``mesh``, optional ``mask``/``mask_kind``),
     ``splits`` and ``meta``; ``canonical [V,3]``, ``faces [F,3]``, ``verts [T,V,3]`` are arrays (or
-    None when they failed to load, with the reason already in ``problems``). All problems end in one
-    MeshsplatError.
+    None when they failed to load, with the reason already in ``problems``). Readers of other layouts
+    resolve their own paths (``allow_outside`` True); the native manifest keeps paths inside its folder.
+    All problems end in one MeshsplatError.
     """
     problems = problems or Problems(root)
     frames = manifest["frames"]
-    vname = manifest.get("vertices", "vertices")
+    vname = str(manifest.get("vertices", "vertices"))
     if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
         problems.add(vname, f"expected shape [T,V,3], got {list(verts.shape)}")
         verts = None
@@ -352,8 +428,12 @@ def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems:
             for j in np.nonzero(nonfinite)[0]:
                 bad_meshes[s + int(j)] = int(nonfinite[j])
 
+    cams_in = manifest["cameras"]
+    if not isinstance(cams_in, dict):
+        problems.add("manifest", f"'cameras' must be an object mapping camera ids to cameras, got {_type_name(cams_in)}")
+        cams_in = None
     cameras = {}
-    for cid, cam in (manifest["cameras"] or {}).items():
+    for cid, cam in (cams_in or {}).items():
         ok = _check_camera(str(cid), cam, problems)
         if ok is not None:
             cameras[str(cid)] = (ok[0], ok[1], int(cam["width"]), int(cam["height"]))
@@ -363,41 +443,69 @@ def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems:
         name = rec.get("name", str(i)) if isinstance(rec, dict) else str(i)
         where = f"frame {i} ({name!r})"
         if not isinstance(rec, dict) or "image" not in rec or "camera" not in rec or "mesh" not in rec:
-            problems.add(where, "needs 'image', 'camera' and 'mesh'")
+            problems.add(where, f"needs 'image', 'camera' and 'mesh' (got {_type_name(rec)})")
+            continue
+        bad_types = [f"{k} must be {want}, got {_type_name(rec[k])}" for k, want, ok in (
+            ("name", "a string", lambda x: isinstance(x, str)),
+            ("camera", "a camera id (string)", lambda x: isinstance(x, str) or _is_int(x)),
+            ("mesh", "an integer", _is_int),
+            ("clip", "a string or null", lambda x: x is None or isinstance(x, str)),
+            ("time", "a number or null", lambda x: x is None or _is_number(x)),
+        ) if k in rec and not ok(rec[k])]
+        if bad_types:
+            problems.add(where, "; ".join(bad_types))
             continue
         rec.setdefault("name", name)
         if name in names:
             problems.add(where, "duplicate frame name")
         names.add(name)
         cid = str(rec["camera"])
-        if cid not in manifest["cameras"]:
+        if cams_in is not None and cid not in cams_in:
             problems.add(where, f"unknown camera {cid!r}")
         m = rec["mesh"]
-        if verts is not None and not (isinstance(m, int) and 0 <= m < verts.shape[0]):
+        if verts is not None and not (0 <= m < verts.shape[0]):
             problems.add(where, f"mesh index {m!r} out of range [0, {verts.shape[0]})")
         elif m in bad_meshes:
             problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
-        size = (manifest["cameras"].get(cid, {}).get("width"), manifest["cameras"].get(cid, {}).get("height"))
-        _check_frame_files(root, rec, where, size if cid in manifest["cameras"] else None, check_masks, problems)
-    for sname, idx in (manifest.get("splits") or {}).items():
-        bad = [j for j in idx if not (isinstance(j, int) and 0 <= j < len(frames))]
+        cam = (cams_in or {}).get(cid)
+        size = (cam.get("width"), cam.get("height")) if isinstance(cam, dict) and cid in cameras else None
+        _check_frame_files(root, rec, where, size, check_masks, problems, allow_outside)
+    splits = manifest.get("splits")
+    if splits is None:
+        splits = {}
+    if not isinstance(splits, dict):
+        problems.add("manifest", f"'splits' must be an object mapping names to lists of frame indices, "
+                     f"got {_type_name(splits)}")
+        splits = {}
+    for sname, idx in splits.items():
+        if not isinstance(idx, list):
+            problems.add(f"split {sname!r}", f"must be a list of frame indices, got {_type_name(idx)}")
+            continue
+        bad = [j for j in idx if not (_is_int(j) and 0 <= j < len(frames))]
         if bad:
-            problems.add(f"split {sname!r}", f"frame indices out of range: {bad[:5]}")
+            problems.add(f"split {sname!r}", f"frame indices out of range or not integers: {bad[:5]}")
+    if not isinstance(manifest.get("meta") or {}, dict):
+        problems.add("manifest", f"'meta' must be an object, got {_type_name(manifest.get('meta'))}")
     problems.raise_if_any()
+    manifest["splits"] = splits
     return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size,
                          driver_params=driver_params, format_name=format_name)
 
 
-def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems) -> None:
+def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems,
+                       allow_outside: bool = True) -> None:
     """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
     kind = rec.get("mask_kind", "png")
     if kind not in MASK_KINDS:
         problems.add(where, f"mask_kind {kind!r} is not one of {list(MASK_KINDS)}")
         return
     checks = [("image", rec.get("image"))]
-    if rec.get("mask") and kind != "alpha":
+    if rec.get("mask") is not None and kind != "alpha":
         checks.append(("mask", rec["mask"]))
-    for what, rel in checks:
+    for what, value in checks:
+        rel = _relative_path(value, f"{what} path", where, problems, allow_outside)
+        if rel is None:
+            return
         p = root / rel
         if not p.is_file():
             problems.add(where, f"{what} file {rel} is missing")

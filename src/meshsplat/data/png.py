@@ -8,7 +8,7 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["png_size", "read_png", "write_png", "image_size", "read_image"]
+__all__ = ["png_size", "read_png", "png_max", "write_png", "image_size", "read_image"]
 
 _SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -23,17 +23,34 @@ def png_size(path: Path) -> tuple[int, int]:
     return int(w), int(h)
 
 
+_WIDE_GREY = ("I;16", "I;16B", "I;16L", "I")  # Pillow's modes for 16-bit grey PNGs
+
+
 def read_png(path: Path, channels: int) -> np.ndarray:
-    """Decode to uint8 ``[H, W, channels]`` (1 = grey, 3 = RGB)."""
+    """Decode to ``[H, W, channels]`` (1 = grey, 3 = RGB): uint8, or uint16 for 16-bit grey files
+    (their full range; converting them to 8 bits would clip). Divide by :func:`png_max` for [0, 1].
+    16-bit RGB files are read at 8 bits (Pillow keeps the high byte: scaled, not clipped)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
+            if im.mode in _WIDE_GREY:
+                arr = np.array(im, dtype=np.int64)
+                if arr.min() < 0 or arr.max() > 65535:
+                    raise ValueError(f"grey values outside 0..65535 in mode {im.mode}")
+                arr = arr.astype(np.uint16)
+                arr = arr[..., None] if channels == 1 else np.repeat(arr[..., None], 3, axis=-1)
+                return np.ascontiguousarray(arr)
             im = im.convert("L" if channels == 1 else "RGB")
             arr = np.array(im, dtype=np.uint8)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, SyntaxError) as exc:
         raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
     return arr[..., None] if channels == 1 else arr
+
+
+def png_max(arr: np.ndarray) -> float:
+    """Full-scale value of an array from :func:`read_png` (255 or 65535)."""
+    return float(np.iinfo(arr.dtype).max)
 
 
 def image_size(path: Path) -> tuple[int, int]:

@@ -61,15 +61,23 @@ class BlendshapeDriver:
         p = Path(path)
         if not p.is_file():
             raise MeshsplatError(f"blendshape file not found: {p}")
-        with np.load(p) as z:
-            missing = [k for k in ("neutral", "faces", "expr_deltas") if k not in z]
-            if missing:
-                raise MeshsplatError(f"{p}: missing keys {missing}")
-            return cls(z["neutral"], z["faces"].astype(np.int64), z["expr_deltas"].astype(np.float32),
-                       names=[str(s) for s in z["expr_names"]] if "expr_names" in z else None,
-                       face_material=z["face_material"] if "face_material" in z else None,
-                       material_names=[str(s) for s in z["material_names"]] if "material_names" in z else None,
-                       **sequence)
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                missing = [k for k in ("neutral", "faces", "expr_deltas") if k not in z]
+                if missing:
+                    raise MeshsplatError(f"{p}: missing keys {missing}")
+                arrays = {k: z[k] for k in z.files}
+        except MeshsplatError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - not an npz, object arrays (refused, never unpickled), ...
+            raise MeshsplatError(f"{p}: cannot read as a blend-shape .npz ({exc})") from None
+        if arrays["expr_deltas"].dtype.kind not in "fiu":
+            raise MeshsplatError(f"{p}: expr_deltas must be numbers, got {arrays['expr_deltas'].dtype}")
+        return cls(arrays["neutral"], arrays["faces"], arrays["expr_deltas"].astype(np.float32),
+                   names=[str(s) for s in arrays["expr_names"]] if "expr_names" in arrays else None,
+                   face_material=arrays.get("face_material"),
+                   material_names=[str(s) for s in arrays["material_names"]] if "material_names" in arrays else None,
+                   **sequence)
 
     def set_sequence(self, weights=None, rotations=None, translations=None) -> None:
         e = self.deltas.shape[0]

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from meshsplat.drivers.body_models import (
-    POSE_KEYS, BodyModel, load_driver_params, split_flame_pose15, split_smpl_thetas)
+    POSE_KEYS, BodyModel, split_flame_pose15, split_smpl_thetas)
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]

@@ -52,20 +52,28 @@ def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> Load
             raise MeshsplatError(f"{cfg_path}: not valid JSON ({exc})") from None
     elif isinstance(state.get("config"), dict):
         config = dict(state["config"])
+    if not isinstance(config, dict):
+        raise MeshsplatError(f"{cfg_path}: expected a JSON object, got {type(config).__name__}")
     it = state.get("iteration")
+    if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 0):
+        raise MeshsplatError(f"{ckpt}: 'iteration' must be a non-negative integer, got {it!r}")
     return LoadedRun(run_dir, Path(ckpt), int(it) if it is not None else None, avatar, config)
 
 
 def run_dataset_path(run: LoadedRun, dataset: str | Path | None = None) -> Path:
-    """``dataset`` if given, else the ``data`` entry of the run's config (relative paths as stored)."""
+    """``dataset`` if given, else the ``data`` entry of the run's config. Runs store it absolute;
+    a relative one (older runs) is tried from the current folder, then from the run folder."""
     if dataset is not None:
         return Path(dataset)
     data = run.config.get("data")
-    if not data:
+    if not data or not isinstance(data, str):
         raise MeshsplatError(f"{run.run_dir}: config.json names no dataset; pass --dataset PATH")
     p = Path(data)
     if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
         p = run.run_dir / p
+    if not p.exists():
+        raise MeshsplatError(f"the run's dataset {data} (from {run.run_dir / 'config.json'}) is not there: was it "
+                             "moved or deleted? Pass --dataset PATH")
     return p
 
 

@@ -117,12 +117,10 @@ class Avatar:
     def from_state_dict(cls, sd: dict[str, Any], device: torch.device | str = "cpu") -> "Avatar":
         from meshsplat.mesh import TriMesh
 
-        try:
-            mesh = TriMesh(sd["vertices"].to(device), sd["faces"].to(device))
-            params = {k: v.to(device) for k, v in sd["params"].items()}
-            return cls(mesh, params, sd.get("scale_mode", "sqrt_area"), sd.get("clamp_to_face", False))
-        except (KeyError, AttributeError) as exc:
-            raise MeshsplatError(f"avatar state is incomplete (missing {exc})") from None
+        verts, faces, params = _checked_state(sd)
+        mesh = TriMesh(verts.to(device), faces.to(device))
+        return cls(mesh, {k: v.to(device) for k, v in params.items()}, sd.get("scale_mode", "sqrt_area"),
+                   sd.get("clamp_to_face", False))
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
@@ -137,3 +135,39 @@ class Avatar:
     def __repr__(self) -> str:
         return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
                 f"sh_degree={self.sh_degree})")
+
+
+def _checked_state(sd) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    """Validate an ``Avatar.state_dict()`` read from a file: types, shapes, finiteness, index ranges.
+    Returns float32 vertices, long faces and params (floats as float32, ``face`` as long)."""
+    if not isinstance(sd, dict):
+        raise MeshsplatError(f"avatar state: expected a dict, got {type(sd).__name__}")
+    missing = [k for k in ("vertices", "faces", "params") if k not in sd]
+    if missing:
+        raise MeshsplatError(f"avatar state is incomplete (missing {', '.join(missing)})")
+    dims: dict[str, int] = {}
+    verts = check_tensor("avatar vertices", sd["vertices"], "V,3", dims, dtype="float", finite=True)
+    faces = check_tensor("avatar faces", sd["faces"], "F,3", dims, dtype="int")
+    if dims["V"] < 3 or dims["F"] < 1:
+        raise MeshsplatError(f"avatar mesh is empty ({dims['V']} vertices, {dims['F']} faces)")
+    if int(faces.min()) < 0 or int(faces.max()) >= dims["V"]:
+        raise MeshsplatError(f"avatar faces: indices must lie in [0, {dims['V']})")
+    params = sd["params"]
+    if not isinstance(params, dict) or not all(isinstance(v, torch.Tensor) for v in params.values()):
+        raise MeshsplatError("avatar params: expected a dict of tensors")
+    check_params(params)
+    if num_gaussians(params) == 0:
+        raise MeshsplatError("avatar params hold no Gaussians")
+    out = {}
+    for k, v in params.items():
+        if k == "face":
+            out[k] = v.long()
+        else:
+            if not torch.isfinite(v).all():
+                raise MeshsplatError(f"avatar params['{k}']: contains {int((~torch.isfinite(v)).sum())} NaN/Inf values")
+            out[k] = v.float()
+    if sd.get("scale_mode", "sqrt_area") not in ("sqrt_area", "area", "none"):
+        raise MeshsplatError(f"avatar scale_mode: expected sqrt_area, area or none, got {sd.get('scale_mode')!r}")
+    if not isinstance(sd.get("clamp_to_face", False), bool):
+        raise MeshsplatError(f"avatar clamp_to_face: expected true/false, got {sd.get('clamp_to_face')!r}")
+    return verts.float(), faces.long(), out

@@ -10,14 +10,16 @@ Run folders name checkpoints ``ckpt_<step:08d>.pt`` (:func:`checkpoint_path`).
 """
 from __future__ import annotations
 
+import io
 import os
+import pickle
 import re
 import tempfile
 from pathlib import Path
 
 import torch
 
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, os_error_text
 
 __all__ = [
     "FORMAT_TAG",
@@ -29,11 +31,13 @@ __all__ = [
     "latest_checkpoint",
     "load_latest_checkpoint",
     "prune_checkpoints",
+    "remove_stray_tmp",
 ]
 
 FORMAT_TAG = "meshsplat-checkpoint"
 FORMAT_VERSION = 1
 _NAME = re.compile(r"^ckpt_(\d+)\.pt$")
+_TMP = re.compile(r"^\.ckpt_\d+\.pt\..+\.tmp$")  # left behind by a process killed while writing
 _PLAIN = (bool, int, float, complex, str, bytes, type(None), torch.dtype, torch.device, torch.Size)
 
 
@@ -73,21 +77,29 @@ def save_checkpoint(path: str | os.PathLike, state: dict, keep_last: int | None 
         raise MeshsplatError(f"state: expected a dict, got {type(state).__name__}")
     _check_state(state)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    buf = io.BytesIO()  # serialise first: write errors then come from our own write() as OSError
+    torch.save({"format": FORMAT_TAG, "version": FORMAT_VERSION, "state": state}, buf)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
-            torch.save({"format": FORMAT_TAG, "version": FORMAT_VERSION, "state": state}, fh)
+            fh.write(buf.getbuffer())
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+    except BaseException as exc:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        if isinstance(exc, OSError):
+            raise MeshsplatError(f"cannot write checkpoint {path}: {os_error_text(exc)}; "
+                                 "earlier checkpoints are untouched") from None
         raise
     _fsync_dir(path.parent)
+    remove_stray_tmp(path.parent)
     if keep_last is not None:
         prune_checkpoints(path.parent, keep_last)
     return path
@@ -99,8 +111,23 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not path.is_file():
         raise MeshsplatError(f"checkpoint {str(path)!r} not found")
     try:
+        open(path, "rb").close()
+    except OSError as exc:
+        raise MeshsplatError(f"checkpoint {str(path)!r} cannot be read: {os_error_text(exc)}") from None
+    try:
         blob = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # truncated zip, garbage, unpickling refusals
+    except pickle.UnpicklingError as exc:
+        text = str(exc)
+        if "unsupported global" in text.lower():
+            raise MeshsplatError(f"checkpoint {str(path)!r} holds Python code or objects, not just data; it was "
+                                 "not loaded (meshsplat never runs code from a file)") from None
+        # torch's refusal text advises weights_only=False: never relay that; keep only its reason
+        reason = next((ln.strip() for ln in text.split("WeightsUnpickler error:")[-1].splitlines() if ln.strip()),
+                      "") if "WeightsUnpickler error:" in text else ("unsupported content" if "weights_only" in text
+                                                              else _first_line(exc))
+        raise MeshsplatError(f"checkpoint {str(path)!r} is corrupt or truncated, or not a checkpoint "
+                             f"({reason[:120]}); it was not loaded") from None
+    except Exception as exc:  # truncated zip, garbage
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise MeshsplatError(f"checkpoint {str(path)!r} is corrupt or truncated ({first[:200]})") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT_TAG:
@@ -112,6 +139,24 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not isinstance(state, dict):
         raise MeshsplatError(f"checkpoint {str(path)!r} holds no state dict")
     return state
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else type(exc).__name__
+
+
+def remove_stray_tmp(folder: str | os.PathLike) -> list[Path]:
+    """Delete temporary checkpoint files (``.ckpt_*.pt.*.tmp``) left by a killed writer."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    gone = []
+    for p in folder.iterdir():
+        if _TMP.match(p.name) and p.is_file():
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
 
 
 def checkpoint_path(run_dir: str | os.PathLike, step: int) -> Path:

@@ -54,13 +54,15 @@ def _encode(arr: np.ndarray, encoding: str) -> dict:
 def _decode(name: str, entry, encoding: str, path: Path) -> np.ndarray:
     try:
         dtype = np.dtype(entry["dtype"]).newbyteorder("<")
+        if dtype.kind not in "fiu":
+            raise ValueError(f"dtype {entry['dtype']!r} is not a number type")
         shape = tuple(int(s) for s in entry["shape"])
         if encoding == "base64":
             arr = np.frombuffer(base64.b64decode(entry["data"], validate=True), dtype=dtype)
         else:
             arr = np.asarray(entry["data"], dtype=dtype)
         return arr.reshape(shape).astype(dtype.newbyteorder("="))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, IndexError) as exc:
         raise MeshsplatError(f"{str(path)!r}: array {name!r} is malformed ({exc})") from None
 
 
@@ -133,7 +135,13 @@ def read_embedding_json(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
     if encoding not in ("base64", "list"):
         raise MeshsplatError(f"{str(path)!r}: unknown encoding {encoding!r}")
     arrays = doc.get("arrays", {})
+    if not isinstance(arrays, dict):
+        raise MeshsplatError(f"{str(path)!r}: 'arrays' must be an object, got {type(arrays).__name__}")
+    if not isinstance(doc.get("meta") or {}, dict):
+        raise MeshsplatError(f"{str(path)!r}: 'meta' must be an object")
     n = doc.get("count")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise MeshsplatError(f"{str(path)!r}: 'count' must be a non-negative integer, got {n!r}")
     out: dict[str, torch.Tensor] = {}
     dims: dict[str, int] = {"N": n} if isinstance(n, int) else {}
     for name, (spec, _) in _SPECS.items():
@@ -143,9 +151,12 @@ def read_embedding_json(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
                 continue
             raise MeshsplatError(f"{str(path)!r}: missing array {name!r}")
         t = torch.from_numpy(_decode(name, arrays[name], encoding, path))
+        t = t.long() if name == "face" else t.float()  # float64 beyond float32's range becomes inf: caught below
         try:
-            check_tensor(name, t, spec, dims)
+            check_tensor(name, t, spec, dims, finite=True)
         except MeshsplatError as exc:
             raise MeshsplatError(f"{str(path)!r}: {exc}") from None
-        out[name] = t.long() if name == "face" else t.float()
+        if name == "face" and t.numel() and int(t.min()) < 0:
+            raise MeshsplatError(f"{str(path)!r}: array 'face' holds negative face indices")
+        out[name] = t
     return out, dict(doc.get("meta") or {})

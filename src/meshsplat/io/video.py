@@ -6,7 +6,9 @@ writes PNGs instead.
 """
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,7 +89,25 @@ def write_mp4(frames: Iterable, path: str | os.PathLike, fps: float = 30.0, qual
     if count == 0:
         path.unlink(missing_ok=True)
         raise MeshsplatError("write_mp4: no frames given")
+    _check_written(path, count)
     return path
+
+
+def _check_written(path: Path, count: int) -> None:
+    """ffmpeg can fail (a full disk) without imageio raising: count the frames that really landed."""
+    import imageio_ffmpeg
+
+    try:
+        got = imageio_ffmpeg.count_frames_and_secs(str(path))[0]
+    except Exception:  # noqa: BLE001 - unreadable output counts as no frames
+        got = 0
+    if got == count:
+        return
+    path.unlink(missing_ok=True)
+    free = shutil.disk_usage(path.parent).free
+    if free < 4 * 1024**2:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    raise MeshsplatError(f"could not write MP4 {str(path)!r}: ffmpeg wrote {got} of {count} frames")
 
 
 @dataclass

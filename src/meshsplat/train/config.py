@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -108,6 +109,7 @@ class TrainConfig:
     backend: str = "auto"  # rasterizer backend
     background: str = "random"  # "random" per iteration | "white" | "black"
     checkpoint_every: int = 5000
+    checkpoint_every_s: float = 900.0  # also checkpoint when this many seconds passed since the last one
     keep_checkpoints: int = 3
     preview_every: int = 1000
     log_every: int = 10
@@ -145,11 +147,41 @@ class TrainConfig:
             (self.strategy.split_n >= 1, "strategy.split_n must be >= 1"),
             (self.checkpoint_every >= 1 and self.keep_checkpoints >= 1, "checkpoint_every/keep_checkpoints >= 1"),
             (self.pose_refine.lr > 0, "pose_refine.lr must be > 0"),
+            (self.checkpoint_every_s > 0, "checkpoint_every_s must be > 0"),
+            (self.log_every >= 1 and self.preview_every >= 1, "log_every and preview_every must be >= 1"),
+            (self.walk.max_crossings >= 1, "walk.max_crossings must be >= 1"),
+            (self.strategy.max_gaussians >= 1, "strategy.max_gaussians must be >= 1"),
+            (0 <= self.strategy.reset_opa < 1, "strategy.reset_opa must be in [0, 1)"),
+            (0 <= self.strategy.prune_opa < 1, "strategy.prune_opa must be in [0, 1)"),
+            (self.iterations <= MAX_ITERATIONS, f"iterations must be <= {MAX_ITERATIONS:,}"),
+            (self.model.n_init <= MAX_GAUSSIANS and self.strategy.max_gaussians <= MAX_GAUSSIANS,
+             f"model.n_init and strategy.max_gaussians must be <= {MAX_GAUSSIANS:,}"),
         ]
         for ok, msg in checks:
             if not ok:
                 raise MeshsplatError(f"config: {msg}")
+        for key, value in _flat_items(self.to_dict()):
+            if isinstance(value, float) and not math.isfinite(value):
+                raise MeshsplatError(f"config: {key} is {value}; expected a finite number")
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0 \
+                    and key.rsplit(".", 1)[-1].startswith(_NON_NEGATIVE):
+                raise MeshsplatError(f"config: {key} must be >= 0, got {value}")
         return self
+
+
+MAX_ITERATIONS = 10_000_000
+MAX_GAUSSIANS = 20_000_000
+# fields whose name starts with one of these are rates, weights, thresholds or sizes: never negative
+_NON_NEGATIVE = ("lr_", "lambda_", "scale_", "grow_", "prune_", "reset_", "refine_", "init_", "eps",
+                 "keep_", "max_", "n_init", "split_")
+
+
+def _flat_items(d: dict, prefix: str = ""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flat_items(v, f"{prefix}{k}.")
+        else:
+            yield prefix + k, v
 
 
 def _from_dict(cls, d: Any, prefix: str):
@@ -181,11 +213,20 @@ def _coerce(value: Any, tp: Any, key: str):
         if tp is int:
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError
+            if isinstance(value, bool):
+                raise ValueError
             return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
         if tp is float:
-            return float(value)
+            if isinstance(value, bool):
+                raise ValueError
+            f = float(value)
+            if not math.isfinite(f):
+                raise MeshsplatError(f"config: {key} is {value!r}; expected a finite number")
+            return f
         if tp is str:
             return str(value)
+    except MeshsplatError:
+        raise
     except (TypeError, ValueError):
         raise MeshsplatError(f"config: {key} expects {tp.__name__}, got {value!r}") from None
     return value

@@ -121,6 +121,12 @@ class PerceptualLoss:
         self.net = net
         self.kind = f"lpips-{net}" if net else "l1+dssim"
 
+    def build(self, device: torch.device | str = "cpu") -> "PerceptualLoss":
+        """Load the network now (not on the first call), e.g. before a run seeds its generators."""
+        if self.net is not None:
+            get_lpips(self.net, device)
+        return self
+
     def __call__(self, render: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
         a, b = _pair(render, gt)
         if self.net is None:

@@ -36,8 +36,11 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import compose
 from meshsplat.gaussians.params import init_params, num_gaussians
+from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.train.config import TrainConfig
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
+from meshsplat.train.resume import (StopOnSignal, TrainingInterrupted, check_resume_config, load_resume_checkpoint,
+                                    refuse_existing_run, signal_name)
 from meshsplat.train.strategy import walk_embeddings
 
 __all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
@@ -59,18 +62,23 @@ def mean_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
 class Trainer:
     """Builds everything from a ``TrainConfig``; ``train()`` runs to ``config.iterations``.
 
-    ``resume=True`` continues from the newest valid checkpoint in ``RUN/checkpoints`` (starts
-    fresh when there is none). The run uses ``config`` as given; the CLI resumes with the run's
-    own ``config.json``.
+    ``resume=True`` continues from the newest checkpoint in ``RUN/checkpoints`` (starts fresh
+    when there is none); it refuses unreadable checkpoints and config changes outside
+    ``train.resume.SAFE_CHANGES`` (``resume_notes`` lists the safe ones applied). Without
+    ``resume`` a folder that already holds checkpoints is refused. ``data`` and ``out`` are
+    stored as absolute paths. SIGINT/SIGTERM during ``train()`` checkpoint, then raise
+    ``TrainingInterrupted``.
     """
 
     def __init__(self, config: TrainConfig, resume: bool = False):
         from meshsplat.data.formats import open_capture
         from meshsplat.mesh import TriMesh
 
-        self.cfg = config.validate()
+        self.cfg = TrainConfig.from_dict(config.validate().to_dict())  # own copy
         if not self.cfg.data:
             raise MeshsplatError("config: data (the dataset folder) is not set")
+        self.cfg.data = str(Path(self.cfg.data).expanduser().resolve())
+        self.cfg.out = str(Path(self.cfg.out).expanduser().resolve())
         self.run_dir = Path(self.cfg.out)
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.preview_dir = self.run_dir / "previews"
@@ -98,7 +106,8 @@ class Trainer:
         if self.cfg.loss.lambda_lpips:
             from meshsplat.train.losses import make_perceptual_loss
 
-            self.perceptual = make_perceptual_loss("alex")
+            # built now: nothing may draw random numbers after seeding or restoring the generators
+            self.perceptual = make_perceptual_loss("alex").build(self.device)
         self._frame_cache: dict[int, tuple] = {}
         self._cache_bytes = 0
         self.iteration = 0
@@ -106,13 +115,17 @@ class Trainer:
         self.history: list[dict[str, float]] = []
         self.walked_total = 0  # embeddings that changed face (this session)
 
-        loaded = None
-        if resume:
-            from meshsplat.io.checkpoint import load_latest_checkpoint
-
-            loaded = load_latest_checkpoint(self.ckpt_dir)
+        self.resume_notes: list[str] = []
+        loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
         if loaded is not None:
-            self._restore(loaded[1])
+            self.resume_notes = check_resume_config(loaded[1].get("config"), self.cfg.to_dict(), loaded[0])
+            try:
+                self._restore(loaded[1])
+            except MeshsplatError:
+                raise
+            except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as exc:
+                raise MeshsplatError(f"cannot resume from {loaded[0]}: the checkpoint is incomplete or "
+                                     f"inconsistent ({type(exc).__name__}: {str(exc)[:160]})") from None
             self.resumed_from: Path | None = loaded[0]
         else:
             self.resumed_from = None
@@ -270,30 +283,38 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         cfg.to_json(self.run_dir / "config.json")
         self._open_log()
+        remove_stray_tmp(self.ckpt_dir)
         bar = None
         if cfg.progress:
             from tqdm import tqdm
 
             bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
         t0 = time.perf_counter() - self.elapsed
+        last_ckpt = time.perf_counter()
         ema_loss = ema_psnr = None
         try:
-            while self.iteration < end:
-                row = self.step()
-                it = self.iteration
-                self.elapsed = time.perf_counter() - t0
-                row["time_s"] = self.elapsed
-                ema_loss = row["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * row["loss"]
-                ema_psnr = row["psnr"] if ema_psnr is None else 0.9 * ema_psnr + 0.1 * row["psnr"]
-                if it % cfg.log_every == 0 or it == end:
-                    self._log(row)
-                if it % cfg.preview_every == 0 or it == cfg.iterations:
-                    self.save_preview()
-                if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
-                    self.save_checkpoint()
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=row["n_gaussians"])
+            with StopOnSignal() as stop:
+                while self.iteration < end:
+                    row = self.step()
+                    it = self.iteration
+                    self.elapsed = time.perf_counter() - t0
+                    row["time_s"] = self.elapsed
+                    ema_loss = row["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * row["loss"]
+                    ema_psnr = row["psnr"] if ema_psnr is None else 0.9 * ema_psnr + 0.1 * row["psnr"]
+                    if it % cfg.log_every == 0 or it == end:
+                        self._log(row)
+                    if it % cfg.preview_every == 0 or it == cfg.iterations:
+                        self.save_preview()
+                    due = time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s or stop.signum is not None
+                    if it % cfg.checkpoint_every == 0 or it == cfg.iterations or due:
+                        ckpt = self.save_checkpoint()
+                        last_ckpt = time.perf_counter()
+                    if stop.signum is not None:
+                        raise TrainingInterrupted(f"stopped by {signal_name(stop.signum)} at iteration {it}; checkpoint "
+                                                  f"{ckpt} written: continue with --resume", stop.signum, ckpt)
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=row["n_gaussians"])
         finally:
             if bar is not None:
                 bar.close()

@@ -1,0 +1,118 @@
+"""Checks every command runs before working: size arguments within documented ranges, a memory
+estimate against what is available, and an output location that can be written.
+
+The ranges are the table in docs/limits.md (keep both in step). Memory estimates are measured
+on CPU (bench/badinput.py exercises them): the PyTorch rasterizer needs about 160 bytes per
+pixel plus up to 1.5 GB for its band of (pixel, Gaussian) pairs; the synth rasterizer about
+128 bytes per supersampled pixel.
+"""
+from __future__ import annotations
+
+import os
+import resource
+from pathlib import Path
+
+from meshsplat.errors import MeshsplatError, os_error_text
+
+__all__ = ["LIMITS", "check_range", "check_memory", "check_output_dir", "render_bytes", "synth_bytes"]
+
+# name -> (low, high, unit); both ends included
+LIMITS = {
+    "render --size": (16, 8192, "pixels per side"),
+    "render --fps": (0.1, 240.0, "frames per second"),
+    "render --seconds": (0.01, 3600.0, "seconds"),
+    "render frames": (1, 100_000, "frames"),
+    "render --fov": (1.0, 170.0, "degrees"),
+    "render --elevation": (-89.0, 89.0, "degrees"),
+    "synth --resolution": (16, 4096, "pixels"),
+    "synth --supersample": (1, 8, "x"),
+    "synth resolution x supersample": (16, 8192, "pixels"),
+    "synth --frames": (1, 20_000, "frames"),
+    "synth --test-frames": (0, 20_000, "frames"),
+    "synth --views": (1, 256, "cameras"),
+    "synth --test-views": (0, 64, "cameras"),
+    "synth --train-fraction": (0.01, 1.0, ""),
+    "synth --driver-smooth": (0, 1000, "iterations"),
+    "synth --driver-decimate": (0.001, 1.0, ""),
+    "view --frames": (1, 100_000, "frames"),
+    "view --fps": (0.1, 240.0, "frames per second"),
+    "view --port": (1, 65535, ""),
+    "eval --max-frames": (1, 1_000_000, "frames"),
+    "train --iters": (1, 10_000_000, "iterations"),
+}
+_MEMORY_HEADROOM = 0.9  # refuse what needs more than this share of the available memory
+
+
+def check_range(name: str, value, limit: str | None = None) -> None:
+    """Raise unless ``value`` lies in ``LIMITS[limit or name]``."""
+    lo, hi, unit = LIMITS[limit or name]
+    if value is None:
+        return
+    if value != value or not lo <= value <= hi:  # NaN fails too
+        raise MeshsplatError(f"{name}: expected {lo:g}..{hi:g}{' ' + unit if unit else ''}, got {value:g} "
+                             "(see docs/limits.md)")
+
+
+def available_memory() -> int | None:
+    """Bytes this process may still allocate: MemAvailable, capped by an address-space limit."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        try:
+            with open("/proc/self/statm") as fh:
+                used = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError):
+            used = 0
+        avail = soft - used if avail is None else min(avail, soft - used)
+    return avail
+
+
+def _gb(n: float) -> str:
+    return f"{n / 1e9:.1f} GB"
+
+
+def check_memory(what: str, needed: float, advice: str) -> None:
+    """Refuse a request whose estimated memory does not fit in what is available."""
+    avail = available_memory()
+    if avail is not None and needed > _MEMORY_HEADROOM * avail:
+        raise MeshsplatError(f"{what} needs about {_gb(needed)} of memory but only {_gb(avail)} is available; "
+                             f"{advice}")
+
+
+def render_bytes(width: int, height: int, frames: int = 1) -> float:
+    """Estimate: the rasterizer's buffers plus the rendered frames kept for the video."""
+    px = float(width) * float(height)
+    return min(1.5e9, 650.0 * px * 8) + 160.0 * px + 2 * 3.0 * px * frames
+
+
+def synth_bytes(resolution: int, supersample: int) -> float:
+    return 2e8 + 128.0 * (float(resolution) * supersample) ** 2
+
+
+def check_output_dir(path: str | os.PathLike, flag: str = "--out") -> Path:
+    """``path`` is (or can become) a writable folder; checked before any work, nothing is created."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise MeshsplatError(f"{flag} {p} is an existing file; give a folder (existing or new)")
+    probe = p
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise MeshsplatError(f"{flag} {p}: {probe} is a file, so no folder can be made below it")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        try:  # access() alone cannot tell a read-only file system from a permission problem
+            ro = bool(os.statvfs(probe).f_flag & os.ST_RDONLY)
+        except OSError as exc:
+            raise MeshsplatError(f"{flag} {p}: {os_error_text(exc)}") from None
+        why = "is on a read-only file system" if ro else "is not writable for this user"
+        raise MeshsplatError(f"{flag} {p}: {probe} {why}; choose another location")
+    return p

@@ -1,0 +1,138 @@
+"""Safe resuming: which checkpoint to continue from, which config changes a resume may make,
+and stopping on SIGINT/SIGTERM at an iteration boundary.
+
+Rules (nothing is lost or silently wrong):
+- a run folder whose checkpoints cannot all be read is never resumed, cleaned or overwritten:
+  the error names every unreadable file and why;
+- a fresh run refuses a folder that already holds checkpoints (that would delete them);
+- resuming compares the new config with the checkpoint's: changes listed in ``SAFE_CHANGES`` are
+  applied (and reported), any other change is refused, naming the keys and both values.
+"""
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.io.checkpoint import list_checkpoints, load_checkpoint
+
+__all__ = ["SAFE_CHANGES", "load_resume_checkpoint", "refuse_existing_run", "config_changes",
+           "TrainingInterrupted", "StopOnSignal", "check_resume_config", "signal_name"]
+
+# Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs.
+SAFE_CHANGES = frozenset({
+    "data", "data_format", "model_dir", "out", "iterations", "device", "backend", "progress", "log_every",
+    "preview_every",
+    "checkpoint_every", "checkpoint_every_s", "keep_checkpoints",
+})
+
+
+def load_resume_checkpoint(ckpt_dir: Path, map_location="cpu") -> tuple[Path, dict] | None:
+    """``(path, state)`` of the newest checkpoint in ``ckpt_dir``, or None when there is none.
+
+    Every ``ckpt_*.pt`` must load: otherwise one MeshsplatError names each unreadable file,
+    and nothing is deleted (a run that resumed past a bad file would later prune or overwrite it).
+    """
+    ckpts = list_checkpoints(ckpt_dir)
+    if not ckpts:
+        return None
+    loaded, bad = None, []
+    for _, p in reversed(ckpts):
+        try:
+            state = load_checkpoint(p, map_location)
+        except MeshsplatError as exc:
+            bad.append(f"{p.name}: {_reason(exc, p)}")
+            continue
+        if loaded is None:
+            loaded = (p, state)
+    if bad:
+        good = f"; the newest readable one is {loaded[0].name}" if loaded else "; none is readable"
+        raise MeshsplatError(f"cannot resume: {len(bad)} of {len(ckpts)} checkpoint(s) in {ckpt_dir} are unreadable "
+                             f"({'; '.join(bad)}){good}. Nothing was changed: move the bad file(s) out of the "
+                             "folder to resume from the rest, or train into a new --out")
+    return loaded
+
+
+def _reason(exc: MeshsplatError, path: Path) -> str:
+    msg = str(exc)
+    quoted = repr(str(path))
+    return msg.replace(f"checkpoint {quoted} ", "").replace(quoted, "").strip() or msg
+
+
+def refuse_existing_run(ckpt_dir: Path) -> None:
+    """A fresh run must not reuse a folder holding checkpoints (it would prune them)."""
+    found = [p for _, p in list_checkpoints(ckpt_dir)]
+    if found:
+        raise MeshsplatError(f"{ckpt_dir.parent} already holds a run ({len(found)} checkpoint(s), newest "
+                             f"{found[-1].name}); continue it with --resume, or choose another --out")
+
+
+def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def config_changes(old: dict, new: dict) -> tuple[list[str], list[str]]:
+    """``(safe, refused)``: ``"key: old -> new"`` for each differing key present in both configs."""
+    a, b = _flatten(old), _flatten(new)
+    safe, refused = [], []
+    for k in sorted(set(a) & set(b)):
+        if a[k] != b[k]:
+            (safe if k in SAFE_CHANGES else refused).append(f"{k}: {a[k]!r} -> {b[k]!r}")
+    return safe, refused
+
+
+def check_resume_config(old: dict, new: dict, ckpt: Path) -> list[str]:
+    """Raise when ``new`` changes anything but ``SAFE_CHANGES``; returns the safe changes."""
+    safe, refused = config_changes(old if isinstance(old, dict) else {}, new)
+    if refused:
+        raise MeshsplatError(f"cannot resume from {ckpt.name} with a changed config ({'; '.join(refused)}): these "
+                             f"change the model or its training. Only {', '.join(sorted(SAFE_CHANGES))} may change on "
+                             "resume; drop the overrides, or start a new run with another --out")
+    return [c for c in safe if not c.startswith(("data:", "out:", "progress:"))]
+
+
+def signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Training stopped by SIGINT/SIGTERM after writing a checkpoint (``checkpoint``)."""
+
+    def __init__(self, message: str, signum: int, checkpoint: Path | None):
+        super().__init__(message)
+        self.signum, self.checkpoint = signum, checkpoint
+
+
+class StopOnSignal:
+    """While active (main thread only), SIGINT/SIGTERM only set ``signum``: the loop finishes its
+    iteration and checkpoints. A second signal interrupts at once."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __enter__(self) -> "StopOnSignal":
+        self.signum: int | None = None
+        self._old = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                self._old[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
