@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _browser import find_chromium, screenshot
 from test_eval_kit import deform, make_avatar, make_run
 
 from meshsplat.errors import MeshsplatError
@@ -21,7 +23,6 @@ from meshsplat.gaussians.params import SH_C0
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 
 NODE = shutil.which("node")
-CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
 needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
 
 
@@ -68,7 +69,7 @@ def test_bundle_round_trip(tmp_path, clamp):
     h, a = read_viewer_bundle(tmp_path)
     p = av.params
     assert (h["num_vertices"], h["num_faces"], h["num_gaussians"], h["num_frames"]) == (42, 80, 200, 3)
-    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 1
+    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 2
     assert all(s["offset"] % 4 == 0 for s in h["sections"].values())
     assert np.array_equal(a["faces"], av.mesh.faces.numpy())
     assert np.array_equal(a["canonical_vertices"], av.mesh.vertices.numpy())
@@ -78,14 +79,19 @@ def test_bundle_round_trip(tmp_path, clamp):
         uv = effective_uv(p, clamp).numpy()
         rot = torch.nn.functional.normalize(p["rotation"], dim=-1).numpy()
         rgb = (0.5 + SH_C0 * p["sh0"][:, 0]).clamp_min(0).numpy()
-        np.testing.assert_allclose(a["gaussian_uv"], uv, atol=1e-7)
-        np.testing.assert_allclose(a["gaussian_d"], p["d"].numpy(), atol=1e-7)
-        np.testing.assert_allclose(a["gaussian_rotation"], rot, atol=1e-6)
-        np.testing.assert_allclose(a["gaussian_scale"], p["log_scale"].exp().numpy(), rtol=1e-6)
-        np.testing.assert_allclose(a["gaussian_opacity"], torch.sigmoid(p["opacity_logit"]).numpy(), atol=1e-6)
-        np.testing.assert_allclose(a["gaussian_rgb"], rgb, atol=1e-6)
+        # half floats: relative error <= 2^-11 (absolute for values below 1)
+        half = 2.0**-11
+        np.testing.assert_allclose(a["gaussian_uv"], uv, atol=half, rtol=half)
+        np.testing.assert_allclose(a["gaussian_d"], p["d"].numpy(), atol=1e-7, rtol=half)
+        np.testing.assert_allclose(a["gaussian_rotation"], rot, atol=half)
+        np.testing.assert_allclose(a["gaussian_scale"], p["log_scale"].exp().numpy(), rtol=half)
+        np.testing.assert_allclose(a["gaussian_opacity"], torch.sigmoid(p["opacity_logit"]).numpy(), atol=half)
+        np.testing.assert_allclose(a["gaussian_rgb"], rgb, atol=half, rtol=half)
+        # exactly the float16 rounding of each value
+        assert np.array_equal(a["gaussian_scale"], p["log_scale"].exp().numpy().astype(np.float16).astype(np.float32))
+    assert a["gaussians"].shape == (200, 8) and a["gaussians"].dtype == np.uint32
     if clamp:  # projected onto the triangle
-        assert (a["gaussian_uv"] >= -1e-6).all() and (a["gaussian_uv"].sum(1) <= 1 + 1e-6).all()
+        assert (a["gaussian_uv"] >= -1e-3).all() and (a["gaussian_uv"].sum(1) <= 1 + 1e-3).all()
     # index.html embeds the same header and bytes, and escapes the title
     page = index.read_text()
     data = re.search(r'id="avatar-data">([^<]*)<', page).group(1)
@@ -93,6 +99,35 @@ def test_bundle_round_trip(tmp_path, clamp):
     header = json.loads(re.search(r'id="avatar-header">([^<]*)<', page).group(1))
     assert header == h
     assert "<title>tiny &lt;test&gt;</title>" in page and "__VIEWER_JS__" not in page
+
+
+@pytest.mark.parametrize("title", ["__VIEWER_JS__", "__AVATAR_DATA__ </script><script>alert(1)</script>",
+                                   "a & b <!-- \u2028 __TITLE__"])
+def test_title_cannot_break_the_page(tmp_path, title):
+    """User text is inserted once, escaped, after the template is filled (no placeholder re-expansion)."""
+    av = make_avatar(n=20)
+    index = write_viewer_bundle(av, _frames(av), tmp_path, title=title)
+    page = index.read_text()
+    template = (Path(__file__).parents[1] / "src/meshsplat/viewer/static/index.html").read_text()
+    js = (tmp_path / "viewer.js").read_text()
+    assert page.count(js) == 1 and page.count("<script") == template.count("<script")
+    assert page.count("</script>") == template.count("</script>")
+    header = json.loads(re.search(r'id="avatar-header">([^<]*)<', page).group(1))
+    assert header["title"] == title
+    data = re.search(r'id="avatar-data">([^<]*)<', page).group(1)
+    assert base64.b64decode(data) == (tmp_path / "avatar.bin").read_bytes()
+    import html as html_mod
+    assert f"<title>{html_mod.escape(title)}</title>" in page
+
+
+def test_old_bundle_version_is_named(tmp_path):
+    av = make_avatar(n=10)
+    write_viewer_bundle(av, _frames(av), tmp_path)
+    h = json.loads((tmp_path / "avatar.json").read_text())
+    h["version"] = 1
+    (tmp_path / "avatar.json").write_text(json.dumps(h))
+    with pytest.raises(MeshsplatError, match="version 1"):
+        read_viewer_bundle(tmp_path)
 
 
 def test_int16_vertices_within_half_a_step(tmp_path):
@@ -145,6 +180,20 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 
 
 # ---------------------------------------------------------------- JS math under Node
+def _bundle_avatar(av, a, mode):
+    """float64 Avatar holding exactly the (half-float) Gaussian values of a bundle."""
+    from meshsplat.gaussians.params import make_params
+    from meshsplat.mesh import TriMesh
+
+    t = {k: torch.from_numpy(np.asarray(a[k], np.float64)) for k in
+         ("gaussian_uv", "gaussian_d", "gaussian_rotation", "gaussian_scale", "gaussian_opacity", "gaussian_rgb")}
+    params = make_params(torch.from_numpy(a["gaussian_face"].astype(np.int64)), t["gaussian_uv"],
+                         d=t["gaussian_d"], log_scale=t["gaussian_scale"].log(), rotation=t["gaussian_rotation"],
+                         opacity_logit=torch.logit(t["gaussian_opacity"]),
+                         sh0=((t["gaussian_rgb"] - 0.5) / SH_C0)[:, None, :])
+    return Avatar(TriMesh(av.mesh.vertices.double(), av.mesh.faces), params, mode)
+
+
 @needs_node
 @pytest.mark.parametrize("mode,encoding", [("sqrt_area", "int16"), ("area", "float32"), ("none", "float32")])
 def test_js_pose_matches_compose(tmp_path, mode, encoding):
@@ -152,12 +201,10 @@ def test_js_pose_matches_compose(tmp_path, mode, encoding):
     write_viewer_bundle(av, _frames(av), tmp_path, vertex_encoding=encoding)
     _, a = read_viewer_bundle(tmp_path)
     js = _js_pose(tmp_path)
-    p64 = {k: v.detach().double() if v.is_floating_point() else v for k, v in av.params.items()}
-    from meshsplat.mesh import TriMesh
-
-    av64 = Avatar(TriMesh(av.mesh.vertices.double(), av.mesh.faces), p64, mode)
+    av64 = _bundle_avatar(av, a, mode)
     for t, out in enumerate(js):
-        ref = av64.compose(torch.from_numpy(a["vertices"][t]))  # the vertices the bundle stores
+        with torch.no_grad():
+            ref = av64.compose(torch.from_numpy(a["vertices"][t]))  # the vertices the bundle stores
         means = np.asarray(out["means"]).reshape(-1, 3)
         quats = np.asarray(out["quats"]).reshape(-1, 4)
         scales = np.asarray(out["scales"]).reshape(-1, 3)
@@ -232,6 +279,11 @@ def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     assert main(["view", str(run), "--out", str(tmp_path / "v3"), "--split", "test_frames"]) == 0
     _, a3 = read_viewer_bundle(tmp_path / "v3")
     np.testing.assert_allclose(a3["vertices"][0], deform(av.mesh.vertices, 0.6).numpy(), atol=1e-4)
+    # a title that names a template placeholder stays plain text (it used to break the page)
+    assert main(["view", str(run), "--out", str(tmp_path / "v5"), "--title", "__VIEWER_JS__"]) == 0
+    page = (tmp_path / "v5" / "index.html").read_text()
+    assert "<title>__VIEWER_JS__</title>" in page and page.count("export function decodeBundle") == 1
+    assert read_viewer_bundle(tmp_path / "v5")[0]["title"] == "__VIEWER_JS__"
     # user errors: one line, exit 2
     assert main(["view", str(run), "--out", str(tmp_path / "v4"), "--animation", "gltf"]) == 2
     assert main(["view", str(run), "--out", str(tmp_path / "v4"), "--animation", "bvh", "x"]) == 2
@@ -260,38 +312,48 @@ def test_view_cli_gltf(tmp_path, assets):
     assert (tmp_path / "v" / "index.html").stat().st_size < 2_000_000
 
 
-# ---------------------------------------------------------------- headless browser (slow, optional)
-@pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
-def test_browser_screenshot_matches_rasterizer(tmp_path):
+# ---------------------------------------------------------------- headless browser (slow)
+# CI (.ci/run) installs Debian's chromium when it is missing and sets MESHSPLAT_REQUIRE_BROWSER=1,
+# so there the browser tests fail instead of skipping.
+REQUIRE_BROWSER = os.environ.get("MESHSPLAT_REQUIRE_BROWSER") == "1"
+
+
+def _chromium() -> str:
+    path = find_chromium()
+    if path is None:
+        if REQUIRE_BROWSER:
+            pytest.fail("chromium is not installed (MESHSPLAT_REQUIRE_BROWSER=1)")
+        pytest.skip("chromium is not installed")
+    return path
+
+
+def _psnr(img: np.ndarray, ref: np.ndarray) -> float:
+    return float(10 * np.log10(255.0**2 / max(((img - ref) ** 2).mean(), 1e-10)))
+
+
+def _shoot(bundle: Path, frame: int, size: int, out: Path) -> np.ndarray:
     from PIL import Image
 
+    url = (bundle / "index.html").as_uri() + f"?frame={frame}&ui=0"
+    screenshot(url, size, size, out, chromium=_chromium())
+    return np.asarray(Image.open(out).convert("RGB"), dtype=np.float64)
+
+
+@pytest.mark.slow
+def test_browser_screenshot_matches_rasterizer(tmp_path):
+    """GPU posing (vertex shader), worker sort, one draw call: the page equals avatar.render."""
     av = make_avatar(n=400)
     frames = _frames(av)
     write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256})
     h, a = read_viewer_bundle(tmp_path / "b")
     cam = h["camera"]
-    ref = av.render(torch.from_numpy(a["vertices"][1]).float(), torch.tensor(cam["viewmat"]).float(),
-                    torch.tensor(cam["K"]).float(), 256, 256, background=torch.ones(3)).image
-    ref = ref.detach().clamp(0, 1).numpy() * 255
-    shot = tmp_path / "shot.png"
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-           "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
-           "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars",
-           "--window-size=256,256", "--virtual-time-budget=3000", f"--screenshot={shot}",
-           (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0"]
-    for _ in range(2):  # headless start-up is occasionally flaky on a loaded machine
-        try:
-            subprocess.run(cmd, check=False, capture_output=True, timeout=90)
-        except subprocess.TimeoutExpired:
-            continue
-        if shot.is_file():
-            break
-    if not shot.is_file():
-        pytest.skip("chromium produced no screenshot")
-    img = np.asarray(Image.open(shot).convert("RGB"), dtype=np.float64)
-    assert img.shape == ref.shape
-    psnr = 10 * np.log10(255.0**2 / max(((img - ref) ** 2).mean(), 1e-10))
-    print(f"browser vs rasterizer PSNR {psnr:.1f} dB")
-    assert psnr > 35.0, psnr
-    assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
+    for frame in (0, 1):
+        ref = av.render(torch.from_numpy(a["vertices"][frame]).float(), torch.tensor(cam["viewmat"]).float(),
+                        torch.tensor(cam["K"]).float(), 256, 256, background=torch.ones(3)).image
+        ref = ref.detach().clamp(0, 1).numpy() * 255
+        img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
+        assert img.shape == ref.shape
+        psnr = _psnr(img, ref)
+        print(f"browser vs rasterizer, frame {frame}: PSNR {psnr:.1f} dB")
+        assert psnr > 40.0, psnr
+        assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
