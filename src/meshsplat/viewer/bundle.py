@@ -34,7 +34,7 @@ __all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_
 BUNDLE_VERSION = 2
 VERTEX_ENCODINGS = ("int16", "float32")
 _STATIC = Path(__file__).parent / "static"
-_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2")}
+_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2"), "int32": np.dtype("<i4")}
 
 
 def _as_frames(frames, num_vertices: int) -> np.ndarray:
@@ -209,13 +209,17 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
 
 
 def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None, title: str = "meshsplat avatar",
-                        vertex_encoding: str = "int16", background: str = "white") -> Path:
-    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``).
+                        vertex_encoding: str = "int16", background: str = "white", rig=None) -> Path:
+    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
+    or, live, by ``rig`` (a ``GltfDriver`` on the avatar's canonical vertices, e.g. from
+    :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle
+    and the page evaluates them; ``frames`` is then None or only used to frame the camera).
 
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
     ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
     ``animate.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
-    (per-axis step over the animation's box, error <= step/2) or "float32". Returns ``index.html``.
+    (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
+    ``frames`` (with a rig: the initial playback speed is real time; fps is unused). Returns ``index.html``.
     """
     from meshsplat.gaussians.avatar import Avatar
 
@@ -228,21 +232,38 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     if background not in ("white", "black"):
         raise MeshsplatError(f"background: expected 'white' or 'black', got {background!r}")
     mesh = avatar.mesh
-    verts = _as_frames(frames, mesh.num_vertices)
-    encoded, quant = _encode_vertices(verts, vertex_encoding)
-    sections = {
+    sections: dict[str, np.ndarray] = {
         "faces": mesh.faces.detach().cpu().numpy().astype("<u4"),
         "canonical_vertices": mesh.vertices.detach().cpu().numpy().astype("<f4"),
-        "frames": encoded,
-        "gaussians": pack_gaussians(_gaussian_arrays(avatar)),
     }
+    quant: dict[str, Any] = {}
+    if rig is not None:
+        from meshsplat.viewer.rig import gltf_rig
+
+        if rig.num_vertices != mesh.num_vertices:
+            raise MeshsplatError(f"rig: drives {rig.num_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
+                                 "(build it with meshsplat.viewer.rig.avatar_driver)")
+        rig_sections, driver = gltf_rig(rig)
+        sections.update(rig_sections)
+        if frames is None:  # frame the camera on samples of the default clip
+            t0, t1 = rig.time_range()
+            frames = [rig.vertices_at(t0 + (t1 - t0) * i / 15) for i in range(16)]
+        verts = _as_frames(frames, mesh.num_vertices)
+        num_frames = 0
+    else:
+        verts = _as_frames(frames, mesh.num_vertices)
+        encoded, quant = _encode_vertices(verts, vertex_encoding)
+        sections["frames"] = encoded
+        driver = {"kind": "frames"}
+        num_frames = int(verts.shape[0])
+    sections["gaussians"] = pack_gaussians(_gaussian_arrays(avatar))
     blob, layout = _pack(sections)
     header = {
         "format": "meshsplat-viewer", "version": BUNDLE_VERSION, "title": str(title),
         "num_vertices": mesh.num_vertices, "num_faces": mesh.num_faces, "num_gaussians": avatar.num_gaussians,
-        "num_frames": int(verts.shape[0]), "fps": float(fps), "scale_mode": avatar.scale_mode,
+        "num_frames": num_frames, "fps": float(fps), "scale_mode": avatar.scale_mode,
         "vertex_encoding": vertex_encoding, **quant, "background": background,
-        "camera": _camera_from(camera, verts), "sections": layout,
+        "camera": _camera_from(camera, verts), "driver": driver, "sections": layout,
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -272,7 +293,8 @@ def _fill_template(template: str, values: dict[str, str]) -> str:
 
 def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """``(header, arrays)`` of a bundle folder; ``arrays["vertices"]`` holds the decoded frames ``[T,V,3]``
-    and ``gaussian_*`` the unpacked per-Gaussian arrays (the half-float values the page uses)."""
+    (vertex-frame bundles) and ``gaussian_*`` the unpacked per-Gaussian arrays (the half-float values
+    the page uses)."""
     root = Path(out_dir)
     try:
         header = json.loads((root / "avatar.json").read_text(encoding="utf-8"))
@@ -290,8 +312,9 @@ def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         raise MeshsplatError(f"{root}: viewer bundle version {header.get('version')} (expected {BUNDLE_VERSION}); "
                              "write it again with this meshsplat")
     arrays.update(unpack_gaussians(arrays["gaussians"]))
-    frames = arrays["frames"].astype(np.float64)
-    if header["vertex_encoding"] == "int16":
-        frames = np.asarray(header["vertex_offset"]) + frames * np.asarray(header["vertex_step"])
-    arrays["vertices"] = frames
+    if "frames" in arrays:
+        frames = arrays["frames"].astype(np.float64)
+        if header["vertex_encoding"] == "int16":
+            frames = np.asarray(header["vertex_offset"]) + frames * np.asarray(header["vertex_step"])
+        arrays["vertices"] = frames
     return header, arrays

@@ -83,7 +83,170 @@ export function decodeBundle(header, bytes) {
     dMax = Math.max(dMax, Math.abs(b.d[g]));
   }
   b.baryMax = baryMax; b.dMax = dMax;
+  b.driver = header.driver || { kind: "frames" };
+  if (b.driver.kind === "gltf") b.rig = decodeRig(b.driver, arr);
   return b;
+}
+
+/** Rig arrays of a live glTF bundle (layout: meshsplat/viewer/rig.py). */
+function decodeRig(d, arr) {
+  const clips = d.clips.map((c) => ({ ...c, channels: c.channels.map((ch) => ({
+    ...ch, times: arr.anim_times.subarray(ch.t_off, ch.t_off + ch.count),
+    values: arr.anim_values.subarray(ch.v_off, ch.v_off + ch.count * ch.width * (ch.interp === "CUBICSPLINE" ? 3 : 1)),
+  })) }));
+  return { K: d.influences, P: d.num_pairs, nodes: d.num_nodes, base: arr.rig_base, pairIndex: arr.rig_pair_index,
+           pairWeight: arr.rig_pair_weight, pairNode: arr.pair_node, pairIbm: arr.pair_ibm, parent: arr.node_parent,
+           order: arr.node_order, rest: arr.node_rest, trs: arr.node_trs, matrixNodes: new Set(d.matrix_nodes),
+           morphInfo: arr.morph_info, deltas: arr.morph_deltas, defaultWeights: arr.morph_default_weights,
+           groups: d.morph_groups, clips };
+}
+
+// ------------------------------------------------------------------ live glTF driver (as meshsplat.drivers.gltf)
+function slerpXyzw(a, b, s, out) {
+  let a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], b0 = b[0], b1 = b[1], b2 = b[2], b3 = b[3];
+  const na = Math.hypot(a0, a1, a2, a3), nb = Math.hypot(b0, b1, b2, b3);
+  a0 /= na; a1 /= na; a2 /= na; a3 /= na; b0 /= nb; b1 /= nb; b2 /= nb; b3 /= nb;
+  let d = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3;
+  if (d < 0) { b0 = -b0; b1 = -b1; b2 = -b2; b3 = -b3; d = -d; }
+  let wa, wb;
+  if (d > 0.9995) { wa = 1 - s; wb = s; } else {
+    const th = Math.acos(Math.min(d, 1)), st = Math.sin(th);
+    wa = Math.sin((1 - s) * th) / st; wb = Math.sin(s * th) / st;
+  }
+  out[0] = wa * a0 + wb * b0; out[1] = wa * a1 + wb * b1; out[2] = wa * a2 + wb * b2; out[3] = wa * a3 + wb * b3;
+  const n = Math.hypot(out[0], out[1], out[2], out[3]);
+  for (let i = 0; i < 4; i++) out[i] /= n;
+  return out;
+}
+
+/** Value of an animation channel at time `t` (clamped to its keys), as meshsplat.drivers.gltf_io.sample_channel. */
+export function sampleChannel(ch, t) {
+  const T = ch.times, V = ch.values, w = ch.width, cubic = ch.interp === "CUBICSPLINE", K = T.length;
+  const value = (k) => cubic ? V.subarray((3 * k + 1) * w, (3 * k + 2) * w) : V.subarray(k * w, (k + 1) * w);
+  if (K === 1 || t <= T[0]) return Float64Array.from(value(0));
+  if (t >= T[K - 1]) return Float64Array.from(value(K - 1));
+  let lo = 0, hi = K - 1; // largest k with T[k] <= t
+  while (hi - lo > 1) { const mid = (lo + hi) >> 1; if (T[mid] <= t) lo = mid; else hi = mid; }
+  const k = lo, dt = T[k + 1] - T[k], s = dt > 0 ? (t - T[k]) / dt : 0;
+  if (ch.interp === "STEP") return Float64Array.from(V.subarray(k * w, (k + 1) * w));
+  const out = new Float64Array(w);
+  if (cubic) {
+    const s2 = s * s, s3 = s2 * s;
+    for (let i = 0; i < w; i++) {
+      const p0 = V[(3 * k + 1) * w + i], m0 = dt * V[(3 * k + 2) * w + i];
+      const p1 = V[(3 * k + 4) * w + i], m1 = dt * V[(3 * k + 3) * w + i];
+      out[i] = (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * m1;
+    }
+    if (ch.path === "rotation") { const n = Math.hypot(...out); for (let i = 0; i < w; i++) out[i] /= n; }
+    return out;
+  }
+  if (ch.path === "rotation") return slerpXyzw(value(k), value(k + 1), s, out);
+  for (let i = 0; i < w; i++) out[i] = (1 - s) * V[k * w + i] + s * V[(k + 1) * w + i];
+  return out;
+}
+
+function trsMatrix(t, r, s, m, o) { // row-major 4x4 T R S into m at o (r: xyzw, normalized here)
+  const n = Math.hypot(r[0], r[1], r[2], r[3]), x = r[0] / n, y = r[1] / n, z = r[2] / n, w = r[3] / n;
+  const R = [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+             2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+             2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)];
+  for (let i = 0; i < 3; i++) {
+    for (let j = 0; j < 3; j++) m[o + 4 * i + j] = R[3 * i + j] * s[j];
+    m[o + 4 * i + 3] = t[i];
+  }
+  m[o + 12] = 0; m[o + 13] = 0; m[o + 14] = 0; m[o + 15] = 1;
+}
+
+function mul4(a, ao, b, bo, out, oo) {
+  for (let i = 0; i < 4; i++) for (let j = 0; j < 4; j++) {
+    out[oo + 4 * i + j] = a[ao + 4 * i] * b[bo + j] + a[ao + 4 * i + 1] * b[bo + 4 + j]
+      + a[ao + 4 * i + 2] * b[bo + 8 + j] + a[ao + 4 * i + 3] * b[bo + 12 + j];
+  }
+}
+
+/**
+ * Rig state of clip `clip` (index) at `time` seconds (clamped to the clip), with morph weights
+ * `override` (Float64Array [num_morph_weights], NaN = from the clip) applied last:
+ * { pairs: Float32Array [P*12] (rows 0..2 of world[pair_node] @ inverse bind), weights: Float32Array }.
+ */
+export function evalRig(rig, clip, time, override, out) {
+  const N = rig.nodes, local = Float64Array.from(rig.rest), world = new Float64Array(16 * N);
+  const trs = new Map(), weights = Float64Array.from(rig.defaultWeights);
+  const c = clip === null || clip === undefined ? null : rig.clips[clip];
+  if (c) {
+    for (const ch of c.channels) {
+      const v = sampleChannel(ch, time);
+      if (ch.path === "weights") {
+        const g = rig.groups.find((gr) => gr.node === ch.node);
+        if (g) for (let m = 0; m < g.count; m++) weights[g.weight_base + m] = v[m];
+        continue;
+      }
+      if (rig.matrixNodes.has(ch.node)) continue;
+      if (!trs.has(ch.node)) {
+        const o = 10 * ch.node;
+        trs.set(ch.node, [rig.trs.slice(o, o + 3), rig.trs.slice(o + 3, o + 7), rig.trs.slice(o + 7, o + 10)]);
+      }
+      trs.get(ch.node)[["translation", "rotation", "scale"].indexOf(ch.path)] = v;
+    }
+    for (const [i, [t, r, s]] of trs) trsMatrix(t, r, s, local, 16 * i);
+  }
+  if (override) for (let i = 0; i < weights.length; i++) if (!Number.isNaN(override[i])) weights[i] = override[i];
+  for (const i of rig.order) {
+    const p = rig.parent[i];
+    if (p < 0) world.set(local.subarray(16 * i, 16 * i + 16), 16 * i); else mul4(world, 16 * p, local, 16 * i, world, 16 * i);
+  }
+  out = out || { pairs: new Float32Array(12 * rig.P), weights: new Float32Array(weights.length) };
+  const m = new Float64Array(16);
+  for (let p = 0; p < rig.P; p++) {
+    mul4(world, 16 * rig.pairNode[p], rig.pairIbm, 16 * p, m, 0);
+    for (let j = 0; j < 12; j++) out.pairs[12 * p + j] = m[j];
+  }
+  out.weights.set(weights);
+  return out;
+}
+
+/** Posed vertices [V*3] of a rig state: linear blend skinning of the morphed base (CPU; the page does it on the GPU). */
+export function skinVertices(rig, state, V, out) {
+  out = out || new Float32Array(3 * V);
+  const K = rig.K, P = state.pairs, W = state.weights, info = rig.morphInfo, D = rig.deltas;
+  for (let v = 0; v < V; v++) {
+    let x = rig.base[3 * v], y = rig.base[3 * v + 1], z = rig.base[3 * v + 2];
+    const m0 = info[4 * v], M = info[4 * v + 1], n = info[4 * v + 2], wb = info[4 * v + 3];
+    for (let m = 0; m < M; m++) {
+      const w = W[wb + m];
+      if (w !== 0) { const o = 3 * (m0 + m * n); x += w * D[o]; y += w * D[o + 1]; z += w * D[o + 2]; }
+    }
+    let ox = 0, oy = 0, oz = 0;
+    for (let k = 0; k < K; k++) {
+      const w = rig.pairWeight[K * v + k];
+      if (w === 0) continue;
+      const o = 12 * rig.pairIndex[K * v + k];
+      ox += w * (P[o] * x + P[o + 1] * y + P[o + 2] * z + P[o + 3]);
+      oy += w * (P[o + 4] * x + P[o + 5] * y + P[o + 6] * z + P[o + 7]);
+      oz += w * (P[o + 8] * x + P[o + 9] * y + P[o + 10] * z + P[o + 11]);
+    }
+    out[3 * v] = ox; out[3 * v + 1] = oy; out[3 * v + 2] = oz;
+  }
+  return out;
+}
+
+/** Area-weighted unit vertex normals [V*3] of positions `p` (the worker's copy of poseMesh's normals). */
+export function vertexNormals(faces, V, p, out) {
+  out = out || new Float32Array(3 * V);
+  out.fill(0);
+  for (let k = 0; k < faces.length; k += 3) {
+    const a = 3 * faces[k], b = 3 * faces[k + 1], c = 3 * faces[k + 2];
+    const e0x = p[b] - p[a], e0y = p[b + 1] - p[a + 1], e0z = p[b + 2] - p[a + 2];
+    const e2x = p[c] - p[a], e2y = p[c + 1] - p[a + 1], e2z = p[c + 2] - p[a + 2];
+    const cx = e0y * e2z - e0z * e2y, cy = e0z * e2x - e0x * e2z, cz = e0x * e2y - e0y * e2x;
+    out[a] += cx; out[a + 1] += cy; out[a + 2] += cz; out[b] += cx; out[b + 1] += cy; out[b + 2] += cz;
+    out[c] += cx; out[c + 1] += cy; out[c + 2] += cz;
+  }
+  for (let i = 0; i < 3 * V; i += 3) {
+    const r = 1 / Math.sqrt(Math.max(out[i] ** 2 + out[i + 1] ** 2 + out[i + 2] ** 2, 1e-24));
+    out[i] *= r; out[i + 1] *= r; out[i + 2] *= r;
+  }
+  return out;
 }
 
 /** Vertices [V*3] (Float64Array) of frame `t`, dequantized when stored as int16. */
@@ -356,67 +519,56 @@ export function sortByDepth(means, n, viewmat, order, counts) {
   order = order || new Uint32Array(n);
   return sortDepths(depth, n, order, { counts });
 }
-// ------------------------------------------------------------------ per-frame vertex data
-/**
- * Texture data of a posed mesh: `verts` [V*4*3] (texels p, n, q per vertex: position and normal
- * with w = 0, quaternion wxyz) and `ratio` [F] (posed/canonical face area), float32.
- */
-export function packVertexTexels(b, p, m, out) {
-  const V = b.V, F = b.F;
-  out = out || { verts: new Float32Array(texSize(3 * V) * 4), ratio: new Float32Array(texSize(F)) };
-  const t = out.verts, n = m.normals, q = m.quats;
-  for (let v = 0; v < V; v++) {
-    const o = 12 * v;
-    t[o] = p[3 * v]; t[o + 1] = p[3 * v + 1]; t[o + 2] = p[3 * v + 2];
-    t[o + 4] = n[3 * v]; t[o + 5] = n[3 * v + 1]; t[o + 6] = n[3 * v + 2];
-    t[o + 8] = q[4 * v]; t[o + 9] = q[4 * v + 1]; t[o + 10] = q[4 * v + 2]; t[o + 11] = q[4 * v + 3];
-  }
-  out.ratio.set(m.areaRatio);
-  return out;
-}
-
+// ------------------------------------------------------------------ sort worker
 /** Texels of a TEX_WIDTH-wide texture holding `n` texels (whole rows). */
 export function texSize(n) { return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WIDTH)); }
 
 /**
- * Bound on how far any Gaussian centre moved in camera depth between a sorted state and now:
- * baryMax * max_v |z_v - z_v'| + dMax * max_v |r3.n_v - r3'.n_v'| (vertex v, camera row 3 r3).
- * The first term is exact for the Phong point (a barycentric combination); the second is first
- * order in the normal change (the interpolated normal is renormalized). Pairs of Gaussians whose
- * depths differ by more than 2*delta (+ one 16-bit bin) are still drawn in the right order.
+ * The worker's job for one pose: posed vertices (given, or skinned from a rig state), vertex
+ * normals, Gaussian centre depths, 16-bit counting sort. Also returns `moved`, the largest change
+ * of any centre's depth since the previous call (the bound on a stale order's error, see docs).
+ * `S` holds the static data (faces, face/uv/d of the Gaussians, rig) and scratch buffers.
  */
-export function depthDrift(b, verts, normals, viewmat, sorted) {
-  if (!sorted) return Infinity;
-  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
-  const s = sorted.viewmat, s0 = s[8], s1 = s[9], s2 = s[10], st = s[11], P = sorted.verts, Nn = sorted.normals;
-  let dz = 0, dn = 0;
-  for (let i = 0; i < 3 * b.V; i += 3) {
-    const z = r0 * verts[i] + r1 * verts[i + 1] + r2 * verts[i + 2] + t;
-    const zs = s0 * P[i] + s1 * P[i + 1] + s2 * P[i + 2] + st;
-    const n = r0 * normals[i] + r1 * normals[i + 1] + r2 * normals[i + 2];
-    const ns = s0 * Nn[i] + s1 * Nn[i + 1] + s2 * Nn[i + 2];
-    dz = Math.max(dz, Math.abs(z - zs)); dn = Math.max(dn, Math.abs(n - ns));
-  }
-  return b.baryMax * dz + b.dMax * dn;
+export function sortJob(S, msg) {
+  const verts = msg.verts || skinVertices(S.rig, msg.rig, S.V, S.verts);
+  const normals = vertexNormals(S.faces, S.V, verts, S.normals);
+  const prev = S.depth, depth = S.depth2;
+  gaussianDepths(S, verts, normals, msg.viewmat, depth);
+  let moved = S.hasPrev ? 0 : Infinity;
+  if (S.hasPrev) for (let g = 0; g < S.N; g++) moved = Math.max(moved, Math.abs(depth[g] - prev[g]));
+  S.depth = depth; S.depth2 = prev; S.hasPrev = true;
+  const order = new Uint32Array(S.N);
+  const n = sortDepths(depth, S.N, order, S.ws);
+  return { id: msg.id, n, order, moved };
 }
 
-// ------------------------------------------------------------------ sort worker
+/** Static data for sortJob from a decoded bundle (what the worker receives once). */
+export function sortSetup(b) {
+  return { N: b.N, V: b.V, faces: b.faces, face: b.face, uv: b.uv, d: b.d, rig: b.rig ? { ...b.rig, clips: null } : null };
+}
+
+function sortScratch(S) {
+  Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), depth: new Float32Array(S.N),
+                     depth2: new Float32Array(S.N), hasPrev: false,
+                     ws: { counts: new Uint32Array(65536), bins: new Uint16Array(S.N) } });
+  return S;
+}
+
 /** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
 export const SORT_WORKER_SOURCE = `"use strict";
+${skinVertices.toString()}
+${vertexNormals.toString()}
 ${gaussianDepths.toString()}
 ${sortDepths.toString()}
-let G = null, depth = null, ws = null;
+${sortJob.toString()}
+${sortScratch.toString()}
+let S = null;
 onmessage = (e) => {
-  const m = e.data;
-  if (m.type === "init") {
-    G = m; depth = new Float32Array(m.N); ws = { counts: new Uint32Array(65536), bins: new Uint16Array(m.N) };
-    return;
-  }
+  if (e.data.type === "init") { S = sortScratch(e.data.setup); return; }
   const t0 = performance.now();
-  gaussianDepths(G, m.verts, m.normals, m.viewmat, depth);
-  const order = new Uint32Array(G.N);
-  const n = sortDepths(depth, G.N, order, ws);
-  postMessage({ id: m.id, n, order, ms: performance.now() - t0 }, [order.buffer]);
+  const r = sortJob(S, e.data);
+  r.ms = performance.now() - t0;
+  postMessage(r, [r.order.buffer]);
 };
 `;
 
@@ -424,40 +576,152 @@ onmessage = (e) => {
 export class DepthSorter {
   constructor(b, onResult) {
     this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
-    const init = { type: "init", N: b.N, faces: b.faces, face: b.face, uv: b.uv, d: b.d };
+    const setup = sortSetup(b);
     try {
       const url = URL.createObjectURL(new Blob([SORT_WORKER_SOURCE], { type: "text/javascript" }));
       this.worker = new Worker(url);
       this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
       this.worker.onerror = (e) => { console.error("sort worker:", e.message); this.worker = null; this.busy = false; };
-      this.worker.postMessage(init);
+      this.worker.postMessage({ type: "init", setup });
       this.inWorker = true;
     } catch (err) {
       console.warn("no Web Worker, sorting on the main thread:", err);
-      this.worker = null; this.g = init;
-      this.depth = new Float32Array(b.N); this.ws = { counts: new Uint32Array(65536), bins: new Uint16Array(b.N) };
+      this.worker = null; this.S = sortScratch(setup);
     }
   }
 
-  /** Request a sort of the pose (`verts`, `normals` float32 [V*3], not kept) seen from `viewmat`. */
-  request(verts, normals, viewmat) {
+  /** Ask for a sort of a pose ({verts} float32 [V*3] or {rig} state) seen from `viewmat`; false when busy. */
+  request(pose, viewmat) {
     if (this.busy) return false;
-    const msg = { type: "sort", id: this.nextId++, verts: verts.slice(), normals: normals.slice(),
-                  viewmat: Array.from(viewmat) };
+    const msg = { type: "sort", id: this.nextId++, viewmat: Array.from(viewmat) };
+    const transfer = [];
+    if (pose.verts) { msg.verts = pose.verts.slice(); transfer.push(msg.verts.buffer); }
+    else msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
     this.busy = true;
     if (this.worker) {
-      this.worker.postMessage(msg, [msg.verts.buffer, msg.normals.buffer]);
+      this.worker.postMessage(msg, transfer);
     } else {
       const t0 = performance.now();
-      gaussianDepths(this.g, msg.verts, msg.normals, msg.viewmat, this.depth);
-      const order = new Uint32Array(this.g.N);
-      const n = sortDepths(this.depth, this.g.N, order, this.ws);
+      const r = sortJob(this.S, msg);
+      r.ms = performance.now() - t0;
       this.busy = false;
-      this.onResult({ id: msg.id, n, order, ms: performance.now() - t0 });
+      this.onResult(r);
     }
-    return msg;
+    return msg.id;
   }
 }
+
+// ------------------------------------------------------------------ WebGL2: GPU posing passes
+const TEXEL = `
+ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
+int here() { return int(gl_FragCoord.y) * ${TEX_WIDTH} + int(gl_FragCoord.x); }`;
+
+const PASS_VERT = `#version 300 es
+layout(location=0) in vec2 corner;
+void main() { gl_Position = vec4(corner, 0.0, 1.0); }`;
+
+// pass A (live glTF): morph targets + linear blend skinning -> posed positions
+const SKIN_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count; uniform int K;
+uniform sampler2D baseTex, deltaTex, weightTex, pairTex, jwTex;
+uniform usampler2D morphTex, jiTex;
+out vec4 o;${TEXEL}
+void main() {
+  int v = here();
+  if (v >= count) { o = vec4(0.0); return; }
+  vec3 p = texelFetch(baseTex, at(v), 0).xyz;
+  uvec4 mi = texelFetch(morphTex, at(v), 0);
+  for (uint m = 0u; m < mi.y; m++) {
+    float w = texelFetch(weightTex, at(int(mi.w + m)), 0).x;
+    if (w != 0.0) p += w * texelFetch(deltaTex, at(int(mi.x + m * mi.z)), 0).xyz;
+  }
+  vec4 r0 = vec4(0.0), r1 = vec4(0.0), r2 = vec4(0.0);
+  for (int t = 0; t < K / 4; t++) {
+    uvec4 j = texelFetch(jiTex, at(v * (K / 4) + t), 0);
+    vec4 w = texelFetch(jwTex, at(v * (K / 4) + t), 0);
+    for (int c = 0; c < 4; c++) {
+      if (w[c] == 0.0) continue;
+      int q = 3 * int(j[c]);
+      r0 += w[c] * texelFetch(pairTex, at(q), 0);
+      r1 += w[c] * texelFetch(pairTex, at(q + 1), 0);
+      r2 += w[c] * texelFetch(pairTex, at(q + 2), 0);
+    }
+  }
+  vec4 h = vec4(p, 1.0);
+  o = vec4(dot(r0, h), dot(r1, h), dot(r2, h), 1.0);
+}`;
+
+// pass B: per face of the posed mesh -> rotation from canonical (quaternion), cross/area, area ratio
+const FACE_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count;
+uniform sampler2D pTex, cfTex; uniform usampler2D fTex;
+layout(location=0) out vec4 oq; layout(location=1) out vec4 oc; layout(location=2) out vec4 or_;${TEXEL}
+void main() {
+  int k = here();
+  if (k >= count) { oq = vec4(1.0, 0.0, 0.0, 0.0); oc = vec4(0.0); or_ = vec4(1.0); return; }
+  uvec4 f = texelFetch(fTex, at(k), 0);
+  vec3 a = texelFetch(pTex, at(int(f.x)), 0).xyz, b = texelFetch(pTex, at(int(f.y)), 0).xyz;
+  vec3 c = texelFetch(pTex, at(int(f.z)), 0).xyz;
+  vec3 e0 = b - a, e2 = c - a, cr = cross(e0, e2);
+  float c2 = dot(cr, cr), e02 = dot(e0, e0), e22 = dot(e2, e2);
+  float area = 0.5 * sqrt(max(c2, ${EPS * EPS}));
+  vec3 t = vec3(1.0, 0.0, 0.0), bt = vec3(0.0, 1.0, 0.0), n = vec3(0.0, 0.0, 1.0);
+  if (c2 > 1e-10 * e02 * e22 && e02 * e22 > 0.0) {
+    t = e0 * inversesqrt(max(e02, ${EPS * EPS})); n = cr * inversesqrt(max(c2, ${EPS * EPS})); bt = cross(n, t);
+  }
+  // canonical frame rows (t_i, b_i, n_i) and area; R = F_posed F_cano^T, R_ij = sum_c Fp[i][c] Fc[j][c]
+  vec4 c0 = texelFetch(cfTex, at(3 * k), 0), c1 = texelFetch(cfTex, at(3 * k + 1), 0), c2v = texelFetch(cfTex, at(3 * k + 2), 0);
+  vec3 p0 = vec3(t.x, bt.x, n.x), p1 = vec3(t.y, bt.y, n.y), p2 = vec3(t.z, bt.z, n.z);
+  float m00 = dot(p0, c0.xyz), m01 = dot(p0, c1.xyz), m02 = dot(p0, c2v.xyz);
+  float m10 = dot(p1, c0.xyz), m11 = dot(p1, c1.xyz), m12 = dot(p1, c2v.xyz);
+  float m20 = dot(p2, c0.xyz), m21 = dot(p2, c1.xyz), m22 = dot(p2, c2v.xyz);
+  vec4 cand = vec4(1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22);
+  int best = 0;
+  for (int i = 1; i < 4; i++) if (cand[i] > cand[best]) best = i;   // first maximum, as torch.argmax
+  vec4 q;
+  if (best == 0) q = vec4(cand.x, m21 - m12, m02 - m20, m10 - m01);
+  else if (best == 1) q = vec4(m21 - m12, cand.y, m10 + m01, m02 + m20);
+  else if (best == 2) q = vec4(m02 - m20, m10 + m01, cand.z, m12 + m21);
+  else q = vec4(m10 - m01, m20 + m02, m21 + m12, cand.w);
+  float r = 1.0 / max(length(q), 1e-12);
+  if (q.x * r < 0.0) r = -r;
+  oq = q * r;
+  oc = vec4(cr, area);
+  float a0 = c0.w;
+  or_ = vec4(a0 > ${EPS} ? area / a0 : 1.0, 0.0, 0.0, 0.0);
+}`;
+
+// pass C: per vertex -> area-weighted normal, quaternion = sign-aligned area-weighted face quaternion sum
+const VERTEX_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count;
+uniform sampler2D fqTex, fcTex; uniform usampler2D adjTex, vaTex;
+layout(location=0) out vec4 on; layout(location=1) out vec4 oq;${TEXEL}
+void main() {
+  int v = here();
+  if (v >= count) { on = vec4(0.0); oq = vec4(1.0, 0.0, 0.0, 0.0); return; }
+  uvec4 ad = texelFetch(vaTex, at(v), 0);
+  int start = int(ad.x), cnt = int(ad.y);
+  vec3 ns = vec3(0.0); float wmax = -1.0; int ref = 0;
+  for (int i = 0; i < cnt; i++) {           // faces in increasing index: ties -> largest face index
+    int k = int(texelFetch(adjTex, at(start + i), 0).x);
+    vec4 fc = texelFetch(fcTex, at(k), 0);
+    ns += fc.xyz;
+    if (fc.w >= wmax) { wmax = fc.w; ref = k; }
+  }
+  vec4 qr = texelFetch(fqTex, at(ref), 0), acc = vec4(0.0);
+  for (int i = 0; i < cnt; i++) {
+    int k = int(texelFetch(adjTex, at(start + i), 0).x);
+    vec4 q = texelFetch(fqTex, at(k), 0);
+    float w = texelFetch(fcTex, at(k), 0).w;
+    acc += (dot(q, qr) < 0.0 ? -w : w) * q;
+  }
+  on = vec4(ns * inversesqrt(max(dot(ns, ns), ${EPS * EPS})), 0.0);
+  float n2 = dot(acc, acc);
+  oq = n2 > 1e-30 ? acc / max(sqrt(n2), 1e-15) : vec4(1.0, 0.0, 0.0, 0.0);
+}`;
 
 // ------------------------------------------------------------------ WebGL2 splatting
 const VERT = `#version 300 es
@@ -467,8 +731,8 @@ layout(location=0) in vec2 corner;      // quad corner in {-1, 1}^2
 layout(location=1) in uint gid;         // Gaussian index, instances in back-to-front order
 uniform usampler2D gTex;                // 2 RGBA32UI texels per Gaussian (bundle.py pack_gaussians)
 uniform usampler2D fTex;                // face -> vertex indices (a, b, c)
-uniform sampler2D vTex;                 // 3 texels per posed vertex: position, normal, quaternion wxyz
-uniform sampler2D rTex;                 // posed / canonical face area
+uniform sampler2D pTex, nTex, qTex;     // per posed vertex: position, normal, quaternion wxyz
+uniform sampler2D rTex;                 // per face: posed / canonical area (x)
 uniform int scaleMode;                  // 0 none, 1 area, 2 sqrt_area
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
@@ -486,16 +750,15 @@ void main() {
   vec2 s01 = unpackHalf2x16(w1.z), s2b = unpackHalf2x16(w1.w);
   int k = int(w0.x);
   uvec4 fv = texelFetch(fTex, at(k), 0);
-  int ia = 3 * int(fv.x), ib = 3 * int(fv.y), ic = 3 * int(fv.z);
+  ivec2 ia = at(int(fv.x)), ib = at(int(fv.y)), ic = at(int(fv.z));
   float u = uv.x, v = uv.y, w = 1.0 - u - v;
   // Phong point + d along the normalized interpolated normal (meshsplat.embedding)
-  vec3 n = u * texelFetch(vTex, at(ia + 1), 0).xyz + v * texelFetch(vTex, at(ib + 1), 0).xyz
-         + w * texelFetch(vTex, at(ic + 1), 0).xyz;
+  vec3 n = u * texelFetch(nTex, ia, 0).xyz + v * texelFetch(nTex, ib, 0).xyz + w * texelFetch(nTex, ic, 0).xyz;
   n *= inversesqrt(max(dot(n, n), 1e-24));
-  vec3 mean = u * texelFetch(vTex, at(ia), 0).xyz + v * texelFetch(vTex, at(ib), 0).xyz
-            + w * texelFetch(vTex, at(ic), 0).xyz + dop.x * n;
+  vec3 mean = u * texelFetch(pTex, ia, 0).xyz + v * texelFetch(pTex, ib, 0).xyz + w * texelFetch(pTex, ic, 0).xyz
+            + dop.x * n;
   // delta_q: blend of the corner quaternions sign-aligned to corner a; q = delta_q (x) q_canonical
-  vec4 qa = texelFetch(vTex, at(ia + 2), 0), qb = texelFetch(vTex, at(ib + 2), 0), qq = texelFetch(vTex, at(ic + 2), 0);
+  vec4 qa = texelFetch(qTex, ia, 0), qb = texelFetch(qTex, ib, 0), qq = texelFetch(qTex, ic, 0);
   vec4 dq = u * qa + (dot(qb, qa) < 0.0 ? -v : v) * qb + (dot(qq, qa) < 0.0 ? -w : w) * qq;
   dq /= max(length(dq), 1e-12);
   vec4 q = quatMul(dq, qc / max(length(qc), 1e-12));
@@ -555,43 +818,97 @@ function compile(gl, type, src) {
   return s;
 }
 
-function dataTexture(gl, unit, internal, format, type, texels, data) {
+function program(gl, vs, fs, uniforms) {
+  const prog = gl.createProgram();
+  gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, vs));
+  gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, fs));
+  gl.linkProgram(prog);
+  if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  return { prog, loc: Object.fromEntries(uniforms.map((n) => [n, gl.getUniformLocation(prog, n)])) };
+}
+
+const FORMATS = { f4: ["RGBA32F", "RGBA", "FLOAT", 4, Float32Array], u4: ["RGBA32UI", "RGBA_INTEGER", "UNSIGNED_INT", 4, Uint32Array],
+                  f1: ["R32F", "RED", "FLOAT", 1, Float32Array], u1: ["R32UI", "RED_INTEGER", "UNSIGNED_INT", 1, Uint32Array] };
+
+/** A TEX_WIDTH-wide data texture of `n` texels; `data` (optional) is copied in, zero-padded to whole rows. */
+function dataTexture(gl, kind, n, data) {
+  const [internal, format, type, ch, T] = FORMATS[kind];
+  const texels = texSize(n);
+  let buf = null;
+  if (data) { buf = new T(texels * ch); buf.set(data.subarray ? data.subarray(0, Math.min(data.length, texels * ch)) : data); }
   const tex = gl.createTexture();
-  gl.activeTexture(gl.TEXTURE0 + unit);
   gl.bindTexture(gl.TEXTURE_2D, tex);
   for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
-  gl.texImage2D(gl.TEXTURE_2D, 0, internal, TEX_WIDTH, texels / TEX_WIDTH, 0, format, type, data);
-  return tex;
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl[internal], TEX_WIDTH, texels / TEX_WIDTH, 0, gl[format], gl[type], buf);
+  return { tex, kind, rows: texels / TEX_WIDTH, ch, T, texels };
+}
+
+function updateTexture(gl, t, data) {
+  const [, format, type] = FORMATS[t.kind];
+  let buf = data;
+  if (data.length !== t.texels * t.ch) { buf = new t.T(t.texels * t.ch); buf.set(data); }
+  gl.bindTexture(gl.TEXTURE_2D, t.tex);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, t.rows, gl[format], gl[type], buf);
+}
+
+/** Vertex -> incident faces (with repeats for repeated corners), faces increasing: {va [V*4], adj [3F]}. */
+export function vertexFaces(faces, V) {
+  const count = new Uint32Array(V);
+  for (let i = 0; i < faces.length; i++) count[faces[i]]++;
+  const va = new Uint32Array(4 * V), fill = new Uint32Array(V);
+  let start = 0;
+  for (let v = 0; v < V; v++) { va[4 * v] = start; va[4 * v + 1] = count[v]; start += count[v]; }
+  const adj = new Uint32Array(faces.length);
+  for (let i = 0; i < faces.length; i++) { const v = faces[i]; adj[va[4 * v] + fill[v]++] = Math.floor(i / 3); }
+  return { va, adj };
 }
 
 /**
- * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians and faces. Per pose:
- * `setPose(texels)` uploads the vertex and face-ratio textures; per sort: `setOrder(order, n)`;
- * `draw(viewmat, K, background)` issues one instanced draw call.
+ * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians, faces, canonical face
+ * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
+ * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
+ * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call.
  */
 export class SplatRenderer {
   constructor(canvas, b) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
+    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float textures (EXT_color_buffer_float)");
     this.gl = gl; this.b = b;
-    const prog = gl.createProgram();
-    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VERT));
-    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FRAG));
-    gl.linkProgram(prog);
-    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
-    this.prog = prog;
-    const names = ["R", "tr", "K", "size", "gTex", "fTex", "vTex", "rTex", "scaleMode"];
-    this.loc = Object.fromEntries(names.map((n) => [n, gl.getUniformLocation(prog, n)]));
-    const maxTex = gl.getParameter(gl.MAX_TEXTURE_SIZE);
-    if (texSize(2 * b.N) / TEX_WIDTH > maxTex) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
-    const gtex = new Uint32Array(texSize(2 * b.N) * 4);
-    gtex.set(b.packed);
-    dataTexture(gl, 0, gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, texSize(2 * b.N), gtex);
-    const ftex = new Uint32Array(texSize(b.F) * 4);
+    const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
+    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "fTex", "pTex", "nTex", "qTex", "rTex", "scaleMode"]);
+    this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
+    this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
+    const ftex = new Uint32Array(4 * b.F);
     for (let k = 0; k < b.F; k++) for (let j = 0; j < 3; j++) ftex[4 * k + j] = b.faces[3 * k + j];
-    dataTexture(gl, 1, gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, texSize(b.F), ftex);
-    this.vTex = dataTexture(gl, 2, gl.RGBA32F, gl.RGBA, gl.FLOAT, texSize(3 * b.V), null);
-    this.rTex = dataTexture(gl, 3, gl.R32F, gl.RED, gl.FLOAT, texSize(b.F), null);
+    const cf = new Float32Array(12 * b.F); // rows (t_i, b_i, n_i, area) of the canonical face frames
+    for (let k = 0; k < b.F; k++) {
+      for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) cf[12 * k + 4 * i + j] = b.canoFrames[9 * k + 3 * i + j];
+      cf[12 * k + 3] = b.canoAreas[k];
+    }
+    const { va, adj } = vertexFaces(b.faces, b.V);
+    this.t = {
+      g: dataTexture(gl, "u4", 2 * b.N, b.packed), f: dataTexture(gl, "u4", b.F, ftex),
+      cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
+      p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
+      fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
+    };
+    if (b.rig) {
+      const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
+      for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
+      for (let i = 0; i < r.deltas.length / 3; i++) for (let j = 0; j < 3; j++) delta4[4 * i + j] = r.deltas[3 * i + j];
+      this.skinPass = program(gl, PASS_VERT, SKIN_FRAG, ["count", "K", "baseTex", "deltaTex", "weightTex", "pairTex", "jwTex", "morphTex", "jiTex"]);
+      Object.assign(this.t, {
+        base: dataTexture(gl, "f4", b.V, base4), delta: dataTexture(gl, "f4", delta4.length / 4, delta4),
+        morph: dataTexture(gl, "u4", b.V, r.morphInfo), ji: dataTexture(gl, "u4", b.V * r.K / 4, r.pairIndex),
+        jw: dataTexture(gl, "f4", b.V * r.K / 4, r.pairWeight), pair: dataTexture(gl, "f4", 3 * r.P),
+        weight: dataTexture(gl, "f1", Math.max(1, r.defaultWeights.length)),
+      });
+      this.fbSkin = this.framebuffer([this.t.p]);
+    }
+    this.fbFace = this.framebuffer([this.t.fq, this.t.fc, this.t.r]);
+    this.fbVert = this.framebuffer([this.t.n, this.t.q]);
     this.vao = gl.createVertexArray();
     gl.bindVertexArray(this.vao);
     const quad = gl.createBuffer();
@@ -609,14 +926,64 @@ export class SplatRenderer {
     this.visible = 0;
   }
 
-  setPose(texels) {
-    const gl = this.gl, b = this.b;
-    gl.activeTexture(gl.TEXTURE2);
-    gl.bindTexture(gl.TEXTURE_2D, this.vTex);
-    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, texSize(3 * b.V) / TEX_WIDTH, gl.RGBA, gl.FLOAT, texels.verts);
-    gl.activeTexture(gl.TEXTURE3);
-    gl.bindTexture(gl.TEXTURE_2D, this.rTex);
-    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, texSize(b.F) / TEX_WIDTH, gl.RED, gl.FLOAT, texels.ratio);
+  framebuffer(targets) {
+    const gl = this.gl, fb = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+    targets.forEach((t, i) => gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0 + i, gl.TEXTURE_2D, t.tex, 0));
+    gl.drawBuffers(targets.map((_, i) => gl.COLOR_ATTACHMENT0 + i));
+    const status = gl.checkFramebufferStatus(gl.FRAMEBUFFER);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    if (status !== gl.FRAMEBUFFER_COMPLETE) throw new Error(`float render target incomplete (${status})`);
+    return { fb, rows: targets[0].rows };
+  }
+
+  bind(p, textures) { // textures: {uniformName: texture}
+    const gl = this.gl;
+    Object.entries(textures).forEach(([name, t], i) => {
+      gl.activeTexture(gl.TEXTURE0 + i);
+      gl.bindTexture(gl.TEXTURE_2D, t.tex);
+      gl.uniform1i(p.loc[name], i);
+    });
+  }
+
+  runPass(p, fb, count, textures, extra) {
+    const gl = this.gl;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb.fb);
+    gl.viewport(0, 0, TEX_WIDTH, fb.rows);
+    gl.disable(gl.BLEND);
+    gl.useProgram(p.prog);
+    gl.uniform1i(p.loc.count, count);
+    if (extra) extra(p.loc);
+    this.bind(p, textures);
+    gl.bindVertexArray(this.vao);
+    gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+    gl.bindVertexArray(null);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  }
+
+  /** Posed vertex positions [V*3] (vertex-frame driver): upload, then the face and vertex passes. */
+  setVertices(p) {
+    const V = this.b.V, p4 = this.p4 || (this.p4 = new Float32Array(4 * V));
+    for (let v = 0; v < V; v++) { p4[4 * v] = p[3 * v]; p4[4 * v + 1] = p[3 * v + 1]; p4[4 * v + 2] = p[3 * v + 2]; }
+    updateTexture(this.gl, this.t.p, p4);
+    this.poseMeshPasses();
+  }
+
+  /** Rig state of evalRig (live glTF driver): skinning pass, then the face and vertex passes. */
+  setRig(state) {
+    const gl = this.gl, t = this.t, P = this.b.rig.P, pairs = this.pair4 || (this.pair4 = new Float32Array(12 * P));
+    pairs.set(state.pairs);
+    updateTexture(gl, t.pair, pairs);
+    if (state.weights.length) updateTexture(gl, t.weight, state.weights);
+    this.runPass(this.skinPass, this.fbSkin, this.b.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
+      pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
+    this.poseMeshPasses();
+  }
+
+  poseMeshPasses() {
+    const t = this.t;
+    this.runPass(this.facePass, this.fbFace, this.b.F, { pTex: t.p, cfTex: t.cf, fTex: t.f });
+    this.runPass(this.vertPass, this.fbVert, this.b.V, { fqTex: t.fq, fcTex: t.fc, adjTex: t.adj, vaTex: t.va });
   }
 
   setOrder(order, n) {
@@ -627,21 +994,21 @@ export class SplatRenderer {
   }
 
   draw(viewmat, K, background) {
-    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height;
+    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, p = this.splat, t = this.t;
     gl.viewport(0, 0, w, h);
     gl.clearColor(background[0], background[1], background[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
-    gl.useProgram(this.prog);
+    gl.useProgram(p.prog);
     gl.disable(gl.DEPTH_TEST);
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     const m = viewmat; // row-major -> GLSL column-major: pass transpose=false with columns
-    gl.uniformMatrix3fv(this.loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
-    gl.uniform3f(this.loc.tr, m[3], m[7], m[11]);
-    gl.uniform4f(this.loc.K, K[0], K[1], K[2], K[3]);
-    gl.uniform2f(this.loc.size, w, h);
-    ["gTex", "fTex", "vTex", "rTex"].forEach((n, i) => gl.uniform1i(this.loc[n], i));
-    gl.uniform1i(this.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[this.b.header.scale_mode]);
+    gl.uniformMatrix3fv(p.loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
+    gl.uniform3f(p.loc.tr, m[3], m[7], m[11]);
+    gl.uniform4f(p.loc.K, K[0], K[1], K[2], K[3]);
+    gl.uniform2f(p.loc.size, w, h);
+    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[this.b.header.scale_mode]);
+    this.bind(p, { gTex: t.g, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
     gl.bindVertexArray(null);
@@ -650,30 +1017,27 @@ export class SplatRenderer {
 
 // ------------------------------------------------------------------ per-frame driver (main thread)
 /**
- * Everything the main thread does for one frame, without WebGL: decode the frame's vertices,
- * pose the mesh (per vertex / per face), pack the texture data, and decide whether the current
- * sort is stale enough to request a new one. Shared by the page and bench/viewer.py.
+ * The main thread's per-frame work without WebGL: vertex frames -> decode the frame's vertices
+ * (per vertex); live glTF -> evaluate the clip (per node and joint) and the morph weights.
+ * Shared by the page and bench/viewer.py.
  */
 export class FramePoser {
   constructor(b) {
-    this.b = b; this.p = new Float64Array(3 * b.V); this.ws = undefined; this.texels = undefined;
-    this.verts32 = new Float32Array(3 * b.V); this.normals32 = new Float32Array(3 * b.V);
+    this.b = b; this.p = new Float64Array(3 * b.V); this.verts32 = new Float32Array(3 * b.V); this.rigState = undefined;
   }
 
-  pose(t) {
+  /** {verts} of vertex frame `t`. */
+  frame(t) {
     this.p = frameVertices(this.b, t, this.p);
-    return this.poseVertices(this.p);
+    this.verts32.set(this.p);
+    return { verts: this.verts32 };
   }
 
-  poseVertices(p) {
-    this.ws = poseMesh(this.b, p, this.ws);
-    this.texels = packVertexTexels(this.b, p, this.ws, this.texels);
-    this.verts32.set(p); this.normals32.set(this.ws.normals);
-    return this.texels;
+  /** {rig} of clip index `clip` at `time` s with morph weight overrides (NaN = from the clip). */
+  rig(clip, time, override) {
+    this.rigState = evalRig(this.b.rig, clip, time, override, this.rigState);
+    return { rig: this.rigState };
   }
-
-  /** Depth drift since `sorted` ({verts, normals, viewmat}) and whether it exceeds `tol`. */
-  drift(viewmat, sorted) { return depthDrift(this.b, this.verts32, this.normals32, viewmat, sorted); }
 }
 
 // ------------------------------------------------------------------ page UI
@@ -682,6 +1046,13 @@ function decodeBase64(text) {
   const out = new Uint8Array(bin.length);
   for (let i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
   return out;
+}
+
+function el(doc, tag, attrs, parent) {
+  const e = doc.createElement(tag);
+  Object.assign(e, attrs || {});
+  if (parent) parent.appendChild(e);
+  return e;
 }
 
 /** Start the viewer in a page holding #avatar-header (JSON) and #avatar-data (base64 avatar.bin). */
@@ -693,35 +1064,71 @@ export function startViewer(doc) {
   const canvas = $("canvas");
   const renderer = new SplatRenderer(canvas, b);
   const poser = new FramePoser(b);
+  const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
+  const still = params.get("frame") !== null || params.get("time") !== null;
+  const clips = live ? b.rig.clips : [];
+  const clipParam = params.get("clip");
   const state = {
-    frame: Math.min(Math.max(parseInt(params.get("frame") || "0", 10) || 0, 0), b.T - 1),
-    playing: params.get("frame") === null && params.get("play") !== "0" && b.T > 1,
+    frame: Math.min(Math.max(parseInt(params.get("frame") || "0", 10) || 0, 0), Math.max(b.T - 1, 0)),
+    clip: live ? Math.max(0, clips.findIndex((c) => c.name === (clipParam || b.driver.clip))) : null,
+    time: parseFloat(params.get("time") || "0") || 0, speed: 1,
+    weights: live ? new Float64Array(b.rig.defaultWeights.length).fill(NaN) : null,
+    playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
-    posedFrame: -1, t0: performance.now(), f0: 0,
-    sorted: null, pending: null, drift: Infinity, sortMs: 0, sorts: 0,
+    poseKey: "", sortedKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
   };
-  // sort results arrive asynchronously; the order of the pose/view they were computed for is drawn
+  for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
+    const [i, w] = kv.split(":").map(Number);
+    if (live && i >= 0 && i < state.weights.length) state.weights[i] = w;
+  }
   const sorter = new DepthSorter(b, (r) => {
-    const req = state.pending;
-    state.pending = null;
-    if (!req || r.id !== req.id) return;
+    if (state.pendingKey === null) return;
     renderer.setOrder(r.order, r.n);
-    state.sorted = req; state.sortMs = r.ms; state.sorts++;
+    state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
   });
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
-  slider.max = String(b.T - 1);
   $("title").textContent = header.title || "meshsplat avatar";
+  const clipLength = () => (live && clips.length ? clips[state.clip].duration : 0);
+  let clipSel = null, speedSel = null;
+  if (live) {
+    slider.step = "any";
+    clipSel = el(doc, "select", { title: "clip" });
+    clips.forEach((c, i) => el(doc, "option", { value: String(i), textContent: c.name }, clipSel));
+    clipSel.value = String(state.clip);
+    speedSel = el(doc, "select", { title: "speed" });
+    [0.25, 0.5, 1, 2].forEach((s) => el(doc, "option", { value: String(s), textContent: `${s}x` }, speedSel));
+    speedSel.value = "1";
+    slider.before(clipSel); slider.after(speedSel);
+    clipSel.onchange = () => { state.clip = parseInt(clipSel.value, 10); state.time = 0; syncUi(); };
+    speedSel.onchange = () => { state.speed = parseFloat(speedSel.value); };
+    const panel = el(doc, "div", { id: "morphs" }, $("ui"));
+    for (const g of b.rig.groups) {
+      g.names.forEach((name, m) => {
+        const i = g.weight_base + m, label = el(doc, "label", { textContent: `${name} ` }, panel);
+        const s = el(doc, "input", { type: "range", min: "0", max: "1", step: "0.01", title: `${g.node_name}: ${name}` }, label);
+        s.value = String(Number.isNaN(state.weights[i]) ? b.rig.defaultWeights[i] : state.weights[i]);
+        s.oninput = () => { state.weights[i] = parseFloat(s.value); };
+        const reset = el(doc, "button", { textContent: "clip", title: "back to the clip's weight" }, label);
+        reset.onclick = () => { state.weights[i] = NaN; };
+      });
+    }
+  }
   const syncUi = () => {
-    slider.value = String(state.frame);
+    if (live) { slider.max = String(clipLength()); slider.value = String(state.time); }
+    else { slider.max = String(b.T - 1); slider.value = String(state.frame); }
     play.textContent = state.playing ? "pause" : "play";
     bg.textContent = state.white ? "black bg" : "white bg";
     doc.body.classList.toggle("dark", !state.white);
   };
-  play.onclick = () => { state.playing = !state.playing; state.t0 = performance.now(); state.f0 = state.frame; syncUi(); };
-  slider.oninput = () => { state.playing = false; state.frame = parseInt(slider.value, 10); syncUi(); };
+  play.onclick = () => { state.playing = !state.playing; syncUi(); };
+  slider.oninput = () => {
+    state.playing = false;
+    if (live) state.time = parseFloat(slider.value); else state.frame = parseInt(slider.value, 10);
+    syncUi();
+  };
   bg.onclick = () => { state.white = !state.white; syncUi(); };
   // orbit (drag) and zoom (wheel); "r" resets the default view
   let drag = null;
@@ -740,40 +1147,54 @@ export function startViewer(doc) {
     if (e.key === " ") play.onclick();
   });
   syncUi();
-  let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0;
+  let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
     const t0 = performance.now();
+    const dt = state.lastNow === null ? 0 : Math.max(0, now - state.lastNow) / 1000;
+    state.lastNow = now;
     if (state.playing) {
-      const elapsed = Math.max(0, now - state.t0); // rAF time may precede t0 slightly
-      state.frame = (state.f0 + Math.floor(elapsed * header.fps / 1000)) % b.T;
-      slider.value = String(state.frame);
+      if (live) {
+        const len = clipLength();
+        state.time = len > 0 ? (state.time + dt * state.speed) % len : 0;
+      } else {
+        state.acc = (state.acc || 0) + dt * header.fps;
+        const steps = Math.floor(state.acc);
+        state.acc -= steps;
+        state.frame = (state.frame + steps) % b.T;
+      }
+      slider.value = String(live ? state.time : state.frame);
     }
     const dpr = window.devicePixelRatio || 1;
     const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
     const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el);
     const K = intrinsics(w, h, cam0.fov_deg);
-    if (state.frame !== state.posedFrame) {
-      renderer.setPose(poser.pose(state.frame));
-      state.posedFrame = state.frame;
+    const poseKey = live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
+                         : String(state.frame);
+    if (poseKey !== state.poseKey) {
+      if (live) {
+        pose = poser.rig(clips.length ? state.clip : null, (clips.length ? clips[state.clip].start : 0) + state.time, state.weights);
+        renderer.setRig(pose.rig);
+      } else {
+        pose = poser.frame(state.frame);
+        renderer.setVertices(pose.verts);
+      }
+      state.poseKey = poseKey;
     }
-    // re-sort when the centres may have moved in depth by more than a tenth of a 16-bit bin
-    state.drift = poser.drift(viewmat, state.sorted);
-    const tol = 0.1 * cam.dist / 65535;
-    if (state.drift > tol && !state.pending) {
-      const req = sorter.request(poser.verts32, poser.normals32, viewmat);
-      if (req) state.pending = { id: req.id, verts: poser.verts32.slice(), normals: poser.normals32.slice(), viewmat };
-    }
+    // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
+    const key = `${poseKey}#${Array.from(viewmat).join()}`;
+    if (key !== state.sortedKey && state.pendingKey === null && sorter.request(pose, viewmat)) state.pendingKey = key;
     renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
     mainMs = performance.now() - t0;
     fpsCount++;
     if (now - fpsT > 500) { fps = 1000 * fpsCount / (now - fpsT); fpsCount = 0; fpsT = now; }
-    info.textContent = `frame ${state.frame + 1}/${b.T}`;
+    info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
     stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
       ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
-      ` · stale-sort depth drift ${state.drift === Infinity ? "-" : state.drift.toExponential(1)}`;
+      ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
+      (key === state.sortedKey ? "" : " · order stale");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view
-    if (state.sorted && state.drift <= tol) doc.body.dataset.ready = "1";
+    if (key === state.sortedKey) doc.body.dataset.ready = "1";
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
