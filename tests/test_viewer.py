@@ -256,6 +256,71 @@ console.log(JSON.stringify({{ n, order: Array.from(order.subarray(0, n)),
     np.testing.assert_allclose(out["K"], [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
 
 
+def _rig_bundle(tmp_path, name, n=300, seed=0):
+    from meshsplat.drivers import GltfDriver
+    from meshsplat.gaussians import init_params
+    from meshsplat.mesh import TriMesh
+    from meshsplat.paths import assets_dir
+    from meshsplat.viewer.rig import avatar_driver
+
+    root = assets_dir()
+    if root is None:
+        pytest.skip("shared assets not found")
+    glb = root / "gltf" / f"{name}.glb"
+    drv0 = GltfDriver(glb)
+    mesh = TriMesh(drv0.rest_vertices(), drv0.faces)
+    av = Avatar(mesh, init_params(mesh, n, generator=torch.Generator().manual_seed(seed)))
+    drv = avatar_driver(av, glb)
+    write_viewer_bundle(av, None, tmp_path, rig=drv, camera={"width": 256, "height": 256})
+    return av, drv
+
+
+@needs_node
+@pytest.mark.parametrize("name", ["CesiumMan", "RobotExpressive"])
+def test_js_rig_matches_gltf_driver(tmp_path, name):
+    """evalRig + skinVertices (the page's clip evaluation and, on the CPU, its GPU skinning) equal
+    GltfDriver.vertices_at, morph weight overrides included."""
+    av, drv = _rig_bundle(tmp_path, name, n=20)
+    h = read_viewer_bundle(tmp_path)[0]
+    clips = h["driver"]["clips"]
+    cases = [(0, 0.0, None), (0, 0.37, None), (len(clips) - 1, 0.9, None), (0, 123.0, None)]
+    groups = h["driver"]["morph_groups"]
+    if groups:
+        cases.append((2, 0.5, {groups[0]["weight_base"]: 1.0, groups[-1]["weight_base"] + 1: 0.6}))
+    script = f"""
+import {{ decodeBundle, evalRig, skinVertices }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
+const out = [];
+for (const [clip, t, ov] of {json.dumps([[c, t, o] for c, t, o in cases])}) {{
+  const w = new Float64Array(b.rig.defaultWeights.length).fill(NaN);
+  for (const [i, v] of Object.entries(ov || {{}})) w[Number(i)] = v;
+  const s = evalRig(b.rig, clip, b.rig.clips[clip].start + t, w);
+  out.push(Array.from(skinVertices(b.rig, s, b.V)));
+}}
+console.log(JSON.stringify(out));
+"""
+    js = _node(script, tmp_path)
+    extent = float(np.abs(drv.rest_vertices().numpy()).max())
+    for (clip, t, ov), got in zip(cases, js):
+        name_ = clips[clip]["name"]
+        morph = None
+        if ov:
+            morph = {}
+            for g in groups:
+                w = drv._morph_weights(name_, clips[clip]["start"] + t, None)[g["node"]].copy()
+                for i, v in ov.items():
+                    if g["weight_base"] <= int(i) < g["weight_base"] + g["count"]:
+                        w[int(i) - g["weight_base"]] = v
+                morph[g["node"]] = w
+        ref = drv.vertices_at(clips[clip]["start"] + t, clip=name_, morph_weights=morph).numpy()
+        np.testing.assert_allclose(np.asarray(got).reshape(-1, 3), ref, atol=2e-6 * extent)
+    if groups:  # the override moved something
+        assert not np.allclose(js[-1], drv.vertices_at(clips[2]["start"] + 0.5, clip=clips[2]["name"]).numpy().ravel(),
+                               atol=1e-6)
+
+
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     from test_eval_kit import make_dataset
@@ -304,12 +369,19 @@ def test_view_cli_gltf(tmp_path, assets):
     mesh = TriMesh(drv.rest_vertices(), drv.faces)
     av = Avatar(mesh, init_params(mesh, 2000, generator=torch.Generator().manual_seed(0)))
     run = make_run(av, tmp_path / "run", None)
-    assert main(["view", str(run), "--out", str(tmp_path / "v"), "--animation", "gltf", str(glb),
+    assert main(["view", str(run), "--out", str(tmp_path / "v"), "--animation", "gltf", str(glb), "--bake",
                  "--frames", "20"]) == 0
     h, a = read_viewer_bundle(tmp_path / "v")
-    assert h["num_frames"] == 20 and h["num_vertices"] == mesh.num_vertices
+    assert h["num_frames"] == 20 and h["num_vertices"] == mesh.num_vertices and h["driver"] == {"kind": "frames"}
     assert np.abs(a["vertices"][10] - a["vertices"][0]).max() > 1e-2  # it moves
     assert (tmp_path / "v" / "index.html").stat().st_size < 2_000_000
+    # live (default): the rig and clip ship instead of frames, and the page is smaller
+    assert main(["view", str(run), "--out", str(tmp_path / "live"), "--animation", "gltf", str(glb)]) == 0
+    h, a = read_viewer_bundle(tmp_path / "live")
+    assert h["driver"]["kind"] == "gltf" and h["num_frames"] == 0 and "frames" not in a
+    assert [c["name"] for c in h["driver"]["clips"]] == drv.clips and a["rig_base"].shape == (mesh.num_vertices, 3)
+    assert (tmp_path / "live" / "index.html").stat().st_size < (tmp_path / "v" / "index.html").stat().st_size
+    assert main(["view", str(run), "--out", str(tmp_path / "x"), "--animation", "gltf", str(glb), "--clip", "nope"]) == 2
 
 
 # ---------------------------------------------------------------- headless browser (slow)
@@ -357,3 +429,42 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
         print(f"browser vs rasterizer, frame {frame}: PSNR {psnr:.1f} dB")
         assert psnr > 40.0, psnr
         assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
+
+
+def _render_ref(av, verts, cam, size=256):
+    ref = av.render(torch.as_tensor(verts).float(), torch.tensor(cam["viewmat"]).float(),
+                    torch.tensor(cam["K"]).float(), size, size, background=torch.ones(3)).image
+    return ref.detach().clamp(0, 1).numpy() * 255
+
+
+@pytest.mark.slow
+def test_browser_live_gltf_skin_and_morphs_match_rasterizer(tmp_path):
+    """Live drivers in the page (skinning + morph targets on the GPU) against avatar.render of
+    GltfDriver's vertices at the same clip time and weights."""
+    from PIL import Image
+
+    for name, query, morph in (("CesiumMan", "time=0.8", None), ("RobotExpressive", "clip=Wave&time=0.5&morph=0:1,4:0.7", True)):
+        folder = tmp_path / name
+        av, drv = _rig_bundle(folder, name, n=3000)
+        h = read_viewer_bundle(folder)[0]
+        cam, d = h["camera"], h["driver"]
+        clip = next(c for c in d["clips"] if c["name"] == (query.split("clip=")[1].split("&")[0] if "clip=" in query
+                                                                 else d["clip"]))
+        t = clip["start"] + float(query.split("time=")[1].split("&")[0])
+        weights = None
+        if morph:
+            weights = {}
+            for g in d["morph_groups"]:
+                w = drv._morph_weights(clip["name"], t, None)[g["node"]].copy()
+                for i, v in ((0, 1.0), (4, 0.7)):
+                    if g["weight_base"] <= i < g["weight_base"] + g["count"]:
+                        w[i - g["weight_base"]] = v
+                weights[g["node"]] = w
+        ref = _render_ref(av, drv.vertices_at(t, clip=clip["name"], morph_weights=weights), cam)
+        url = (folder / "index.html").as_uri() + f"?{query}&ui=0"
+        screenshot(url, 256, 256, tmp_path / f"{name}.png", chromium=_chromium())
+        img = np.asarray(Image.open(tmp_path / f"{name}.png").convert("RGB"), dtype=np.float64)
+        psnr = _psnr(img, ref)
+        print(f"browser live glTF ({name}, {query}) vs rasterizer: PSNR {psnr:.1f} dB")
+        assert psnr > 40.0, psnr
+        assert (img < 250).any(axis=-1).mean() > 0.01

@@ -2,14 +2,18 @@
 
 Animation (default: the run's dataset meshes, all stored frames in order):
   --animation dataset [--split NAME]     the dataset's meshes (or those of one split)
-  --animation gltf FILE [--clip NAME]    a glTF/GLB clip driving the avatar's mesh
+  --animation gltf FILE [--clip NAME]    a glTF/GLB rig driving the avatar's mesh, LIVE: its skin,
+                                         morph targets and clips ship in the page (clip picker,
+                                         scrubbing, speed, morph sliders); --bake ships vertex
+                                         frames sampled at --fps instead
   --animation vertices FILE.npy          a vertex sequence [T,V,3]
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
 folder on http://127.0.0.1:PORT until Ctrl-C.
 
 Examples:
   meshsplat view runs/demo --out out/viewer
-  meshsplat view runs/demo --animation gltf CesiumMan.glb --frames 60 --out out/viewer
+  meshsplat view runs/demo --animation gltf CesiumMan.glb --out out/viewer
+  meshsplat view runs/demo --animation gltf CesiumMan.glb --bake --frames 60 --out out/viewer
 """
 from __future__ import annotations
 
@@ -37,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", choices=("white", "black"), default="white", help="initial background")
     parser.add_argument("--vertex-encoding", choices=("int16", "float32"), default="int16",
                         help="storage of the animated vertices (default int16, quantized per bundle)")
+    parser.add_argument("--bake", action="store_true",
+                        help="gltf: ship vertex frames sampled at --fps instead of the live rig")
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
@@ -100,12 +106,26 @@ def run(args: argparse.Namespace) -> int:
     if args.fps <= 0:
         raise MeshsplatError(f"--fps: expected > 0, got {args.fps}")
     r = load_run(args.run, device="cpu")
-    frames = load_frames(r.avatar, args, r)
     title = args.title or r.run_dir.resolve().name
-    index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
-                                vertex_encoding=args.vertex_encoding, background=args.background)
+    kind, *rest = args.animation
+    if kind == "gltf" and not args.bake:
+        from meshsplat.viewer.rig import avatar_driver
+
+        if len(rest) != 1:
+            raise MeshsplatError("--animation gltf needs exactly one FILE")
+        if not Path(rest[0]).is_file():
+            raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
+        rig = avatar_driver(r.avatar, rest[0], clip=args.clip)
+        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+        what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
+    else:
+        frames = load_frames(r.avatar, args, r)
+        index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background)
+        what = f"{len(frames)} frames"
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
-    print(f"viewer: {index} ({len(frames)} frames, {r.avatar.num_gaussians} Gaussians, "
+    print(f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "
           f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)")
     print(f"  open file://{index.resolve()}")
     if args.serve:

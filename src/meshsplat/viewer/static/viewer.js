@@ -25,7 +25,7 @@ const NEAR_PLANE = 0.01;
 export const TEX_WIDTH = 2048; // width of every data texture (texel i at (i % W, i / W))
 
 // ------------------------------------------------------------------ bundle decoding
-const TYPED = { float32: Float32Array, uint32: Uint32Array, int16: Int16Array };
+const TYPED = { float32: Float32Array, uint32: Uint32Array, int16: Int16Array, int32: Int32Array };
 
 /** Float value of the IEEE half float bits `h` (as GLSL unpackHalf2x16). */
 export function halfToFloat(h) {
