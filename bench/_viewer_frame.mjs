@@ -14,24 +14,22 @@ const frames = parseInt(framesArg, 10);
 const cam = header.camera;
 const median = (a) => { const s = [...a].sort((x, y) => x - y); return s[Math.floor(s.length / 2)]; };
 const main = [], sort = [];
-const warm = 2;
+const warm = 5;
 if (mode === "new") {
+  // main thread: FramePoser (vertex frames: decode the frame; live glTF: evaluate the clip);
+  // worker: sortJob (skinning for live glTF, vertex normals, centre depths, counting sort)
   const poser = new V.FramePoser(b);
-  const depth = new Float32Array(b.N), order = new Uint32Array(b.N);
-  const ws = { counts: new Uint32Array(65536), bins: new Uint16Array(b.N) };
-  let sorted = null;
+  const S = V.sortScratch(V.sortSetup(b));
+  const live = b.driver.kind === "gltf";
+  const clip = live ? b.rig.clips[0] : null;
   for (let i = 0; i < frames + warm; i++) {
     const vm = V.orbitViewmat(cam.center, cam.distance, cam.azimuth_deg + i, cam.elevation_deg);
     const a = performance.now();
-    poser.pose(i % b.T);
-    poser.drift(vm, sorted);
+    const pose = live ? poser.rig(0, clip.start + (i / 25) % clip.duration, null) : poser.frame(i % b.T);
     const m = performance.now() - a;
-    // the worker's job, timed on its own
     const c = performance.now();
-    V.gaussianDepths(b, poser.verts32, poser.normals32, vm, depth);
-    V.sortDepths(depth, b.N, order, ws);
+    V.sortJob(S, { id: i, viewmat: vm, ...(live ? { rig: pose.rig } : { verts: pose.verts }) });
     const s = performance.now() - c;
-    sorted = { verts: poser.verts32.slice(), normals: poser.normals32.slice(), viewmat: vm };
     if (i >= warm) { main.push(m); sort.push(s); }
   }
 } else {

@@ -2,13 +2,15 @@
 worker sort time, today's player vs the previous one (commit bae8ae0: posing every Gaussian in JS on
 the main thread), in the same run; plus bundle sizes.
 
-Cases: CesiumMan (3,273 vertices, its glTF clip) and a larger mesh (a deformed UV sphere with
-about 40k vertices, analytic motion), each with 20k, 100k and 500k Gaussians, 60 frames.
+Cases: CesiumMan (3,273 vertices, its glTF clip baked to 60 frames, and live), and a larger mesh
+(a deformed UV sphere with about 40k vertices, 60 frames of analytic motion), each with 20k, 100k
+and 500k Gaussians.
 
-New player, main thread per frame: decode the frame's vertices, pose the mesh (per vertex / face),
-pack the vertex textures, compute the stale-sort depth drift (FramePoser.pose + drift). The texture
-upload itself (texSubImage2D, 48 B per vertex) and the order upload (4 B per Gaussian, only when a
-sort arrives) are GPU-driver copies that Node cannot time. Worker: gaussianDepths + sortDepths.
+New player, main thread per frame: FramePoser (vertex frames: decode the frame's vertices; live
+glTF: evaluate the clip's node matrices and morph weights). The texture uploads (16 B per vertex,
+or 48 B per joint), the GPU passes and the order upload (4 B per Gaussian when a sort arrives) are
+GPU-driver work that Node cannot time. Worker: sortJob (live glTF: skinning; vertex normals, centre
+depths, 16-bit counting sort).
 Old player, main thread per frame: poseGaussians + sortByDepth + packing 13 floats per Gaussian
 (its SplatRenderer.upload without the WebGL call).
 
@@ -87,10 +89,16 @@ def cesium(frames: int):
     return mesh, [seq[i % len(seq)] for i in range(frames)]
 
 
+def live_rig(av):
+    from meshsplat.viewer.rig import avatar_driver
+
+    return avatar_driver(av, assets_dir() / "gltf" / "CesiumMan.glb")
+
+
 def sphere(frames: int):
     import trimesh
 
-    s = trimesh.creation.uv_sphere(count=[141, 141])
+    s = trimesh.creation.uv_sphere(count=[201, 201])
     v = torch.tensor(s.vertices, dtype=torch.float64)
     mesh = TriMesh(v.float(), torch.tensor(s.faces))
     out = []
@@ -138,23 +146,36 @@ def main() -> None:
                                      for f in ("avatar.bin", "index.html")}})
                 new = node_bench(new_js, nb, "new", timed)
                 prev = node_bench(old_js, ob, "old", max(3, timed // 4) if n >= 500_000 else timed)
-                row = {"mesh": name, "vertices": mesh.num_vertices, "gaussians": n, "new": new, "old": prev}
-                rows.append(row)
-                print(f"{name:10s} {n:>7,d} G: main old {prev['main_ms']:8.2f} ms  new {new['main_ms']:6.2f} ms"
-                      f" | sort old (main) {prev['sort_ms']:6.2f} ms  new (worker) {new['sort_ms']:6.2f} ms",
-                      flush=True)
+                rows.append({"mesh": name, "driver": "frames", "vertices": mesh.num_vertices, "gaussians": n,
+                             "new": new, "old": prev})
+                if name == "CesiumMan":
+                    lb = tmp / f"live-{n}"
+                    write_viewer_bundle(av, None, lb, rig=live_rig(av))
+                    if n in (20_000, 100_000):
+                        sizes[-1].update({f"live_{f}": (lb / f).stat().st_size for f in ("avatar.bin", "index.html")})
+                    rows.append({"mesh": name, "driver": "live glTF", "vertices": mesh.num_vertices, "gaussians": n,
+                                 "new": node_bench(new_js, lb, "new", timed), "old": None})
+                    shutil.rmtree(lb)
+                for r in rows[-2:] if name == "CesiumMan" else rows[-1:]:
+                    o = r["old"]
+                    print(f"{name:10s} {r['driver']:9s} {n:>7,d} G: main old "
+                          f"{o['main_ms'] if o else float('nan'):8.2f} ms  new {r['new']['main_ms']:6.2f} ms | sort old "
+                          f"(main) {o['sort_ms'] if o else float('nan'):6.2f} ms  new (worker) {r['new']['sort_ms']:6.2f} ms",
+                          flush=True)
                 shutil.rmtree(nb)
                 shutil.rmtree(ob)
-    print("\n| mesh (vertices) | Gaussians | main thread / frame, old | new | sort, old (main thread) | new (worker) |")
-    print("|---|---|---|---|---|---|")
+    ms = lambda r, k: f"{r[k]:.2f} ms" if r else "n/a"  # noqa: E731
+    print("\n| mesh (vertices) | driver | Gaussians | main thread / frame, old | new | sort, old (main thread) | new (worker) |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['mesh']} ({r['vertices']:,}) | {r['gaussians'] // 1000}k | {r['old']['main_ms']:.2f} ms | "
-              f"**{r['new']['main_ms']:.2f} ms** | {r['old']['sort_ms']:.2f} ms | **{r['new']['sort_ms']:.2f} ms** |")
-    print("\n| bundle | avatar.bin old | new | index.html old | new |")
-    print("|---|---|---|---|---|")
+        print(f"| {r['mesh']} ({r['vertices']:,}) | {r['driver']} | {r['gaussians'] // 1000}k | {ms(r['old'], 'main_ms')} | "
+              f"**{ms(r['new'], 'main_ms')}** | {ms(r['old'], 'sort_ms')} | **{ms(r['new'], 'sort_ms')}** |")
+    print("\n| bundle | avatar.bin old | new | new, live glTF | index.html old | new | new, live glTF |")
+    print("|---|---|---|---|---|---|---|")
+    mb = lambda s, k: f"{s[k] / 1e6:.2f} MB" if k in s else "n/a"  # noqa: E731
     for s in sizes:
-        print(f"| {s['case']} | {s['old_avatar.bin'] / 1e6:.2f} MB | {s['new_avatar.bin'] / 1e6:.2f} MB | "
-              f"{s['old_index.html'] / 1e6:.2f} MB | {s['new_index.html'] / 1e6:.2f} MB |")
+        print(f"| {s['case']} | {mb(s, 'old_avatar.bin')} | {mb(s, 'new_avatar.bin')} | {mb(s, 'live_avatar.bin')} | "
+              f"{mb(s, 'old_index.html')} | {mb(s, 'new_index.html')} | {mb(s, 'live_index.html')} |")
     out = Path(args.out) if args.out else results_path("viewer" + ("-quick" if args.quick else ""))
     out.write_text(json.dumps({"machine": machine_info(), "node": subprocess.run(
         ["node", "--version"], capture_output=True, text=True).stdout.strip(), "rows": rows, "sizes": sizes},

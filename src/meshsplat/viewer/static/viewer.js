@@ -547,7 +547,7 @@ export function sortSetup(b) {
   return { N: b.N, V: b.V, faces: b.faces, face: b.face, uv: b.uv, d: b.d, rig: b.rig ? { ...b.rig, clips: null } : null };
 }
 
-function sortScratch(S) {
+export function sortScratch(S) {
   Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), depth: new Float32Array(S.N),
                      depth2: new Float32Array(S.N), hasPrev: false,
                      ws: { counts: new Uint32Array(65536), bins: new Uint16Array(S.N) } });
