@@ -321,6 +321,38 @@ console.log(JSON.stringify(out));
                                atol=1e-6)
 
 
+@needs_node
+def test_worker_sort_keys_are_the_drawn_centre_depths(tmp_path):
+    """The worker's keys (from vertices and normals only) equal the camera depth of the centres the
+    shader draws (poseGaussians), and sortJob returns a back-to-front permutation of the visible."""
+    av = make_avatar(n=400)
+    write_viewer_bundle(av, _frames(av), tmp_path, vertex_encoding="float32")
+    script = f"""
+import {{ decodeBundle, frameVertices, poseGaussians, vertexNormals, gaussianDepths, sortJob, sortSetup, sortScratch,
+         orbitViewmat }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
+const c = h.camera, vm = orbitViewmat(c.center, c.distance, 35, 20);
+const p = Float32Array.from(frameVertices(b, 2));
+const keys = gaussianDepths({{ ...sortSetup(b) }}, p, vertexNormals(b.faces, b.V, p), vm).depth;
+const m = poseGaussians(b, 2).means;
+const z = Array.from({{ length: b.N }}, (_, g) => vm[8] * m[3 * g] + vm[9] * m[3 * g + 1] + vm[10] * m[3 * g + 2] + vm[11]);
+const S = sortScratch(sortSetup(b));
+const r1 = sortJob(S, {{ id: 1, verts: p, viewmat: vm }});
+const r2 = sortJob(S, {{ id: 2, verts: p, viewmat: orbitViewmat(c.center, c.distance, 36, 20) }});
+console.log(JSON.stringify({{ keys: Array.from(keys), z, order: Array.from(r1.order.subarray(0, r1.n)),
+                              moved1: r1.moved === Infinity ? -1 : r1.moved, moved2: r2.moved }}));
+"""
+    out = _node(script, tmp_path)
+    keys, z = np.asarray(out["keys"]), np.asarray(out["z"])
+    np.testing.assert_allclose(keys, z, atol=1e-5 * np.abs(z).max())
+    order = np.asarray(out["order"])
+    assert sorted(order.tolist()) == np.nonzero(keys >= 0.01)[0].tolist()
+    assert (np.diff(keys[order]) <= (keys.max() - keys.min()) / 65535 * 1.01).all()
+    assert out["moved1"] == -1 and 0 < out["moved2"] < 0.2 * (keys.max() - keys.min())
+
+
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     from test_eval_kit import make_dataset

@@ -458,42 +458,70 @@ export function intrinsics(width, height, fovDeg) {
   return [f, f, width / 2, height / 2];
 }
 
+/** Above this many Gaussians the sort key skips renormalizing the interpolated normal (speed). */
+export const EXACT_KEY_MAX = 200000;
+
 /**
- * Camera depth [N] (Float32Array) of every posed Gaussian centre, computed as the vertex shader
- * does: z of (Phong point + d * normalized interpolated normal), from the posed vertices `verts`
- * and vertex normals `normals` (both [V*3]). `g` holds face, uv, d of the Gaussians and the mesh
- * faces (a decoded bundle or the worker's copy). This is the worker's per-Gaussian work.
+ * Sort key [N] (Float32Array) of every posed Gaussian: the camera depth of its centre, Phong point
+ * + d * normalized interpolated normal, as the vertex shader computes it; per-vertex camera depths
+ * make it z = sum w z_v + d (sum w r3.n_v) / |sum w n_v|. Above EXACT_KEY_MAX Gaussians the
+ * division by |sum w n_v| is skipped: the key then differs from the centre's depth by at most
+ * |d| (1/|n_interp| - 1) (zero for d = 0 or equal corner normals; see docs/viewer.md).
+ * From the posed vertices `verts` and unit vertex normals `normals` (both [V*3]); `g` holds face,
+ * uv, d of the Gaussians and the mesh faces (a decoded bundle or the worker's copy), and caches the
+ * Gaussians' corner vertices. Returns {lo, hi} (visible key range, for sortDepths) and `moved`,
+ * the largest |key - prev| when `prev` [N] is given (else Infinity). The worker's per-Gaussian work.
  */
-export function gaussianDepths(g, verts, normals, viewmat, depth) {
-  const N = g.N, f = g.faces, face = g.face, uv = g.uv, dd = g.d;
+export function gaussianDepths(g, verts, normals, viewmat, depth, prev) {
+  const N = g.N, V = verts.length / 3, face = g.face, uv = g.uv, dd = g.d, f = g.faces;
   const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
+  const exact = N <= EXACT_KEY_MAX, S = exact ? 5 : 2;
   depth = depth || new Float32Array(N);
-  for (let i = 0; i < N; i++) {
-    const k = face[i], u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
-    const a = 3 * f[3 * k], b = 3 * f[3 * k + 1], c = 3 * f[3 * k + 2];
-    const nx = u * normals[a] + v * normals[b] + w * normals[c];
-    const ny = u * normals[a + 1] + v * normals[b + 1] + w * normals[c + 1];
-    const nz = u * normals[a + 2] + v * normals[b + 2] + w * normals[c + 2];
-    const s = dd[i] / Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
-    const x = u * verts[a] + v * verts[b] + w * verts[c] + s * nx;
-    const y = u * verts[a + 1] + v * verts[b + 1] + w * verts[c + 1] + s * ny;
-    const z = u * verts[a + 2] + v * verts[b + 2] + w * verts[c + 2] + s * nz;
-    depth[i] = r0 * x + r1 * y + r2 * z + t;
+  if (!g.corners || g.corners.length !== 3 * N) { // S * vertex index of each Gaussian's corners a, b, c
+    g.corners = new Uint32Array(3 * N);
+    for (let i = 0; i < N; i++) for (let j = 0; j < 3; j++) g.corners[3 * i + j] = S * f[3 * face[i] + j];
   }
-  return depth;
+  if (!g.pv || g.pv.length !== S * V) g.pv = new Float64Array(S * V);
+  const pv = g.pv, cn = g.corners;
+  for (let v = 0; v < V; v++) { // camera depth of the vertex, camera z of its normal (, the normal)
+    const x = normals[3 * v], y = normals[3 * v + 1], z = normals[3 * v + 2];
+    pv[S * v] = r0 * verts[3 * v] + r1 * verts[3 * v + 1] + r2 * verts[3 * v + 2] + t;
+    pv[S * v + 1] = r0 * x + r1 * y + r2 * z;
+    if (exact) { pv[S * v + 2] = x; pv[S * v + 3] = y; pv[S * v + 4] = z; }
+  }
+  let lo = Infinity, hi = -Infinity, moved = 0;
+  for (let i = 0; i < N; i++) {
+    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
+    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
+    let s = dd[i];
+    if (exact) {
+      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
+      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
+      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
+      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
+    }
+    depth[i] = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
+    const z = depth[i]; // the stored float32 value
+    if (z >= 0.01) { if (z < lo) lo = z; if (z > hi) hi = z; } // NEAR_PLANE
+    if (prev) { const m = Math.abs(z - prev[i]); if (m > moved) moved = m; }
+  }
+  return { depth, lo, hi, moved: prev ? moved : Infinity };
 }
 
 /**
  * Back-to-front order of the depths >= the near plane: one counting sort on 16-bit quantized depth
- * over the visible range (ties keep index order). Fills `order` [n]; returns the visible count.
- * `ws` (optional) holds reusable scratch {counts: Uint32Array(65536), bins: Uint16Array(n)}.
+ * over the visible range [lo, hi] (computed when not given; ties keep index order). Fills `order`
+ * [n]; returns the visible count. `ws` (optional) holds reusable scratch
+ * {counts: Uint32Array(65536), bins: Uint16Array(n)}.
  */
-export function sortDepths(depth, n, order, ws) {
+export function sortDepths(depth, n, order, ws, lo, hi) {
   const NEAR = 0.01; // NEAR_PLANE, spelled out: this function also runs in the worker
-  let lo = Infinity, hi = -Infinity;
-  for (let g = 0; g < n; g++) {
-    const z = depth[g];
-    if (z >= NEAR) { if (z < lo) lo = z; if (z > hi) hi = z; }
+  if (lo === undefined) {
+    lo = Infinity; hi = -Infinity;
+    for (let g = 0; g < n; g++) {
+      const z = depth[g];
+      if (z >= NEAR) { if (z < lo) lo = z; if (z > hi) hi = z; }
+    }
   }
   const counts = ws && ws.counts ? ws.counts : new Uint32Array(65536);
   const bins = ws && ws.bins && ws.bins.length >= n ? ws.bins : new Uint16Array(n);
@@ -503,7 +531,7 @@ export function sortDepths(depth, n, order, ws) {
   for (let g = 0; g < n; g++) {
     const z = depth[g];
     if (!(z >= NEAR)) continue;
-    const bin = 65535 - Math.min(65535, Math.floor((z - lo) * q)); // far first; z >= lo
+    const bin = 65535 - Math.min(65535, ((z - lo) * q) | 0); // far first; 0 <= (z - lo) q <= 65535
     bins[g] = bin; counts[bin]++; visible++;
   }
   for (let i = 1; i < 65536; i++) counts[i] += counts[i - 1];
@@ -533,13 +561,11 @@ export function sortJob(S, msg) {
   const verts = msg.verts || skinVertices(S.rig, msg.rig, S.V, S.verts);
   const normals = vertexNormals(S.faces, S.V, verts, S.normals);
   const prev = S.depth, depth = S.depth2;
-  gaussianDepths(S, verts, normals, msg.viewmat, depth);
-  let moved = S.hasPrev ? 0 : Infinity;
-  if (S.hasPrev) for (let g = 0; g < S.N; g++) moved = Math.max(moved, Math.abs(depth[g] - prev[g]));
+  const r = gaussianDepths(S, verts, normals, msg.viewmat, depth, S.hasPrev ? prev : null);
   S.depth = depth; S.depth2 = prev; S.hasPrev = true;
-  const order = new Uint32Array(S.N);
-  const n = sortDepths(depth, S.N, order, S.ws);
-  return { id: msg.id, n, order, moved };
+  const order = S.spare.pop() || new Uint32Array(S.N); // buffers come back from the main thread
+  const n = sortDepths(depth, S.N, order, S.ws, r.lo, r.hi);
+  return { id: msg.id, n, order, moved: r.moved };
 }
 
 /** Static data for sortJob from a decoded bundle (what the worker receives once). */
@@ -549,13 +575,14 @@ export function sortSetup(b) {
 
 export function sortScratch(S) {
   Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), depth: new Float32Array(S.N),
-                     depth2: new Float32Array(S.N), hasPrev: false,
+                     depth2: new Float32Array(S.N), hasPrev: false, spare: [],
                      ws: { counts: new Uint32Array(65536), bins: new Uint16Array(S.N) } });
   return S;
 }
 
 /** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
 export const SORT_WORKER_SOURCE = `"use strict";
+const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
 ${skinVertices.toString()}
 ${vertexNormals.toString()}
 ${gaussianDepths.toString()}
@@ -565,6 +592,7 @@ ${sortScratch.toString()}
 let S = null;
 onmessage = (e) => {
   if (e.data.type === "init") { S = sortScratch(e.data.setup); return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.order); return; }
   const t0 = performance.now();
   const r = sortJob(S, e.data);
   r.ms = performance.now() - t0;
@@ -588,6 +616,12 @@ export class DepthSorter {
       console.warn("no Web Worker, sorting on the main thread:", err);
       this.worker = null; this.S = sortScratch(setup);
     }
+  }
+
+  /** Give an order buffer back to the worker once it has been uploaded (saves an allocation). */
+  recycle(order) {
+    if (this.worker) this.worker.postMessage({ type: "recycle", order }, [order.buffer]);
+    else this.S.spare.push(order);
   }
 
   /** Ask for a sort of a pose ({verts} float32 [V*3] or {rig} state) seen from `viewmat`; false when busy. */
@@ -1086,6 +1120,7 @@ export function startViewer(doc) {
   const sorter = new DepthSorter(b, (r) => {
     if (state.pendingKey === null) return;
     renderer.setOrder(r.order, r.n);
+    sorter.recycle(r.order);
     state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
   });
   if (params.get("ui") === "0") $("ui").style.display = "none";
