@@ -353,6 +353,48 @@ console.log(JSON.stringify({{ keys: Array.from(keys), z, order: Array.from(r1.or
     assert out["moved1"] == -1 and 0 < out["moved2"] < 0.2 * (keys.max() - keys.min())
 
 
+def _small_blendshapes(av, frames=6, seed=1):
+    """A BlendshapeDriver on the test avatar's mesh: 4 random expressions (float16 values), a sequence."""
+    from meshsplat.drivers import BlendshapeDriver
+
+    g = torch.Generator().manual_seed(seed)
+    v = av.mesh.vertices
+    deltas = (0.2 * torch.randn(4, *v.shape, generator=g)).half().float()
+    return BlendshapeDriver(v, av.mesh.faces, deltas, names=["jawOpen", "mouthSmile_L", "browInnerUp_L", "eyeBlink_R"],
+                            weights=torch.rand(frames, 4, generator=g), rotations=0.3 * torch.randn(frames, 3, generator=g),
+                            translations=0.1 * torch.randn(frames, 3, generator=g))
+
+
+@needs_node
+def test_js_blendshape_rig_matches_driver(tmp_path):
+    """A blendshape model ships as a morph rig: at the sequence's keys the page's posing equals
+    BlendshapeDriver.vertices (expressions, head rotation about the pivot, translation)."""
+    av = make_avatar(n=30)
+    drv = _small_blendshapes(av)
+    write_viewer_bundle(av, None, tmp_path, fps=10.0, rig=drv)
+    h = read_viewer_bundle(tmp_path)[0]
+    g = h["driver"]["morph_groups"][0]
+    assert g["names"] == drv.names and h["driver"]["morph_encoding"] == "float16"
+    script = f"""
+import {{ decodeBundle, evalRig, skinVertices }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
+const out = [];
+for (let i = 0; i < 6; i++) out.push(Array.from(skinVertices(b.rig, evalRig(b.rig, 0, i / 10, null), b.V)));
+const w = new Float64Array(4).fill(NaN); w[1] = 0.9;
+out.push(Array.from(skinVertices(b.rig, evalRig(b.rig, 0, 0.2, w), b.V)));
+console.log(JSON.stringify(out));
+"""
+    js = _node(script, tmp_path)
+    for i in range(6):
+        np.testing.assert_allclose(np.asarray(js[i]).reshape(-1, 3), drv.vertices(i).numpy(), atol=2e-6)
+    wts = drv.weights[2].clone()
+    wts[1] = 0.9
+    np.testing.assert_allclose(np.asarray(js[6]).reshape(-1, 3),
+                               drv.pose(wts, drv.rotations[2], drv.translations[2]).numpy(), atol=2e-6)
+
+
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     from test_eval_kit import make_dataset
@@ -470,6 +512,27 @@ def _render_ref(av, verts, cam, size=256):
 
 
 @pytest.mark.slow
+def test_browser_live_blendshapes_match_rasterizer(tmp_path):
+    """An ARKit-style blendshape rig (morph targets + rigid head pose) live in the page, a weight
+    set by URL, against avatar.render of BlendshapeDriver.pose."""
+    from PIL import Image
+
+    av = make_avatar(n=400)
+    drv = _small_blendshapes(av)
+    write_viewer_bundle(av, None, tmp_path / "b", fps=10.0, rig=drv, camera={"width": 256, "height": 256})
+    cam = read_viewer_bundle(tmp_path / "b")[0]["camera"]
+    wts = drv.weights[3].clone()
+    wts[0] = 1.0
+    ref = _render_ref(av, drv.pose(wts, drv.rotations[3], drv.translations[3]), cam)
+    screenshot((tmp_path / "b" / "index.html").as_uri() + "?time=0.3&morph=0:1&ui=0", 256, 256, tmp_path / "s.png",
+               chromium=_chromium())
+    img = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"), dtype=np.float64)
+    psnr = _psnr(img, ref)
+    print(f"browser live blendshapes vs rasterizer: PSNR {psnr:.1f} dB")
+    assert psnr > 40.0, psnr
+
+
+@pytest.mark.slow
 def test_browser_live_gltf_skin_and_morphs_match_rasterizer(tmp_path):
     """Live drivers in the page (skinning + morph targets on the GPU) against avatar.render of
     GltfDriver's vertices at the same clip time and weights."""
@@ -500,3 +563,27 @@ def test_browser_live_gltf_skin_and_morphs_match_rasterizer(tmp_path):
         print(f"browser live glTF ({name}, {query}) vs rasterizer: PSNR {psnr:.1f} dB")
         assert psnr > 40.0, psnr
         assert (img < 250).any(axis=-1).mean() > 0.01
+
+
+@pytest.mark.slow
+def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
+    """`--animation blendshapes` ships the ICT FaceKit ARKit model live (one slider per expression,
+    the talking sequence as a clip); a mismatched avatar is a one-line error."""
+    from meshsplat.cli.main import main
+    from meshsplat.drivers import BlendshapeDriver
+    from meshsplat.gaussians import init_params
+    from meshsplat.mesh import TriMesh
+
+    drv = BlendshapeDriver.from_npz(assets / "ict_facekit" / "ict_face_arkit53.npz")
+    mesh = TriMesh(drv.neutral, drv.faces)
+    av = Avatar(mesh, init_params(mesh, 500, generator=torch.Generator().manual_seed(0)))
+    run = make_run(av, tmp_path / "run", None)
+    assert main(["view", str(run), "--out", str(tmp_path / "v"), "--animation", "blendshapes", "--frames", "10"]) == 0
+    h, a = read_viewer_bundle(tmp_path / "v")
+    d = h["driver"]
+    assert d["kind"] == "gltf" and d["morph_groups"][0]["names"] == drv.names and "jawOpen" in drv.names
+    assert d["clips"][0]["duration"] == pytest.approx(9 / 25) and a["morph_deltas"].shape == (len(drv.names) * 26719, 2)
+    assert "live blendshapes" in capsys.readouterr().out
+    small = make_run(make_avatar(n=20), tmp_path / "small", None)
+    assert main(["view", str(small), "--out", str(tmp_path / "x"), "--animation", "blendshapes"]) == 2
+    assert "the model has 26719 vertices" in capsys.readouterr().err

@@ -7,6 +7,9 @@ Animation (default: the run's dataset meshes, all stored frames in order):
                                          scrubbing, speed, morph sliders); --bake ships vertex
                                          frames sampled at --fps instead
   --animation vertices FILE.npy          a vertex sequence [T,V,3]
+  --animation blendshapes [FILE.npz]     a blendshape face (default the shared ICT FaceKit ARKit
+                                         model) LIVE: one slider per expression, and a procedural
+                                         talking sequence (--frames, default 125, at --fps) as a clip
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
 folder on http://127.0.0.1:PORT until Ctrl-C.
 
@@ -24,14 +27,14 @@ from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "load_frames"]
 
-_KINDS = ("dataset", "gltf", "vertices")
+_KINDS = ("dataset", "gltf", "vertices", "blendshapes")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE or vertices FILE.npy")
+                        help="dataset (default), gltf FILE, vertices FILE.npy or blendshapes [FILE.npz]")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--split", default=None, help="dataset: only the frames of this split")
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
@@ -42,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vertex-encoding", choices=("int16", "float32"), default="int16",
                         help="storage of the animated vertices (default int16, quantized per bundle)")
     parser.add_argument("--bake", action="store_true",
-                        help="gltf: ship vertex frames sampled at --fps instead of the live rig")
+                        help="gltf / blendshapes: ship vertex frames (at --fps) instead of the live rig")
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
@@ -69,6 +72,9 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             drv = ds.driver()
             n = drv.num_frames if args.frames is None else min(drv.num_frames, args.frames)
             frames = animate.sequence_animation(avatar, torch.stack([drv.vertices(i) for i in range(n)]).numpy())
+    elif kind == "blendshapes":
+        drv = _blendshape_driver(avatar, rest, args)
+        frames = [drv.vertices(i) for i in range(drv.num_frames)]
     else:
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
@@ -81,6 +87,24 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
         frames = frames[: args.frames]
     return frames
+
+
+def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
+    """BlendshapeDriver of FILE (default the shared ICT FaceKit model) with a talking sequence."""
+    from meshsplat.drivers import BlendshapeDriver
+
+    if len(rest) > 1:
+        raise MeshsplatError("--animation blendshapes takes at most one FILE.npz")
+    drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
+    v = int(drv.neutral.shape[0])
+    if v != avatar.mesh.num_vertices:
+        raise MeshsplatError(f"--animation blendshapes: the model has {v} vertices, the avatar's mesh "
+                             f"{avatar.mesh.num_vertices}; use the blendshape model the avatar was trained on")
+    n = 125 if args.frames is None else args.frames
+    if n < 1:
+        raise MeshsplatError(f"--frames: expected >= 1, got {n}")
+    drv.talking_sequence(n, args.fps)
+    return drv
 
 
 def _serve(folder: Path, port: int) -> None:
@@ -119,6 +143,11 @@ def run(args: argparse.Namespace) -> int:
         index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
                                     vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
+    elif kind == "blendshapes" and not args.bake:
+        rig = _blendshape_driver(r.avatar, rest, args)
+        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+        what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
     else:
         frames = load_frames(r.avatar, args, r)
         index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,

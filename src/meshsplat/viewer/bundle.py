@@ -211,15 +211,16 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
 def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None, title: str = "meshsplat avatar",
                         vertex_encoding: str = "int16", background: str = "white", rig=None) -> Path:
     """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
-    or, live, by ``rig`` (a ``GltfDriver`` on the avatar's canonical vertices, e.g. from
-    :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle
-    and the page evaluates them; ``frames`` is then None or only used to frame the camera).
+    or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
+    :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
+    or a ``BlendshapeDriver`` on them (expressions as morph targets, its sequence a clip at ``fps``);
+    the page evaluates them, and ``frames`` is then None or only used to frame the camera.
 
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
     ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
     ``animate.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
     (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
-    ``frames`` (with a rig: the initial playback speed is real time; fps is unused). Returns ``index.html``.
+    ``frames`` (with a glTF rig unused; with a blendshape rig the rate of its sequence). Returns ``index.html``.
     """
     from meshsplat.gaussians.avatar import Avatar
 
@@ -238,16 +239,15 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     }
     quant: dict[str, Any] = {}
     if rig is not None:
-        from meshsplat.viewer.rig import gltf_rig
+        from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
 
-        if rig.num_vertices != mesh.num_vertices:
-            raise MeshsplatError(f"rig: drives {rig.num_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
-                                 "(build it with meshsplat.viewer.rig.avatar_driver)")
-        rig_sections, driver = gltf_rig(rig)
+        rig_sections, driver, rig_vertices = bundle_rig(rig, fps)
+        if rig_vertices != mesh.num_vertices:
+            raise MeshsplatError(f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
+                                 "(for glTF build it with meshsplat.viewer.rig.avatar_driver)")
         sections.update(rig_sections)
         if frames is None:  # frame the camera on samples of the default clip
-            t0, t1 = rig.time_range()
-            frames = [rig.vertices_at(t0 + (t1 - t0) * i / 15) for i in range(16)]
+            frames = rig_preview_frames(rig)
         verts = _as_frames(frames, mesh.num_vertices)
         num_frames = 0
     else:

@@ -1,5 +1,7 @@
-"""A glTF rig (skin, morph targets, node hierarchy, clips) as viewer-bundle sections, so that the
-page evaluates the animation live (see docs/viewer.md, "Live glTF driver").
+"""A live rig as viewer-bundle sections, so that the page evaluates the animation itself (see
+docs/viewer.md): a glTF rig (skin, morph targets, node hierarchy, clips) or a blendshape model
+(e.g. the ARKit face, as a morph rig: one rigid head node, one morph target per expression, and
+its weight / head-pose sequence as a clip).
 
 The arrays mirror :class:`meshsplat.drivers.GltfDriver`: vertex ``v`` is posed as
 ``sum_k w[v,k] * (world[pair_node[p]] @ pair_ibm[p]) @ (base[v] + sum_m weight[m] * delta[m, v])``
@@ -15,7 +17,7 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["gltf_rig", "avatar_driver"]
+__all__ = ["gltf_rig", "blendshape_rig", "bundle_rig", "avatar_driver", "rig_preview_frames"]
 
 _PATHS = ("translation", "rotation", "scale", "weights")
 
@@ -113,9 +115,92 @@ def gltf_rig(drv) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "anim_values": np.concatenate(values) if values else np.zeros(0, "<f4"),
     }
     clip = drv.clip if drv.clip is not None else (drv.clips[0] if drv.clips else None)
-    header = {"kind": "gltf", "source": drv.path.name, "influences": kk, "num_pairs": int(len(drv._pair_node)),
+    header = {"kind": "gltf", "source": drv.path.name, "influences": kk, "morph_encoding": "float32", "num_pairs": int(len(drv._pair_node)),
               "num_nodes": n_nodes, "matrix_nodes": matrix_nodes, "morph_groups": groups,
               "num_morph_weights": wbase, "clips": clips, "clip": clip}
     if not all(math.isfinite(c["duration"]) for c in clips):
         raise MeshsplatError(f"{drv.path}: a clip has a non-finite duration")
     return sections, header
+
+
+def _axis_angle_to_xyzw(aa: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(aa, axis=-1, keepdims=True)
+    axis = aa / np.maximum(theta, 1e-12)
+    return np.concatenate([axis * np.sin(theta / 2), np.cos(theta / 2)], -1)
+
+
+def blendshape_rig(drv, fps: float = 25.0, clip_name: str = "sequence") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """``(sections, header)`` of a :class:`meshsplat.drivers.BlendshapeDriver` as a morph rig.
+
+    ``posed = R (neutral + sum w_e delta_e - pivot) + pivot + t`` is one node (rotation R,
+    translation pivot + t) with inverse bind ``translate(-pivot)``; the expressions are its morph
+    targets (named by the model, e.g. ARKit), stored as half floats (the ICT FaceKit file is float16:
+    exact there; otherwise relative error <= 2^-11); the driver's sequence is a clip with keys at
+    ``frame / fps`` (LINEAR, rotations slerped), so the page reproduces ``vertices(frame)`` at the keys.
+    """
+    neutral = drv.neutral.detach().cpu().double().numpy()
+    deltas = drv.deltas.detach().cpu().double().numpy()  # [E, V, 3]
+    e, v = deltas.shape[:2]
+    pivot = drv.pivot.detach().cpu().double().numpy()
+    half = deltas.reshape(-1, 3).astype(np.float16)
+    if not np.isfinite(half).all():
+        raise MeshsplatError("blendshapes: expression deltas beyond the half-float range (|x| > 65504)")
+    bits = half.view(np.uint16).astype(np.uint32)
+    packed = np.stack([bits[:, 0] | (bits[:, 1] << 16), bits[:, 2]], 1).astype("<u4")
+    info = np.zeros((v, 4), "<u4")
+    info[:, 0] = np.arange(v)
+    info[:, 1] = e
+    info[:, 2] = v
+    ibm = np.eye(4)
+    ibm[:3, 3] = -pivot
+    rest = np.eye(4)
+    rest[:3, 3] = pivot
+    t = drv.num_frames
+    times = (np.arange(t) / float(fps)).astype("<f4")
+    w = drv.weights.detach().cpu().numpy().astype("<f4")
+    rot = _axis_angle_to_xyzw(drv.rotations.detach().cpu().double().numpy()).astype("<f4")
+    tra = (pivot[None] + drv.translations.detach().cpu().double().numpy()).astype("<f4")
+    chans, vals, off = [], [], 0
+    for path, arr in (("weights", w), ("rotation", rot), ("translation", tra)):
+        chans.append({"node": 0, "path": path, "interp": "LINEAR", "t_off": len(chans) * t, "count": t,
+                      "v_off": off, "width": int(arr.shape[1])})
+        vals.append(arr.reshape(-1))
+        off += arr.size
+    sections = {
+        "rig_base": neutral.astype("<f4"), "rig_pair_index": np.zeros((v, 4), "<u4"),
+        "rig_pair_weight": np.tile(np.array([1, 0, 0, 0], "<f4"), (v, 1)),
+        "pair_node": np.zeros(1, "<u4"), "pair_ibm": ibm.reshape(1, 16).astype("<f4"),
+        "node_parent": np.full(1, -1, "<i4"), "node_order": np.zeros(1, "<u4"),
+        "node_rest": rest.reshape(1, 16).astype("<f4"),
+        "node_trs": np.concatenate([pivot, [0, 0, 0, 1], [1, 1, 1]])[None].astype("<f4"),
+        "morph_info": info, "morph_deltas": packed, "morph_default_weights": np.zeros(e, "<f4"),
+        "anim_times": np.tile(times, 3), "anim_values": np.concatenate(vals).astype("<f4"),
+    }
+    header = {"kind": "gltf", "source": "blendshapes", "influences": 4, "num_pairs": 1, "num_nodes": 1,
+              "matrix_nodes": [], "morph_encoding": "float16",
+              "morph_groups": [{"node": 0, "count": e, "weight_base": 0, "names": [str(n) for n in drv.names],
+                                "node_name": "face"}],
+              "num_morph_weights": e,
+              "clips": [{"name": clip_name, "start": 0.0, "duration": float((t - 1) / fps), "channels": chans}],
+              "clip": clip_name}
+    return sections, header
+
+
+def bundle_rig(drv, fps: float = 25.0):
+    """``(sections, header, num_vertices)`` of a GltfDriver or a BlendshapeDriver."""
+    from meshsplat.drivers.blendshape import BlendshapeDriver
+
+    if isinstance(drv, BlendshapeDriver):
+        return (*blendshape_rig(drv, fps), int(drv.neutral.shape[0]))
+    return (*gltf_rig(drv), drv.num_vertices)
+
+
+def rig_preview_frames(drv, count: int = 16) -> list:
+    """A few posed vertex frames across the default clip / sequence (to frame the camera)."""
+    from meshsplat.drivers.blendshape import BlendshapeDriver
+
+    if isinstance(drv, BlendshapeDriver):
+        idx = np.unique(np.linspace(0, drv.num_frames - 1, count).round().astype(int))
+        return [drv.vertices(int(i)) for i in idx]
+    t0, t1 = drv.time_range()
+    return [drv.vertices_at(t0 + (t1 - t0) * i / (count - 1)) for i in range(count)]

@@ -94,10 +94,18 @@ function decodeRig(d, arr) {
     ...ch, times: arr.anim_times.subarray(ch.t_off, ch.t_off + ch.count),
     values: arr.anim_values.subarray(ch.v_off, ch.v_off + ch.count * ch.width * (ch.interp === "CUBICSPLINE" ? 3 : 1)),
   })) }));
+  let deltas = arr.morph_deltas;
+  if (d.morph_encoding === "float16") { // [D, 2] words: x|y, z|0 half floats
+    deltas = new Float32Array(1.5 * arr.morph_deltas.length);
+    for (let i = 0, o = 0; i < arr.morph_deltas.length; i += 2, o += 3) {
+      const a = arr.morph_deltas[i], c = arr.morph_deltas[i + 1];
+      deltas[o] = halfToFloat(a & 0xffff); deltas[o + 1] = halfToFloat(a >>> 16); deltas[o + 2] = halfToFloat(c & 0xffff);
+    }
+  }
   return { K: d.influences, P: d.num_pairs, nodes: d.num_nodes, base: arr.rig_base, pairIndex: arr.rig_pair_index,
            pairWeight: arr.rig_pair_weight, pairNode: arr.pair_node, pairIbm: arr.pair_ibm, parent: arr.node_parent,
            order: arr.node_order, rest: arr.node_rest, trs: arr.node_trs, matrixNodes: new Set(d.matrix_nodes),
-           morphInfo: arr.morph_info, deltas: arr.morph_deltas, defaultWeights: arr.morph_default_weights,
+           morphInfo: arr.morph_info, deltas, defaultWeights: arr.morph_default_weights,
            groups: d.morph_groups, clips };
 }
 
