@@ -7,7 +7,7 @@
 // sort runs in a Web Worker (created from a Blob URL of inline source, so it works from file://),
 // on the posed centres, with a 16-bit counting sort; the main thread never waits for it.
 //
-// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, gaussianDepths, sortDepths,
+// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, gaussianDepths, sortGaussians,
 // orbitViewmat, intrinsics) mirror meshsplat.mesh.geometry / meshsplat.embedding /
 // meshsplat.gaussians.compose and run under Node for the tests and bench/viewer.py. The UI starts
 // only in a page that holds the embedded avatar data. Cameras follow the project convention:
@@ -75,14 +75,6 @@ export function decodeBundle(header, bytes) {
   const cf = faceGeometry(b, Float64Array.from(b.cano));
   b.canoFrames = cf.frames;
   b.canoAreas = cf.areas;
-  // largest |u| + |v| + |1-u-v| and |d|: bound how far a centre's depth moves with the vertices
-  let baryMax = 1, dMax = 0;
-  for (let g = 0; g < N; g++) {
-    const u = b.uv[2 * g], v = b.uv[2 * g + 1];
-    baryMax = Math.max(baryMax, Math.abs(u) + Math.abs(v) + Math.abs(1 - u - v));
-    dMax = Math.max(dMax, Math.abs(b.d[g]));
-  }
-  b.baryMax = baryMax; b.dMax = dMax;
   b.driver = header.driver || { kind: "frames" };
   if (b.driver.kind === "gltf") b.rig = decodeRig(b.driver, arr);
   return b;
@@ -470,6 +462,86 @@ export function intrinsics(width, height, fovDeg) {
 export const EXACT_KEY_MAX = 200000;
 
 /**
+ * Per-vertex camera depth z_v and camera z of the normal (and, when `exact`, the normal) in
+ * `g.pv` (stride 5 or 2), and `g.corners`: stride * vertex index of each Gaussian's corners (cached).
+ */
+function vertexKeys(g, verts, normals, viewmat, exact) {
+  const N = g.N, V = verts.length / 3, S = exact ? 5 : 2, f = g.faces, face = g.face;
+  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
+  if (!g.corners || g.corners.length !== 3 * N || g.stride !== S) {
+    g.corners = new Uint32Array(3 * N); g.stride = S;
+    for (let i = 0; i < N; i++) for (let j = 0; j < 3; j++) g.corners[3 * i + j] = S * f[3 * face[i] + j];
+  }
+  if (!g.pv || g.pv.length !== S * V) g.pv = new Float64Array(S * V);
+  const pv = g.pv;
+  for (let v = 0; v < V; v++) {
+    const x = normals[3 * v], y = normals[3 * v + 1], z = normals[3 * v + 2];
+    pv[S * v] = r0 * verts[3 * v] + r1 * verts[3 * v + 1] + r2 * verts[3 * v + 2] + t;
+    pv[S * v + 1] = r0 * x + r1 * y + r2 * z;
+    if (exact) { pv[S * v + 2] = x; pv[S * v + 3] = y; pv[S * v + 4] = z; }
+  }
+  return { pv, cn: g.corners, S };
+}
+
+/**
+ * The worker's sort in two passes over the Gaussians: the key of gaussianDepths quantized at once
+ * to 16 bits over a range bounded from the vertices ([min z_v - |d|max, max z_v + |d|max], clamped,
+ * nearer than 0.01 dropped) and counted; then a stable back-to-front scatter into `order`.
+ * `moved`: bound on how far any key moved since the previous call, from the vertices:
+ * baryMax max|Δz_v| + |d|max max|Δ(r3.n_v)| (Infinity on the first call). `ws`: scratch.
+ */
+export function sortGaussians(g, verts, normals, viewmat, order, ws) {
+  const N = g.N, uv = g.uv, dd = g.d, NEAR = 0.01, exact = N <= EXACT_KEY_MAX;
+  if (g.dMax === undefined) {
+    let dMax = 0, baryMax = 1;
+    for (let i = 0; i < N; i++) {
+      const u = uv[2 * i], v = uv[2 * i + 1];
+      dMax = Math.max(dMax, Math.abs(dd[i]));
+      baryMax = Math.max(baryMax, Math.abs(u) + Math.abs(v) + Math.abs(1 - u - v));
+    }
+    g.dMax = dMax; g.baryMax = baryMax;
+  }
+  const { pv, cn, S } = vertexKeys(g, verts, normals, viewmat, exact);
+  const V = pv.length / S, prev = g.prevKeys;
+  let zmin = Infinity, zmax = -Infinity, dz = 0, dn = 0;
+  for (let v = 0; v < V; v++) {
+    const z = pv[S * v];
+    if (z < zmin) zmin = z; if (z > zmax) zmax = z;
+    if (prev && prev.length === 2 * V) {
+      dz = Math.max(dz, Math.abs(z - prev[2 * v])); dn = Math.max(dn, Math.abs(pv[S * v + 1] - prev[2 * v + 1]));
+    }
+  }
+  const moved = prev && prev.length === 2 * V ? g.baryMax * dz + g.dMax * dn : Infinity;
+  if (!prev || prev.length !== 2 * V) g.prevKeys = new Float64Array(2 * V);
+  for (let v = 0; v < V; v++) { g.prevKeys[2 * v] = pv[S * v]; g.prevKeys[2 * v + 1] = pv[S * v + 1]; }
+  const lo = Math.max(NEAR, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
+  const counts = ws.counts, bins = ws.bins && ws.bins.length >= N ? ws.bins : (ws.bins = new Int32Array(N));
+  counts.fill(0);
+  for (let i = 0; i < N; i++) {
+    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
+    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
+    let s = dd[i];
+    if (exact) {
+      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
+      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
+      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
+      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
+    }
+    const key = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
+    if (key >= NEAR) {
+      let x = (key - lo) * q;
+      x = x < 0 ? 0 : x > 65535 ? 65535 : x;
+      const bin = 65535 - (x | 0); // far first
+      bins[i] = bin; counts[bin]++;
+    } else bins[i] = -1;
+  }
+  let visible = 0;
+  for (let i = 0; i < 65536; i++) { visible += counts[i]; counts[i] = visible; }
+  for (let i = N - 1; i >= 0; i--) { const bin = bins[i]; if (bin >= 0) order[--counts[bin]] = i; }
+  return { n: visible, lo, hi, moved };
+}
+
+/**
  * Sort key [N] (Float32Array) of every posed Gaussian: the camera depth of its centre, Phong point
  * + d * normalized interpolated normal, as the vertex shader computes it; per-vertex camera depths
  * make it z = sum w z_v + d (sum w r3.n_v) / |sum w n_v|. Above EXACT_KEY_MAX Gaussians the
@@ -481,22 +553,10 @@ export const EXACT_KEY_MAX = 200000;
  * the largest |key - prev| when `prev` [N] is given (else Infinity). The worker's per-Gaussian work.
  */
 export function gaussianDepths(g, verts, normals, viewmat, depth, prev) {
-  const N = g.N, V = verts.length / 3, face = g.face, uv = g.uv, dd = g.d, f = g.faces;
-  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
-  const exact = N <= EXACT_KEY_MAX, S = exact ? 5 : 2;
+  const N = g.N, uv = g.uv, dd = g.d;
+  const exact = N <= EXACT_KEY_MAX;
   depth = depth || new Float32Array(N);
-  if (!g.corners || g.corners.length !== 3 * N) { // S * vertex index of each Gaussian's corners a, b, c
-    g.corners = new Uint32Array(3 * N);
-    for (let i = 0; i < N; i++) for (let j = 0; j < 3; j++) g.corners[3 * i + j] = S * f[3 * face[i] + j];
-  }
-  if (!g.pv || g.pv.length !== S * V) g.pv = new Float64Array(S * V);
-  const pv = g.pv, cn = g.corners;
-  for (let v = 0; v < V; v++) { // camera depth of the vertex, camera z of its normal (, the normal)
-    const x = normals[3 * v], y = normals[3 * v + 1], z = normals[3 * v + 2];
-    pv[S * v] = r0 * verts[3 * v] + r1 * verts[3 * v + 1] + r2 * verts[3 * v + 2] + t;
-    pv[S * v + 1] = r0 * x + r1 * y + r2 * z;
-    if (exact) { pv[S * v + 2] = x; pv[S * v + 3] = y; pv[S * v + 4] = z; }
-  }
+  const { pv, cn } = vertexKeys(g, verts, normals, viewmat, exact);
   let lo = Infinity, hi = -Infinity, moved = 0;
   for (let i = 0; i < N; i++) {
     const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
@@ -561,19 +621,16 @@ export function texSize(n) { return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WI
 
 /**
  * The worker's job for one pose: posed vertices (given, or skinned from a rig state), vertex
- * normals, Gaussian centre depths, 16-bit counting sort. Also returns `moved`, the largest change
- * of any centre's depth since the previous call (the bound on a stale order's error, see docs).
+ * normals, Gaussian centre depths, 16-bit counting sort (sortGaussians). Also returns `moved`, a
+ * bound on how far any centre's depth moved since the previous sort (a stale order's error, see docs).
  * `S` holds the static data (faces, face/uv/d of the Gaussians, rig) and scratch buffers.
  */
 export function sortJob(S, msg) {
   const verts = msg.verts || skinVertices(S.rig, msg.rig, S.V, S.verts);
   const normals = vertexNormals(S.faces, S.V, verts, S.normals);
-  const prev = S.depth, depth = S.depth2;
-  const r = gaussianDepths(S, verts, normals, msg.viewmat, depth, S.hasPrev ? prev : null);
-  S.depth = depth; S.depth2 = prev; S.hasPrev = true;
   const order = S.spare.pop() || new Uint32Array(S.N); // buffers come back from the main thread
-  const n = sortDepths(depth, S.N, order, S.ws, r.lo, r.hi);
-  return { id: msg.id, n, order, moved: r.moved };
+  const r = sortGaussians(S, verts, normals, msg.viewmat, order, S.ws);
+  return { id: msg.id, n: r.n, order, moved: r.moved, lo: r.lo, hi: r.hi };
 }
 
 /** Static data for sortJob from a decoded bundle (what the worker receives once). */
@@ -582,9 +639,8 @@ export function sortSetup(b) {
 }
 
 export function sortScratch(S) {
-  Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), depth: new Float32Array(S.N),
-                     depth2: new Float32Array(S.N), hasPrev: false, spare: [],
-                     ws: { counts: new Uint32Array(65536), bins: new Uint16Array(S.N) } });
+  Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), spare: [],
+                     ws: { counts: new Uint32Array(65536), bins: new Int32Array(S.N) } });
   return S;
 }
 
@@ -593,8 +649,8 @@ export const SORT_WORKER_SOURCE = `"use strict";
 const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
 ${skinVertices.toString()}
 ${vertexNormals.toString()}
-${gaussianDepths.toString()}
-${sortDepths.toString()}
+${vertexKeys.toString()}
+${sortGaussians.toString()}
 ${sortJob.toString()}
 ${sortScratch.toString()}
 let S = null;
