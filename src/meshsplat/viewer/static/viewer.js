@@ -472,7 +472,7 @@ function vertexKeys(g, verts, normals, viewmat, exact) {
     g.corners = new Uint32Array(3 * N); g.stride = S;
     for (let i = 0; i < N; i++) for (let j = 0; j < 3; j++) g.corners[3 * i + j] = S * f[3 * face[i] + j];
   }
-  if (!g.pv || g.pv.length !== S * V) g.pv = new Float64Array(S * V);
+  if (!g.pv || g.pv.length !== S * V) g.pv = new Float32Array(S * V); // float32: half the cache footprint
   const pv = g.pv;
   for (let v = 0; v < V; v++) {
     const x = normals[3 * v], y = normals[3 * v + 1], z = normals[3 * v + 2];
@@ -1192,6 +1192,7 @@ export function startViewer(doc) {
   $("title").textContent = header.title || "meshsplat avatar";
   const clipLength = () => (live && clips.length ? clips[state.clip].duration : 0);
   let clipSel = null, speedSel = null;
+  const morphSliders = []; // [weight index, slider]: sliders follow the clip until moved
   if (live) {
     slider.step = "any";
     clipSel = el(doc, "select", { title: "clip" });
@@ -1203,13 +1204,23 @@ export function startViewer(doc) {
     slider.before(clipSel); slider.after(speedSel);
     clipSel.onchange = () => { state.clip = parseInt(clipSel.value, 10); state.time = 0; syncUi(); };
     speedSel.onchange = () => { state.speed = parseFloat(speedSel.value); };
+    const nMorph = b.rig.defaultWeights.length;
+    const toggle = nMorph ? el(doc, "button", { textContent: `${nMorph} morph targets` }, $("ui")) : null;
     const panel = el(doc, "div", { id: "morphs" }, $("ui"));
+    if (toggle) { // long lists (an ARKit face has 50+) start folded
+      panel.hidden = nMorph > 12;
+      toggle.onclick = () => { panel.hidden = !panel.hidden; };
+      $("stats").before(toggle);
+    }
+    const prefix = b.rig.groups.length > 1;
     for (const g of b.rig.groups) {
       g.names.forEach((name, m) => {
-        const i = g.weight_base + m, label = el(doc, "label", { textContent: `${name} ` }, panel);
+        const i = g.weight_base + m;
+        const label = el(doc, "label", { textContent: `${prefix ? `${g.node_name}: ` : ""}${name} ` }, panel);
         const s = el(doc, "input", { type: "range", min: "0", max: "1", step: "0.01", title: `${g.node_name}: ${name}` }, label);
         s.value = String(Number.isNaN(state.weights[i]) ? b.rig.defaultWeights[i] : state.weights[i]);
         s.oninput = () => { state.weights[i] = parseFloat(s.value); };
+        morphSliders.push([i, s]);
         const reset = el(doc, "button", { textContent: "clip", title: "back to the clip's weight" }, label);
         reset.onclick = () => { state.weights[i] = NaN; };
       });
@@ -1274,6 +1285,7 @@ export function startViewer(doc) {
       if (live) {
         pose = poser.rig(clips.length ? state.clip : null, (clips.length ? clips[state.clip].start : 0) + state.time, state.weights);
         renderer.setRig(pose.rig);
+        for (const [i, s] of morphSliders) if (Number.isNaN(state.weights[i])) s.value = String(pose.rig.weights[i]);
       } else {
         pose = poser.frame(state.frame);
         renderer.setVertices(pose.verts);
