@@ -181,7 +181,8 @@ def read_spz(path: str | os.PathLike) -> dict:
     try:
         data = gzip.decompress(raw)
     except (OSError, EOFError) as exc:
-        raise MeshsplatError(f"{str(path)!r}: not a gzip .spz file ({exc}); only gzip SPZ versions 2 and 3 are read") from None
+        raise MeshsplatError(f"{str(path)!r}: not a gzip .spz file ({exc}); "
+                             "only gzip SPZ versions 2 and 3 are read") from None
     if len(data) < 16:
         raise MeshsplatError(f"{str(path)!r}: .spz header is truncated")
     magic, version, n, degree, frac, _flags, _ = struct.unpack_from("<IIIBBBB", data)

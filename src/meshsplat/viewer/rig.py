@@ -115,7 +115,8 @@ def gltf_rig(drv) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "anim_values": np.concatenate(values) if values else np.zeros(0, "<f4"),
     }
     clip = drv.clip if drv.clip is not None else (drv.clips[0] if drv.clips else None)
-    header = {"kind": "gltf", "source": drv.path.name, "influences": kk, "morph_encoding": "float32", "num_pairs": int(len(drv._pair_node)),
+    header = {"kind": "gltf", "source": drv.path.name, "influences": kk, "morph_encoding": "float32",
+              "num_pairs": int(len(drv._pair_node)),
               "num_nodes": n_nodes, "matrix_nodes": matrix_nodes, "morph_groups": groups,
               "num_morph_weights": wbase, "clips": clips, "clip": clip}
     if not all(math.isfinite(c["duration"]) for c in clips):
