@@ -159,8 +159,9 @@ def pack_gaussians(arrays: dict[str, np.ndarray]) -> np.ndarray:
     """``[N, 8]`` uint32 packing of the viewer's per-Gaussian arrays (half floats, round to nearest even).
 
     Half floats keep 11 significant bits: relative error <= 2^-11 (0.05%) on uv, d, rotation,
-    scale, colour and opacity (absolute <= 2^-12 for values in [0.5, 1)). A value beyond the half
-    range (|x| > 65504, e.g. a scale in a mesh of huge units) raises an error.
+    scale, colour and opacity for |x| >= 6.1e-5 (absolute <= 3e-8 below, where halves are
+    subnormal). A value beyond the half range (|x| > 65504, e.g. a scale in a mesh of huge units)
+    raises an error.
     """
     n = len(arrays["gaussian_face"])
     out = np.empty((n, 8), "<u4")
