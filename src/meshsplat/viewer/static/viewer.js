@@ -664,16 +664,22 @@ onmessage = (e) => {
 };
 `;
 
-/** The depth sorter: a Web Worker when available, else the same functions on the calling thread. */
+/**
+ * The depth sorter: a Web Worker when available, else (or after a worker failure) the same
+ * functions on the calling thread. `onResult(r)` gets each result, or null when a request was lost.
+ */
 export class DepthSorter {
   constructor(b, onResult) {
     this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
-    const setup = sortSetup(b);
+    const setup = this.setup = sortSetup(b);
     try {
       const url = URL.createObjectURL(new Blob([SORT_WORKER_SOURCE], { type: "text/javascript" }));
       this.worker = new Worker(url);
       this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
-      this.worker.onerror = (e) => { console.error("sort worker:", e.message); this.worker = null; this.busy = false; };
+      this.worker.onerror = (e) => { // fall back to sorting on this thread
+        console.error("sort worker:", e.message); this.worker = null; this.inWorker = false; this.busy = false;
+        this.onResult(null); // the pending request is lost: ask again
+      };
       this.worker.postMessage({ type: "init", setup });
       this.inWorker = true;
     } catch (err) {
@@ -699,6 +705,7 @@ export class DepthSorter {
     if (this.worker) {
       this.worker.postMessage(msg, transfer);
     } else {
+      this.S = this.S || sortScratch(this.setup); // also after a worker failure
       const t0 = performance.now();
       const r = sortJob(this.S, msg);
       r.ms = performance.now() - t0;
@@ -1182,6 +1189,7 @@ export function startViewer(doc) {
     if (live && i >= 0 && i < state.weights.length) state.weights[i] = w;
   }
   const sorter = new DepthSorter(b, (r) => {
+    if (r === null) { state.pendingKey = null; return; }
     if (state.pendingKey === null) return;
     renderer.setOrder(r.order, r.n);
     sorter.recycle(r.order);
