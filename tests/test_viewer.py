@@ -507,6 +507,13 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
         print(f"browser vs rasterizer, frame {frame}: PSNR {psnr:.1f} dB")
         assert psnr > 40.0, psnr
         assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
+    # sorting on the main thread (?worker=0, the fallback without Web Workers) draws the same image
+    from PIL import Image
+
+    screenshot((tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&worker=0", 256, 256, tmp_path / "main.png",
+               chromium=_chromium())
+    same = np.asarray(Image.open(tmp_path / "main.png").convert("RGB"), dtype=np.float64)
+    assert np.array_equal(same, img)
 
 
 def _render_ref(av, verts, cam, size=256):

@@ -669,10 +669,11 @@ onmessage = (e) => {
  * functions on the calling thread. `onResult(r)` gets each result, or null when a request was lost.
  */
 export class DepthSorter {
-  constructor(b, onResult) {
+  constructor(b, onResult, useWorker = true) {
     this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
     const setup = this.setup = sortSetup(b);
     try {
+      if (!useWorker) throw new Error("disabled by ?worker=0");
       const url = URL.createObjectURL(new Blob([SORT_WORKER_SOURCE], { type: "text/javascript" }));
       this.worker = new Worker(url);
       this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
@@ -1194,7 +1195,7 @@ export function startViewer(doc) {
     renderer.setOrder(r.order, r.n);
     sorter.recycle(r.order);
     state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
-  });
+  }, params.get("worker") !== "0");
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
   $("title").textContent = header.title || "meshsplat avatar";
@@ -1302,7 +1303,10 @@ export function startViewer(doc) {
     }
     // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
     const key = `${poseKey}#${Array.from(viewmat).join()}`;
-    if (key !== state.sortedKey && state.pendingKey === null && sorter.request(pose, viewmat)) state.pendingKey = key;
+    if (key !== state.sortedKey && state.pendingKey === null) {
+      state.pendingKey = key; // before the request: without a worker the result comes back inside it
+      if (!sorter.request(pose, viewmat)) state.pendingKey = null;
+    }
     renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
     mainMs = performance.now() - t0;
     fpsCount++;
