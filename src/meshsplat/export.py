@@ -1,5 +1,6 @@
-"""Export an avatar: a standard 3DGS ``.ply`` in the canonical pose, the mesh embedding as JSON and
-the canonical mesh as OBJ, with a README; and load such an export back into an :class:`Avatar`.
+"""Export an avatar: a standard 3DGS ``.ply`` in the canonical pose (and/or antimatter15 ``.splat``,
+Niantic ``.spz``, glTF ``KHR_gaussian_splatting`` ``.glb``: ``formats``), the mesh embedding as JSON
+and the canonical mesh as OBJ, with a README; and load such an export back into an :class:`Avatar`.
 
 The embedding JSON stores the effective barycentric coordinate the renderer uses (``uv + duv``,
 projected onto the triangle for ``clamp_to_face`` avatars), so the re-loaded avatar has ``duv = 0``
@@ -7,7 +8,7 @@ and ``clamp_to_face = False`` and composes bit-identical Gaussians in every pose
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -15,20 +16,23 @@ import torch
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["ExportResult", "export_avatar", "load_exported_avatar", "canonical_gaussians",
-           "PLY_NAME", "EMBEDDING_NAME", "MESH_NAME"]
+           "PLY_NAME", "EMBEDDING_NAME", "MESH_NAME", "SPLAT_FORMATS"]
 
 PLY_NAME = "avatar.ply"
 EMBEDDING_NAME = "embedding.json"
 MESH_NAME = "canonical_mesh.obj"
+# format -> file name of the static canonical-pose splats
+SPLAT_FORMATS = {"ply": PLY_NAME, "splat": "avatar.splat", "spz": "avatar.spz", "gltf": "avatar.glb"}
 
 
 @dataclass
 class ExportResult:
     folder: Path
-    ply: Path
+    ply: Path | None
     embedding: Path
     mesh: Path
     readme: Path
+    splats: dict[str, Path] = field(default_factory=dict)  # format -> file, "ply" included
 
 
 _README = """meshsplat avatar export
@@ -37,12 +41,12 @@ _README = """meshsplat avatar export
 Source: {source}
 Gaussians: {n}, SH degree {sh}, scale mode {scale_mode}{clamp}.
 
-{ply}  Standard 3D Gaussian Splatting PLY (binary little endian) in the CANONICAL pose,
+{splat_files}{ply}  Standard 3D Gaussian Splatting PLY (binary little endian) in the CANONICAL pose,
     loadable by 3DGS viewers. Per Gaussian: x y z (mean), nx ny nz (Phong normal of the
     mesh at the Gaussian), f_dc_0..2 (SH DC colour: rgb = 0.5 + 0.28209479 * f_dc),
     f_rest_0..44 (higher SH bands, channel-major, zero-padded to degree 3), opacity
     (logit: alpha = sigmoid(opacity)), scale_0..2 (log of the axis lengths), rot_0..3
-    (unit quaternion w x y z). A static snapshot: it does not animate.
+    (unit quaternion w x y z). A static snapshot: it does not animate.{other_formats}
 
 {emb}  The animatable avatar: each Gaussian embedded on the canonical mesh (format
     "meshsplat-embedding" v1, arrays little-endian base64). face [N] (triangle index),
@@ -76,20 +80,45 @@ def canonical_gaussians(avatar):
     return g, normals.detach()
 
 
-def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = None) -> ExportResult:
-    """Write ``avatar.ply``, ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
+_FORMAT_NOTES = {
+    "splat": "antimatter15 .splat: 32 bytes per Gaussian (float32 xyz and linear scale, uint8 RGBA and\n"
+             "    quaternion wxyz), DC colour only, sorted by size x opacity.",
+    "spz": "Niantic SPZ version 3 (gzip): quantized positions (24-bit), colours, scales, rotations and SH.",
+    "gltf": "glTF 2.0 binary with KHR_gaussian_splatting (release candidate): a POINTS primitive with\n"
+            "    linear scale, linear opacity, xyzw rotation, SH per degree, and a COLOR_0 fallback.",
+}
+
+
+def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = None,
+                  formats=("ply",)) -> ExportResult:
+    """Write the canonical-pose splats in ``formats`` (any of ``SPLAT_FORMATS``: ply, splat, spz, gltf),
+    ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
     from meshsplat.gaussians.avatar import Avatar
     from meshsplat.gaussians.compose import effective_uv
     from meshsplat.io import write_embedding_json, write_gaussian_ply, write_obj
+    from meshsplat.io.splat_formats import write_gltf_splats, write_splat, write_spz
 
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
+    formats = list(dict.fromkeys(formats))
+    bad = [f for f in formats if f not in SPLAT_FORMATS]
+    if bad or not formats:
+        raise MeshsplatError(f"formats: expected some of {', '.join(SPLAT_FORMATS)}, got {bad or 'none'}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     p = {k: v.detach() for k, v in avatar.params.items()}
     g, normals = canonical_gaussians(avatar)
-    ply = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"], p["sh0"],
-                             p.get("shN"), sh_degree_pad=3, normals=normals)
+    splats: dict[str, Path] = {}
+    if "ply" in formats:
+        splats["ply"] = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"],
+                                           p["sh0"], p.get("shN"), sh_degree_pad=3, normals=normals)
+    arrays = {"means": g.means, "quats": g.quats, "log_scales": g.scales.log(), "opacity_logits": p["opacity_logit"],
+              "sh0": p["sh0"].reshape(-1, 3), "shN": p.get("shN")}
+    arrays = {k: (None if v is None else v.detach().cpu().double().numpy()) for k, v in arrays.items()}
+    writers = {"splat": write_splat, "spz": write_spz, "gltf": write_gltf_splats}
+    for fmt in formats:
+        if fmt != "ply":
+            splats[fmt] = writers[fmt](out / SPLAT_FORMATS[fmt], arrays)
     with torch.no_grad():
         uv = effective_uv(avatar.params, avatar.clamp_to_face).detach()
     emb_params = {"face": p["face"], "uv": uv, "d": p["d"], "rotation": p["rotation"],
@@ -105,12 +134,16 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     emb = write_embedding_json(out / EMBEDDING_NAME, emb_params, meta)
     mesh = write_obj(out / MESH_NAME, avatar.mesh.vertices.detach(), avatar.mesh.faces)
     readme = out / "README.txt"
+    others = "".join(f"\n\n{SPLAT_FORMATS[f]}  {_FORMAT_NOTES[f]} Same Gaussians as {PLY_NAME} (same axes)."
+                     for f in formats if f != "ply")
     readme.write_text(_README.format(
         source=source or "(in-memory avatar)", n=avatar.num_gaussians, sh=avatar.sh_degree,
         scale_mode=avatar.scale_mode, clamp=", trained without walking (uv clamped to the face)"
         if avatar.clamp_to_face else "", ply=PLY_NAME, emb=EMBEDDING_NAME, mesh=MESH_NAME,
-        uv_note=", projected onto the triangle" if avatar.clamp_to_face else ""))
-    return ExportResult(out, ply, emb, mesh, readme)
+        uv_note=", projected onto the triangle" if avatar.clamp_to_face else "",
+        splat_files="" if "ply" in formats else f"({PLY_NAME} was not written: --format {','.join(formats)})\n",
+        other_formats=others))
+    return ExportResult(out, splats.get("ply"), emb, mesh, readme, splats)
 
 
 def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu"):

@@ -2,16 +2,23 @@
 
 Animation (default: the run's dataset meshes, all stored frames in order):
   --animation dataset [--split NAME]     the dataset's meshes (or those of one split)
-  --animation gltf FILE [--clip NAME]    a glTF/GLB clip driving the avatar's mesh
+  --animation gltf FILE [--clip NAME]    a glTF/GLB rig driving the avatar's mesh, LIVE: its skin,
+                                         morph targets and clips ship in the page (clip picker,
+                                         scrubbing, speed, morph sliders); --bake ships vertex
+                                         frames sampled at --fps instead
   --animation vertices FILE.npy          a vertex sequence [T,V,3]
   --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
                                          flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
+  --animation blendshapes [FILE.npz]     a blendshape face (default the shared ICT FaceKit ARKit
+                                         model) LIVE: one slider per expression, and a procedural
+                                         talking sequence (--frames, default 125, at --fps) as a clip
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
 folder on http://127.0.0.1:PORT until Ctrl-C.
 
 Examples:
   meshsplat view runs/demo --out out/viewer
-  meshsplat view runs/demo --animation gltf CesiumMan.glb --frames 60 --out out/viewer
+  meshsplat view runs/demo --animation gltf CesiumMan.glb --out out/viewer
+  meshsplat view runs/demo --animation gltf CesiumMan.glb --bake --frames 60 --out out/viewer
 """
 from __future__ import annotations
 
@@ -23,14 +30,16 @@ from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "load_frames"]
 
-_KINDS = ("dataset", "gltf", "vertices", "motion")
+_KINDS = ("dataset", "gltf", "vertices", "blendshapes", "motion")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE, vertices FILE.npy or motion FILE")
+                        help="dataset (default), gltf FILE, vertices FILE.npy, blendshapes [FILE.npz] or motion FILE")
+    parser.add_argument("--motion", default=None, metavar="FILE",
+                        help="same as --animation motion FILE (SMPL/SMPL-X .npz, flame_params.json, flame_param/)")
     parser.add_argument("--model-dir", default=None,
                         help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
@@ -42,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", choices=("white", "black"), default="white", help="initial background")
     parser.add_argument("--vertex-encoding", choices=("int16", "float32"), default="int16",
                         help="storage of the animated vertices (default int16, quantized per bundle)")
+    parser.add_argument("--bake", action="store_true",
+                        help="gltf / blendshapes: ship vertex frames (at --fps) instead of the live rig")
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
@@ -67,6 +78,9 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             drv = ds.driver()
             n = drv.num_frames if args.frames is None else min(drv.num_frames, args.frames)
             frames = animate.sequence_animation(avatar, torch.stack([drv.vertices(i) for i in range(n)]).numpy())
+    elif kind == "blendshapes":
+        drv = _blendshape_driver(avatar, rest, args)
+        frames = [drv.vertices(i) for i in range(drv.num_frames)]
     else:
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
@@ -85,6 +99,24 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
         frames = frames[: args.frames]
     return frames
+
+
+def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
+    """BlendshapeDriver of FILE (default the shared ICT FaceKit model) with a talking sequence."""
+    from meshsplat.drivers import BlendshapeDriver
+
+    if len(rest) > 1:
+        raise MeshsplatError("--animation blendshapes takes at most one FILE.npz")
+    drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
+    v = int(drv.neutral.shape[0])
+    if v != avatar.mesh.num_vertices:
+        raise MeshsplatError(f"--animation blendshapes: the model has {v} vertices, the avatar's mesh "
+                             f"{avatar.mesh.num_vertices}; use the blendshape model the avatar was trained on")
+    n = 125 if args.frames is None else args.frames
+    if n < 1:
+        raise MeshsplatError(f"--frames: expected >= 1, got {n}")
+    drv.talking_sequence(n, args.fps)
+    return drv
 
 
 def _serve(folder: Path, port: int) -> None:
@@ -112,13 +144,36 @@ def run(args: argparse.Namespace) -> int:
     if args.serve:
         check_range("--port", args.port, "view --port")
     check_output_dir(args.out)
+    if args.motion is not None:
+        if args.animation != ["dataset"]:
+            raise MeshsplatError("--motion and --animation exclude each other")
+        args.animation = ["motion", args.motion]
     r = load_run(args.run, device="cpu")
-    frames = load_frames(r.avatar, args, r)
     title = args.title or r.run_dir.resolve().name
-    index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
-                                vertex_encoding=args.vertex_encoding, background=args.background)
+    kind, *rest = args.animation
+    if kind == "gltf" and not args.bake:
+        from meshsplat.viewer.rig import avatar_driver
+
+        if len(rest) != 1:
+            raise MeshsplatError("--animation gltf needs exactly one FILE")
+        if not Path(rest[0]).is_file():
+            raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
+        rig = avatar_driver(r.avatar, rest[0], clip=args.clip)
+        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+        what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
+    elif kind == "blendshapes" and not args.bake:
+        rig = _blendshape_driver(r.avatar, rest, args)
+        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+        what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
+    else:
+        frames = load_frames(r.avatar, args, r)
+        index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
+                                    vertex_encoding=args.vertex_encoding, background=args.background)
+        what = f"{len(frames)} frames"
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
-    print(f"viewer: {index} ({len(frames)} frames, {r.avatar.num_gaussians} Gaussians, "
+    print(f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "
           f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)")
     print(f"  open file://{index.resolve()}")
     if args.serve:

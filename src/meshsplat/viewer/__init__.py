@@ -3,8 +3,11 @@ from meshsplat.viewer.bundle import (
     BUNDLE_VERSION,
     VERTEX_ENCODINGS,
     default_camera,
+    pack_gaussians,
     read_viewer_bundle,
+    unpack_gaussians,
     write_viewer_bundle,
 )
 
-__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
+__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_gaussians", "unpack_gaussians",
+           "BUNDLE_VERSION", "VERTEX_ENCODINGS"]

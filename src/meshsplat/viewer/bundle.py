@@ -6,8 +6,10 @@ The bundle folder holds ``index.html`` (self-contained: viewer code, ``avatar.js
 ``avatar.bin`` inlined, so it opens from ``file://``), plus ``viewer.js``, ``avatar.bin`` and
 ``avatar.json`` as separate files for tools and tests. ``avatar.bin`` is little-endian; each
 section of ``avatar.json["sections"]`` gives its byte ``offset`` (4-byte aligned), ``dtype``
-(float32, uint32, int16) and ``shape``. The browser poses the Gaussians from the mesh each frame
-exactly as :func:`meshsplat.gaussians.compose` does (DC colour only). See docs/viewer.md.
+(float32, uint32, int16) and ``shape``. The Gaussians are packed into 32 bytes each (face index
+plus half floats, :func:`pack_gaussians`). The browser poses the Gaussians from the mesh each
+frame on the GPU exactly as :func:`meshsplat.gaussians.compose` does (DC colour only). See
+docs/viewer.md.
 """
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ import base64
 import html
 import json
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -25,12 +28,13 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
+__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_gaussians", "unpack_gaussians",
+           "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
 
-BUNDLE_VERSION = 1
+BUNDLE_VERSION = 2
 VERTEX_ENCODINGS = ("int16", "float32")
 _STATIC = Path(__file__).parent / "static"
-_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2")}
+_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2"), "int32": np.dtype("<i4")}
 
 
 def _as_frames(frames, num_vertices: int) -> np.ndarray:
@@ -119,6 +123,7 @@ def _encode_vertices(frames: np.ndarray, encoding: str) -> tuple[np.ndarray, dic
 
 
 def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
+    """Per-Gaussian arrays the viewer needs (float64 except ``face``), keyed as read_viewer_bundle returns them."""
     from meshsplat.gaussians.compose import effective_uv
     from meshsplat.gaussians.params import SH_C0
 
@@ -126,16 +131,69 @@ def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
     with torch.no_grad():
         rot = p["rotation"].detach().double()
         rot = rot / rot.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        arrays = {
+        return {
             "gaussian_face": p["face"].detach().cpu().numpy().astype("<u4"),
-            "gaussian_uv": effective_uv(p, avatar.clamp_to_face).detach().cpu().numpy(),
-            "gaussian_d": p["d"].detach().cpu().numpy(),
+            "gaussian_uv": effective_uv(p, avatar.clamp_to_face).detach().double().cpu().numpy(),
+            "gaussian_d": p["d"].detach().double().cpu().numpy(),
             "gaussian_rotation": rot.cpu().numpy(),
             "gaussian_scale": p["log_scale"].detach().double().exp().cpu().numpy(),
             "gaussian_opacity": torch.sigmoid(p["opacity_logit"].detach().double()).cpu().numpy(),
             "gaussian_rgb": (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0).cpu().numpy(),
         }
-    return {k: (v if v.dtype == np.dtype("<u4") else v.astype("<f4")) for k, v in arrays.items()}
+
+
+# Packed Gaussian: 8 little-endian uint32 words; "a|b" = two IEEE half floats, a in the low 16 bits
+# (GLSL unpackHalf2x16 order): face, u|v, d|opacity, r|g, qw|qx, qy|qz, s0|s1, s2|b.
+_HALF_PAIRS = (("uv", 0, "uv", 1), ("d", None, "opacity", None), ("rgb", 0, "rgb", 1), ("rot", 0, "rot", 1),
+               ("rot", 2, "rot", 3), ("scale", 0, "scale", 1), ("scale", 2, "rgb", 2))
+_PACK_KEYS = {"uv": "gaussian_uv", "d": "gaussian_d", "opacity": "gaussian_opacity", "rgb": "gaussian_rgb",
+              "rot": "gaussian_rotation", "scale": "gaussian_scale"}
+
+
+def _half_bits(x: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        return np.asarray(x, np.float64).astype(np.float16).view(np.uint16).astype(np.uint32)
+
+
+def pack_gaussians(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """``[N, 8]`` uint32 packing of the viewer's per-Gaussian arrays (half floats, round to nearest even).
+
+    Half floats keep 11 significant bits: relative error <= 2^-11 (0.05%) on uv, d, rotation,
+    scale, colour and opacity for |x| >= 6.1e-5 (absolute <= 3e-8 below, where halves are
+    subnormal). A value beyond the half range (|x| > 65504, e.g. a scale in a mesh of huge units)
+    raises an error.
+    """
+    n = len(arrays["gaussian_face"])
+    out = np.empty((n, 8), "<u4")
+    out[:, 0] = arrays["gaussian_face"]
+    for w, (ka, ia, kb, ib) in enumerate(_HALF_PAIRS, start=1):
+        a, b = arrays[_PACK_KEYS[ka]], arrays[_PACK_KEYS[kb]]
+        a, b = (a if ia is None else a[:, ia]), (b if ib is None else b[:, ib])
+        if not (np.isfinite(a).all() and np.isfinite(b).all()) or max(np.abs(a).max(initial=0),
+                                                                      np.abs(b).max(initial=0)) > 65504:
+            raise MeshsplatError(f"avatar: {ka}/{kb} values beyond the half-float range of the viewer "
+                                 "(|x| > 65504 or not finite); rescale the mesh units")
+        out[:, w] = _half_bits(a) | (_half_bits(b) << 16)
+    return out
+
+
+def unpack_gaussians(packed: np.ndarray) -> dict[str, np.ndarray]:
+    """Inverse of :func:`pack_gaussians` (float32 arrays holding the half-float values)."""
+    packed = np.asarray(packed, "<u4")
+    n = packed.shape[0]
+    cols: dict[str, np.ndarray] = {"uv": np.empty((n, 2)), "rgb": np.empty((n, 3)), "rot": np.empty((n, 4)),
+                                   "scale": np.empty((n, 3)), "d": np.empty(n), "opacity": np.empty(n)}
+    for w, (ka, ia, kb, ib) in enumerate(_HALF_PAIRS, start=1):
+        lo = (packed[:, w] & 0xFFFF).astype(np.uint16).view(np.float16).astype(np.float64)
+        hi = (packed[:, w] >> 16).astype(np.uint16).view(np.float16).astype(np.float64)
+        for key, idx, val in ((ka, ia, lo), (kb, ib, hi)):
+            if idx is None:
+                cols[key][:] = val
+            else:
+                cols[key][:, idx] = val
+    out = {_PACK_KEYS[k]: v.astype("<f4") for k, v in cols.items()}
+    out["gaussian_face"] = packed[:, 0].copy()
+    return out
 
 
 def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
@@ -152,13 +210,18 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
 
 
 def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None, title: str = "meshsplat avatar",
-                        vertex_encoding: str = "int16", background: str = "white") -> Path:
-    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``).
+                        vertex_encoding: str = "int16", background: str = "white", rig=None) -> Path:
+    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
+    or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
+    :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
+    or a ``BlendshapeDriver`` on them (expressions as morph targets, its sequence a clip at ``fps``);
+    the page evaluates them, and ``frames`` is then None or only used to frame the camera.
 
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
     ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
     ``camera.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
-    (per-axis step over the animation's box, error <= step/2) or "float32". Returns ``index.html``.
+    (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
+    ``frames`` (with a glTF rig unused; with a blendshape rig the rate of its sequence). Returns ``index.html``.
     """
     from meshsplat.gaussians.avatar import Avatar
 
@@ -171,21 +234,37 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     if background not in ("white", "black"):
         raise MeshsplatError(f"background: expected 'white' or 'black', got {background!r}")
     mesh = avatar.mesh
-    verts = _as_frames(frames, mesh.num_vertices)
-    encoded, quant = _encode_vertices(verts, vertex_encoding)
-    sections = {
+    sections: dict[str, np.ndarray] = {
         "faces": mesh.faces.detach().cpu().numpy().astype("<u4"),
         "canonical_vertices": mesh.vertices.detach().cpu().numpy().astype("<f4"),
-        "frames": encoded,
-        **_gaussian_arrays(avatar),
     }
+    quant: dict[str, Any] = {}
+    if rig is not None:
+        from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
+
+        rig_sections, driver, rig_vertices = bundle_rig(rig, fps)
+        if rig_vertices != mesh.num_vertices:
+            raise MeshsplatError(f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
+                                 "(for glTF build it with meshsplat.viewer.rig.avatar_driver)")
+        sections.update(rig_sections)
+        if frames is None:  # frame the camera on samples of the default clip
+            frames = rig_preview_frames(rig)
+        verts = _as_frames(frames, mesh.num_vertices)
+        num_frames = 0
+    else:
+        verts = _as_frames(frames, mesh.num_vertices)
+        encoded, quant = _encode_vertices(verts, vertex_encoding)
+        sections["frames"] = encoded
+        driver = {"kind": "frames"}
+        num_frames = int(verts.shape[0])
+    sections["gaussians"] = pack_gaussians(_gaussian_arrays(avatar))
     blob, layout = _pack(sections)
     header = {
         "format": "meshsplat-viewer", "version": BUNDLE_VERSION, "title": str(title),
         "num_vertices": mesh.num_vertices, "num_faces": mesh.num_faces, "num_gaussians": avatar.num_gaussians,
-        "num_frames": int(verts.shape[0]), "fps": float(fps), "scale_mode": avatar.scale_mode,
+        "num_frames": num_frames, "fps": float(fps), "scale_mode": avatar.scale_mode,
         "vertex_encoding": vertex_encoding, **quant, "background": background,
-        "camera": _camera_from(camera, verts), "sections": layout,
+        "camera": _camera_from(camera, verts), "driver": driver, "sections": layout,
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,11 +272,12 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     if "</script" in viewer_js.lower():
         raise MeshsplatError("viewer.js must not contain '</script' (it is inlined into index.html)")
     header_json = json.dumps(header, indent=1)
-    page = (_STATIC / "index.html").read_text(encoding="utf-8")
-    page = (page.replace("__TITLE__", html.escape(str(title)))
-                .replace("__AVATAR_HEADER__", header_json.replace("<", "\\u003c"))  # no "</script" inside
-                .replace("__AVATAR_DATA__", base64.b64encode(blob).decode("ascii"))
-                .replace("__VIEWER_JS__", viewer_js))
+    page = _fill_template((_STATIC / "index.html").read_text(encoding="utf-8"), {
+        "TITLE": html.escape(str(title)),
+        "AVATAR_HEADER": header_json.replace("<", "\\u003c"),  # no "</script" or "<!--" inside the JSON
+        "AVATAR_DATA": base64.b64encode(blob).decode("ascii"),
+        "VIEWER_JS": viewer_js,
+    })
     (out / "avatar.bin").write_bytes(blob)
     (out / "avatar.json").write_text(header_json + "\n", encoding="utf-8")
     (out / "viewer.js").write_text(viewer_js, encoding="utf-8")
@@ -206,8 +286,16 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     return index
 
 
+def _fill_template(template: str, values: dict[str, str]) -> str:
+    """Replace each ``__NAME__`` of the template in ONE pass, so that inserted text (a title such as
+    ``__VIEWER_JS__``, the viewer source, the data) is never scanned for placeholders again."""
+    return re.sub(r"__(TITLE|AVATAR_HEADER|AVATAR_DATA|VIEWER_JS)__", lambda m: values[m.group(1)], template)
+
+
 def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """``(header, arrays)`` of a bundle folder; ``arrays["vertices"]`` holds the decoded frames ``[T,V,3]``."""
+    """``(header, arrays)`` of a bundle folder; ``arrays["vertices"]`` holds the decoded frames ``[T,V,3]``
+    (vertex-frame bundles) and ``gaussian_*`` the unpacked per-Gaussian arrays (the half-float values
+    the page uses)."""
     root = Path(out_dir)
     try:
         header = json.loads((root / "avatar.json").read_text(encoding="utf-8"))
@@ -221,8 +309,13 @@ def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         if s["offset"] + count * dt.itemsize > len(blob):
             raise MeshsplatError(f"{root / 'avatar.bin'}: section {name!r} runs past the end of the file")
         arrays[name] = np.frombuffer(blob, dt, count, s["offset"]).reshape(s["shape"])
-    frames = arrays["frames"].astype(np.float64)
-    if header["vertex_encoding"] == "int16":
-        frames = np.asarray(header["vertex_offset"]) + frames * np.asarray(header["vertex_step"])
-    arrays["vertices"] = frames
+    if header.get("version") != BUNDLE_VERSION or "gaussians" not in arrays:
+        raise MeshsplatError(f"{root}: viewer bundle version {header.get('version')} (expected {BUNDLE_VERSION}); "
+                             "write it again with this meshsplat")
+    arrays.update(unpack_gaussians(arrays["gaussians"]))
+    if "frames" in arrays:
+        frames = arrays["frames"].astype(np.float64)
+        if header["vertex_encoding"] == "int16":
+            frames = np.asarray(header["vertex_offset"]) + frames * np.asarray(header["vertex_step"])
+        arrays["vertices"] = frames
     return header, arrays

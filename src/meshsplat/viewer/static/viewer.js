@@ -1,10 +1,18 @@
-// meshsplat WebGL2 viewer: poses mesh-embedded Gaussians on the CPU every frame and splats them.
+// meshsplat WebGL2 viewer: poses mesh-embedded Gaussians on the GPU every frame and splats them.
 //
-// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, orbitViewmat, intrinsics)
-// mirror meshsplat.mesh.geometry / meshsplat.embedding / meshsplat.gaussians.compose exactly and run
-// under Node for the tests. The UI starts only in a page that holds the embedded avatar data.
-// Cameras follow the project convention: world->camera viewmat in OpenCV axes (x right, y down,
-// z forward), pinhole K, pixel centres at +0.5. Matrices are row-major flat arrays.
+// Per frame the main thread does per-VERTEX work only: it decodes the frame's vertices, computes
+// vertex normals, vertex quaternions and face area ratios (poseMesh) and uploads them to float
+// textures. The vertex shader evaluates each Gaussian's embedding (Phong point + d*n, blended
+// rotation, area scale) from those textures and projects it; one instanced draw call. The depth
+// sort runs in a Web Worker (created from a Blob URL of inline source, so it works from file://),
+// on the posed centres, with a 16-bit counting sort; the main thread never waits for it.
+//
+// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, gaussianDepths, sortGaussians,
+// orbitViewmat, intrinsics) mirror meshsplat.mesh.geometry / meshsplat.embedding /
+// meshsplat.gaussians.compose and run under Node for the tests and bench/viewer.py. The UI starts
+// only in a page that holds the embedded avatar data. Cameras follow the project convention:
+// world->camera viewmat in OpenCV axes (x right, y down, z forward), pinhole K, pixel centres at
+// +0.5. Matrices are row-major flat arrays.
 
 export const SH_C0 = 0.28209479177387814;
 const EPS = 1e-12;            // meshsplat.mesh.geometry._EPS
@@ -14,9 +22,38 @@ const ALPHA_MAX = 0.999;
 const MAX_EXTEND = 3.33;
 const FOV_CLAMP_MARGIN = 0.3;
 const NEAR_PLANE = 0.01;
+export const TEX_WIDTH = 2048; // width of every data texture (texel i at (i % W, i / W))
 
 // ------------------------------------------------------------------ bundle decoding
-const TYPED = { float32: Float32Array, uint32: Uint32Array, int16: Int16Array };
+const TYPED = { float32: Float32Array, uint32: Uint32Array, int16: Int16Array, int32: Int32Array };
+
+/** Float value of the IEEE half float bits `h` (as GLSL unpackHalf2x16). */
+export function halfToFloat(h) {
+  const s = h & 0x8000 ? -1 : 1, e = (h >>> 10) & 0x1f, m = h & 0x3ff;
+  if (e === 0) return s * m * 5.960464477539063e-8; // 2^-24
+  if (e === 31) return m ? NaN : s * Infinity;
+  return s * (1 + m / 1024) * 2 ** (e - 15);
+}
+
+/** Float arrays of the packed Gaussians [N*8] words (layout: bundle.py pack_gaussians). */
+export function unpackGaussians(packed, N) {
+  const out = { face: new Uint32Array(N), uv: new Float32Array(2 * N), d: new Float32Array(N),
+                opacity: new Float32Array(N), rgb: new Float32Array(3 * N), rot: new Float32Array(4 * N),
+                scale: new Float32Array(3 * N) };
+  const lo = (w) => halfToFloat(w & 0xffff), hi = (w) => halfToFloat(w >>> 16);
+  for (let g = 0; g < N; g++) {
+    const o = 8 * g;
+    out.face[g] = packed[o];
+    out.uv[2 * g] = lo(packed[o + 1]); out.uv[2 * g + 1] = hi(packed[o + 1]);
+    out.d[g] = lo(packed[o + 2]); out.opacity[g] = hi(packed[o + 2]);
+    out.rgb[3 * g] = lo(packed[o + 3]); out.rgb[3 * g + 1] = hi(packed[o + 3]);
+    out.rot[4 * g] = lo(packed[o + 4]); out.rot[4 * g + 1] = hi(packed[o + 4]);
+    out.rot[4 * g + 2] = lo(packed[o + 5]); out.rot[4 * g + 3] = hi(packed[o + 5]);
+    out.scale[3 * g] = lo(packed[o + 6]); out.scale[3 * g + 1] = hi(packed[o + 6]);
+    out.scale[3 * g + 2] = lo(packed[o + 7]); out.rgb[3 * g + 2] = hi(packed[o + 7]);
+  }
+  return out;
+}
 
 /** Typed-array views of avatar.bin (`bytes`: ArrayBuffer or Uint8Array) laid out per `header`. */
 export function decodeBundle(header, bytes) {
@@ -28,17 +65,188 @@ export function decodeBundle(header, bytes) {
     const count = s.shape.reduce((a, b) => a * b, 1);
     arr[name] = new T(buf, s.offset, count);
   }
+  const N = header.num_gaussians;
   const b = {
-    header, V: header.num_vertices, F: header.num_faces, N: header.num_gaussians, T: header.num_frames,
-    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames,
-    face: arr.gaussian_face, uv: arr.gaussian_uv, d: arr.gaussian_d, rot: arr.gaussian_rotation,
-    scale: arr.gaussian_scale, opacity: arr.gaussian_opacity, rgb: arr.gaussian_rgb,
+    header, V: header.num_vertices, F: header.num_faces, N, T: header.num_frames,
+    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames, packed: arr.gaussians,
+    ...unpackGaussians(arr.gaussians, N),
   };
   // canonical per-face frames (constant) and areas
   const cf = faceGeometry(b, Float64Array.from(b.cano));
   b.canoFrames = cf.frames;
   b.canoAreas = cf.areas;
+  b.driver = header.driver || { kind: "frames" };
+  if (b.driver.kind === "gltf") b.rig = decodeRig(b.driver, arr);
   return b;
+}
+
+/** Rig arrays of a live glTF bundle (layout: meshsplat/viewer/rig.py). */
+function decodeRig(d, arr) {
+  const clips = d.clips.map((c) => ({ ...c, channels: c.channels.map((ch) => ({
+    ...ch, times: arr.anim_times.subarray(ch.t_off, ch.t_off + ch.count),
+    values: arr.anim_values.subarray(ch.v_off, ch.v_off + ch.count * ch.width * (ch.interp === "CUBICSPLINE" ? 3 : 1)),
+  })) }));
+  let deltas = arr.morph_deltas;
+  if (d.morph_encoding === "float16") { // [D, 2] words: x|y, z|0 half floats
+    deltas = new Float32Array(1.5 * arr.morph_deltas.length);
+    for (let i = 0, o = 0; i < arr.morph_deltas.length; i += 2, o += 3) {
+      const a = arr.morph_deltas[i], c = arr.morph_deltas[i + 1];
+      deltas[o] = halfToFloat(a & 0xffff); deltas[o + 1] = halfToFloat(a >>> 16); deltas[o + 2] = halfToFloat(c & 0xffff);
+    }
+  }
+  return { K: d.influences, P: d.num_pairs, nodes: d.num_nodes, base: arr.rig_base, pairIndex: arr.rig_pair_index,
+           pairWeight: arr.rig_pair_weight, pairNode: arr.pair_node, pairIbm: arr.pair_ibm, parent: arr.node_parent,
+           order: arr.node_order, rest: arr.node_rest, trs: arr.node_trs, matrixNodes: new Set(d.matrix_nodes),
+           morphInfo: arr.morph_info, deltas, defaultWeights: arr.morph_default_weights,
+           groups: d.morph_groups, clips };
+}
+
+// ------------------------------------------------------------------ live glTF driver (as meshsplat.drivers.gltf)
+function slerpXyzw(a, b, s, out) {
+  let a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], b0 = b[0], b1 = b[1], b2 = b[2], b3 = b[3];
+  const na = Math.hypot(a0, a1, a2, a3), nb = Math.hypot(b0, b1, b2, b3);
+  a0 /= na; a1 /= na; a2 /= na; a3 /= na; b0 /= nb; b1 /= nb; b2 /= nb; b3 /= nb;
+  let d = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3;
+  if (d < 0) { b0 = -b0; b1 = -b1; b2 = -b2; b3 = -b3; d = -d; }
+  let wa, wb;
+  if (d > 0.9995) { wa = 1 - s; wb = s; } else {
+    const th = Math.acos(Math.min(d, 1)), st = Math.sin(th);
+    wa = Math.sin((1 - s) * th) / st; wb = Math.sin(s * th) / st;
+  }
+  out[0] = wa * a0 + wb * b0; out[1] = wa * a1 + wb * b1; out[2] = wa * a2 + wb * b2; out[3] = wa * a3 + wb * b3;
+  const n = Math.hypot(out[0], out[1], out[2], out[3]);
+  for (let i = 0; i < 4; i++) out[i] /= n;
+  return out;
+}
+
+/** Value of an animation channel at time `t` (clamped to its keys), as meshsplat.drivers.gltf_io.sample_channel. */
+export function sampleChannel(ch, t) {
+  const T = ch.times, V = ch.values, w = ch.width, cubic = ch.interp === "CUBICSPLINE", K = T.length;
+  const value = (k) => cubic ? V.subarray((3 * k + 1) * w, (3 * k + 2) * w) : V.subarray(k * w, (k + 1) * w);
+  if (K === 1 || t <= T[0]) return Float64Array.from(value(0));
+  if (t >= T[K - 1]) return Float64Array.from(value(K - 1));
+  let lo = 0, hi = K - 1; // largest k with T[k] <= t
+  while (hi - lo > 1) { const mid = (lo + hi) >> 1; if (T[mid] <= t) lo = mid; else hi = mid; }
+  const k = lo, dt = T[k + 1] - T[k], s = dt > 0 ? (t - T[k]) / dt : 0;
+  if (ch.interp === "STEP") return Float64Array.from(V.subarray(k * w, (k + 1) * w));
+  const out = new Float64Array(w);
+  if (cubic) {
+    const s2 = s * s, s3 = s2 * s;
+    for (let i = 0; i < w; i++) {
+      const p0 = V[(3 * k + 1) * w + i], m0 = dt * V[(3 * k + 2) * w + i];
+      const p1 = V[(3 * k + 4) * w + i], m1 = dt * V[(3 * k + 3) * w + i];
+      out[i] = (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * m1;
+    }
+    if (ch.path === "rotation") { const n = Math.hypot(...out); for (let i = 0; i < w; i++) out[i] /= n; }
+    return out;
+  }
+  if (ch.path === "rotation") return slerpXyzw(value(k), value(k + 1), s, out);
+  for (let i = 0; i < w; i++) out[i] = (1 - s) * V[k * w + i] + s * V[(k + 1) * w + i];
+  return out;
+}
+
+function trsMatrix(t, r, s, m, o) { // row-major 4x4 T R S into m at o (r: xyzw, normalized here)
+  const n = Math.hypot(r[0], r[1], r[2], r[3]), x = r[0] / n, y = r[1] / n, z = r[2] / n, w = r[3] / n;
+  const R = [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+             2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+             2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)];
+  for (let i = 0; i < 3; i++) {
+    for (let j = 0; j < 3; j++) m[o + 4 * i + j] = R[3 * i + j] * s[j];
+    m[o + 4 * i + 3] = t[i];
+  }
+  m[o + 12] = 0; m[o + 13] = 0; m[o + 14] = 0; m[o + 15] = 1;
+}
+
+function mul4(a, ao, b, bo, out, oo) {
+  for (let i = 0; i < 4; i++) for (let j = 0; j < 4; j++) {
+    out[oo + 4 * i + j] = a[ao + 4 * i] * b[bo + j] + a[ao + 4 * i + 1] * b[bo + 4 + j]
+      + a[ao + 4 * i + 2] * b[bo + 8 + j] + a[ao + 4 * i + 3] * b[bo + 12 + j];
+  }
+}
+
+/**
+ * Rig state of clip `clip` (index) at `time` seconds (clamped to the clip), with morph weights
+ * `override` (Float64Array [num_morph_weights], NaN = from the clip) applied last:
+ * { pairs: Float32Array [P*12] (rows 0..2 of world[pair_node] @ inverse bind), weights: Float32Array }.
+ */
+export function evalRig(rig, clip, time, override, out) {
+  const N = rig.nodes, local = Float64Array.from(rig.rest), world = new Float64Array(16 * N);
+  const trs = new Map(), weights = Float64Array.from(rig.defaultWeights);
+  const c = clip === null || clip === undefined ? null : rig.clips[clip];
+  if (c) {
+    for (const ch of c.channels) {
+      const v = sampleChannel(ch, time);
+      if (ch.path === "weights") {
+        const g = rig.groups.find((gr) => gr.node === ch.node);
+        if (g) for (let m = 0; m < g.count; m++) weights[g.weight_base + m] = v[m];
+        continue;
+      }
+      if (rig.matrixNodes.has(ch.node)) continue;
+      if (!trs.has(ch.node)) {
+        const o = 10 * ch.node;
+        trs.set(ch.node, [rig.trs.slice(o, o + 3), rig.trs.slice(o + 3, o + 7), rig.trs.slice(o + 7, o + 10)]);
+      }
+      trs.get(ch.node)[["translation", "rotation", "scale"].indexOf(ch.path)] = v;
+    }
+    for (const [i, [t, r, s]] of trs) trsMatrix(t, r, s, local, 16 * i);
+  }
+  if (override) for (let i = 0; i < weights.length; i++) if (!Number.isNaN(override[i])) weights[i] = override[i];
+  for (const i of rig.order) {
+    const p = rig.parent[i];
+    if (p < 0) world.set(local.subarray(16 * i, 16 * i + 16), 16 * i); else mul4(world, 16 * p, local, 16 * i, world, 16 * i);
+  }
+  out = out || { pairs: new Float32Array(12 * rig.P), weights: new Float32Array(weights.length) };
+  const m = new Float64Array(16);
+  for (let p = 0; p < rig.P; p++) {
+    mul4(world, 16 * rig.pairNode[p], rig.pairIbm, 16 * p, m, 0);
+    for (let j = 0; j < 12; j++) out.pairs[12 * p + j] = m[j];
+  }
+  out.weights.set(weights);
+  return out;
+}
+
+/** Posed vertices [V*3] of a rig state: linear blend skinning of the morphed base (CPU; the page does it on the GPU). */
+export function skinVertices(rig, state, V, out) {
+  out = out || new Float32Array(3 * V);
+  const K = rig.K, P = state.pairs, W = state.weights, info = rig.morphInfo, D = rig.deltas;
+  for (let v = 0; v < V; v++) {
+    let x = rig.base[3 * v], y = rig.base[3 * v + 1], z = rig.base[3 * v + 2];
+    const m0 = info[4 * v], M = info[4 * v + 1], n = info[4 * v + 2], wb = info[4 * v + 3];
+    for (let m = 0; m < M; m++) {
+      const w = W[wb + m];
+      if (w !== 0) { const o = 3 * (m0 + m * n); x += w * D[o]; y += w * D[o + 1]; z += w * D[o + 2]; }
+    }
+    let ox = 0, oy = 0, oz = 0;
+    for (let k = 0; k < K; k++) {
+      const w = rig.pairWeight[K * v + k];
+      if (w === 0) continue;
+      const o = 12 * rig.pairIndex[K * v + k];
+      ox += w * (P[o] * x + P[o + 1] * y + P[o + 2] * z + P[o + 3]);
+      oy += w * (P[o + 4] * x + P[o + 5] * y + P[o + 6] * z + P[o + 7]);
+      oz += w * (P[o + 8] * x + P[o + 9] * y + P[o + 10] * z + P[o + 11]);
+    }
+    out[3 * v] = ox; out[3 * v + 1] = oy; out[3 * v + 2] = oz;
+  }
+  return out;
+}
+
+/** Area-weighted unit vertex normals [V*3] of positions `p` (the worker's copy of poseMesh's normals). */
+export function vertexNormals(faces, V, p, out) {
+  out = out || new Float32Array(3 * V);
+  out.fill(0);
+  for (let k = 0; k < faces.length; k += 3) {
+    const a = 3 * faces[k], b = 3 * faces[k + 1], c = 3 * faces[k + 2];
+    const e0x = p[b] - p[a], e0y = p[b + 1] - p[a + 1], e0z = p[b + 2] - p[a + 2];
+    const e2x = p[c] - p[a], e2y = p[c + 1] - p[a + 1], e2z = p[c + 2] - p[a + 2];
+    const cx = e0y * e2z - e0z * e2y, cy = e0z * e2x - e0x * e2z, cz = e0x * e2y - e0y * e2x;
+    out[a] += cx; out[a + 1] += cy; out[a + 2] += cz; out[b] += cx; out[b + 1] += cy; out[b + 2] += cz;
+    out[c] += cx; out[c + 1] += cy; out[c + 2] += cz;
+  }
+  for (let i = 0; i < 3 * V; i += 3) {
+    const r = 1 / Math.sqrt(Math.max(out[i] ** 2 + out[i + 1] ** 2 + out[i + 2] ** 2, 1e-24));
+    out[i] *= r; out[i + 1] *= r; out[i + 2] *= r;
+  }
+  return out;
 }
 
 /** Vertices [V*3] (Float64Array) of frame `t`, dequantized when stored as int16. */
@@ -47,7 +255,11 @@ export function frameVertices(b, t, out) {
   out = out || new Float64Array(n);
   if (b.header.vertex_encoding === "int16") {
     const o = b.header.vertex_offset, s = b.header.vertex_step;
-    for (let i = 0; i < n; i++) out[i] = o[i % 3] + b.frames[base + i] * s[i % 3];
+    for (let i = 0; i < n; i += 3) {
+      out[i] = o[0] + b.frames[base + i] * s[0];
+      out[i + 1] = o[1] + b.frames[base + i + 1] * s[1];
+      out[i + 2] = o[2] + b.frames[base + i + 2] * s[2];
+    }
   } else {
     for (let i = 0; i < n; i++) out[i] = b.frames[base + i];
   }
@@ -100,11 +312,17 @@ function matrixToQuat(m, o, q, qo) {
   q[qo] = w * r; q[qo + 1] = x * r; q[qo + 2] = y * r; q[qo + 3] = z * r;
 }
 
-/** Posed per-vertex normals [V*3], quaternions [V*4] (wxyz) and per-face area ratios [F]. */
-export function poseMesh(b, p) {
+/**
+ * Posed per-vertex normals [V*3], quaternions [V*4] (wxyz) and per-face area ratios [F] of the
+ * posed vertices `p` [V*3]. `ws` (optional): the result of a previous call, whose buffers are reused.
+ */
+export function poseMesh(b, p, ws) {
   const V = b.V, F = b.F, f = b.faces;
-  const g = faceGeometry(b, p);
-  const rot = new Float64Array(9), qf = new Float64Array(F * 4), ratio = new Float64Array(F);
+  ws = ws || { geo: undefined, qf: new Float64Array(F * 4), areaRatio: new Float64Array(F),
+               normals: new Float64Array(V * 3), wmax: new Float64Array(V), ref: new Int32Array(V),
+               quats: new Float64Array(V * 4) };
+  const g = ws.geo = faceGeometry(b, p, ws.geo);
+  const qf = ws.qf, ratio = ws.areaRatio, rot = new Float64Array(9);
   const cf = b.canoFrames, pf = g.frames;
   for (let k = 0; k < F; k++) {
     const o = 9 * k;
@@ -114,8 +332,9 @@ export function poseMesh(b, p) {
     const a0 = b.canoAreas[k];
     ratio[k] = a0 > EPS ? g.areas[k] / a0 : 1;
   }
+  const nrm = ws.normals, wmax = ws.wmax, ref = ws.ref, acc = ws.quats;
+  nrm.fill(0); wmax.fill(-1); ref.fill(0); acc.fill(0);
   // area-weighted vertex normals (sum of cross products) and reference face per vertex
-  const nrm = new Float64Array(V * 3), wmax = new Float64Array(V).fill(-1), ref = new Int32Array(V);
   for (let k = 0; k < F; k++) {
     for (let j = 0; j < 3; j++) {
       const v = f[3 * k + j];
@@ -129,7 +348,6 @@ export function poseMesh(b, p) {
     nrm[3 * v] = x * r; nrm[3 * v + 1] = y * r; nrm[3 * v + 2] = z * r;
   }
   // vertex quaternion: area-weighted sum of incident face quaternions, signs aligned to the reference face
-  const acc = new Float64Array(V * 4);
   for (let k = 0; k < F; k++) {
     const w = g.areas[k], q = 4 * k;
     for (let j = 0; j < 3; j++) {
@@ -146,11 +364,12 @@ export function poseMesh(b, p) {
       for (let i = 0; i < 4; i++) acc[o + i] *= r;
     } else { acc[o] = 1; acc[o + 1] = 0; acc[o + 2] = 0; acc[o + 3] = 0; }
   }
-  return { normals: nrm, quats: acc, areaRatio: ratio };
+  return ws;
 }
 
-// ------------------------------------------------------------------ Gaussians
+// ------------------------------------------------------------------ Gaussians (CPU reference)
 /**
+ * CPU reference of what the vertex shader computes (tests, benchmarks; the page does not call it).
  * Posed Gaussians of frame `t` (or of explicit vertices `verts` [V*3] when given):
  * { means [N*3], quats [N*4] wxyz, scales [N*3], cov [N*6] (xx, xy, xz, yy, yz, zz) } as Float32Array.
  */
@@ -239,48 +458,430 @@ export function intrinsics(width, height, fovDeg) {
   return [f, f, width / 2, height / 2];
 }
 
-/** Back-to-front order of the Gaussians in front of the camera: counting sort on 16-bit depth. */
-export function sortByDepth(means, n, viewmat, order, counts) {
-  const depth = new Float32Array(n);
-  let lo = Infinity, hi = -Infinity;
+/** Above this many Gaussians the sort key skips renormalizing the interpolated normal (speed). */
+export const EXACT_KEY_MAX = 200000;
+
+/**
+ * Per-vertex camera depth z_v and camera z of the normal (and, when `exact`, the normal) in
+ * `g.pv` (stride 5 or 2), and `g.corners`: stride * vertex index of each Gaussian's corners (cached).
+ */
+function vertexKeys(g, verts, normals, viewmat, exact) {
+  const N = g.N, V = verts.length / 3, S = exact ? 5 : 2, f = g.faces, face = g.face;
   const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
-  for (let g = 0; g < n; g++) {
-    depth[g] = r0 * means[3 * g] + r1 * means[3 * g + 1] + r2 * means[3 * g + 2] + t;
-    const z = depth[g]; // the stored float32 value, so that lo <= z <= hi below
-    if (z >= NEAR_PLANE) { if (z < lo) lo = z; if (z > hi) hi = z; }
+  if (!g.corners || g.corners.length !== 3 * N || g.stride !== S) {
+    g.corners = new Uint32Array(3 * N); g.stride = S;
+    for (let i = 0; i < N; i++) for (let j = 0; j < 3; j++) g.corners[3 * i + j] = S * f[3 * face[i] + j];
   }
-  counts = counts || new Uint32Array(65536);
+  if (!g.pv || g.pv.length !== S * V) g.pv = new Float32Array(S * V); // float32: half the cache footprint
+  const pv = g.pv;
+  for (let v = 0; v < V; v++) {
+    const x = normals[3 * v], y = normals[3 * v + 1], z = normals[3 * v + 2];
+    pv[S * v] = r0 * verts[3 * v] + r1 * verts[3 * v + 1] + r2 * verts[3 * v + 2] + t;
+    pv[S * v + 1] = r0 * x + r1 * y + r2 * z;
+    if (exact) { pv[S * v + 2] = x; pv[S * v + 3] = y; pv[S * v + 4] = z; }
+  }
+  return { pv, cn: g.corners, S };
+}
+
+/**
+ * The worker's sort in two passes over the Gaussians: the key of gaussianDepths quantized at once
+ * to 16 bits over a range bounded from the vertices ([min z_v - |d|max, max z_v + |d|max], clamped,
+ * nearer than 0.01 dropped) and counted; then a stable back-to-front scatter into `order`.
+ * `moved`: bound on how far any key moved since the previous call, from the vertices:
+ * baryMax max|Δz_v| + |d|max max|Δ(r3.n_v)| (Infinity on the first call). `ws`: scratch.
+ */
+export function sortGaussians(g, verts, normals, viewmat, order, ws) {
+  const N = g.N, uv = g.uv, dd = g.d, NEAR = 0.01, exact = N <= EXACT_KEY_MAX;
+  if (g.dMax === undefined) {
+    let dMax = 0, baryMax = 1;
+    for (let i = 0; i < N; i++) {
+      const u = uv[2 * i], v = uv[2 * i + 1];
+      dMax = Math.max(dMax, Math.abs(dd[i]));
+      baryMax = Math.max(baryMax, Math.abs(u) + Math.abs(v) + Math.abs(1 - u - v));
+    }
+    g.dMax = dMax; g.baryMax = baryMax;
+  }
+  const { pv, cn, S } = vertexKeys(g, verts, normals, viewmat, exact);
+  const V = pv.length / S, prev = g.prevKeys;
+  let zmin = Infinity, zmax = -Infinity, dz = 0, dn = 0;
+  for (let v = 0; v < V; v++) {
+    const z = pv[S * v];
+    if (z < zmin) zmin = z; if (z > zmax) zmax = z;
+    if (prev && prev.length === 2 * V) {
+      dz = Math.max(dz, Math.abs(z - prev[2 * v])); dn = Math.max(dn, Math.abs(pv[S * v + 1] - prev[2 * v + 1]));
+    }
+  }
+  const moved = prev && prev.length === 2 * V ? g.baryMax * dz + g.dMax * dn : Infinity;
+  if (!prev || prev.length !== 2 * V) g.prevKeys = new Float64Array(2 * V);
+  for (let v = 0; v < V; v++) { g.prevKeys[2 * v] = pv[S * v]; g.prevKeys[2 * v + 1] = pv[S * v + 1]; }
+  const lo = Math.max(NEAR, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
+  const counts = ws.counts, bins = ws.bins && ws.bins.length >= N ? ws.bins : (ws.bins = new Int32Array(N));
   counts.fill(0);
-  const bins = new Uint16Array(n), q = hi > lo ? 65535 / (hi - lo) : 0;
+  for (let i = 0; i < N; i++) {
+    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
+    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
+    let s = dd[i];
+    if (exact) {
+      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
+      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
+      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
+      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
+    }
+    const key = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
+    if (key >= NEAR) {
+      let x = (key - lo) * q;
+      x = x < 0 ? 0 : x > 65535 ? 65535 : x;
+      const bin = 65535 - (x | 0); // far first
+      bins[i] = bin; counts[bin]++;
+    } else bins[i] = -1;
+  }
+  let visible = 0;
+  for (let i = 0; i < 65536; i++) { visible += counts[i]; counts[i] = visible; }
+  for (let i = N - 1; i >= 0; i--) { const bin = bins[i]; if (bin >= 0) order[--counts[bin]] = i; }
+  return { n: visible, lo, hi, moved };
+}
+
+/**
+ * Sort key [N] (Float32Array) of every posed Gaussian: the camera depth of its centre, Phong point
+ * + d * normalized interpolated normal, as the vertex shader computes it; per-vertex camera depths
+ * make it z = sum w z_v + d (sum w r3.n_v) / |sum w n_v|. Above EXACT_KEY_MAX Gaussians the
+ * division by |sum w n_v| is skipped: the key then differs from the centre's depth by at most
+ * |d| (1/|n_interp| - 1) (zero for d = 0 or equal corner normals; see docs/viewer.md).
+ * From the posed vertices `verts` and unit vertex normals `normals` (both [V*3]); `g` holds face,
+ * uv, d of the Gaussians and the mesh faces (a decoded bundle or the worker's copy), and caches the
+ * Gaussians' corner vertices. Returns {lo, hi} (visible key range, for sortDepths) and `moved`,
+ * the largest |key - prev| when `prev` [N] is given (else Infinity). The worker's per-Gaussian work.
+ */
+export function gaussianDepths(g, verts, normals, viewmat, depth, prev) {
+  const N = g.N, uv = g.uv, dd = g.d;
+  const exact = N <= EXACT_KEY_MAX;
+  depth = depth || new Float32Array(N);
+  const { pv, cn } = vertexKeys(g, verts, normals, viewmat, exact);
+  let lo = Infinity, hi = -Infinity, moved = 0;
+  for (let i = 0; i < N; i++) {
+    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
+    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
+    let s = dd[i];
+    if (exact) {
+      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
+      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
+      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
+      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
+    }
+    depth[i] = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
+    const z = depth[i]; // the stored float32 value
+    if (z >= 0.01) { if (z < lo) lo = z; if (z > hi) hi = z; } // NEAR_PLANE
+    if (prev) { const m = Math.abs(z - prev[i]); if (m > moved) moved = m; }
+  }
+  return { depth, lo, hi, moved: prev ? moved : Infinity };
+}
+
+/**
+ * Back-to-front order of the depths >= the near plane: one counting sort on 16-bit quantized depth
+ * over the visible range [lo, hi] (computed when not given; ties keep index order). Fills `order`
+ * [n]; returns the visible count. `ws` (optional) holds reusable scratch
+ * {counts: Uint32Array(65536), bins: Uint16Array(n)}.
+ */
+export function sortDepths(depth, n, order, ws, lo, hi) {
+  const NEAR = 0.01; // NEAR_PLANE, spelled out: this function also runs in the worker
+  if (lo === undefined) {
+    lo = Infinity; hi = -Infinity;
+    for (let g = 0; g < n; g++) {
+      const z = depth[g];
+      if (z >= NEAR) { if (z < lo) lo = z; if (z > hi) hi = z; }
+    }
+  }
+  const counts = ws && ws.counts ? ws.counts : new Uint32Array(65536);
+  const bins = ws && ws.bins && ws.bins.length >= n ? ws.bins : new Uint16Array(n);
+  counts.fill(0);
+  const q = hi > lo ? 65535 / (hi - lo) : 0;
   let visible = 0;
   for (let g = 0; g < n; g++) {
-    if (!(depth[g] >= NEAR_PLANE)) continue;
-    const bin = 65535 - Math.max(0, Math.min(65535, Math.floor((depth[g] - lo) * q))); // far first
+    const z = depth[g];
+    if (!(z >= NEAR)) continue;
+    const bin = 65535 - Math.min(65535, ((z - lo) * q) | 0); // far first; 0 <= (z - lo) q <= 65535
     bins[g] = bin; counts[bin]++; visible++;
   }
   for (let i = 1; i < 65536; i++) counts[i] += counts[i - 1];
-  order = order || new Uint32Array(n);
-  for (let g = n - 1; g >= 0; g--) if (depth[g] >= NEAR_PLANE) order[--counts[bins[g]]] = g;
+  for (let g = n - 1; g >= 0; g--) if (depth[g] >= NEAR) order[--counts[bins[g]]] = g;
   return visible;
 }
 
+/** Back-to-front order of Gaussian centres `means` [n*3] for `viewmat`: float32 depth, then sortDepths. */
+export function sortByDepth(means, n, viewmat, order, counts) {
+  const depth = new Float32Array(n);
+  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
+  for (let g = 0; g < n; g++) depth[g] = r0 * means[3 * g] + r1 * means[3 * g + 1] + r2 * means[3 * g + 2] + t;
+  order = order || new Uint32Array(n);
+  return sortDepths(depth, n, order, { counts });
+}
+// ------------------------------------------------------------------ sort worker
+/** Texels of a TEX_WIDTH-wide texture holding `n` texels (whole rows). */
+export function texSize(n) { return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WIDTH)); }
+
+/**
+ * The worker's job for one pose: posed vertices (given, or skinned from a rig state), vertex
+ * normals, Gaussian centre depths, 16-bit counting sort (sortGaussians). Also returns `moved`, a
+ * bound on how far any centre's depth moved since the previous sort (a stale order's error, see docs).
+ * `S` holds the static data (faces, face/uv/d of the Gaussians, rig) and scratch buffers.
+ */
+export function sortJob(S, msg) {
+  const verts = msg.verts || skinVertices(S.rig, msg.rig, S.V, S.verts);
+  const normals = vertexNormals(S.faces, S.V, verts, S.normals);
+  const order = S.spare.pop() || new Uint32Array(S.N); // buffers come back from the main thread
+  const r = sortGaussians(S, verts, normals, msg.viewmat, order, S.ws);
+  return { id: msg.id, n: r.n, order, moved: r.moved, lo: r.lo, hi: r.hi };
+}
+
+/** Static data for sortJob from a decoded bundle (what the worker receives once). */
+export function sortSetup(b) {
+  return { N: b.N, V: b.V, faces: b.faces, face: b.face, uv: b.uv, d: b.d, rig: b.rig ? { ...b.rig, clips: null } : null };
+}
+
+export function sortScratch(S) {
+  Object.assign(S, { verts: new Float32Array(3 * S.V), normals: new Float32Array(3 * S.V), spare: [],
+                     ws: { counts: new Uint32Array(65536), bins: new Int32Array(S.N) } });
+  return S;
+}
+
+/** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
+export const SORT_WORKER_SOURCE = `"use strict";
+const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
+${skinVertices.toString()}
+${vertexNormals.toString()}
+${vertexKeys.toString()}
+${sortGaussians.toString()}
+${sortJob.toString()}
+${sortScratch.toString()}
+let S = null;
+onmessage = (e) => {
+  if (e.data.type === "init") { S = sortScratch(e.data.setup); return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.order); return; }
+  const t0 = performance.now();
+  const r = sortJob(S, e.data);
+  r.ms = performance.now() - t0;
+  postMessage(r, [r.order.buffer]);
+};
+`;
+
+/**
+ * The depth sorter: a Web Worker when available, else (or after a worker failure) the same
+ * functions on the calling thread. `onResult(r)` gets each result, or null when a request was lost.
+ */
+export class DepthSorter {
+  constructor(b, onResult, useWorker = true) {
+    this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
+    const setup = this.setup = sortSetup(b);
+    try {
+      if (!useWorker) throw new Error("disabled by ?worker=0");
+      const url = URL.createObjectURL(new Blob([SORT_WORKER_SOURCE], { type: "text/javascript" }));
+      this.worker = new Worker(url);
+      this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
+      this.worker.onerror = (e) => { // fall back to sorting on this thread
+        console.error("sort worker:", e.message); this.worker = null; this.inWorker = false; this.busy = false;
+        this.onResult(null); // the pending request is lost: ask again
+      };
+      this.worker.postMessage({ type: "init", setup });
+      this.inWorker = true;
+    } catch (err) {
+      console.warn("no Web Worker, sorting on the main thread:", err);
+      this.worker = null; this.S = sortScratch(setup);
+    }
+  }
+
+  /** Give an order buffer back to the worker once it has been uploaded (saves an allocation). */
+  recycle(order) {
+    if (this.worker) this.worker.postMessage({ type: "recycle", order }, [order.buffer]);
+    else this.S.spare.push(order);
+  }
+
+  /** Ask for a sort of a pose ({verts} float32 [V*3] or {rig} state) seen from `viewmat`; false when busy. */
+  request(pose, viewmat) {
+    if (this.busy) return false;
+    const msg = { type: "sort", id: this.nextId++, viewmat: Array.from(viewmat) };
+    const transfer = [];
+    if (pose.verts) { msg.verts = pose.verts.slice(); transfer.push(msg.verts.buffer); }
+    else msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
+    this.busy = true;
+    if (this.worker) {
+      this.worker.postMessage(msg, transfer);
+    } else {
+      this.S = this.S || sortScratch(this.setup); // also after a worker failure
+      const t0 = performance.now();
+      const r = sortJob(this.S, msg);
+      r.ms = performance.now() - t0;
+      this.busy = false;
+      this.onResult(r);
+    }
+    return msg.id;
+  }
+}
+
+// ------------------------------------------------------------------ WebGL2: GPU posing passes
+const TEXEL = `
+ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
+int here() { return int(gl_FragCoord.y) * ${TEX_WIDTH} + int(gl_FragCoord.x); }`;
+
+const PASS_VERT = `#version 300 es
+layout(location=0) in vec2 corner;
+void main() { gl_Position = vec4(corner, 0.0, 1.0); }`;
+
+// pass A (live glTF): morph targets + linear blend skinning -> posed positions
+const SKIN_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count; uniform int K;
+uniform sampler2D baseTex, deltaTex, weightTex, pairTex, jwTex;
+uniform usampler2D morphTex, jiTex;
+out vec4 o;${TEXEL}
+void main() {
+  int v = here();
+  if (v >= count) { o = vec4(0.0); return; }
+  vec3 p = texelFetch(baseTex, at(v), 0).xyz;
+  uvec4 mi = texelFetch(morphTex, at(v), 0);
+  for (uint m = 0u; m < mi.y; m++) {
+    float w = texelFetch(weightTex, at(int(mi.w + m)), 0).x;
+    if (w != 0.0) p += w * texelFetch(deltaTex, at(int(mi.x + m * mi.z)), 0).xyz;
+  }
+  vec4 r0 = vec4(0.0), r1 = vec4(0.0), r2 = vec4(0.0);
+  for (int t = 0; t < K / 4; t++) {
+    uvec4 j = texelFetch(jiTex, at(v * (K / 4) + t), 0);
+    vec4 w = texelFetch(jwTex, at(v * (K / 4) + t), 0);
+    for (int c = 0; c < 4; c++) {
+      if (w[c] == 0.0) continue;
+      int q = 3 * int(j[c]);
+      r0 += w[c] * texelFetch(pairTex, at(q), 0);
+      r1 += w[c] * texelFetch(pairTex, at(q + 1), 0);
+      r2 += w[c] * texelFetch(pairTex, at(q + 2), 0);
+    }
+  }
+  vec4 h = vec4(p, 1.0);
+  o = vec4(dot(r0, h), dot(r1, h), dot(r2, h), 1.0);
+}`;
+
+// pass B: per face of the posed mesh -> rotation from canonical (quaternion), cross/area, area ratio
+const FACE_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count;
+uniform sampler2D pTex, cfTex; uniform usampler2D fTex;
+layout(location=0) out vec4 oq; layout(location=1) out vec4 oc; layout(location=2) out vec4 or_;${TEXEL}
+void main() {
+  int k = here();
+  if (k >= count) { oq = vec4(1.0, 0.0, 0.0, 0.0); oc = vec4(0.0); or_ = vec4(1.0); return; }
+  uvec4 f = texelFetch(fTex, at(k), 0);
+  vec3 a = texelFetch(pTex, at(int(f.x)), 0).xyz, b = texelFetch(pTex, at(int(f.y)), 0).xyz;
+  vec3 c = texelFetch(pTex, at(int(f.z)), 0).xyz;
+  vec3 e0 = b - a, e2 = c - a, cr = cross(e0, e2);
+  float c2 = dot(cr, cr), e02 = dot(e0, e0), e22 = dot(e2, e2);
+  float area = 0.5 * sqrt(max(c2, ${EPS * EPS}));
+  vec3 t = vec3(1.0, 0.0, 0.0), bt = vec3(0.0, 1.0, 0.0), n = vec3(0.0, 0.0, 1.0);
+  if (c2 > 1e-10 * e02 * e22 && e02 * e22 > 0.0) {
+    t = e0 * inversesqrt(max(e02, ${EPS * EPS})); n = cr * inversesqrt(max(c2, ${EPS * EPS})); bt = cross(n, t);
+  }
+  // canonical frame rows (t_i, b_i, n_i) and area; R = F_posed F_cano^T, R_ij = sum_c Fp[i][c] Fc[j][c]
+  vec4 c0 = texelFetch(cfTex, at(3 * k), 0), c1 = texelFetch(cfTex, at(3 * k + 1), 0), c2v = texelFetch(cfTex, at(3 * k + 2), 0);
+  vec3 p0 = vec3(t.x, bt.x, n.x), p1 = vec3(t.y, bt.y, n.y), p2 = vec3(t.z, bt.z, n.z);
+  float m00 = dot(p0, c0.xyz), m01 = dot(p0, c1.xyz), m02 = dot(p0, c2v.xyz);
+  float m10 = dot(p1, c0.xyz), m11 = dot(p1, c1.xyz), m12 = dot(p1, c2v.xyz);
+  float m20 = dot(p2, c0.xyz), m21 = dot(p2, c1.xyz), m22 = dot(p2, c2v.xyz);
+  vec4 cand = vec4(1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22);
+  int best = 0;
+  for (int i = 1; i < 4; i++) if (cand[i] > cand[best]) best = i;   // first maximum, as torch.argmax
+  vec4 q;
+  if (best == 0) q = vec4(cand.x, m21 - m12, m02 - m20, m10 - m01);
+  else if (best == 1) q = vec4(m21 - m12, cand.y, m10 + m01, m02 + m20);
+  else if (best == 2) q = vec4(m02 - m20, m10 + m01, cand.z, m12 + m21);
+  else q = vec4(m10 - m01, m20 + m02, m21 + m12, cand.w);
+  float r = 1.0 / max(length(q), 1e-12);
+  if (q.x * r < 0.0) r = -r;
+  oq = q * r;
+  oc = vec4(cr, area);
+  float a0 = c0.w;
+  or_ = vec4(a0 > ${EPS} ? area / a0 : 1.0, 0.0, 0.0, 0.0);
+}`;
+
+// pass C: per vertex -> area-weighted normal, quaternion = sign-aligned area-weighted face quaternion sum
+const VERTEX_FRAG = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform int count;
+uniform sampler2D fqTex, fcTex; uniform usampler2D adjTex, vaTex;
+layout(location=0) out vec4 on; layout(location=1) out vec4 oq;${TEXEL}
+void main() {
+  int v = here();
+  if (v >= count) { on = vec4(0.0); oq = vec4(1.0, 0.0, 0.0, 0.0); return; }
+  uvec4 ad = texelFetch(vaTex, at(v), 0);
+  int start = int(ad.x), cnt = int(ad.y);
+  vec3 ns = vec3(0.0); float wmax = -1.0; int ref = 0;
+  for (int i = 0; i < cnt; i++) {           // faces in increasing index: ties -> largest face index
+    int k = int(texelFetch(adjTex, at(start + i), 0).x);
+    vec4 fc = texelFetch(fcTex, at(k), 0);
+    ns += fc.xyz;
+    if (fc.w >= wmax) { wmax = fc.w; ref = k; }
+  }
+  vec4 qr = texelFetch(fqTex, at(ref), 0), acc = vec4(0.0);
+  for (int i = 0; i < cnt; i++) {
+    int k = int(texelFetch(adjTex, at(start + i), 0).x);
+    vec4 q = texelFetch(fqTex, at(k), 0);
+    float w = texelFetch(fcTex, at(k), 0).w;
+    acc += (dot(q, qr) < 0.0 ? -w : w) * q;
+  }
+  on = vec4(ns * inversesqrt(max(dot(ns, ns), ${EPS * EPS})), 0.0);
+  float n2 = dot(acc, acc);
+  oq = n2 > 1e-30 ? acc / max(sqrt(n2), 1e-15) : vec4(1.0, 0.0, 0.0, 0.0);
+}`;
+
 // ------------------------------------------------------------------ WebGL2 splatting
 const VERT = `#version 300 es
-precision highp float;
+precision highp float; precision highp int;
+precision highp sampler2D; precision highp usampler2D;
 layout(location=0) in vec2 corner;      // quad corner in {-1, 1}^2
-layout(location=1) in vec3 mean;
-layout(location=2) in vec3 covA;        // xx, xy, xz
-layout(location=3) in vec3 covB;        // yy, yz, zz
-layout(location=4) in vec4 rgba;        // colour, opacity
+layout(location=1) in uint gid;         // Gaussian index, instances in back-to-front order
+uniform usampler2D gTex;                // 2 RGBA32UI texels per Gaussian (bundle.py pack_gaussians)
+uniform usampler2D fTex;                // face -> vertex indices (a, b, c)
+uniform sampler2D pTex, nTex, qTex;     // per posed vertex: position, normal, quaternion wxyz
+uniform sampler2D rTex;                 // per face: posed / canonical area (x)
+uniform int scaleMode;                  // 0 none, 1 area, 2 sqrt_area
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
 uniform vec2 size;                      // width, height (pixels)
 out vec2 offs; out vec3 conic; out vec4 col;
+ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
+vec4 quatMul(vec4 a, vec4 b) {          // Hamilton product, w first
+  return vec4(a.x * b.x - dot(a.yzw, b.yzw), a.x * b.yzw + b.x * a.yzw + cross(a.yzw, b.yzw));
+}
 void main() {
+  int g = int(gid);
+  uvec4 w0 = texelFetch(gTex, at(2 * g), 0), w1 = texelFetch(gTex, at(2 * g + 1), 0);
+  vec2 uv = unpackHalf2x16(w0.y), dop = unpackHalf2x16(w0.z), rg = unpackHalf2x16(w0.w);
+  vec4 qc = vec4(unpackHalf2x16(w1.x), unpackHalf2x16(w1.y));
+  vec2 s01 = unpackHalf2x16(w1.z), s2b = unpackHalf2x16(w1.w);
+  int k = int(w0.x);
+  uvec4 fv = texelFetch(fTex, at(k), 0);
+  ivec2 ia = at(int(fv.x)), ib = at(int(fv.y)), ic = at(int(fv.z));
+  float u = uv.x, v = uv.y, w = 1.0 - u - v;
+  // Phong point + d along the normalized interpolated normal (meshsplat.embedding)
+  vec3 n = u * texelFetch(nTex, ia, 0).xyz + v * texelFetch(nTex, ib, 0).xyz + w * texelFetch(nTex, ic, 0).xyz;
+  n *= inversesqrt(max(dot(n, n), 1e-24));
+  vec3 mean = u * texelFetch(pTex, ia, 0).xyz + v * texelFetch(pTex, ib, 0).xyz + w * texelFetch(pTex, ic, 0).xyz
+            + dop.x * n;
+  // delta_q: blend of the corner quaternions sign-aligned to corner a; q = delta_q (x) q_canonical
+  vec4 qa = texelFetch(qTex, ia, 0), qb = texelFetch(qTex, ib, 0), qq = texelFetch(qTex, ic, 0);
+  vec4 dq = u * qa + (dot(qb, qa) < 0.0 ? -v : v) * qb + (dot(qq, qa) < 0.0 ? -w : w) * qq;
+  dq /= max(length(dq), 1e-12);
+  vec4 q = quatMul(dq, qc / max(length(qc), 1e-12));
+  q /= max(length(q), 1e-12);
+  float ratio = texelFetch(rTex, at(k), 0).x;
+  float fac = scaleMode == 1 ? ratio : scaleMode == 2 ? sqrt(max(ratio, 0.0) + 1e-20) : 1.0;
+  vec3 s = vec3(s01, s2b.x) * fac;
   vec3 mc = R * mean + tr;
-  if (mc.z < ${NEAR_PLANE}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
-  mat3 S = mat3(covA.x, covA.y, covA.z, covA.y, covB.x, covB.y, covA.z, covB.y, covB.z);
-  mat3 C = R * S * transpose(R);
+  float op = dop.y;
+  if (mc.z < ${NEAR_PLANE} || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  // world covariance M M^T with M = rot(q) diag(s)  (columns of rot(q) scaled)
+  float qw = q.x, qx = q.y, qy = q.z, qz = q.w;
+  mat3 M = mat3(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy),
+                2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx),
+                2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+         * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
+  mat3 C = R * (M * transpose(M)) * transpose(R);
   // Jacobian at x/z, y/z clamped to the widened frustum (as gsplat / meshsplat.render.projection)
   float rz = 1.0 / mc.z;
   vec2 tanh_ = 0.5 * size / K.xy;
@@ -292,8 +893,7 @@ void main() {
   mat3 c2 = J * C * transpose(J);
   float a = c2[0][0] + ${EPS2D}, b = c2[1][0], c = c2[1][1] + ${EPS2D};
   float det = a * c - b * b;
-  float op = rgba.a;
-  if (det <= 0.0 || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  if (det <= 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   conic = vec3(c, -b, a) / det;
   float extend = min(${MAX_EXTEND}, sqrt(2.0 * log(op / ${ALPHA_THRESHOLD})));
   vec2 radius = ceil(extend * sqrt(vec2(a, c)));
@@ -301,7 +901,7 @@ void main() {
   offs = corner * radius;
   vec2 px = m2 + offs;
   gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
-  col = rgba;
+  col = vec4(rg, s2b.y, op);
 }`;
 
 const FRAG = `#version 300 es
@@ -324,19 +924,97 @@ function compile(gl, type, src) {
   return s;
 }
 
-/** Splat renderer on a WebGL2 canvas; `draw(posed, viewmat, K, background)`. */
+function program(gl, vs, fs, uniforms) {
+  const prog = gl.createProgram();
+  gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, vs));
+  gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, fs));
+  gl.linkProgram(prog);
+  if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  return { prog, loc: Object.fromEntries(uniforms.map((n) => [n, gl.getUniformLocation(prog, n)])) };
+}
+
+const FORMATS = { f4: ["RGBA32F", "RGBA", "FLOAT", 4, Float32Array], u4: ["RGBA32UI", "RGBA_INTEGER", "UNSIGNED_INT", 4, Uint32Array],
+                  f1: ["R32F", "RED", "FLOAT", 1, Float32Array], u1: ["R32UI", "RED_INTEGER", "UNSIGNED_INT", 1, Uint32Array] };
+
+/** A TEX_WIDTH-wide data texture of `n` texels; `data` (optional) is copied in, zero-padded to whole rows. */
+function dataTexture(gl, kind, n, data) {
+  const [internal, format, type, ch, T] = FORMATS[kind];
+  const texels = texSize(n);
+  let buf = null;
+  if (data) { buf = new T(texels * ch); buf.set(data.subarray ? data.subarray(0, Math.min(data.length, texels * ch)) : data); }
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl[internal], TEX_WIDTH, texels / TEX_WIDTH, 0, gl[format], gl[type], buf);
+  return { tex, kind, rows: texels / TEX_WIDTH, ch, T, texels };
+}
+
+function updateTexture(gl, t, data) {
+  const [, format, type] = FORMATS[t.kind];
+  let buf = data;
+  if (data.length !== t.texels * t.ch) { buf = new t.T(t.texels * t.ch); buf.set(data); }
+  gl.bindTexture(gl.TEXTURE_2D, t.tex);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, t.rows, gl[format], gl[type], buf);
+}
+
+/** Vertex -> incident faces (with repeats for repeated corners), faces increasing: {va [V*4], adj [3F]}. */
+export function vertexFaces(faces, V) {
+  const count = new Uint32Array(V);
+  for (let i = 0; i < faces.length; i++) count[faces[i]]++;
+  const va = new Uint32Array(4 * V), fill = new Uint32Array(V);
+  let start = 0;
+  for (let v = 0; v < V; v++) { va[4 * v] = start; va[4 * v + 1] = count[v]; start += count[v]; }
+  const adj = new Uint32Array(faces.length);
+  for (let i = 0; i < faces.length; i++) { const v = faces[i]; adj[va[4 * v] + fill[v]++] = Math.floor(i / 3); }
+  return { va, adj };
+}
+
+/**
+ * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians, faces, canonical face
+ * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
+ * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
+ * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call.
+ */
 export class SplatRenderer {
-  constructor(canvas, bundle) {
+  constructor(canvas, b) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
-    this.gl = gl; this.b = bundle;
-    const prog = gl.createProgram();
-    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VERT));
-    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FRAG));
-    gl.linkProgram(prog);
-    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
-    this.prog = prog;
-    this.loc = Object.fromEntries(["R", "tr", "K", "size"].map((n) => [n, gl.getUniformLocation(prog, n)]));
+    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float textures (EXT_color_buffer_float)");
+    this.gl = gl; this.b = b;
+    const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
+    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "fTex", "pTex", "nTex", "qTex", "rTex", "scaleMode"]);
+    this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
+    this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
+    const ftex = new Uint32Array(4 * b.F);
+    for (let k = 0; k < b.F; k++) for (let j = 0; j < 3; j++) ftex[4 * k + j] = b.faces[3 * k + j];
+    const cf = new Float32Array(12 * b.F); // rows (t_i, b_i, n_i, area) of the canonical face frames
+    for (let k = 0; k < b.F; k++) {
+      for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) cf[12 * k + 4 * i + j] = b.canoFrames[9 * k + 3 * i + j];
+      cf[12 * k + 3] = b.canoAreas[k];
+    }
+    const { va, adj } = vertexFaces(b.faces, b.V);
+    this.t = {
+      g: dataTexture(gl, "u4", 2 * b.N, b.packed), f: dataTexture(gl, "u4", b.F, ftex),
+      cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
+      p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
+      fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
+    };
+    if (b.rig) {
+      const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
+      for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
+      for (let i = 0; i < r.deltas.length / 3; i++) for (let j = 0; j < 3; j++) delta4[4 * i + j] = r.deltas[3 * i + j];
+      this.skinPass = program(gl, PASS_VERT, SKIN_FRAG, ["count", "K", "baseTex", "deltaTex", "weightTex", "pairTex", "jwTex", "morphTex", "jiTex"]);
+      Object.assign(this.t, {
+        base: dataTexture(gl, "f4", b.V, base4), delta: dataTexture(gl, "f4", delta4.length / 4, delta4),
+        morph: dataTexture(gl, "u4", b.V, r.morphInfo), ji: dataTexture(gl, "u4", b.V * r.K / 4, r.pairIndex),
+        jw: dataTexture(gl, "f4", b.V * r.K / 4, r.pairWeight), pair: dataTexture(gl, "f4", 3 * r.P),
+        weight: dataTexture(gl, "f1", Math.max(1, r.defaultWeights.length)),
+      });
+      this.fbSkin = this.framebuffer([this.t.p]);
+    }
+    this.fbFace = this.framebuffer([this.t.fq, this.t.fc, this.t.r]);
+    this.fbVert = this.framebuffer([this.t.n, this.t.q]);
     this.vao = gl.createVertexArray();
     gl.bindVertexArray(this.vao);
     const quad = gl.createBuffer();
@@ -344,53 +1022,127 @@ export class SplatRenderer {
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
     gl.enableVertexAttribArray(0);
     gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
-    this.inst = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.inst);
-    const stride = 13 * 4;
-    [[1, 3, 0], [2, 3, 3], [3, 3, 6], [4, 4, 9]].forEach(([loc, n, off]) => {
-      gl.enableVertexAttribArray(loc);
-      gl.vertexAttribPointer(loc, n, gl.FLOAT, false, stride, off * 4);
-      gl.vertexAttribDivisor(loc, 1);
-    });
-    this.data = new Float32Array(bundle.N * 13);
-    gl.bufferData(gl.ARRAY_BUFFER, this.data.byteLength, gl.DYNAMIC_DRAW);
-    this.order = new Uint32Array(bundle.N);
-    this.counts = new Uint32Array(65536);
+    this.orderBuf = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.orderBuf);
+    gl.bufferData(gl.ARRAY_BUFFER, b.N * 4, gl.DYNAMIC_DRAW);
+    gl.enableVertexAttribArray(1);
+    gl.vertexAttribIPointer(1, 1, gl.UNSIGNED_INT, 0, 0);
+    gl.vertexAttribDivisor(1, 1);
+    gl.bindVertexArray(null);
     this.visible = 0;
   }
 
-  /** Depth-sort `posed` for `viewmat` and upload the instance data in back-to-front order. */
-  upload(posed, viewmat) {
-    const b = this.b, gl = this.gl, data = this.data, order = this.order;
-    const n = sortByDepth(posed.means, b.N, viewmat, order, this.counts);
-    for (let i = 0; i < n; i++) {
-      const g = order[i], o = 13 * i;
-      data[o] = posed.means[3 * g]; data[o + 1] = posed.means[3 * g + 1]; data[o + 2] = posed.means[3 * g + 2];
-      for (let j = 0; j < 6; j++) data[o + 3 + j] = posed.cov[6 * g + j];
-      data[o + 9] = b.rgb[3 * g]; data[o + 10] = b.rgb[3 * g + 1]; data[o + 11] = b.rgb[3 * g + 2];
-      data[o + 12] = b.opacity[g];
-    }
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.inst);
-    gl.bufferSubData(gl.ARRAY_BUFFER, 0, data, 0, n * 13);
+  framebuffer(targets) {
+    const gl = this.gl, fb = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+    targets.forEach((t, i) => gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0 + i, gl.TEXTURE_2D, t.tex, 0));
+    gl.drawBuffers(targets.map((_, i) => gl.COLOR_ATTACHMENT0 + i));
+    const status = gl.checkFramebufferStatus(gl.FRAMEBUFFER);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    if (status !== gl.FRAMEBUFFER_COMPLETE) throw new Error(`float render target incomplete (${status})`);
+    return { fb, rows: targets[0].rows };
+  }
+
+  bind(p, textures) { // textures: {uniformName: texture}
+    const gl = this.gl;
+    Object.entries(textures).forEach(([name, t], i) => {
+      gl.activeTexture(gl.TEXTURE0 + i);
+      gl.bindTexture(gl.TEXTURE_2D, t.tex);
+      gl.uniform1i(p.loc[name], i);
+    });
+  }
+
+  runPass(p, fb, count, textures, extra) {
+    const gl = this.gl;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb.fb);
+    gl.viewport(0, 0, TEX_WIDTH, fb.rows);
+    gl.disable(gl.BLEND);
+    gl.useProgram(p.prog);
+    gl.uniform1i(p.loc.count, count);
+    if (extra) extra(p.loc);
+    this.bind(p, textures);
+    gl.bindVertexArray(this.vao);
+    gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+    gl.bindVertexArray(null);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  }
+
+  /** Posed vertex positions [V*3] (vertex-frame driver): upload, then the face and vertex passes. */
+  setVertices(p) {
+    const V = this.b.V, p4 = this.p4 || (this.p4 = new Float32Array(4 * V));
+    for (let v = 0; v < V; v++) { p4[4 * v] = p[3 * v]; p4[4 * v + 1] = p[3 * v + 1]; p4[4 * v + 2] = p[3 * v + 2]; }
+    updateTexture(this.gl, this.t.p, p4);
+    this.poseMeshPasses();
+  }
+
+  /** Rig state of evalRig (live glTF driver): skinning pass, then the face and vertex passes. */
+  setRig(state) {
+    const gl = this.gl, t = this.t, P = this.b.rig.P, pairs = this.pair4 || (this.pair4 = new Float32Array(12 * P));
+    pairs.set(state.pairs);
+    updateTexture(gl, t.pair, pairs);
+    if (state.weights.length) updateTexture(gl, t.weight, state.weights);
+    this.runPass(this.skinPass, this.fbSkin, this.b.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
+      pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
+    this.poseMeshPasses();
+  }
+
+  poseMeshPasses() {
+    const t = this.t;
+    this.runPass(this.facePass, this.fbFace, this.b.F, { pTex: t.p, cfTex: t.cf, fTex: t.f });
+    this.runPass(this.vertPass, this.fbVert, this.b.V, { fqTex: t.fq, fcTex: t.fc, adjTex: t.adj, vaTex: t.va });
+  }
+
+  setOrder(order, n) {
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.orderBuf);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, order, 0, n);
     this.visible = n;
   }
 
   draw(viewmat, K, background) {
-    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height;
+    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, p = this.splat, t = this.t;
     gl.viewport(0, 0, w, h);
     gl.clearColor(background[0], background[1], background[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
-    gl.useProgram(this.prog);
+    gl.useProgram(p.prog);
     gl.disable(gl.DEPTH_TEST);
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     const m = viewmat; // row-major -> GLSL column-major: pass transpose=false with columns
-    gl.uniformMatrix3fv(this.loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
-    gl.uniform3f(this.loc.tr, m[3], m[7], m[11]);
-    gl.uniform4f(this.loc.K, K[0], K[1], K[2], K[3]);
-    gl.uniform2f(this.loc.size, w, h);
+    gl.uniformMatrix3fv(p.loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
+    gl.uniform3f(p.loc.tr, m[3], m[7], m[11]);
+    gl.uniform4f(p.loc.K, K[0], K[1], K[2], K[3]);
+    gl.uniform2f(p.loc.size, w, h);
+    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[this.b.header.scale_mode]);
+    this.bind(p, { gTex: t.g, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
     gl.bindVertexArray(this.vao);
-    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
+    if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
+    gl.bindVertexArray(null);
+  }
+}
+
+// ------------------------------------------------------------------ per-frame driver (main thread)
+/**
+ * The main thread's per-frame work without WebGL: vertex frames -> decode the frame's vertices
+ * (per vertex); live glTF -> evaluate the clip (per node and joint) and the morph weights.
+ * Shared by the page and bench/viewer.py.
+ */
+export class FramePoser {
+  constructor(b) {
+    this.b = b; this.p = new Float64Array(3 * b.V); this.verts32 = new Float32Array(3 * b.V); this.rigState = undefined;
+  }
+
+  /** {verts} of vertex frame `t`. */
+  frame(t) {
+    this.p = frameVertices(this.b, t, this.p);
+    this.verts32.set(this.p);
+    return { verts: this.verts32 };
+  }
+
+  /** {rig} of clip index `clip` at `time` s with morph weight overrides (NaN = from the clip). */
+  rig(clip, time, override) {
+    this.rigState = evalRig(this.b.rig, clip, time, override, this.rigState);
+    return { rig: this.rigState };
   }
 }
 
@@ -402,6 +1154,13 @@ function decodeBase64(text) {
   return out;
 }
 
+function el(doc, tag, attrs, parent) {
+  const e = doc.createElement(tag);
+  Object.assign(e, attrs || {});
+  if (parent) parent.appendChild(e);
+  return e;
+}
+
 /** Start the viewer in a page holding #avatar-header (JSON) and #avatar-data (base64 avatar.bin). */
 export function startViewer(doc) {
   const $ = (id) => doc.getElementById(id);
@@ -410,26 +1169,85 @@ export function startViewer(doc) {
   const params = new URLSearchParams(doc.location ? doc.location.search : "");
   const canvas = $("canvas");
   const renderer = new SplatRenderer(canvas, b);
+  const poser = new FramePoser(b);
+  const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
+  const still = params.get("frame") !== null || params.get("time") !== null;
+  const clips = live ? b.rig.clips : [];
+  const clipParam = params.get("clip");
   const state = {
-    frame: Math.min(Math.max(parseInt(params.get("frame") || "0", 10) || 0, 0), b.T - 1),
-    playing: params.get("frame") === null && params.get("play") !== "0" && b.T > 1,
+    frame: Math.min(Math.max(parseInt(params.get("frame") || "0", 10) || 0, 0), Math.max(b.T - 1, 0)),
+    clip: live ? Math.max(0, clips.findIndex((c) => c.name === (clipParam || b.driver.clip))) : null,
+    time: parseFloat(params.get("time") || "0") || 0, speed: 1,
+    weights: live ? new Float64Array(b.rig.defaultWeights.length).fill(NaN) : null,
+    playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
-    posedFrame: -1, posed: null, dirty: true, t0: performance.now(), f0: 0,
+    poseKey: "", sortedKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
   };
+  for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
+    const [i, w] = kv.split(":").map(Number);
+    if (live && i >= 0 && i < state.weights.length) state.weights[i] = w;
+  }
+  const sorter = new DepthSorter(b, (r) => {
+    if (r === null) { state.pendingKey = null; return; }
+    if (state.pendingKey === null) return;
+    renderer.setOrder(r.order, r.n);
+    sorter.recycle(r.order);
+    state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
+  }, params.get("worker") !== "0");
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
-  slider.max = String(b.T - 1);
   $("title").textContent = header.title || "meshsplat avatar";
+  const clipLength = () => (live && clips.length ? clips[state.clip].duration : 0);
+  let clipSel = null, speedSel = null;
+  const morphSliders = []; // [weight index, slider]: sliders follow the clip until moved
+  if (live) {
+    slider.step = "any";
+    clipSel = el(doc, "select", { title: "clip" });
+    clips.forEach((c, i) => el(doc, "option", { value: String(i), textContent: c.name }, clipSel));
+    clipSel.value = String(state.clip);
+    speedSel = el(doc, "select", { title: "speed" });
+    [0.25, 0.5, 1, 2].forEach((s) => el(doc, "option", { value: String(s), textContent: `${s}x` }, speedSel));
+    speedSel.value = "1";
+    slider.before(clipSel); slider.after(speedSel);
+    clipSel.onchange = () => { state.clip = parseInt(clipSel.value, 10); state.time = 0; syncUi(); };
+    speedSel.onchange = () => { state.speed = parseFloat(speedSel.value); };
+    const nMorph = b.rig.defaultWeights.length;
+    const toggle = nMorph ? el(doc, "button", { textContent: `${nMorph} morph targets` }, $("ui")) : null;
+    const panel = el(doc, "div", { id: "morphs" }, $("ui"));
+    if (toggle) { // long lists (an ARKit face has 50+) start folded
+      panel.hidden = nMorph > 12;
+      toggle.onclick = () => { panel.hidden = !panel.hidden; };
+      $("stats").before(toggle);
+    }
+    const prefix = b.rig.groups.length > 1;
+    for (const g of b.rig.groups) {
+      g.names.forEach((name, m) => {
+        const i = g.weight_base + m;
+        const label = el(doc, "label", { textContent: `${prefix ? `${g.node_name}: ` : ""}${name} ` }, panel);
+        const s = el(doc, "input", { type: "range", min: "0", max: "1", step: "0.01", title: `${g.node_name}: ${name}` }, label);
+        s.value = String(Number.isNaN(state.weights[i]) ? b.rig.defaultWeights[i] : state.weights[i]);
+        s.oninput = () => { state.weights[i] = parseFloat(s.value); };
+        morphSliders.push([i, s]);
+        const reset = el(doc, "button", { textContent: "clip", title: "back to the clip's weight" }, label);
+        reset.onclick = () => { state.weights[i] = NaN; };
+      });
+    }
+  }
   const syncUi = () => {
-    slider.value = String(state.frame);
+    if (live) { slider.max = String(clipLength()); slider.value = String(state.time); }
+    else { slider.max = String(b.T - 1); slider.value = String(state.frame); }
     play.textContent = state.playing ? "pause" : "play";
     bg.textContent = state.white ? "black bg" : "white bg";
     doc.body.classList.toggle("dark", !state.white);
   };
-  play.onclick = () => { state.playing = !state.playing; state.t0 = performance.now(); state.f0 = state.frame; syncUi(); };
-  slider.oninput = () => { state.playing = false; state.frame = parseInt(slider.value, 10); syncUi(); };
+  play.onclick = () => { state.playing = !state.playing; syncUi(); };
+  slider.oninput = () => {
+    state.playing = false;
+    if (live) state.time = parseFloat(slider.value); else state.frame = parseInt(slider.value, 10);
+    syncUi();
+  };
   bg.onclick = () => { state.white = !state.white; syncUi(); };
   // orbit (drag) and zoom (wheel); "r" resets the default view
   let drag = null;
@@ -439,45 +1257,67 @@ export function startViewer(doc) {
     if (!drag) return;
     cam.az -= 0.3 * (e.clientX - drag[0]);
     cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - drag[1])));
-    drag = [e.clientX, e.clientY]; state.dirty = true;
+    drag = [e.clientX, e.clientY];
   });
-  canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); state.dirty = true; },
+  canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); },
                           { passive: false });
   doc.addEventListener("keydown", (e) => {
-    if (e.key === "r") { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; state.dirty = true; }
+    if (e.key === "r") { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; }
     if (e.key === " ") play.onclick();
   });
   syncUi();
-  let fpsCount = 0, fpsT = performance.now(), fps = 0, poseMs = 0, sortMs = 0;
+  let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
+    const t0 = performance.now();
+    const dt = state.lastNow === null ? 0 : Math.max(0, now - state.lastNow) / 1000;
+    state.lastNow = now;
     if (state.playing) {
-      const elapsed = Math.max(0, now - state.t0); // rAF time may precede t0 slightly
-      state.frame = (state.f0 + Math.floor(elapsed * header.fps / 1000)) % b.T;
-      slider.value = String(state.frame);
+      if (live) {
+        const len = clipLength();
+        state.time = len > 0 ? (state.time + dt * state.speed) % len : 0;
+      } else {
+        state.acc = (state.acc || 0) + dt * header.fps;
+        const steps = Math.floor(state.acc);
+        state.acc -= steps;
+        state.frame = (state.frame + steps) % b.T;
+      }
+      slider.value = String(live ? state.time : state.frame);
     }
     const dpr = window.devicePixelRatio || 1;
     const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
-    if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; state.dirty = true; }
+    if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
     const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el);
     const K = intrinsics(w, h, cam0.fov_deg);
-    if (state.posed === null || state.frame !== state.posedFrame) {
-      const t = performance.now();
-      state.posed = poseGaussians(b, state.frame, null, state.posed);
-      state.posedFrame = state.frame; state.dirty = true;
-      poseMs = performance.now() - t;
+    const poseKey = live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
+                         : String(state.frame);
+    if (poseKey !== state.poseKey) {
+      if (live) {
+        pose = poser.rig(clips.length ? state.clip : null, (clips.length ? clips[state.clip].start : 0) + state.time, state.weights);
+        renderer.setRig(pose.rig);
+        for (const [i, s] of morphSliders) if (Number.isNaN(state.weights[i])) s.value = String(pose.rig.weights[i]);
+      } else {
+        pose = poser.frame(state.frame);
+        renderer.setVertices(pose.verts);
+      }
+      state.poseKey = poseKey;
     }
-    if (state.dirty) {
-      const t = performance.now();
-      renderer.upload(state.posed, viewmat);
-      sortMs = performance.now() - t;
-      state.dirty = false;
+    // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
+    const key = `${poseKey}#${Array.from(viewmat).join()}`;
+    if (key !== state.sortedKey && state.pendingKey === null) {
+      state.pendingKey = key; // before the request: without a worker the result comes back inside it
+      if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
     renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
+    mainMs = performance.now() - t0;
     fpsCount++;
     if (now - fpsT > 500) { fps = 1000 * fpsCount / (now - fpsT); fpsCount = 0; fpsT = now; }
-    info.textContent = `frame ${state.frame + 1}/${b.T}`;
-    stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · pose ${poseMs.toFixed(1)} ms · sort ${sortMs.toFixed(1)} ms`;
-    doc.body.dataset.ready = "1";
+    info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
+    stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
+      ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
+      ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
+      (key === state.sortedKey ? "" : " · order stale");
+    // ready (for screenshots) once the drawn order belongs to the drawn pose and view
+    if (key === state.sortedKey) doc.body.dataset.ready = "1";
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
