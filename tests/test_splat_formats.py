@@ -27,7 +27,8 @@ from meshsplat.io.splat_formats import (
     write_spz,
 )
 
-NODE_TOOLS = os.environ.get("MESHSPLAT_NODE_TOOLS")
+# independent Node readers: `make test` installs them into .node-tools (or point MESHSPLAT_NODE_TOOLS elsewhere)
+NODE_TOOLS = os.environ.get("MESHSPLAT_NODE_TOOLS") or str(Path(__file__).resolve().parents[1] / ".node-tools")
 
 
 def _gaussians(n=300, k=15, seed=0, extent=1.0):
