@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.cli.threads import add_threads_argument, apply_threads
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -22,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
     parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default auto)")
+    add_threads_argument(parser)
     parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     parser.add_argument("--no-report", action="store_true", help="only metrics.json (no figures, no HTML)")
@@ -30,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from meshsplat.eval import evaluate_run
+
+    apply_threads(args)
 
     m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
                      max_frames_per_split=args.max_frames, background=args.background, device=args.device,

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from meshsplat.cli.threads import add_threads_argument, apply_threads
+
 __all__ = ["add_arguments", "run", "build_config"]
 
 
@@ -30,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 or auto (default auto)")
     parser.add_argument("--seed", type=int, default=None)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_threads_argument(parser)
 
 
 def build_config(args: argparse.Namespace):
@@ -70,12 +73,16 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
     cfg = build_config(args)
+    apply_threads(args)
     from meshsplat.data.formats import detect_format, format_module
 
     fmt = cfg.data_format or detect_format(cfg.data)
     print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
     cfg.data_format = fmt
     trainer = Trainer(cfg, resume=args.resume)
+    from meshsplat.data.source_map import copy_source_map
+
+    copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
     elif args.resume:

@@ -3,7 +3,7 @@
 Animation (default: the run's dataset meshes, all stored frames in order):
   --animation dataset [--split NAME]     the dataset's meshes (or those of one split)
   --animation gltf FILE [--clip NAME]    a glTF/GLB clip driving the avatar's mesh
-  --animation vertices FILE.npy          a vertex sequence [T,V,3]
+  --animation vertices FILE              a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
   --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
                                          flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
@@ -70,7 +70,8 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
         if kind == "gltf":
-            frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps)
+            frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps,
+                                            source_map=animate.run_source_map(run_info, args.dataset))
         elif kind == "motion":
             from meshsplat.eval.run import open_run_dataset
 
@@ -78,7 +79,7 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             mdir = args.model_dir or run_info.config.get("model_dir") or None
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
-            frames = animate.sequence_animation(avatar, rest[0])
+            frames = animate.sequence_animation(avatar, rest[0], source_map=animate.run_source_map(run_info, args.dataset))
     if args.frames is not None:
         if args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
