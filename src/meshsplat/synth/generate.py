@@ -222,7 +222,7 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
             test_clips = [c for c in preset_tests if c in names and c != clip]
         else:
             best = max((scores[c][0] for c in names), default=0.0)
-            moving = sorted((c for c in names if c != clip and scores[c][0] > 0.05 * best),
+            moving = sorted((c for c in names if c != clip and scores[c][0] > 1e-6 * max(best, 1e-30)),
                             key=lambda c: scores[c], reverse=True)
             test_clips = moving[:2]
         if say:

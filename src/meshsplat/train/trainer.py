@@ -260,6 +260,7 @@ class Trainer:
                "lr_duv": lrs.get("duv", 0.0), "lr_d": lrs.get("d", 0.0)}
         for k in ("l1", "lpips", "scale", "mse", "dssim"):
             row[k] = float(parts[k]) if k in parts else 0.0
+        row["scale"] /= self.extent  # logged relative to the mesh size, so assets in cm and m compare
         return row
 
     # ---- loop ------------------------------------------------------------------------
