@@ -220,7 +220,10 @@ def sequence_animation(avatar, vertices, source_map=None, max_mismatch: float = 
         also = f" or [T,{vs},3] (the source asset's vertices, in its order)" if vs is not None and vs != v else ""
         raise MeshsplatError(f"{what}: expected shape [T,{v},3] (the avatar's {v} canonical vertices){also}, "
                              f"got {list(shape)}")
-    frame = lambda i: torch.as_tensor(np.array(seq[i], dtype=np.float32))  # noqa: E731
+    def frame(i: int) -> torch.Tensor:
+        f = seq[i]
+        return f.detach().cpu().float() if isinstance(f, torch.Tensor) else torch.from_numpy(np.array(f, np.float32))
+
     probe = sorted({0, shape[0] // 2, shape[0] - 1})
     canonical = avatar.mesh.vertices.detach().cpu().float()
     faces = avatar.mesh.faces.detach().cpu().long()
