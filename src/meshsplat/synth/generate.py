@@ -204,6 +204,8 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
             raise MeshsplatError(f"test clip {c!r} not in {names}")
     preset_train = getattr(source, "default_train_clip", None)
     preset_tests = getattr(source, "default_test_clips", None)
+    if preset_train is None and preset_tests:  # a source naming its test clips trains on its first other clip
+        preset_train = next((c for c in names if c not in preset_tests), None)
     scores = None
     if (clip is None and preset_train is None and len(names) > 1) or (test_clips is None and preset_tests is None):
         scores = {c: (clip_motion(source, c), float(np.subtract(*source.time_range(c)[::-1]))) for c in names}
