@@ -63,7 +63,8 @@ def creature_frames(frames_per_clip: int = 32, fps: float = 24.0, **mesh) -> dic
         phase = 2 * math.pi * (1.5 * u - 1.2 * t)
         v = rest.copy()
         v[:, 1] += 6.0 * np.sin(phase)
-        v[:, 2] += 3.0 * np.maximum(np.sin(phase + 1.0), 0) + 8.0 * np.clip(u - 0.8, 0, None) / 0.2 * (0.5 + 0.5 * math.sin(3 * t))
+        head = np.clip(u - 0.8, 0, None) / 0.2 * (0.5 + 0.5 * math.sin(3 * t))
+        v[:, 2] += 3.0 * np.maximum(np.sin(phase + 1.0), 0) + 8.0 * head
         v[:, 0] += 4.0 * t
         out.append(v)
     for k in range(frames_per_clip):  # idle: breathing
@@ -74,7 +75,8 @@ def creature_frames(frames_per_clip: int = 32, fps: float = 24.0, **mesh) -> dic
         out.append(v)
     n = frames_per_clip
     return {"faces": faces, "vertices": np.stack(out).astype(np.float32), "uvs": uvs, "texture": _texture(),
-            "fps": np.float32(fps), "up": np.str_("z"), "attribution": np.str_("procedural caterpillar (meshsplat tests, CC0)"),
+            "fps": np.float32(fps), "up": np.str_("z"),
+            "attribution": np.str_("procedural caterpillar (meshsplat tests, CC0)"),
             "clip_names": np.array(["crawl", "idle"]), "clip_ranges": np.array([[0, n - 1], [n, 2 * n - 1]])}
 
 

@@ -31,7 +31,8 @@ from meshsplat.errors import MeshsplatError
 
 __all__ = [
     "AnimationResult", "render_animation", "motion_animation",
-    "match_vertices", "gltf_animation", "run_source_map", "blendshape_animation", "sequence_animation", "dataset_animation",
+    "match_vertices", "gltf_animation", "run_source_map", "blendshape_animation", "sequence_animation",
+    "dataset_animation",
 ]
 
 

@@ -82,7 +82,8 @@ def continuous_frames(ds, n: int, split: str = "test_frames") -> list[int]:
     infos = [(i, ds.frame_info(i)) for i in ids]
     clip = infos[0][1].get("clip")
     seen, out = set(), []
-    for i, info in sorted(((i, f) for i, f in infos if f.get("clip") == clip), key=lambda x: (x[1].get("time") or 0.0, x[0])):
+    same_clip = [(i, f) for i, f in infos if f.get("clip") == clip]
+    for i, info in sorted(same_clip, key=lambda x: (x[1].get("time") or 0.0, x[0])):
         if info["mesh"] not in seen:
             seen.add(info["mesh"])
             out.append(i)

@@ -1,7 +1,8 @@
 """Render an animated asset or a body/head model into a ground-truth capture (images, masks, cameras, meshes).
 
 SOURCE is a .glb/.gltf path (skin or morph animation), a mesh sequence (an .npz with faces [F,3] and
-vertices [T,V,3], or a folder of OBJ/PLY frames; docs/bring-your-own-mesh.md), an ICT-layout .npz, a shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
+vertices [T,V,3], or a folder of OBJ/PLY frames; docs/bring-your-own-mesh.md), an ICT-layout .npz, a
+shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
 a parametric model: smpl / smplx (dancing the AIST++ clip) or flame (talking, nodding), read from
 --model-dir or $MESHSPLAT_MODEL_DIR. --format writes the capture in another layout (e.g. peoplesnapshot
 for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.

@@ -56,7 +56,8 @@ def choose_threads(value="auto") -> tuple[int, str]:
         return 1, "auto: one core"
     times = {n: _workload_seconds(n) for n in (1, cores)}
     n = min(times, key=times.get)
-    return n, "auto: measured " + ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.1f} ms" for k, t in times.items())
+    measured = ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.1f} ms" for k, t in times.items())
+    return n, f"auto: measured {measured}"
 
 
 def apply_threads(args: argparse.Namespace) -> int:

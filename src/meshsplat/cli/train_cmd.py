@@ -16,9 +16,10 @@ __all__ = ["add_arguments", "run", "build_config"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="capture folder: native (docs/dataset-format.md) or PeopleSnapshot, "
-                        "IMavatar, INSTA, VHAP/GaussianAvatars (docs/formats/); the layout is detected")
+                        "IMavatar, INSTA, VHAP/GaussianAvatars, meshseq (your images + cameras + mesh sequence; "
+                        "docs/formats/); the layout is detected")
     parser.add_argument("--format", default=None, help="capture layout (default: detect); one of "
-                        "native, peoplesnapshot, imavatar, insta, vhap")
+                        "native, meshseq, peoplesnapshot, imavatar, insta, vhap")
     parser.add_argument("--model-dir", default=None,
                         help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--refine-pose", action="store_true",

@@ -79,7 +79,8 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             mdir = args.model_dir or run_info.config.get("model_dir") or None
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
-            frames = animate.sequence_animation(avatar, rest[0], source_map=animate.run_source_map(run_info, args.dataset))
+            frames = animate.sequence_animation(avatar, rest[0],
+                                                source_map=animate.run_source_map(run_info, args.dataset))
     if args.frames is not None:
         if args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")

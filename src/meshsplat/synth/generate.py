@@ -228,8 +228,8 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
                             key=lambda c: scores[c], reverse=True)
             test_clips = moving[:2]
         if say:
-            say(f"novel-pose clips: {', '.join(test_clips) if test_clips else 'none (the asset has no other moving clip)'}"
-                " (--test-clips to choose)")
+            chosen = ", ".join(test_clips) if test_clips else "none (the asset has no other moving clip)"
+            say(f"novel-pose clips: {chosen} (--test-clips to choose)")
     t0, t1 = source.time_range(clip)
     if not 0 < train_fraction <= 1:
         raise MeshsplatError(f"train_fraction: expected in (0, 1], got {train_fraction}")
@@ -267,7 +267,8 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
         return _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames,
                          test_views, test_view_frames, views, turns, driver_smooth, driver_decimate,
                          supersample if supersample else (2 if resolution <= 384 else 1), background, fov_deg,
-                         overwrite, progress, model_dir, gender, up, say if say is not None else (print if progress else None))
+                         overwrite, progress, model_dir, gender, up,
+                         say if say is not None else (print if progress else None))
     finally:
         torch.set_num_threads(old_threads)
 

@@ -119,7 +119,8 @@ def read(root, model_dir=None, check_masks: bool = True, cache_size: int = 8, **
     problems = Problems(root)
     cams_in = doc.get("cameras")
     if not isinstance(cams_in, dict) or not cams_in:
-        raise MeshsplatError(f"{root / 'cameras.json'}: needs a 'cameras' object (id -> K, viewmat, width, height); {_L}")
+        raise MeshsplatError(f"{root / 'cameras.json'}: needs a 'cameras' object (id -> K, viewmat, width, "
+                             f"height); {_L}")
     cameras = {str(k): c for k, c in ((str(k), _camera(str(k), v, problems)) for k, v in cams_in.items()) if c}
     frames = doc.get("frames")
     if frames is None:
