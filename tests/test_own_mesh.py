@@ -113,6 +113,10 @@ def test_meshseq_capture_imports_and_trains_input(creature, tmp_path):
     mds = open_capture(mini)
     assert len(mds) == 2 and np.allclose(mds.camera("c")[1], np.asarray(vm), atol=1e-6)
     assert (write_native(mds, tmp_path / "native") / "manifest.json").is_file()
+    from meshsplat.synth.capture import synth_capture
+
+    written = synth_capture(creature[0], tmp_path / "synth_meshseq", format="meshseq", rig="orbit", **TINY)
+    assert detect_format(written) == "meshseq" and len(open_capture(written)) == len(ds)
     (mini / "mesh.npz").unlink()
     np.savez(mini / "mesh.npz", faces=ds.faces.numpy(), vertices=seq[:1, :5])
     with pytest.raises(MeshsplatError, match="meshseq layout"):
@@ -277,9 +281,9 @@ def test_threads_choice(capsys):
 def test_threads_flag_on_heavy_commands():
     import argparse
 
-    from meshsplat.cli import eval_cmd, render_cmd, synth_cmd, train_cmd
+    from meshsplat.cli import demo_cmd, eval_cmd, render_cmd, synth_cmd, train_cmd
 
-    for mod in (synth_cmd, train_cmd, render_cmd, eval_cmd):
+    for mod in (synth_cmd, train_cmd, render_cmd, eval_cmd, demo_cmd):
         p = argparse.ArgumentParser()
         mod.add_arguments(p)
         assert any(a.dest == "threads" and a.default == "auto" for a in p._actions), mod.__name__

@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE, vertices FILE.npy or motion FILE")
+                        help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, "
+                        "OBJ/PLY folder) or motion FILE")
     parser.add_argument("--model-dir", default=None,
                         help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
