@@ -2,8 +2,8 @@
 
 On a small machine shared with other jobs torch's default (one thread per core) can cost many
 times the CPU time of one thread, so ``auto`` times a short representative workload (batched
-matrix products and an image-sized convolution) at 1 thread and at the default count and keeps
-the faster, saying how it chose.
+matrix products and an image-sized convolution) at 1 thread and at torch's default count (all
+cores unless ``OMP_NUM_THREADS`` says otherwise) and keeps the faster, saying how it chose.
 """
 from __future__ import annotations
 
@@ -53,7 +53,8 @@ def choose_threads(value="auto") -> tuple[int, str]:
         return n, "--threads"
     cores = max(1, min(os.cpu_count() or 1, torch.get_num_threads() or 1, 16))
     if cores == 1:
-        return 1, "auto: one core"
+        why = "one core" if (os.cpu_count() or 1) == 1 else "torch's default is 1 (OMP_NUM_THREADS)"
+        return 1, f"auto: {why}"
     times = {n: _workload_seconds(n) for n in (1, cores)}
     n = min(times, key=times.get)
     measured = ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.1f} ms" for k, t in times.items())
