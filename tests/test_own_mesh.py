@@ -123,6 +123,32 @@ def test_meshseq_capture_imports_and_trains_input(creature, tmp_path):
         open_capture(mini)
 
 
+def test_meshseq_capture_with_a_gltf_mesh(creature, assets, tmp_path):
+    """A glTF as the mesh sequence: frames say time (and clip) instead of mesh."""
+    import shutil
+
+    from meshsplat.data.formats import open_capture
+    from meshsplat.drivers import GltfDriver
+
+    _, ds = creature
+    gl = tmp_path / "gl"
+    (gl / "images").mkdir(parents=True)
+    for k in range(2):
+        (gl / "images" / f"{k:03d}.png").write_bytes((ds.root / ds.frame_info(k)["image"]).read_bytes())
+    shutil.copyfile(assets / "gltf" / "RiggedSimple.glb", gl / "mesh.glb")
+    K, vm, w, h = ds.camera(ds.frame_info(0)["camera"])
+    doc = {"cameras": {"c": {"K": np.asarray(K).tolist(), "viewmat": np.asarray(vm).tolist(), "width": w, "height": h}},
+           "frames": [{"image": "images/000.png", "camera": "c", "time": 0.0},
+                      {"image": "images/001.png", "camera": "c", "time": 0.5}]}
+    (gl / "cameras.json").write_text(json.dumps(doc))
+    gds = open_capture(gl)
+    assert torch.allclose(gds[1].vertices, GltfDriver(gl / "mesh.glb").vertices_at(0.5))
+    doc["frames"][1].pop("time")
+    (gl / "cameras.json").write_text(json.dumps(doc))
+    with pytest.raises(MeshsplatError, match="needs 'time'"):
+        open_capture(gl)
+
+
 # ---------------------------------------------------------------- vertex order survives
 def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
     npz, ds = creature
@@ -173,6 +199,11 @@ def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, deci
         animate.gltf_animation(av, path, fps=5, seconds=0.2)
     with pytest.raises(MeshsplatError, match="not the asset this avatar was synthesized from"):
         animate.gltf_animation(av, assets / "gltf" / "RiggedSimple.glb", fps=5, seconds=0.2, source_map=smap)
+    run = make_run(av, tmp_path / "run", ds.root)  # the CLI finds the map through the run's dataset
+    from meshsplat.cli.main import main
+
+    assert main(["render", str(run), "--gltf", str(path), "--seconds", "0.2", "--fps", "10", "--size", "16x16",
+                 "--no-mp4", "--no-progress", "--threads", "1", "--out", str(tmp_path / "r")]) == 0
     if smooth:  # a sequence of the asset's own vertices also drives the smoothed mesh (rotation-aware offsets)
         seq = torch.stack([load_source(path).pose(ds.frame_info(i)["clip"], t)])
         got = animate.sequence_animation(av, seq, source_map=smap)[0]
