@@ -176,9 +176,17 @@ def _read_frame(q: Path, with_uvs: bool):
     return m.vertices, m.faces, m.colors, m.uvs if with_uvs else None, None
 
 
-def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
-    from meshsplat.data.png import read_image
+def _read_texture(path: Path) -> np.ndarray:
+    from PIL import Image
 
+    try:
+        with Image.open(path) as im:
+            return np.array(im.convert("RGB"), dtype=np.uint8)
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: cannot decode the texture ({exc}) ({FRAMES_LAYOUT})") from None
+
+
+def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
     L = FRAMES_LAYOUT
     files = sorted((q for q in p.iterdir() if q.suffix.lower() in (".obj", ".ply")), key=lambda q: _natural(q.name))
     if not files:
@@ -207,7 +215,7 @@ def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
         seq.uvs = uv0
     for name in ("texture.png", "texture.jpg", "texture.jpeg"):
         if (p / name).is_file():
-            seq.texture = read_image(p / name, 3)
+            seq.texture = _read_texture(p / name)
             break
     meta_path = p / "sequence.json"
     names, ranges = None, []
