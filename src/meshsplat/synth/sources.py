@@ -160,11 +160,11 @@ def load_source(asset, model_dir=None, gender: str = "neutral"):
         with np.load(p, allow_pickle=False) as z:
             keys = sorted(z.files)
         if not {"neutral", "faces", "expr_deltas"} <= set(keys):
-            raise MeshsplatError(f"{p}: keys {keys} fit no npz layout: an {NPZ_LAYOUT}, or an {ICT_LAYOUT}")
+            raise MeshsplatError(f"{p}: keys {keys} fit no npz layout: the {NPZ_LAYOUT} or the {ICT_LAYOUT}")
         return BlendshapeSource(BlendshapeDriver.from_npz(p))
     if p.suffix.lower() not in (".glb", ".gltf"):
-        raise MeshsplatError(f"asset: {p} is none of: a .glb/.gltf (morph or skin animation), an {NPZ_LAYOUT}, "
-                             f"a {FRAMES_LAYOUT}, an {ICT_LAYOUT}")
+        raise MeshsplatError(f"asset: {p} is none of: a .glb/.gltf (morph or skin animation), the {NPZ_LAYOUT}, "
+                             f"a {FRAMES_LAYOUT}, the {ICT_LAYOUT}")
     src = GltfSource(GltfDriver(p))
     src.attribution = gltf_attribution(src.driver.file.doc) or _ATTRIBUTION.get(p.stem.lower(), "")
     if p.stem.lower() == "robotexpressive":  # the demo's clip choice for the shared robot
