@@ -7,8 +7,10 @@
 Drivers whose mesh is not the avatar's canonical mesh vertex for vertex (e.g. the raw glTF of a
 synthetic dataset whose driving mesh had seams welded) are mapped by rest position (coincident
 vertices told apart by their triangles): every canonical vertex must coincide (within ``1e-5`` of
-the mesh size) with a driver vertex, or a clear error says so. Smoothed or decimated driving meshes
-cannot be matched this way: render them from a vertex sequence instead.
+the mesh size) with a driver vertex, or a clear error says so. A run synthesized from an asset keeps
+``source_map.npz`` (:mod:`meshsplat.data.source_map`, found by :func:`run_source_map`): with it the
+asset's clips and vertex sequences in the asset's own order drive the avatar even when its driving
+mesh was welded, smoothed or decimated.
 Cameras follow the project convention (world->camera ``viewmat`` in OpenCV axes, world +y up).
 """
 from __future__ import annotations
@@ -24,11 +26,13 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.camera import Camera
+from meshsplat.data.source_map import read_source_map, rest_mismatch
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
     "AnimationResult", "render_animation", "motion_animation",
-    "match_vertices", "gltf_animation", "blendshape_animation", "sequence_animation", "dataset_animation",
+    "match_vertices", "avatar_gltf_driver", "gltf_animation", "run_source_map", "blendshape_animation", "sequence_animation",
+    "dataset_animation",
 ]
 
 
@@ -44,6 +48,22 @@ class AnimationResult:
 
 
 # ---------------------------------------------------------------- drivers -> vertex frames
+def run_source_map(run, dataset=None):
+    """The source map of a loaded run (``RUN/source_map.npz``), else of its dataset folder, else None."""
+    if run is None:
+        return None
+    found = read_source_map(run.run_dir)
+    if found is not None:
+        return found
+    data = dataset if dataset is not None else run.config.get("data")
+    if not data:
+        return None
+    p = Path(data)
+    if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
+        p = run.run_dir / p
+    return read_source_map(p) if p.is_dir() else None
+
+
 def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: float = 1e-5,
                    driver_faces: torch.Tensor | None = None, canonical_faces: torch.Tensor | None = None
                    ) -> torch.Tensor:
@@ -113,11 +133,15 @@ def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> l
     return frames
 
 
-def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, seconds: float | None = None,
-                   start: float = 0.0) -> list[torch.Tensor]:
-    """Vertex frames ``[V,3]`` of glTF ``clip`` (default the first) sampled at ``fps`` for ``seconds``
-    (default the clip's length) from ``start``. The glTF mesh must be the avatar's canonical mesh
-    (same vertex count) or contain its vertices at rest (see :func:`match_vertices`)."""
+def avatar_gltf_driver(avatar, path, clip: str | None = None, fps: float = 25.0, source_map=None):
+    """``(driver, to_world)``: a ``GltfDriver`` of ``path`` posing the avatar's canonical vertices.
+
+    With ``source_map`` (the run's or dataset's :class:`~meshsplat.data.source_map.SourceMap`) the asset
+    the avatar was synthesized from drives it whatever was done to its driving mesh (welded, smoothed,
+    decimated, turned z-up -> y-up): the driving mesh is re-derived exactly as ``synth`` did, and
+    ``to_world`` turns the driver's frames into the dataset's axes (None when no turn is needed).
+    Otherwise the glTF mesh must be the avatar's canonical mesh (same vertex count) or contain its
+    vertices at rest (see :func:`match_vertices`)."""
     from meshsplat.drivers import GltfDriver
 
     path = Path(path)
@@ -129,10 +153,33 @@ def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, sec
     if drv.clip is None:
         raise MeshsplatError(f"{path}: the file has no animation clip")
     v_avatar = avatar.mesh.num_vertices
-    if drv.num_vertices != v_avatar:
-        canonical = avatar.mesh.vertices.detach().cpu().float()
-        src = match_vertices(drv.rest_vertices(), canonical, driver_faces=drv.faces, canonical_faces=avatar.mesh.faces)
+    canonical = avatar.mesh.vertices.detach().cpu().float()
+    to_world = None
+    if source_map is not None and _is_source_asset(drv.rest_vertices(), source_map):
+        R = torch.as_tensor(source_map.rotation, dtype=torch.float32)
+        rest = None if source_map.exact else (canonical @ R).numpy()  # world -> asset axes
+        drv = drv.derive(source_map.source_index, avatar.mesh.faces.cpu().numpy(), rest)
+        if not np.allclose(source_map.rotation, np.eye(3)):
+            to_world = source_map.to_world
+    elif drv.num_vertices != v_avatar:
+        hint = ("" if source_map is not None else " (this run and its dataset have no source_map.npz, which records "
+                "how a smoothed/decimated driving mesh was derived: re-run `meshsplat synth` with this version)")
+        try:
+            src = match_vertices(drv.rest_vertices(), canonical, driver_faces=drv.faces,
+                                 canonical_faces=avatar.mesh.faces)
+        except MeshsplatError as exc:
+            what = ("its mesh is not the asset this avatar was synthesized from" if source_map is not None else "")
+            raise MeshsplatError(f"{path}: {exc}{'; ' + what if what else ''}{hint}") from None
         drv = drv.derive(src.numpy(), avatar.mesh.faces.cpu().numpy())
+    return drv, to_world
+
+
+def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, seconds: float | None = None,
+                   start: float = 0.0, source_map=None) -> list[torch.Tensor]:
+    """Vertex frames ``[V,3]`` of glTF ``clip`` (default the first) sampled at ``fps`` for ``seconds``
+    (default the clip's length) from ``start``; the driver as :func:`avatar_gltf_driver` derives it."""
+    drv, to_world = avatar_gltf_driver(avatar, path, clip, fps, source_map)
+    v_avatar = avatar.mesh.num_vertices
     t0, _ = drv.time_range()
     length = drv.duration() if seconds is None else float(seconds)
     if length < 0:
@@ -141,29 +188,93 @@ def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, sec
     if n > MAX_ANIMATION_FRAMES:
         raise MeshsplatError(f"{length:g} s at {fps:g} fps is {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} "
                              "(lower --fps or --seconds)")
-    return _check_frames([drv.vertices_at(t0 + start + i / fps) for i in range(n)], v_avatar, "glTF animation")
+    frames = [drv.vertices_at(t0 + start + i / fps) for i in range(n)]
+    if to_world is not None:
+        frames = [to_world(v) for v in frames]
+    return _check_frames(frames, v_avatar, "glTF animation")
 
 
-def sequence_animation(avatar, vertices) -> list[torch.Tensor]:
-    """Frames of a vertex sequence: ``[T,V,3]`` array/tensor or a ``.npy`` path."""
-    if isinstance(vertices, (str, Path)):
-        p = Path(vertices)
-        if not p.is_file():
-            raise MeshsplatError(f"vertex sequence file not found: {p}")
-        try:
-            vertices = np.load(p, mmap_mode="r")
-        except Exception as exc:  # noqa: BLE001 - one clear message
-            raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
-    shape = tuple(vertices.shape)
+def _is_source_asset(rest: torch.Tensor, source_map) -> bool:
+    """True when ``rest [Vs,3]`` (asset axes) is the rest mesh recorded in ``source_map``."""
+    if rest.shape[0] != source_map.num_source_vertices:
+        return False
+    ref = torch.from_numpy(source_map.source_rest).double()
+    diag = float((ref.amax(0) - ref.amin(0)).norm())
+    gap = float((source_map.to_world(rest.double()) - ref).norm(dim=1).max())
+    return gap <= 1e-4 * max(diag, 1e-12)
+
+
+def _read_sequence(vertices) -> tuple[object, str]:
+    """``(array-like [T,V,3], description)`` from an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
+    or a folder of OBJ/PLY frames."""
+    from meshsplat.drivers.mesh_sequence import read_mesh_sequence
+
+    if not isinstance(vertices, (str, Path)):
+        return vertices, "vertex sequence"
+    p = Path(vertices)
+    if p.is_dir() or p.suffix.lower() == ".npz":
+        return read_mesh_sequence(p, with_uvs=False).vertices, f"mesh sequence {p}"
+    if not p.is_file():
+        raise MeshsplatError(f"vertex sequence file not found: {p}")
+    try:
+        return np.load(p, mmap_mode="r", allow_pickle=False), f"vertex sequence {p}"
+    except Exception as exc:  # noqa: BLE001 - one clear message
+        raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
+
+
+def sequence_animation(avatar, vertices, source_map=None, max_mismatch: float = 0.05) -> list[torch.Tensor]:
+    """Frames of a vertex sequence ``[T,V,3]``: an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
+    (``vertices`` key) or a folder of OBJ/PLY frames.
+
+    The sequence may follow the avatar's canonical vertex order, or, with ``source_map``, the order
+    (and axes) of the asset the avatar was synthesized from. Either way it must be a deformation of
+    the canonical mesh at rest: a sequence whose edges stretch beyond 3x on more than
+    ``max_mismatch`` of the edges (a different mesh, another vertex order) or whose size differs
+    (other units) is refused with the numbers.
+    """
+    seq, what = _read_sequence(vertices)
+    shape = tuple(seq.shape)
     v = avatar.mesh.num_vertices
-    if len(shape) != 3 or shape[1:] != (v, 3):
-        raise MeshsplatError(f"vertices: expected shape [T,{v},3] (the avatar's {v} canonical vertices), got {list(shape)}")
-    if isinstance(vertices, np.ndarray) and vertices.dtype.kind not in "fiu":
-        raise MeshsplatError(f"vertices: expected numbers, got dtype {vertices.dtype}")
+    vs = source_map.num_source_vertices if source_map is not None else None
+    if len(shape) != 3 or shape[2] != 3 or shape[0] < 1 or shape[1] not in (v, vs):
+        also = f" or [T,{vs},3] (the source asset's vertices, in its order)" if vs is not None and vs != v else ""
+        raise MeshsplatError(f"{what}: expected shape [T,{v},3] (the avatar's {v} canonical vertices){also}, "
+                             f"got {list(shape)}")
+    if isinstance(seq, np.ndarray) and seq.dtype.kind not in "fiu":
+        raise MeshsplatError(f"{what}: expected numbers, got dtype {seq.dtype}")
     if shape[0] > MAX_ANIMATION_FRAMES:
-        raise MeshsplatError(f"vertices: {shape[0]:,} frames; at most {MAX_ANIMATION_FRAMES:,} (see docs/limits.md)")
-    frames = [torch.as_tensor(np.array(vertices[i], dtype=np.float32)) for i in range(shape[0])]
-    return _check_frames(frames, v, "vertex sequence")
+        raise MeshsplatError(f"{what}: {shape[0]:,} frames; at most {MAX_ANIMATION_FRAMES:,} (see docs/limits.md)")
+
+    def frame(i: int) -> torch.Tensor:
+        f = seq[i]
+        return f.detach().cpu().float() if isinstance(f, torch.Tensor) else torch.from_numpy(np.array(f, np.float32))
+
+    probe = sorted({0, shape[0] // 2, shape[0] - 1})
+    canonical = avatar.mesh.vertices.detach().cpu().float()
+    faces = avatar.mesh.faces.detach().cpu().long()
+    scores = {}
+    if shape[1] == v:
+        scores["canonical"] = [rest_mismatch(frame(i), canonical, faces) for i in probe]
+    if source_map is not None and shape[1] == vs:
+        srest = torch.from_numpy(source_map.source_rest)
+        sfaces = torch.from_numpy(source_map.source_faces)
+        scores["source"] = [rest_mismatch(source_map.to_world(frame(i)), srest, sfaces) for i in probe]
+    worst = {k: (max(b for b, _ in r), max(abs(math.log(max(m, 1e-30))) for _, m in r)) for k, r in scores.items()}
+    fits = [k for k, (bad, logscale) in worst.items() if bad <= max_mismatch and logscale <= math.log(1.5)]
+    if not fits:
+        why = "; ".join(f"in the {'canonical' if k == 'canonical' else 'source asset'} order "
+                        f"{100 * worst[k][0]:.0f}% of edges change length beyond 3x and edges are "
+                        f"{math.exp(worst[k][1]) if worst[k][1] else 1:.3g}x their rest length (median)"
+                        for k in scores)
+        raise MeshsplatError(f"{what}: does not match the avatar's canonical mesh at rest ({why}): it is not "
+                             "an animation of this mesh, its vertices are in another order, or it is in other "
+                             "units (scale it to the dataset's)")
+    order = min(fits, key=lambda k: worst[k][0])
+    if order == "canonical":
+        frames = [frame(i) for i in range(shape[0])]
+    else:
+        frames = [source_map.to_canonical(source_map.to_world(frame(i)), canonical) for i in range(shape[0])]
+    return _check_frames(frames, v, what)
 
 
 _TOPOLOGY_KINDS = {6890: "smpl", 10475: "smplx", 5023: "flame"}  # vertex counts of the released models

@@ -23,9 +23,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config"]
+__all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames"]
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,25 @@ def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str
                       progress=progress)
     cfg.model.n_init = preset.n_init
     return apply_overrides(cfg, list(preset.overrides) + list(extra or [])).validate()
+
+
+def continuous_frames(ds, n: int, split: str = "test_frames") -> list[int]:
+    """Up to ``n`` frame indices playing one continuous motion: the frames of ``split`` (default the
+    held-out end of the walk; else the training frames) of one clip, one per pose, in time order."""
+    ids = ds.split(split) if split in ds.split_names and ds.split(split) else ds.split("train")
+    if not ids:
+        ids = list(range(len(ds)))
+    infos = [(i, ds.frame_info(i)) for i in ids]
+    clip = infos[0][1].get("clip")
+    seen, out = set(), []
+    same_clip = [(i, f) for i, f in infos if f.get("clip") == clip]
+    for i, info in sorted(same_clip, key=lambda x: (x[1].get("time") or 0.0, x[0])):
+        if info["mesh"] not in seen:
+            seen.add(info["mesh"])
+            out.append(i)
+    if len(out) > n:
+        out = [out[k] for k in np.linspace(0, len(out) - 1, n).round().astype(int)]
+    return out
 
 
 def _generate(data_dir: Path, preset: DemoPreset, progress: bool) -> Path:
@@ -131,9 +152,7 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     t = stage("4/5 rendering the unseen part of the walk from an orbiting camera")
     avatar = Avatar.from_checkpoint(out / "run")
     ds = open_dataset(data)
-    test_ids = [i for name in ds.split_names if name != "train" for i in ds.split(name)]
-    ids = sorted(set(test_ids))[: p.animation_frames] or list(range(min(len(ds), p.animation_frames)))
-    verts = [ds.vertices(i) for i in ids]
+    verts = [ds.vertices(i) for i in continuous_frames(ds, p.animation_frames)]
     cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts), orbit_deg=360.0,
                          elevation_deg=15.0)
     anim = render_animation(avatar, verts, cams, out / "animation", fps=12.0, name="avatar_orbit")

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.cli.threads import add_threads_argument, apply_threads
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from meshsplat.demo import PRESETS
@@ -16,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="size of the run: default (a few minutes on 2 CPU cores) or tiny (seconds)")
     parser.add_argument("--iters", type=int, default=None, help="override the number of training iterations")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_threads_argument(parser)
 
 
 def _fmt(x) -> str:
@@ -25,6 +28,7 @@ def _fmt(x) -> str:
 def run(args: argparse.Namespace) -> int:
     from meshsplat.demo import run_demo
 
+    apply_threads(args)
     s = run_demo(args.out, preset=args.preset, progress=not args.quiet, iterations=args.iters)
     print()
     print(f"meshsplat demo — {s['asset']}")

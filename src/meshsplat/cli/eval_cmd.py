@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 
 from meshsplat.cli._guards import check_output_dir, check_range
+from meshsplat.cli.threads import add_threads_argument, apply_threads
 
 __all__ = ["add_arguments", "run"]
 
@@ -24,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
     parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default auto)")
+    add_threads_argument(parser)
     parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     parser.add_argument("--no-report", action="store_true", help="only metrics.json (no figures, no HTML)")
@@ -38,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
     check_range("--max-frames", args.max_frames, "eval --max-frames")
     if args.out or Path(args.run).is_dir():
         check_output_dir(args.out if args.out else Path(args.run) / "eval")
+    apply_threads(args)
+
     m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
                      max_frames_per_split=args.max_frames, background=args.background, device=args.device,
                      lpips_net=None if args.no_lpips else "alex", report=not args.no_report,

@@ -1,8 +1,10 @@
 """Render a trained avatar in any animation to PNG frames and an MP4.
 
 Drivers (pick one):
-  --gltf FILE --clip NAME [--fps 25 --seconds S]   a glTF/GLB clip driving the avatar's mesh
-  --vertices FILE.npy                              a vertex sequence [T,V,3]
+  --gltf FILE --clip NAME [--fps 25 --seconds S]   a glTF/GLB clip driving the avatar's mesh (any clip of the
+                                                   asset it was synthesized from, smoothed/decimated or not)
+  --vertices FILE                                  a vertex sequence [T,V,3] (.npy), a mesh-sequence .npz or a
+                                                   folder of OBJ/PLY frames, in the canonical or the asset's order
   --blendshapes FILE.npz|ict --weights W.json|W.npy   blend-shape weights [T,K] (ICT head)
   --dataset-split NAME                             the driving meshes of a dataset split
   --motion FILE [--model-dir DIR]                  SMPL/SMPL-X motion .npz, IMavatar flame_params.json or a
@@ -21,6 +23,7 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import LIMITS, check_memory, check_output_dir, check_range, render_bytes
+from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["add_arguments", "run", "parse_size"]
@@ -31,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (frames/ and <name>.mp4)")
     drv = parser.add_mutually_exclusive_group(required=True)
     drv.add_argument("--gltf", help="glTF/GLB file whose mesh is the avatar's driving mesh")
-    drv.add_argument("--vertices", help=".npy vertex sequence [T,V,3]")
+    drv.add_argument("--vertices", help="vertex sequence: .npy [T,V,3], mesh-sequence .npz or a folder of OBJ/PLY "
+                     "frames (canonical vertex order, or the synthesized asset's own order)")
     drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the shared ICT head)")
     drv.add_argument("--dataset-split", help="render the driving meshes of this dataset split")
     drv.add_argument("--motion", help="SMPL/SMPL-X motion .npz (poses, trans), FLAME flame_params.json or a "
@@ -59,6 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto")
     parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_threads_argument(parser)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -86,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
     size = parse_size(args.size) if args.size else None
     check_output_dir(args.out)
+    apply_threads(args)
     r = load_run(args.run, device=args.device)
     avatar = r.avatar
     ds = None
@@ -98,9 +104,10 @@ def run(args: argparse.Namespace) -> int:
 
     frame_cams = None
     if args.gltf:
-        frames = animate.gltf_animation(avatar, args.gltf, args.clip, args.fps, args.seconds, args.start)
+        frames = animate.gltf_animation(avatar, args.gltf, args.clip, args.fps, args.seconds, args.start,
+                                        source_map=animate.run_source_map(r, args.dataset))
     elif args.vertices:
-        frames = animate.sequence_animation(avatar, args.vertices)
+        frames = animate.sequence_animation(avatar, args.vertices, source_map=animate.run_source_map(r, args.dataset))
     elif args.blendshapes:
         if not args.weights:
             raise MeshsplatError("--blendshapes needs --weights FILE (.npy or .json, [T,K])")

@@ -1,6 +1,8 @@
 """Render an animated asset or a body/head model into a ground-truth capture (images, masks, cameras, meshes).
 
-SOURCE is a .glb/.gltf/.npz path, a shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
+SOURCE is a .glb/.gltf path (skin or morph animation), a mesh sequence (an .npz with faces [F,3] and
+vertices [T,V,3], or a folder of OBJ/PLY frames; docs/bring-your-own-mesh.md), an ICT-layout .npz, a
+shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
 a parametric model: smpl / smplx (dancing the AIST++ clip) or flame (talking, nodding), read from
 --model-dir or $MESHSPLAT_MODEL_DIR. --format writes the capture in another layout (e.g. peoplesnapshot
 for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.
@@ -12,6 +14,8 @@ from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range, synth_bytes
 
+from meshsplat.cli.threads import add_threads_argument, apply_threads
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -19,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from meshsplat.data.formats import FORMAT_NAMES
     from meshsplat.synth.generate import RIGS
 
-    parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB/npz file, shared asset name, or smpl/smplx/flame")
+    parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB file, mesh-sequence .npz or OBJ/PLY frame folder, "
+                        "shared asset name, or smpl/smplx/flame")
     parser.add_argument("--out", required=True, help="output capture folder")
     parser.add_argument("--format", choices=FORMAT_NAMES, default="native", help="layout to write (default native)")
     parser.add_argument("--model-dir", default=None, help="folder with the smpl/, smplx/, flame/ model files "
@@ -33,8 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", choices=RIGS, default="monocular-turn")
     parser.add_argument("--frames", type=int, default=60, help="training time steps (per camera)")
     parser.add_argument("--resolution", type=int, default=256, help="square image size in pixels")
-    parser.add_argument("--clip", default=None, help="training clip (default: Walking or the first clip)")
-    parser.add_argument("--test-clips", nargs="*", default=None, help="clips for the novel-pose test split")
+    parser.add_argument("--clip", default=None, help="training clip (default: the clip with the most motion)")
+    parser.add_argument("--test-clips", nargs="*", default=None,
+                        help="clips for the novel-pose test split (default: up to two other moving clips)")
+    parser.add_argument("--up", choices=("y", "z"), default=None,
+                        help="the asset's up axis (default: the asset's own, glTF y; else y)")
     parser.add_argument("--train-fraction", type=float, default=0.7, help="leading part of the clip used for training")
     parser.add_argument("--test-frames", type=int, default=None, help="frames per test split (default frames/4)")
     parser.add_argument("--test-views", type=int, default=2, help="held-out cameras")
@@ -46,6 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2 up to 384 px)")
     parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet (native only)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    add_threads_argument(parser)
 
 
 def run(args) -> int:
@@ -74,6 +83,7 @@ def run(args) -> int:
         raise MeshsplatError("--masks applies to --format peoplesnapshot only")
     if args.contact_sheet and args.format != "native":
         raise MeshsplatError("--contact-sheet needs --format native (or use --native-out and `meshsplat synth` output)")
+    threads = apply_threads(args)
     write_options = {"masks": args.masks} if args.masks else {}
     out = synth_capture(args.asset, args.out, format=args.format, native_dir=args.native_out,
                         overwrite=args.overwrite, write_options=write_options,
@@ -81,7 +91,8 @@ def run(args) -> int:
                         clip=args.clip, test_clips=args.test_clips, train_fraction=args.train_fraction,
                         test_frames=args.test_frames, test_views=args.test_views, views=args.views,
                         driver_smooth=args.driver_smooth, driver_decimate=args.driver_decimate,
-                        supersample=args.supersample, progress=True, model_dir=args.model_dir, gender=args.gender)
+                        supersample=args.supersample, progress=True, model_dir=args.model_dir, gender=args.gender,
+                        up=args.up, threads=threads)
     print(f"{args.format} capture written to {out}")
     if args.contact_sheet:
         print(f"contact sheet: {contact_sheet(out, args.contact_sheet)}")

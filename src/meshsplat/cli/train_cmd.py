@@ -13,15 +13,17 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
+from meshsplat.cli.threads import add_threads_argument, apply_threads
 
 __all__ = ["add_arguments", "run", "build_config"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="capture folder: native (docs/dataset-format.md) or PeopleSnapshot, "
-                        "IMavatar, INSTA, VHAP/GaussianAvatars (docs/formats/); the layout is detected")
+                        "IMavatar, INSTA, VHAP/GaussianAvatars, meshseq (your images + cameras + mesh sequence; "
+                        "docs/formats/); the layout is detected")
     parser.add_argument("--format", default=None, help="capture layout (default: detect); one of "
-                        "native, peoplesnapshot, imavatar, insta, vhap")
+                        "native, meshseq, peoplesnapshot, imavatar, insta, vhap")
     parser.add_argument("--model-dir", default=None,
                         help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--refine-pose", action="store_true",
@@ -35,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 or auto (default auto)")
     parser.add_argument("--seed", type=int, default=None)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_threads_argument(parser)
 
 
 def build_config(args: argparse.Namespace):
@@ -77,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
+    apply_threads(args)
     from meshsplat.data.formats import detect_format, format_module
 
     fmt = cfg.data_format or detect_format(cfg.data)
@@ -86,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
     check_memory(f"training with model.n_init={cfg.model.n_init}", 2e8 + 1200.0 * n,
                  "lower model.n_init / strategy.max_gaussians")
     trainer = Trainer(cfg, resume=args.resume)
+    from meshsplat.data.source_map import copy_source_map
+
+    copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
         for note in trainer.resume_notes:

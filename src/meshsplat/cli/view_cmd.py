@@ -6,7 +6,7 @@ Animation (default: the run's dataset meshes, all stored frames in order):
                                          morph targets and clips ship in the page (clip picker,
                                          scrubbing, speed, morph sliders); --bake ships vertex
                                          frames sampled at --fps instead
-  --animation vertices FILE.npy          a vertex sequence [T,V,3]
+  --animation vertices FILE              a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
   --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
                                          flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
   --animation blendshapes [FILE.npz]     a blendshape face (default the shared ICT FaceKit ARKit
@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE, vertices FILE.npy, blendshapes [FILE.npz] or motion FILE")
+                        help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, OBJ/PLY "
+                        "folder), blendshapes [FILE.npz] or motion FILE")
     parser.add_argument("--motion", default=None, metavar="FILE",
                         help="same as --animation motion FILE (SMPL/SMPL-X .npz, flame_params.json, flame_param/)")
     parser.add_argument("--model-dir", default=None,
@@ -85,7 +86,8 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
         if kind == "gltf":
-            frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps)
+            frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps,
+                                            source_map=animate.run_source_map(run_info, args.dataset))
         elif kind == "motion":
             from meshsplat.eval.run import open_run_dataset
 
@@ -93,7 +95,8 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             mdir = args.model_dir or run_info.config.get("model_dir") or None
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
-            frames = animate.sequence_animation(avatar, rest[0])
+            frames = animate.sequence_animation(avatar, rest[0],
+                                                source_map=animate.run_source_map(run_info, args.dataset))
     if args.frames is not None:
         if args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
@@ -158,7 +161,9 @@ def run(args: argparse.Namespace) -> int:
             raise MeshsplatError("--animation gltf needs exactly one FILE")
         if not Path(rest[0]).is_file():
             raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
-        rig = avatar_driver(r.avatar, rest[0], clip=args.clip)
+        from meshsplat import animate
+
+        rig = avatar_driver(r.avatar, rest[0], clip=args.clip, source_map=animate.run_source_map(r, args.dataset))
         index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
                                     vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"

@@ -55,6 +55,24 @@ class DatasetWriter:
         self.splits: dict[str, list[int]] = {}
         self.driver: dict | None = None
         self.driver_params: dict[str, np.ndarray] | None = None
+        self.source_map: dict[str, np.ndarray] | None = None
+
+    def set_source_map(self, source_index, source_rest, source_faces, rotation=None, exact: bool = True,
+                       smooth: int = 0, decimate: float | None = None) -> None:
+        """Record how the driving mesh derives from the asset (``source_map.npz``, see
+        :mod:`meshsplat.data.source_map`): ``source_index [V]`` asset vertex of each canonical vertex,
+        ``source_rest [Vs,3]`` / ``source_faces [Fs,3]`` the asset's rest mesh in this dataset's world,
+        ``rotation [3,3]`` asset axes -> world, ``exact`` (canonical rest == asset rest at the index),
+        and the Taubin ``smooth`` iterations / ``decimate`` ratio applied."""
+        idx = _np(source_index, np.int64).reshape(-1)
+        rest = _np(source_rest)
+        if idx.shape[0] != self.canonical.shape[0] or idx.min() < 0 or idx.max() >= rest.shape[0]:
+            raise MeshsplatError(f"source_index: expected {self.canonical.shape[0]} indices into "
+                                 f"{rest.shape[0]} asset vertices")
+        self.source_map = {"source_index": idx, "source_rest": rest, "source_faces": _np(source_faces, np.int64),
+                           "rotation": _np(np.eye(3) if rotation is None else rotation, np.float64),
+                           "exact": np.asarray(bool(exact)), "smooth": np.asarray(int(smooth)),
+                           "decimate": np.asarray(1.0 if decimate is None else float(decimate))}
 
     def set_driver(self, record: dict, params: dict) -> None:
         """Store the body/head model parameters the meshes were posed with (``driver_params.npz``).
@@ -145,6 +163,9 @@ class DatasetWriter:
             self.driver["per_frame"] = list(per_frame)
             np.savez(self.root / "driver_params.npz", **self.driver_params)
             manifest["driver"] = self.driver
+        if self.source_map is not None:
+            np.savez(self.root / "source_map.npz", **self.source_map)
+            manifest["source_map"] = "source_map.npz"
         tmp = self.root / "manifest.json.tmp"
         tmp.write_text(json.dumps(manifest, indent=1))
         os.replace(tmp, self.root / "manifest.json")

@@ -180,6 +180,8 @@ def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"run": str(run.run_dir), "checkpoint": str(run.checkpoint), "iteration": run.iteration,
                "dataset": str(ds_path), **results}
+    if ds.meta.get("attribution"):
+        metrics["attribution"] = str(ds.meta["attribution"])  # the asset's credit travels with the numbers
     files = {"metrics": str(out / "metrics.json")}
     if report:
         from meshsplat.eval.report import write_report

@@ -151,6 +151,7 @@ def write_report(out_dir, metrics: dict, samples: dict, log_csv) -> dict[str, st
         f"<p>checkpoint <code>{e(str(metrics.get('checkpoint')))}</code> (iteration {metrics.get('iteration')}), "
         f"{metrics.get('n_gaussians')} Gaussians, dataset <code>{e(str(metrics.get('dataset')))}</code>, "
         f"device {e(str(metrics.get('device')))}.</p>",
+        (f"<p>Asset credit: {e(str(metrics['attribution']))}</p>" if metrics.get("attribution") else ""),
         f"<p>Renders and ground truth share one background, {e(str(metrics.get('background')))} "
         f"(ground truth composited through its mask). Full image: metrics over the whole frame; subject: "
         f"inside the ground-truth mask and on the crop around it (the honest figures when the subject is small). "

@@ -18,11 +18,12 @@ import torch
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
+from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
 from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
 from meshsplat.synth.sources import load_source
 
-__all__ = ["generate", "render_view", "RIGS", "Shot"]
+__all__ = ["generate", "render_view", "clip_motion", "RIGS", "Shot"]
 
 RIGS = ("monocular-turn", "orbit", "multiview")
 _LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
@@ -148,7 +149,9 @@ def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames
 
 
 def _driving_mesh(source, smooth: int, decimate: float | None):
-    """Weld seams, then optionally Taubin-smooth and/or decimate; returns (driving source, render weld group)."""
+    """Weld seams, then optionally Taubin-smooth and/or decimate; returns (driving source, render weld
+    group, source map: ``source_index [Vd]`` (asset vertex lending each driving vertex its motion) and
+    ``exact`` (driving rest == asset rest at those vertices))."""
     rest = source.rest().numpy().astype(np.float64)
     faces = source.faces.numpy()
     clip = source.clips[0]
@@ -164,7 +167,8 @@ def _driving_mesh(source, smooth: int, decimate: float | None):
         wrest = taubin_smooth(wrest, wfaces, smooth)
     changed = smooth > 0 or (decimate is not None and decimate < 1.0)
     drive = source.derive(rep, wfaces, wrest if changed else None)
-    return drive, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
+    smap = {"source_index": np.asarray(rep, np.int64), "exact": not changed}
+    return drive, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1)), smap
 
 
 def _model_mesh(source, driver_smooth: int, driver_decimate: float | None):
@@ -175,21 +179,57 @@ def _model_mesh(source, driver_smooth: int, driver_decimate: float | None):
     rest = source.rest().numpy().astype(np.float64)
     tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
     group, _, _ = weld([rest], source.faces.numpy(), tol)
-    return source, torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
+    weld_group = torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
+    smap = {"source_index": np.arange(rest.shape[0], dtype=np.int64), "exact": True}
+    return source, weld_group, smap
 
 
-def _default_clips(source, clip, test_clips, train_fraction):
+def clip_motion(source, clip, samples: int = 6) -> float:
+    """Mean per-vertex standard deviation of position over ``samples`` times of ``clip`` (asset units)."""
+    a, b = source.time_range(clip)
+    if b <= a:
+        return 0.0
+    poses = torch.stack([source.pose(clip, a + (b - a) * k / (samples - 1)) for k in range(samples)]).double()
+    return float(poses.std(0).norm(dim=-1).mean())
+
+
+def _default_clips(source, clip, test_clips, train_fraction, say=None):
+    """Training clip and novel-pose clips: the asset's own presets, else the clip with the most motion
+    (then the longest) for training and up to two other moving clips for the test."""
     names = [c for c in source.clips if c is not None]
-    if clip is None:
-        clip = "Walking" if "Walking" in names else (names[0] if names else None)
-    elif clip not in names:
+    if clip is not None and clip not in names:
         raise MeshsplatError(f"clip: {clip!r} not in {names}")
-    if test_clips is None:
-        default = getattr(source, "default_test_clips", ("Wave", "Dance"))
-        test_clips = [c for c in default if c in names and c != clip]
-    for c in test_clips:
+    for c in test_clips or []:
         if c not in names:
             raise MeshsplatError(f"test clip {c!r} not in {names}")
+    preset_train = getattr(source, "default_train_clip", None)
+    preset_tests = getattr(source, "default_test_clips", None)
+    if preset_train is None and preset_tests:  # a source naming its test clips trains on its first other clip
+        preset_train = next((c for c in names if c not in preset_tests), None)
+    scores = None
+    if (clip is None and preset_train is None and len(names) > 1) or (test_clips is None and preset_tests is None):
+        scores = {c: (clip_motion(source, c), float(np.subtract(*source.time_range(c)[::-1]))) for c in names}
+    if clip is None:
+        if preset_train in names:
+            clip, why = preset_train, "the asset's preset"
+        elif len(names) <= 1:
+            clip, why = (names[0] if names else None), "its only clip"
+        else:
+            clip = max(names, key=lambda c: scores[c])
+            why = f"most motion of {len(names)} clips ({scores[clip][0]:.3g} mean vertex spread)"
+        if say:
+            say(f"training clip: {clip} ({why}; --clip to choose)")
+    if test_clips is None:
+        if preset_tests is not None:
+            test_clips = [c for c in preset_tests if c in names and c != clip]
+        else:
+            best = max((scores[c][0] for c in names), default=0.0)
+            moving = sorted((c for c in names if c != clip and scores[c][0] > 1e-6 * max(best, 1e-30)),
+                            key=lambda c: scores[c], reverse=True)
+            test_clips = moving[:2]
+        if say:
+            chosen = ", ".join(test_clips) if test_clips else "none (the asset has no other moving clip)"
+            say(f"novel-pose clips: {chosen} (--test-clips to choose)")
     t0, t1 = source.time_range(clip)
     if not 0 < train_fraction <= 1:
         raise MeshsplatError(f"train_fraction: expected in (0, 1], got {train_fraction}")
@@ -203,7 +243,7 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
              views: int = 8, turns: float = 1.0, driver_smooth: int = 0, driver_decimate: float | None = None,
              supersample: int | None = None, background=(0.0, 0.0, 0.0), fov_deg: float = 30.0,
              overwrite: bool = False, progress: bool = False, threads: int | None = 1, model_dir=None,
-             gender: str = "neutral") -> Path:
+             gender: str = "neutral", up: str | None = None, say=None) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
     ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
@@ -214,6 +254,10 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
     CPU threads while rendering (1 is fastest for these small kernels on a busy machine; None = keep).
     ``asset`` may also be a body/head model (``smpl``, ``smplx``, ``flame``) read from ``model_dir``
     (default ``$MESHSPLAT_MODEL_DIR``) with ``gender``; its parameters are stored as the dataset's driver.
+    ``up``: the asset's up axis (``"y"``/``"z"``; default the asset's own, else y); a z-up asset is
+    turned into the y-up world. ``say``: callable told the choices made (default ``print`` when
+    ``progress``). The dataset keeps ``source_map.npz`` (asset vertex of each driving vertex, the
+    asset's rest mesh, the up rotation) so the asset's own animations drive the avatar later.
     Returns the dataset folder.
     """
     old_threads = torch.get_num_threads()
@@ -223,28 +267,37 @@ def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, reso
         return _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames,
                          test_views, test_view_frames, views, turns, driver_smooth, driver_decimate,
                          supersample if supersample else (2 if resolution <= 384 else 1), background, fov_deg,
-                         overwrite, progress, model_dir, gender)
+                         overwrite, progress, model_dir, gender, up,
+                         say if say is not None else (print if progress else None))
     finally:
         torch.set_num_threads(old_threads)
 
 
 def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames, test_views,
               test_view_frames, views, turns, driver_smooth, driver_decimate, supersample, background, fov_deg,
-              overwrite, progress, model_dir=None, gender="neutral") -> Path:
+              overwrite, progress, model_dir=None, gender="neutral", up=None, say=None) -> Path:
     if frames < 1 or resolution < 8:
         raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
     t_start = _time.perf_counter()
     source = load_source(asset, model_dir=model_dir, gender=gender)
     is_model = hasattr(source, "placed_params")
-    clips = _default_clips(source, clip, test_clips, train_fraction)
+    if is_model and up not in (None, "y"):
+        raise MeshsplatError(f"up: body/head models are y-up; --up {up} applies to glTF and mesh-sequence assets")
+    source, up_used, up_how = with_up(source, up)
+    R_up = up_rotation(up_used)
+    rest0 = source.rest().numpy().astype(np.float64)
+    size = float(np.linalg.norm(rest0.max(0) - rest0.min(0)))
+    if say:
+        say(f"up axis: {up_used} ({up_how}); mesh size {size:.4g} asset units (bounding-box diagonal)")
+    clips = _default_clips(source, clip, test_clips, train_fraction, say)
     n_test = test_frames if test_frames is not None else max(2, frames // 4)
     n_tv = test_view_frames if test_view_frames is not None else max(2, frames // 8)
     shots, cams = _plan(rig, clips, frames, n_test, min(n_tv, frames), views, test_views, turns)
 
     if is_model:
-        drive, weld_group = _model_mesh(source, int(driver_smooth), driver_decimate)
+        drive, weld_group, smap = _model_mesh(source, int(driver_smooth), driver_decimate)
     else:
-        drive, weld_group = _driving_mesh(source, int(driver_smooth), driver_decimate)
+        drive, weld_group, smap = _driving_mesh(source, int(driver_smooth), driver_decimate)
     poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
     for s in shots:
         key = (s.clip, round(s.time, 9))
@@ -274,8 +327,11 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
             "test_clips": [c for c, _ in clips["tests"]], "driver_smooth": int(driver_smooth),
             "driver_decimate": driver_decimate, "render_vertices": int(source.rest().shape[0]),
             "driver_vertices": int(drive.rest().shape[0]), "light_dir": _LIGHT.tolist(), "fov_deg": fov_deg,
-            "background": list(background), "up": [0, 1, 0], "attribution": getattr(source, "attribution", "")}
+            "background": list(background), "up": [0, 1, 0], "asset_up": up_used, "mesh_size": size,
+            "attribution": getattr(source, "attribution", "")}
     writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta)
+    writer.set_source_map(smap["source_index"], rest0, source.faces, R_up, exact=smap["exact"],
+                          smooth=int(driver_smooth), decimate=driver_decimate)
     for cid in cams:
         writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
     splits: dict[str, list[int]] = {}

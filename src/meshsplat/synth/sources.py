@@ -15,9 +15,28 @@ import torch
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, is_mesh_sequence, read_mesh_sequence
 from meshsplat.synth.body_source import MODEL_SOURCES, load_model_source
+from meshsplat.synth.sequence_source import SequenceSource
 
-__all__ = ["GltfSource", "BlendshapeSource", "load_source"]
+__all__ = ["GltfSource", "BlendshapeSource", "load_source", "gltf_attribution"]
+
+ICT_LAYOUT = "blend-shape head npz (neutral [V,3], faces [F,3], expr_deltas [K,V,3])"
+
+
+def gltf_attribution(doc) -> str:
+    """Credit line from a glTF's ``asset.copyright`` and ``asset.extras`` (title, author, license, source)."""
+    asset = getattr(doc, "asset", None)
+    parts = []
+    extras = getattr(asset, "extras", None) or {}
+    if isinstance(extras, dict):
+        for key in ("title", "author", "license", "source"):
+            if extras.get(key):
+                parts.append(f"{key}: {extras[key]}")
+    copyright_ = getattr(asset, "copyright", None)
+    if copyright_:
+        parts.insert(0, str(copyright_).strip())
+    return "; ".join(parts)
 
 
 class GltfSource:
@@ -115,7 +134,8 @@ _ATTRIBUTION = {
 
 
 def load_source(asset, model_dir=None, gender: str = "neutral"):
-    """Load ``asset``: a .glb/.gltf path, an .npz blendshape file, a shared-asset name
+    """Load ``asset``: a .glb/.gltf path, a mesh sequence (.npz with faces + vertices, or a folder of
+    OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a shared-asset name
     (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model
     (``smpl``, ``smplx``, ``flame``; files from ``model_dir`` or ``$MESHSPLAT_MODEL_DIR``)."""
     from meshsplat.paths import asset as shared_asset
@@ -131,13 +151,22 @@ def load_source(asset, model_dir=None, gender: str = "neutral"):
             names = {"cesiumman": "CesiumMan", "robotexpressive": "RobotExpressive", "riggedsimple": "RiggedSimple"}
             stem = names.get(Path(key).stem)
             if stem is None:
-                raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path or one of "
+                raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path, a folder of OBJ/PLY frames, or one of "
                                      "CesiumMan, RobotExpressive, RiggedSimple, ict, smpl, smplx, flame)")
             p = shared_asset(f"gltf/{stem}.glb")
-    if p.suffix.lower() == ".npz":
+    if p.is_dir() or p.suffix.lower() in (".npz", ".npy"):
+        if is_mesh_sequence(p) or p.is_dir() or p.suffix.lower() == ".npy":
+            return SequenceSource(read_mesh_sequence(p), name=str(p))
+        with np.load(p, allow_pickle=False) as z:
+            keys = sorted(z.files)
+        if not {"neutral", "faces", "expr_deltas"} <= set(keys):
+            raise MeshsplatError(f"{p}: keys {keys} fit no npz layout: the {NPZ_LAYOUT} or the {ICT_LAYOUT}")
         return BlendshapeSource(BlendshapeDriver.from_npz(p))
     if p.suffix.lower() not in (".glb", ".gltf"):
-        raise MeshsplatError(f"asset: expected a .glb, .gltf or .npz file, got {p}")
+        raise MeshsplatError(f"asset: {p} is none of: a .glb/.gltf (morph or skin animation), the {NPZ_LAYOUT}, "
+                             f"a {FRAMES_LAYOUT}, the {ICT_LAYOUT}")
     src = GltfSource(GltfDriver(p))
-    src.attribution = _ATTRIBUTION.get(p.stem.lower(), "")
+    src.attribution = gltf_attribution(src.driver.file.doc) or _ATTRIBUTION.get(p.stem.lower(), "")
+    if p.stem.lower() == "robotexpressive":  # the demo's clip choice for the shared robot
+        src.default_train_clip, src.default_test_clips = "Walking", ["Wave", "Dance"]
     return src

@@ -17,7 +17,9 @@ Per iteration (1-based ``it``): set lrs; next training frame (shuffled without r
 epoch, seeded); pose the canonical mesh with the frame's vertices; compose; rasterize with a
 random background (also blended into the ground truth through the mask); loss
 ``L1 + λ_lpips LPIPS + λ_scale L_scale (+ λ_mse MSE + λ_ssim D-SSIM)``, L_scale on the canonical
-(pose-independent) scales with T_s = ``loss.scale_max * extent``; backward; Adam steps;
+(pose-independent) scales with T_s = ``loss.scale_max * extent``, measured in mesh extents (so an
+asset in centimetres and the same in metres train and log alike; extent ≈ 1 on the paper's bodies);
+backward; Adam steps;
 densification strategy; every ``walk.every`` iterations walking on triangles.
 """
 from __future__ import annotations
@@ -248,7 +250,7 @@ class Trainer:
         loss, parts = avatar_loss(
             render, gt, self.params["log_scale"].exp(),
             thresh_scale=L.scale_max * self.extent, thresh_ratio=L.scale_ratio,
-            lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale,
+            lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale / self.extent,
             lambda_mse=L.lambda_mse, lambda_dssim=L.lambda_ssim, perceptual=self.perceptual)
         if not torch.isfinite(loss):
             raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
@@ -273,6 +275,7 @@ class Trainer:
                "lr_duv": lrs.get("duv", 0.0), "lr_d": lrs.get("d", 0.0)}
         for k in ("l1", "lpips", "scale", "mse", "dssim"):
             row[k] = float(parts[k]) if k in parts else 0.0
+        row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
         return row
 
     # ---- loop ------------------------------------------------------------------------

@@ -22,21 +22,16 @@ __all__ = ["gltf_rig", "blendshape_rig", "bundle_rig", "avatar_driver", "rig_pre
 _PATHS = ("translation", "rotation", "scale", "weights")
 
 
-def avatar_driver(avatar, path, clip: str | None = None):
-    """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices (derived by
-    matching rest positions when the avatar's mesh is not the glTF mesh itself, as
-    :func:`meshsplat.animate.gltf_animation`)."""
-    from meshsplat.animate import match_vertices
-    from meshsplat.drivers import GltfDriver
+def avatar_driver(avatar, path, clip: str | None = None, source_map=None):
+    """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices, derived as
+    :func:`meshsplat.animate.avatar_gltf_driver` does (matched rest positions, or re-derived from the
+    asset the avatar was synthesized from)."""
+    from meshsplat.animate import avatar_gltf_driver
 
-    drv = GltfDriver(path, clip=clip)
-    if drv.clip is None:
-        raise MeshsplatError(f"{path}: the file has no animation clip")
-    if drv.num_vertices != avatar.mesh.num_vertices:
-        canonical = avatar.mesh.vertices.detach().cpu().float()
-        src = match_vertices(drv.rest_vertices(), canonical, driver_faces=drv.faces,
-                             canonical_faces=avatar.mesh.faces)
-        drv = drv.derive(src.numpy(), avatar.mesh.faces.cpu().numpy())
+    drv, to_world = avatar_gltf_driver(avatar, path, clip=clip, source_map=source_map)
+    if to_world is not None:
+        raise MeshsplatError(f"{path}: the avatar was synthesized from this asset turned to +y up; the live page "
+                             "plays the asset in its own axes: use --bake (vertex frames) instead")
     return drv
 
 

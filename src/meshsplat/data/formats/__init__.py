@@ -17,7 +17,7 @@ from meshsplat.errors import MeshsplatError
 __all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture"]
 
 # detection order: the most specific layouts first
-FORMAT_NAMES = ("native", "vhap", "insta", "imavatar", "peoplesnapshot")
+FORMAT_NAMES = ("native", "meshseq", "vhap", "insta", "imavatar", "peoplesnapshot")
 
 
 def format_module(name: str) -> ModuleType:
