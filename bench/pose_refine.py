@@ -66,7 +66,10 @@ def main() -> None:
     ap.add_argument("--pose-noise", type=float, default=0.05, help="radians (default 0.05 = 2.9 deg)")
     ap.add_argument("--transl-noise", type=float, default=0.01, help="fraction of the body height")
     ap.add_argument("--lr", type=float, default=None, help="pose_refine.lr (default: the config's)")
+    ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
+    ap.add_argument("--variants", nargs="*", default=["true", "perturbed", "perturbed+refine"],
+                    choices=["true", "perturbed", "perturbed+refine"])
     args = ap.parse_args()
 
     from meshsplat.data import open_dataset
@@ -93,6 +96,7 @@ def main() -> None:
 
     rows = {}
     variants = {"true": (native, False), "perturbed": (noisy, False), "perturbed+refine": (noisy, True)}
+    variants = {k: v for k, v in variants.items() if k in args.variants}
     for name, (data, refine) in variants.items():
         run = work / f"run_{name}"
         if run.exists():
@@ -130,9 +134,10 @@ def main() -> None:
             print(f"{name:<18}{s:<13}{f(m['psnr'], 2):>8}{f(m['ssim'], 4):>8}{f(m['lpips'], 4):>8}"
                   f"{f(m['psnr_mask'], 2):>8}{f(m['ssim_mask'], 4):>8}{f(m['lpips_mask'], 4):>8}")
     print("mean |param - true| on training frames: before " + json.dumps({k: round(v, 5) for k, v in before.items()}))
-    print("                                        after  " + json.dumps(
-        {k: round(v, 5) for k, v in rows["perturbed+refine"]["param_error_after"].items()}))
-    out = results_path("pose_refine" if args.preset == "default" else f"pose_refine-{args.preset}")
+    if "perturbed+refine" in rows:
+        print("                                        after  " + json.dumps(
+            {k: round(v, 5) for k, v in rows["perturbed+refine"]["param_error_after"].items()}))
+    out = results_path(args.name or ("pose_refine" if args.preset == "default" else f"pose_refine-{args.preset}"))
     out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset, "iterations": preset.iterations,
                                "pose_noise_rad": args.pose_noise, "transl_noise_height": args.transl_noise,
                                "param_error_before": before, "variants": rows}, indent=2) + "\n")
