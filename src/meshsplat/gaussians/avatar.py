@@ -6,7 +6,9 @@
 
 ``Avatar.state_dict()`` is what training checkpoints store under ``"avatar"``: canonical mesh
 (``vertices``, ``faces``), ``params`` (see ``meshsplat.gaussians.params``), ``scale_mode``,
-``sh_degree`` and ``clamp_to_face`` (True for avatars trained without walking).
+``sh_degree``, ``clamp_to_face`` (True for avatars trained without walking), ``sh_frame`` and
+``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
+albedo and every render is shaded by the posed normals).
 """
 from __future__ import annotations
 
@@ -18,8 +20,9 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians.compose import ComposedGaussians, compose
+from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose
 from meshsplat.gaussians.params import check_params, num_gaussians, sh_degree_of
+from meshsplat.gaussians.shading import Shading
 
 __all__ = ["Avatar", "AvatarRender"]
 
@@ -35,7 +38,7 @@ class Avatar:
     """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
 
     def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
-                 clamp_to_face: bool = False):
+                 clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world"):
         from meshsplat.mesh import TriMesh
 
         if not isinstance(mesh, TriMesh):
@@ -47,6 +50,12 @@ class Avatar:
         self.params = params
         self.scale_mode = scale_mode
         self.clamp_to_face = bool(clamp_to_face)
+        if sh_frame not in SH_FRAMES:
+            raise MeshsplatError(f"sh_frame: expected one of {SH_FRAMES}, got {sh_frame!r}")
+        if shading is not None and not isinstance(shading, Shading):
+            raise MeshsplatError(f"shading: expected a Shading or None, got {type(shading).__name__}")
+        self.shading = shading
+        self.sh_frame = sh_frame
 
     # ---- properties ------------------------------------------------------------------
     @property
@@ -67,7 +76,8 @@ class Avatar:
 
         params = {k: v.detach().to(device) for k, v in self.params.items()}
         mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
-        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face)
+        shading = None if self.shading is None else self.shading.to(device)
+        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame)
 
     # ---- posing and rendering --------------------------------------------------------
     def pose(self, verts_posed: torch.Tensor):
@@ -80,7 +90,7 @@ class Avatar:
     def compose(self, verts_posed: torch.Tensor, campos: torch.Tensor | None = None) -> ComposedGaussians:
         """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]``."""
         return compose(self.params, self.pose(verts_posed), self.scale_mode, campos=campos,
-                       clamp_to_face=self.clamp_to_face)
+                       clamp_to_face=self.clamp_to_face, shading=self.shading, sh_frame=self.sh_frame)
 
     def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
@@ -111,6 +121,8 @@ class Avatar:
             "scale_mode": self.scale_mode,
             "sh_degree": self.sh_degree,
             "clamp_to_face": self.clamp_to_face,
+            "sh_frame": self.sh_frame,
+            "shading": None if self.shading is None else self.shading.state_dict(),
         }
 
     @classmethod
@@ -120,7 +132,8 @@ class Avatar:
         try:
             mesh = TriMesh(sd["vertices"].to(device), sd["faces"].to(device))
             params = {k: v.to(device) for k, v in sd["params"].items()}
-            return cls(mesh, params, sd.get("scale_mode", "sqrt_area"), sd.get("clamp_to_face", False))
+            return cls(mesh, params, sd.get("scale_mode", "sqrt_area"), sd.get("clamp_to_face", False),
+                       Shading.from_state_dict(sd.get("shading"), device), sd.get("sh_frame", "world"))
         except (KeyError, AttributeError) as exc:
             raise MeshsplatError(f"avatar state is incomplete (missing {exc})") from None
 
@@ -136,4 +149,4 @@ class Avatar:
 
     def __repr__(self) -> str:
         return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
-                f"sh_degree={self.sh_degree})")
+                f"sh_degree={self.sh_degree}, shading={self.shading!r})")
