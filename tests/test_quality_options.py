@@ -208,3 +208,15 @@ def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # 
     err1 = float((c1 - truth)[seen].abs().mean())
     err6 = float((c6 - truth)[seen].abs().mean())
     assert err6 < 0.8 * err1, (err6, err1)
+
+
+def test_viewer_bundle_bakes_the_canonical_shading(tmp_path):
+    from meshsplat.viewer.bundle import read_viewer_bundle, write_viewer_bundle
+
+    mesh = _sphere()
+    p = init_params(mesh, 120, generator=torch.Generator().manual_seed(0))
+    av = Avatar(mesh, p, shading=_lit_from_x())
+    write_viewer_bundle(av, mesh.vertices[None].numpy(), tmp_path)
+    _, arrays = read_viewer_bundle(tmp_path)
+    assert torch.allclose(torch.as_tensor(arrays["gaussian_rgb"]), av.base_rgb(), atol=1e-5)
+    assert not torch.allclose(av.base_rgb(), Avatar(mesh, p).base_rgb(), atol=1e-2)

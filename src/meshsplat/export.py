@@ -100,12 +100,9 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     g, normals = canonical_gaussians(avatar)
     ply_sh0 = p["sh0"]
     if avatar.shading is not None:  # the static PLY gets the canonical pose's shading baked into its DC colour
-        from meshsplat.gaussians.params import rgb_to_sh0, sh0_to_rgb
-        from meshsplat.gaussians.shading import shading_normals
+        from meshsplat.gaussians.params import rgb_to_sh0
 
-        with torch.no_grad():
-            e = avatar.shading.irradiance(shading_normals(avatar.shading.normal, normals, g.quats, g.scales))
-            ply_sh0 = rgb_to_sh0(sh0_to_rgb(p["sh0"]) * e)
+        ply_sh0 = rgb_to_sh0(avatar.base_rgb())
     ply = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"], ply_sh0,
                              p.get("shN"), sh_degree_pad=3, normals=normals)
     with torch.no_grad():

@@ -92,6 +92,27 @@ class Avatar:
         return compose(self.params, self.pose(verts_posed), self.scale_mode, campos=campos,
                        clamp_to_face=self.clamp_to_face, shading=self.shading, sh_frame=self.sh_frame)
 
+    def base_rgb(self, verts_posed: torch.Tensor | None = None) -> torch.Tensor:
+        """View-independent colour ``[N,3]`` (SH DC band), with the shading of the pose ``verts_posed [V,3]``
+        (default: the canonical pose) baked in when the avatar is shaded: for static exports and viewers
+        that do not shade."""
+        from meshsplat.gaussians.params import sh0_to_rgb
+        from meshsplat.gaussians.shading import shading_normals
+
+        with torch.no_grad():
+            rgb = sh0_to_rgb(self.params["sh0"].detach()).clamp_min(0.0)
+            if self.shading is None:
+                return rgb
+            from meshsplat.embedding import embed
+            from meshsplat.gaussians.compose import effective_uv
+
+            g = self.compose(self.mesh.vertices if verts_posed is None else verts_posed)
+            pose = self.pose(self.mesh.vertices if verts_posed is None else verts_posed)
+            _, phong = embed(pose, self.params["face"], effective_uv(self.params, self.clamp_to_face),
+                             self.params["d"].detach())
+            n = shading_normals(self.shading.normal, phong, g.quats.detach(), g.scales.detach())
+            return rgb * self.shading.irradiance(n)
+
     def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
         """Render one view: ``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, ``background [3]``."""
