@@ -48,14 +48,16 @@ def plot(doc: dict, path: Path) -> None:
     pts = doc["points"]
     splits = sorted({s for p in pts for s in p["splits"]})
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for s in splits:
+    for j, s in enumerate(splits):
+        col = f"C{j}"
         xs = [p["iteration"] for p in pts]
         cm = [p["cpu_s"] / 60.0 for p in pts]
         ys = [p["splits"][s]["psnr_mask"] for p in pts]
-        axes[0].plot(xs, ys, "o-", label=f"{s} (mask)")
-        axes[1].plot(cm, ys, "o-", label=f"{s} (mask)")
+        axes[0].plot(xs, ys, "o-", color=col, label=f"{s} (mask)")
+        axes[1].plot(cm, ys, "o-", color=col, label=f"{s} (mask)")
         ys = [p["splits"][s]["psnr"] for p in pts]
-        axes[0].plot(xs, ys, "x--", alpha=0.5, label=f"{s} (full image)")
+        axes[0].plot(xs, ys, "x--", color=col, alpha=0.5, label=f"{s} (full image)")
+        axes[1].plot(cm, ys, "x--", color=col, alpha=0.5)
     axes[0].set_xscale("log")
     axes[0].set_xlabel("iteration")
     axes[1].set_xlabel("CPU minutes (this process)")
@@ -80,8 +82,14 @@ def main() -> None:
     ap.add_argument("--data", default="runs/bench-quality/data", help="dataset folder (generated if missing)")
     ap.add_argument("--name", default="convergence")
     ap.add_argument("--plot", action="store_true")
+    ap.add_argument("--plot-only", action="store_true", help="redraw the plot from the saved JSON and exit")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 on a shared machine)")
     args = ap.parse_args()
+
+    if args.plot_only:
+        out = results_path(args.name)
+        plot(json.loads(out.read_text()), out.with_suffix(".png"))
+        return
 
     import torch
 
