@@ -63,7 +63,7 @@ PRESETS: dict[str, DemoPreset] = {
 # The paper-faithful model is the TrainConfig default (one colour per Gaussian, first-frame colours).
 PAPER_OVERRIDES: tuple[str, ...] = ()
 # The demo's quality options on top of it (issue 13; measured by bench/quality.py, docs/quality.md).
-QUALITY_OVERRIDES: tuple[str, ...] = ("model.shading=sh2", "model.init_color_frames=8")
+QUALITY_OVERRIDES: tuple[str, ...] = ("model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2")
 
 
 def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str] | None = None,
