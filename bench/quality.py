@@ -19,6 +19,7 @@ Variants (TrainConfig overrides on top of the preset's short schedule):
   sh1_triangle  SH degree 1, view direction in the embedding triangle's frame
   init_multi    initial colours averaged over 8 training frames (facing the camera, in the mask)
   mask_loss     + 0.1 |rendered alpha - mask|
+  antialiased   opacity compensated for the rasterizer's 0.3 px^2 low-pass (gsplat "antialiased")
   dens_low      densification threshold grow_grad2d 1e-4 instead of 2e-4 (the subject is a small target)
   lr_color      colour learning rate 1e-2 instead of 2.5e-3 (short runs)
   default       the demo's new defaults (demo.QUALITY_OVERRIDES)
@@ -50,6 +51,7 @@ VARIANTS = {
     "sh1_triangle": list(PAPER_OVERRIDES) + ["model.sh_degree=1", "model.sh_frame=triangle"],
     "init_multi": list(PAPER_OVERRIDES) + ["model.init_color_frames=8"],
     "mask_loss": list(PAPER_OVERRIDES) + ["loss.lambda_mask=0.1"],
+    "antialiased": list(PAPER_OVERRIDES) + ["model.antialiased=true"],
     "dens_low": list(PAPER_OVERRIDES) + ["strategy.grow_grad2d=1e-4"],
     "lr_color": list(PAPER_OVERRIDES) + ["optim.lr_color=1e-2"],
     "default": list(QUALITY_OVERRIDES),

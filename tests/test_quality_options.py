@@ -169,6 +169,7 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     import shutil
 
     opts = ["model.shading=sh2", "model.init_color_frames=3", "model.sh_degree=1", "model.sh_frame=triangle",
+            "model.antialiased=true",
             "loss.lambda_mask=0.1"]
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, opts))
     assert full.shading is not None
@@ -177,7 +178,7 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     assert not torch.equal(c0, full.shading.coeffs.detach())  # the illumination is learned
     assert all(r["mask"] > 0 for r in full.history)
     av = Avatar.from_checkpoint(tmp_path / "full")
-    assert av.shading is not None and av.sh_frame == "triangle"
+    assert av.shading is not None and av.sh_frame == "triangle" and av.antialiased
     assert torch.equal(av.shading.coeffs, full.shading.coeffs.detach())
     (tmp_path / "res" / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt", tmp_path / "res" / "checkpoints")
@@ -220,3 +221,37 @@ def test_viewer_bundle_bakes_the_canonical_shading(tmp_path):
     _, arrays = read_viewer_bundle(tmp_path)
     assert torch.allclose(torch.as_tensor(arrays["gaussian_rgb"]), av.base_rgb(), atol=1e-5)
     assert not torch.allclose(av.base_rgb(), Avatar(mesh, p).base_rgb(), atol=1e-2)
+
+
+def test_antialias_compensation_dims_small_gaussians_only():
+    from meshsplat.render.projection import antialias_compensation
+
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    quats = torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]])
+    scales = torch.tensor([[0.002, 0.002, 0.002], [0.5, 0.5, 0.5]], requires_grad=True)
+    comp = antialias_compensation(means, quats, scales, VIEWMAT[None], K[None], W, H)
+    assert comp.shape == (1, 2)
+    # 0.002 world units at depth 4 with f=40 is 0.02 px: compensated a lot; a 5 px Gaussian barely
+    sigma2 = (0.002 * 40 / 4) ** 2
+    assert torch.allclose(comp[0, 0], torch.tensor(sigma2 / (sigma2 + 0.3)), rtol=1e-3)
+    assert torch.allclose(comp[0, 1], torch.tensor(25.0 / 25.3), rtol=1e-3)
+    comp.sum().backward()
+    assert scales.grad[0].abs().sum() > 0
+
+
+def test_antialiased_avatar_renders_small_splats_fainter(tmp_path):
+    mesh = _sphere()
+    p = init_params(mesh, 200, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        p["log_scale"].fill_(math.log(0.004))
+        p["opacity_logit"].fill_(4.0)
+    plain = Avatar(mesh, p).render(mesh.vertices, VIEWMAT, K, W, H, backend="torch")
+    aa = Avatar(mesh, p, antialiased=True)
+    out = aa.render(mesh.vertices, VIEWMAT, K, W, H, backend="torch")
+    assert float(out.alpha.sum()) < 0.5 * float(plain.alpha.sum())
+    back = Avatar.from_state_dict(aa.state_dict())
+    assert back.antialiased
+    from meshsplat.export import export_avatar, load_exported_avatar
+
+    export_avatar(aa, tmp_path)
+    assert load_exported_avatar(tmp_path).antialiased

@@ -116,7 +116,7 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
             "num_faces": avatar.mesh.num_faces, "mesh": MESH_NAME, "source": str(source),
             "iteration": iteration, "color": "rgb = 0.5 + 0.28209479177387814 * sh0 (+ SH bands)",
             "opacity": "sigmoid(opacity_logit)", "scale": "exp(log_scale) * pose scale factor",
-            "quaternion": "wxyz", "sh_frame": avatar.sh_frame}
+            "quaternion": "wxyz", "sh_frame": avatar.sh_frame, "antialiased": avatar.antialiased}
     if avatar.shading is not None:
         sd = avatar.shading.state_dict()
         meta["shading"] = {"coeffs": sd["coeffs"].tolist(), "normal": sd["normal"], "space": sd["space"],
@@ -156,4 +156,4 @@ def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu
 
     shading = Shading.from_state_dict(meta.get("shading"), device)
     return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False, shading=shading,
-                  sh_frame=meta.get("sh_frame", "world"))
+                  sh_frame=meta.get("sh_frame", "world"), antialiased=bool(meta.get("antialiased", False)))

@@ -7,7 +7,7 @@
 ``Avatar.state_dict()`` is what training checkpoints store under ``"avatar"``: canonical mesh
 (``vertices``, ``faces``), ``params`` (see ``meshsplat.gaussians.params``), ``scale_mode``,
 ``sh_degree``, ``clamp_to_face`` (True for avatars trained without walking), ``sh_frame`` and
-``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
+``antialiased`` (opacity compensated for the screen-space dilation per view), ``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
 albedo and every render is shaded by the posed normals).
 """
 from __future__ import annotations
@@ -38,7 +38,8 @@ class Avatar:
     """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
 
     def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
-                 clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world"):
+                 clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world",
+                 antialiased: bool = False):
         from meshsplat.mesh import TriMesh
 
         if not isinstance(mesh, TriMesh):
@@ -56,6 +57,7 @@ class Avatar:
             raise MeshsplatError(f"shading: expected a Shading or None, got {type(shading).__name__}")
         self.shading = shading
         self.sh_frame = sh_frame
+        self.antialiased = bool(antialiased)
 
     # ---- properties ------------------------------------------------------------------
     @property
@@ -77,7 +79,7 @@ class Avatar:
         params = {k: v.detach().to(device) for k, v in self.params.items()}
         mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
         shading = None if self.shading is None else self.shading.to(device)
-        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame)
+        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame, self.antialiased)
 
     # ---- posing and rendering --------------------------------------------------------
     def pose(self, verts_posed: torch.Tensor):
@@ -129,7 +131,13 @@ class Avatar:
         if background is not None:
             check_tensor("background", background, "3", dtype="float")
             bg = background.to(device=dev, dtype=dt)[None]
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None],
+        opacities = g.opacities
+        if self.antialiased:
+            from meshsplat.render.projection import antialias_compensation
+
+            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None],
+                                                           int(width), int(height))[0]
+        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None],
                         int(width), int(height), backgrounds=bg, backend=backend)
         return AvatarRender(out.colors[0], out.alphas[0], out.meta)
 
@@ -143,6 +151,7 @@ class Avatar:
             "sh_degree": self.sh_degree,
             "clamp_to_face": self.clamp_to_face,
             "sh_frame": self.sh_frame,
+            "antialiased": self.antialiased,
             "shading": None if self.shading is None else self.shading.state_dict(),
         }
 
@@ -154,7 +163,8 @@ class Avatar:
             mesh = TriMesh(sd["vertices"].to(device), sd["faces"].to(device))
             params = {k: v.to(device) for k, v in sd["params"].items()}
             return cls(mesh, params, sd.get("scale_mode", "sqrt_area"), sd.get("clamp_to_face", False),
-                       Shading.from_state_dict(sd.get("shading"), device), sd.get("sh_frame", "world"))
+                       Shading.from_state_dict(sd.get("shading"), device), sd.get("sh_frame", "world"),
+                       bool(sd.get("antialiased", False)))
         except (KeyError, AttributeError) as exc:
             raise MeshsplatError(f"avatar state is incomplete (missing {exc})") from None
 

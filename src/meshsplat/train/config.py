@@ -44,6 +44,7 @@ class ModelConfig:
     shading: str = "none"
     shading_normal: str = "phong"  # "phong": the embedding's interpolated normal | "axis": shortest Gaussian axis
     sh_frame: str = "world"  # SH degree > 0: view direction in "world" (published code) or "triangle" frame
+    antialiased: bool = False  # opacity x sqrt(det S / det(S + 0.3 I)) per view (gsplat's "antialiased" mode)
 
 
 @dataclass

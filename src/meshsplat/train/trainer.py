@@ -260,7 +260,12 @@ class Trainer:
         campos = torch.linalg.inv(viewmat)[:3, 3] if "shN" in self.params else None
         g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face,
                     shading=self.shading, sh_frame=self.cfg.model.sh_frame)
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None], w, h,
+        opacities = g.opacities
+        if self.cfg.model.antialiased:
+            from meshsplat.render.projection import antialias_compensation
+
+            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None], w, h)[0]
+        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None], w, h,
                         backgrounds=background[None], backend=self.cfg.backend)
         self._last_alpha = out.alphas[0]
         gt = image if mask is None else image * mask + background * (1 - mask)
@@ -396,7 +401,8 @@ class Trainer:
     def avatar(self) -> Avatar:
         """The current model as an ``Avatar`` (shares the parameter tensors)."""
         return Avatar(self.mesh, self.params, self.cfg.model.scale_mode, clamp_to_face=self.clamp_to_face,
-                      shading=self.shading, sh_frame=self.cfg.model.sh_frame)
+                      shading=self.shading, sh_frame=self.cfg.model.sh_frame,
+                      antialiased=self.cfg.model.antialiased)
 
     def state_dict(self) -> dict[str, Any]:
         np_state = np.random.get_state()
