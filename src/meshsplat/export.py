@@ -61,7 +61,17 @@ Gaussians: {n}, SH degree {sh}, scale mode {scale_mode}{clamp}.
 {mesh}  The canonical driving mesh (vertices and triangles) the embedding refers to. Drive it
     with any animation of the same mesh (same vertex order) to animate the avatar.
 
-Load the avatar back: meshsplat.export.load_exported_avatar("<this folder>").
+{shading}Load the avatar back: meshsplat.export.load_exported_avatar("<this folder>").
+"""
+
+_SHADING_README = """Shading: this avatar was trained with pose-dependent shading. In {emb}, sh0/shN are the
+    ALBEDO and meta.shading holds the learned illumination: displayed rgb = albedo *
+    max(0, sum_k coeffs[k] * Y_k(n)), Y_0..8 the real SH basis of order 2 (x,y,z of the unit
+    normal n in world space: 0.282095; 0.488603*y, z, x; 1.092548*xy, 1.092548*yz,
+    0.315392*(3z^2-1), 1.092548*xz, 0.546274*(x^2-y^2)), n = the posed Phong normal ("phong")
+    or the Gaussian's shortest posed axis facing the same side ("axis"), per meta.shading.normal.
+    {ply} has the shading BAKED for the canonical pose (its f_dc is albedo * E(canonical normal)).
+
 """
 
 
@@ -108,12 +118,17 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     out.mkdir(parents=True, exist_ok=True)
     p = {k: v.detach() for k, v in avatar.params.items()}
     g, normals = canonical_gaussians(avatar)
+    ply_sh0 = p["sh0"]
+    if avatar.shading is not None:  # the static PLY gets the canonical pose's shading baked into its DC colour
+        from meshsplat.gaussians.params import rgb_to_sh0
+
+        ply_sh0 = rgb_to_sh0(avatar.base_rgb())
     splats: dict[str, Path] = {}
     if "ply" in formats:
         splats["ply"] = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"],
-                                           p["sh0"], p.get("shN"), sh_degree_pad=3, normals=normals)
+                                           ply_sh0, p.get("shN"), sh_degree_pad=3, normals=normals)
     arrays = {"means": g.means, "quats": g.quats, "log_scales": g.scales.log(), "opacity_logits": p["opacity_logit"],
-              "sh0": p["sh0"].reshape(-1, 3), "shN": p.get("shN")}
+              "sh0": ply_sh0.reshape(-1, 3), "shN": p.get("shN")}
     arrays = {k: (None if v is None else v.detach().cpu().double().numpy()) for k, v in arrays.items()}
     writers = {"splat": write_splat, "spz": write_spz, "gltf": write_gltf_splats}
     for fmt in formats:
@@ -130,7 +145,11 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
             "num_faces": avatar.mesh.num_faces, "mesh": MESH_NAME, "source": str(source),
             "iteration": iteration, "color": "rgb = 0.5 + 0.28209479177387814 * sh0 (+ SH bands)",
             "opacity": "sigmoid(opacity_logit)", "scale": "exp(log_scale) * pose scale factor",
-            "quaternion": "wxyz"}
+            "quaternion": "wxyz", "sh_frame": avatar.sh_frame, "antialiased": avatar.antialiased}
+    if avatar.shading is not None:
+        sd = avatar.shading.state_dict()
+        meta["shading"] = {"coeffs": sd["coeffs"].tolist(), "normal": sd["normal"], "space": sd["space"],
+                           "order": sd["order"], "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)"}
     emb = write_embedding_json(out / EMBEDDING_NAME, emb_params, meta)
     mesh = write_obj(out / MESH_NAME, avatar.mesh.vertices.detach(), avatar.mesh.faces)
     readme = out / "README.txt"
@@ -142,7 +161,8 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
         if avatar.clamp_to_face else "", ply=PLY_NAME, emb=EMBEDDING_NAME, mesh=MESH_NAME,
         uv_note=", projected onto the triangle" if avatar.clamp_to_face else "",
         splat_files="" if "ply" in formats else f"({PLY_NAME} was not written: --format {','.join(formats)})\n",
-        other_formats=others))
+        other_formats=others,
+        shading=_SHADING_README.format(emb=EMBEDDING_NAME, ply=PLY_NAME) if avatar.shading is not None else ""))
     return ExportResult(out, splats.get("ply"), emb, mesh, readme, splats)
 
 
@@ -165,4 +185,8 @@ def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu
     params = make_params(a["face"], a["uv"], d=a["d"], log_scale=a["log_scale"], rotation=a["rotation"],
                          opacity_logit=a["opacity_logit"], sh0=a["sh0"],
                          shN=shN if shN is not None and shN.shape[1] > 0 else None)
-    return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False)
+    from meshsplat.gaussians.shading import Shading
+
+    shading = Shading.from_state_dict(meta.get("shading"), device)
+    return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False, shading=shading,
+                  sh_frame=meta.get("sh_frame", "world"), antialiased=bool(meta.get("antialiased", False)))

@@ -6,7 +6,9 @@
 
 ``Avatar.state_dict()`` is what training checkpoints store under ``"avatar"``: canonical mesh
 (``vertices``, ``faces``), ``params`` (see ``meshsplat.gaussians.params``), ``scale_mode``,
-``sh_degree`` and ``clamp_to_face`` (True for avatars trained without walking).
+``sh_degree``, ``clamp_to_face`` (True for avatars trained without walking), ``sh_frame`` and
+``antialiased`` (opacity compensated for the screen-space dilation per view), ``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
+albedo and every render is shaded by the posed normals).
 """
 from __future__ import annotations
 
@@ -18,8 +20,9 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians.compose import ComposedGaussians, compose
+from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose
 from meshsplat.gaussians.params import check_params, num_gaussians, sh_degree_of
+from meshsplat.gaussians.shading import Shading
 
 __all__ = ["Avatar", "AvatarRender"]
 
@@ -35,7 +38,8 @@ class Avatar:
     """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
 
     def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
-                 clamp_to_face: bool = False):
+                 clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world",
+                 antialiased: bool = False):
         from meshsplat.mesh import TriMesh
 
         if not isinstance(mesh, TriMesh):
@@ -47,6 +51,13 @@ class Avatar:
         self.params = params
         self.scale_mode = scale_mode
         self.clamp_to_face = bool(clamp_to_face)
+        if sh_frame not in SH_FRAMES:
+            raise MeshsplatError(f"sh_frame: expected one of {SH_FRAMES}, got {sh_frame!r}")
+        if shading is not None and not isinstance(shading, Shading):
+            raise MeshsplatError(f"shading: expected a Shading or None, got {type(shading).__name__}")
+        self.shading = shading
+        self.sh_frame = sh_frame
+        self.antialiased = bool(antialiased)
 
     # ---- properties ------------------------------------------------------------------
     @property
@@ -67,7 +78,8 @@ class Avatar:
 
         params = {k: v.detach().to(device) for k, v in self.params.items()}
         mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
-        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face)
+        shading = None if self.shading is None else self.shading.to(device)
+        return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame, self.antialiased)
 
     # ---- posing and rendering --------------------------------------------------------
     def pose(self, verts_posed: torch.Tensor):
@@ -80,7 +92,28 @@ class Avatar:
     def compose(self, verts_posed: torch.Tensor, campos: torch.Tensor | None = None) -> ComposedGaussians:
         """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]``."""
         return compose(self.params, self.pose(verts_posed), self.scale_mode, campos=campos,
-                       clamp_to_face=self.clamp_to_face)
+                       clamp_to_face=self.clamp_to_face, shading=self.shading, sh_frame=self.sh_frame)
+
+    def base_rgb(self, verts_posed: torch.Tensor | None = None) -> torch.Tensor:
+        """View-independent colour ``[N,3]`` (SH DC band), with the shading of the pose ``verts_posed [V,3]``
+        (default: the canonical pose) baked in when the avatar is shaded: for static exports and viewers
+        that do not shade."""
+        from meshsplat.gaussians.params import sh0_to_rgb
+        from meshsplat.gaussians.shading import shading_normals
+
+        with torch.no_grad():
+            rgb = sh0_to_rgb(self.params["sh0"].detach()).clamp_min(0.0)
+            if self.shading is None:
+                return rgb
+            from meshsplat.embedding import embed
+            from meshsplat.gaussians.compose import effective_uv
+
+            g = self.compose(self.mesh.vertices if verts_posed is None else verts_posed)
+            pose = self.pose(self.mesh.vertices if verts_posed is None else verts_posed)
+            _, phong = embed(pose, self.params["face"], effective_uv(self.params, self.clamp_to_face),
+                             self.params["d"].detach())
+            n = shading_normals(self.shading.normal, phong, g.quats.detach(), g.scales.detach())
+            return rgb * self.shading.irradiance(n)
 
     def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
@@ -98,7 +131,13 @@ class Avatar:
         if background is not None:
             check_tensor("background", background, "3", dtype="float")
             bg = background.to(device=dev, dtype=dt)[None]
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None],
+        opacities = g.opacities
+        if self.antialiased:
+            from meshsplat.render.projection import antialias_compensation
+
+            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None],
+                                                           int(width), int(height))[0]
+        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None],
                         int(width), int(height), backgrounds=bg, backend=backend)
         return AvatarRender(out.colors[0], out.alphas[0], out.meta)
 
@@ -111,6 +150,9 @@ class Avatar:
             "scale_mode": self.scale_mode,
             "sh_degree": self.sh_degree,
             "clamp_to_face": self.clamp_to_face,
+            "sh_frame": self.sh_frame,
+            "antialiased": self.antialiased,
+            "shading": None if self.shading is None else self.shading.state_dict(),
         }
 
     @classmethod
@@ -119,8 +161,17 @@ class Avatar:
 
         verts, faces, params = _checked_state(sd)
         mesh = TriMesh(verts.to(device), faces.to(device))
+        sh_frame, antialiased = sd.get("sh_frame", "world"), sd.get("antialiased", False)
+        if sh_frame not in SH_FRAMES:
+            raise MeshsplatError(f"avatar sh_frame: expected one of {list(SH_FRAMES)}, got {sh_frame!r}")
+        if not isinstance(antialiased, bool):
+            raise MeshsplatError(f"avatar antialiased: expected true/false, got {antialiased!r}")
+        try:
+            shading = Shading.from_state_dict(sd.get("shading"), device)
+        except (KeyError, AttributeError, TypeError, ValueError) as exc:
+            raise MeshsplatError(f"avatar shading state is invalid ({exc})") from None
         return cls(mesh, {k: v.to(device) for k, v in params.items()}, sd.get("scale_mode", "sqrt_area"),
-                   sd.get("clamp_to_face", False))
+                   sd.get("clamp_to_face", False), shading, sh_frame, antialiased)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
@@ -134,7 +185,7 @@ class Avatar:
 
     def __repr__(self) -> str:
         return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
-                f"sh_degree={self.sh_degree})")
+                f"sh_degree={self.sh_degree}, shading={self.shading!r})")
 
 
 def _checked_state(sd) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:

@@ -2,7 +2,12 @@
 
 ``mu = embed(pose, face, uv + duv, d)``, ``q = delta_q ⊗ normalize(rotation)``,
 ``scale = exp(log_scale) * scale_factor``, ``opacity = sigmoid(opacity_logit)``,
-``colour = max(0, 0.5 + SH(sh0, shN; view direction))``.
+``colour = max(0, 0.5 + SH(sh0, shN; view direction))``, times ``E(posed normal)`` when a
+``Shading`` is given (then the SH colour is the albedo; see ``meshsplat.gaussians.shading``).
+
+``sh_frame``: the frame the view direction is expressed in for SH degree > 0. ``"world"`` (the
+published code); ``"triangle"``: rotated back by the embedding triangle's pose rotation, i.e. into
+the canonical frame of the surface, so view-dependent colour turns with the surface.
 
 The position uses ``uv + duv`` so that the trainable offsets receive gradients; between walks
 ``uv + duv`` may leave the triangle (linear extrapolation of the face). ``clamp_to_face=True``
@@ -16,9 +21,11 @@ import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
-from meshsplat.mesh.quaternion import quat_multiply, quat_normalize
+from meshsplat.mesh.quaternion import quat_multiply, quat_normalize, quat_to_matrix
 
-__all__ = ["ComposedGaussians", "compose", "effective_uv", "project_uv_to_triangle", "eval_sh"]
+__all__ = ["ComposedGaussians", "compose", "effective_uv", "project_uv_to_triangle", "eval_sh", "SH_FRAMES"]
+
+SH_FRAMES = ("world", "triangle")
 
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -90,11 +97,13 @@ def eval_sh(sh0: torch.Tensor, shN: torch.Tensor | None, dirs: torch.Tensor | No
 
 
 def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area", *,
-            campos: torch.Tensor | None = None, clamp_to_face: bool = False) -> ComposedGaussians:
+            campos: torch.Tensor | None = None, clamp_to_face: bool = False, shading=None,
+            sh_frame: str = "world") -> ComposedGaussians:
     """Renderable Gaussians for one posed mesh (``pose``: a ``MeshPose``).
 
     campos [3]: camera centre for view-dependent colour (SH degree > 0); without it only the
-    DC band is used.
+    DC band is used. shading: a ``Shading`` (colour = SH colour * irradiance of the posed normal).
+    sh_frame: "world" | "triangle" (see the module docstring).
     """
     from meshsplat.embedding import embed, pose_frame
 
@@ -103,7 +112,9 @@ def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area"
         raise MeshsplatError(f"scale_mode: expected 'sqrt_area', 'area' or 'none', got {scale_mode!r}")
     face = params["face"]
     uv = effective_uv(params, clamp_to_face)
-    means, _ = embed(pose, face, uv, params["d"])
+    if sh_frame not in SH_FRAMES:
+        raise MeshsplatError(f"sh_frame: expected one of {SH_FRAMES}, got {sh_frame!r}")
+    means, normals = embed(pose, face, uv, params["d"])
     delta_q, scale_factor = pose_frame(pose, face, uv, scale_mode=scale_mode)
     quats = quat_normalize(quat_multiply(delta_q, quat_normalize(params["rotation"])))
     scales = params["log_scale"].exp() * scale_factor.reshape(-1, 1)
@@ -111,5 +122,9 @@ def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area"
     dirs = None
     if "shN" in params and campos is not None:
         dirs = means - campos.to(means).reshape(1, 3)
+        if sh_frame == "triangle":  # world -> canonical surface frame: R(delta_q)^T dirs
+            dirs = (quat_to_matrix(delta_q).transpose(-1, -2) @ dirs.unsqueeze(-1))[..., 0]
     colors = eval_sh(params["sh0"], params.get("shN"), dirs)
+    if shading is not None:
+        colors = shading.shade(colors, normals, quats, scales)
     return ComposedGaussians(means, quats, scales, opacities, colors)

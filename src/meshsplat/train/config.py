@@ -37,6 +37,15 @@ class ModelConfig:
     init_color: str = "image"  # "image": colour from the first training frame; "grey"
     init_knn: int = 3  # initial isotropic scale = mean distance to this many nearest neighbours
     freeze_embedding: bool = False  # ablation: (duv, d) not optimised, Gaussians stay at (face, uv, 0)
+    # Colour initialisation from several frames ("image" only): average over this many training frames,
+    # spread over the sequence, of the pixel each point projects to where it faces the camera inside the mask.
+    init_color_frames: int = 1
+    # Pose-dependent shading (meshsplat.gaussians.shading): "none" (paper: one colour per Gaussian) or "sh2":
+    # the SH colour is an albedo, times a learned 2nd-order SH irradiance of the Gaussian's posed normal.
+    shading: str = "none"
+    shading_normal: str = "phong"  # "phong": the embedding's interpolated normal | "axis": shortest Gaussian axis
+    sh_frame: str = "world"  # SH degree > 0: view direction in "world" (published code) or "triangle" frame
+    antialiased: bool = False  # opacity x sqrt(det S / det(S + 0.3 I)) per view (gsplat's "antialiased" mode)
 
 
 @dataclass
@@ -53,6 +62,7 @@ class OptimConfig:
     lr_opacity: float = 5e-2
     lr_scale: float = 5e-3
     lr_rotation: float = 1e-3
+    lr_shading: float = 5e-3  # the illumination coefficients (model.shading != "none")
     eps: float = 1e-15
 
 
@@ -67,6 +77,7 @@ class LossConfig:
     scale_ratio: float = 10.0  # T_r: thin when largest / smallest > this
     lambda_mse: float = 0.0
     lambda_ssim: float = 0.0
+    lambda_mask: float = 0.0  # L1 between the rendered alpha and the ground-truth mask (frames with masks)
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -138,6 +149,12 @@ class TrainConfig:
             (0 <= self.model.sh_degree <= 3, "model.sh_degree must be in 0..3"),
             (self.model.scale_mode in ("sqrt_area", "area", "none"), "model.scale_mode: sqrt_area|area|none"),
             (self.model.init_color in ("image", "grey"), "model.init_color: image|grey"),
+            (self.model.init_color_frames >= 1, "model.init_color_frames must be >= 1"),
+            (self.model.shading in ("none", "sh2"), "model.shading: none|sh2"),
+            (self.model.shading_normal in ("phong", "axis"), "model.shading_normal: phong|axis"),
+            (self.model.sh_frame in ("world", "triangle"), "model.sh_frame: world|triangle"),
+            (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
+            (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
             (self.optim.uv_lr_units in ("world", "barycentric"), "optim.uv_lr_units: world|barycentric"),
             (self.background in ("random", "white", "black"), "background: random|white|black"),

@@ -18,9 +18,13 @@ epoch, seeded); pose the canonical mesh with the frame's vertices; compose; rast
 random background (also blended into the ground truth through the mask); loss
 ``L1 + λ_lpips LPIPS + λ_scale L_scale (+ λ_mse MSE + λ_ssim D-SSIM)``, L_scale on the canonical
 (pose-independent) scales with T_s = ``loss.scale_max * extent``, measured in mesh extents (so an
-asset in centimetres and the same in metres train and log alike; extent ≈ 1 on the paper's bodies);
-backward; Adam steps;
-densification strategy; every ``walk.every`` iterations walking on triangles.
+asset in centimetres and the same in metres train and log alike; extent ≈ 1 on the paper's bodies)
+(+ λ_mask |alpha - mask|); backward; Adam steps; densification strategy; every ``walk.every``
+iterations walking on triangles.
+
+With ``model.shading`` on, the learned illumination (``Shading.coeffs``) has its own Adam
+(``lr_shading``), stored in checkpoints under ``shading_optimizer``; the avatar state carries the
+illumination itself.
 """
 from __future__ import annotations
 
@@ -39,6 +43,7 @@ from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import compose
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.io.checkpoint import remove_stray_tmp
+from meshsplat.gaussians.shading import Shading
 from meshsplat.train.config import TrainConfig
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.resume import (StopOnSignal, TrainingInterrupted, check_resume_config, load_resume_checkpoint,
@@ -48,7 +53,7 @@ from meshsplat.train.strategy import walk_embeddings
 __all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
 
 LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psnr", "n_gaussians",
-               "walked", "lr_duv", "lr_d", "time_s")
+               "walked", "lr_duv", "lr_d", "time_s", "mask")
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -116,6 +121,9 @@ class Trainer:
         self.elapsed = 0.0
         self.history: list[dict[str, float]] = []
         self.walked_total = 0  # embeddings that changed face (this session)
+        self.shading: Shading | None = None
+        self.shading_opt: torch.optim.Adam | None = None
+        self._last_alpha: torch.Tensor | None = None
 
         self.resume_notes: list[str] = []
         loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
@@ -142,12 +150,16 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.manual_seed_all(cfg.seed)
         gen = torch.Generator().manual_seed(cfg.seed)
-        colors_fn = self._first_image_colors if cfg.model.init_color == "image" else None
+        colors_fn = None
+        if cfg.model.init_color == "image":
+            colors_fn = self._first_image_colors if cfg.model.init_color_frames == 1 else self._multi_image_colors
         self.params = init_params(self.mesh, cfg.model.n_init, sh_degree=cfg.model.sh_degree,
                                   init_opacity=cfg.model.init_opacity, knn=cfg.model.init_knn,
                                   colors_fn=colors_fn, generator=gen,
                                   trainable_embedding=not cfg.model.freeze_embedding)
         self.optimizers = build_optimizers(self.params, self.lrs, cfg.optim.eps)
+        if cfg.model.shading != "none":
+            self._set_shading(Shading(normal=cfg.model.shading_normal, device=self.device))
         self.strategy_state = self.strategy.initialize_state(self.extent)
         self.order_gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.bg_gen = torch.Generator().manual_seed(cfg.seed + 2)
@@ -174,6 +186,41 @@ class Trainer:
             ok &= mask[iyc, ixc, 0] > 0.5
         rgb[ok] = image[iyc[ok], ixc[ok]].to(rgb)
         return rgb
+
+    def _set_shading(self, shading: Shading) -> None:
+        shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
+        self.shading = shading
+        self.shading_opt = torch.optim.Adam([shading.coeffs], lr=self.cfg.optim.lr_shading, eps=self.cfg.optim.eps)
+
+    @torch.no_grad()
+    def _multi_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """Mean colour of each embedded point over ``model.init_color_frames`` training frames spread over
+        the sequence, counting a frame where the point is inside the image and the mask and its Phong
+        normal faces the camera (grey where never seen)."""
+        from meshsplat.embedding import embed
+        from meshsplat.mesh import MeshPose
+
+        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
+        picks = sorted({self.train_ids[int(round(x))] for x in np.linspace(0, len(self.train_ids) - 1, k)})
+        acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
+        cnt = torch.zeros(face.shape[0], 1, dtype=uv.dtype, device=uv.device)
+        for idx in picks:
+            image, mask, K, viewmat, verts = self._frame(idx)
+            pts, nrm = embed(MeshPose.from_vertices(self.mesh, verts), face, uv, torch.zeros_like(uv[:, 0]))
+            campos = torch.linalg.inv(viewmat)[:3, 3]
+            cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
+            z = cam[:, 2]
+            pix = cam @ K.T
+            ix = (pix[:, 0] / z.clamp_min(1e-9)).floor().long()
+            iy = (pix[:, 1] / z.clamp_min(1e-9)).floor().long()
+            h, wd = image.shape[:2]
+            ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h) & (((campos - pts) * nrm).sum(-1) > 0)
+            ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
+            if mask is not None:
+                ok &= mask[iyc, ixc, 0] > 0.5
+            acc[ok] += image[iyc[ok], ixc[ok]].to(acc)
+            cnt[ok] += 1
+        return torch.where(cnt > 0, acc / cnt.clamp_min(1), torch.full_like(acc, 0.5))
 
     # ---- data ------------------------------------------------------------------------
     def _frame(self, idx: int) -> tuple:
@@ -226,9 +273,16 @@ class Trainer:
                 verts = self.refiner.vertices(row)
         pose = MeshPose.from_vertices(self.mesh, verts)
         campos = torch.linalg.inv(viewmat)[:3, 3] if "shN" in self.params else None
-        g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face)
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None], w, h,
+        g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face,
+                    shading=self.shading, sh_frame=self.cfg.model.sh_frame)
+        opacities = g.opacities
+        if self.cfg.model.antialiased:
+            from meshsplat.render.projection import antialias_compensation
+
+            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None], w, h)[0]
+        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None], w, h,
                         backgrounds=background[None], backend=self.cfg.backend)
+        self._last_alpha = out.alphas[0]
         gt = image if mask is None else image * mask + background * (1 - mask)
         return out.colors[0], gt, out.meta, g
 
@@ -252,12 +306,19 @@ class Trainer:
             thresh_scale=L.scale_max * self.extent, thresh_ratio=L.scale_ratio,
             lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale / self.extent,
             lambda_mse=L.lambda_mse, lambda_dssim=L.lambda_ssim, perceptual=self.perceptual)
+        if L.lambda_mask and mask is not None:
+            mask_l1 = (self._last_alpha - mask).abs().mean()
+            loss = loss + L.lambda_mask * mask_l1
+            parts["mask"] = mask_l1.detach()
         if not torch.isfinite(loss):
             raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
         loss.backward()
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if self.shading_opt is not None:
+            self.shading_opt.step()
+            self.shading_opt.zero_grad(set_to_none=True)
         if self.refiner is not None:
             self.refiner.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, it, meta,
@@ -273,7 +334,7 @@ class Trainer:
         row = {"iteration": it, "loss": float(loss.detach()), "psnr": p, "n_gaussians": num_gaussians(self.params),
                "walked": walked,
                "lr_duv": lrs.get("duv", 0.0), "lr_d": lrs.get("d", 0.0)}
-        for k in ("l1", "lpips", "scale", "mse", "dssim"):
+        for k in ("l1", "lpips", "scale", "mse", "dssim", "mask"):
             row[k] = float(parts[k]) if k in parts else 0.0
         row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
         return row
@@ -363,7 +424,9 @@ class Trainer:
 
     def avatar(self) -> Avatar:
         """The current model as an ``Avatar`` (shares the parameter tensors)."""
-        return Avatar(self.mesh, self.params, self.cfg.model.scale_mode, clamp_to_face=self.clamp_to_face)
+        return Avatar(self.mesh, self.params, self.cfg.model.scale_mode, clamp_to_face=self.clamp_to_face,
+                      shading=self.shading, sh_frame=self.cfg.model.sh_frame,
+                      antialiased=self.cfg.model.antialiased)
 
     def state_dict(self) -> dict[str, Any]:
         np_state = np.random.get_state()
@@ -389,6 +452,7 @@ class Trainer:
             "rng": rng,
             "data_order": {"order": self.order.clone(), "pos": self.order_pos},
             "pose_refine": None if self.refiner is None else self.refiner.state_dict(),
+            "shading_optimizer": None if self.shading_opt is None else self.shading_opt.state_dict(),
         }
 
     def save_checkpoint(self) -> Path:
@@ -431,6 +495,14 @@ class Trainer:
                 raise MeshsplatError("checkpoint: it was trained without pose refinement; resume without "
                                      "pose_refine.enabled or start a new run")
             self.refiner.load_state_dict(st["pose_refine"])
+        sh_state = av.get("shading")
+        if (sh_state is None) != (self.cfg.model.shading == "none"):
+            raise MeshsplatError("checkpoint: its shading does not match model.shading in the configuration; "
+                                 "resume with the run's own config.json or start a new run")
+        if sh_state is not None:
+            self._set_shading(Shading.from_state_dict(sh_state, dev))
+            if st.get("shading_optimizer"):
+                self.shading_opt.load_state_dict(st["shading_optimizer"])
         self.order = st["data_order"]["order"].clone()
         self.order_pos = int(st["data_order"]["pos"])
         self.iteration = int(st["iteration"])

@@ -138,7 +138,9 @@ def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
             "gaussian_rotation": rot.cpu().numpy(),
             "gaussian_scale": p["log_scale"].detach().double().exp().cpu().numpy(),
             "gaussian_opacity": torch.sigmoid(p["opacity_logit"].detach().double()).cpu().numpy(),
-            "gaussian_rgb": (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0).cpu().numpy(),
+            # shaded avatars (model.shading): the canonical pose's shading is baked in (the player does not shade)
+            "gaussian_rgb": (avatar.base_rgb().double() if getattr(avatar, "shading", None) is not None else
+                             (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0)).cpu().numpy(),
         }
 
 
