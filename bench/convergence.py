@@ -22,7 +22,9 @@ from pathlib import Path
 
 from _machine import machine_info, results_path
 
-DEFAULT_POINTS = (100, 200, 300, 500, 750, 1000, 1500, 2000, 3000, 5000, 7500, 10_000, 15_000, 20_000, 30_000)
+# Points avoid the paper schedule's opacity resets (every 3000 iterations up to 15,000), right after which
+# the avatar is nearly transparent; ``since_reset`` records how long ago the last one was.
+DEFAULT_POINTS = (100, 200, 300, 500, 750, 1000, 1500, 2000, 2900, 5000, 7500, 10_000, 14_500, 20_000, 30_000)
 
 
 def _cpu_s() -> float:
@@ -137,7 +139,10 @@ def main() -> None:
         if target in done:
             continue
         splits = measure(trainer, ds, args.frames)
+        st = cfg.strategy
+        resets = [r for r in range(st.reset_every, min(trainer.iteration, st.refine_stop) + 1, st.reset_every)]
         doc["points"].append({"iteration": trainer.iteration, "cpu_s": cpu_train, "wall_s": wall_train,
+                              "since_reset": trainer.iteration - resets[-1] if resets else None,
                               "gaussians": trainer.num_gaussians, "splits": splits,
                               "load_avg_1m": os.getloadavg()[0]})
         doc["cpu_s_total"], doc["wall_s_total"] = cpu_train, wall_train
