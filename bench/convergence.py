@@ -47,7 +47,7 @@ def plot(doc: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    pts = doc["points"]
+    pts = [p for p in doc["points"] if p.get("since_reset") != 0]  # right after an opacity reset: not shown
     splits = sorted({s for p in pts for s in p["splits"]})
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for j, s in enumerate(splits):
