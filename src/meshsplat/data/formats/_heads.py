@@ -19,7 +19,7 @@ from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
+__all__ = ["merge_transform_frames", "read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
            "flame_model", "fit_coeffs", "pose_model", "flame_driver_record", "check_in_front",
            "mask_choice", "flame_rows", "frame_pixels", "write_json", "save_png", "MASK_MODES", "IMAGE_EXTS"]
 
@@ -27,6 +27,36 @@ MASK_MODES = ("auto", "alpha", "folder", "none")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test frames
 SMALL_TEST_FRACTION = 0.2  # captures with <= 350 frames: the last 20% are test frames
+
+
+def merge_transform_frames(files, problems: Problems) -> tuple[list[tuple[dict, dict, str]], dict[str, list[int]], list[dict]]:
+    """Frames of instant-ngp style ``transforms*.json`` files ``[(split | None, path)]``, each frame once.
+
+    Returns ``(frames, splits, tops)``: ``frames`` as ``(record, its file's top level, file name)`` in
+    first-seen order (a frame is identified by its ``file_path``), ``splits`` name -> frame indices,
+    ``tops`` the top-level objects of the files read. A file without a ``frames`` list is a problem.
+    """
+    frames: list[tuple[dict, dict, str]] = []
+    index: dict[str, int] = {}
+    splits: dict[str, list[int]] = {}
+    tops: list[dict] = []
+    for split, path in files:
+        data = read_json(path)
+        items = data.get("frames")
+        if not isinstance(items, list):
+            problems.add(path.name, "needs a 'frames' list")
+            continue
+        if split is not None:
+            splits[split] = []
+        for fr in items:
+            key = str(fr.get("file_path")) if isinstance(fr, dict) else f"{path.name}#{len(frames)}"
+            if key not in index:
+                index[key] = len(frames)
+                frames.append((fr, data, path.name))
+            if split is not None:
+                splits[split].append(index[key])
+        tops.append(data)
+    return frames, splits, tops
 
 
 def read_json(path: Path) -> dict:

@@ -17,7 +17,7 @@ import numpy as np
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    check_in_front, find_file, frame_pixels, has_alpha, mask_choice, obj_vertices, prepare_out, read_json,
+    check_in_front, find_file, frame_pixels, has_alpha, mask_choice, merge_transform_frames, obj_vertices, prepare_out,
     save_png, tail_split, write_json)
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj, write_obj
@@ -87,22 +87,8 @@ def read(root, model_dir=None, camera_convention: str = "auto", mask: str = "aut
     if not files:
         raise MeshsplatError(f"{root}: no transforms.json or transforms_train.json")
     problems = Problems(root)
-    items, index, splits = [], {}, {}
-    for split, path in files:
-        data = read_json(path)
-        frs = data.get("frames")
-        if not isinstance(frs, list):
-            problems.add(path.name, "needs a 'frames' list")
-            continue
-        if split is not None:
-            splits[split] = []
-        for fr in frs:
-            key = str(fr.get("file_path")) if isinstance(fr, dict) else f"{path.name}#{len(items)}"
-            if key not in index:
-                index[key] = len(items)
-                items.append((fr, data))
-            if split is not None:
-                splits[split].append(index[key])
+    merged, splits, _ = merge_transform_frames(files, problems)
+    items = [(fr, top) for fr, top, _ in merged]
     has_splits = any(s is not None for s, _ in files)
     # capture order (INSTA lists frames as its worker pool finishes them): natural order of the image path
     order = sorted(range(len(items)), key=lambda j: _natural(str(items[j][0].get("file_path", ""))

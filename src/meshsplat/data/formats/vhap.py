@@ -17,7 +17,7 @@ from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
     check_in_front, find_file, fit_coeffs, flame_driver_record, flame_model, flame_rows, frame_pixels,
-    has_alpha, mask_choice, pose_model, prepare_out, read_json, save_png, write_json)
+    has_alpha, mask_choice, merge_transform_frames, pose_model, prepare_out, save_png, write_json)
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]
@@ -67,24 +67,7 @@ def _load_frames(root: Path, problems: Problems):
     if (root / "transforms.json").is_file():  # every frame, in capture order; no split of its own
         files.append((None if split_files else "train", root / "transforms.json"))
     files += list(split_files.items())
-    frames, index, splits, tops = [], {}, {}, []
-    for split, path in files:
-        data = read_json(path)
-        items = data.get("frames")
-        if not isinstance(items, list):
-            problems.add(path.name, "needs a 'frames' list")
-            continue
-        if split is not None:
-            splits[split] = []
-        for fr in items:
-            key = str(fr.get("file_path")) if isinstance(fr, dict) else f"{path.name}#{len(frames)}"
-            if key not in index:
-                index[key] = len(frames)
-                frames.append((fr, data, path.name))
-            if split is not None:
-                splits[split].append(index[key])
-        tops.append(data)
-    return frames, splits, tops
+    return merge_transform_frames(files, problems)
 
 
 def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
