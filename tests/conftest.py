@@ -13,7 +13,8 @@ os.environ.setdefault("HYPOTHESIS_PROFILE", "ci")
 try:
     from hypothesis import HealthCheck, settings
 
-    settings.register_profile("ci", deadline=None, max_examples=40,
+    # under CI (CI=true) the examples are derandomized so a run is reproducible; locally they vary
+    settings.register_profile("ci", deadline=None, max_examples=40, derandomize=bool(os.environ.get("CI")),
                               suppress_health_check=[HealthCheck.too_slow])
     settings.register_profile("thorough", deadline=None, max_examples=500)
     settings.load_profile(os.environ["HYPOTHESIS_PROFILE"])

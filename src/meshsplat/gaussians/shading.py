@@ -88,10 +88,16 @@ class Shading:
     def from_state_dict(cls, sd: dict[str, Any] | None, device="cpu") -> "Shading | None":
         if sd is None:
             return None
-        try:
-            return cls(torch.as_tensor(sd["coeffs"], dtype=torch.float32).to(device), str(sd["normal"]))
-        except (KeyError, TypeError) as exc:
-            raise MeshsplatError(f"shading state is incomplete or malformed ({exc})") from None
+        if not isinstance(sd, dict) or "coeffs" not in sd or not isinstance(sd.get("normal"), str):
+            raise MeshsplatError("shading state: expected a dict with coeffs [9,3] and normal (phong|axis)")
+        c = sd["coeffs"]
+        try:  # a tensor (checkpoint) or nested lists (embedding JSON)
+            c = torch.as_tensor(c.detach().cpu() if isinstance(c, torch.Tensor) else c, dtype=torch.float32)
+        except (TypeError, ValueError, RuntimeError):
+            raise MeshsplatError(f"shading state: coeffs must be numbers [9,3], got {type(c).__name__}") from None
+        if tuple(c.shape) != (9, 3) or not bool(torch.isfinite(c).all()):
+            raise MeshsplatError(f"shading state: coeffs must be finite numbers [9,3], got shape {list(c.shape)}")
+        return cls(c.to(device), sd["normal"])
 
     def __repr__(self) -> str:
         return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()})"
