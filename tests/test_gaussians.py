@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import (
-    SH_C0, Avatar, check_params, compose, eval_sh, init_params, knn_scales, make_params, project_uv_to_triangle,
-    sh_degree_of,
+    SH_C0, Avatar, check_params, compose, eval_sh, init_params, knn_scales, make_params, sh_degree_of,
 )
+from meshsplat.embedding import project_uv_to_triangle
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize
 

@@ -199,3 +199,15 @@ def test_integer_principal_point_shift_translates_image(shift_x, shift_y, seed):
     ys0, xs0 = slice(max(-shift_y, 0), H + min(-shift_y, 0)), slice(max(-shift_x, 0), W + min(-shift_x, 0))
     # splats near the border differ only through the (shift-dependent) off-screen Jacobian clamp
     torch.testing.assert_close(moved[ys, xs][8:-8, 8:-8], base[ys0, xs0][8:-8, 8:-8], atol=1e-9, rtol=0)
+
+
+def test_backends_take_keywords_only():
+    """The front door forwards by name: a reordered backend signature cannot misroute arguments."""
+    import inspect
+
+    from meshsplat.render.backends.gsplat_cuda import rasterize_gsplat
+    from meshsplat.render.backends.torch_ref import rasterize_torch
+
+    for fn in (rasterize_torch, rasterize_gsplat):
+        params = inspect.signature(fn).parameters.values()
+        assert all(p.kind is inspect.Parameter.KEYWORD_ONLY for p in params), fn.__name__

@@ -412,7 +412,7 @@ def render_animation(avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
     Writes ``out_dir/frames/frame_00000.png ...`` and ``out_dir/<name>.mp4`` (PNG frames are kept as
     the fallback when no ffmpeg is available). ``background``: ``[3]`` in [0, 1] or white/black.
     """
-    from meshsplat.eval.evaluate import background_color
+    from meshsplat.render.background import background_color
     from meshsplat.io.video import to_uint8, write_png_frames, write_video
 
     if fps <= 0:

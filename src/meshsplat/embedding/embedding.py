@@ -1,26 +1,21 @@
 """Place embedded points on a posed mesh: Phong point + displacement, pose rotation and scale.
 
-Barycentric convention: for ``faces[k] = (a, b, c)``, ``u`` weights ``a``, ``v`` weights ``b``
-and ``w = 1 - u - v`` weights ``c``. Callers pass ``uv + duv`` so the trainable offsets get gradients.
+Barycentric convention: ``meshsplat.embedding.barycentric``. Callers pass ``uv + duv`` so the trainable offsets get gradients.
 """
 from __future__ import annotations
 
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.embedding.barycentric import barycentric_weights, interpolate
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import safe_normalize
 from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import quat_normalize
 
-__all__ = ["embed", "pose_frame", "barycentric_weights", "SCALE_MODES"]
+__all__ = ["embed", "pose_frame", "SCALE_MODES"]
 
 SCALE_MODES = ("sqrt_area", "area", "none")
-
-
-def barycentric_weights(uv: torch.Tensor) -> torch.Tensor:
-    """``uv [N,2]`` -> ``(u, v, 1-u-v) [N,3]``."""
-    return torch.cat([uv, 1.0 - uv.sum(-1, keepdim=True)], dim=-1)
 
 
 def _check(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor) -> dict:
@@ -34,12 +29,6 @@ def _check(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor) -> dict:
     return dims
 
 
-def _interp(values: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Barycentric blend of per-vertex ``values [V,C]`` -> ``[N,C]``."""
-    corners = values[faces[face]]                   # [N,3,C]
-    return (w.unsqueeze(-1).to(corners.dtype) * corners).sum(-2)
-
-
 def embed(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Posed means ``mu = P + d*n`` ``[N,3]`` and Phong normals ``n`` ``[N,3]``.
 
@@ -48,8 +37,8 @@ def embed(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor, d: torch.Tensor)
     dims = _check(pose, face, uv)
     check_tensor("d", d, "N", dims, dtype="float")
     w = barycentric_weights(uv)
-    p = _interp(pose.verts, pose.faces, face, w)
-    n = safe_normalize(_interp(pose.vertex_normals, pose.faces, face, w))
+    p = interpolate(pose.verts, pose.faces, face, w)
+    n = safe_normalize(interpolate(pose.vertex_normals, pose.faces, face, w))
     return p + d.unsqueeze(-1) * n, n
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.embedding.barycentric import barycentric_weights
 from meshsplat.embedding.walk import walk_on_triangles
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import face_corners, safe_normalize, vertex_normals
@@ -89,7 +90,7 @@ def _candidates(points, verts, faces, k, n_starts, chunk):
 
 def _residual(verts, vn, faces, f, uv, d, x):
     fc = faces[f]
-    w = torch.cat([uv, 1 - uv.sum(-1, keepdim=True)], -1).unsqueeze(-1)
+    w = barycentric_weights(uv).unsqueeze(-1)
     pv, nv = verts[fc], vn[fc]                                  # [M,3,3]
     p = (w * pv).sum(1)
     nint = (w * nv).sum(1)

@@ -23,27 +23,10 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.render.background import background_color, composite
 from meshsplat.eval.run import load_run, open_run_dataset, run_dataset_path
 
-__all__ = ["evaluate_run", "evaluate_avatar", "background_color", "BACKGROUNDS"]
-
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-
-
-def background_color(background: str | Sequence[float]) -> torch.Tensor:
-    """``"white"``, ``"black"`` or three floats in [0, 1] -> ``[3]`` float32."""
-    if isinstance(background, str):
-        if background in BACKGROUNDS:
-            return torch.tensor(BACKGROUNDS[background])
-        try:
-            background = [float(x) for x in background.split(",")]
-        except ValueError:
-            raise MeshsplatError(f"background: expected white, black or R,G,B in [0,1], got {background!r}") from None
-    bg = torch.as_tensor(background, dtype=torch.float32).reshape(-1)
-    if bg.numel() != 3 or not bool(torch.isfinite(bg).all()) or bool((bg < 0).any() | (bg > 1).any()):
-        raise MeshsplatError(f"background: expected three values in [0, 1], got {bg.tolist()}")
-    return bg
-
+__all__ = ["evaluate_run", "evaluate_avatar"]
 
 def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
@@ -121,10 +104,7 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
             _sync(dev)
             ms = (time.perf_counter() - t0) * 1000.0
             img = out.image.float().clamp(0, 1)
-            gt = fr.image.to(dev)
-            if fr.mask is not None:
-                m = fr.mask.to(dev)
-                gt = gt * m + fbg * (1 - m)
+            gt = composite(fr.image.to(dev), None if fr.mask is None else fr.mask.to(dev), fbg)
             rec = {"index": int(i), "name": fr.name, "camera_id": fr.camera_id, "clip": fr.clip, "time": fr.time,
                    "psnr": _finite(float(psnr(img, gt))), "ssim": float(ssim(img, gt)),
                    "lpips": float(lpips(img, gt, net=lpips_net)) if use_lpips else None,

@@ -19,11 +19,12 @@ from dataclasses import dataclass
 
 import torch
 
+from meshsplat.embedding import embed, pose_frame, project_uv_to_triangle
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize, quat_to_matrix
 
-__all__ = ["ComposedGaussians", "compose", "effective_uv", "project_uv_to_triangle", "eval_sh", "SH_FRAMES"]
+__all__ = ["ComposedGaussians", "compose", "effective_uv", "eval_sh", "SH_FRAMES"]
 
 SH_FRAMES = ("world", "triangle")
 
@@ -47,22 +48,6 @@ class ComposedGaussians:
     def detach(self) -> "ComposedGaussians":
         return ComposedGaussians(*(t.detach() for t in (self.means, self.quats, self.scales,
                                                          self.opacities, self.colors)))
-
-
-def project_uv_to_triangle(uv: torch.Tensor) -> torch.Tensor:
-    """[N,2] barycentric (u, v) -> nearest point (in (u,v,w) space) of the triangle u,v,w >= 0.
-
-    Euclidean projection onto the probability simplex of (u, v, 1-u-v); differentiable almost
-    everywhere (zero gradient along clipped directions).
-    """
-    bary = torch.cat([uv, 1 - uv.sum(-1, keepdim=True)], dim=-1)
-    srt, _ = bary.sort(dim=-1, descending=True)
-    css = srt.cumsum(-1) - 1
-    ks = torch.arange(1, 4, device=uv.device, dtype=uv.dtype)
-    cond = srt - css / ks > 0
-    rho = cond.to(torch.int64).cumsum(-1).argmax(-1, keepdim=True)  # last index where cond holds
-    theta = css.gather(-1, rho) / (rho + 1).to(uv.dtype)
-    return (bary - theta).clamp_min(0)[..., :2]
 
 
 def effective_uv(params: dict[str, torch.Tensor], clamp_to_face: bool = False) -> torch.Tensor:
@@ -105,8 +90,6 @@ def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area"
     DC band is used. shading: a ``Shading`` (colour = SH colour * irradiance of the posed normal).
     sh_frame: "world" | "triangle" (see the module docstring).
     """
-    from meshsplat.embedding import embed, pose_frame
-
     check_params(params)
     if scale_mode not in ("sqrt_area", "area", "none"):
         raise MeshsplatError(f"scale_mode: expected 'sqrt_area', 'area' or 'none', got {scale_mode!r}")

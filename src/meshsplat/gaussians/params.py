@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.embedding import sample_surface, surface_points
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
@@ -100,16 +101,13 @@ def init_params(mesh, n: int = 10_000, *, sh_degree: int = 0, init_opacity: floa
     colour grey, or ``colors_fn(face [N], uv [N,2]) -> [N,3]`` in [0,1] when given (e.g. the
     colour of the embedded point projected into a first training image).
     """
-    from meshsplat.embedding import sample_surface
-
     if n < 1:
         raise MeshsplatError(f"n: expected at least 1 Gaussian, got {n}")
     verts, faces = mesh.vertices, mesh.faces
     face, uv = sample_surface(verts, faces, n, generator=generator)
     face = face.to(verts.device).long()
     uv = uv.to(verts)
-    a, b, c = (verts[faces[face, j]] for j in range(3))
-    means = uv[:, :1] * a + uv[:, 1:] * b + (1 - uv.sum(-1, keepdim=True)) * c
+    means = surface_points(verts, faces, face, uv)
     scale = knn_scales(means, knn)
     rgb = torch.full((n, 3), 0.5, dtype=verts.dtype, device=verts.device)
     if colors_fn is not None:

@@ -5,7 +5,9 @@
 from __future__ import annotations
 
 from meshsplat.render.api import BACKENDS, RENDER_MODES, rasterize
+from meshsplat.render.background import BACKGROUNDS, background_color, composite
 from meshsplat.render.projection import Projection, project_gaussians
 from meshsplat.render.types import RenderOutput
 
-__all__ = ["rasterize", "RenderOutput", "RENDER_MODES", "BACKENDS", "project_gaussians", "Projection"]
+__all__ = ["rasterize", "RenderOutput", "RENDER_MODES", "BACKENDS", "project_gaussians", "Projection",
+           "BACKGROUNDS", "background_color", "composite"]

@@ -5,6 +5,9 @@ import torch
 
 from meshsplat._checks import check_same_device, check_tensor
 from meshsplat.errors import MeshsplatError
+from meshsplat.render.backends import gsplat_available
+from meshsplat.render.backends.gsplat_cuda import rasterize_gsplat
+from meshsplat.render.backends.torch_ref import rasterize_torch
 from meshsplat.render.types import RenderOutput
 
 __all__ = ["rasterize", "RENDER_MODES", "BACKENDS"]
@@ -51,8 +54,6 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
 
 
 def _pick_backend(backend: str, device: torch.device) -> str:
-    from meshsplat.render.backends import gsplat_available
-
     if backend == "torch":
         return "torch"
     if backend == "gsplat":
@@ -99,15 +100,12 @@ def rasterize(
     _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
               near_plane, far_plane, backgrounds, render_mode, backend)
     chosen = _pick_backend(backend, means.device)
-    args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            near_plane, far_plane, backgrounds, render_mode)
-    if chosen == "gsplat":
-        from meshsplat.render.backends.gsplat_cuda import rasterize_gsplat
-
-        return rasterize_gsplat(*args)
-    from meshsplat.render.backends.torch_ref import rasterize_torch
-
+    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats,
+                Ks=Ks, width=width, height=height, near_plane=near_plane, far_plane=far_plane,
+                backgrounds=backgrounds, render_mode=render_mode)
+    if chosen == "gsplat":  # backend_options tune the torch backend only
+        return rasterize_gsplat(**args)
     unknown = set(backend_options) - set(TORCH_OPTIONS)
     if unknown:
         raise MeshsplatError(f"unknown backend option(s) {sorted(unknown)}; known: {', '.join(TORCH_OPTIONS)}")
-    return rasterize_torch(*args, **backend_options)
+    return rasterize_torch(**args, **backend_options)

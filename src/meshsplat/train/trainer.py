@@ -39,11 +39,12 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians.avatar import Avatar
-from meshsplat.gaussians.compose import compose
+from meshsplat.embedding import surface_points
+from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.gaussians.shading import Shading
+from meshsplat.render.background import background_color, composite
 from meshsplat.train.config import TrainConfig
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.resume import (StopOnSignal, TrainingInterrupted, check_resume_config, load_resume_checkpoint,
@@ -123,7 +124,6 @@ class Trainer:
         self.walked_total = 0  # embeddings that changed face (this session)
         self.shading: Shading | None = None
         self.shading_opt: torch.optim.Adam | None = None
-        self._last_alpha: torch.Tensor | None = None
 
         self.resume_notes: list[str] = []
         loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
@@ -169,9 +169,7 @@ class Trainer:
     def _first_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         """Colour of each embedded point seen in the first training frame (grey where unseen)."""
         image, mask, K, viewmat, verts = self._frame(self.train_ids[0])
-        tri = verts[self.mesh.faces[face]]  # [N,3,3]
-        w = torch.cat([uv, 1 - uv.sum(-1, keepdim=True)], -1)
-        pts = (w[..., None] * tri).sum(1)
+        pts = surface_points(verts, self.mesh.faces, face, uv)
         cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
         z = cam[:, 2]
         pix = cam @ K.T
@@ -247,12 +245,11 @@ class Trainer:
         return idx
 
     def _background(self) -> torch.Tensor:
+        """This iteration's background [3]: random per iteration (seeded), or the configured colour."""
         if self.cfg.background == "random":
             bg = torch.rand(3, generator=self.bg_gen)
-        elif self.cfg.background == "white":
-            bg = torch.ones(3)
         else:
-            bg = torch.zeros(3)
+            bg = background_color(self.cfg.background)
         return bg.to(self.device)
 
     # ---- one iteration ---------------------------------------------------------------
@@ -260,31 +257,17 @@ class Trainer:
     def clamp_to_face(self) -> bool:
         return not self.cfg.walk.enabled
 
-    def render_frame(self, idx: int, background: torch.Tensor, campos_needed: bool | None = None):
-        """Render training frame ``idx``: returns (render [H,W,3], gt [H,W,3], meta, composed)."""
-        from meshsplat.mesh import MeshPose
-        from meshsplat.render import rasterize
-
+    def render_frame(self, idx: int, background: torch.Tensor) -> tuple[AvatarRender, torch.Tensor]:
+        """Render training frame ``idx`` on ``background [3]`` through ``Avatar.render`` (pose-refined
+        vertices when refining). Returns (render, ground truth [H,W,3] composited on the same background)."""
         image, mask, K, viewmat, verts = self._frame(idx)
-        h, w = image.shape[:2]
         if self.refiner is not None:
             row = int(self.dataset.frame_info(idx)["mesh"])
             if self.refiner.refines(row):
                 verts = self.refiner.vertices(row)
-        pose = MeshPose.from_vertices(self.mesh, verts)
-        campos = torch.linalg.inv(viewmat)[:3, 3] if "shN" in self.params else None
-        g = compose(self.params, pose, self.cfg.model.scale_mode, campos=campos, clamp_to_face=self.clamp_to_face,
-                    shading=self.shading, sh_frame=self.cfg.model.sh_frame)
-        opacities = g.opacities
-        if self.cfg.model.antialiased:
-            from meshsplat.render.projection import antialias_compensation
-
-            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None], w, h)[0]
-        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None], w, h,
-                        backgrounds=background[None], backend=self.cfg.backend)
-        self._last_alpha = out.alphas[0]
-        gt = image if mask is None else image * mask + background * (1 - mask)
-        return out.colors[0], gt, out.meta, g
+        out = self.avatar().render(verts, viewmat, K, image.shape[1], image.shape[0], background,
+                                   backend=self.cfg.backend)
+        return out, composite(image, mask, background)
 
     def step(self) -> dict[str, float]:
         """Run one training iteration; returns its logged values."""
@@ -298,7 +281,8 @@ class Trainer:
         idx = self._next_index()
         _, mask, _, _, _ = self._frame(idx)
         bg = self._background() if mask is not None else torch.zeros(3, device=self.device)
-        render, gt, meta, g = self.render_frame(idx, bg)
+        out, gt = self.render_frame(idx, bg)
+        render, meta = out.image, out.meta
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
         L = cfg.loss
         loss, parts = avatar_loss(
@@ -307,7 +291,7 @@ class Trainer:
             lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale / self.extent,
             lambda_mse=L.lambda_mse, lambda_dssim=L.lambda_ssim, perceptual=self.perceptual)
         if L.lambda_mask and mask is not None:
-            mask_l1 = (self._last_alpha - mask).abs().mean()
+            mask_l1 = (out.alpha - mask).abs().mean()
             loss = loss + L.lambda_mask * mask_l1
             parts["mask"] = mask_l1.detach()
         if not torch.isfinite(loss):
@@ -414,8 +398,8 @@ class Trainer:
 
         idx = self.train_ids[0] if idx is None else idx
         bg = torch.ones(3, device=self.device)
-        render, gt, _, _ = self.render_frame(idx, bg)
-        pair = torch.cat([render.clamp(0, 1), gt], dim=1)
+        out, gt = self.render_frame(idx, bg)
+        pair = torch.cat([out.image.clamp(0, 1), gt], dim=1)
         img = (pair.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         self.preview_dir.mkdir(parents=True, exist_ok=True)
         path = self.preview_dir / f"preview_{self.iteration:06d}.png"

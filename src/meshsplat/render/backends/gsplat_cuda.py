@@ -23,6 +23,7 @@ def _import_gsplat():
 
 
 def rasterize_gsplat(
+    *,
     means: torch.Tensor,
     quats: torch.Tensor,
     scales: torch.Tensor,

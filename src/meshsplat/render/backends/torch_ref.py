@@ -324,6 +324,7 @@ def _composite_autograd(means2d, conics, opacities, colors, bg, plan: _Plan):
 
 
 def rasterize_torch(
+    *,
     means: torch.Tensor,
     quats: torch.Tensor,
     scales: torch.Tensor,

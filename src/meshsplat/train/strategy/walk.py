@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from meshsplat.gaussians.compose import project_uv_to_triangle
+from meshsplat.embedding import project_uv_to_triangle, walk_on_triangles
 from meshsplat.train.strategy.ops import zero_moments
 
 __all__ = ["walk_embeddings"]
@@ -25,8 +25,6 @@ def walk_embeddings(params: dict[str, torch.Tensor], optimizers: dict[str, torch
     """Fold ``duv`` into (face, uv); returns ``changed [N] bool`` (faces that changed)."""
     face, uv, duv = params["face"], params["uv"], params["duv"]
     if walk:
-        from meshsplat.embedding import walk_on_triangles
-
         verts = mesh.vertices.to(device=uv.device, dtype=uv.dtype)
         res = walk_on_triangles(mesh, verts, face, uv, duv.detach(), mode=mode, max_crossings=max_crossings)
         changed = res.changed.to(face.device)
