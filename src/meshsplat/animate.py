@@ -27,7 +27,13 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat.camera import Camera
 from meshsplat.data.source_map import read_source_map, rest_mismatch
+from meshsplat.drivers import BlendshapeDriver, GltfDriver
+from meshsplat.drivers.body_models import BodyModel, ParametricDriver
+from meshsplat.drivers.mesh_sequence import read_mesh_sequence
+from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.video import to_uint8, write_png_frames, write_video
+from meshsplat.render.background import background_color
 
 __all__ = [
     "AnimationResult", "render_animation", "motion_animation",
@@ -142,8 +148,6 @@ def avatar_gltf_driver(avatar, path, clip: str | None = None, fps: float = 25.0,
     ``to_world`` turns the driver's frames into the dataset's axes (None when no turn is needed).
     Otherwise the glTF mesh must be the avatar's canonical mesh (same vertex count) or contain its
     vertices at rest (see :func:`match_vertices`)."""
-    from meshsplat.drivers import GltfDriver
-
     path = Path(path)
     if not path.is_file():
         raise MeshsplatError(f"glTF file not found: {path}")
@@ -207,8 +211,6 @@ def _is_source_asset(rest: torch.Tensor, source_map) -> bool:
 def _read_sequence(vertices) -> tuple[object, str]:
     """``(array-like [T,V,3], description)`` from an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
     or a folder of OBJ/PLY frames."""
-    from meshsplat.drivers.mesh_sequence import read_mesh_sequence
-
     if not isinstance(vertices, (str, Path)):
         return vertices, "vertex sequence"
     p = Path(vertices)
@@ -293,9 +295,6 @@ def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | 
     A capture with per-frame meshes only (INSTA) on a standard topology (FLAME 5023, SMPL 6890, SMPL-X
     10475 vertices) is posed by that model with its canonical mesh as the per-vertex offset.
     """
-    from meshsplat.drivers.body_models import BodyModel, ParametricDriver
-    from meshsplat.drivers.motion import load_motion, reenact
-
     info, subject = dataset.driver_info, dataset.driver_params
     if info is None or subject is None:
         # per-frame meshes only (INSTA): a standard topology is posed with the capture's rest mesh as offsets
@@ -372,8 +371,6 @@ def _read_weights(weights, names: list[str]) -> np.ndarray:
 def blendshape_animation(avatar, model, weights, rotations=None, translations=None) -> list[torch.Tensor]:
     """Frames of a blend-shape model (``.npz`` path, None for the shared ICT head, or a
     ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
-    from meshsplat.drivers import BlendshapeDriver
-
     drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
     w = _read_weights(weights, drv.names)
     v_avatar = avatar.mesh.num_vertices
@@ -412,9 +409,6 @@ def render_animation(avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
     Writes ``out_dir/frames/frame_00000.png ...`` and ``out_dir/<name>.mp4`` (PNG frames are kept as
     the fallback when no ffmpeg is available). ``background``: ``[3]`` in [0, 1] or white/black.
     """
-    from meshsplat.render.background import background_color
-    from meshsplat.io.video import to_uint8, write_png_frames, write_video
-
     if fps <= 0:
         raise MeshsplatError(f"fps: expected > 0, got {fps}")
     if not (write_pngs or write_mp4):

@@ -13,7 +13,15 @@ from pathlib import Path
 
 import torch
 
+from meshsplat.embedding import embed
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.avatar import Avatar
+from meshsplat.gaussians.compose import effective_uv
+from meshsplat.gaussians.params import make_params, rgb_to_sh0
+from meshsplat.gaussians.shading import Shading
+from meshsplat.io import read_embedding_json, read_obj, write_embedding_json, write_gaussian_ply, write_obj
+from meshsplat.io.splat_formats import write_gltf_splats, write_splat, write_spz
+from meshsplat.mesh import TriMesh
 
 __all__ = ["ExportResult", "export_avatar", "load_exported_avatar", "canonical_gaussians",
            "PLY_NAME", "EMBEDDING_NAME", "MESH_NAME", "SPLAT_FORMATS"]
@@ -77,9 +85,6 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
 
 def canonical_gaussians(avatar):
     """Composed Gaussians and Phong normals ``[N,3]`` of ``avatar`` in its canonical pose (no SH view term)."""
-    from meshsplat.embedding import embed
-    from meshsplat.gaussians.compose import effective_uv
-
     v = avatar.mesh.vertices
     with torch.no_grad():
         # campos only feeds the view-dependent colour, which the PLY does not store (it stores SH)
@@ -103,11 +108,6 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
                   formats=("ply",)) -> ExportResult:
     """Write the canonical-pose splats in ``formats`` (any of ``SPLAT_FORMATS``: ply, splat, spz, gltf),
     ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
-    from meshsplat.gaussians.avatar import Avatar
-    from meshsplat.gaussians.compose import effective_uv
-    from meshsplat.io import write_embedding_json, write_gaussian_ply, write_obj
-    from meshsplat.io.splat_formats import write_gltf_splats, write_splat, write_spz
-
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
     formats = list(dict.fromkeys(formats))
@@ -120,7 +120,6 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     g, normals = canonical_gaussians(avatar)
     ply_sh0 = p["sh0"]
     if avatar.shading is not None:  # the static PLY gets the canonical pose's shading baked into its DC colour
-        from meshsplat.gaussians.params import rgb_to_sh0
 
         ply_sh0 = rgb_to_sh0(avatar.base_rgb())
     splats: dict[str, Path] = {}
@@ -168,11 +167,6 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
 
 def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu"):
     """Avatar from an export folder (or its ``embedding.json``), mesh from ``canonical_mesh.obj``."""
-    from meshsplat.gaussians.avatar import Avatar
-    from meshsplat.gaussians.params import make_params
-    from meshsplat.io import read_embedding_json, read_obj
-    from meshsplat.mesh import TriMesh
-
     path = Path(path)
     emb_path = path / EMBEDDING_NAME if path.is_dir() else path
     if not emb_path.is_file():
@@ -185,7 +179,6 @@ def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu
     params = make_params(a["face"], a["uv"], d=a["d"], log_scale=a["log_scale"], rotation=a["rotation"],
                          opacity_logit=a["opacity_logit"], sh0=a["sh0"],
                          shN=shN if shN is not None and shN.shape[1] > 0 else None)
-    from meshsplat.gaussians.shading import Shading
 
     shading = Shading.from_state_dict(meta.get("shading"), device)
     return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False, shading=shading,

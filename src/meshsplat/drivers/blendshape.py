@@ -14,6 +14,7 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat.drivers.base import as_faces, as_vertices
 from meshsplat.errors import MeshsplatError
+from meshsplat.paths import asset
 
 __all__ = ["BlendshapeDriver", "axis_angle_to_matrix"]
 
@@ -55,8 +56,6 @@ class BlendshapeDriver:
     def from_npz(cls, path=None, **sequence) -> "BlendshapeDriver":
         """Load the ICT FaceKit npz (default: shared asset ``ict_facekit/ict_face_arkit53.npz``)."""
         if path is None:
-            from meshsplat.paths import asset
-
             path = asset("ict_facekit/ict_face_arkit53.npz")
         p = Path(path)
         if not p.is_file():

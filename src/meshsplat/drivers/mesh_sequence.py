@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.obj import read_obj
+from meshsplat.io.ply_mesh import read_ply_mesh
 
 __all__ = ["MeshSequence", "read_mesh_sequence", "is_mesh_sequence", "NPZ_LAYOUT", "FRAMES_LAYOUT"]
 
@@ -165,9 +167,6 @@ def _read_npz(p: Path) -> MeshSequence:
 
 
 def _read_frame(q: Path, with_uvs: bool):
-    from meshsplat.io.obj import read_obj
-    from meshsplat.io.ply_mesh import read_ply_mesh
-
     if q.suffix.lower() == ".obj":
         m = read_obj(q, triangulate=True)
         fuv = m.face_uvs.numpy() if (with_uvs and m.face_uvs is not None) else None

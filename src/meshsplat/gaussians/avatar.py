@@ -19,10 +19,15 @@ from typing import Any
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.embedding import embed
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose
-from meshsplat.gaussians.params import check_params, num_gaussians, sh_degree_of
-from meshsplat.gaussians.shading import Shading
+from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose, effective_uv
+from meshsplat.gaussians.params import check_params, num_gaussians, sh0_to_rgb, sh_degree_of
+from meshsplat.gaussians.shading import Shading, shading_normals
+from meshsplat.io.checkpoint import load_run_checkpoint
+from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.render import rasterize
+from meshsplat.render.projection import antialias_compensation
 
 __all__ = ["Avatar", "AvatarRender"]
 
@@ -40,8 +45,6 @@ class Avatar:
     def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
                  clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world",
                  antialiased: bool = False):
-        from meshsplat.mesh import TriMesh
-
         if not isinstance(mesh, TriMesh):
             raise MeshsplatError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         check_params(params)
@@ -74,8 +77,6 @@ class Avatar:
 
     def to(self, device: torch.device | str) -> "Avatar":
         """A copy on ``device`` (parameters detached)."""
-        from meshsplat.mesh import TriMesh
-
         params = {k: v.detach().to(device) for k, v in self.params.items()}
         mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
         shading = None if self.shading is None else self.shading.to(device)
@@ -84,8 +85,6 @@ class Avatar:
     # ---- posing and rendering --------------------------------------------------------
     def pose(self, verts_posed: torch.Tensor):
         """``MeshPose`` for ``verts_posed [V,3]`` (moved to the avatar's device and dtype)."""
-        from meshsplat.mesh import MeshPose
-
         check_tensor("verts_posed", verts_posed, "V,3", {"V": self.mesh.num_vertices}, dtype="float", finite=True)
         return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=self.params["uv"].dtype))
 
@@ -98,16 +97,10 @@ class Avatar:
         """View-independent colour ``[N,3]`` (SH DC band), with the shading of the pose ``verts_posed [V,3]``
         (default: the canonical pose) baked in when the avatar is shaded: for static exports and viewers
         that do not shade."""
-        from meshsplat.gaussians.params import sh0_to_rgb
-        from meshsplat.gaussians.shading import shading_normals
-
         with torch.no_grad():
             rgb = sh0_to_rgb(self.params["sh0"].detach()).clamp_min(0.0)
             if self.shading is None:
                 return rgb
-            from meshsplat.embedding import embed
-            from meshsplat.gaussians.compose import effective_uv
-
             g = self.compose(self.mesh.vertices if verts_posed is None else verts_posed)
             pose = self.pose(self.mesh.vertices if verts_posed is None else verts_posed)
             _, phong = embed(pose, self.params["face"], effective_uv(self.params, self.clamp_to_face),
@@ -118,8 +111,6 @@ class Avatar:
     def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
         """Render one view: ``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, ``background [3]``."""
-        from meshsplat.render import rasterize
-
         check_tensor("viewmat", viewmat, "4,4", dtype="float", finite=True)
         check_tensor("K", K, "3,3", dtype="float", finite=True)
         dev, dt = self.device, self.params["uv"].dtype
@@ -133,8 +124,6 @@ class Avatar:
             bg = background.to(device=dev, dtype=dt)[None]
         opacities = g.opacities
         if self.antialiased:
-            from meshsplat.render.projection import antialias_compensation
-
             opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None],
                                                            int(width), int(height))[0]
         out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None],
@@ -157,8 +146,6 @@ class Avatar:
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, Any], device: torch.device | str = "cpu") -> "Avatar":
-        from meshsplat.mesh import TriMesh
-
         verts, faces, params = _checked_state(sd)
         mesh = TriMesh(verts.to(device), faces.to(device))
         sh_frame, antialiased = sd.get("sh_frame", "world"), sd.get("antialiased", False)
@@ -176,8 +163,6 @@ class Avatar:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
         """Load from a training checkpoint file, or the newest valid one of a run dir."""
-        from meshsplat.io.checkpoint import load_run_checkpoint
-
         _, state = load_run_checkpoint(path)
         if "avatar" not in state:
             raise MeshsplatError(f"{path}: checkpoint holds no avatar")

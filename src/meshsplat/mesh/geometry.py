@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import matrix_to_quat, quat_normalize
 
 __all__ = [
@@ -75,8 +76,6 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, weighting: str = "a
             angles.append(torch.atan2(sin, (e1 * e2).sum(-1)))
         corner = torch.stack(angles, -1).unsqueeze(-1) * n.unsqueeze(-2)
     else:
-        from meshsplat.errors import MeshsplatError
-
         raise MeshsplatError(f"weighting: expected 'area' or 'angle', got {weighting!r}")
     return safe_normalize(_scatter_to_vertices(corner, faces, verts.shape[-2]))
 

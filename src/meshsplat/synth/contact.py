@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
+from meshsplat.data import open_dataset
+
 __all__ = ["contact_sheet"]
 
 
@@ -12,7 +14,6 @@ def contact_sheet(dataset, out_png, indices=None, count: int = 8, tile: int = 12
     """Save a PNG grid: for each chosen frame its image (top) and mask (bottom), ``tile`` px each."""
     from PIL import Image
 
-    from meshsplat.data import open_dataset
 
     ds = open_dataset(dataset, check_masks=False) if isinstance(dataset, (str, Path)) else dataset
     if indices is None:

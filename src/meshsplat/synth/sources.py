@@ -14,8 +14,9 @@ import torch
 
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
-from meshsplat.errors import MeshsplatError
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, is_mesh_sequence, read_mesh_sequence
+from meshsplat.errors import MeshsplatError
+from meshsplat.paths import asset as shared_asset
 from meshsplat.synth.body_source import MODEL_SOURCES, load_model_source
 from meshsplat.synth.sequence_source import SequenceSource
 
@@ -138,8 +139,6 @@ def load_source(asset, model_dir=None, gender: str = "neutral"):
     OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a shared-asset name
     (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model
     (``smpl``, ``smplx``, ``flame``; files from ``model_dir`` or ``$MESHSPLAT_MODEL_DIR``)."""
-    from meshsplat.paths import asset as shared_asset
-
     p = Path(asset)
     if not p.exists() and str(asset).lower() in MODEL_SOURCES:
         return load_model_source(str(asset).lower(), model_dir, gender)

@@ -26,7 +26,12 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.camera import intrinsics, look_at, orbit_cameras, orbit_position
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.avatar import Avatar
+from meshsplat.gaussians.compose import effective_uv
+from meshsplat.gaussians.params import SH_C0
+from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
 
 __all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_gaussians", "unpack_gaussians",
            "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
@@ -60,8 +65,6 @@ def _as_frames(frames, num_vertices: int) -> np.ndarray:
 def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azimuth_deg: float = 0.0,
                    elevation_deg: float = 10.0, fov_deg: float = 30.0) -> dict[str, Any]:
     """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.camera.orbit_cameras``)."""
-    from meshsplat.camera import orbit_cameras
-
     lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
     cam = orbit_cameras([torch.from_numpy(np.stack([lo, hi]))], width, height, azimuth_deg=azimuth_deg,
                         elevation_deg=elevation_deg, fov_deg=fov_deg)[0]
@@ -72,8 +75,6 @@ def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azim
 
 
 def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, height) -> dict[str, Any]:
-    from meshsplat.camera import intrinsics, look_at, orbit_position
-
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     vm = look_at(orbit_position(center, distance, az, el), center)
     return {
@@ -124,9 +125,6 @@ def _encode_vertices(frames: np.ndarray, encoding: str) -> tuple[np.ndarray, dic
 
 def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
     """Per-Gaussian arrays the viewer needs (float64 except ``face``), keyed as read_viewer_bundle returns them."""
-    from meshsplat.gaussians.compose import effective_uv
-    from meshsplat.gaussians.params import SH_C0
-
     p = avatar.params
     with torch.no_grad():
         rot = p["rotation"].detach().double()
@@ -225,8 +223,6 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
     ``frames`` (with a glTF rig unused; with a blendshape rig the rate of its sequence). Returns ``index.html``.
     """
-    from meshsplat.gaussians.avatar import Avatar
-
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
@@ -242,8 +238,6 @@ def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None,
     }
     quant: dict[str, Any] = {}
     if rig is not None:
-        from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
-
         rig_sections, driver, rig_vertices = bundle_rig(rig, fps)
         if rig_vertices != mesh.num_vertices:
             raise MeshsplatError(f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "

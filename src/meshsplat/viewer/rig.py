@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from meshsplat.animate import avatar_gltf_driver
+from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["gltf_rig", "blendshape_rig", "bundle_rig", "avatar_driver", "rig_preview_frames"]
@@ -26,8 +28,6 @@ def avatar_driver(avatar, path, clip: str | None = None, source_map=None):
     """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices, derived as
     :func:`meshsplat.animate.avatar_gltf_driver` does (matched rest positions, or re-derived from the
     asset the avatar was synthesized from)."""
-    from meshsplat.animate import avatar_gltf_driver
-
     drv, to_world = avatar_gltf_driver(avatar, path, clip=clip, source_map=source_map)
     if to_world is not None:
         raise MeshsplatError(f"{path}: the avatar was synthesized from this asset turned to +y up; the live page "
@@ -184,8 +184,6 @@ def blendshape_rig(drv, fps: float = 25.0, clip_name: str = "sequence") -> tuple
 
 def bundle_rig(drv, fps: float = 25.0):
     """``(sections, header, num_vertices)`` of a GltfDriver or a BlendshapeDriver."""
-    from meshsplat.drivers.blendshape import BlendshapeDriver
-
     if isinstance(drv, BlendshapeDriver):
         return (*blendshape_rig(drv, fps), int(drv.neutral.shape[0]))
     return (*gltf_rig(drv), drv.num_vertices)
@@ -193,8 +191,6 @@ def bundle_rig(drv, fps: float = 25.0):
 
 def rig_preview_frames(drv, count: int = 16) -> list:
     """A few posed vertex frames across the default clip / sequence (to frame the camera)."""
-    from meshsplat.drivers.blendshape import BlendshapeDriver
-
     if isinstance(drv, BlendshapeDriver):
         idx = np.unique(np.linspace(0, drv.num_frames - 1, count).round().astype(int))
         return [drv.vertices(int(i)) for i in idx]

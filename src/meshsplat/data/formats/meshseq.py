@@ -25,6 +25,7 @@ import numpy as np
 from meshsplat.camera import viewmat_from_opengl_c2w
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import IMAGE_EXTS, find_file, read_json
+from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, read_mesh_sequence
 from meshsplat.errors import MeshsplatError
 
@@ -89,8 +90,6 @@ def _default_frames(root: Path, cameras: dict, problems: Problems) -> list[dict]
 
 
 def _gltf_meshes(path: Path, frames: list[dict], problems: Problems):
-    from meshsplat.drivers.gltf import GltfDriver
-
     drv = GltfDriver(path)
     rows, keys = [], {}
     for i, rec in enumerate(frames):
