@@ -65,7 +65,7 @@ def small_config(data, out, iterations, extra=()):
                       progress=False)
     return apply_overrides(cfg, [
         "model.n_init=200", "checkpoint_every=10", "keep_checkpoints=5", "preview_every=10", "log_every=1",
-        "strategy.refine_start=4", "strategy.refine_every=4", "strategy.reset_every=12",
+        "strategy.refine_start_iter=4", "strategy.refine_every=4", "strategy.reset_every=12",
         "strategy.grow_grad2d=1e-5", "strategy.max_gaussians=500", "walk.every=5", *extra])
 
 

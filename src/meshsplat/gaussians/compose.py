@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from meshsplat.embedding import SCALE_MODES, embed, pose_frame
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize, quat_to_matrix
@@ -105,11 +106,9 @@ def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area"
     DC band is used. shading: a ``Shading`` (colour = SH colour * irradiance of the posed normal).
     sh_frame: "world" | "triangle" (see the module docstring).
     """
-    from meshsplat.embedding import embed, pose_frame
-
     check_params(params)
-    if scale_mode not in ("sqrt_area", "area", "none"):
-        raise MeshsplatError(f"scale_mode: expected 'sqrt_area', 'area' or 'none', got {scale_mode!r}")
+    if scale_mode not in SCALE_MODES:
+        raise MeshsplatError(f"scale_mode: expected one of {SCALE_MODES}, got {scale_mode!r}")
     face = params["face"]
     uv = effective_uv(params, clamp_to_face)
     if sh_frame not in SH_FRAMES:
