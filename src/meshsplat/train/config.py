@@ -127,7 +127,8 @@ class PoseRefineConfig:
 
 @dataclass
 class TrainConfig:
-    """Everything a training run needs; every key is listed in docs/config.md."""
+    """Everything a training run needs. Every key (type, default, unit, meaning, gsplat name) is
+    in the table of docs/config.md (tests/test_config_doc.py keeps it complete)."""
 
     data: str = ""
     data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
