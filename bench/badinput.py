@@ -412,7 +412,7 @@ case("lost/silent", "SIGTERM during training", expect="ok")(_signal_case(signal.
 @case("lost/silent", "kill -9 after a checkpoint, resume (default loss): bit-exact", expect="ok")
 def _killresume(ctx):
     base = ["--no-progress", "--device", "cpu", "--set", "backend=torch", "--set", "model.n_init=100",
-            "--set", "strategy.refine_start=2", "--set", "strategy.refine_every=2", "--set", "strategy.grow_grad2d=1e-6",
+            "--set", "strategy.refine_start_iter=2", "--set", "strategy.refine_every=2", "--set", "strategy.grow_grad2d=1e-6",
             "--set", "checkpoint_every=5", "--set", "keep_checkpoints=10", "--set", "walk.every=3"]
 
     def fn():

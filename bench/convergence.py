@@ -140,7 +140,7 @@ def main() -> None:
             continue
         splits = measure(trainer, ds, args.frames)
         st = cfg.strategy
-        resets = [r for r in range(st.reset_every, min(trainer.iteration, st.refine_stop) + 1, st.reset_every)]
+        resets = [r for r in range(st.reset_every, min(trainer.iteration, st.refine_stop_iter) + 1, st.reset_every)]
         doc["points"].append({"iteration": trainer.iteration, "cpu_s": cpu_train, "wall_s": wall_train,
                               "since_reset": trainer.iteration - resets[-1] if resets else None,
                               "gaussians": trainer.num_gaussians, "splits": splits,

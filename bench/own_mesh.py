@@ -24,7 +24,7 @@ from _machine import machine_info, results_path  # noqa: E402
 
 from meshsplat.cli.main import main as cli  # noqa: E402
 
-TRAIN_SET = ("strategy.refine_start=100", "strategy.refine_stop=350", "strategy.refine_every=50",
+TRAIN_SET = ("strategy.refine_start_iter=100", "strategy.refine_stop_iter=350", "strategy.refine_every=50",
              "strategy.reset_every=100000", "walk.every=50", "preview_every=200", "checkpoint_every=200",
              "log_every=20", "model.n_init=6000")
 

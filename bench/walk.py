@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import trimesh
 
-from meshsplat.embedding import sample_surface, walk_on_triangles
+from meshsplat.embedding import WALK_MODES, sample_surface, walk_on_triangles
 from meshsplat.embedding._walk_reference import walk_on_triangles_reference
 from meshsplat.mesh import TriMesh
 
@@ -61,7 +61,7 @@ def main() -> None:
     rows = []
     for dev in devices:
         verts, f, u = mesh.vertices.to(dev), face.to(dev), uv.to(dev)
-        for mode in ("paper", "unfold"):
+        for mode in WALK_MODES:
             for label, size in sizes.items():
                 step = (direction * size * torch.rand(n, 1, generator=gen)).to(dev)
                 res = walk_on_triangles(mesh, verts, f, u, step, mode=mode)          # warm-up

@@ -11,8 +11,8 @@ import pytest
 
 from meshsplat.cli.main import main
 
-TINY = ["--iters", "30", "--no-progress", "--set", "model.n_init=800", "--set", "strategy.refine_start=10",
-        "--set", "strategy.refine_stop=25", "--set", "strategy.refine_every=10", "--set", "walk.every=10",
+TINY = ["--iters", "30", "--no-progress", "--set", "model.n_init=800", "--set", "strategy.refine_start_iter=10",
+        "--set", "strategy.refine_stop_iter=25", "--set", "strategy.refine_every=10", "--set", "walk.every=10",
         "--set", "loss.lambda_lpips=0", "--set", "preview_every=1000", "--set", "checkpoint_every=1000"]
 
 CASES = {  # layout -> (model, rig)

@@ -145,7 +145,7 @@ def test_strategy_clone_split_prune_on_schedule():
     n = 30
     p = init_params(mesh, n, generator=torch.Generator().manual_seed(1))
     opts = build_optimizers(p, LRS)
-    strat = DensifyStrategy(refine_start=2, refine_every=2, refine_stop=100, reset_every=1000)
+    strat = DensifyStrategy(refine_start_iter=2, refine_every=2, refine_stop_iter=100, reset_every=1000)
     state = strat.initialize_state(extent=1.0)
     with torch.no_grad():
         p["log_scale"][:10] = math.log(0.005)   # small -> clone
@@ -160,7 +160,8 @@ def test_strategy_clone_split_prune_on_schedule():
     out = strat.step_post_backward(p, opts, state, 1, info, mesh=mesh)
     assert out == {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
     assert torch.allclose(state["grad2d"][:15], torch.full((15,), 1e-3))
-    assert torch.all(state["count"][15:20] == 0) and torch.all(state["radii"][:15] == 3)
+    # screen radii are kept as a fraction of max(width, height), as gsplat
+    assert torch.all(state["count"][15:20] == 0) and torch.all(state["radii"][:15] == 3 / 64)
     out = strat.step_post_backward(p, opts, state, 2, _fake_info(n, grad, radii), mesh=mesh)
     assert out["cloned"] == 10 and out["split"] == 5 and out["pruned"] == 5
     assert p["face"].shape[0] == n + 10 + 5 - 5
@@ -168,6 +169,25 @@ def test_strategy_clone_split_prune_on_schedule():
         assert o.param_groups[0]["params"][0] is p[k]
         assert o.state.get(p[k]) is None or o.state[p[k]]["exp_avg"].shape == p[k].shape
     assert state["grad2d"].shape[0] == p["face"].shape[0] and torch.all(state["grad2d"] == 0)
+
+
+def test_screen_size_prune_is_a_fraction_of_the_image_size():
+    """After the first opacity reset, Gaussians wider than prune_scale2d * max(width, height) go."""
+    mesh = plane(8)
+    n = 10
+    p = init_params(mesh, n, generator=torch.Generator().manual_seed(3))
+    opts = build_optimizers(p, LRS)
+    strat = DensifyStrategy(refine_start_iter=1, refine_every=4, reset_every=2, grow_grad2d=1.0,
+                            prune_opa=0.0, prune_scale2d=0.15, prune_scale3d=100.0)
+    state = strat.initialize_state(extent=1.0)
+    radii = torch.full((n,), 20)   # 20 / 128 = 0.156 > 0.15 at 128 px wide
+    radii[:6] = 19                 # 19 / 128 = 0.148: kept
+    grad = torch.zeros(n)
+    for step in (1, 2, 3):
+        strat.step_post_backward(p, opts, state, step, _fake_info(n, grad, radii, width=128, height=96), mesh=mesh)
+    assert p["face"].shape[0] == n
+    out = strat.step_post_backward(p, opts, state, 4, _fake_info(n, grad, radii, width=128, height=96), mesh=mesh)
+    assert out["pruned"] == 4 and p["face"].shape[0] == 6
 
 
 def test_split_children_land_on_surface():
@@ -180,7 +200,7 @@ def test_split_children_land_on_surface():
         p["log_scale"].copy_(torch.log(torch.tensor([0.04, 0.04, 1e-6])).expand(n, 3))
     parent = compose(p, MeshPose.canonical(mesh)).means.detach()
     opts = build_optimizers(p, LRS)
-    strat = DensifyStrategy(refine_start=1, refine_every=1, grow_scale3d=0.01)
+    strat = DensifyStrategy(refine_start_iter=1, refine_every=1, grow_scale3d=0.01)
     state = strat.initialize_state(1.0)
     torch.manual_seed(0)
     out = strat.step_post_backward(p, opts, state, 1, _fake_info(n, torch.full((n,), 1.0), torch.full((n,), 4)),
@@ -203,7 +223,7 @@ def test_budget_caps_growth():
     opts = build_optimizers(p, LRS)
     with torch.no_grad():
         p["log_scale"].fill_(math.log(0.001))
-    strat = DensifyStrategy(refine_start=1, refine_every=1, max_gaussians=36)
+    strat = DensifyStrategy(refine_start_iter=1, refine_every=1, max_gaussians=36)
     state = strat.initialize_state(1.0)
     grad = torch.linspace(1e-3, 2e-3, n)
     strat.step_post_backward(p, opts, state, 1, _fake_info(n, grad, torch.full((n,), 2)), mesh=mesh)
@@ -256,7 +276,7 @@ def test_walk_disabled_clips_to_triangle():
 def test_strategy_requires_mesh_to_refine():
     mesh = plane(2)
     p = init_params(mesh, 5)
-    strat = DensifyStrategy(refine_start=1, refine_every=1)
+    strat = DensifyStrategy(refine_start_iter=1, refine_every=1)
     state = strat.initialize_state(1.0)
     from meshsplat.errors import MeshsplatError
 

@@ -11,7 +11,7 @@ import torch
 
 from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
-from meshsplat.train import LOG_COLUMNS, Trainer, TrainConfig, apply_overrides
+from meshsplat.train import LOG_COLUMNS, Trainer, TrainConfig, apply_overrides, load_config
 
 W = H = 32
 VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
@@ -65,7 +65,7 @@ def small_config(data, out, iterations, extra=()):
                       progress=False)
     return apply_overrides(cfg, [
         "model.n_init=200", "checkpoint_every=10", "keep_checkpoints=5", "preview_every=10", "log_every=1",
-        "strategy.refine_start=4", "strategy.refine_every=4", "strategy.reset_every=12",
+        "strategy.refine_start_iter=4", "strategy.refine_every=4", "strategy.reset_every=12",
         "strategy.grow_grad2d=1e-5", "strategy.max_gaussians=500", "walk.every=5", *extra])
 
 
@@ -103,6 +103,33 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
         a, b = opt.state[full.params[k]], res.optimizers[k].state[res.params[k]]
         assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"]), k
     assert [r["loss"] for r in full.history[10:]] == [r["loss"] for r in res.history]
+
+
+def test_older_run_folder_resumes_bit_exact(tiny_dataset, tmp_path):
+    """A run written before the gsplat names (refine_start/refine_stop, prune_scale2d and the state's radii
+    in pixels) resumes exactly as the same run written today, with the screen-size prune acting."""
+    from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
+
+    # opacity reset at 6: the screen-size prune acts at 12 on radii gathered since 8 (the checkpoint's)
+    extra = ("strategy.reset_every=6", "strategy.prune_scale2d=0.0625")  # 2 px of the 32 px images
+    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, extra))
+    full.train()
+    st = load_checkpoint(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt")
+    old = st["config"]["strategy"]
+    old["refine_start"], old["refine_stop"] = old.pop("refine_start_iter"), old.pop("refine_stop_iter")
+    old["prune_scale2d"] = 2.0
+    st["strategy_state"]["radii"] = st["strategy_state"]["radii"] * 32
+    (tmp_path / "old" / "checkpoints").mkdir(parents=True)
+    save_checkpoint(tmp_path / "old" / "checkpoints" / "ckpt_00000010.pt", st)
+    legacy = dict(st["config"], data=str(tiny_dataset), out=str(tmp_path / "old"), iterations=20)
+    (tmp_path / "old" / "config.json").write_text(json.dumps(legacy))
+    cfg = load_config(tmp_path / "old" / "config.json", image_size=32)
+    assert cfg.strategy.prune_scale2d == 0.0625 and cfg.strategy.refine_start_iter == 4
+    res = Trainer(cfg, resume=True)
+    res.train()
+    for k in full.params:
+        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
+    assert torch.equal(full.strategy_state["radii"], res.strategy_state["radii"])
 
 
 @pytest.mark.slow

@@ -20,8 +20,8 @@ def test_defaults_are_the_papers():
     assert c.optim.eps == 1e-15
     assert (c.loss.lambda_lpips, c.loss.lambda_scale, c.loss.lambda_mse) == (0.01, 1.0, 0.0)
     s = c.strategy
-    assert (s.refine_start, s.refine_stop, s.refine_every, s.reset_every) == (600, 15_000, 100, 3000)
-    assert (s.grow_grad2d, s.prune_opa, s.prune_scale2d, s.prune_scale3d) == (2e-4, 0.005, 20.0, 0.1)
+    assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every, s.reset_every) == (600, 15_000, 100, 3000)
+    assert (s.grow_grad2d, s.prune_opa, s.prune_scale2d, s.prune_scale3d) == (2e-4, 0.005, 0.15, 0.1)
     assert c.walk.every == 100 and c.walk.enabled
 
 
@@ -46,10 +46,46 @@ def test_json_roundtrip(tmp_path):
     ("loss.lambda_l1=abc", "expects float"),
     ("strategy", "key=value"),
     ("model=3", "unknown key"),
+    ("strategy.refine_start=5", r"strategy.refine_start was renamed to strategy.refine_start_iter \(gsplat's name\)"),
+    ("strategy.refine_stop=5", "renamed to strategy.refine_stop_iter"),
+    ("strategy.prune_scale2d=20", "fraction of the image size"),
+    ("backend=vulkan", "backend: auto"),
 ])
 def test_override_errors(item, match):
     with pytest.raises(MeshsplatError, match=match):
-        apply_overrides(TrainConfig(), [item])
+        apply_overrides(TrainConfig(), [item]).validate()
+
+
+def _old_config(**strategy) -> dict:
+    """A config.json as older versions wrote it (strategy keys before gsplat's names, prune_scale2d in px)."""
+    d = TrainConfig().to_dict()
+    st = d["strategy"]
+    st["refine_start"], st["refine_stop"] = st.pop("refine_start_iter"), st.pop("refine_stop_iter")
+    st["prune_scale2d"] = 20.0
+    st.update(strategy)
+    return d
+
+
+def test_old_run_config_is_upgraded(tmp_path):
+    # the demo's schedule (opacity reset after refine_stop): the pixel threshold never acted, no size needed
+    demo = _old_config(refine_start=300, refine_stop=1200, reset_every=100000)
+    (tmp_path / "config.json").write_text(json.dumps(demo))
+    c = load_config(tmp_path / "config.json")
+    assert (c.strategy.refine_start_iter, c.strategy.refine_stop_iter) == (300, 1200)
+    assert c.strategy.prune_scale2d == TrainConfig().strategy.prune_scale2d
+    # the prune acts (reset 3000 < stop 15000): pixels / image size, the size asked only then
+    asked = []
+    c = TrainConfig.from_dict(_old_config(), image_size=lambda: asked.append(1) or 256)
+    assert c.strategy.prune_scale2d == 20.0 / 256 and asked == [1] and c.strategy.refine_start_iter == 600
+    TrainConfig.from_dict(demo, image_size=lambda: asked.append(2) or 256)
+    assert asked == [1]
+    with pytest.raises(MeshsplatError, match=r"prune_scale2d=20.0 is in pixels.*20/256"):
+        TrainConfig.from_dict(_old_config())
+    both = _old_config()
+    both["strategy"]["refine_start_iter"] = 5
+    with pytest.raises(MeshsplatError, match="both strategy.refine_start"):
+        TrainConfig.from_dict(both, image_size=256)
+    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()  # today's dicts pass unchanged
 
 
 def test_validate_and_bad_files(tmp_path):

@@ -21,7 +21,7 @@ ITERS = 16
 ARGS = ["--iters", str(ITERS), "--no-progress", "--device", "cpu",
         "--set", "backend=torch", "--set", "model.n_init=200", "--set", "checkpoint_every=2",
         "--set", "keep_checkpoints=3", "--set", "log_every=1", "--set", "preview_every=1000",
-        "--set", "strategy.refine_start=2", "--set", "strategy.refine_every=2", "--set", "strategy.reset_every=9",
+        "--set", "strategy.refine_start_iter=2", "--set", "strategy.refine_every=2", "--set", "strategy.reset_every=9",
         "--set", "strategy.grow_grad2d=1e-6", "--set", "strategy.max_gaussians=3000", "--set", "walk.every=3"]
 
 # Runs the CLI; with KILL_AT_FSYNC=k the process SIGKILLs itself at the k-th fsync of a checkpoint

@@ -7,7 +7,7 @@ import torch
 import trimesh
 from hypothesis import given, strategies as st
 
-from meshsplat.embedding import walk_on_triangles
+from meshsplat.embedding import WALK_MODES, walk_on_triangles
 from meshsplat.embedding._walk_reference import walk_on_triangles_reference
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh import TriMesh
@@ -132,7 +132,7 @@ def mesh_of_kind(kind: str, seed: int) -> TriMesh:
             "nonmanifold": three_quads, "degenerate": with_degenerate, "grid": lambda: flat_grid(5, seed)}[kind]()
 
 
-@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["paper", "unfold"]), kind=st.sampled_from(MESH_KINDS),
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(WALK_MODES), kind=st.sampled_from(MESH_KINDS),
        scale=st.sampled_from([0.01, 0.3, 3.0, 30.0]))
 def test_always_valid_output(seed, mode, kind, scale):
     rng = np.random.default_rng(seed)
@@ -156,7 +156,7 @@ def assert_matches_reference(mesh, fast, ref, uv_atol, rel3d):
     assert torch.equal(fast.changed[same], ref.changed[same])
 
 
-@given(seed=st.integers(0, 10_000), mode=st.sampled_from(["paper", "unfold"]), kind=st.sampled_from(MESH_KINDS),
+@given(seed=st.integers(0, 10_000), mode=st.sampled_from(WALK_MODES), kind=st.sampled_from(MESH_KINDS),
        scale=st.sampled_from([0.05, 0.5, 3.0, 30.0]), max_crossings=st.sampled_from([0, 1, 3, 64]))
 def test_matches_reference(seed, mode, kind, scale, max_crossings):
     # the per-point reference works from the 3D geometry (edge lookup, Rodrigues unfolding), not the rate maps
@@ -175,7 +175,7 @@ def test_matches_reference(seed, mode, kind, scale, max_crossings):
     assert_matches_reference(mesh, fast, ref, uv_atol=1e-7, rel3d=1e-7)
 
 
-@pytest.mark.parametrize("mode", ["paper", "unfold"])
+@pytest.mark.parametrize("mode", WALK_MODES)
 def test_matches_reference_float32(mode):
     mesh = sphere(3)
     rng = np.random.default_rng(7)
@@ -193,7 +193,7 @@ def test_float32_and_zero_steps():
     rng = np.random.default_rng(0)
     face, uv = random_starts(mesh, 1000, rng)
     v32, uv32 = mesh.vertices.float(), uv.float()
-    for mode in ("paper", "unfold"):
+    for mode in WALK_MODES:
         res = walk_on_triangles(mesh, v32, face, uv32, torch.zeros(1000, 2), mode=mode)
         assert torch.equal(res.face, face) and torch.allclose(res.uv, uv32) and not bool(res.changed.any())
         res = walk_on_triangles(mesh, v32, face, uv32, torch.randn(1000, 2) * 2, mode=mode)
@@ -206,7 +206,7 @@ def test_inside_steps_are_plain_addition_in_both_modes():
     face = torch.arange(mesh.num_faces)
     uv = torch.full((mesh.num_faces, 2), 1 / 3, dtype=torch.float64)
     step = torch.tensor([0.1, -0.05], dtype=torch.float64).expand(mesh.num_faces, 2)
-    for mode in ("paper", "unfold"):
+    for mode in WALK_MODES:
         res = walk_on_triangles(mesh, mesh.vertices, face, uv, step, mode=mode)
         assert torch.equal(res.face, face) and torch.allclose(res.uv, uv + step)
 
@@ -258,7 +258,7 @@ def test_stops_on_boundary_and_nonmanifold_edges():
     nm = three_quads()
     face = torch.tensor([0, 2, 4])
     uv = torch.full((3, 2), 0.25, dtype=torch.float64)        # heading to edge (0,1), shared by 3 faces
-    for mode in ("paper", "unfold"):
+    for mode in WALK_MODES:
         res = walk_on_triangles(nm, nm.vertices, face, uv, torch.tensor([[0.6, 0.6]] * 3, dtype=torch.float64),
                                 mode=mode)
         assert torch.equal(res.face, face)
@@ -302,7 +302,7 @@ def test_cuda_matches_cpu():
     rng = np.random.default_rng(0)
     face, uv = random_starts(mesh, 5000, rng)
     step = torch.as_tensor(rng.normal(size=(5000, 2)))
-    for mode in ("paper", "unfold"):
+    for mode in WALK_MODES:
         a = walk_on_triangles(mesh, mesh.vertices, face, uv, step, mode=mode)
         b = walk_on_triangles(mesh, mesh.vertices.cuda(), face.cuda(), uv.cuda(), step.cuda(), mode=mode)
         assert (a.face == b.face.cpu()).float().mean() > 0.999

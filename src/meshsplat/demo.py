@@ -50,13 +50,13 @@ class DemoPreset:
 PRESETS: dict[str, DemoPreset] = {
     "default": DemoPreset(
         frames=100, resolution=256, test_views=2, iterations=1500, n_init=10_000, animation_frames=30,
-        overrides=("strategy.refine_start=300", "strategy.refine_stop=1200", "strategy.refine_every=100",
+        overrides=("strategy.refine_start_iter=300", "strategy.refine_stop_iter=1200", "strategy.refine_every=100",
                    "strategy.reset_every=100000", "strategy.max_gaussians=40000", "walk.every=100",
                    "preview_every=250", "checkpoint_every=250", "log_every=10"),
     ),
     "tiny": DemoPreset(
         frames=12, resolution=64, test_views=1, iterations=60, n_init=1500, animation_frames=4,
-        overrides=("strategy.refine_start=20", "strategy.refine_stop=50", "strategy.refine_every=20",
+        overrides=("strategy.refine_start_iter=20", "strategy.refine_stop_iter=50", "strategy.refine_every=20",
                    "strategy.reset_every=100000", "walk.every=20", "preview_every=30",
                    "checkpoint_every=30", "log_every=5"),
     ),

@@ -45,10 +45,17 @@ def build_config(args: argparse.Namespace):
     from meshsplat.train.config import TrainConfig, apply_overrides, load_config
 
     out = Path(args.out)
+
+    def image_size() -> int:  # asked only to convert an older config's pixel threshold
+        from meshsplat.data.formats import open_capture
+        from meshsplat.train.trainer import training_image_size
+
+        return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir))
+
     if args.config:
-        cfg = load_config(args.config)
+        cfg = load_config(args.config, image_size)
     elif args.resume and (out / "config.json").is_file():
-        cfg = load_config(out / "config.json")
+        cfg = load_config(out / "config.json", image_size)
     else:
         cfg = TrainConfig()
     cfg = apply_overrides(cfg, args.set)

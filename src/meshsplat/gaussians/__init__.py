@@ -2,8 +2,18 @@
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.compose import ComposedGaussians, compose, effective_uv, eval_sh
 from meshsplat.gaussians.params import (
-    EMBEDDING_STATE_KEYS, PARAM_KEYS, SH_C0, check_params, init_params, knn_scales, make_params, num_gaussians,
-    num_sh_rest, rgb_to_sh0, sh0_to_rgb, sh_degree_of,
+    EMBEDDING_STATE_KEYS,
+    PARAM_KEYS,
+    SH_C0,
+    check_params,
+    init_params,
+    knn_scales,
+    make_params,
+    num_gaussians,
+    num_sh_rest,
+    rgb_to_sh0,
+    sh0_to_rgb,
+    sh_degree_of,
 )
 
 __all__ = [

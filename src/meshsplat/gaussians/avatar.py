@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from meshsplat._checks import check_tensor
-from meshsplat.embedding import embed
+from meshsplat.embedding import SCALE_MODES, embed
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose, effective_uv
 from meshsplat.gaussians.params import check_params, num_gaussians, sh0_to_rgb, sh_degree_of
@@ -202,8 +202,8 @@ def _checked_state(sd) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tens
             if not torch.isfinite(v).all():
                 raise MeshsplatError(f"avatar params['{k}']: contains {int((~torch.isfinite(v)).sum())} NaN/Inf values")
             out[k] = v.float()
-    if sd.get("scale_mode", "sqrt_area") not in ("sqrt_area", "area", "none"):
-        raise MeshsplatError(f"avatar scale_mode: expected sqrt_area, area or none, got {sd.get('scale_mode')!r}")
+    if sd.get("scale_mode", "sqrt_area") not in SCALE_MODES:
+        raise MeshsplatError(f"avatar scale_mode: expected one of {SCALE_MODES}, got {sd.get('scale_mode')!r}")
     if not isinstance(sd.get("clamp_to_face", False), bool):
         raise MeshsplatError(f"avatar clamp_to_face: expected true/false, got {sd.get('clamp_to_face')!r}")
     return verts.float(), faces.long(), out

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from meshsplat.embedding import embed, pose_frame, project_uv_to_triangle
+from meshsplat.embedding import SCALE_MODES, embed, pose_frame, project_uv_to_triangle
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize, quat_to_matrix
@@ -91,8 +91,8 @@ def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area"
     sh_frame: "world" | "triangle" (see the module docstring).
     """
     check_params(params)
-    if scale_mode not in ("sqrt_area", "area", "none"):
-        raise MeshsplatError(f"scale_mode: expected 'sqrt_area', 'area' or 'none', got {scale_mode!r}")
+    if scale_mode not in SCALE_MODES:
+        raise MeshsplatError(f"scale_mode: expected one of {SCALE_MODES}, got {scale_mode!r}")
     face = params["face"]
     uv = effective_uv(params, clamp_to_face)
     if sh_frame not in SH_FRAMES:

@@ -23,8 +23,9 @@ import torch
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import quat_to_matrix
 
-__all__ = ["Shading", "SHADING_NORMALS", "sh9_basis", "shading_normals"]
+__all__ = ["Shading", "SHADING_MODES", "SHADING_NORMALS", "sh9_basis", "shading_normals"]
 
+SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
 SHADING_NORMALS = ("phong", "axis")
 _Y00 = 0.28209479177387814
 

@@ -6,6 +6,11 @@ error, nothing is ever evaluated) and accept command-line overrides such as
 
 Sizes marked "relative" are multiplied by the canonical mesh extent (half the diagonal of its
 bounding box) so that the same defaults work for a head in metres and a body in centimetres.
+Every key, with its type, default, unit and meaning, is in docs/config.md.
+
+Older run folders store ``config.json`` with the strategy keys ``refine_start`` / ``refine_stop``
+(now gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
+fraction of the image size): ``upgrade_config_dict`` maps them (see there).
 """
 from __future__ import annotations
 
@@ -17,13 +22,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from meshsplat.embedding import SCALE_MODES, WALK_MODES
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.compose import SH_FRAMES
+from meshsplat.gaussians.shading import SHADING_MODES, SHADING_NORMALS
+from meshsplat.render import BACKENDS, BACKGROUNDS
 from meshsplat.train.strategy.default import DensifyStrategy
 
 __all__ = [
     "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "PoseRefineConfig", "TrainConfig",
-    "apply_overrides", "load_config",
+    "apply_overrides", "load_config", "upgrade_config_dict", "is_legacy_config", "RENAMED_KEYS",
+    "INIT_COLORS", "UV_LR_UNITS", "TRAIN_BACKGROUNDS",
 ]
+
+INIT_COLORS = ("image", "grey")  # model.init_color
+UV_LR_UNITS = ("world", "barycentric")  # optim.uv_lr_units
+TRAIN_BACKGROUNDS = ("random", *BACKGROUNDS)  # background behind the Gaussians while training
+# keys renamed to gsplat's DefaultStrategy names (old name -> new name)
+RENAMED_KEYS = {"strategy.refine_start": "strategy.refine_start_iter",
+                "strategy.refine_stop": "strategy.refine_stop_iter"}
 
 
 @dataclass
@@ -32,9 +49,9 @@ class ModelConfig:
 
     n_init: int = 10_000
     sh_degree: int = 0
-    scale_mode: str = "sqrt_area"  # "sqrt_area" | "area" | "none": pose scale modulation
+    scale_mode: str = "sqrt_area"  # one of meshsplat.embedding.SCALE_MODES: pose scale modulation
     init_opacity: float = 0.1
-    init_color: str = "image"  # "image": colour from the first training frame; "grey"
+    init_color: str = "image"  # INIT_COLORS: "image": colour from the first training frame; "grey"
     init_knn: int = 3  # initial isotropic scale = mean distance to this many nearest neighbours
     freeze_embedding: bool = False  # ablation: (duv, d) not optimised, Gaussians stay at (face, uv, 0)
     # Colour initialisation from several frames ("image" only): average over this many training frames,
@@ -110,6 +127,9 @@ class PoseRefineConfig:
 
 @dataclass
 class TrainConfig:
+    """Everything a training run needs. Every key (type, default, unit, meaning, gsplat name) is
+    in the table of docs/config.md (tests/test_config_doc.py keeps it complete)."""
+
     data: str = ""
     data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
     model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
@@ -117,7 +137,7 @@ class TrainConfig:
     iterations: int = 30_000
     seed: int = 0
     device: str = "auto"  # "auto" = cuda when available
-    backend: str = "auto"  # rasterizer backend
+    backend: str = "auto"  # rasterizer backend, one of meshsplat.render.BACKENDS
     background: str = "random"  # "random" per iteration | "white" | "black"
     checkpoint_every: int = 5000
     checkpoint_every_s: float = 900.0  # also checkpoint when this many seconds passed since the last one
@@ -136,8 +156,9 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
-        return _from_dict(cls, d, "")
+    def from_dict(cls, d: dict[str, Any], image_size: int | typing.Callable[[], int] | None = None) -> "TrainConfig":
+        """From a (full or partial) dict; an older run's dict is upgraded first (``upgrade_config_dict``)."""
+        return _from_dict(cls, upgrade_config_dict(d, image_size), "")
 
     def to_json(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
@@ -147,18 +168,19 @@ class TrainConfig:
             (self.iterations >= 1, "iterations must be >= 1"),
             (self.model.n_init >= 1, "model.n_init must be >= 1"),
             (0 <= self.model.sh_degree <= 3, "model.sh_degree must be in 0..3"),
-            (self.model.scale_mode in ("sqrt_area", "area", "none"), "model.scale_mode: sqrt_area|area|none"),
-            (self.model.init_color in ("image", "grey"), "model.init_color: image|grey"),
+            (self.model.scale_mode in SCALE_MODES, f"model.scale_mode: {'|'.join(SCALE_MODES)}"),
+            (self.model.init_color in INIT_COLORS, f"model.init_color: {'|'.join(INIT_COLORS)}"),
             (self.model.init_color_frames >= 1, "model.init_color_frames must be >= 1"),
-            (self.model.shading in ("none", "sh2"), "model.shading: none|sh2"),
-            (self.model.shading_normal in ("phong", "axis"), "model.shading_normal: phong|axis"),
-            (self.model.sh_frame in ("world", "triangle"), "model.sh_frame: world|triangle"),
+            (self.model.shading in SHADING_MODES, f"model.shading: {'|'.join(SHADING_MODES)}"),
+            (self.model.shading_normal in SHADING_NORMALS, f"model.shading_normal: {'|'.join(SHADING_NORMALS)}"),
+            (self.model.sh_frame in SH_FRAMES, f"model.sh_frame: {'|'.join(SH_FRAMES)}"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
-            (self.optim.uv_lr_units in ("world", "barycentric"), "optim.uv_lr_units: world|barycentric"),
-            (self.background in ("random", "white", "black"), "background: random|white|black"),
-            (self.walk.mode in ("paper", "unfold"), "walk.mode: paper|unfold"),
+            (self.optim.uv_lr_units in UV_LR_UNITS, f"optim.uv_lr_units: {'|'.join(UV_LR_UNITS)}"),
+            (self.background in TRAIN_BACKGROUNDS, f"background: {'|'.join(TRAIN_BACKGROUNDS)}"),
+            (self.backend in BACKENDS, f"backend: {'|'.join(BACKENDS)}"),
+            (self.walk.mode in WALK_MODES, f"walk.mode: {'|'.join(WALK_MODES)}"),
             (self.walk.every >= 1, "walk.every must be >= 1"),
             (self.strategy.refine_every >= 1, "strategy.refine_every must be >= 1"),
             (self.strategy.split_n >= 1, "strategy.split_n must be >= 1"),
@@ -170,6 +192,8 @@ class TrainConfig:
             (self.strategy.max_gaussians >= 1, "strategy.max_gaussians must be >= 1"),
             (0 <= self.strategy.reset_opa < 1, "strategy.reset_opa must be in [0, 1)"),
             (0 <= self.strategy.prune_opa < 1, "strategy.prune_opa must be in [0, 1)"),
+            (self.strategy.prune_scale2d <= 1, "strategy.prune_scale2d is a fraction of the image size (max(width, "
+             f"height), as gsplat), got {self.strategy.prune_scale2d}: a pixel value? divide it by the image size"),
             (self.iterations <= MAX_ITERATIONS, f"iterations must be <= {MAX_ITERATIONS:,}"),
             (self.model.n_init <= MAX_GAUSSIANS and self.strategy.max_gaussians <= MAX_GAUSSIANS,
              f"model.n_init and strategy.max_gaussians must be <= {MAX_GAUSSIANS:,}"),
@@ -256,6 +280,8 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str] | None) -> TrainConfi
         if "=" not in item:
             raise MeshsplatError(f"--set expects key=value, got {item!r}")
         key, value = item.split("=", 1)
+        if key.strip() in RENAMED_KEYS:
+            raise MeshsplatError(f"config: {key.strip()} was renamed to {RENAMED_KEYS[key.strip()]} (gsplat's name)")
         parts = key.strip().split(".")
         node = d
         for p in parts[:-1]:
@@ -268,8 +294,9 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str] | None) -> TrainConfi
     return TrainConfig.from_dict(d)
 
 
-def load_config(path: str | Path) -> TrainConfig:
-    """Read a JSON config file (a full or partial ``TrainConfig`` dict)."""
+def load_config(path: str | Path, image_size: int | typing.Callable[[], int] | None = None) -> TrainConfig:
+    """Read a JSON config file (a full or partial ``TrainConfig`` dict); ``image_size``: see
+    ``upgrade_config_dict`` (needed only for some configs written by older versions)."""
     path = Path(path)
     if not path.is_file():
         raise MeshsplatError(f"config file not found: {path}")
@@ -277,4 +304,53 @@ def load_config(path: str | Path) -> TrainConfig:
         d = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise MeshsplatError(f"config file {path} is not valid JSON: {exc}") from None
-    return TrainConfig.from_dict(d)
+    return TrainConfig.from_dict(d, image_size)
+
+
+def _legacy_prune_can_act(st: dict) -> bool:
+    """Whether an old strategy section ever reached the screen-size prune (after the first opacity
+    reset, at a refinement step no later than refine_stop)."""
+    try:
+        enabled = _coerce(st.get("enabled", True), bool, "strategy.enabled")
+        reset = _coerce(st.get("reset_every", DensifyStrategy.reset_every), int, "strategy.reset_every")
+        stop = _coerce(st.get("refine_stop", DensifyStrategy.refine_stop_iter), int, "strategy.refine_stop")
+    except MeshsplatError:
+        return True
+    return bool(enabled) and 0 < reset < stop
+
+
+def is_legacy_config(d: Any) -> bool:
+    """Whether ``d`` is a config dict written by an older version (strategy keys before gsplat's names)."""
+    st = d.get("strategy") if isinstance(d, dict) else None
+    return isinstance(st, dict) and bool({"refine_start", "refine_stop"} & set(st))
+
+
+def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | None = None) -> Any:
+    """A config dict written by an older version, in today's keys (a copy; other dicts unchanged).
+
+    An old dict is one whose ``strategy`` holds ``refine_start`` or ``refine_stop``. They become
+    ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
+    pixels / ``image_size`` (the largest side of the training images; an int, or a callable
+    asked only when needed). When that prune could never act under the old config (opacity
+    reset off or after ``refine_stop``, as in every demo run) the value is dropped for today's
+    default, which changes nothing. Otherwise, without ``image_size``, one MeshsplatError says so.
+    """
+    if not is_legacy_config(d):
+        return d
+    st = dict(d["strategy"])
+    for old, new in RENAMED_KEYS.items():
+        o, n = old.split(".", 1)[1], new.split(".", 1)[1]
+        if o in st:
+            if n in st:
+                raise MeshsplatError(f"config: both {old} (its old name) and {new} are set; keep {new}")
+            st[n] = st.pop(o)
+    if "prune_scale2d" in st:
+        pixels = st.pop("prune_scale2d")
+        if _legacy_prune_can_act(dict(d["strategy"])):
+            size = image_size() if callable(image_size) else image_size
+            if size is None:
+                raise MeshsplatError(f"config: strategy.prune_scale2d={pixels!r} is in pixels in this config from an "
+                                     "older meshsplat; today it is a fraction of the image size: set it to "
+                                     "pixels / max(width, height) (e.g. 20/256 = 0.078), or pass image_size")
+            st["prune_scale2d"] = _coerce(pixels, float, "strategy.prune_scale2d") / float(size)
+    return {**d, "strategy": st}

@@ -38,23 +38,37 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
-from meshsplat.errors import MeshsplatError
 from meshsplat.embedding import surface_points
+from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.params import init_params, num_gaussians
-from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.gaussians.shading import Shading
+from meshsplat.io.checkpoint import remove_stray_tmp
 from meshsplat.render.background import background_color, composite
-from meshsplat.train.config import TrainConfig
+from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
-from meshsplat.train.resume import (StopOnSignal, TrainingInterrupted, check_resume_config, load_resume_checkpoint,
-                                    refuse_existing_run, signal_name)
+from meshsplat.train.resume import (
+    StopOnSignal,
+    TrainingInterrupted,
+    check_resume_config,
+    load_resume_checkpoint,
+    refuse_existing_run,
+    signal_name,
+)
 from meshsplat.train.strategy import walk_embeddings
 
-__all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "LOG_COLUMNS"]
+__all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "training_image_size", "LOG_COLUMNS"]
 
 LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psnr", "n_gaussians",
                "walked", "lr_duv", "lr_d", "time_s", "mask")
+
+
+def training_image_size(dataset, train_ids: list[int] | None = None) -> int:
+    """The largest image side (pixels) among the cameras of the training frames: what the screen radii
+    of the densification strategy are divided by (it converts older configs' pixel thresholds)."""
+    ids = dataset.split("train") if train_ids is None else train_ids
+    cams = {dataset.frame_info(i)["camera"] for i in ids} or set(dataset.camera_ids)
+    return max(max(dataset.camera(c)[2:]) for c in cams)
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -128,7 +142,8 @@ class Trainer:
         self.resume_notes: list[str] = []
         loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
         if loaded is not None:
-            self.resume_notes = check_resume_config(loaded[1].get("config"), self.cfg.to_dict(), loaded[0])
+            old = upgrade_config_dict(loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids))
+            self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
             try:
                 self._restore(loaded[1])
             except MeshsplatError:
@@ -463,6 +478,9 @@ class Trainer:
             opt.load_state_dict(st["optimizers"][k])
         self.strategy_state = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v)
                                for k, v in st["strategy_state"].items()}
+        if is_legacy_config(st.get("config")) and isinstance(self.strategy_state.get("radii"), torch.Tensor):
+            # older versions kept the screen radii in pixels; today a fraction of the image size
+            self.strategy_state["radii"] = self.strategy_state["radii"] / training_image_size(self.dataset, self.train_ids)
         rng = st["rng"]
         torch.set_rng_state(rng["torch"])
         n = rng["numpy"]

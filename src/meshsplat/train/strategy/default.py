@@ -6,17 +6,27 @@ Usage, per training iteration ``step`` (1-based), after ``info = rasterize(...).
     loss.backward(); optimizer steps
     strategy.step_post_backward(params, optimizers, state, step, info, mesh=canonical_mesh)
 
+Field names and units follow gsplat's ``DefaultStrategy`` (1.5) where the meaning is the same
+(``refine_start_iter``, ``refine_stop_iter``, ``refine_every``, ``reset_every``, ``grow_grad2d``,
+``grow_scale3d``, ``prune_opa``, ``prune_scale3d``, ``prune_scale2d``, ``key_for_gradient``);
+``split_n``, ``max_gaussians``, ``enabled`` and ``reset_opa`` are ours. The table of every key is
+docs/config.md. Differences from gsplat: steps are 1-based and the refinement window is inclusive
+(``refine_start_iter <= step <= refine_stop_iter``); the screen-size prune is on after the first
+opacity reset (gsplat gates it with ``refine_scale2d_stop_iter``, off by default); the reset value
+is ``reset_opa`` (gsplat: ``2 * prune_opa``).
+
 Statistics: for every Gaussian visible in a view, the norm of the screen-space mean gradient
 (``info["means2d"].grad`` scaled by ``0.5 * width`` / ``0.5 * height``, i.e. in NDC units as
-3DGS) is summed with a count, and the largest screen radius (pixels) is kept.
+3DGS) is summed with a count, and the largest screen radius is kept as a fraction of the image
+size (pixels / ``max(width, height)``, as gsplat).
 
-Every ``refine_every`` steps in ``[refine_start, refine_stop]``: Gaussians whose mean gradient
-exceeds ``grow_grad2d`` are cloned when their largest canonical scale is at most
+Every ``refine_every`` steps in ``[refine_start_iter, refine_stop_iter]``: Gaussians whose mean
+gradient exceeds ``grow_grad2d`` are cloned when their largest canonical scale is at most
 ``grow_scale3d * extent`` and split otherwise (within the ``max_gaussians`` budget, highest
 gradients first); then Gaussians with opacity below ``prune_opa`` are removed and, after the
-first opacity reset, those larger than ``prune_scale2d`` pixels on screen or
-``prune_scale3d * extent`` in the world. Every ``reset_every`` steps (until ``refine_stop``)
-opacities are reset to ``min(opacity, reset_opa)``.
+first opacity reset, those whose screen radius exceeds ``prune_scale2d * max(width, height)``
+or whose largest scale exceeds ``prune_scale3d * extent``. Every ``reset_every`` steps (until
+``refine_stop_iter``) opacities are reset to ``min(opacity, reset_opa)``.
 
 Clone copies the embedding. Split works at the canonical pose: ``split_n`` points are sampled
 from each parent Gaussian (mean + R(q) diag(scale) z, z ~ N(0, I)), and RE-EMBEDDED by projecting
@@ -38,15 +48,17 @@ __all__ = ["DensifyStrategy"]
 
 @dataclass
 class DensifyStrategy:
-    refine_start: int = 600
-    refine_stop: int = 15_000
+    refine_start_iter: int = 600
+    refine_stop_iter: int = 15_000
     refine_every: int = 100
     reset_every: int = 3000
     grow_grad2d: float = 2e-4
     grow_scale3d: float = 0.01  # relative: clone below, split above (3DGS percent_dense), times extent
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1  # relative: world-size prune after the first opacity reset, times extent
-    prune_scale2d: float = 20.0  # pixels: screen-size prune after the first opacity reset
+    # screen-size prune after the first opacity reset: 3-sigma radius / max(width, height) above this
+    # (gsplat's unit and default; 38.4 px at the demo's 256 px; earlier meshsplat used 20 px)
+    prune_scale2d: float = 0.15
     reset_opa: float = 0.01
     split_n: int = 2
     max_gaussians: int = 150_000
@@ -74,10 +86,10 @@ class DensifyStrategy:
                            scale_mode: str = "sqrt_area") -> dict[str, int]:
         """Update statistics, then refine / reset on schedule. Returns counts of what changed."""
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
-        if not self.enabled or step > self.refine_stop:
+        if not self.enabled or step > self.refine_stop_iter:
             return out
         self._update_state(params, state, info)
-        if step >= self.refine_start and step % self.refine_every == 0:
+        if step >= self.refine_start_iter and step % self.refine_every == 0:
             if mesh is None:
                 raise MeshsplatError("step_post_backward: mesh (the canonical TriMesh) is needed to split")
             out["cloned"], out["split"] = self._grow(params, optimizers, state, mesh, scale_mode)
@@ -117,7 +129,8 @@ class DensifyStrategy:
         cam_ids, gs_ids = torch.nonzero(sel, as_tuple=True)
         state["grad2d"].index_add_(0, gs_ids, grads[cam_ids, gs_ids].norm(dim=-1).float())
         state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
-        state["radii"][gs_ids] = torch.maximum(state["radii"][gs_ids], rmax[cam_ids, gs_ids].float())
+        rmax = rmax[cam_ids, gs_ids].float() / float(max(info["width"], info["height"]))
+        state["radii"][gs_ids] = torch.maximum(state["radii"][gs_ids], rmax)
 
     def _grow(self, params, optimizers, state, mesh, scale_mode) -> tuple[int, int]:
         if state["grad2d"] is None:
