@@ -19,7 +19,7 @@ def _parse(spec: str) -> list[str]:
 
 def check_tensor(
     name: str,
-    x,
+    x: object,
     spec: str,
     dims: dict[str, int] | None = None,
     dtype: torch.dtype | tuple[torch.dtype, ...] | str | None = None,

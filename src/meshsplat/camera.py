@@ -14,12 +14,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
 
+from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
+
+if TYPE_CHECKING:  # data sits above camera: annotation only
+    from meshsplat.data.dataset import AvatarDataset
 
 __all__ = [
     "Camera", "look_at", "intrinsics", "orbit_position", "yaw_matrix", "orbit_cameras", "dataset_camera",
@@ -40,7 +44,7 @@ class Camera:
     height: int
 
     @classmethod
-    def from_numpy(cls, viewmat, K, width: int, height: int) -> "Camera":
+    def from_numpy(cls, viewmat: ArrayLike, K: ArrayLike, width: int, height: int) -> "Camera":
         return cls(torch.as_tensor(np.asarray(viewmat), dtype=torch.float32),
                    torch.as_tensor(np.asarray(K), dtype=torch.float32), int(width), int(height))
 
@@ -60,7 +64,7 @@ class Camera:
 
 
 # ---------------------------------------------------------------- constructing cameras
-def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 1.0, 0.0)) -> np.ndarray:
     """World->camera ``[4,4]``: camera at ``eye`` looking at ``target``; image y points along -up."""
     eye, target, up = (np.asarray(x, np.float64) for x in (eye, target, up))
     fwd = target - eye
@@ -83,7 +87,7 @@ def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     return np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float64)
 
 
-def orbit_position(center, distance: float, azimuth: float, elevation: float) -> np.ndarray:
+def orbit_position(center: ArrayLike, distance: float, azimuth: float, elevation: float) -> np.ndarray:
     """Point at ``distance`` from ``center``; azimuth 0 is +z (the glTF front), angles in radians."""
     c = np.asarray(center, np.float64)
     return c + distance * np.array([math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
@@ -135,7 +139,7 @@ def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, h
     return cams
 
 
-def dataset_camera(dataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
+def dataset_camera(dataset: "AvatarDataset", camera_id: str, size: tuple[int, int] | None = None) -> Camera:
     """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
     if str(camera_id) not in dataset.camera_ids:
         shown = ", ".join(dataset.camera_ids[:20]) + (" ..." if len(dataset.camera_ids) > 20 else "")
@@ -146,14 +150,14 @@ def dataset_camera(dataset, camera_id: str, size: tuple[int, int] | None = None)
 
 
 # ---------------------------------------------------------------- converters from other conventions
-def _mat(name: str, m, shape: tuple[int, ...]) -> np.ndarray:
+def _mat(name: str, m: ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
     a = np.asarray(m, np.float64)
     if a.shape != shape or not np.isfinite(a).all():
         raise MeshsplatError(f"{name}: expected a finite {'x'.join(map(str, shape))} matrix, got shape {list(a.shape)}")
     return a
 
 
-def viewmat_from_opengl_c2w(c2w) -> np.ndarray:
+def viewmat_from_opengl_c2w(c2w: ArrayLike) -> np.ndarray:
     """World->camera OpenCV ``[4,4]`` from an OpenGL camera->world ``[4,4]`` (or ``[3,4]``).
 
     OpenGL cameras look down -z with y up; flipping the camera's y and z axes gives OpenCV's.
@@ -165,7 +169,7 @@ def viewmat_from_opengl_c2w(c2w) -> np.ndarray:
     return np.linalg.inv(a @ _GL_TO_CV)
 
 
-def opengl_c2w_from_viewmat(viewmat) -> np.ndarray:
+def opengl_c2w_from_viewmat(viewmat: ArrayLike) -> np.ndarray:
     """Inverse of :func:`viewmat_from_opengl_c2w`."""
     return np.linalg.inv(_mat("viewmat", viewmat, (4, 4))) @ _GL_TO_CV
 
@@ -175,7 +179,7 @@ def K_from_focal(fl_x: float, fl_y: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
 
 
-def K_from_normalized(intr, width: int, height: int) -> np.ndarray:
+def K_from_normalized(intr: ArrayLike, width: int, height: int) -> np.ndarray:
     """``K`` from ``[fx/W, fy/H, cx/W, cy/H]`` (IMavatar/DECA; signs are dropped: DECA stores fx < 0)."""
     a = np.abs(np.asarray(intr, np.float64).reshape(-1))
     if a.shape != (4,) or not np.isfinite(a).all():
@@ -183,7 +187,7 @@ def K_from_normalized(intr, width: int, height: int) -> np.ndarray:
     return K_from_focal(a[0] * width, a[1] * height, a[2] * width, a[3] * height)
 
 
-def rodrigues(rvec) -> np.ndarray:
+def rodrigues(rvec: ArrayLike) -> np.ndarray:
     """Rotation matrix ``[3,3]`` of an axis-angle vector ``[3]`` (radians)."""
     r = _mat("rvec", np.asarray(rvec, np.float64).reshape(-1), (3,))
     theta = float(np.linalg.norm(r))
@@ -194,7 +198,7 @@ def rodrigues(rvec) -> np.ndarray:
     return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * (Kx @ Kx)
 
 
-def viewmat_from_rodrigues(rvec, t) -> np.ndarray:
+def viewmat_from_rodrigues(rvec: ArrayLike, t: ArrayLike) -> np.ndarray:
     """World->camera ``[4,4]`` from a Rodrigues rotation vector and a translation (OpenCV ``rvec, tvec``)."""
     m = np.eye(4)
     m[:3, :3] = rodrigues(rvec)
@@ -202,7 +206,7 @@ def viewmat_from_rodrigues(rvec, t) -> np.ndarray:
     return m
 
 
-def camera_center(viewmat) -> np.ndarray:
+def camera_center(viewmat: ArrayLike) -> np.ndarray:
     """Camera position ``[3]`` in world coordinates of a world->camera ``[4,4]``."""
     vm = _mat("viewmat", viewmat, (4, 4))
     return -vm[:3, :3].T @ vm[:3, 3]

@@ -31,7 +31,8 @@ def _seg_closest(x, p, q):
     return s, (diff * diff).sum(-1)
 
 
-def closest_point_on_triangles(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
+def closest_point_on_triangles(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
+                               c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact closest point of ``x [...,3]`` on triangles ``(a, b, c) [...,3]``.
 
     Returns ``(dist2 [...], w [...,3])`` with barycentric weights of a, b, c.

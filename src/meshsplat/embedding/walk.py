@@ -144,7 +144,8 @@ def walk_on_triangles(
         return _walk(mesh, verts, face.long(), uv.detach(), step.detach().to(uv.dtype), mode, int(max_crossings), dev)
 
 
-def _walk(mesh, verts, face0, uv, step, mode, max_crossings, dev) -> WalkResult:
+def _walk(mesh: TriMesh, verts: torch.Tensor, face0: torch.Tensor, uv: torch.Tensor, step: torch.Tensor, mode: str,
+          max_crossings: int, dev: torch.device) -> WalkResult:
     """Rounds over the moving points, corner-major ``[3, n]`` layout (contiguous per corner).
 
     Branch-free arithmetic replaces masks where torch's CPU kernels are slow on random

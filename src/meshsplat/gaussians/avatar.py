@@ -42,9 +42,9 @@ class AvatarRender:
 class Avatar:
     """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
 
-    def __init__(self, mesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
+    def __init__(self, mesh: TriMesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
                  clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world",
-                 antialiased: bool = False):
+                 antialiased: bool = False) -> None:
         if not isinstance(mesh, TriMesh):
             raise MeshsplatError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         check_params(params)
@@ -83,7 +83,7 @@ class Avatar:
         return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame, self.antialiased)
 
     # ---- posing and rendering --------------------------------------------------------
-    def pose(self, verts_posed: torch.Tensor):
+    def pose(self, verts_posed: torch.Tensor) -> MeshPose:
         """``MeshPose`` for ``verts_posed [V,3]`` (moved to the avatar's device and dtype)."""
         check_tensor("verts_posed", verts_posed, "V,3", {"V": self.mesh.num_vertices}, dtype="float", finite=True)
         return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=self.params["uv"].dtype))
@@ -173,7 +173,7 @@ class Avatar:
                 f"sh_degree={self.sh_degree}, shading={self.shading!r})")
 
 
-def _checked_state(sd) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+def _checked_state(sd: Any) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
     """Validate an ``Avatar.state_dict()`` read from a file: types, shapes, finiteness, index ranges.
     Returns float32 vertices, long faces and params (floats as float32, ``face`` as long)."""
     if not isinstance(sd, dict):

@@ -22,6 +22,8 @@ import torch
 from meshsplat.embedding import SCALE_MODES, embed, pose_frame, project_uv_to_triangle
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
+from meshsplat.gaussians.shading import Shading
+from meshsplat.mesh import MeshPose
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize, quat_to_matrix
 
 __all__ = ["ComposedGaussians", "compose", "effective_uv", "eval_sh", "SH_FRAMES"]
@@ -81,8 +83,8 @@ def eval_sh(sh0: torch.Tensor, shN: torch.Tensor | None, dirs: torch.Tensor | No
     return (rgb + 0.5).clamp_min(0.0)
 
 
-def compose(params: dict[str, torch.Tensor], pose, scale_mode: str = "sqrt_area", *,
-            campos: torch.Tensor | None = None, clamp_to_face: bool = False, shading=None,
+def compose(params: dict[str, torch.Tensor], pose: MeshPose, scale_mode: str = "sqrt_area", *,
+            campos: torch.Tensor | None = None, clamp_to_face: bool = False, shading: Shading | None = None,
             sh_frame: str = "world") -> ComposedGaussians:
     """Renderable Gaussians for one posed mesh (``pose``: a ``MeshPose``).
 

@@ -16,6 +16,7 @@ and ``d`` are kept as frozen zero tensors.
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 import torch
@@ -23,6 +24,7 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat.embedding import sample_surface, surface_points
 from meshsplat.errors import MeshsplatError
+from meshsplat.mesh import TriMesh
 
 __all__ = [
     "SH_C0", "PARAM_KEYS", "EMBEDDING_STATE_KEYS", "num_sh_rest", "rgb_to_sh0", "sh0_to_rgb",
@@ -91,8 +93,8 @@ def make_params(face: torch.Tensor, uv: torch.Tensor, *, d: torch.Tensor | None 
     return params
 
 
-def init_params(mesh, n: int = 10_000, *, sh_degree: int = 0, init_opacity: float = 0.1,
-                knn: int = 3, colors_fn=None, generator: torch.Generator | None = None,
+def init_params(mesh: TriMesh, n: int = 10_000, *, sh_degree: int = 0, init_opacity: float = 0.1,
+                knn: int = 3, colors_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None, generator: torch.Generator | None = None,
                 trainable_embedding: bool = True) -> dict[str, torch.Tensor]:
     """Paper initialisation on the canonical ``mesh`` (a ``TriMesh``).
 

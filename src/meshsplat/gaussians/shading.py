@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 
+from meshsplat._typing import Device
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import quat_to_matrix
 
@@ -57,8 +58,8 @@ def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales:
 class Shading:
     """Learned illumination ``coeffs [9,3]`` (world-space SH irradiance) and which normal it shades."""
 
-    def __init__(self, coeffs: torch.Tensor | None = None, normal: str = "phong", device=None,
-                 dtype=torch.float32):
+    def __init__(self, coeffs: torch.Tensor | None = None, normal: str = "phong", device: Device | None = None,
+                 dtype: torch.dtype = torch.float32) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
         if coeffs is None:
@@ -75,18 +76,18 @@ class Shading:
         """``E(n) [N,3]`` (clamped at 0) for unit ``normals [N,3]``."""
         return (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
 
-    def shade(self, albedo: torch.Tensor, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor):
+    def shade(self, albedo: torch.Tensor, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         """Displayed colour ``[N,3]`` = albedo * E(normal)."""
         return albedo * self.irradiance(shading_normals(self.normal, phong, quats, scales))
 
-    def to(self, device) -> "Shading":
+    def to(self, device: Device) -> "Shading":
         return Shading(self.coeffs.detach().to(device), self.normal)
 
     def state_dict(self) -> dict[str, Any]:
         return {"coeffs": self.coeffs.detach().cpu().clone(), "normal": self.normal, "space": "world", "order": 2}
 
     @classmethod
-    def from_state_dict(cls, sd: dict[str, Any] | None, device="cpu") -> "Shading | None":
+    def from_state_dict(cls, sd: dict[str, Any] | None, device: Device = "cpu") -> "Shading | None":
         if sd is None:
             return None
         if not isinstance(sd, dict) or "coeffs" not in sd or not isinstance(sd.get("normal"), str):

@@ -33,7 +33,7 @@ def face_corners(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor
     return verts[..., faces[:, 0], :], verts[..., faces[:, 1], :], verts[..., faces[:, 2], :]
 
 
-def _face_cross(verts, faces):
+def _face_cross(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     a, b, c = face_corners(verts, faces)
     return torch.linalg.cross(b - a, c - a, dim=-1)
 
@@ -80,7 +80,7 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, weighting: str = "a
     return safe_normalize(_scatter_to_vertices(corner, faces, verts.shape[-2]))
 
 
-def _frame_ok(verts, faces, rel: float = 1e-10) -> torch.Tensor:
+def _frame_ok(verts: torch.Tensor, faces: torch.Tensor, rel: float = 1e-10) -> torch.Tensor:
     """[..., F] True where a face is not degenerate (relative to its edge lengths)."""
     a, b, c = face_corners(verts, faces)
     e0, e2 = b - a, c - a

@@ -13,12 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["MeshTopology", "as_face_tensor"]
 
 
-def as_face_tensor(faces, num_vertices: int | None = None) -> torch.Tensor:
+def as_face_tensor(faces: ArrayLike, num_vertices: int | None = None) -> torch.Tensor:
     """Validate ``faces [F,3]`` (array or tensor of ints) and return a CPU long tensor."""
     if isinstance(faces, np.ndarray):
         faces = torch.from_numpy(np.ascontiguousarray(faces))
@@ -64,7 +65,7 @@ class MeshTopology:
     index_degenerate_faces: torch.Tensor
 
     @classmethod
-    def from_faces(cls, faces, num_vertices: int | None = None) -> "MeshTopology":
+    def from_faces(cls, faces: ArrayLike, num_vertices: int | None = None) -> "MeshTopology":
         faces = as_face_tensor(faces, num_vertices)
         nf = faces.shape[0]
         nv = int(faces.max()) + 1 if num_vertices is None else int(num_vertices)

@@ -4,10 +4,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import degenerate_faces, face_areas
 from meshsplat.mesh.topology import MeshTopology, as_face_tensor
@@ -15,7 +17,7 @@ from meshsplat.mesh.topology import MeshTopology, as_face_tensor
 __all__ = ["TriMesh", "MeshReport", "validate_mesh"]
 
 
-def validate_mesh(vertices, faces) -> tuple[torch.Tensor, torch.Tensor]:
+def validate_mesh(vertices: ArrayLike, faces: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
     """Return ``(vertices [V,3] float, faces [F,3] long)``; raise MeshsplatError if unusable.
 
     Unusable: wrong shapes or dtypes, NaN/Inf vertices, no faces, out-of-range indices.
@@ -73,7 +75,7 @@ class MeshReport:
 class TriMesh:
     """Canonical mesh ``vertices [V,3]`` (float) and ``faces [F,3]`` (long), validated on construction."""
 
-    def __init__(self, vertices, faces):
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike) -> None:
         self.vertices, self.faces = validate_mesh(vertices, faces)
 
     @classmethod
@@ -85,7 +87,7 @@ class TriMesh:
         if not path.exists():
             raise MeshsplatError(f"mesh file not found: {path}")
         try:
-            m = _trimesh.load(str(path), force="mesh", process=False)
+            m: Any = _trimesh.load(str(path), force="mesh", process=False)  # a Trimesh (force="mesh")
         except Exception as exc:  # noqa: BLE001 - reported as one clear message
             raise MeshsplatError(f"cannot read mesh {path}: {exc}") from None
         return cls(torch.as_tensor(np.asarray(m.vertices), dtype=torch.float32),

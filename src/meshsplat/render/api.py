@@ -1,6 +1,8 @@
 """Public entry point: validated, backend-dispatching Gaussian rasterization."""
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from meshsplat._checks import check_same_device, check_tensor
@@ -17,8 +19,10 @@ BACKENDS = ("auto", "torch", "gsplat")
 TORCH_OPTIONS = ("pair_budget", "saved_pair_limit", "grad_mode")
 
 
-def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-              near_plane, far_plane, backgrounds, render_mode, backend) -> None:
+def _validate(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+              colors: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+              near_plane: float, far_plane: float, backgrounds: torch.Tensor | None, render_mode: str,
+              backend: str) -> None:
     dims: dict[str, int] = {}
     check_tensor("means", means, "N,3", dims, dtype="float", finite=True)
     check_tensor("quats", quats, "N,4", dims, dtype="float", finite=True)
@@ -82,7 +86,7 @@ def rasterize(
     backgrounds: torch.Tensor | None = None,
     render_mode: str = "RGB",
     backend: str = "auto",
-    **backend_options,
+    **backend_options: Any,
 ) -> RenderOutput:
     """Render 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` conventions).
 
@@ -100,12 +104,13 @@ def rasterize(
     _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
               near_plane, far_plane, backgrounds, render_mode, backend)
     chosen = _pick_backend(backend, means.device)
-    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats,
-                Ks=Ks, width=width, height=height, near_plane=near_plane, far_plane=far_plane,
-                backgrounds=backgrounds, render_mode=render_mode)
     if chosen == "gsplat":  # backend_options tune the torch backend only
-        return rasterize_gsplat(**args)
+        return rasterize_gsplat(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                                viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
+                                far_plane=far_plane, backgrounds=backgrounds, render_mode=render_mode)
     unknown = set(backend_options) - set(TORCH_OPTIONS)
     if unknown:
         raise MeshsplatError(f"unknown backend option(s) {sorted(unknown)}; known: {', '.join(TORCH_OPTIONS)}")
-    return rasterize_torch(**args, **backend_options)
+    return rasterize_torch(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                           viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
+                           far_plane=far_plane, backgrounds=backgrounds, render_mode=render_mode, **backend_options)

@@ -80,7 +80,9 @@ def project_gaussians(
     )
 
 
-def _screen_covariance(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane):
+def _screen_covariance(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
+                       Ks: torch.Tensor, width: int, height: int, near_plane: float,
+                       far_plane: float) -> tuple[torch.Tensor, ...]:
     """Camera-space z ``[C,N]``, depth mask, screen covariance ``[C,N,2,2]`` (no dilation), 2D means."""
     rot = viewmats[:, :3, :3]
     trans = viewmats[:, :3, 3]
