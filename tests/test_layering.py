@@ -62,3 +62,24 @@ def test_imports_flow_one_way():
             if other != me and other in RANK and RANK[other] >= RANK[me]:
                 upward.append(f"{path.relative_to(PKG)}:{line} ({me}) imports {module} ({other})")
     assert not upward, "imports against the layering:\n" + "\n".join(upward)
+
+
+# Function-local imports of the package's own modules hide the import graph and leave nothing a cycle needs:
+# import them at the top. Lazy imports stay for optional heavy dependencies (gsplat, smplx, matplotlib, ...).
+LOCAL_IMPORT_ALLOWED: set[str] = set()
+
+
+def test_own_modules_are_imported_at_the_top():
+    local = []
+    for path in sorted(PKG.rglob("*.py")):
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                names = ([node.module or ""] if isinstance(node, ast.ImportFrom)
+                         else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+                if any(n.startswith("meshsplat") for n in names):
+                    where = f"{path.relative_to(PKG)}:{node.lineno}"
+                    if str(path.relative_to(PKG)) not in LOCAL_IMPORT_ALLOWED:
+                        local.append(where)
+    assert not local, "function-local imports of meshsplat modules (move them to the top):\n" + "\n".join(local)

@@ -80,7 +80,7 @@ def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def check_same_device(**tensors: torch.Tensor) -> torch.device:
+def check_same_device(**tensors: torch.Tensor | None) -> torch.device:
     """All tensors on one device; returns it."""
     devices = {k: v.device for k, v in tensors.items() if isinstance(v, torch.Tensor)}
     uniq = set(devices.values())

@@ -22,7 +22,7 @@ from meshsplat.mesh.trimesh import TriMesh
 __all__ = ["project_to_surface", "closest_point_on_triangles"]
 
 
-def _seg_closest(x, p, q):
+def _seg_closest(x: torch.Tensor, p: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Closest point parameter s in [0,1] on segments p->q, and squared distance."""
     e = q - p
     s = ((x - p) * e).sum(-1) / (e * e).sum(-1).clamp_min(1e-300)
@@ -67,7 +67,8 @@ def closest_point_on_triangles(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     return dist2, w
 
 
-def _candidates(points, verts, faces, k, n_starts, chunk):
+def _candidates(points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, k: int, n_starts: int,
+                chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Best ``n_starts`` faces per point (by exact distance among the k nearest centroids)."""
     from scipy.spatial import cKDTree
 
@@ -89,7 +90,8 @@ def _candidates(points, verts, faces, k, n_starts, chunk):
     return torch.cat(out_f), torch.cat(out_w)
 
 
-def _residual(verts, vn, faces, f, uv, d, x):
+def _residual(verts: torch.Tensor, vn: torch.Tensor, faces: torch.Tensor, f: torch.Tensor, uv: torch.Tensor, d: torch.Tensor,
+              x: torch.Tensor) -> tuple[torch.Tensor, ...]:
     fc = faces[f]
     w = barycentric_weights(uv).unsqueeze(-1)
     pv, nv = verts[fc], vn[fc]                                  # [M,3,3]
