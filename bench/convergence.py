@@ -99,7 +99,7 @@ def main() -> None:
 
     from meshsplat.data import open_dataset
     from meshsplat.demo import PRESETS, _generate
-    from meshsplat.train import Trainer, TrainConfig, apply_overrides
+    from meshsplat.train import TrainConfig, Trainer, apply_overrides
 
     preset = PRESETS[args.preset]
     data = _generate(Path(args.data), preset, progress=False)

@@ -25,13 +25,13 @@ def main() -> None:
 
     from PIL import Image, ImageDraw
 
-    from meshsplat.eval.run import load_run, open_run_dataset
     from meshsplat.metrics import psnr
     from meshsplat.metrics.subject import subject_box
+    from meshsplat.run_folder import load_run
 
     torch.set_num_threads(1)
     runs = [load_run(r, "cpu") for r in args.runs]
-    ds = open_run_dataset(runs[0], None)
+    ds = runs[0].open_dataset()
     rows = []
     for split in [s for s in ds.split_names if s != "train"]:
         ids = ds.split(split)

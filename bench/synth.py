@@ -11,11 +11,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import machine_info, results_path  # noqa: E402
 
 from meshsplat.data import open_dataset
 from meshsplat.synth import generate
-
-from _machine import machine_info, results_path  # noqa: E402
 
 
 def main() -> int:

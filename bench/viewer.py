@@ -30,14 +30,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info, results_path  # noqa: E402
 
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import make_params
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
 from meshsplat.viewer import write_viewer_bundle
-
-from _machine import machine_info, results_path  # noqa: E402
 
 OLD_COMMIT = "bae8ae0"
 ROOT = Path(__file__).resolve().parents[1]

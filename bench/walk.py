@@ -16,12 +16,11 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from _machine import machine_info, results_path  # noqa: E402
 
 from meshsplat.embedding import WALK_MODES, sample_surface, walk_on_triangles
 from meshsplat.embedding._walk_reference import walk_on_triangles_reference
 from meshsplat.mesh import TriMesh
-
-from _machine import machine_info, results_path  # noqa: E402
 
 
 def bench_mesh(quick: bool) -> TriMesh:

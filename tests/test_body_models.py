@@ -9,14 +9,23 @@ import types
 import numpy as np
 import pytest
 import torch
+from _body_fixtures import tiny_flame, tiny_smpl, write_pickle
 
 from meshsplat.drivers.body_models import (
-    REGISTER_SITES, BodyModel, ParametricDriver, driver_record, find_model_file, join_flame_pose15,
-    join_smpl_thetas, load_driver_params, resolve_model_dir, save_driver_params, split_flame_pose15,
-    split_smpl_thetas)
+    REGISTER_SITES,
+    BodyModel,
+    ParametricDriver,
+    driver_record,
+    find_model_file,
+    join_flame_pose15,
+    join_smpl_thetas,
+    load_driver_params,
+    resolve_model_dir,
+    save_driver_params,
+    split_flame_pose15,
+    split_smpl_thetas,
+)
 from meshsplat.errors import MeshsplatError
-
-from _body_fixtures import tiny_flame, tiny_smpl, write_pickle
 
 L_SHOULDER, L_ELBOW = 16, 18
 

@@ -6,8 +6,15 @@ import math
 import numpy as np
 import pytest
 
-from meshsplat.camera import (K_from_normalized, camera_center, look_at, opengl_c2w_from_viewmat, rodrigues,
-                              viewmat_from_opengl_c2w, viewmat_from_rodrigues)
+from meshsplat.camera import (
+    K_from_normalized,
+    camera_center,
+    look_at,
+    opengl_c2w_from_viewmat,
+    rodrigues,
+    viewmat_from_opengl_c2w,
+    viewmat_from_rodrigues,
+)
 from meshsplat.errors import MeshsplatError
 
 

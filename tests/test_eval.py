@@ -4,12 +4,12 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from test_eval_kit import make_avatar, make_dataset, make_run
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.eval import evaluate_avatar, evaluate_run, load_run
+from meshsplat.eval import evaluate_avatar, evaluate_run
 from meshsplat.metrics import lpips_available
+from meshsplat.run_folder import load_run
 
 
 @pytest.fixture(scope="module")

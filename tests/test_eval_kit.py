@@ -14,7 +14,9 @@ import numpy as np
 import torch
 
 from meshsplat.gaussians import Avatar, init_params
+from meshsplat.io import save_checkpoint
 from meshsplat.mesh import TriMesh
+from meshsplat.run_folder import RunFolder
 
 SIZE = 32
 
@@ -82,13 +84,10 @@ def make_dataset(avatar: Avatar, root: Path) -> Path:
 
 def make_run(avatar: Avatar, run: Path, dataset: Path | None, iteration: int = 7) -> Path:
     """A run folder as the trainer writes it: config.json, checkpoints/ckpt_*.pt, log.csv."""
-    from meshsplat.io import checkpoint_path, save_checkpoint
-
-    (run / "checkpoints").mkdir(parents=True, exist_ok=True)
-    save_checkpoint(checkpoint_path(run / "checkpoints", iteration), {"iteration": iteration,
-                                                                       "avatar": avatar.state_dict()})
-    (run / "config.json").write_text(json.dumps({"data": str(dataset) if dataset else "", "out": str(run)}))
-    with open(run / "log.csv", "w", newline="") as fh:
+    folder = RunFolder(run)
+    save_checkpoint(folder.checkpoint_path(iteration), {"iteration": iteration, "avatar": avatar.state_dict()})
+    folder.config_path.write_text(json.dumps({"data": str(dataset) if dataset else "", "out": str(run)}))
+    with open(folder.log_path, "w", newline="") as fh:
         wr = csv.DictWriter(fh, fieldnames=["iteration", "loss", "psnr", "n_gaussians"])
         wr.writeheader()
         for it in range(1, iteration + 1):

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from test_eval_kit import SIZE, camera, deform, make_avatar, make_run
 
 from meshsplat.export import canonical_gaussians, export_avatar, load_exported_avatar

@@ -6,9 +6,20 @@ import math
 
 import numpy as np
 import pytest
+from _head_captures import (
+    JAW_VERTS,
+    JOINTS,
+    SURFACE,
+    V,
+    assert_vertices_close,
+    native_flame_dataset,
+    project,
+    rx,
+    ry,
+    same_cameras,
+    write_tiny_flame,
+)
 
-from _head_captures import (JAW_VERTS, JOINTS, SURFACE, V, assert_vertices_close, native_flame_dataset, project, rx,
-                            ry, same_cameras, write_tiny_flame)
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, imavatar, open_capture
 from meshsplat.data.formats._heads import tail_split

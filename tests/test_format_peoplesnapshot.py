@@ -10,14 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 from PIL import Image
 
 from meshsplat.camera import Camera
 from meshsplat.data import DatasetWriter, open_dataset
 from meshsplat.data.formats import peoplesnapshot as ps
 from meshsplat.errors import MeshsplatError
-
-from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 
 
 def _rot_y(a):

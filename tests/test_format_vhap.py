@@ -5,9 +5,21 @@ import json
 
 import numpy as np
 import pytest
+from _head_captures import (
+    JAW_VERTS,
+    JOINTS,
+    SHIFT_2023,
+    SURFACE,
+    V,
+    assert_vertices_close,
+    native_flame_dataset,
+    project,
+    rx,
+    ry,
+    same_cameras,
+    write_tiny_flame,
+)
 
-from _head_captures import (JAW_VERTS, JOINTS, SHIFT_2023, SURFACE, V, assert_vertices_close, native_flame_dataset,
-                            project, rx, ry, same_cameras, write_tiny_flame)
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, open_capture, vhap
 from meshsplat.data.png import write_png

@@ -17,13 +17,13 @@ import torch
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
+from test_train import make_tiny_dataset, small_config  # noqa: E402
 
 from meshsplat.data import open_dataset  # noqa: E402
 from meshsplat.errors import MeshsplatError  # noqa: E402
-from meshsplat.eval.run import load_run  # noqa: E402
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from meshsplat.io.embedding_json import read_embedding_json, write_embedding_json  # noqa: E402
-from test_train import make_tiny_dataset, small_config  # noqa: E402
+from meshsplat.run_folder import load_run  # noqa: E402
 
 JSON_VALUES = st.recursive(
     st.none() | st.booleans() | st.integers(-10**12, 10**12) | st.floats(allow_nan=True, allow_infinity=True)
@@ -166,10 +166,10 @@ def test_fuzz_checkpoint_bytes(run_ckpt):
 
 
 def test_fuzz_embedding_json(tmp_path):
+    import trimesh
+
     from meshsplat.gaussians import init_params
     from meshsplat.mesh import TriMesh
-
-    import trimesh
 
     m = trimesh.creation.icosphere(subdivisions=1)
     mesh = TriMesh(torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces))

@@ -8,11 +8,19 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
+from meshsplat.embedding import project_uv_to_triangle
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import (
-    SH_C0, Avatar, check_params, compose, eval_sh, init_params, knn_scales, make_params, sh_degree_of,
+    SH_C0,
+    Avatar,
+    check_params,
+    compose,
+    eval_sh,
+    init_params,
+    knn_scales,
+    make_params,
+    sh_degree_of,
 )
-from meshsplat.embedding import project_uv_to_triangle
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.mesh.quaternion import quat_multiply, quat_normalize
 
@@ -152,7 +160,7 @@ def test_check_params_errors_are_clear():
         check_params({k: v for k, v in p.items() if k != "d"})
 
 
-def test_avatar_state_roundtrip_and_compose(tmp_path):
+def test_avatar_state_roundtrip_and_compose():
     mesh = icosphere(1)
     p = init_params(mesh, 30, sh_degree=1)
     av = Avatar(mesh, p, "area")
@@ -167,10 +175,3 @@ def test_avatar_state_roundtrip_and_compose(tmp_path):
     assert torch.equal(a.means, b.means) and torch.equal(a.colors, b.colors)
     with pytest.raises(MeshsplatError, match="verts_posed"):
         av.compose(verts[:-1])
-    from meshsplat.io.checkpoint import checkpoint_path, save_checkpoint
-
-    save_checkpoint(checkpoint_path(tmp_path / "run" / "checkpoints", 7), {"avatar": sd})
-    av3 = Avatar.from_checkpoint(tmp_path / "run")
-    assert torch.equal(av3.params["uv"], p["uv"])
-    with pytest.raises(MeshsplatError, match="no checkpoint in"):
-        Avatar.from_checkpoint(tmp_path)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 
 from meshsplat.cli.main import main
 from meshsplat.data import DatasetWriter, open_dataset
@@ -12,8 +13,6 @@ from meshsplat.data.convert import write_native
 from meshsplat.data.formats import open_capture
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.errors import MeshsplatError
-
-from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 
 
 def _assert_same(a, b, mask_equal=True):

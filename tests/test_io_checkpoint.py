@@ -1,4 +1,5 @@
-"""Atomic checkpoints: round trip, crash safety, corrupt files, latest/pruning."""
+"""Atomic checkpoints: round trip, crash safety, corrupt files, listing/pruning (which one a run reads:
+test_run_folder.py)."""
 from __future__ import annotations
 
 import random
@@ -9,8 +10,7 @@ import torch
 
 import meshsplat.io.checkpoint as ck
 from meshsplat.errors import MeshsplatError
-from meshsplat.io import (checkpoint_path, latest_checkpoint, list_checkpoints, load_checkpoint,
-                          load_latest_checkpoint, prune_checkpoints, save_checkpoint)
+from meshsplat.io import checkpoint_path, list_checkpoints, load_checkpoint, prune_checkpoints, save_checkpoint
 
 
 def _state(step: int) -> dict:
@@ -83,17 +83,14 @@ def test_unstorable_state_is_named(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_latest_skips_corrupt_and_prunes(tmp_path):
-    assert latest_checkpoint(tmp_path) is None and load_latest_checkpoint(tmp_path / "nope") is None
+def test_list_and_prune(tmp_path):
+    assert list_checkpoints(tmp_path / "nope") == []
     for step in (100, 200, 300):
         save_checkpoint(checkpoint_path(tmp_path, step), _state(step))
-    checkpoint_path(tmp_path, 400).write_bytes(b"garbage")  # newest file is corrupt
+    checkpoint_path(tmp_path, 400).write_bytes(b"garbage")  # listed, not validated
     (tmp_path / "notes.txt").write_text("ignored")
-    assert latest_checkpoint(tmp_path) == checkpoint_path(tmp_path, 300)
-    path, state = load_latest_checkpoint(tmp_path)
-    assert state["step"] == 300
+    assert [s for s, _ in list_checkpoints(tmp_path)] == [100, 200, 300, 400]
     save_checkpoint(checkpoint_path(tmp_path, 500), _state(500), keep_last=2)
     assert [s for s, _ in list_checkpoints(tmp_path)] == [400, 500]
-    assert latest_checkpoint(tmp_path) == checkpoint_path(tmp_path, 500)
     with pytest.raises(MeshsplatError, match="keep_last"):
         prune_checkpoints(tmp_path, 0)

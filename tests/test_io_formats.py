@@ -6,11 +6,18 @@ import json
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.io import (read_embedding_json, read_gaussian_ply, read_obj, write_embedding_json,
-                          write_gaussian_ply, write_obj)
+from meshsplat.io import (
+    read_embedding_json,
+    read_gaussian_ply,
+    read_obj,
+    write_embedding_json,
+    write_gaussian_ply,
+    write_obj,
+)
 from meshsplat.io.ply import gaussian_ply_fields
 
 

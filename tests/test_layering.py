@@ -17,6 +17,7 @@ LAYERS = [
     ("render",),
     ("gaussians",),
     ("data",),
+    ("run_folder",),
     ("train",),
     ("synth", "eval", "export", "animate"),
     ("demo", "viewer"),

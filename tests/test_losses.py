@@ -9,8 +9,15 @@ import torch
 import meshsplat.train.losses as losses
 from meshsplat.errors import MeshsplatError
 from meshsplat.metrics.lpips_net import lpips_available
-from meshsplat.train.losses import (avatar_loss, d_ssim, l1_loss, make_perceptual_loss, mse_loss,
-                                    scale_regularizer, scale_threshold)
+from meshsplat.train.losses import (
+    avatar_loss,
+    d_ssim,
+    l1_loss,
+    make_perceptual_loss,
+    mse_loss,
+    scale_regularizer,
+    scale_threshold,
+)
 
 
 def test_scale_regularizer_selects_long_and_thin():

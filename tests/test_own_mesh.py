@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from _creature import creature_frames, write_creature_frames, write_creature_npz
 from test_eval_kit import make_dataset, make_run
 
@@ -236,8 +235,9 @@ def test_up_axis_choice_and_message(creature, tmp_path, capsys):
 
 
 def test_scale_log_is_relative_to_mesh_size(tmp_path):
-    from meshsplat.train import TrainConfig, Trainer
     from test_eval_kit import make_avatar
+
+    from meshsplat.train import TrainConfig, Trainer
 
     logs = []
     for unit in (1.0, 100.0):

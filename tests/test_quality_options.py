@@ -5,14 +5,14 @@ import math
 
 import pytest
 import torch
+from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
 from meshsplat.gaussians.shading import Shading, sh9_basis, shading_normals
 from meshsplat.mesh import MeshPose, TriMesh
-from meshsplat.train import Trainer, TrainConfig
-
-from test_train import K, VIEWMAT, W, H, small_config, tiny_dataset  # noqa: F401  (fixture)
+from meshsplat.run_folder import load_avatar
+from meshsplat.train import TrainConfig, Trainer
 
 
 def _sphere() -> TriMesh:
@@ -177,7 +177,7 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     full.train()
     assert not torch.equal(c0, full.shading.coeffs.detach())  # the illumination is learned
     assert all(r["mask"] > 0 for r in full.history)
-    av = Avatar.from_checkpoint(tmp_path / "full")
+    av = load_avatar(tmp_path / "full")
     assert av.shading is not None and av.sh_frame == "triangle" and av.antialiased
     assert torch.equal(av.shading.coeffs, full.shading.coeffs.detach())
     (tmp_path / "res" / "checkpoints").mkdir(parents=True)

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
 from meshsplat import animate, camera

@@ -1,7 +1,6 @@
 """Fast torch rasterizer vs the brute-force dense reference, gradcheck, and gsplat parity (GPU)."""
 from __future__ import annotations
 
-
 import pytest
 import torch
 

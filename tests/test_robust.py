@@ -13,14 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_train import make_tiny_dataset, small_config
 
 from meshsplat.cli.main import main
 from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
-from meshsplat.train import Trainer, TrainConfig, apply_overrides
+from meshsplat.run_folder import load_run
+from meshsplat.train import TrainConfig, Trainer, apply_overrides
 from meshsplat.train.config import load_config
-from test_train import make_tiny_dataset, small_config
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -291,8 +292,6 @@ def test_os_errors_are_one_line(run, tmp_path, capsys, monkeypatch):
 
 
 def test_degenerate_vertex_sequences_are_refused(run, tmp_path, capsys):
-    from meshsplat.eval.run import load_run
-
     n = load_run(run).avatar.mesh.num_vertices
     for name, arr in [("point", np.zeros((2, n, 3), np.float32)), ("empty", np.zeros((0, n, 3), np.float32)),
                       ("objects", np.array([None, 1], dtype=object))]:

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
+from meshsplat.camera import look_at
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data import open_dataset
 from meshsplat.synth import generate, rasterize_triangles
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import sample_texture
-from meshsplat.camera import look_at
 
 K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
 

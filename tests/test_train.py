@@ -11,7 +11,8 @@ import torch
 
 from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
-from meshsplat.train import LOG_COLUMNS, Trainer, TrainConfig, apply_overrides, load_config
+from meshsplat.run_folder import load_avatar
+from meshsplat.train import LOG_COLUMNS, TrainConfig, Trainer, apply_overrides, load_config
 
 W = H = 32
 VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
@@ -143,7 +144,7 @@ def test_training_learns_and_writes_run_dir(tiny_dataset, tmp_path):
     tr = Trainer(cfg)
     before = _psnr_on_train(tr.avatar(), ds)
     run = tr.train()
-    avatar = Avatar.from_checkpoint(run)
+    avatar = load_avatar(run)
     after = _psnr_on_train(avatar, ds)
     assert after > before + 3.0, (before, after)
     assert avatar.num_gaussians == tr.num_gaussians
@@ -174,7 +175,7 @@ def test_ablation_switches(tiny_dataset, tmp_path):
     assert torch.equal(nowalk.params["face"], face0)
     bary = torch.cat([nowalk.params["uv"], 1 - nowalk.params["uv"].sum(-1, keepdim=True)], -1)
     assert torch.all(bary >= -1e-6)
-    assert Avatar.from_checkpoint(tmp_path / "nowalk").clamp_to_face
+    assert load_avatar(tmp_path / "nowalk").clamp_to_face
 
 
 def test_cli_train_and_resume(tiny_dataset, tmp_path, capsys):

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_train import make_tiny_dataset
 
 from meshsplat.metrics.lpips_net import lpips_available
-from test_train import make_tiny_dataset
 
 ITERS = 16
 ARGS = ["--iters", str(ITERS), "--no-progress", "--device", "cpu",

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from meshsplat.embedding import WALK_MODES, walk_on_triangles
 from meshsplat.embedding._walk_reference import walk_on_triangles_reference

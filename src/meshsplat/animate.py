@@ -8,8 +8,8 @@ Drivers whose mesh is not the avatar's canonical mesh vertex for vertex (e.g. th
 synthetic dataset whose driving mesh had seams welded) are mapped by rest position (coincident
 vertices told apart by their triangles): every canonical vertex must coincide (within ``1e-5`` of
 the mesh size) with a driver vertex, or a clear error says so. A run synthesized from an asset keeps
-``source_map.npz`` (:mod:`meshsplat.data.source_map`, found by :func:`run_source_map`): with it the
-asset's clips and vertex sequences in the asset's own order drive the avatar even when its driving
+``source_map.npz`` (:mod:`meshsplat.data.source_map`; a run's is found by
+``meshsplat.run_folder.LoadedRun.source_map``): with it the asset's clips and vertex sequences in the asset's own order drive the avatar even when its driving
 mesh was welded, smoothed or decimated.
 Cameras follow the project convention (world->camera ``viewmat`` in OpenCV axes, world +y up).
 """
@@ -26,7 +26,7 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.camera import Camera
-from meshsplat.data.source_map import read_source_map, rest_mismatch
+from meshsplat.data.source_map import rest_mismatch
 from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
@@ -37,7 +37,7 @@ from meshsplat.render.background import background_color
 
 __all__ = [
     "AnimationResult", "render_animation", "motion_animation",
-    "match_vertices", "avatar_gltf_driver", "gltf_animation", "run_source_map", "blendshape_animation", "sequence_animation",
+    "match_vertices", "avatar_gltf_driver", "gltf_animation", "blendshape_animation", "sequence_animation",
     "dataset_animation",
 ]
 
@@ -54,22 +54,6 @@ class AnimationResult:
 
 
 # ---------------------------------------------------------------- drivers -> vertex frames
-def run_source_map(run, dataset=None):
-    """The source map of a loaded run (``RUN/source_map.npz``), else of its dataset folder, else None."""
-    if run is None:
-        return None
-    found = read_source_map(run.run_dir)
-    if found is not None:
-        return found
-    data = dataset if dataset is not None else run.config.get("data")
-    if not data:
-        return None
-    p = Path(data)
-    if not p.exists() and not p.is_absolute() and (run.run_dir / p).exists():
-        p = run.run_dir / p
-    return read_source_map(p) if p.is_dir() else None
-
-
 def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: float = 1e-5,
                    driver_faces: torch.Tensor | None = None, canonical_faces: torch.Tensor | None = None
                    ) -> torch.Tensor:

@@ -19,13 +19,22 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from meshsplat.animate import render_animation
+from meshsplat.camera import orbit_cameras
+from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError
+from meshsplat.eval import evaluate_run
+from meshsplat.export import export_avatar
+from meshsplat.paths import asset
+from meshsplat.run_folder import RunFolder, load_avatar
+from meshsplat.synth import contact_sheet, generate
+from meshsplat.train import TrainConfig, Trainer, apply_overrides
 
 __all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames", "PAPER_OVERRIDES",
            "QUALITY_OVERRIDES"]
@@ -73,8 +82,6 @@ def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str
                       progress: bool = True, quality: bool = True):
     """The TrainConfig the demo trains with: the preset's schedule, then ``QUALITY_OVERRIDES`` (unless
     ``quality=False``: the paper-faithful model), then ``extra`` (bench/quality.py's variants)."""
-    from meshsplat.train import TrainConfig, apply_overrides
-
     cfg = TrainConfig(data=str(data), out=str(out), iterations=preset.iterations, device="auto",
                       progress=progress)
     cfg.model.n_init = preset.n_init
@@ -102,16 +109,11 @@ def continuous_frames(ds, n: int, split: str = "test_frames") -> list[int]:
 
 
 def _generate(data_dir: Path, preset: DemoPreset, progress: bool) -> Path:
-    from meshsplat.paths import asset
-    from meshsplat.synth import contact_sheet, generate
-
     if (data_dir / "manifest.json").exists():
         return data_dir  # reuse a dataset from an earlier (interrupted) demo run
     generate(asset("gltf/CesiumMan.glb"), data_dir, rig="monocular-turn", frames=preset.frames,
              resolution=preset.resolution, test_views=preset.test_views, driver_smooth=5,
              progress=progress, overwrite=True)
-    from meshsplat.data import open_dataset
-
     contact_sheet(open_dataset(data_dir), data_dir / "contact_sheet.png")
     return data_dir
 
@@ -120,16 +122,6 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
              iterations: int | None = None) -> dict[str, Any]:
     """Run the whole pipeline into ``out_dir``; returns (and writes) the summary. Resumes training
     from the last checkpoint if an earlier demo in the same folder was interrupted."""
-    from dataclasses import replace
-
-    from meshsplat.animate import render_animation
-    from meshsplat.camera import orbit_cameras
-    from meshsplat.data import open_dataset
-    from meshsplat.eval import evaluate_run
-    from meshsplat.export import export_avatar
-    from meshsplat.gaussians import Avatar
-    from meshsplat.train import Trainer
-
     if preset not in PRESETS:
         raise MeshsplatError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
     p = PRESETS[preset]
@@ -148,18 +140,19 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     data = _generate(out / "data", p, progress)
     timings["synth_s"] = time.perf_counter() - t
 
-    t = stage(f"2/5 training {p.iterations} iterations on {out / 'run'}")
-    cfg = demo_train_config(data, out / "run", p, progress=progress)
+    run = RunFolder(out / "run")
+    t = stage(f"2/5 training {p.iterations} iterations on {run.root}")
+    cfg = demo_train_config(data, run.root, p, progress=progress)
     trainer = Trainer(cfg, resume=True)
     trainer.train()
     timings["train_s"] = time.perf_counter() - t
 
     t = stage("3/5 evaluating held-out frames and novel views")
-    metrics = evaluate_run(out / "run")
+    metrics = evaluate_run(run.root)
     timings["eval_s"] = time.perf_counter() - t
 
     t = stage("4/5 rendering the unseen part of the walk from an orbiting camera")
-    avatar = Avatar.from_checkpoint(out / "run")
+    avatar = load_avatar(run.root)
     ds = open_dataset(data)
     verts = [ds.vertices(i) for i in continuous_frames(ds, p.animation_frames)]
     cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts), orbit_deg=360.0,
@@ -168,7 +161,7 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     timings["render_s"] = time.perf_counter() - t
 
     t = stage("5/5 exporting .ply, embedding JSON and canonical mesh")
-    exp = export_avatar(avatar, out / "export", source=str(out / "run"), iteration=trainer.iteration)
+    exp = export_avatar(avatar, out / "export", source=str(run.root), iteration=trainer.iteration)
     timings["export_s"] = time.perf_counter() - t
 
     summary = {
@@ -180,8 +173,8 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
                     for name, s in metrics.get("splits", {}).items()},
         "timings_s": {k: round(v, 1) for k, v in timings.items()},
         "outputs": {
-            "dataset": str(data), "contact_sheet": str(data / "contact_sheet.png"), "run": str(out / "run"),
-            "report": str(out / "run" / "eval" / "report.html"),
+            "dataset": str(data), "contact_sheet": str(data / "contact_sheet.png"), "run": str(run.root),
+            "report": str(run.eval_dir / "report.html"),
             "animation": str(anim.mp4 or (out / "animation" / "frames")), "export": str(exp.folder),
         },
     }

@@ -10,42 +10,39 @@ writes metrics.json, samples_<split>.png (ground truth | render | error), curves
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from meshsplat.cli._guards import check_output_dir, check_range
+from meshsplat.cli._options import add_render_options, add_run_argument, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
+from meshsplat.eval import evaluate_run
+from meshsplat.run_folder import RunFolder
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", help="training run folder (or a checkpoint file)")
-    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+    add_run_argument(parser)
     parser.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (default: all but train)")
     parser.add_argument("--out", default=None, help="output folder (default RUN/eval)")
     parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
-    parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default auto)")
+    add_render_options(parser)
     add_threads_argument(parser)
-    parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     parser.add_argument("--no-report", action="store_true", help="only metrics.json (no figures, no HTML)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from meshsplat.eval import evaluate_run
-
     check_range("--max-frames", args.max_frames, "eval --max-frames")
     if args.out or Path(args.run).is_dir():
-        check_output_dir(args.out if args.out else Path(args.run) / "eval")
+        check_output_dir(args.out if args.out else RunFolder(args.run).eval_dir)
+    opts = render_options(args)
     apply_threads(args)
 
     m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
-                     max_frames_per_split=args.max_frames, background=args.background, device=args.device,
+                     max_frames_per_split=args.max_frames, background=opts.background, device=opts.device,
                      lpips_net=None if args.no_lpips else "alex", report=not args.no_report,
-                     backend=args.backend, progress=not args.no_progress)
+                     backend=opts.backend, progress=opts.progress)
     print(f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "
           f"background {m['background']}")
     fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731

@@ -22,15 +22,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from meshsplat.cli._guards import LIMITS, check_memory, check_output_dir, check_range, render_bytes
+from meshsplat import animate, camera
+from meshsplat.cli._guards import check_memory, check_output_dir, check_range, render_bytes
+from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.errors import MeshsplatError
+from meshsplat.run_folder import load_run
 
-__all__ = ["add_arguments", "run", "parse_size"]
+__all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder (frames/ and <name>.mp4)")
     drv = parser.add_mutually_exclusive_group(required=True)
     drv.add_argument("--gltf", help="glTF/GLB file whose mesh is the avatar's driving mesh")
@@ -48,39 +51,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=None, help="glTF: seconds to render (default the clip)")
     parser.add_argument("--start", type=float, default=0.0, help="glTF: start time within the clip (s)")
     parser.add_argument("--weights", default=None, help="blend-shape weights [T,K] (.npy or .json)")
-    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+    add_dataset_option(parser)
     parser.add_argument("--camera", default=None, help="dataset:<camera_id>")
     parser.add_argument("--orbit", type=float, default=None, help="orbit camera: total turn in degrees (default 0)")
     parser.add_argument("--distance", type=float, default=None, help="orbit camera distance (default auto-framed)")
     parser.add_argument("--elevation", type=float, default=None, help="orbit camera elevation in degrees (default 10)")
     parser.add_argument("--azimuth", type=float, default=0.0, help="orbit start azimuth in degrees (0 = from +z)")
     parser.add_argument("--fov", type=float, default=30.0, help="orbit camera vertical field of view (degrees)")
-    parser.add_argument("--size", default=None, help="WxH (default: the dataset camera's size, or 512x512)")
-    parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1]")
+    add_render_options(parser, size=True)
     parser.add_argument("--name", default="animation", help="video file name (without .mp4)")
     parser.add_argument("--no-mp4", action="store_true", help="PNG frames only")
     parser.add_argument("--no-png", action="store_true", help="MP4 only")
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto")
-    parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads_argument(parser)
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise MeshsplatError(f"--size: expected WxH such as 512x512, got {text!r}") from None
-    lo, hi, _ = LIMITS["render --size"]
-    if not (lo <= w <= hi and lo <= h <= hi):
-        raise MeshsplatError(f"--size: expected {lo}..{hi} pixels per side, got {text!r} (see docs/limits.md)")
-    return w, h
-
-
 def run(args: argparse.Namespace) -> int:
-    from meshsplat import animate, camera
-    from meshsplat.eval.run import load_run, open_run_dataset
-
     check_range("--fps", args.fps, "render --fps")
     check_range("--seconds", args.seconds, "render --seconds")
     check_range("--fov", args.fov, "render --fov")
@@ -89,25 +74,26 @@ def run(args: argparse.Namespace) -> int:
         raise MeshsplatError(f"--distance: expected > 0, got {args.distance:g}")
     if args.seconds is not None:
         check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
-    size = parse_size(args.size) if args.size else None
+    opts = render_options(args)
+    size = opts.size
     check_output_dir(args.out)
     apply_threads(args)
-    r = load_run(args.run, device=args.device)
+    r = load_run(args.run, device=opts.device)
     avatar = r.avatar
     ds = None
 
     def dataset():
         nonlocal ds
         if ds is None:
-            ds = open_run_dataset(r, args.dataset, check_masks=False)
+            ds = r.open_dataset(args.dataset, check_masks=False)
         return ds
 
     frame_cams = None
     if args.gltf:
         frames = animate.gltf_animation(avatar, args.gltf, args.clip, args.fps, args.seconds, args.start,
-                                        source_map=animate.run_source_map(r, args.dataset))
+                                        source_map=r.source_map(args.dataset))
     elif args.vertices:
-        frames = animate.sequence_animation(avatar, args.vertices, source_map=animate.run_source_map(r, args.dataset))
+        frames = animate.sequence_animation(avatar, args.vertices, source_map=r.source_map(args.dataset))
     elif args.blendshapes:
         if not args.weights:
             raise MeshsplatError("--blendshapes needs --weights FILE (.npy or .json, [T,K])")
@@ -140,9 +126,9 @@ def run(args: argparse.Namespace) -> int:
     w, h = max(sizes, key=lambda s: s[0] * s[1])
     check_memory(f"rendering {len(frames)} frames at {w}x{h}", render_bytes(w, h, len(frames)),
                  "lower --size, or render fewer frames (--seconds, --fps)")
-    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=args.background,
+    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=opts.background,
                                    name=args.name, write_pngs=not args.no_png, write_mp4=not args.no_mp4,
-                                   backend=args.backend, progress=not args.no_progress)
+                                   backend=opts.backend, progress=opts.progress)
     print(f"rendered {res.num_frames} frames ({res.render_ms_mean:.1f} ms/frame) to {args.out}")
     if res.mp4 is not None:
         print(f"  video: {res.mp4}")

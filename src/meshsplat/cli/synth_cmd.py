@@ -13,7 +13,6 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range, synth_bytes
-
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 
 __all__ = ["add_arguments", "run"]

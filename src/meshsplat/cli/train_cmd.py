@@ -13,7 +13,14 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
+from meshsplat.cli._options import add_render_options, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
+from meshsplat.data.formats import detect_format, format_module, open_capture
+from meshsplat.data.source_map import copy_source_map
+from meshsplat.errors import MeshsplatError
+from meshsplat.run_folder import RunFolder
+from meshsplat.train.config import TrainConfig, apply_overrides, load_config
+from meshsplat.train.trainer import Trainer, training_image_size
 
 __all__ = ["add_arguments", "run", "build_config"]
 
@@ -34,28 +41,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. strategy.refine_every=200 (repeatable)")
-    parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 or auto (default auto)")
+    add_render_options(parser, device=None, backend=False, background=False)
     parser.add_argument("--seed", type=int, default=None)
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_threads_argument(parser)
 
 
 def build_config(args: argparse.Namespace):
     """TrainConfig from defaults, the config file, --set overrides and flags."""
-    from meshsplat.train.config import TrainConfig, apply_overrides, load_config
-
     out = Path(args.out)
+    run = RunFolder(out)
+    opts = render_options(args)
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
-        from meshsplat.data.formats import open_capture
-        from meshsplat.train.trainer import training_image_size
-
         return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir))
 
     if args.config:
         cfg = load_config(args.config, image_size)
-    elif args.resume and (out / "config.json").is_file():
-        cfg = load_config(out / "config.json", image_size)
+    elif args.resume and run.config_path.is_file():
+        cfg = load_config(run.config_path, image_size)
     else:
         cfg = TrainConfig()
     cfg = apply_overrides(cfg, args.set)
@@ -69,27 +72,22 @@ def build_config(args: argparse.Namespace):
     cfg.out = str(out)
     if args.iters is not None:
         cfg.iterations = args.iters
-    if args.device is not None:
-        cfg.device = args.device
+    if opts.device is not None:
+        cfg.device = opts.device
     if args.seed is not None:
         cfg.seed = args.seed
-    if args.no_progress:
+    if not opts.progress:
         cfg.progress = False
     return cfg.validate()
 
 
 def run(args: argparse.Namespace) -> int:
-    from meshsplat.errors import MeshsplatError
-    from meshsplat.train.trainer import Trainer
-
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
     check_output_dir(args.out)
     check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
     apply_threads(args)
-    from meshsplat.data.formats import detect_format, format_module
-
     fmt = cfg.data_format or detect_format(cfg.data)
     print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
     cfg.data_format = fmt
@@ -97,8 +95,6 @@ def run(args: argparse.Namespace) -> int:
     check_memory(f"training with model.n_init={cfg.model.n_init}", 2e8 + 1200.0 * n,
                  "lower model.n_init / strategy.max_gaussians")
     trainer = Trainer(cfg, resume=args.resume)
-    from meshsplat.data.source_map import copy_source_map
-
     copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
@@ -106,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"  changed on resume: {note}" + (" (the learning-rate schedule follows the new total)"
                                                     if note.startswith("iterations:") else ""))
     elif args.resume:
-        print(f"no checkpoint in {Path(cfg.out) / 'checkpoints'}: starting a new run")
+        print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
     if trainer.iteration >= cfg.iterations:
         print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
         return 0

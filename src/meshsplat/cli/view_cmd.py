@@ -23,10 +23,20 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import functools
+import http.server
 from pathlib import Path
 
+import torch
+
+from meshsplat import animate
 from meshsplat.cli._guards import check_output_dir, check_range
+from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
+from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.run_folder import LoadedRun, load_run
+from meshsplat.viewer import write_viewer_bundle
+from meshsplat.viewer.rig import avatar_driver
 
 __all__ = ["add_arguments", "run", "load_frames"]
 
@@ -34,7 +44,7 @@ _KINDS = ("dataset", "gltf", "vertices", "blendshapes", "motion")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
     parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
                         help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, OBJ/PLY "
@@ -45,11 +55,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--split", default=None, help="dataset: only the frames of this split")
-    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+    add_dataset_option(parser)
     parser.add_argument("--frames", type=int, default=None, help="keep at most N frames")
     parser.add_argument("--fps", type=float, default=25.0, help="playback (and glTF sampling) rate (default 25)")
     parser.add_argument("--title", default=None, help="page title (default: the run folder's name)")
-    parser.add_argument("--background", choices=("white", "black"), default="white", help="initial background")
+    add_render_options(parser, device=False, backend=False, background=("white", "black"), progress=False)
     parser.add_argument("--vertex-encoding", choices=("int16", "float32"), default="int16",
                         help="storage of the animated vertices (default int16, quantized per bundle)")
     parser.add_argument("--bake", action="store_true",
@@ -58,21 +68,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
 
-def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
+def load_frames(avatar, args: argparse.Namespace, run_info: LoadedRun) -> list:
     """Vertex frames [V,3] chosen by ``--animation`` (via meshsplat.animate helpers)."""
-    import torch
-
-    from meshsplat import animate
-
     kind, *rest = args.animation
     if kind not in _KINDS:
         raise MeshsplatError(f"--animation: expected one of {', '.join(_KINDS)}, got {kind!r}")
     if kind == "dataset":
         if rest:
             raise MeshsplatError("--animation dataset takes no file (use --dataset PATH)")
-        from meshsplat.eval.run import open_run_dataset
-
-        ds = open_run_dataset(run_info, args.dataset, check_masks=False)
+        ds = run_info.open_dataset(args.dataset, check_masks=False)
         if args.split:
             frames, _ = animate.dataset_animation(avatar, ds, args.split)
         else:
@@ -87,16 +91,14 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
         if kind == "gltf":
             frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps,
-                                            source_map=animate.run_source_map(run_info, args.dataset))
+                                            source_map=run_info.source_map(args.dataset))
         elif kind == "motion":
-            from meshsplat.eval.run import open_run_dataset
-
-            ds = open_run_dataset(run_info, args.dataset, check_masks=False)
+            ds = run_info.open_dataset(args.dataset, check_masks=False)
             mdir = args.model_dir or run_info.config.get("model_dir") or None
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
             frames = animate.sequence_animation(avatar, rest[0],
-                                                source_map=animate.run_source_map(run_info, args.dataset))
+                                                source_map=run_info.source_map(args.dataset))
     if args.frames is not None:
         if args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
@@ -106,8 +108,6 @@ def load_frames(avatar, args: argparse.Namespace, run_info=None) -> list:
 
 def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
     """BlendshapeDriver of FILE (default the shared ICT FaceKit model) with a talking sequence."""
-    from meshsplat.drivers import BlendshapeDriver
-
     if len(rest) > 1:
         raise MeshsplatError("--animation blendshapes takes at most one FILE.npz")
     drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
@@ -123,9 +123,6 @@ def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
 
 
 def _serve(folder: Path, port: int) -> None:
-    import functools
-    import http.server
-
     handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(folder))
     try:
         server = http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
@@ -139,9 +136,6 @@ def _serve(folder: Path, port: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from meshsplat.eval.run import load_run
-    from meshsplat.viewer import write_viewer_bundle
-
     check_range("--fps", args.fps, "view --fps")
     check_range("--frames", args.frames, "view --frames")
     if args.serve:
@@ -151,31 +145,28 @@ def run(args: argparse.Namespace) -> int:
         if args.animation != ["dataset"]:
             raise MeshsplatError("--motion and --animation exclude each other")
         args.animation = ["motion", args.motion]
+    opts = render_options(args)
     r = load_run(args.run, device="cpu")
     title = args.title or r.run_dir.resolve().name
     kind, *rest = args.animation
     if kind == "gltf" and not args.bake:
-        from meshsplat.viewer.rig import avatar_driver
-
         if len(rest) != 1:
             raise MeshsplatError("--animation gltf needs exactly one FILE")
         if not Path(rest[0]).is_file():
             raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
-        from meshsplat import animate
-
-        rig = avatar_driver(r.avatar, rest[0], clip=args.clip, source_map=animate.run_source_map(r, args.dataset))
+        rig = avatar_driver(r.avatar, rest[0], clip=args.clip, source_map=r.source_map(args.dataset))
         index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+                                    vertex_encoding=args.vertex_encoding, background=opts.background, rig=rig)
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
     elif kind == "blendshapes" and not args.bake:
         rig = _blendshape_driver(r.avatar, rest, args)
         index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=args.background, rig=rig)
+                                    vertex_encoding=args.vertex_encoding, background=opts.background, rig=rig)
         what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
     else:
         frames = load_frames(r.avatar, args, r)
         index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=args.background)
+                                    vertex_encoding=args.vertex_encoding, background=opts.background)
         what = f"{len(frames)} frames"
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
     print(f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "

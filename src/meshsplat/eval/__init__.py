@@ -1,5 +1,4 @@
-"""Evaluation of trained runs: metrics on the test splits, reports, run loading."""
+"""Evaluation of trained runs: metrics on the test splits and reports (runs load via ``meshsplat.run_folder``)."""
 from meshsplat.eval.evaluate import evaluate_avatar, evaluate_run
-from meshsplat.eval.run import LoadedRun, load_run, run_dataset_path
 
-__all__ = ["evaluate_run", "evaluate_avatar", "LoadedRun", "load_run", "run_dataset_path"]
+__all__ = ["evaluate_run", "evaluate_avatar"]

@@ -23,8 +23,11 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.eval.report import write_report
+from meshsplat.metrics import lpips, lpips_available, psnr, ssim
+from meshsplat.metrics.subject import SUBJECT_KEYS, subject_metrics
 from meshsplat.render.background import background_color, composite
-from meshsplat.eval.run import load_run, open_run_dataset, run_dataset_path
+from meshsplat.run_folder import load_run
 
 __all__ = ["evaluate_run", "evaluate_avatar"]
 
@@ -59,9 +62,6 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
     ``samples[name]`` is a list of ``(label, gt [H,W,3], render [H,W,3])`` for the report.
     ``splits`` defaults to every split except ``"train"``.
     """
-    from meshsplat.metrics import lpips, lpips_available, psnr, ssim
-    from meshsplat.metrics.subject import SUBJECT_KEYS, subject_metrics
-
     names = [s for s in dataset.split_names if s != "train"] if splits is None else list(splits)
     unknown = [s for s in names if s not in dataset.split_names]
     if unknown:
@@ -150,13 +150,13 @@ def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out
     """
     run = load_run(run_dir, device)
     if dataset is None or isinstance(dataset, (str, Path)):
-        ds_path = run_dataset_path(run, dataset)
-        ds = open_run_dataset(run, dataset)
+        ds_path = run.dataset_path(dataset)
+        ds = run.open_dataset(dataset)
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(run.avatar, ds, splits, background, max_frames_per_split, lpips_net,
                                        samples_per_split if report else 0, backend, progress)
-    out = Path(out_dir) if out_dir is not None else run.run_dir / "eval"
+    out = Path(out_dir) if out_dir is not None else run.folder.eval_dir
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"run": str(run.run_dir), "checkpoint": str(run.checkpoint), "iteration": run.iteration,
                "dataset": str(ds_path), **results}
@@ -164,9 +164,7 @@ def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out
         metrics["attribution"] = str(ds.meta["attribution"])  # the asset's credit travels with the numbers
     files = {"metrics": str(out / "metrics.json")}
     if report:
-        from meshsplat.eval.report import write_report
-
-        files.update(write_report(out, metrics, samples, run.run_dir / "log.csv"))
+        files.update(write_report(out, metrics, samples, run.folder.log_path))
     metrics["files"] = files
     tmp = out / "metrics.json.tmp"
     tmp.write_text(json.dumps(metrics, indent=1))

@@ -1,6 +1,6 @@
 """A trained avatar: canonical mesh + embedded Gaussian parameters, renderable in any pose.
 
-    avatar = Avatar.from_checkpoint("runs/demo")            # run dir or a ckpt_*.pt file
+    avatar = meshsplat.run_folder.load_avatar("runs/demo/run")   # run dir or a ckpt_*.pt file
     out = avatar.render(verts_posed, viewmat, K, width, height, background=torch.ones(3))
     out.image  # [H,W,3] in [0,1]; out.alpha [H,W,1]; out.meta (rasterizer meta)
 
@@ -13,7 +13,6 @@ albedo and every render is shaded by the posed normals).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -24,7 +23,6 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose, effective_uv
 from meshsplat.gaussians.params import check_params, num_gaussians, sh0_to_rgb, sh_degree_of
 from meshsplat.gaussians.shading import Shading, shading_normals
-from meshsplat.io.checkpoint import load_run_checkpoint
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.render import rasterize
 from meshsplat.render.projection import antialias_compensation
@@ -159,14 +157,6 @@ class Avatar:
             raise MeshsplatError(f"avatar shading state is invalid ({exc})") from None
         return cls(mesh, {k: v.to(device) for k, v in params.items()}, sd.get("scale_mode", "sqrt_area"),
                    sd.get("clamp_to_face", False), shading, sh_frame, antialiased)
-
-    @classmethod
-    def from_checkpoint(cls, path: str | Path, device: torch.device | str = "cpu") -> "Avatar":
-        """Load from a training checkpoint file, or the newest valid one of a run dir."""
-        _, state = load_run_checkpoint(path)
-        if "avatar" not in state:
-            raise MeshsplatError(f"{path}: checkpoint holds no avatar")
-        return cls.from_state_dict(state["avatar"], device)
 
     def __repr__(self) -> str:
         return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "

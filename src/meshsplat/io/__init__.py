@@ -3,11 +3,8 @@ from __future__ import annotations
 
 from meshsplat.io.checkpoint import (
     checkpoint_path,
-    latest_checkpoint,
-    load_run_checkpoint,
     list_checkpoints,
     load_checkpoint,
-    load_latest_checkpoint,
     prune_checkpoints,
     save_checkpoint,
 )
@@ -25,7 +22,7 @@ from meshsplat.io.splat_formats import (
 from meshsplat.io.video import VideoResult, write_mp4, write_png_frames, write_video
 
 __all__ = [
-    "save_checkpoint", "load_checkpoint", "latest_checkpoint", "load_latest_checkpoint", "load_run_checkpoint",
+    "save_checkpoint", "load_checkpoint",
     "list_checkpoints", "prune_checkpoints", "checkpoint_path",
     "write_gaussian_ply", "read_gaussian_ply",
     "write_splat", "read_splat", "write_spz", "read_spz", "write_gltf_splats", "read_gltf_splats",

@@ -6,7 +6,8 @@ with ``os.replace``: a reader sees either the previous file or the complete new 
 ``state`` may hold tensors, dicts, lists, tuples, numbers, strings, bytes and None (numpy
 arrays must be converted to tensors); it is loaded with ``torch.load(weights_only=True)``.
 
-Run folders name checkpoints ``ckpt_<step:08d>.pt`` (:func:`checkpoint_path`).
+A folder of checkpoints names them ``ckpt_<step:08d>.pt`` (:func:`checkpoint_path`); where a run keeps
+that folder and which checkpoint a run is read from is ``meshsplat.run_folder``'s business.
 """
 from __future__ import annotations
 
@@ -28,8 +29,6 @@ __all__ = [
     "load_checkpoint",
     "checkpoint_path",
     "list_checkpoints",
-    "latest_checkpoint",
-    "load_latest_checkpoint",
     "prune_checkpoints",
     "remove_stray_tmp",
 ]
@@ -159,72 +158,31 @@ def remove_stray_tmp(folder: str | os.PathLike) -> list[Path]:
     return gone
 
 
-def checkpoint_path(run_dir: str | os.PathLike, step: int) -> Path:
-    """``run_dir/ckpt_<step:08d>.pt``."""
+def checkpoint_path(folder: str | os.PathLike, step: int) -> Path:
+    """``folder/ckpt_<step:08d>.pt``."""
     if int(step) < 0:
         raise MeshsplatError(f"step: expected a non-negative integer, got {step}")
-    return Path(run_dir) / f"ckpt_{int(step):08d}.pt"
+    return Path(folder) / f"ckpt_{int(step):08d}.pt"
 
 
-def list_checkpoints(run_dir: str | os.PathLike) -> list[tuple[int, Path]]:
-    """``(step, path)`` of ``ckpt_*.pt`` files in ``run_dir``, oldest first (not validated)."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
+def list_checkpoints(folder: str | os.PathLike) -> list[tuple[int, Path]]:
+    """``(step, path)`` of ``ckpt_*.pt`` files in ``folder``, oldest first (not validated)."""
+    folder = Path(folder)
+    if not folder.is_dir():
         return []
     found = []
-    for p in run_dir.iterdir():
+    for p in folder.iterdir():
         m = _NAME.match(p.name)
         if m and p.is_file():
             found.append((int(m.group(1)), p))
     return sorted(found)
 
 
-def load_latest_checkpoint(run_dir: str | os.PathLike,
-                           map_location: str | torch.device = "cpu") -> tuple[Path, dict] | None:
-    """Newest checkpoint of ``run_dir`` that loads, as ``(path, state)``; corrupt ones are skipped."""
-    for _, p in reversed(list_checkpoints(run_dir)):
-        try:
-            return p, load_checkpoint(p, map_location)
-        except MeshsplatError:
-            continue
-    return None
-
-
-def load_run_checkpoint(path: str | os.PathLike,
-                        map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
-    """``(checkpoint, state)`` for a checkpoint file, or the newest loadable one of a run folder
-    (``RUN/checkpoints/ckpt_*.pt``, else ``RUN/ckpt_*.pt``). Errors say what was found and why it failed."""
-    path = Path(path)
-    if not path.exists():
-        raise MeshsplatError(f"run not found: {path} (expected a training run folder or a checkpoint file)")
-    if path.is_file():
-        return path, load_checkpoint(path, map_location)
-    for folder in (path / "checkpoints", path):
-        ckpts = list_checkpoints(folder)
-        if not ckpts:
-            continue
-        problems = []
-        for _, p in reversed(ckpts):
-            try:
-                return p, load_checkpoint(p, map_location)
-            except MeshsplatError as exc:
-                problems.append(str(exc))
-        raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {problems[0]}")
-    raise MeshsplatError(f"no checkpoint in {path} (looked for {path / 'checkpoints'}/ckpt_*.pt); "
-                         "is this a training run folder?")
-
-
-def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
-    """Path of the newest valid checkpoint in ``run_dir`` (None when there is none)."""
-    found = load_latest_checkpoint(run_dir)
-    return None if found is None else found[0]
-
-
-def prune_checkpoints(run_dir: str | os.PathLike, keep_last: int) -> list[Path]:
+def prune_checkpoints(folder: str | os.PathLike, keep_last: int) -> list[Path]:
     """Delete all but the ``keep_last`` newest ``ckpt_*.pt``; returns the deleted paths."""
     if keep_last < 1:
         raise MeshsplatError(f"keep_last: expected >= 1, got {keep_last}")
-    ckpts = list_checkpoints(run_dir)
+    ckpts = list_checkpoints(folder)
     doomed = [p for _, p in ckpts[:-keep_last]]
     for p in doomed:
         p.unlink(missing_ok=True)

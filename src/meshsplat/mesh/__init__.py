@@ -1,7 +1,13 @@
 """Triangle mesh: topology, differentiable geometry, posed quantities, quaternions."""
 from meshsplat.mesh.geometry import (
-    degenerate_faces, face_area_ratio, face_areas, face_frames, face_normals, face_rotations,
-    vertex_normals, vertex_quaternions,
+    degenerate_faces,
+    face_area_ratio,
+    face_areas,
+    face_frames,
+    face_normals,
+    face_rotations,
+    vertex_normals,
+    vertex_quaternions,
 )
 from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_normalize, quat_to_matrix

@@ -6,7 +6,14 @@ Losses live in ``meshsplat.train.losses``. Python API::
     run_dir = train(TrainConfig(data="path/to/dataset", out="runs/x", iterations=2000))
 """
 from meshsplat.train.config import (
-    LossConfig, ModelConfig, OptimConfig, StrategyConfig, TrainConfig, WalkConfig, apply_overrides, load_config,
+    LossConfig,
+    ModelConfig,
+    OptimConfig,
+    StrategyConfig,
+    TrainConfig,
+    WalkConfig,
+    apply_overrides,
+    load_config,
 )
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers, expon_lr
 from meshsplat.train.strategy import DensifyStrategy, walk_embeddings

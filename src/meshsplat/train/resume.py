@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.checkpoint import list_checkpoints, load_checkpoint
+from meshsplat.io.checkpoint import load_checkpoint
+from meshsplat.run_folder import RunFolder
 
 __all__ = ["SAFE_CHANGES", "load_resume_checkpoint", "refuse_existing_run", "config_changes",
            "TrainingInterrupted", "StopOnSignal", "check_resume_config", "signal_name"]
@@ -29,13 +30,14 @@ SAFE_CHANGES = frozenset({
 })
 
 
-def load_resume_checkpoint(ckpt_dir: Path, map_location="cpu") -> tuple[Path, dict] | None:
-    """``(path, state)`` of the newest checkpoint in ``ckpt_dir``, or None when there is none.
+def load_resume_checkpoint(run: RunFolder, map_location="cpu") -> tuple[Path, dict] | None:
+    """``(path, state)`` of the newest checkpoint of ``run``, or None when there is none.
 
     Every ``ckpt_*.pt`` must load: otherwise one MeshsplatError names each unreadable file,
     and nothing is deleted (a run that resumed past a bad file would later prune or overwrite it).
     """
-    ckpts = list_checkpoints(ckpt_dir)
+    ckpt_dir = run.checkpoint_dir
+    ckpts = run.checkpoints()
     if not ckpts:
         return None
     loaded, bad = None, []
@@ -61,11 +63,11 @@ def _reason(exc: MeshsplatError, path: Path) -> str:
     return msg.replace(f"checkpoint {quoted} ", "").replace(quoted, "").strip() or msg
 
 
-def refuse_existing_run(ckpt_dir: Path) -> None:
+def refuse_existing_run(run: RunFolder) -> None:
     """A fresh run must not reuse a folder holding checkpoints (it would prune them)."""
-    found = [p for _, p in list_checkpoints(ckpt_dir)]
+    found = [p for _, p in run.checkpoints()]
     if found:
-        raise MeshsplatError(f"{ckpt_dir.parent} already holds a run ({len(found)} checkpoint(s), newest "
+        raise MeshsplatError(f"{run.root} already holds a run ({len(found)} checkpoint(s), newest "
                              f"{found[-1].name}); continue it with --resume, or choose another --out")
 
 

@@ -1,11 +1,8 @@
 """Training loop: mesh-embedded Gaussians fitted to images of a posed mesh sequence.
 
-Run directory layout (``config.out``)::
-
-    RUN/config.json                       resolved TrainConfig (JSON)
-    RUN/checkpoints/ckpt_<iter:08d>.pt    atomic checkpoints (meshsplat.io), last ``keep_checkpoints`` kept
-    RUN/log.csv                           one row per ``log_every`` iterations (see LOG_COLUMNS)
-    RUN/previews/preview_<iter:06d>.png   render | ground truth of a fixed training frame
+Writes the run folder ``config.out`` (layout: ``meshsplat.run_folder``): ``config.json``, checkpoints
+(last ``keep_checkpoints`` kept), ``log.csv`` (one row per ``log_every`` iterations, see LOG_COLUMNS),
+previews and, with pose refinement, ``refined_params.npz``.
 
 A checkpoint (``meshsplat.io.load_checkpoint``) holds ``iteration``, ``config`` (dict),
 ``avatar`` (``Avatar.state_dict()``: canonical mesh, params, scale_mode, ...), ``optimizers``
@@ -38,15 +35,20 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
+from meshsplat.data.formats import open_capture
 from meshsplat.embedding import surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
-from meshsplat.io.checkpoint import remove_stray_tmp
+from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
+from meshsplat.mesh import TriMesh
 from meshsplat.render.background import background_color, composite
+from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
+from meshsplat.train.losses import make_perceptual_loss
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
+from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
     StopOnSignal,
     TrainingInterrupted,
@@ -93,17 +95,13 @@ class Trainer:
     """
 
     def __init__(self, config: TrainConfig, resume: bool = False):
-        from meshsplat.data.formats import open_capture
-        from meshsplat.mesh import TriMesh
-
         self.cfg = TrainConfig.from_dict(config.validate().to_dict())  # own copy
         if not self.cfg.data:
             raise MeshsplatError("config: data (the dataset folder) is not set")
         self.cfg.data = str(Path(self.cfg.data).expanduser().resolve())
         self.cfg.out = str(Path(self.cfg.out).expanduser().resolve())
-        self.run_dir = Path(self.cfg.out)
-        self.ckpt_dir = self.run_dir / "checkpoints"
-        self.preview_dir = self.run_dir / "previews"
+        self.folder = RunFolder(self.cfg.out)
+        self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)
         self.dataset = open_capture(self.cfg.data, format=self.cfg.data_format or None,
                                     model_dir=self.cfg.model_dir or None)
@@ -119,15 +117,11 @@ class Trainer:
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
         self.refiner = None
         if self.cfg.pose_refine.enabled:
-            from meshsplat.train.pose_refine import PoseRefiner
-
             pr = self.cfg.pose_refine
             self.refiner = PoseRefiner(self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None,
                                        self.device)
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
-            from meshsplat.train.losses import make_perceptual_loss
-
             # built now: nothing may draw random numbers after seeding or restoring the generators
             self.perceptual = make_perceptual_loss("alex").build(self.device)
         self._frame_cache: dict[int, tuple] = {}
@@ -140,7 +134,7 @@ class Trainer:
         self.shading_opt: torch.optim.Adam | None = None
 
         self.resume_notes: list[str] = []
-        loaded = load_resume_checkpoint(self.ckpt_dir) if resume else refuse_existing_run(self.ckpt_dir)
+        loaded = load_resume_checkpoint(self.folder) if resume else refuse_existing_run(self.folder)
         if loaded is not None:
             old = upgrade_config_dict(loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
@@ -344,9 +338,9 @@ class Trainer:
         cfg = self.cfg
         end = cfg.iterations if until is None else min(int(until), cfg.iterations)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        cfg.to_json(self.run_dir / "config.json")
+        cfg.to_json(self.folder.config_path)
         self._open_log()
-        remove_stray_tmp(self.ckpt_dir)
+        remove_stray_tmp(self.folder.checkpoint_dir)
         bar = None
         if cfg.progress:
             from tqdm import tqdm
@@ -389,7 +383,7 @@ class Trainer:
 
     # ---- outputs ---------------------------------------------------------------------
     def _open_log(self) -> None:
-        path = self.run_dir / "log.csv"
+        path = self.folder.log_path
         rows = []
         if path.exists():  # keep the rows up to the resumed iteration
             with open(path, newline="") as fh:
@@ -403,7 +397,7 @@ class Trainer:
 
     def _log(self, row: dict[str, float]) -> None:
         self.history.append(row)
-        with open(self.run_dir / "log.csv", "a", newline="") as fh:
+        with open(self.folder.log_path, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow(
                 {k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in LOG_COLUMNS})
 
@@ -416,8 +410,8 @@ class Trainer:
         out, gt = self.render_frame(idx, bg)
         pair = torch.cat([out.image.clamp(0, 1), gt], dim=1)
         img = (pair.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
-        self.preview_dir.mkdir(parents=True, exist_ok=True)
-        path = self.preview_dir / f"preview_{self.iteration:06d}.png"
+        path = self.folder.preview_path(self.iteration)
+        path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(img).save(path)
         return path
 
@@ -455,11 +449,9 @@ class Trainer:
         }
 
     def save_checkpoint(self) -> Path:
-        from meshsplat.io.checkpoint import checkpoint_path, save_checkpoint
-
         if self.refiner is not None:  # the refined parameters, readable without torch
-            np.savez(self.run_dir / "refined_params.npz", **self.refiner.refined_params())
-        return save_checkpoint(checkpoint_path(self.ckpt_dir, self.iteration), self.state_dict(),
+            np.savez(self.folder.refined_params_path, **self.refiner.refined_params())
+        return save_checkpoint(self.folder.checkpoint_path(self.iteration), self.state_dict(),
                                keep_last=self.cfg.keep_checkpoints)
 
     def _restore(self, st: dict[str, Any]) -> None:

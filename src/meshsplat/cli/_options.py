@@ -1,0 +1,79 @@
+"""Options shared by the commands that read a run or render: declared once, parsed once.
+
+``add_run_argument`` gives ``RUN`` (and ``--dataset``); ``add_render_options`` gives the rendering
+flags (``--device --backend --background --size --no-progress``, each only where the command takes
+it); ``render_options(args)`` turns them into the values the library takes.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+from meshsplat.cli._guards import LIMITS
+from meshsplat.errors import MeshsplatError
+
+__all__ = ["add_run_argument", "add_dataset_option", "add_render_options", "render_options", "RenderOptions", "parse_size"]
+
+def add_run_argument(parser: argparse.ArgumentParser, dataset: bool = True) -> None:
+    """Positional ``run`` (a training run folder or a checkpoint file) and, with ``dataset``, ``--dataset``."""
+    parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    if dataset:
+        add_dataset_option(parser)
+
+
+def add_dataset_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+
+
+def add_render_options(parser: argparse.ArgumentParser, *, device: str | None | bool = "auto", backend: bool = True,
+                       background: bool | tuple[str, ...] = True, size: bool = False, progress: bool = True) -> None:
+    """Add the rendering flags a command takes.
+
+    ``device``: the ``--device`` default (``"auto"``; ``None`` leaves the choice to the config), or
+    False for none. ``background``: True for any colour, a tuple of names to restrict the choice (the
+    viewer page only switches between white and black), False for none.
+    """
+    if size:
+        parser.add_argument("--size", default=None, help="WxH (default: the dataset camera's size, or 512x512)")
+    if background is True:
+        parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
+    elif background:
+        parser.add_argument("--background", choices=tuple(background), default=background[0],
+                            help=f"initial background (default {background[0]})")
+    if device is not False:
+        parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1 or auto (default auto)")
+    if backend:
+        parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat (default auto)")
+    if progress:
+        parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """What ``add_render_options`` parsed; ``None`` where the command has no such flag or it was not given."""
+
+    device: str | None
+    backend: str | None
+    background: str | None
+    size: tuple[int, int] | None
+    progress: bool
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"WxH"`` -> ``(W, H)`` within docs/limits.md's bounds."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise MeshsplatError(f"--size: expected WxH such as 512x512, got {text!r}") from None
+    lo, hi, _ = LIMITS["render --size"]
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise MeshsplatError(f"--size: expected {lo}..{hi} pixels per side, got {text!r} (see docs/limits.md)")
+    return w, h
+
+
+def render_options(args: argparse.Namespace) -> RenderOptions:
+    """The rendering flags of ``args`` as library values (``--size`` checked and parsed)."""
+    size = getattr(args, "size", None)
+    return RenderOptions(device=getattr(args, "device", None), backend=getattr(args, "backend", None),
+                         background=getattr(args, "background", None), size=parse_size(size) if size else None,
+                         progress=not getattr(args, "no_progress", False))

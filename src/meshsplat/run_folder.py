@@ -1,0 +1,228 @@
+"""A training run folder: the one place that knows its file names and how to read it back.
+
+Layout (written by ``meshsplat.train``, read by eval, export, render, view and the demo)::
+
+    RUN/config.json                       resolved TrainConfig (JSON)
+    RUN/checkpoints/ckpt_<iter:08d>.pt    atomic checkpoints (``meshsplat.io.checkpoint``)
+    RUN/log.csv                           training log, one row per ``log_every`` iterations
+    RUN/previews/preview_<iter:06d>.png   render | ground truth of a fixed training frame
+    RUN/refined_params.npz                refined tracker parameters (``pose_refine.enabled``)
+    RUN/source_map.npz                    copied from a synthesized dataset (``meshsplat.data.source_map``)
+    RUN/eval/                             ``meshsplat eval`` (metrics.json, report)
+    RUN/export/                           ``meshsplat export``
+
+Layer: just below ``train`` (it imports io, gaussians and data, never train), so the trainer writes
+through :class:`RunFolder` and everything above reads through :func:`load_run`. Wherever a run is
+asked for, a checkpoint file inside it (``RUN/checkpoints/ckpt_*.pt``) may be given instead.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from meshsplat._device import resolve_device
+from meshsplat.data.formats import open_capture
+from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
+from meshsplat.data.source_map import SourceMap, read_source_map
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.avatar import Avatar
+from meshsplat.io.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+
+__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar"]
+
+
+class RunFolder:
+    """Paths of the run folder ``root`` (nothing is read or created until asked)."""
+
+    CONFIG = "config.json"
+    CHECKPOINTS = "checkpoints"
+    LOG = "log.csv"
+    PREVIEWS = "previews"
+    REFINED_PARAMS = "refined_params.npz"
+    EVAL = "eval"
+    EXPORT = "export"
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    @classmethod
+    def of(cls, path: str | Path) -> "RunFolder":
+        """The run folder ``path`` names: the folder itself, or the run holding the checkpoint file ``path``."""
+        path = Path(path)
+        if path.is_dir():
+            return cls(path)
+        return cls(path.parent.parent if path.parent.name == cls.CHECKPOINTS else path.parent)
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.root)!r})"
+
+    @property
+    def config_path(self) -> Path:
+        return self.root / self.CONFIG
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.root / self.CHECKPOINTS
+
+    @property
+    def log_path(self) -> Path:
+        return self.root / self.LOG
+
+    @property
+    def preview_dir(self) -> Path:
+        return self.root / self.PREVIEWS
+
+    @property
+    def refined_params_path(self) -> Path:
+        return self.root / self.REFINED_PARAMS
+
+    @property
+    def source_map_path(self) -> Path:
+        return self.root / SOURCE_MAP_NAME
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / self.EVAL
+
+    @property
+    def export_dir(self) -> Path:
+        return self.root / self.EXPORT
+
+    def checkpoint_path(self, iteration: int) -> Path:
+        """``RUN/checkpoints/ckpt_<iteration:08d>.pt``."""
+        return checkpoint_path(self.checkpoint_dir, iteration)
+
+    def preview_path(self, iteration: int) -> Path:
+        """``RUN/previews/preview_<iteration:06d>.png``."""
+        return self.preview_dir / f"preview_{int(iteration):06d}.png"
+
+    def checkpoints(self) -> list[tuple[int, Path]]:
+        """``(iteration, path)`` of ``RUN/checkpoints/ckpt_*.pt``, oldest first (not validated)."""
+        return list_checkpoints(self.checkpoint_dir)
+
+    def latest_checkpoint(self, map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
+        """``(path, state)`` of the newest checkpoint that loads, from ``RUN/checkpoints`` (else, for
+        older runs, ``RUN/ckpt_*.pt``); unreadable newer ones are skipped. One-line error when none loads."""
+        if not self.root.exists():
+            raise MeshsplatError(f"run not found: {self.root} (expected a training run folder or a checkpoint file)")
+        for folder in (self.checkpoint_dir, self.root):
+            ckpts = list_checkpoints(folder)
+            if not ckpts:
+                continue
+            problems = []
+            for _, p in reversed(ckpts):
+                try:
+                    return p, load_checkpoint(p, map_location)
+                except MeshsplatError as exc:
+                    problems.append(str(exc))
+            raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {problems[0]}")
+        raise MeshsplatError(f"no checkpoint in {self.root} (looked for {self.checkpoint_dir}/ckpt_*.pt); "
+                             "is this a training run folder?")
+
+    def load_config(self) -> dict[str, Any] | None:
+        """``RUN/config.json`` as a dict, or None when the file is absent."""
+        path = self.config_path
+        if not path.is_file():
+            return None
+        try:
+            config = json.loads(path.read_text())
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise MeshsplatError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(config, dict):
+            raise MeshsplatError(f"{path}: expected a JSON object, got {type(config).__name__}")
+        return config
+
+
+def _checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[RunFolder, Path, dict]:
+    """``(run, checkpoint, state)`` for a run folder (its newest loadable checkpoint) or a checkpoint file."""
+    path = Path(path)
+    run = RunFolder.of(path)
+    if path.is_file():
+        return run, path, load_checkpoint(path, map_location)
+    ckpt, state = RunFolder(path).latest_checkpoint(map_location)
+    return run, ckpt, state
+
+
+def _avatar(ckpt: Path, state: dict, device) -> Avatar:
+    if not isinstance(state, dict) or "avatar" not in state:
+        raise MeshsplatError(f"{ckpt}: checkpoint holds no avatar")
+    return Avatar.from_state_dict(state["avatar"], resolve_device(device))
+
+
+def load_avatar(run: str | Path, device: str | torch.device | None = "cpu") -> Avatar:
+    """The avatar of a run folder's newest loadable checkpoint, or of one checkpoint file."""
+    _, ckpt, state = _checkpoint(run)
+    return _avatar(ckpt, state, device)
+
+
+@dataclass
+class LoadedRun:
+    """``avatar`` of the checkpoint ``checkpoint`` of the run ``folder``; ``config`` is the run's config dict."""
+
+    folder: RunFolder
+    checkpoint: Path
+    iteration: int | None
+    avatar: Avatar
+    config: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def run_dir(self) -> Path:
+        return self.folder.root
+
+    def dataset_path(self, dataset: str | Path | None = None) -> Path:
+        """``dataset`` if given, else the ``data`` entry of the run's config. Runs store it absolute;
+        a relative one (older runs) is tried from the current folder, then from the run folder."""
+        if dataset is not None:
+            return Path(dataset)
+        data = self.config.get("data")
+        if not data or not isinstance(data, str):
+            raise MeshsplatError(f"{self.run_dir}: config.json names no dataset; pass --dataset PATH")
+        p = Path(data)
+        if not p.exists() and not p.is_absolute() and (self.run_dir / p).exists():
+            p = self.run_dir / p
+        if not p.exists():
+            raise MeshsplatError(f"the run's dataset {data} (from {self.folder.config_path}) is not there: was it "
+                                 "moved or deleted? Pass --dataset PATH")
+        return p
+
+    def open_dataset(self, dataset: str | Path | None = None, model_dir: str | Path | None = None,
+                     check_masks: bool = True):
+        """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
+
+        ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``.
+        """
+        path = self.dataset_path(dataset)
+        fmt = self.config.get("data_format") or None if dataset is None else None
+        mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
+        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks)
+
+    def source_map(self, dataset: str | Path | None = None) -> SourceMap | None:
+        """The run's source map (``RUN/source_map.npz``), else its dataset folder's, else None."""
+        found = read_source_map(self.run_dir)
+        if found is not None:
+            return found
+        data = dataset if dataset is not None else self.config.get("data")
+        if not data:
+            return None
+        p = Path(data)
+        if not p.exists() and not p.is_absolute() and (self.run_dir / p).exists():
+            p = self.run_dir / p
+        return read_source_map(p) if p.is_dir() else None
+
+
+def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> LoadedRun:
+    """Load the avatar of a run folder (newest valid ``checkpoints/ckpt_*.pt``) or of one checkpoint file,
+    with the run's config (``config.json``, else the one stored in the checkpoint)."""
+    folder, ckpt, state = _checkpoint(run)
+    avatar = _avatar(ckpt, state, device)
+    config = folder.load_config()
+    if config is None:
+        config = dict(state["config"]) if isinstance(state.get("config"), dict) else {}
+    it = state.get("iteration")
+    if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 0):
+        raise MeshsplatError(f"{ckpt}: 'iteration' must be a non-negative integer, got {it!r}")
+    return LoadedRun(folder, Path(ckpt), int(it) if it is not None else None, avatar, config)
