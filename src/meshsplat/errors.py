@@ -27,7 +27,7 @@ _OS_HINTS = {
 def os_error_text(exc: OSError) -> str:
     """One line for an OS error: what failed, on which path, and what to do."""
     where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-    hint = _OS_HINTS.get(exc.errno)
+    hint = _OS_HINTS.get(exc.errno) if exc.errno is not None else None
     text = str(exc).strip()
     what = exc.strerror or (text.splitlines()[0] if text else type(exc).__name__)
     return f"{what}{where}" + (f": {hint}" if hint else "")

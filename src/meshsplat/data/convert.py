@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from meshsplat.data.dataset import AvatarDataset
@@ -22,7 +23,8 @@ def _safe_name(name: str, taken: set[str]) -> str:
     return out
 
 
-def write_native(dataset: AvatarDataset, out, overwrite: bool = False, progress=None) -> Path:
+def write_native(dataset: AvatarDataset, out: Path | str, overwrite: bool = False,
+                 progress: Callable[[int, int], object] | None = None) -> Path:
     """Write ``dataset`` as a native dataset at ``out``: PNG images, PNG masks (npy / alpha masks are
     converted), the same cameras, meshes (row for row), frames, splits and driver parameters.
 
@@ -52,7 +54,7 @@ def write_native(dataset: AvatarDataset, out, overwrite: bool = False, progress=
             progress(i + 1, len(dataset))
     for name in dataset.split_names:
         w.set_split(name, dataset.split(name))
-    info = dataset.driver_info
-    if info is not None and dataset.driver_params is not None:
-        w.set_driver({k: v for k, v in info.items() if k != "params"}, dataset.driver_params)
+    driver_info = dataset.driver_info
+    if driver_info is not None and dataset.driver_params is not None:
+        w.set_driver({k: v for k, v in driver_info.items() if k != "params"}, dataset.driver_params)
     return w.close()

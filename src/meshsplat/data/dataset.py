@@ -4,8 +4,10 @@ from __future__ import annotations
 import json
 import os
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -72,7 +74,8 @@ class Problems:
     """Collects every problem of a folder; ``raise_if_any`` ends them in one MeshsplatError."""
 
     def __init__(self, root: Path):
-        self.root, self.items = root, []
+        self.root = root
+        self.items: list[str] = []
 
     def add(self, where: str, what: str) -> None:
         self.items.append(f"{where}: {what}")
@@ -203,7 +206,7 @@ class AvatarDataset:
         """Manifest record of frame ``i`` (no image decoding)."""
         return dict(self._frames[self._index(i)])
 
-    def camera(self, camera_id) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    def camera(self, camera_id: str | int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
         """``(K [3,3], viewmat [4,4], width, height)`` of a camera."""
         K, vm, w, h = self._cameras[str(camera_id)]
         return torch.from_numpy(K.astype(np.float32)), torch.from_numpy(vm.astype(np.float32)), w, h
@@ -252,7 +255,7 @@ class AvatarDataset:
         arr = read_image(self.root / rec["mask"], 1)
         return torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
             yield self[i]
 
@@ -283,7 +286,7 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
         if p.suffix == ".obj":
             import trimesh
 
-            m = trimesh.load(p, process=False, force="mesh")
+            m = cast("trimesh.Trimesh", trimesh.load(p, process=False, force="mesh"))
             v, f = np.asarray(m.vertices), np.asarray(m.faces)
         else:
             with np.load(p, allow_pickle=False) as z:
@@ -316,7 +319,7 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
     return v, f
 
 
-def open_dataset(path, check_masks: bool = True, cache_size: int = 8,
+def open_dataset(path: Path | str, check_masks: bool = True, cache_size: int = 8,
                  allow_outside: bool | None = None) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
@@ -360,7 +363,7 @@ def open_dataset(path, check_masks: bool = True, cache_size: int = 8,
     canonical, faces = _load_canonical(root, rel_canonical, problems)
     verts = None
     vpath = root / rel_vertices if rel_vertices is not None else None
-    if vpath is None:
+    if rel_vertices is None or vpath is None:
         pass
     elif not vpath.is_file():
         problems.add(rel_vertices, "posed vertices file is missing")
@@ -400,7 +403,8 @@ def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: b
         return None
 
 
-def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems: Problems | None = None,
+def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, faces: np.ndarray | None,
+                  verts: np.ndarray | None, problems: Problems | None = None,
                   check_masks: bool = True, cache_size: int = 8, driver_params: dict | None = None,
                   format_name: str = "native", allow_outside: bool = True) -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
@@ -487,6 +491,7 @@ def build_dataset(root: Path, manifest: dict, canonical, faces, verts, problems:
     if not isinstance(manifest.get("meta") or {}, dict):
         problems.add("manifest", f"'meta' must be an object, got {_type_name(manifest.get('meta'))}")
     problems.raise_if_any()
+    assert canonical is not None and faces is not None and verts is not None, "a None array comes with a problem"
     manifest["splits"] = splits
     return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size,
                          driver_params=driver_params, format_name=format_name)

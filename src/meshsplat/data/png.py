@@ -41,8 +41,8 @@ def read_png(path: Path, channels: int) -> np.ndarray:
                 arr = arr.astype(np.uint16)
                 arr = arr[..., None] if channels == 1 else np.repeat(arr[..., None], 3, axis=-1)
                 return np.ascontiguousarray(arr)
-            im = im.convert("L" if channels == 1 else "RGB")
-            arr = np.array(im, dtype=np.uint8)
+            converted = im.convert("L" if channels == 1 else "RGB")
+            arr = np.array(converted, dtype=np.uint8)
     except (OSError, ValueError, SyntaxError) as exc:
         raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
     return arr[..., None] if channels == 1 else arr

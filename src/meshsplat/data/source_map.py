@@ -59,7 +59,7 @@ class SourceMap:
         return out
 
 
-def read_source_map(folder) -> SourceMap | None:
+def read_source_map(folder: Path | str) -> SourceMap | None:
     """The source map in ``folder`` (dataset or run), or None when there is none."""
     p = Path(folder) / FILE_NAME
     if not p.is_file():
@@ -77,7 +77,7 @@ def read_source_map(folder) -> SourceMap | None:
                      int(d.get("smooth", 0)), float(d.get("decimate", 1.0)), p)
 
 
-def copy_source_map(dataset_root, run_dir) -> Path | None:
+def copy_source_map(dataset_root: Path | str, run_dir: Path | str) -> Path | None:
     """Copy the dataset's source map into the run folder (so the run alone can be animated)."""
     src = Path(dataset_root) / FILE_NAME
     if not src.is_file():

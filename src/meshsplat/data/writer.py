@@ -3,10 +3,14 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
+from types import TracebackType
+from typing import Any, cast
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
@@ -37,7 +41,8 @@ class DatasetWriter:
     ``canonical_vertices [V,3]``, ``faces [F,3]``: the rest (canonical) driving mesh.
     """
 
-    def __init__(self, root, canonical_vertices, faces, overwrite: bool = False, meta: dict | None = None):
+    def __init__(self, root: Path | str, canonical_vertices: torch.Tensor | ArrayLike,
+                 faces: torch.Tensor | ArrayLike, overwrite: bool = False, meta: dict | None = None):
         self.root = Path(root)
         if (self.root / "manifest.json").exists() and not overwrite:
             raise MeshsplatError(f"{self.root}: a dataset already exists here (pass overwrite=True)")
@@ -57,7 +62,9 @@ class DatasetWriter:
         self.driver_params: dict[str, np.ndarray] | None = None
         self.source_map: dict[str, np.ndarray] | None = None
 
-    def set_source_map(self, source_index, source_rest, source_faces, rotation=None, exact: bool = True,
+    def set_source_map(self, source_index: torch.Tensor | ArrayLike, source_rest: torch.Tensor | ArrayLike,
+                       source_faces: torch.Tensor | ArrayLike, rotation: torch.Tensor | ArrayLike | None = None,
+                       exact: bool = True,
                        smooth: int = 0, decimate: float | None = None) -> None:
         """Record how the driving mesh derives from the asset (``source_map.npz``, see
         :mod:`meshsplat.data.source_map`): ``source_index [V]`` asset vertex of each canonical vertex,
@@ -83,14 +90,15 @@ class DatasetWriter:
         self.driver = {**dict(record), "params": "driver_params.npz"}
         self.driver_params = {k: _np(v) for k, v in params.items()}
 
-    def add_camera(self, camera_id, K, viewmat, width: int, height: int) -> str:
+    def add_camera(self, camera_id: str | int, K: torch.Tensor | ArrayLike, viewmat: torch.Tensor | ArrayLike,
+                   width: int, height: int) -> str:
         """Register a camera: ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV axes)."""
         cid = str(camera_id)
         self.cameras[cid] = {"K": _np(K, np.float64).tolist(), "viewmat": _np(viewmat, np.float64).tolist(),
                              "width": int(width), "height": int(height)}
         return cid
 
-    def add_mesh(self, vertices) -> int:
+    def add_mesh(self, vertices: torch.Tensor | ArrayLike) -> int:
         """Store one posed driving mesh ``[V,3]``; returns its index (frames may share it)."""
         v = _np(vertices)
         if v.shape != self.canonical.shape:
@@ -98,7 +106,9 @@ class DatasetWriter:
         self.meshes.append(v)
         return len(self.meshes) - 1
 
-    def add_frame(self, image, camera_id, vertices=None, mesh: int | None = None, mask=None,
+    def add_frame(self, image: torch.Tensor | ArrayLike, camera_id: str | int,
+                  vertices: torch.Tensor | ArrayLike | None = None, mesh: int | None = None,
+                  mask: torch.Tensor | ArrayLike | None = None,
                   name: str | None = None, clip: str | None = None, time: float | None = None,
                   extra: dict | None = None) -> int:
         """Write one frame: ``image [H,W,3]`` (uint8 or float in [0,1]), optional ``mask [H,W]|[H,W,1]``;
@@ -109,6 +119,7 @@ class DatasetWriter:
         if (vertices is None) == (mesh is None):
             raise MeshsplatError("add_frame: pass exactly one of vertices or mesh")
         if mesh is None:
+            assert vertices is not None  # exactly one of the two, checked above
             mesh = self.add_mesh(vertices)
         elif not 0 <= mesh < len(self.meshes):
             raise MeshsplatError(f"mesh: index {mesh} out of range (have {len(self.meshes)})")
@@ -118,7 +129,7 @@ class DatasetWriter:
         cam = self.cameras[cid]
         if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (cam["height"], cam["width"]):
             raise MeshsplatError(f"image: expected [{cam['height']},{cam['width']},3], got {list(img.shape)}")
-        rec = {"name": name, "image": f"images/{name}.png", "camera": cid, "mesh": int(mesh)}
+        rec: dict[str, Any] = {"name": name, "image": f"images/{name}.png", "camera": cid, "mesh": int(mesh)}
         write_png(self.root / rec["image"], img)
         if mask is not None:
             (self.root / "masks").mkdir(exist_ok=True)
@@ -134,7 +145,7 @@ class DatasetWriter:
         self.frames.append(rec)
         return index
 
-    def set_split(self, name: str, indices) -> None:
+    def set_split(self, name: str, indices: Iterable[int] | np.ndarray | torch.Tensor) -> None:
         idx = [int(i) for i in indices]
         bad = [i for i in idx if not 0 <= i < len(self.frames)]
         if bad:
@@ -161,10 +172,11 @@ class DatasetWriter:
             if bad:
                 raise MeshsplatError(f"driver params {bad}: expected one row per mesh ({len(self.meshes)})")
             self.driver["per_frame"] = list(per_frame)
-            np.savez(self.root / "driver_params.npz", **self.driver_params)
+            # cast: the savez stub would match a keyword array against allow_pickle
+            np.savez(self.root / "driver_params.npz", **cast("dict[str, Any]", self.driver_params))
             manifest["driver"] = self.driver
         if self.source_map is not None:
-            np.savez(self.root / "source_map.npz", **self.source_map)
+            np.savez(self.root / "source_map.npz", **cast("dict[str, Any]", self.source_map))
             manifest["source_map"] = "source_map.npz"
         tmp = self.root / "manifest.json.tmp"
         tmp.write_text(json.dumps(manifest, indent=1))
@@ -174,12 +186,14 @@ class DatasetWriter:
     def __enter__(self) -> "DatasetWriter":
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         if exc_type is None:
             self.close()
 
 
-def write_dataset(root, canonical_vertices, faces, cameras: dict, frames: list[dict],
+def write_dataset(root: Path | str, canonical_vertices: torch.Tensor | ArrayLike,
+                  faces: torch.Tensor | ArrayLike, cameras: dict, frames: list[dict],
                   splits: dict | None = None, overwrite: bool = False, meta: dict | None = None) -> Path:
     """One-call writer. ``cameras``: id -> dict(K, viewmat, width, height); ``frames``: dicts with
     ``image``, ``camera_id``, ``vertices`` and optional ``mask``, ``name``, ``clip``, ``time``."""

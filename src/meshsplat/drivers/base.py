@@ -5,6 +5,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
@@ -26,7 +27,7 @@ class MeshDriver(Protocol):
     def vertices(self, frame: int) -> torch.Tensor: ...  # [V, 3] float32
 
 
-def as_faces(name: str, faces, num_vertices: int | None = None) -> torch.Tensor:
+def as_faces(name: str, faces: torch.Tensor | ArrayLike, num_vertices: int | None = None) -> torch.Tensor:
     """Faces as a [F, 3] long tensor with indices checked against ``num_vertices``."""
     f = torch.as_tensor(np.asarray(faces) if not isinstance(faces, torch.Tensor) else faces)
     check_tensor(name, f, "F,3", dtype="int")
@@ -36,7 +37,8 @@ def as_faces(name: str, faces, num_vertices: int | None = None) -> torch.Tensor:
     return f
 
 
-def as_vertices(name: str, verts, spec: str = "V,3", dims: dict | None = None) -> torch.Tensor:
+def as_vertices(name: str, verts: torch.Tensor | ArrayLike, spec: str = "V,3",
+                dims: dict | None = None) -> torch.Tensor:
     """Vertices as float32 tensor of shape ``spec``, finite."""
     v = verts if isinstance(verts, torch.Tensor) else torch.as_tensor(np.asarray(verts))
     check_tensor(name, v, spec, dims=dims, dtype="float", finite=True)
@@ -49,7 +51,8 @@ class SequenceDriver:
     ``rest`` defaults to frame 0. Arrays may be numpy (memory-mapped is fine) or torch.
     """
 
-    def __init__(self, vertices, faces, rest=None):
+    def __init__(self, vertices: np.ndarray | torch.Tensor, faces: torch.Tensor | ArrayLike,
+                 rest: torch.Tensor | ArrayLike | None = None):
         if isinstance(vertices, np.ndarray) and vertices.ndim != 3:
             raise MeshsplatError(f"vertices: expected shape [T,V,3], got {list(vertices.shape)}")
         self._seq = vertices

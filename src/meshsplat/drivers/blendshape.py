@@ -6,10 +6,13 @@ bounding-box centre. Loads the ICT FaceKit ARKit npz (keys: neutral, faces, expr
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat._checks import check_tensor
 from meshsplat.drivers.base import as_faces, as_vertices
@@ -31,6 +34,9 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     return eye + s * Kx + (1 - c) * (Kx @ Kx)
 
 
+_Rows = torch.Tensor | np.ndarray | Sequence  # one row per frame
+
+
 class BlendshapeDriver:
     """Linear blendshape model with a per-frame rigid pose.
 
@@ -39,8 +45,10 @@ class BlendshapeDriver:
     T taken from whichever is given, default 1 neutral frame).
     """
 
-    def __init__(self, neutral, faces, deltas, names=None, weights=None, rotations=None, translations=None,
-                 face_material=None, material_names=None):
+    def __init__(self, neutral: torch.Tensor | ArrayLike, faces: torch.Tensor | ArrayLike,
+                 deltas: torch.Tensor | ArrayLike, names: Sequence[str] | None = None,
+                 weights: _Rows | None = None, rotations: _Rows | None = None, translations: _Rows | None = None,
+                 face_material: torch.Tensor | ArrayLike | None = None, material_names: Sequence[str] | None = None):
         self.neutral = as_vertices("neutral", neutral)
         dims = {"V": self.neutral.shape[0]}
         d = deltas if isinstance(deltas, torch.Tensor) else torch.from_numpy(np.asarray(deltas, np.float32))
@@ -53,7 +61,7 @@ class BlendshapeDriver:
         self.set_sequence(weights, rotations, translations)
 
     @classmethod
-    def from_npz(cls, path=None, **sequence) -> "BlendshapeDriver":
+    def from_npz(cls, path: Path | str | None = None, **sequence: Any) -> "BlendshapeDriver":
         """Load the ICT FaceKit npz (default: shared asset ``ict_facekit/ict_face_arkit53.npz``)."""
         if path is None:
             path = asset("ict_facekit/ict_face_arkit53.npz")
@@ -78,7 +86,8 @@ class BlendshapeDriver:
                    material_names=[str(s) for s in arrays["material_names"]] if "material_names" in arrays else None,
                    **sequence)
 
-    def set_sequence(self, weights=None, rotations=None, translations=None) -> None:
+    def set_sequence(self, weights: _Rows | None = None, rotations: _Rows | None = None,
+                     translations: _Rows | None = None) -> None:
         e = self.deltas.shape[0]
         lens = [len(x) for x in (weights, rotations, translations) if x is not None]
         t = lens[0] if lens else 1
@@ -98,7 +107,8 @@ class BlendshapeDriver:
     def rest_vertices(self) -> torch.Tensor:
         return self.neutral.clone()
 
-    def pose(self, weights, rotation=None, translation=None) -> torch.Tensor:
+    def pose(self, weights: torch.Tensor | ArrayLike, rotation: torch.Tensor | ArrayLike | None = None,
+             translation: torch.Tensor | ArrayLike | None = None) -> torch.Tensor:
         """Vertices ``[V,3]`` for ``weights [E]``, axis-angle ``rotation [3]``, ``translation [3]``."""
         w = check_tensor("weights", torch.as_tensor(weights, dtype=torch.float32), "E", {"E": self.deltas.shape[0]})
         v = self.neutral + torch.einsum("e,evc->vc", w, self.deltas)
@@ -114,7 +124,7 @@ class BlendshapeDriver:
             raise MeshsplatError(f"frame: expected 0 <= frame < {self.num_frames}, got {frame}")
         return self.pose(self.weights[frame], self.rotations[frame], self.translations[frame])
 
-    def talking_params(self, times) -> tuple[torch.Tensor, torch.Tensor]:
+    def talking_params(self, times: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
         """Deterministic procedural talking curves at ``times [T]`` seconds: ``(weights [T,E], rotations [T,3])``
         (jaw, smile, brow and blink curves; a gentle head sway)."""
         t = np.asarray(times, np.float64).reshape(-1)

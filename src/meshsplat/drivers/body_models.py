@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
@@ -103,7 +104,8 @@ def _check_choice(name: str, value: str, allowed) -> str:
     return v
 
 
-def find_model_file(kind: str, model_dir, gender: str = "neutral", flame_version: str = "2020") -> Path:
+def find_model_file(kind: str, model_dir: Path | str | None, gender: str = "neutral",
+                    flame_version: str = "2020") -> Path:
     """Path of the model file for ``kind`` / ``gender`` under the model directory.
 
     Looks in ``DIR/<kind>/``, ``DIR/<KIND>/`` (FLAME also ``DIR/FLAME2020/`` or ``DIR/FLAME2023/``) and
@@ -135,29 +137,32 @@ def _as_2d(name: str, x, width: int):
     return arr
 
 
-def split_smpl_thetas(thetas):
+_ArrayT = TypeVar("_ArrayT", np.ndarray, torch.Tensor)  # numpy in, numpy out; torch in, torch out
+
+
+def split_smpl_thetas(thetas: _ArrayT) -> tuple[_ArrayT, _ArrayT]:
     """``thetas [T,72]`` -> ``(global_orient [T,3], body_pose [T,69])`` (numpy or torch in, same out)."""
     t = _as_2d("thetas", thetas, 72)
     return t[:, :3], t[:, 3:]
 
 
-def join_smpl_thetas(global_orient, body_pose):
+def join_smpl_thetas(global_orient: _ArrayT, body_pose: _ArrayT) -> _ArrayT:
     """Inverse of :func:`split_smpl_thetas`: ``[T,3]``, ``[T,69]`` -> ``[T,72]``."""
     g, b = _as_2d("global_orient", global_orient, 3), _as_2d("body_pose", body_pose, 69)
-    return torch.cat([g, b], 1) if isinstance(g, torch.Tensor) else np.concatenate([g, b], 1)
+    return cast(_ArrayT, torch.cat([g, b], 1) if isinstance(g, torch.Tensor) else np.concatenate([g, b], 1))
 
 
 _FLAME15 = (("global_orient", 0, 3), ("neck_pose", 3, 6), ("jaw_pose", 6, 9), ("leye_pose", 9, 12),
             ("reye_pose", 12, 15))
 
 
-def split_flame_pose15(pose) -> dict:
+def split_flame_pose15(pose: np.ndarray | torch.Tensor) -> dict:
     """IMavatar/DECA ``pose [T,15]`` = global, neck, jaw, left eye, right eye -> dict of ``[T,3]``."""
     p = _as_2d("pose", pose, 15)
     return {k: p[:, a:b] for k, a, b in _FLAME15}
 
 
-def join_flame_pose15(parts: dict):
+def join_flame_pose15(parts: dict) -> Any:
     """Inverse of :func:`split_flame_pose15`."""
     missing = [k for k, _, _ in _FLAME15 if k not in parts]
     if missing:
@@ -189,8 +194,9 @@ class BodyModel:
     ``device``. ``path`` loads one file directly instead of searching ``model_dir``.
     """
 
-    def __init__(self, kind: str, model_dir=None, gender: str = "neutral", flame_version: str = "2020",
-                 scale: float = 1.0, device="cpu", path=None):
+    def __init__(self, kind: str, model_dir: Path | str | None = None, gender: str = "neutral",
+                 flame_version: str = "2020", scale: float = 1.0, device: str | torch.device = "cpu",
+                 path: Path | str | None = None):
         self.kind = _check_choice("model kind", kind, MODEL_KINDS)
         self.gender = _check_choice("gender", gender, GENDERS)
         self.flame_version = _check_choice("flame_version", str(flame_version), FLAME_VERSIONS)
@@ -426,7 +432,7 @@ class ParametricDriver:
 _KNOWN_PARAM_KEYS = {"betas", "static_offset", "transl", "expression"} | {k for v in POSE_KEYS.values() for k, _ in v}
 
 
-def save_driver_params(path, params: dict) -> Path:
+def save_driver_params(path: Path | str, params: dict) -> Path:
     """Write parameters as an npz of float32 arrays (one row per mesh frame for per-frame keys)."""
     path = Path(path)
     out = {}
@@ -438,11 +444,11 @@ def save_driver_params(path, params: dict) -> Path:
             raise MeshsplatError(f"driver params: {k} must be finite numbers, got dtype {a.dtype}")
         out[k] = a.astype(np.float32)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **out)
+    np.savez(path, **cast("dict[str, Any]", out))  # savez stub: kwargs vs allow_pickle
     return path
 
 
-def load_driver_params(path) -> dict:
+def load_driver_params(path: Path | str) -> dict:
     """Read a parameter npz written by :func:`save_driver_params` (``allow_pickle=False``)."""
     path = Path(path)
     if not path.is_file():

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat.drivers.gltf_io import Channel, GltfFile, sample_channel, trs_matrix
 from meshsplat.errors import MeshsplatError
@@ -71,7 +73,7 @@ class GltfDriver:
     ``materials``, ``clips`` (names), ``num_vertices``.
     """
 
-    def __init__(self, path, clip: str | None = None, fps: float = 30.0):
+    def __init__(self, path: Path | str, clip: str | None = None, fps: float = 30.0):
         self.file = GltfFile(path)
         self.path = self.file.path
         doc = self.file.doc
@@ -94,7 +96,8 @@ class GltfDriver:
 
     # ---------------------------------------------------------------- parsing
     def _topological_order(self) -> list[int]:
-        order, seen = [], set()
+        order: list[int] = []
+        seen: set[int] = set()
         for i in range(len(self._parent)):
             chain = []
             j = i
@@ -182,13 +185,13 @@ class GltfDriver:
                                if skin.inverseBindMatrices is not None else np.tile(np.eye(4), (len(skin.joints), 1, 1)))
                         pairs_node.extend(skin.joints)
                         pairs_ibm.extend(ibm)
-                    j = [self.file.accessor(a.JOINTS_0, as_float=False).astype(np.int64)]
-                    w = [self.file.accessor(a.WEIGHTS_0)]
+                    j_parts = [self.file.accessor(a.JOINTS_0, as_float=False).astype(np.int64)]
+                    w_parts = [self.file.accessor(a.WEIGHTS_0)]
                     if getattr(a, "JOINTS_1", None) is not None and getattr(a, "WEIGHTS_1", None) is not None:
-                        j.append(self.file.accessor(a.JOINTS_1, as_float=False).astype(np.int64))
-                        w.append(self.file.accessor(a.WEIGHTS_1))
-                    j = np.concatenate(j, 1) + skin_offset[node.skin]
-                    w = np.concatenate(w, 1)
+                        j_parts.append(self.file.accessor(a.JOINTS_1, as_float=False).astype(np.int64))
+                        w_parts.append(self.file.accessor(a.WEIGHTS_1))
+                    j = np.concatenate(j_parts, 1) + skin_offset[node.skin]
+                    w = np.concatenate(w_parts, 1)
                     s = w.sum(1, keepdims=True)
                     w = np.where(s > 0, w / np.where(s > 0, s, 1), 0)
                 else:
@@ -315,7 +318,7 @@ class GltfDriver:
         """World matrices ``[nodes, 4, 4]`` of all nodes at ``time`` of ``clip`` (None: default pose)."""
         local = self._rest_local.copy()
         if clip is not None and time is not None:
-            trs = {}
+            trs: dict[int, list[np.ndarray]] = {}
             for ch in self._clips[clip]:
                 if ch.path == "weights":
                     continue
@@ -365,7 +368,8 @@ class GltfDriver:
         return torch.from_numpy(x.astype(np.float32))
 
     # ---------------------------------------------------------------- derived rigs
-    def derive(self, source_index, faces, rest_vertices=None) -> "GltfDriver":
+    def derive(self, source_index: ArrayLike, faces: torch.Tensor | ArrayLike,
+               rest_vertices: torch.Tensor | ArrayLike | None = None) -> "GltfDriver":
         """A driver on another mesh carried through the same skinning and morphs.
 
         Vertex ``i`` of the new mesh copies skin weights and morph deltas of glTF vertex

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from meshsplat.errors import MeshsplatError
 
@@ -25,7 +26,7 @@ _NORM_DIV = {np.int8: 127.0, np.uint8: 255.0, np.int16: 32767.0, np.uint16: 6553
 class GltfFile:
     """A parsed glTF/GLB file with typed accessor and image access."""
 
-    def __init__(self, path):
+    def __init__(self, path: Path | str):
         import pygltflib
 
         self.path = Path(path)
@@ -98,7 +99,7 @@ class GltfFile:
         img = self.doc.images[index]
         raw = self.view_bytes(img.bufferView) if img.bufferView is not None else self._uri_bytes(img.uri or "")
         try:
-            pil = Image.open(io.BytesIO(raw))
+            pil: Image.Image = Image.open(io.BytesIO(raw))
             pil = pil.convert("RGBA" if "A" in pil.getbands() else "RGB")
         except Exception as exc:
             raise MeshsplatError(f"{self.path}: image {index} cannot be decoded ({exc})") from None
@@ -117,7 +118,7 @@ def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     return m.reshape(q.shape[:-1] + (3, 3))
 
 
-def trs_matrix(t, r_xyzw, s) -> np.ndarray:
+def trs_matrix(t: ArrayLike, r_xyzw: ArrayLike, s: ArrayLike) -> np.ndarray:
     """4x4 matrix ``T @ R @ S``."""
     m = np.eye(4)
     m[:3, :3] = quat_xyzw_to_matrix(np.asarray(r_xyzw, np.float64)) * np.asarray(s, np.float64)[None, :]

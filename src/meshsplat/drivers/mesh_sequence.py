@@ -19,8 +19,10 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
+import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj
@@ -55,7 +57,7 @@ class MeshSequence:
         return int(self.vertices.shape[0])
 
 
-def is_mesh_sequence(path) -> bool:
+def is_mesh_sequence(path: Path | str) -> bool:
     """True when ``path`` is an ``.npz`` with ``faces`` and ``vertices`` or a folder of OBJ/PLY frames."""
     p = Path(path)
     if p.is_dir():
@@ -170,9 +172,10 @@ def _read_frame(q: Path, with_uvs: bool):
     if q.suffix.lower() == ".obj":
         m = read_obj(q, triangulate=True)
         fuv = m.face_uvs.numpy() if (with_uvs and m.face_uvs is not None) else None
-        return (m.vertices.numpy(), m.faces.numpy(), None, m.uvs.numpy() if fuv is not None else None, fuv)
-    m = read_ply_mesh(q)
-    return m.vertices, m.faces, m.colors, m.uvs if with_uvs else None, None
+        uvs = cast(torch.Tensor, m.uvs).numpy() if fuv is not None else None  # face uvs come with uvs
+        return (m.vertices.numpy(), m.faces.numpy(), None, uvs, fuv)
+    pm = read_ply_mesh(q)
+    return pm.vertices, pm.faces, pm.colors, pm.uvs if with_uvs else None, None
 
 
 def _read_texture(path: Path) -> np.ndarray:
@@ -236,7 +239,7 @@ def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
     return seq
 
 
-def read_mesh_sequence(path, with_uvs: bool = True) -> MeshSequence:
+def read_mesh_sequence(path: Path | str, with_uvs: bool = True) -> MeshSequence:
     """Read a mesh sequence in the ``npz`` or ``frames`` layout (see the module docstring)."""
     p = Path(path)
     if p.is_dir():

@@ -25,7 +25,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from meshsplat.drivers.body_models import (
-    POSE_KEYS, BodyModel, split_flame_pose15, split_smpl_thetas)
+    POSE_KEYS,
+    BodyModel,
+    split_flame_pose15,
+    split_smpl_thetas,
+)
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
@@ -205,7 +209,7 @@ def _fit_width(params: dict, model: BodyModel, where: str) -> dict:
     return out
 
 
-def load_motion(path, model: BodyModel) -> dict:
+def load_motion(path: Path | str, model: BodyModel) -> dict:
     """Parameters ``[S, k]`` (numpy float32) for ``model`` from a motion file or folder (see module doc)."""
     p = Path(path)
     where = str(p)
@@ -246,7 +250,7 @@ def _is_driver_params(z: dict, model: BodyModel) -> bool:
     return bool(z) and set(z) <= set(model.param_shapes) | set(_SHARED) and "global_orient" in z
 
 
-def motion_frame_rate(path) -> float | None:
+def motion_frame_rate(path: Path | str) -> float | None:
     """Frame rate stored in a motion npz (AMASS ``mocap_framerate`` / ``mocap_frame_rate``, ``fps``), else None."""
     p = Path(path)
     if p.suffix != ".npz" or not p.is_file():

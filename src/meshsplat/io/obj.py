@@ -48,6 +48,7 @@ def write_obj(path: str | os.PathLike, vertices: torch.Tensor, faces: torch.Tens
     if uvs is not None:
         check_tensor("uvs", uvs, "T,2", dims, dtype="float", finite=True)
         check_tensor("face_uvs", face_uvs, "F,3", dims, dtype="int")
+        assert face_uvs is not None  # check_tensor rejects None
         t = uvs.detach().cpu().double().numpy()
         ft = face_uvs.detach().cpu().long().numpy()
         if ft.size and (ft.min() < 0 or ft.max() >= len(t)):

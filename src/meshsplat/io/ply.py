@@ -81,6 +81,7 @@ def write_gaussian_ply(
         k_out = k_pad
     rest = np.zeros((n, 3, k_out), np.float32)
     if k:
+        assert shN is not None  # k counts its coefficients
         rest[:, :, :k] = _np(shN).transpose(0, 2, 1)  # channel-major as 3DGS
     cols = [
         _np(means),
@@ -158,6 +159,7 @@ def read_gaussian_ply(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     if len(raw) < n * dtype.itemsize:
         raise MeshsplatError(f"{str(path)!r}: truncated, expected {n} vertices of {dtype.itemsize} bytes")
     arr = np.frombuffer(raw, dtype=dtype, count=n)
+    assert dtype.names is not None  # built from a field list
     names = set(dtype.names)
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                 "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,8 @@ class PlyMesh:
 def _header(fh, path: Path):
     if fh.readline().strip() != b"ply":
         raise MeshsplatError(f"{path}: not a PLY file (no 'ply' magic line)")
-    fmt, elements = None, []
+    fmt = None
+    elements: list[tuple[str, int, list[tuple[str, str, Any, Any]]]] = []
     while True:
         line = fh.readline()
         if not line:
@@ -65,7 +67,7 @@ def _dtype(t: str, path: Path, order: str) -> np.dtype:
     return np.dtype(order + _TYPES[t])
 
 
-def read_ply_mesh(path) -> PlyMesh:
+def read_ply_mesh(path: Path | str) -> PlyMesh:
     """Read a triangle (or polygon) mesh from a PLY file; see the module docstring."""
     path = Path(path)
     if not path.is_file():
@@ -92,12 +94,14 @@ def read_ply_mesh(path) -> PlyMesh:
                                 n = int(next(tokens))
                                 cols[pname].append([float(next(tokens)) for _ in range(n)])
                             else:
+                                assert body is not None  # binary formats read from the file handle
                                 cd, idt = _dtype(ctype, path, order), _dtype(itype, path, order)
                                 n = int(np.frombuffer(body.read(cd.itemsize), cd)[0])
                                 cols[pname].append(np.frombuffer(body.read(idt.itemsize * n), idt).tolist())
                         elif tokens is not None:
                             cols[pname].append(float(next(tokens)))
                         else:
+                            assert body is not None  # binary formats read from the file handle
                             d = _dtype(ptype, path, order)
                             cols[pname].append(np.frombuffer(body.read(d.itemsize), d)[0])
             except (StopIteration, ValueError, IndexError):

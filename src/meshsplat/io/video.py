@@ -23,7 +23,7 @@ from meshsplat.errors import MeshsplatError
 __all__ = ["to_uint8", "write_png_frames", "write_mp4", "write_video", "VideoResult"]
 
 
-def to_uint8(frame) -> np.ndarray:
+def to_uint8(frame: torch.Tensor | np.ndarray) -> np.ndarray:
     """``[H,W,C]`` float in [0,1] (clamped) or uint8, tensor or array -> uint8 ``[H,W,3|4]``."""
     if isinstance(frame, torch.Tensor):
         frame = frame.detach().cpu().numpy()

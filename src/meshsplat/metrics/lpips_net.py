@@ -21,6 +21,7 @@ import os
 import pickle
 import threading
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -152,6 +153,7 @@ def _conv_from_flax(conv: nn.Conv2d, params: dict, where: str, bias: bool = True
     with torch.no_grad():
         conv.weight.copy_(w)
         if b is not None:
+            assert conv.bias is not None  # convs loaded with a bias are built with one
             conv.bias.copy_(torch.from_numpy(b))
 
 
@@ -161,6 +163,9 @@ class LPIPS(nn.Module):
     Build with :func:`load_lpips` to get the trained weights; a bare ``LPIPS(net)`` has
     random weights.
     """
+
+    shift: torch.Tensor
+    scale: torch.Tensor
 
     def __init__(self, net: str = "alex"):
         super().__init__()
@@ -180,6 +185,7 @@ class LPIPS(nn.Module):
                 if v == "M":
                     self.plan.append(("pool", 2))
                 else:
+                    v = cast(int, v)  # every entry but "M" is a channel count
                     self.convs.append(nn.Conv2d(cin, v, 3, padding=1))
                     self.plan.append(("conv", len(self.convs) - 1))
                     if j in _VGG_TAPS:
@@ -202,12 +208,12 @@ class LPIPS(nn.Module):
             sub = params[root].get(f"Conv_{i}")
             if sub is None:
                 raise MeshsplatError(f"LPIPS weights: missing {name}")
-            _conv_from_flax(conv, sub, name)
+            _conv_from_flax(cast(nn.Conv2d, conv), sub, name)
         for k, lin in enumerate(self.lins):
             sub = params.get(f"NetLinLayer_{k}", {}).get("Conv_0")
             if sub is None:
                 raise MeshsplatError(f"LPIPS weights: missing NetLinLayer_{k}/Conv_0")
-            _conv_from_flax(lin, sub, f"NetLinLayer_{k}", bias=False)
+            _conv_from_flax(cast(nn.Conv2d, lin), sub, f"NetLinLayer_{k}", bias=False)
         return self
 
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:

@@ -13,7 +13,8 @@ C1 = 0.01 ** 2  # (K1 * L)^2 with L = 1
 C2 = 0.03 ** 2  # (K2 * L)^2
 
 
-def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
+                    device: torch.device | str | None = None) -> torch.Tensor:
     """Normalized 1-D Gaussian ``[size]``."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
     g = torch.exp(-(x ** 2) / (2.0 * sigma ** 2))

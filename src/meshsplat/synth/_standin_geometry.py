@@ -35,6 +35,11 @@ def vertex_normals(verts, faces):
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
+def _edge_key(a: int, b: int) -> tuple[int, int]:
+    """The undirected edge (a, b) as a sorted pair."""
+    return (a, b) if a <= b else (b, a)
+
+
 def split_to_count(verts: np.ndarray, faces: np.ndarray, target: int, attrs: np.ndarray | None = None):
     """Split the longest edge (midpoint, both adjacent faces, orientation kept) until ``target`` vertices.
 
@@ -53,12 +58,12 @@ def split_to_count(verts: np.ndarray, faces: np.ndarray, target: int, attrs: np.
     edge_faces: dict[tuple[int, int], list[int]] = {}
     for fi, f in enumerate(F):
         for k in range(3):
-            edge_faces.setdefault(tuple(sorted((f[k], f[(k + 1) % 3]))), []).append(fi)
+            edge_faces.setdefault(_edge_key(f[k], f[(k + 1) % 3]), []).append(fi)
 
     def length(e):
         return float(np.sum((V[e[0]] - V[e[1]]) ** 2))
 
-    heap = [(-length(e), e) for e in edge_faces]
+    heap: list[tuple[float, tuple[int, int]]] = [(-length(e), e) for e in edge_faces]
     heapq.heapify(heap)
     n = n0
     while n < target:
@@ -72,7 +77,7 @@ def split_to_count(verts: np.ndarray, faces: np.ndarray, target: int, attrs: np.
         V[m] = (V[a] + V[b]) / 2
         if A is not None:
             A[m] = (A[a] + A[b]) / 2
-        touched = {tuple(sorted((a, m))), tuple(sorted((m, b)))}
+        touched = {_edge_key(a, m), _edge_key(m, b)}
         for fi in fids:
             f = F[fi]
             i = next(k for k in range(3) if {f[k], f[(k + 1) % 3]} == {a, b})
@@ -80,12 +85,12 @@ def split_to_count(verts: np.ndarray, faces: np.ndarray, target: int, attrs: np.
             nf = len(F)
             F[fi] = [p, m, r]
             F.append([m, q, r])
-            lst = edge_faces[tuple(sorted((q, r)))]
+            lst = edge_faces[_edge_key(q, r)]
             lst[lst.index(fi)] = nf
-            edge_faces.setdefault(tuple(sorted((p, m))), []).append(fi)
-            edge_faces.setdefault(tuple(sorted((m, q))), []).append(nf)
-            edge_faces[tuple(sorted((m, r)))] = [fi, nf]
-            touched.add(tuple(sorted((m, r))))
+            edge_faces.setdefault(_edge_key(p, m), []).append(fi)
+            edge_faces.setdefault(_edge_key(m, q), []).append(nf)
+            edge_faces[_edge_key(m, r)] = [fi, nf]
+            touched.add(_edge_key(m, r))
         for key in touched:
             heapq.heappush(heap, (-length(key), key))
     return V, np.asarray(F, np.int64), A
@@ -117,6 +122,7 @@ def subsample_surface(verts, faces, target: int, groups: np.ndarray | None = Non
             hi, seeds = cell, cand
             if len(cand) > 0.985 * target:
                 break
+    assert seeds is not None, "subsample_surface: iters must be positive"
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     w = np.linalg.norm(verts[e[:, 0]] - verts[e[:, 1]], axis=1)
     G = sparse.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(len(verts),) * 2).tocsr()

@@ -18,9 +18,13 @@ procedural colouring from the skin weights (one hue per joint) with a fine surfa
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from meshsplat.drivers.body_models import BodyModel, driver_record
@@ -36,7 +40,7 @@ HEAD_SECONDS = 8.0
 _ROOT_KEYS = ("global_orient", "transl")
 
 
-def rotate_params(params: dict, R: np.ndarray, pivot, root_joint) -> dict:
+def rotate_params(params: dict, R: np.ndarray, pivot: np.ndarray, root_joint: np.ndarray) -> dict:
     """Parameters whose posed mesh is the original one rotated by ``R [3,3]`` about ``pivot [3]``.
 
     The model rotates about its root joint ``root_joint [3]`` (rest pose, after betas):
@@ -56,7 +60,7 @@ class ModelSource:
     """A :class:`BodyModel` posed by named clips of per-frame parameters (``[T,k]`` arrays)."""
 
     def __init__(self, model: BodyModel, clips: dict[str, dict[str, np.ndarray]], shared: dict[str, np.ndarray],
-                 fps: float, vertex_colors: torch.Tensor, attribution: str = "", test_clips=()):
+                 fps: float, vertex_colors: torch.Tensor, attribution: str = "", test_clips: Sequence[str] = ()):
         self.model = model
         self.shared = {k: np.asarray(v, np.float32) for k, v in shared.items()}
         self.motions = {c: {k: np.asarray(v, np.float32) for k, v in p.items()} for c, p in clips.items()}
@@ -80,22 +84,22 @@ class ModelSource:
     def kind(self) -> str:
         return self.model.kind
 
-    def _row(self, clip, time: float) -> int:
+    def _row(self, clip: str, time: float) -> int:
         if clip not in self.motions:
             raise MeshsplatError(f"clip: {clip!r} not in {self.clips}")
         n = len(next(iter(self.motions[clip].values())))
         return int(min(max(round(float(time) * self.fps), 0), n - 1))
 
-    def time_range(self, clip):
+    def time_range(self, clip: str) -> tuple[float, float]:
         n = len(next(iter(self.motions[clip].values())))
         return 0.0, (n - 1) / self.fps
 
-    def frame_params(self, clip, time: float) -> dict[str, np.ndarray]:
+    def frame_params(self, clip: str, time: float) -> dict[str, np.ndarray]:
         """Per-frame parameters of the motion frame nearest ``time`` (each ``[k]``)."""
         r = self._row(clip, time)
         return {k: v[r] for k, v in self.motions[clip].items()}
 
-    def pose(self, clip, time) -> torch.Tensor:
+    def pose(self, clip: str, time: float) -> torch.Tensor:
         key = (clip, self._row(clip, time))
         if key not in self._cache:
             p = {**self.shared, **{k: v[None] for k, v in self.frame_params(clip, time).items()}}
@@ -106,7 +110,7 @@ class ModelSource:
     def rest(self) -> torch.Tensor:
         return self._rest.clone()
 
-    def placed_params(self, clip, time: float, yaw: float, pivot) -> dict[str, np.ndarray]:
+    def placed_params(self, clip: str, time: float, yaw: float, pivot: np.ndarray) -> dict[str, np.ndarray]:
         """Per-frame parameters ``[k]`` of the pose at ``time`` turned by ``yaw`` about the vertical through ``pivot``."""
         p = self.frame_params(clip, time)
         if yaw == 0.0:
@@ -127,7 +131,7 @@ class ModelSource:
     def driver_record(self) -> dict:
         return driver_record(self.model)
 
-    def derive(self, src, faces, rest=None):
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> NoReturn:
         raise MeshsplatError("driver smoothing/decimation is not available for body/head model sources: the "
                              "stored mesh must stay the model's so its parameters reproduce it")
 
@@ -212,7 +216,7 @@ def _subject_betas(model: BodyModel) -> np.ndarray:
     return (0.4 * np.cos(np.arange(k) * 1.7) / (1 + np.arange(k))).astype(np.float32)
 
 
-def load_model_source(kind: str, model_dir=None, gender: str = "neutral") -> ModelSource:
+def load_model_source(kind: str, model_dir: Path | str | None = None, gender: str = "neutral") -> ModelSource:
     """SMPL / SMPL-X (AIST++ dance) or FLAME (procedural talk / nod) from the user's model files."""
     kind = str(kind).lower()
     if kind not in MODEL_SOURCES:
@@ -222,6 +226,7 @@ def load_model_source(kind: str, model_dir=None, gender: str = "neutral") -> Mod
     with torch.no_grad():
         rest_out = model.forward(shared)
     root = rest_out.joints[0, 0].double().numpy()
+    tests: tuple[str, ...]
     if kind == "flame":
         clips = {c: _head_motion(model, c) for c in ("talk", "nod")}
         fps, tests = HEAD_FPS, ("nod",)

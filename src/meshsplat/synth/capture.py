@@ -5,6 +5,7 @@ import inspect
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from meshsplat.data.dataset import open_dataset
 from meshsplat.data.formats import FORMAT_NAMES, format_module
@@ -14,8 +15,8 @@ from meshsplat.synth.generate import generate
 __all__ = ["synth_capture"]
 
 
-def synth_capture(asset, out, format: str = "native", native_dir=None, overwrite: bool = False,
-                  write_options: dict | None = None, **generate_options) -> Path:
+def synth_capture(asset: Path | str, out: Path | str, format: str = "native", native_dir: Path | str | None = None,
+                  overwrite: bool = False, write_options: dict | None = None, **generate_options: Any) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.generate`) and write it at ``out`` in ``format``.
 
     For a format other than ``native`` the native dataset goes to ``native_dir`` (kept) or a temporary

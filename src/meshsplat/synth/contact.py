@@ -1,16 +1,18 @@
 """Contact sheet: a grid of sample frames (image row over mask row) from a dataset."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from meshsplat.data import open_dataset
+from meshsplat.data import AvatarDataset, open_dataset
 
 __all__ = ["contact_sheet"]
 
 
-def contact_sheet(dataset, out_png, indices=None, count: int = 8, tile: int = 128) -> Path:
+def contact_sheet(dataset: AvatarDataset | Path | str, out_png: Path | str, indices: Sequence[int] | None = None,
+                  count: int = 8, tile: int = 128) -> Path:
     """Save a PNG grid: for each chosen frame its image (top) and mask (bottom), ``tile`` px each."""
     from PIL import Image
 
@@ -21,7 +23,8 @@ def contact_sheet(dataset, out_png, indices=None, count: int = 8, tile: int = 12
     cols = []
     for i in indices:
         fr = ds[int(i)]
-        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize((tile, tile), Image.BILINEAR)
+        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize((tile, tile),
+                                                                                      Image.Resampling.BILINEAR)
         m = fr.mask if fr.mask is not None else fr.image.mean(-1, keepdim=True) * 0
         msk = Image.fromarray((m[..., 0].numpy() * 255).round().astype(np.uint8)).convert("RGB").resize((tile, tile))
         col = Image.new("RGB", (tile, 2 * tile))

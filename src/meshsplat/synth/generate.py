@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import math
 import time as _time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
@@ -40,9 +43,10 @@ class Shot:
     split: str
 
 
-def render_view(source, verts: torch.Tensor, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                weld_group: torch.Tensor | None = None, background=(0.0, 0.0, 0.0), supersample: int = 2,
-                light_dir=_LIGHT, ambient: float = 0.4) -> tuple[torch.Tensor, torch.Tensor]:
+def render_view(source: Any, verts: torch.Tensor, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                weld_group: torch.Tensor | None = None, background: Sequence[float] = (0.0, 0.0, 0.0),
+                supersample: int = 2, light_dir: ArrayLike = _LIGHT,
+                ambient: float = 0.4) -> tuple[torch.Tensor, torch.Tensor]:
     """Render ``verts [V,3]`` (world) of ``source``: returns ``(rgb [H,W,3], alpha [H,W,1])`` in [0,1]."""
     s = int(supersample)
     R = torch.from_numpy(viewmat[:3, :3]).float()
@@ -98,7 +102,8 @@ def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames
     train_times = [t0 + (t_split - t0) * i / frames for i in range(frames)]
     test_times = [t_split + (t1 - t_split) * (j + 0.5) / test_frames for j in range(test_frames)] if t1 > t_split else []
     view_elev = [math.radians(35), math.radians(-12), math.radians(60), math.radians(20)]
-    pick = np.linspace(0, frames - 1, test_view_frames).round().astype(int) if test_view_frames else []
+    pick: np.ndarray | list[int] = (np.linspace(0, frames - 1, test_view_frames).round().astype(int)
+                                    if test_view_frames else [])
     if rig == "monocular-turn":
         cams["0"] = (0.0, math.radians(5))
         yaw = lambda k, n: 2 * math.pi * turns * k / n  # noqa: E731
@@ -184,7 +189,7 @@ def _model_mesh(source, driver_smooth: int, driver_decimate: float | None):
     return source, weld_group, smap
 
 
-def clip_motion(source, clip, samples: int = 6) -> float:
+def clip_motion(source: Any, clip: str | None, samples: int = 6) -> float:
     """Mean per-vertex standard deviation of position over ``samples`` times of ``clip`` (asset units)."""
     a, b = source.time_range(clip)
     if b <= a:
@@ -237,13 +242,15 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
             "tests": [(c, source.time_range(c)) for c in test_clips]}
 
 
-def generate(asset, out_dir, rig: str = "monocular-turn", frames: int = 60, resolution: int = 256,
+def generate(asset: Path | str, out_dir: Path | str, rig: str = "monocular-turn", frames: int = 60,
+             resolution: int = 256,
              clip: str | None = None, test_clips: list[str] | None = None, train_fraction: float = 0.7,
              test_frames: int | None = None, test_views: int = 2, test_view_frames: int | None = None,
              views: int = 8, turns: float = 1.0, driver_smooth: int = 0, driver_decimate: float | None = None,
-             supersample: int | None = None, background=(0.0, 0.0, 0.0), fov_deg: float = 30.0,
-             overwrite: bool = False, progress: bool = False, threads: int | None = 1, model_dir=None,
-             gender: str = "neutral", up: str | None = None, say=None) -> Path:
+             supersample: int | None = None, background: Sequence[float] = (0.0, 0.0, 0.0), fov_deg: float = 30.0,
+             overwrite: bool = False, progress: bool = False, threads: int | None = 1,
+             model_dir: Path | str | None = None,
+             gender: str = "neutral", up: str | None = None, say: Callable[[str], object] | None = None) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
     ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
@@ -353,8 +360,8 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
         splits.setdefault(s.split, []).append(idx)
         if progress and (k + 1) % 20 == 0:
             print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
-    for name, idx in splits.items():
-        writer.set_split(name, idx)
+    for name, indices in splits.items():
+        writer.set_split(name, indices)
     if is_model:
         per_frame = {k: np.stack([p[k] for p in mesh_params]) for k in mesh_params[0]}
         writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)},

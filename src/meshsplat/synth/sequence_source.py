@@ -8,8 +8,11 @@ project's y-up world.
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat.drivers.mesh_sequence import MeshSequence
 from meshsplat.errors import MeshsplatError
@@ -43,7 +46,7 @@ class SequenceSource:
         self._src: torch.Tensor | None = None
         self._offset: torch.Tensor | None = None
 
-    def time_range(self, clip):
+    def time_range(self, clip: str | None) -> tuple[float, float]:
         a, b = self.seq.clips[clip if clip is not None else self.clips[0]]
         return a / self.seq.fps, b / self.seq.fps
 
@@ -64,7 +67,7 @@ class SequenceSource:
             out = out + (quat_to_matrix(q) @ self._offset[..., None])[..., 0]
         return out
 
-    def pose(self, clip, time) -> torch.Tensor:
+    def pose(self, clip: str | None, time: float) -> torch.Tensor:
         return self._drive(self._frame_at(clip, time))
 
     def rest(self) -> torch.Tensor:
@@ -74,7 +77,7 @@ class SequenceSource:
         """Stored frame ``i`` (on the derived mesh when derived)."""
         return self._drive(self._frames[int(i)])
 
-    def derive(self, src, faces, rest=None) -> "SequenceSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "SequenceSource":
         out = object.__new__(SequenceSource)
         out.__dict__.update(self.__dict__)
         s = torch.as_tensor(np.asarray(src), dtype=torch.long)
@@ -100,25 +103,25 @@ def up_rotation(up: str) -> np.ndarray:
 class UpAxisSource:
     """``source`` seen in the y-up world: every pose is rotated by ``R [3,3]``."""
 
-    def __init__(self, source, R: np.ndarray):
+    def __init__(self, source: Any, R: np.ndarray):
         self.inner = source
         self.R = torch.as_tensor(R, dtype=torch.float32)
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
 
-    def pose(self, clip, time) -> torch.Tensor:
+    def pose(self, clip: str | None, time: float) -> torch.Tensor:
         return self.inner.pose(clip, time) @ self.R.T
 
     def rest(self) -> torch.Tensor:
         return self.inner.rest() @ self.R.T
 
-    def derive(self, src, faces, rest=None) -> "UpAxisSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "UpAxisSource":
         r = None if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32) @ self.R
         return UpAxisSource(self.inner.derive(src, faces, r), self.R.numpy())
 
 
-def with_up(source, up: str | None) -> tuple[object, str, str]:
+def with_up(source: Any, up: str | None) -> tuple[Any, str, str]:
     """``(source in the y-up world, up used, how it was chosen)``: ``up`` given, else the asset's own
     (glTF is y-up by specification; a mesh sequence may say ``up``), else y."""
     own = getattr(source, "up", None)

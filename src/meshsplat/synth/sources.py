@@ -8,16 +8,18 @@ giving a re-skinned driving mesh with the same ``pose``/``rest``.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, is_mesh_sequence, read_mesh_sequence
 from meshsplat.errors import MeshsplatError
 from meshsplat.paths import asset as shared_asset
-from meshsplat.synth.body_source import MODEL_SOURCES, load_model_source
+from meshsplat.synth.body_source import MODEL_SOURCES, ModelSource, load_model_source
 from meshsplat.synth.sequence_source import SequenceSource
 
 __all__ = ["GltfSource", "BlendshapeSource", "load_source", "gltf_attribution"]
@@ -25,7 +27,7 @@ __all__ = ["GltfSource", "BlendshapeSource", "load_source", "gltf_attribution"]
 ICT_LAYOUT = "blend-shape head npz (neutral [V,3], faces [F,3], expr_deltas [K,V,3])"
 
 
-def gltf_attribution(doc) -> str:
+def gltf_attribution(doc: object) -> str:
     """Credit line from a glTF's ``asset.copyright`` and ``asset.extras`` (title, author, license, source)."""
     asset = getattr(doc, "asset", None)
     parts = []
@@ -42,6 +44,8 @@ def gltf_attribution(doc) -> str:
 
 class GltfSource:
     attribution = ""
+    default_train_clip: str | None = None
+    default_test_clips: list[str] | None = None
 
     def __init__(self, driver: GltfDriver):
         self.driver = driver
@@ -52,18 +56,18 @@ class GltfSource:
         self.materials = [(torch.from_numpy(m.base_color[:3].astype(np.float32)),
                            None if m.texture is None else torch.from_numpy(m.texture[..., :3]).float() / 255.0)
                           for m in driver.materials]
-        self.clips = driver.clips or [None]
+        self.clips = cast("list[str | None]", driver.clips or [None])
 
-    def time_range(self, clip):
+    def time_range(self, clip: str | None) -> tuple[float, float]:
         return self.driver.time_range(clip) if clip is not None else (0.0, 0.0)
 
-    def pose(self, clip, time) -> torch.Tensor:
+    def pose(self, clip: str | None, time: float) -> torch.Tensor:
         return self.driver.vertices_at(time, clip) if clip is not None else self.driver.rest_vertices()
 
     def rest(self) -> torch.Tensor:
         return self.driver.rest_vertices()
 
-    def derive(self, src, faces, rest=None) -> "GltfSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "GltfSource":
         return GltfSource(self.driver.derive(src, faces, rest))
 
 
@@ -76,7 +80,7 @@ class BlendshapeSource:
                "M_IrisRight": (0.25, 0.35, 0.55), "M_ScleraLeft": (0.92, 0.9, 0.88), "M_ScleraRight": (0.92, 0.9, 0.88),
                "M_Teeth": (0.93, 0.9, 0.82)}
 
-    def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep=None):
+    def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep: torch.Tensor | None = None):
         self.driver = driver
         self.duration = duration
         faces = driver.faces
@@ -103,17 +107,17 @@ class BlendshapeSource:
         shade = 1 + 0.12 * blotch[:, None] + 0.06 * fine[:, None]
         return (base * shade * torch.tensor([1.0, 0.97, 0.95])).clamp(0, 1)
 
-    def time_range(self, clip):
+    def time_range(self, clip: str | None) -> tuple[float, float]:
         return 0.0, self.duration
 
-    def pose(self, clip, time) -> torch.Tensor:
+    def pose(self, clip: str | None, time: float) -> torch.Tensor:
         w, rot = self.driver.talking_params([time])
         return self.driver.pose(w[0], rot[0])
 
     def rest(self) -> torch.Tensor:
         return self.driver.neutral.clone()
 
-    def derive(self, src, faces, rest=None) -> "BlendshapeSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "BlendshapeSource":
         src_t = torch.as_tensor(np.asarray(src), dtype=torch.long)
         d = self.driver
         neutral = d.neutral[src_t] if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32)
@@ -134,7 +138,8 @@ _ATTRIBUTION = {
 }
 
 
-def load_source(asset, model_dir=None, gender: str = "neutral"):
+def load_source(asset: Path | str, model_dir: Path | str | None = None,
+                gender: str = "neutral") -> GltfSource | BlendshapeSource | SequenceSource | ModelSource:
     """Load ``asset``: a .glb/.gltf path, a mesh sequence (.npz with faces + vertices, or a folder of
     OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a shared-asset name
     (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model

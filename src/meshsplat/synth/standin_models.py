@@ -41,6 +41,7 @@ from __future__ import annotations
 import os
 import pickle
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -148,7 +149,7 @@ def _write_head(out: Path) -> None:
     np.savez(folder / "appearance.npz", vertex_colors=_head_colors(d["v_template"], part, features, joints))
 
 
-def write_standin_models(out_dir, kinds=("smpl", "smplx", "flame")) -> Path:
+def write_standin_models(out_dir: Path | str, kinds: Sequence[str] = ("smpl", "smplx", "flame")) -> Path:
     """Write stand-in model files for ``kinds`` under ``out_dir`` (``smpl/``, ``smplx/``, ``flame/``, each with
     an ``appearance.npz``); returns ``out_dir``, usable as ``--model-dir``."""
     out = Path(out_dir)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 from meshsplat.data.dataset import AvatarDataset, open_dataset
 from meshsplat.errors import MeshsplatError
@@ -27,7 +28,7 @@ def format_module(name: str) -> ModuleType:
     return importlib.import_module(f"meshsplat.data.formats.{name}")
 
 
-def detect_format(root) -> str:
+def detect_format(root: Path | str) -> str:
     """Name of the layout of the folder ``root`` (one line saying what was looked for if none fits)."""
     root = Path(root)
     if root.is_file() and root.name == "manifest.json":
@@ -41,7 +42,8 @@ def detect_format(root) -> str:
     raise MeshsplatError(f"{root}: not a capture layout meshsplat reads (looked for {looked})")
 
 
-def open_capture(root, format: str | None = None, model_dir=None, **options) -> AvatarDataset:
+def open_capture(root: Path | str, format: str | None = None, model_dir: Path | str | None = None,
+                 **options: Any) -> AvatarDataset:
     """Open a capture folder of any supported layout as an :class:`AvatarDataset` (``format`` auto-detected)."""
     name = format or detect_format(root)
     if name == "native":

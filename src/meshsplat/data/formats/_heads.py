@@ -78,7 +78,7 @@ def write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def prepare_out(out, overwrite: bool, stale: tuple[str, ...] = ()) -> Path:
+def prepare_out(out: Path | str, overwrite: bool, stale: tuple[str, ...] = ()) -> Path:
     """Create the output folder; with ``overwrite`` an existing one is reused after removing files
     matching ``stale`` (globs whose leftovers a reader would pick up, e.g. old split files)."""
     out = Path(out)
@@ -167,7 +167,7 @@ def obj_vertices(path: Path) -> tuple[np.ndarray, int]:
 
 
 # ---------------------------------------------------------------- FLAME
-def flame_model(model_dir, flame_version: str, scale: float, problems: Problems) -> BodyModel | None:
+def flame_model(model_dir: Path | str | None, flame_version: str, scale: float, problems: Problems) -> BodyModel | None:
     """The user's FLAME model (its error, e.g. the file is missing, becomes one of ``problems``)."""
     try:
         return BodyModel("flame", model_dir, flame_version=str(flame_version), scale=scale)

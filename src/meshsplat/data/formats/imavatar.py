@@ -8,8 +8,10 @@ x4, without translation. Page: docs/formats/imavatar.md.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from meshsplat.camera import K_from_focal, K_from_normalized
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
@@ -35,11 +37,11 @@ _HINT = ("world_mat must be an OpenGL-style world->camera matrix (camera looks d
          "check the capture's camera convention")
 
 
-def detect(root) -> bool:
+def detect(root: Path | str) -> bool:
     return (Path(root) / "flame_params.json").is_file()
 
 
-def viewmat_from_world_mat(world_mat) -> np.ndarray:
+def viewmat_from_world_mat(world_mat: ArrayLike | None) -> np.ndarray:
     """OpenCV world->camera ``[4,4]`` from IMavatar's ``world_mat [3,4]`` (or ``[4,4]``): negate rows 1, 2."""
     a = np.asarray(world_mat, np.float64)
     if a.shape == (4, 4):
@@ -51,18 +53,18 @@ def viewmat_from_world_mat(world_mat) -> np.ndarray:
     return vm
 
 
-def world_mat_from_viewmat(viewmat) -> np.ndarray:
+def world_mat_from_viewmat(viewmat: ArrayLike) -> np.ndarray:
     """Inverse of :func:`viewmat_from_world_mat`: ``[3,4]``."""
     return _FLIP_YZ @ np.asarray(viewmat, np.float64)[:3]
 
 
-def K_from_intrinsics(intr, width: int, height: int) -> np.ndarray:
+def K_from_intrinsics(intr: ArrayLike | None, width: int, height: int) -> np.ndarray:
     """``K`` from IMavatar's ``[fx/W, fy/H, cx/W, cy/H]`` (signs dropped; values > 1 are the older pixel
     units on a 512-pixel base, as IMavatar's own reader treats them)."""
     a = np.asarray(intr, np.float64).reshape(-1)
     if a.shape != (4,) or not np.isfinite(a).all():
         raise MeshsplatError("intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], "
-                             f"got {list(np.shape(intr))}")
+                             f"got {list(np.shape(cast(ArrayLike, intr)))}")
     if abs(a[3]) > 1:
         a = a / 512.0
     return K_from_normalized(a, width, height)
@@ -96,7 +98,8 @@ def _vector(fr: dict, key: str, where: str, problems: Problems, length: int | No
     return a
 
 
-def read(root, model_dir=None, test_frames: int | None = None, mask: str = "auto", flame_version: str | None = None,
+def read(root: Path | str, model_dir: Path | str | None = None, test_frames: int | None = None, mask: str = "auto",
+         flame_version: str | None = None,
          check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
     """Open an IMavatar folder. ``test_frames``: how many final frames are test frames (default: 350, or
     the last 20% of captures with <= 350 frames); ``mask``: auto | alpha | folder | none;
@@ -140,6 +143,7 @@ def read(root, model_dir=None, test_frames: int | None = None, mask: str = "auto
     if first is None:
         problems.add("image/", "no frame image found (looked for image/<k>.png and images/<k>.png)")
         problems.raise_if_any()
+    assert first is not None  # raise_if_any raised
     width, height = image_size(first)
     K = None
     try:
@@ -169,10 +173,12 @@ def read(root, model_dir=None, test_frames: int | None = None, mask: str = "auto
     parsed = all(p is not None for p in poses) and all(e is not None for e in exprs) and shape is not None \
         and len(lengths) <= 1 and len(poses) == len(items)
     if model is not None and parsed:
-        pose = np.stack(poses)
+        assert shape is not None  # part of parsed
+        pose = np.stack(cast("list[np.ndarray]", poses))
         params = {"betas": fit_coeffs("shape_params", shape, model.num_betas, problems),
                   **split_flame_pose15(pose),
-                  "expression": fit_coeffs("expression", np.stack(exprs), model.num_expression, problems)}
+                  "expression": fit_coeffs("expression", np.stack(cast("list[np.ndarray]", exprs)),
+                                            model.num_expression, problems)}
         params = {k: np.ascontiguousarray(v, np.float32) for k, v in params.items()}
         verts = pose_model(model, params)
         canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
@@ -213,7 +219,7 @@ def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
     return np.concatenate([a, np.zeros(width - a.size)])
 
 
-def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
+def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Write an IMavatar folder from a dataset with FLAME parameters.
 
     World units become DECA's x4 FLAME: ``x' = (4 / scale) (x - transl)`` per frame, the camera absorbs the
@@ -234,7 +240,8 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
 
     out = prepare_out(out, overwrite, ("image/*.png",))
     cams = dataset.manifest["cameras"]
-    intr = size = None
+    intr = None
+    size = (0, 0)  # set together with intr
     frames = []
     for i in range(len(dataset)):
         rec = dataset.frame_info(i)

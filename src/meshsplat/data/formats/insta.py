@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -35,7 +36,7 @@ _EXTRA = re.compile(r"^transforms_([A-Za-z0-9_\-]+)\.json$")
 _NUM = re.compile(r"(\d+)")
 
 
-def detect(root) -> bool:
+def detect(root: Path | str) -> bool:
     root = Path(root)
     has_json = (root / "transforms_train.json").is_file() or (root / "transforms.json").is_file()
     return has_json and ((root / "meshes").is_dir() or (root / "canonical.obj").is_file())
@@ -72,7 +73,8 @@ def _camera(fr: dict, top: dict, convention: str):
     return K, vm, w, h
 
 
-def read(root, model_dir=None, camera_convention: str = "auto", mask: str = "auto", test_frames: int | None = None,
+def read(root: Path | str, model_dir: Path | str | None = None, camera_convention: str = "auto", mask: str = "auto",
+         test_frames: int | None = None,
          check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
     """Open an INSTA folder. ``camera_convention``: auto (OpenGL when the frames carry VHAP's
     ``timestep_index``, else INSTA's OpenCV) | opencv | opengl; ``mask``: auto (per-frame ``mask_path`` /
@@ -108,7 +110,11 @@ def read(root, model_dir=None, camera_convention: str = "auto", mask: str = "aut
         vhap_made = any(isinstance(fr, dict) and "timestep_index" in fr for fr, _ in items[:1])
         convention = "opengl" if vhap_made else "opencv"
 
-    cameras, cam_of, frames, mesh_row, mesh_paths = {}, {}, [], {}, []
+    cameras: dict[str, dict] = {}
+    cam_of: dict[tuple, str] = {}
+    frames: list[dict] = []
+    mesh_row: dict[str, int] = {}
+    mesh_paths: list[tuple[str, str]] = []
     for i, (fr, top) in enumerate(items):
         where = f"frame {i}"
         if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
@@ -230,7 +236,7 @@ def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems):
 
 
 # ---------------------------------------------------------------- writing
-def write(dataset: AvatarDataset, out, overwrite: bool = False, camera_convention: str = "opencv") -> Path:
+def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False, camera_convention: str = "opencv") -> Path:
     """Write an INSTA folder: ``meshes/<row>.obj`` per mesh row, ``canonical.obj``, ``images/``, ``masks/``
     (when the dataset has masks), ``transforms.json`` (every frame) and ``transforms_{train,test,val}.json``
     (``train``, ``test_frames``, the last 20 test frames as INSTA does); other splits go to
@@ -246,7 +252,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False, camera_conventio
         first_of.setdefault(int(dataset.frame_info(i)["mesh"]), i)
     for r, i in sorted(first_of.items()):
         write_obj(out / "meshes" / f"{r:05d}.obj", dataset.vertices(i), faces)
-    top = None
+    top: dict[str, Any] | None = None
     records = []
     for i in range(len(dataset)):
         info = dataset.frame_info(i)
@@ -267,6 +273,7 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False, camera_conventio
         if m is not None:
             save_png(out / "masks" / f"{fid}.png", m)
         records.append(rec)
+    top = cast("dict[str, Any]", top)  # set by the first frame
     write_json(out / "transforms.json", {**top, "frames": records})
     names = dataset.split_names
     test = dataset.split("test_frames") if "test_frames" in names else []

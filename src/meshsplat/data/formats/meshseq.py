@@ -19,6 +19,7 @@ order (the first frame, or the npz's ``rest``, is the canonical mesh).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,7 +46,7 @@ def _mesh_path(root: Path) -> Path | None:
     return None
 
 
-def detect(root) -> bool:
+def detect(root: Path | str) -> bool:
     root = Path(root)
     return (root / "cameras.json").is_file() and _mesh_path(root) is not None
 
@@ -91,7 +92,8 @@ def _default_frames(root: Path, cameras: dict, problems: Problems) -> list[dict]
 
 def _gltf_meshes(path: Path, frames: list[dict], problems: Problems):
     drv = GltfDriver(path)
-    rows, keys = [], {}
+    rows: list[np.ndarray] = []
+    keys: dict[tuple, int] = {}
     for i, rec in enumerate(frames):
         if "time" not in rec:
             problems.add(f"frame {i}", f"with {path.name} a frame needs 'time' (seconds) and optional 'clip'")
@@ -106,7 +108,8 @@ def _gltf_meshes(path: Path, frames: list[dict], problems: Problems):
     return drv.rest_vertices().numpy(), drv.faces.numpy(), verts
 
 
-def read(root, model_dir=None, check_masks: bool = True, cache_size: int = 8, **options) -> AvatarDataset:
+def read(root: Path | str, model_dir: Path | str | None = None, check_masks: bool = True, cache_size: int = 8,
+         **options: Any) -> AvatarDataset:
     """Open the folder (see the module docstring); every problem in one error naming the layout."""
     root = Path(root)
     if options:
@@ -151,7 +154,7 @@ def read(root, model_dir=None, check_masks: bool = True, cache_size: int = 8, **
                          format_name=NAME)
 
 
-def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
+def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """This layout from any dataset: images/, masks/, cameras.json (OpenCV viewmats) and mesh.npz."""
     import json
     import shutil

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 from meshsplat.data.dataset import AvatarDataset, open_dataset
 from meshsplat.errors import MeshsplatError
@@ -12,15 +13,15 @@ DESCRIPTION = "meshsplat native dataset"
 SIGNATURE = "manifest.json"
 
 
-def detect(root: Path) -> bool:
+def detect(root: Path | str) -> bool:
     return (Path(root) / "manifest.json").is_file()
 
 
-def read(root: Path, model_dir=None, **options) -> AvatarDataset:
+def read(root: Path | str, model_dir: Path | str | None = None, **options: Any) -> AvatarDataset:
     return open_dataset(root, **options)
 
 
-def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
+def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Copy a native dataset folder (as written; nothing is re-encoded)."""
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:

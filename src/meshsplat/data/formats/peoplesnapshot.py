@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -39,15 +40,16 @@ PER_FRAME = ("global_orient", "body_pose", "transl")
 _CHUNK = 64
 
 
-def detect(root: Path) -> bool:
+def detect(root: Path | str) -> bool:
     root = Path(root)
     has_poses = (root / "poses.npz").is_file() or any((root / "poses").glob("anim_nerf_*.npz"))
     return (root / "cameras.npz").is_file() and has_poses and (root / "images").is_dir()
 
 
 # ---------------------------------------------------------------- reading
-def read(root: Path, model_dir=None, gender: str | None = None, check_masks: bool = True, cache_size: int = 8,
-         device="cpu") -> AvatarDataset:
+def read(root: Path | str, model_dir: Path | str | None = None, gender: str | None = None, check_masks: bool = True,
+         cache_size: int = 8,
+         device: str | torch.device = "cpu") -> AvatarDataset:
     """Open a PeopleSnapshot folder lazily (images decode on access); every problem in one error.
 
     ``gender`` overrides config.json's; ``model_dir`` holds ``smpl/SMPL_<GENDER>.pkl``.
@@ -293,12 +295,12 @@ def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
     if missing:
         problems.add(where, f"missing keys {missing} (has {sorted(z)})")
         return None
-    out = {"betas": _betas(z["betas"], where, problems)}
+    out: dict[str, np.ndarray | None] = {"betas": _betas(z["betas"], where, problems)}
     for k, w in zip(PER_FRAME, (3, 69, 3)):
         out[k] = _rows(z, k, w, where, problems)
     if any(v is None for v in out.values()):
         return None
-    counts = {k: len(out[k]) for k in PER_FRAME}
+    counts = {k: len(cast(np.ndarray, out[k])) for k in PER_FRAME}
     if len(set(counts.values())) > 1 or counts["transl"] != n:
         problems.add(where, f"rows {counts} do not match the {n} frames of its split in config.json "
                      "(rows are split-relative positions)")
@@ -323,7 +325,7 @@ def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | 
     usable = bool(np.isfinite(betas).all())
     if not usable:
         problems.add("betas", "contain NaN/Inf")
-    out = {k: [] for k in PER_FRAME}
+    out: dict[str, list] = {k: [] for k in PER_FRAME}
     n_poses = len(poses["transl"]) if poses is not None else 0
     nonfinite: dict[str, list[int]] = {}
     for idx in order:
@@ -362,7 +364,7 @@ def _check_files_exist(root: Path, frames: list[dict], problems: Problems) -> No
 
 
 # ---------------------------------------------------------------- writing
-def write(dataset: AvatarDataset, out, masks: str = "png", overwrite: bool = False) -> Path:
+def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite: bool = False) -> Path:
     """Write ``dataset`` (SMPL driver parameters, one training camera) as a PeopleSnapshot folder.
 
     Frames of the training camera in the splits train, val and test_frames are written in that order
@@ -385,7 +387,7 @@ def write(dataset: AvatarDataset, out, masks: str = "png", overwrite: bool = Fal
     plan = plan_frames(dataset)
 
     (out / "images").mkdir(parents=True, exist_ok=True)
-    rows = {k: [] for k in PER_FRAME}
+    rows: dict[str, list[np.ndarray]] = {k: [] for k in PER_FRAME}
     config: dict = {"gender": info.get("gender", "neutral")}
     k = 0
     has_mask = None
@@ -406,6 +408,7 @@ def write(dataset: AvatarDataset, out, masks: str = "png", overwrite: bool = Fal
                 else:
                     np.save(out / "masks" / f"mask_{k:04d}.npy", (fr.mask[..., 0].numpy() >= 0.5).astype(np.uint8))
             fp = dataset.frame_params(i)
+            assert fp is not None  # the dataset has driver parameters (checked above)
             for key in PER_FRAME:
                 rows[key].append(np.asarray(fp.get(key, np.zeros((1, 69 if key == "body_pose" else 3))),
                                             np.float32).reshape(-1))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -36,7 +37,7 @@ _EXTRA = re.compile(r"^transforms_([A-Za-z0-9_\-]+)\.json$")
 
 def _split_files(root: Path) -> dict[str, Path]:
     """meshsplat split name -> file: VHAP's train/val/test, then any other ``transforms_<name>.json``."""
-    out = {}
+    out: dict[str, Path] = {}
     found = {m.group(1): p for p in sorted(root.glob("transforms_*.json")) if (m := _EXTRA.match(p.name))}
     for name in [*SPLIT_FILES, *sorted(found)]:
         if name in found and name not in ("backup", "backup_flame"):
@@ -44,7 +45,7 @@ def _split_files(root: Path) -> dict[str, Path]:
     return out
 
 
-def detect(root) -> bool:
+def detect(root: Path | str) -> bool:
     root = Path(root)
     has_json = (root / "transforms_train.json").is_file() or (root / "transforms.json").is_file()
     return has_json and (root / "flame_param").is_dir()
@@ -104,7 +105,7 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
     return out
 
 
-def read(root, model_dir=None, flame_version: str | None = None, mask: str = "auto",
+def read(root: Path | str, model_dir: Path | str | None = None, flame_version: str | None = None, mask: str = "auto",
          ignore_dynamic_offset: bool = False, check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
     """Open a GaussianAvatars/VHAP folder. ``flame_version``: default the transforms' ``flame_version`` key,
     else "2023" (VHAP's default); ``mask``: auto (``fg_mask_path``, else RGBA alpha, else ``fg_masks/``) |
@@ -120,7 +121,10 @@ def read(root, model_dir=None, flame_version: str | None = None, mask: str = "au
     model = flame_model(model_dir, version, 1.0, problems)
     V = model.num_vertices if model is not None else None
 
-    cameras, cam_key, frames, steps = {}, {}, [], {}
+    cameras: dict[str, dict] = {}
+    cam_key: dict[tuple, str] = {}
+    frames: list[dict] = []
+    steps: dict[int, str] = {}
     first_image = None
     for i, (fr, top, fname) in enumerate(items):
         where = f"frame {i} ({fname})"
@@ -166,7 +170,7 @@ def read(root, model_dir=None, flame_version: str | None = None, mask: str = "au
     row_of = {t: r for r, t in enumerate(timesteps)}
     for rec in frames:
         rec["mesh"] = row_of[rec["mesh"]]
-    loaded = []
+    loaded: list[dict | None] = []
     for t in timesteps:
         path = root / steps[t]
         if not path.is_file():
@@ -176,7 +180,7 @@ def read(root, model_dir=None, flame_version: str | None = None, mask: str = "au
         loaded.append(_npz(path, f"timestep {t}", problems, V))
     verts = canonical = faces = params = None
     if model is not None and loaded and all(p is not None for p in loaded):
-        params = _params(loaded, model, problems, ignore_dynamic_offset)
+        params = _params(cast("list[dict]", loaded), model, problems, ignore_dynamic_offset)
         if params is not None:
             verts = pose_model(model, params)
             shared = {k: params[k] for k in ("betas", "static_offset") if k in params}
@@ -211,7 +215,7 @@ def _params(loaded: list[dict], model, problems: Problems, ignore_dynamic_offset
     if any(p["shape"].shape != shape0.shape or not np.allclose(p["shape"], shape0) for p in loaded):
         problems.add("flame_param/", "'shape' differs between timesteps; meshsplat needs one subject shape")
         return None
-    stat = [p.get("static_offset") for p in loaded]
+    stat: list[Any] = [p.get("static_offset") for p in loaded]
     if any((s is None) != (stat[0] is None) or (s is not None and not np.allclose(s, stat[0])) for s in stat):
         problems.add("flame_param/", "'static_offset' differs between timesteps; meshsplat needs one per subject")
         return None
@@ -242,7 +246,7 @@ def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
     return np.concatenate([a, np.zeros(width - a.size)])
 
 
-def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
+def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Write a GaussianAvatars/VHAP folder from a dataset with FLAME parameters.
 
     One timestep per mesh row the frames use, one camera index per camera; world units become FLAME's
@@ -279,7 +283,8 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
                "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None]}
         if static is not None:
             npz["static_offset"] = static
-        np.savez(out / "flame_param" / f"{t:05d}.npz", **{k: np.asarray(v, np.float32) for k, v in npz.items()})
+        np.savez(out / "flame_param" / f"{t:05d}.npz",
+                 **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in npz.items()}))
 
     records, used = [], set()
     for i in range(len(dataset)):
@@ -324,5 +329,6 @@ def write(dataset: AvatarDataset, out, overwrite: bool = False) -> Path:
              "expr": np.zeros((1, NUM_EXPRESSION))}
     if static is not None:
         canon["static_offset"] = static
-    np.savez(out / "canonical_flame_param.npz", **{k: np.asarray(v, np.float32) for k, v in canon.items()})
+    np.savez(out / "canonical_flame_param.npz",
+             **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in canon.items()}))
     return out
