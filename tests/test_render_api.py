@@ -127,14 +127,11 @@ def test_gsplat_backend_refuses_cpu_tensors():
 
 
 def test_auto_never_touches_gsplat_for_cpu(monkeypatch):
-    import meshsplat.render.backends as backends
-    from meshsplat.render.backends import gsplat_cuda
-
     def boom(*args, **kwargs):
         raise AssertionError("gsplat backend called for CPU tensors")
 
-    monkeypatch.setattr(backends, "gsplat_available", lambda: True)  # even if it were installed
-    monkeypatch.setattr(gsplat_cuda, "rasterize_gsplat", boom)
+    monkeypatch.setattr(render_api, "gsplat_available", lambda: True)  # even if it were installed
+    monkeypatch.setattr(render_api, "rasterize_gsplat", boom)
     out = rasterize(**simple_scene(), backend="auto")
     assert out.meta["backend"] == "torch"
     assert render_api._pick_backend("auto", torch.device("cpu")) == "torch"

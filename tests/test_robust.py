@@ -281,11 +281,11 @@ def test_output_locations_are_checked_first(run, tmp_path, capsys):
 
 
 def test_os_errors_are_one_line(run, tmp_path, capsys, monkeypatch):
-    import meshsplat.io as io
+    import meshsplat.export as export
 
     def full(*a, **k):  # what a write on a full disk raises
         raise OSError(28, "No space left on device", str(tmp_path / "x.ply"))
-    monkeypatch.setattr(io, "write_gaussian_ply", full)
+    monkeypatch.setattr(export, "write_gaussian_ply", full)
     assert main(["export", str(run), "--out", str(tmp_path / "ex")]) == 2
     err = capsys.readouterr().err
     assert "No space left on device" in err and "free some space" in err and err.count("\n") == 1

@@ -8,11 +8,10 @@ from __future__ import annotations
 import argparse
 
 from meshsplat.cli.threads import add_threads_argument, apply_threads
+from meshsplat.demo import PRESETS, run_demo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from meshsplat.demo import PRESETS
-
     parser.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
     parser.add_argument("--preset", default="default", choices=sorted(PRESETS),
                         help="size of the run: default (a few minutes on 2 CPU cores) or tiny (seconds)")
@@ -26,8 +25,6 @@ def _fmt(x) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from meshsplat.demo import run_demo
-
     apply_threads(args)
     s = run_demo(args.out, preset=args.preset, progress=not args.quiet, iterations=args.iters)
     print()

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.data.convert import write_native
+from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture
+
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from meshsplat.data.formats import FORMAT_NAMES
-
     parser.add_argument("capture", metavar="DIR", help="capture folder")
     parser.add_argument("--out", required=True, help="native dataset folder to write")
     parser.add_argument("--format", choices=FORMAT_NAMES, default=None, help="capture layout (default: detect)")
@@ -22,9 +23,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from meshsplat.data.convert import write_native
-    from meshsplat.data.formats import detect_format, open_capture
-
     fmt = args.format or detect_format(args.capture)
     print(f"format: {fmt}{'' if args.format else ' (detected)'}")
     ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir)

@@ -14,14 +14,16 @@ from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range, synth_bytes
 from meshsplat.cli.threads import add_threads_argument, apply_threads
+from meshsplat.data.formats import FORMAT_NAMES
+from meshsplat.errors import MeshsplatError
+from meshsplat.synth import contact_sheet
+from meshsplat.synth.capture import synth_capture
+from meshsplat.synth.generate import RIGS
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from meshsplat.data.formats import FORMAT_NAMES
-    from meshsplat.synth.generate import RIGS
-
     parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB file, mesh-sequence .npz or OBJ/PLY frame folder, "
                         "shared asset name, or smpl/smplx/flame")
     parser.add_argument("--out", required=True, help="output capture folder")
@@ -57,10 +59,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from meshsplat.errors import MeshsplatError
-    from meshsplat.synth import contact_sheet
-    from meshsplat.synth.capture import synth_capture
-
     check_range("--resolution", args.resolution, "synth --resolution")
     check_range("--frames", args.frames, "synth --frames")
     check_range("--test-frames", args.test_frames, "synth --test-frames")

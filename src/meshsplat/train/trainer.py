@@ -36,17 +36,18 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.formats import open_capture
-from meshsplat.embedding import surface_points
+from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
-from meshsplat.mesh import TriMesh
+from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
-from meshsplat.train.losses import make_perceptual_loss
+from meshsplat.train.losses import avatar_loss, make_perceptual_loss
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
@@ -204,9 +205,6 @@ class Trainer:
         """Mean colour of each embedded point over ``model.init_color_frames`` training frames spread over
         the sequence, counting a frame where the point is inside the image and the mask and its Phong
         normal faces the camera (grey where never seen)."""
-        from meshsplat.embedding import embed
-        from meshsplat.mesh import MeshPose
-
         k = min(self.cfg.model.init_color_frames, len(self.train_ids))
         picks = sorted({self.train_ids[int(round(x))] for x in np.linspace(0, len(self.train_ids) - 1, k)})
         acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
@@ -280,9 +278,6 @@ class Trainer:
 
     def step(self) -> dict[str, float]:
         """Run one training iteration; returns its logged values."""
-        from meshsplat.metrics import psnr
-        from meshsplat.train.losses import avatar_loss
-
         cfg = self.cfg
         self.iteration += 1
         it = self.iteration

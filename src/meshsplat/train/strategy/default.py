@@ -40,7 +40,11 @@ from typing import Any
 
 import torch
 
+from meshsplat.embedding import project_to_surface
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.compose import compose
+from meshsplat.mesh import MeshPose
+from meshsplat.mesh.quaternion import quat_to_matrix
 from meshsplat.train.strategy.ops import duplicate, remove, reset_opacity, split_append
 
 __all__ = ["DensifyStrategy"]
@@ -164,11 +168,6 @@ class DensifyStrategy:
         return n_dupli, n_split
 
     def _split(self, params, optimizers, state, mask, mesh, scale_mode) -> None:
-        from meshsplat.embedding import project_to_surface
-        from meshsplat.gaussians.compose import compose
-        from meshsplat.mesh import MeshPose
-        from meshsplat.mesh.quaternion import quat_to_matrix
-
         sub = {k: v.detach()[mask] for k, v in params.items()}
         verts = mesh.vertices.to(device=params["uv"].device, dtype=params["uv"].dtype)
         g = compose(sub, MeshPose.from_vertices(mesh, verts), scale_mode)
