@@ -19,7 +19,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import torch
@@ -85,11 +85,11 @@ def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: 
     if ambiguous and driver_faces is not None and canonical_faces is not None:
         dfaces = driver_faces.detach().cpu().long().numpy()
         cfaces = canonical_faces.detach().cpu().long().numpy()
-        d_of = [[] for _ in range(d.shape[0])]  # driver vertex -> its faces
+        d_of: list[list[np.ndarray]] = [[] for _ in range(d.shape[0])]  # driver vertex -> its faces
         for f in dfaces:
             for j in f:
                 d_of[j].append(f)
-        c_of = [[] for _ in range(c.shape[0])]
+        c_of: list[list[np.ndarray]] = [[] for _ in range(c.shape[0])]
         for f in cfaces:
             for i in f:
                 c_of[i].append(f)
@@ -192,7 +192,7 @@ def _is_source_asset(rest: torch.Tensor, source_map) -> bool:
     return gap <= 1e-4 * max(diag, 1e-12)
 
 
-def _read_sequence(vertices) -> tuple[object, str]:
+def _read_sequence(vertices: Any) -> tuple[Any, str]:
     """``(array-like [T,V,3], description)`` from an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
     or a folder of OBJ/PLY frames."""
     if not isinstance(vertices, (str, Path)):

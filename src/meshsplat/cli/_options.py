@@ -50,10 +50,11 @@ def add_render_options(parser: argparse.ArgumentParser, *, device: str | None | 
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """What ``add_render_options`` parsed; ``None`` where the command has no such flag or it was not given."""
+    """What ``add_render_options`` parsed; ``None`` where the command has no such flag or it was not given
+    (the backend then is "auto")."""
 
     device: str | None
-    backend: str | None
+    backend: str  # "auto" where the command has no --backend
     background: str | None
     size: tuple[int, int] | None
     progress: bool
@@ -74,6 +75,6 @@ def parse_size(text: str) -> tuple[int, int]:
 def render_options(args: argparse.Namespace) -> RenderOptions:
     """The rendering flags of ``args`` as library values (``--size`` checked and parsed)."""
     size = getattr(args, "size", None)
-    return RenderOptions(device=getattr(args, "device", None), backend=getattr(args, "backend", None),
+    return RenderOptions(device=getattr(args, "device", None), backend=getattr(args, "backend", "auto"),
                          background=getattr(args, "background", None), size=parse_size(size) if size else None,
                          progress=not getattr(args, "no_progress", False))

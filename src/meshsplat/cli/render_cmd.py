@@ -23,6 +23,7 @@ import argparse
 from pathlib import Path
 
 from meshsplat import animate, camera
+from meshsplat.camera import Camera
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
             raise MeshsplatError(f"--camera: expected dataset:<camera_id>, got {args.camera!r}")
         if orbit_opts:
             raise MeshsplatError("--camera and --orbit/--distance/--elevation exclude each other")
-        cameras = camera.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
+        cameras: Camera | list[Camera] = camera.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
     elif frame_cams is not None and not orbit_opts:
         cameras = [c.resized(*size) for c in frame_cams] if size else frame_cams
     else:

@@ -56,7 +56,7 @@ def choose_threads(value="auto") -> tuple[int, str]:
         why = "one core" if (os.cpu_count() or 1) == 1 else "torch's default is 1 (OMP_NUM_THREADS)"
         return 1, f"auto: {why}"
     times = {n: _workload_seconds(n) for n in (1, cores)}
-    n = min(times, key=times.get)
+    n = min(times, key=lambda k: times[k])
     measured = ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.1f} ms" for k, t in times.items())
     return n, f"auto: measured {measured}"
 

@@ -77,6 +77,7 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
     bg = background_color(background).to(dev)
     black = torch.zeros(3, device=dev)
     use_lpips = lpips_net is not None and lpips_available(lpips_net)
+    net = lpips_net or "alex"  # read only when use_lpips
     results: dict[str, Any] = {"splits": {}}
     samples: dict[str, list] = {}
     warmed = dev.type != "cuda"  # CUDA pays one-off costs (kernel compilation, allocator) on the first call
@@ -107,11 +108,11 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
             gt = composite(fr.image.to(dev), None if fr.mask is None else fr.mask.to(dev), fbg)
             rec = {"index": int(i), "name": fr.name, "camera_id": fr.camera_id, "clip": fr.clip, "time": fr.time,
                    "psnr": _finite(float(psnr(img, gt))), "ssim": float(ssim(img, gt)),
-                   "lpips": float(lpips(img, gt, net=lpips_net)) if use_lpips else None,
+                   "lpips": float(lpips(img, gt, net=net)) if use_lpips else None,
                    "render_ms": ms}
             if fr.mask is not None:
                 rec.update(subject_metrics(img, gt, fr.mask.to(dev),
-                                           (lambda a, b: lpips(a, b, net=lpips_net)) if use_lpips else None))
+                                           (lambda a, b: lpips(a, b, net=net)) if use_lpips else None))
             frames.append(rec)
             if pos in keep:
                 label = f"{name} #{i} ({fr.name}, cam {fr.camera_id})"

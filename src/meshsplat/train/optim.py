@@ -13,6 +13,7 @@ normal motion have the same world-space speed as 3DGS positions, whatever the me
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import torch
 
@@ -77,7 +78,7 @@ class LrSchedule:
         return expon_lr(step, self.base[key], self.base[key] * ratio, self.max_steps,
                         self.cfg.lr_delay_steps, self.cfg.lr_delay_mult)
 
-    def apply(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, float]:
+    def apply(self, optimizers: Mapping[str, torch.optim.Optimizer], step: int) -> dict[str, float]:
         """Set every optimizer's lr for ``step``; returns the lrs set."""
         out = {}
         for key, opt in optimizers.items():

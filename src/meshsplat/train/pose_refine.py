@@ -75,7 +75,7 @@ class PoseRefiner:
         """All refined per-frame rows ``[R, k]`` plus ``mesh_rows [R]`` (for saving with the run)."""
         out = {k: (self.rows[k] + (self.offsets[k].detach() if k in self.offsets else 0)).cpu().numpy()
                for k in self.rows}
-        out["mesh_rows"] = np.asarray(sorted(self.row_of, key=self.row_of.get), np.int64)
+        out["mesh_rows"] = np.asarray(sorted(self.row_of, key=lambda k: self.row_of[k]), np.int64)
         return out
 
     def state_dict(self) -> dict[str, Any]:

@@ -84,7 +84,8 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
 def config_changes(old: dict, new: dict) -> tuple[list[str], list[str]]:
     """``(safe, refused)``: ``"key: old -> new"`` for each differing key present in both configs."""
     a, b = _flatten(old), _flatten(new)
-    safe, refused = [], []
+    safe: list[str] = []
+    refused: list[str] = []
     for k in sorted(set(a) & set(b)):
         if a[k] != b[k]:
             (safe if k in SAFE_CHANGES else refused).append(f"{k}: {a[k]!r} -> {b[k]!r}")

@@ -135,7 +135,11 @@ class Trainer:
         self.shading_opt: torch.optim.Adam | None = None
 
         self.resume_notes: list[str] = []
-        loaded = load_resume_checkpoint(self.folder) if resume else refuse_existing_run(self.folder)
+        loaded = None
+        if resume:
+            loaded = load_resume_checkpoint(self.folder)
+        else:
+            refuse_existing_run(self.folder)
         if loaded is not None:
             old = upgrade_config_dict(loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
@@ -417,7 +421,7 @@ class Trainer:
                       antialiased=self.cfg.model.antialiased)
 
     def state_dict(self) -> dict[str, Any]:
-        np_state = np.random.get_state()
+        np_state: Any = np.random.get_state()  # the legacy tuple
         rng = {
             "torch": torch.get_rng_state(),
             "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
@@ -445,7 +449,8 @@ class Trainer:
 
     def save_checkpoint(self) -> Path:
         if self.refiner is not None:  # the refined parameters, readable without torch
-            np.savez(self.folder.refined_params_path, **self.refiner.refined_params())
+            arrays: dict[str, Any] = self.refiner.refined_params()
+            np.savez(self.folder.refined_params_path, **arrays)
         return save_checkpoint(self.folder.checkpoint_path(self.iteration), self.state_dict(),
                                keep_last=self.cfg.keep_checkpoints)
 
@@ -489,8 +494,11 @@ class Trainer:
             raise MeshsplatError("checkpoint: its shading does not match model.shading in the configuration; "
                                  "resume with the run's own config.json or start a new run")
         if sh_state is not None:
-            self._set_shading(Shading.from_state_dict(sh_state, dev))
+            shading = Shading.from_state_dict(sh_state, dev)
+            assert shading is not None  # sh_state is not None
+            self._set_shading(shading)
             if st.get("shading_optimizer"):
+                assert self.shading_opt is not None  # made by _set_shading
                 self.shading_opt.load_state_dict(st["shading_optimizer"])
         self.order = st["data_order"]["order"].clone()
         self.order_pos = int(st["data_order"]["pos"])

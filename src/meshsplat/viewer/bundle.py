@@ -39,7 +39,7 @@ __all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_
 BUNDLE_VERSION = 2
 VERTEX_ENCODINGS = ("int16", "float32")
 _STATIC = Path(__file__).parent / "static"
-_DTYPES = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2"), "int32": np.dtype("<i4")}
+_DTYPES: dict[str, np.dtype] = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2"), "int32": np.dtype("<i4")}
 
 
 def _as_frames(frames, num_vertices: int) -> np.ndarray:

@@ -156,7 +156,9 @@ def blendshape_rig(drv, fps: float = 25.0, clip_name: str = "sequence") -> tuple
     w = drv.weights.detach().cpu().numpy().astype("<f4")
     rot = _axis_angle_to_xyzw(drv.rotations.detach().cpu().double().numpy()).astype("<f4")
     tra = (pivot[None] + drv.translations.detach().cpu().double().numpy()).astype("<f4")
-    chans, vals, off = [], [], 0
+    chans: list[dict[str, Any]] = []
+    vals: list[np.ndarray] = []
+    off = 0
     for path, arr in (("weights", w), ("rotation", rot), ("translation", tra)):
         chans.append({"node": 0, "path": path, "interp": "LINEAR", "t_off": len(chans) * t, "count": t,
                       "v_off": off, "width": int(arr.shape[1])})

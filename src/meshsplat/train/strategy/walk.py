@@ -11,16 +11,19 @@ current triangle: no face ever changes.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 
 from meshsplat.embedding import project_uv_to_triangle, walk_on_triangles
+from meshsplat.mesh import TriMesh
 from meshsplat.train.strategy.ops import zero_moments
 
 __all__ = ["walk_embeddings"]
 
 
 @torch.no_grad()
-def walk_embeddings(params: dict[str, torch.Tensor], optimizers: dict[str, torch.optim.Optimizer], mesh, *,
+def walk_embeddings(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], mesh: TriMesh, *,
                     walk: bool = True, mode: str = "paper", max_crossings: int = 64) -> torch.Tensor:
     """Fold ``duv`` into (face, uv); returns ``changed [N] bool`` (faces that changed)."""
     face, uv, duv = params["face"], params["uv"], params["duv"]
