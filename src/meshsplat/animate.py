@@ -25,13 +25,16 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat._typing import ArrayLike
 from meshsplat.camera import Camera
-from meshsplat.data.source_map import rest_mismatch
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.source_map import SourceMap, rest_mismatch
 from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
 from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
 from meshsplat.io.video import to_uint8, write_png_frames, write_video
 from meshsplat.render.background import background_color
 
@@ -123,7 +126,9 @@ def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> l
     return frames
 
 
-def avatar_gltf_driver(avatar, path, clip: str | None = None, fps: float = 25.0, source_map=None):
+def avatar_gltf_driver(avatar: Avatar, path: str | Path, clip: str | None = None, fps: float = 25.0,
+                       source_map: SourceMap | None = None
+                       ) -> tuple[GltfDriver, Callable[[torch.Tensor], torch.Tensor] | None]:
     """``(driver, to_world)``: a ``GltfDriver`` of ``path`` posing the avatar's canonical vertices.
 
     With ``source_map`` (the run's or dataset's :class:`~meshsplat.data.source_map.SourceMap`) the asset
@@ -162,8 +167,8 @@ def avatar_gltf_driver(avatar, path, clip: str | None = None, fps: float = 25.0,
     return drv, to_world
 
 
-def gltf_animation(avatar, path, clip: str | None = None, fps: float = 25.0, seconds: float | None = None,
-                   start: float = 0.0, source_map=None) -> list[torch.Tensor]:
+def gltf_animation(avatar: Avatar, path: str | Path, clip: str | None = None, fps: float = 25.0,
+                   seconds: float | None = None, start: float = 0.0, source_map: SourceMap | None = None) -> list[torch.Tensor]:
     """Vertex frames ``[V,3]`` of glTF ``clip`` (default the first) sampled at ``fps`` for ``seconds``
     (default the clip's length) from ``start``; the driver as :func:`avatar_gltf_driver` derives it."""
     drv, to_world = avatar_gltf_driver(avatar, path, clip, fps, source_map)
@@ -208,7 +213,8 @@ def _read_sequence(vertices: Any) -> tuple[Any, str]:
         raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
 
 
-def sequence_animation(avatar, vertices, source_map=None, max_mismatch: float = 0.05) -> list[torch.Tensor]:
+def sequence_animation(avatar: Avatar, vertices: ArrayLike | str | Path, source_map: SourceMap | None = None,
+                       max_mismatch: float = 0.05) -> list[torch.Tensor]:
     """Frames of a vertex sequence ``[T,V,3]``: an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
     (``vertices`` key) or a folder of OBJ/PLY frames.
 
@@ -259,6 +265,7 @@ def sequence_animation(avatar, vertices, source_map=None, max_mismatch: float = 
     if order == "canonical":
         frames = [frame(i) for i in range(shape[0])]
     else:
+        assert source_map is not None  # "source" fits only with a source map
         frames = [source_map.to_canonical(source_map.to_world(frame(i)), canonical) for i in range(shape[0])]
     return _check_frames(frames, v, what)
 
@@ -266,7 +273,8 @@ def sequence_animation(avatar, vertices, source_map=None, max_mismatch: float = 
 _TOPOLOGY_KINDS = {6890: "smpl", 10475: "smplx", 5023: "flame"}  # vertex counts of the released models
 
 
-def motion_animation(avatar, dataset, motion, model_dir=None, max_frames: int | None = None,
+def motion_animation(avatar: Avatar, dataset: AvatarDataset, motion: str | Path, model_dir: str | Path | None = None,
+                     max_frames: int | None = None,
                      align: str = "pose") -> list[torch.Tensor]:
     """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
@@ -352,7 +360,8 @@ def _read_weights(weights, names: list[str]) -> np.ndarray:
     return w
 
 
-def blendshape_animation(avatar, model, weights, rotations=None, translations=None) -> list[torch.Tensor]:
+def blendshape_animation(avatar: Avatar, model: BlendshapeDriver | str | Path | None, weights: ArrayLike | str | Path,
+                         rotations: ArrayLike | None = None, translations: ArrayLike | None = None) -> list[torch.Tensor]:
     """Frames of a blend-shape model (``.npz`` path, None for the shared ICT head, or a
     ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
     drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
@@ -366,7 +375,7 @@ def blendshape_animation(avatar, model, weights, rotations=None, translations=No
     return _check_frames([drv.vertices(i) for i in range(drv.num_frames)], v_avatar, "blend-shape animation")
 
 
-def dataset_animation(avatar, dataset, split: str) -> tuple[list[torch.Tensor], list[Camera]]:
+def dataset_animation(avatar: Avatar, dataset: AvatarDataset, split: str) -> tuple[list[torch.Tensor], list[Camera]]:
     """Driving meshes of a dataset split, with each frame's own camera."""
     ids = dataset.split(split)
     if not ids:
@@ -383,9 +392,9 @@ def dataset_animation(avatar, dataset, split: str) -> tuple[list[torch.Tensor], 
 
 # ---------------------------------------------------------------- rendering
 @torch.no_grad()
-def render_animation(avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
-                     cameras: Camera | Sequence[Camera] | Callable[[int], Camera], out_dir, fps: float = 25.0,
-                     background=(1.0, 1.0, 1.0), name: str = "animation", write_pngs: bool = True,
+def render_animation(avatar: Avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
+                     cameras: Camera | Sequence[Camera] | Callable[[int], Camera], out_dir: str | Path, fps: float = 25.0,
+                     background: str | Sequence[float] | torch.Tensor = (1.0, 1.0, 1.0), name: str = "animation", write_pngs: bool = True,
                      write_mp4: bool = True, backend: str = "auto", progress: bool = False) -> AnimationResult:
     """Render ``avatar`` at every frame of ``vertices`` (each ``[V,3]``) to ``out_dir``.
 

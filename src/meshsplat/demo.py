@@ -27,7 +27,7 @@ import numpy as np
 
 from meshsplat.animate import render_animation
 from meshsplat.camera import orbit_cameras
-from meshsplat.data import open_dataset
+from meshsplat.data import AvatarDataset, open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.eval import evaluate_run
 from meshsplat.export import export_avatar
@@ -79,7 +79,7 @@ QUALITY_OVERRIDES: tuple[str, ...] = ("model.shading=sh2", "model.init_color_fra
 
 
 def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str] | None = None,
-                      progress: bool = True, quality: bool = True):
+                      progress: bool = True, quality: bool = True) -> TrainConfig:
     """The TrainConfig the demo trains with: the preset's schedule, then ``QUALITY_OVERRIDES`` (unless
     ``quality=False``: the paper-faithful model), then ``extra`` (bench/quality.py's variants)."""
     cfg = TrainConfig(data=str(data), out=str(out), iterations=preset.iterations, device="auto",
@@ -89,7 +89,7 @@ def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str
     return apply_overrides(cfg, list(preset.overrides) + list(chosen) + list(extra or [])).validate()
 
 
-def continuous_frames(ds, n: int, split: str = "test_frames") -> list[int]:
+def continuous_frames(ds: AvatarDataset, n: int, split: str = "test_frames") -> list[int]:
     """Up to ``n`` frame indices playing one continuous motion: the frames of ``split`` (default the
     held-out end of the walk; else the training frames) of one clip, one per pose, in time order."""
     ids = ds.split(split) if split in ds.split_names and ds.split(split) else ds.split("train")

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Sequence
 
 import torch
 
 from meshsplat.embedding import embed
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
-from meshsplat.gaussians.compose import effective_uv
+from meshsplat.gaussians.compose import ComposedGaussians, effective_uv
 from meshsplat.gaussians.params import make_params, rgb_to_sh0
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io import read_embedding_json, read_obj, write_embedding_json, write_gaussian_ply, write_obj
@@ -83,7 +84,7 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
 """
 
 
-def canonical_gaussians(avatar):
+def canonical_gaussians(avatar: Avatar) -> tuple[ComposedGaussians, torch.Tensor]:
     """Composed Gaussians and Phong normals ``[N,3]`` of ``avatar`` in its canonical pose (no SH view term)."""
     v = avatar.mesh.vertices
     with torch.no_grad():
@@ -104,8 +105,8 @@ _FORMAT_NOTES = {
 }
 
 
-def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = None,
-                  formats=("ply",)) -> ExportResult:
+def export_avatar(avatar: Avatar, out_dir: str | Path, source: str = "", iteration: int | None = None,
+                  formats: Sequence[str] = ("ply",)) -> ExportResult:
     """Write the canonical-pose splats in ``formats`` (any of ``SPLAT_FORMATS``: ply, splat, spz, gltf),
     ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
     if not isinstance(avatar, Avatar):
@@ -126,7 +127,7 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     if "ply" in formats:
         splats["ply"] = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"],
                                            ply_sh0, p.get("shN"), sh_degree_pad=3, normals=normals)
-    arrays = {"means": g.means, "quats": g.quats, "log_scales": g.scales.log(), "opacity_logits": p["opacity_logit"],
+    arrays: dict[str, Any] = {"means": g.means, "quats": g.quats, "log_scales": g.scales.log(), "opacity_logits": p["opacity_logit"],
               "sh0": ply_sh0.reshape(-1, 3), "shN": p.get("shN")}
     arrays = {k: (None if v is None else v.detach().cpu().double().numpy()) for k, v in arrays.items()}
     writers = {"splat": write_splat, "spz": write_spz, "gltf": write_gltf_splats}
@@ -165,7 +166,7 @@ def export_avatar(avatar, out_dir, source: str = "", iteration: int | None = Non
     return ExportResult(out, splats.get("ply"), emb, mesh, readme, splats)
 
 
-def load_exported_avatar(path, mesh_path=None, device: torch.device | str = "cpu"):
+def load_exported_avatar(path: str | Path, mesh_path: str | Path | None = None, device: torch.device | str = "cpu") -> Avatar:
     """Avatar from an export folder (or its ``embedding.json``), mesh from ``canonical_mesh.obj``."""
     path = Path(path)
     emb_path = path / EMBEDDING_NAME if path.is_dir() else path

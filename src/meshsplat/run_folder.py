@@ -25,6 +25,7 @@ from typing import Any
 import torch
 
 from meshsplat._device import resolve_device
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats import open_capture
 from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
 from meshsplat.data.source_map import SourceMap, read_source_map
@@ -46,7 +47,7 @@ class RunFolder:
     EVAL = "eval"
     EXPORT = "export"
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
 
     @classmethod
@@ -190,7 +191,7 @@ class LoadedRun:
         return p
 
     def open_dataset(self, dataset: str | Path | None = None, model_dir: str | Path | None = None,
-                     check_masks: bool = True):
+                     check_masks: bool = True) -> AvatarDataset:
         """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
 
         ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``.

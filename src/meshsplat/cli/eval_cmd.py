@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     apply_threads(args)
 
     m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
-                     max_frames_per_split=args.max_frames, background=opts.background, device=opts.device,
+                     max_frames_per_split=args.max_frames, background=opts.background or "white", device=opts.device,
                      lpips_net=None if args.no_lpips else "alex", report=not args.no_report,
                      backend=opts.backend, progress=opts.progress)
     print(f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "

@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     fmt = args.format or detect_format(args.capture)
     print(f"format: {fmt}{'' if args.format else ' (detected)'}")
     ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir)

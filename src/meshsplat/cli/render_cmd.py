@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     w, h = max(sizes, key=lambda s: s[0] * s[1])
     check_memory(f"rendering {len(frames)} frames at {w}x{h}", render_bytes(w, h, len(frames)),
                  "lower --size, or render fewer frames (--seconds, --fps)")
-    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=opts.background,
+    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=opts.background or "white",
                                    name=args.name, write_pngs=not args.no_png, write_mp4=not args.no_mp4,
                                    backend=opts.backend, progress=opts.progress)
     print(f"rendered {res.num_frames} frames ({res.render_ms_mean:.1f} ms/frame) to {args.out}")

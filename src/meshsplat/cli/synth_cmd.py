@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_threads_argument(parser)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     check_range("--resolution", args.resolution, "synth --resolution")
     check_range("--frames", args.frames, "synth --frames")
     check_range("--test-frames", args.test_frames, "synth --test-frames")

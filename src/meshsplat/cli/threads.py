@@ -39,7 +39,7 @@ def _workload_seconds(threads: int, repeats: int = 3) -> float:
     return best
 
 
-def choose_threads(value="auto") -> tuple[int, str]:
+def choose_threads(value: str | int = "auto") -> tuple[int, str]:
     """``(threads, how chosen)`` for ``value``: a positive count, or ``auto`` (measured)."""
     import torch
 

@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_threads_argument(parser)
 
 
-def build_config(args: argparse.Namespace):
+def build_config(args: argparse.Namespace) -> TrainConfig:
     """TrainConfig from defaults, the config file, --set overrides and flags."""
     out = Path(args.out)
     run = RunFolder(out)

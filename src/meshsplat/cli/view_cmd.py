@@ -34,6 +34,7 @@ from meshsplat.cli._guards import check_output_dir, check_range
 from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
 from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
 from meshsplat.run_folder import LoadedRun, load_run
 from meshsplat.viewer import write_viewer_bundle
 from meshsplat.viewer.rig import avatar_driver
@@ -68,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
 
-def load_frames(avatar, args: argparse.Namespace, run_info: LoadedRun) -> list:
+def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -> list:
     """Vertex frames [V,3] chosen by ``--animation`` (via meshsplat.animate helpers)."""
     kind, *rest = args.animation
     if kind not in _KINDS:

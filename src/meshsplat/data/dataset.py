@@ -73,7 +73,7 @@ class Frame:
 class Problems:
     """Collects every problem of a folder; ``raise_if_any`` ends them in one MeshsplatError."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path) -> None:
         self.root = root
         self.items: list[str] = []
 
@@ -138,7 +138,7 @@ class AvatarDataset:
 
     def __init__(self, root: Path, manifest: dict, canonical: np.ndarray, faces: np.ndarray,
                  vertices: np.ndarray, cameras: dict, cache_size: int = 8,
-                 driver_params: dict[str, np.ndarray] | None = None, format_name: str = "native"):
+                 driver_params: dict[str, np.ndarray] | None = None, format_name: str = "native") -> None:
         self.root = root
         self.manifest = manifest
         self.format_name = format_name

@@ -42,7 +42,7 @@ class DatasetWriter:
     """
 
     def __init__(self, root: Path | str, canonical_vertices: torch.Tensor | ArrayLike,
-                 faces: torch.Tensor | ArrayLike, overwrite: bool = False, meta: dict | None = None):
+                 faces: torch.Tensor | ArrayLike, overwrite: bool = False, meta: dict | None = None) -> None:
         self.root = Path(root)
         if (self.root / "manifest.json").exists() and not overwrite:
             raise MeshsplatError(f"{self.root}: a dataset already exists here (pass overwrite=True)")

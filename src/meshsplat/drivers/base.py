@@ -52,7 +52,7 @@ class SequenceDriver:
     """
 
     def __init__(self, vertices: np.ndarray | torch.Tensor, faces: torch.Tensor | ArrayLike,
-                 rest: torch.Tensor | ArrayLike | None = None):
+                 rest: torch.Tensor | ArrayLike | None = None) -> None:
         if isinstance(vertices, np.ndarray) and vertices.ndim != 3:
             raise MeshsplatError(f"vertices: expected shape [T,V,3], got {list(vertices.shape)}")
         self._seq = vertices

@@ -48,7 +48,7 @@ class BlendshapeDriver:
     def __init__(self, neutral: torch.Tensor | ArrayLike, faces: torch.Tensor | ArrayLike,
                  deltas: torch.Tensor | ArrayLike, names: Sequence[str] | None = None,
                  weights: _Rows | None = None, rotations: _Rows | None = None, translations: _Rows | None = None,
-                 face_material: torch.Tensor | ArrayLike | None = None, material_names: Sequence[str] | None = None):
+                 face_material: torch.Tensor | ArrayLike | None = None, material_names: Sequence[str] | None = None) -> None:
         self.neutral = as_vertices("neutral", neutral)
         dims = {"V": self.neutral.shape[0]}
         d = deltas if isinstance(deltas, torch.Tensor) else torch.from_numpy(np.asarray(deltas, np.float32))

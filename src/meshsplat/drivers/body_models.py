@@ -196,7 +196,7 @@ class BodyModel:
 
     def __init__(self, kind: str, model_dir: Path | str | None = None, gender: str = "neutral",
                  flame_version: str = "2020", scale: float = 1.0, device: str | torch.device = "cpu",
-                 path: Path | str | None = None):
+                 path: Path | str | None = None) -> None:
         self.kind = _check_choice("model kind", kind, MODEL_KINDS)
         self.gender = _check_choice("gender", gender, GENDERS)
         self.flame_version = _check_choice("flame_version", str(flame_version), FLAME_VERSIONS)
@@ -384,7 +384,7 @@ def _finite(x) -> bool:
 class ParametricDriver:
     """MeshDriver posing a :class:`BodyModel` with per-frame parameters ``params`` (dict of ``[T,k]``)."""
 
-    def __init__(self, model: BodyModel, params: dict):
+    def __init__(self, model: BodyModel, params: dict) -> None:
         self.model = model
         self.params = dict(params)
         self._T = model.check_params(self.params)

@@ -73,7 +73,7 @@ class GltfDriver:
     ``materials``, ``clips`` (names), ``num_vertices``.
     """
 
-    def __init__(self, path: Path | str, clip: str | None = None, fps: float = 30.0):
+    def __init__(self, path: Path | str, clip: str | None = None, fps: float = 30.0) -> None:
         self.file = GltfFile(path)
         self.path = self.file.path
         doc = self.file.doc

@@ -26,7 +26,7 @@ _NORM_DIV = {np.int8: 127.0, np.uint8: 255.0, np.int16: 32767.0, np.uint16: 6553
 class GltfFile:
     """A parsed glTF/GLB file with typed accessor and image access."""
 
-    def __init__(self, path: Path | str):
+    def __init__(self, path: Path | str) -> None:
         import pygltflib
 
         self.path = Path(path)

@@ -22,8 +22,10 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.eval.report import write_report
+from meshsplat.gaussians import Avatar
 from meshsplat.metrics import lpips, lpips_available, psnr, ssim
 from meshsplat.metrics.subject import SUBJECT_KEYS, subject_metrics
 from meshsplat.render.background import background_color, composite
@@ -53,7 +55,8 @@ def _pick(n: int, k: int) -> list[int]:
 
 
 @torch.no_grad()
-def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, background="white",
+def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str] | None = None,
+                    background: str | Sequence[float] | torch.Tensor = "white",
                     max_frames_per_split: int | None = None, lpips_net: str | None = "alex",
                     samples_per_split: int = 3, backend: str = "auto", progress: bool = False) -> tuple[dict, dict]:
     """Metrics of ``avatar`` on ``dataset`` (an ``AvatarDataset``).
@@ -92,7 +95,8 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
         if max_frames_per_split is not None and len(ids) > max_frames_per_split:
             ids = [ids[i] for i in _pick(len(ids), max_frames_per_split)]
         keep = set(_pick(len(ids), samples_per_split))
-        frames, samples[name] = [], []
+        frames: list[dict[str, Any]] = []
+        samples[name] = []
         for pos, i in enumerate(ids):
             fr = dataset[i]
             fbg = bg if fr.mask is not None else black
@@ -140,8 +144,9 @@ def evaluate_avatar(avatar, dataset, splits: Sequence[str] | None = None, backgr
     return results, samples
 
 
-def evaluate_run(run_dir, dataset=None, splits: Sequence[str] | None = None, out_dir=None,
-                 max_frames_per_split: int | None = None, background="white", device: str | None = "auto",
+def evaluate_run(run_dir: str | Path, dataset: AvatarDataset | str | Path | None = None, splits: Sequence[str] | None = None,
+                 out_dir: str | Path | None = None, max_frames_per_split: int | None = None,
+                 background: str | Sequence[float] | torch.Tensor = "white", device: str | None = "auto",
                  lpips_net: str | None = "alex", report: bool = True, samples_per_split: int = 3,
                  backend: str = "auto", progress: bool = False) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).

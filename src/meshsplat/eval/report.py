@@ -25,7 +25,7 @@ def _plt():
     return plt
 
 
-def read_log(path) -> dict[str, np.ndarray]:
+def read_log(path: str | Path) -> dict[str, np.ndarray]:
     """Numeric columns of ``RUN/log.csv`` (rows that do not parse are skipped); empty when missing."""
     path = Path(path)
     if not path.is_file():
@@ -45,7 +45,7 @@ def read_log(path) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in cols.items() if len(v) == n}
 
 
-def plot_samples(samples: list, path, title: str = "") -> Path:
+def plot_samples(samples: list, path: str | Path, title: str = "") -> Path:
     """Rows of ``(label, gt [H,W,3], render [H,W,3], record)``: ground truth | render | error heat-map."""
     plt = _plt()
     rows = len(samples)
@@ -86,7 +86,7 @@ def plot_samples(samples: list, path, title: str = "") -> Path:
     return path
 
 
-def plot_curves(log: dict[str, np.ndarray], path) -> Path | None:
+def plot_curves(log: dict[str, np.ndarray], path: str | Path) -> Path | None:
     """Loss, training PSNR and #Gaussians vs iteration; None when the log holds no rows."""
     if not log or len(log.get("iteration", [])) == 0:
         return None
@@ -122,7 +122,7 @@ def _fmt(x, digits: int = 3) -> str:
     return "–" if x is None else f"{x:.{digits}f}"
 
 
-def write_report(out_dir, metrics: dict, samples: dict, log_csv) -> dict[str, str]:
+def write_report(out_dir: str | Path, metrics: dict, samples: dict, log_csv: str | Path) -> dict[str, str]:
     """Write sample sheets, curves and ``report.html`` (images embedded) into ``out_dir``."""
     out = Path(out_dir)
     files: dict[str, str] = {}

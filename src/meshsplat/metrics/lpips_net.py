@@ -167,7 +167,7 @@ class LPIPS(nn.Module):
     shift: torch.Tensor
     scale: torch.Tensor
 
-    def __init__(self, net: str = "alex"):
+    def __init__(self, net: str = "alex") -> None:
         super().__init__()
         self.net = _canonical_net(net)
         self.convs = nn.ModuleList()

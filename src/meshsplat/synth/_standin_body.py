@@ -6,7 +6,13 @@ import numpy as np
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.paths import asset
 from meshsplat.synth._standin_geometry import (
-    bone_closest, farthest_points, joint_regressor, smoothstep, split_to_count, weld)
+    bone_closest,
+    farthest_points,
+    joint_regressor,
+    smoothstep,
+    split_to_count,
+    weld,
+)
 
 __all__ = ["SMPL_PARENTS", "SMPLX_PARENTS", "body_model_dict"]
 

@@ -5,7 +5,12 @@ import numpy as np
 
 from meshsplat.paths import asset
 from meshsplat.synth._standin_geometry import (
-    farthest_points, joint_regressor, smoothstep, split_to_count, subsample_surface)
+    farthest_points,
+    joint_regressor,
+    smoothstep,
+    split_to_count,
+    subsample_surface,
+)
 
 __all__ = ["FLAME_PARENTS", "flame_model_dict"]
 

@@ -60,7 +60,7 @@ class ModelSource:
     """A :class:`BodyModel` posed by named clips of per-frame parameters (``[T,k]`` arrays)."""
 
     def __init__(self, model: BodyModel, clips: dict[str, dict[str, np.ndarray]], shared: dict[str, np.ndarray],
-                 fps: float, vertex_colors: torch.Tensor, attribution: str = "", test_clips: Sequence[str] = ()):
+                 fps: float, vertex_colors: torch.Tensor, attribution: str = "", test_clips: Sequence[str] = ()) -> None:
         self.model = model
         self.shared = {k: np.asarray(v, np.float32) for k, v in shared.items()}
         self.motions = {c: {k: np.asarray(v, np.float32) for k, v in p.items()} for c, p in clips.items()}

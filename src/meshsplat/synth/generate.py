@@ -18,12 +18,12 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
+from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
-from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
-from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
+from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.sources import load_source
 
 __all__ = ["generate", "render_view", "clip_motion", "RIGS", "Shot"]

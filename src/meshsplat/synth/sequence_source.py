@@ -25,7 +25,7 @@ __all__ = ["SequenceSource", "UpAxisSource", "up_rotation", "with_up"]
 class SequenceSource:
     """A mesh sequence as a generator source (see :mod:`meshsplat.synth.sources`)."""
 
-    def __init__(self, seq: MeshSequence, name: str = "sequence"):
+    def __init__(self, seq: MeshSequence, name: str = "sequence") -> None:
         self.seq = seq
         self.name = name
         v = seq.vertices.shape[1]
@@ -103,7 +103,7 @@ def up_rotation(up: str) -> np.ndarray:
 class UpAxisSource:
     """``source`` seen in the y-up world: every pose is rotated by ``R [3,3]``."""
 
-    def __init__(self, source: Any, R: np.ndarray):
+    def __init__(self, source: Any, R: np.ndarray) -> None:
         self.inner = source
         self.R = torch.as_tensor(R, dtype=torch.float32)
 

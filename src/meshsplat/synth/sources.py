@@ -47,7 +47,7 @@ class GltfSource:
     default_train_clip: str | None = None
     default_test_clips: list[str] | None = None
 
-    def __init__(self, driver: GltfDriver):
+    def __init__(self, driver: GltfDriver) -> None:
         self.driver = driver
         self.faces = driver.faces
         self.uvs = driver.uvs
@@ -80,7 +80,7 @@ class BlendshapeSource:
                "M_IrisRight": (0.25, 0.35, 0.55), "M_ScleraLeft": (0.92, 0.9, 0.88), "M_ScleraRight": (0.92, 0.9, 0.88),
                "M_Teeth": (0.93, 0.9, 0.82)}
 
-    def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep: torch.Tensor | None = None):
+    def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep: torch.Tensor | None = None) -> None:
         self.driver = driver
         self.duration = duration
         faces = driver.faces

@@ -117,7 +117,7 @@ class PerceptualLoss:
     side is below ``LPIPS_MIN_SIDE`` (32) are bilinearly upsampled to it before LPIPS.
     """
 
-    def __init__(self, net: str | None):
+    def __init__(self, net: str | None) -> None:
         self.net = net
         self.kind = f"lpips-{net}" if net else "l1+dssim"
 

@@ -68,7 +68,7 @@ def build_optimizers(params: dict[str, torch.Tensor], lrs: dict[str, float], eps
 class LrSchedule:
     """Exponential decay of the embedding lrs (``duv``, ``d``); other keys keep their lr."""
 
-    def __init__(self, cfg: OptimConfig, base: dict[str, float], max_steps: int):
+    def __init__(self, cfg: OptimConfig, base: dict[str, float], max_steps: int) -> None:
         self.cfg, self.base, self.max_steps = cfg, dict(base), max_steps
 
     def lr(self, key: str, step: int) -> float:

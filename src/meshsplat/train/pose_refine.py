@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.errors import MeshsplatError
 
@@ -22,8 +23,8 @@ __all__ = ["PoseRefiner"]
 class PoseRefiner:
     """Offsets ``[R, k]`` per refined parameter for the ``R`` distinct meshes of the training frames."""
 
-    def __init__(self, dataset, train_ids: list[int], names: str, lr: float, model_dir: str | None,
-                 device: torch.device):
+    def __init__(self, dataset: AvatarDataset, train_ids: list[int], names: str, lr: float, model_dir: str | None,
+                 device: torch.device) -> None:
         info = dataset.driver_info
         if info is None or dataset.driver_params is None:
             raise MeshsplatError(f"pose_refine: {dataset.root} has no body/head model parameters "

@@ -15,6 +15,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.run_folder import RunFolder
@@ -30,7 +32,7 @@ SAFE_CHANGES = frozenset({
 })
 
 
-def load_resume_checkpoint(run: RunFolder, map_location="cpu") -> tuple[Path, dict] | None:
+def load_resume_checkpoint(run: RunFolder, map_location: str | torch.device = "cpu") -> tuple[Path, dict] | None:
     """``(path, state)`` of the newest checkpoint of ``run``, or None when there is none.
 
     Every ``ckpt_*.pt`` must load: otherwise one MeshsplatError names each unreadable file,
@@ -112,7 +114,7 @@ def signal_name(signum: int) -> str:
 class TrainingInterrupted(KeyboardInterrupt):
     """Training stopped by SIGINT/SIGTERM after writing a checkpoint (``checkpoint``)."""
 
-    def __init__(self, message: str, signum: int, checkpoint: Path | None):
+    def __init__(self, message: str, signum: int, checkpoint: Path | None) -> None:
         super().__init__(message)
         self.signum, self.checkpoint = signum, checkpoint
 

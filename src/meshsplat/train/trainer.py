@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats import open_capture
 from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
@@ -66,7 +67,7 @@ LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psn
                "walked", "lr_duv", "lr_d", "time_s", "mask")
 
 
-def training_image_size(dataset, train_ids: list[int] | None = None) -> int:
+def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = None) -> int:
     """The largest image side (pixels) among the cameras of the training frames: what the screen radii
     of the densification strategy are divided by (it converts older configs' pixel thresholds)."""
     ids = dataset.split("train") if train_ids is None else train_ids
@@ -95,7 +96,7 @@ class Trainer:
     ``TrainingInterrupted``.
     """
 
-    def __init__(self, config: TrainConfig, resume: bool = False):
+    def __init__(self, config: TrainConfig, resume: bool = False) -> None:
         self.cfg = TrainConfig.from_dict(config.validate().to_dict())  # own copy
         if not self.cfg.data:
             raise MeshsplatError("config: data (the dataset folder) is not set")

@@ -26,8 +26,11 @@ import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
-from meshsplat.camera import intrinsics, look_at, orbit_cameras, orbit_position
+from meshsplat._typing import ArrayLike
+from meshsplat.camera import Camera, intrinsics, look_at, orbit_cameras, orbit_position
+from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
@@ -209,8 +212,10 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
     return b"".join(chunks), layout
 
 
-def write_viewer_bundle(avatar, frames, out_dir, fps: float = 25.0, camera=None, title: str = "meshsplat avatar",
-                        vertex_encoding: str = "int16", background: str = "white", rig=None) -> Path:
+def write_viewer_bundle(avatar: Avatar, frames: ArrayLike | None, out_dir: str | Path, fps: float = 25.0,
+                        camera: Camera | dict[str, Any] | None = None, title: str = "meshsplat avatar",
+                        vertex_encoding: str = "int16", background: str = "white",
+                        rig: GltfDriver | BlendshapeDriver | None = None) -> Path:
     """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
     or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
     :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
@@ -288,7 +293,7 @@ def _fill_template(template: str, values: dict[str, str]) -> str:
     return re.sub(r"__(TITLE|AVATAR_HEADER|AVATAR_DATA|VIEWER_JS)__", lambda m: values[m.group(1)], template)
 
 
-def read_viewer_bundle(out_dir) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def read_viewer_bundle(out_dir: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """``(header, arrays)`` of a bundle folder; ``arrays["vertices"]`` holds the decoded frames ``[T,V,3]``
     (vertex-frame bundles) and ``gaussian_*`` the unpacked per-Gaussian arrays (the half-float values
     the page uses)."""

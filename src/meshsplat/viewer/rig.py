@@ -11,20 +11,25 @@ translation / rotation / scale channels (LINEAR with slerp for rotations, STEP, 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from meshsplat.animate import avatar_gltf_driver
+from meshsplat.data.source_map import SourceMap
+from meshsplat.drivers import GltfDriver
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
 
 __all__ = ["gltf_rig", "blendshape_rig", "bundle_rig", "avatar_driver", "rig_preview_frames"]
 
 _PATHS = ("translation", "rotation", "scale", "weights")
 
 
-def avatar_driver(avatar, path, clip: str | None = None, source_map=None):
+def avatar_driver(avatar: Avatar, path: str | Path, clip: str | None = None,
+                  source_map: SourceMap | None = None) -> GltfDriver:
     """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices, derived as
     :func:`meshsplat.animate.avatar_gltf_driver` does (matched rest positions, or re-derived from the
     asset the avatar was synthesized from)."""
@@ -35,7 +40,7 @@ def avatar_driver(avatar, path, clip: str | None = None, source_map=None):
     return drv
 
 
-def gltf_rig(drv) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def gltf_rig(drv: GltfDriver) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """``(sections, header)`` describing the rig and clips of a ``GltfDriver`` for the bundle."""
     # The driver keeps its rig in private fields (drivers/gltf.py); read them here, in one place.
     rig, doc = drv._rig, drv.file.doc
@@ -79,7 +84,9 @@ def gltf_rig(drv) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
                        "node_name": doc.nodes[g.node].name or f"node {g.node}"})
         texel += m * n
         wbase += m
-    times, values, clips = [], [], []
+    times: list[np.ndarray] = []
+    values: list[np.ndarray] = []
+    clips: list[dict[str, Any]] = []
     t_off = v_off = 0
     for name in drv.clips:
         chans = []
@@ -125,7 +132,7 @@ def _axis_angle_to_xyzw(aa: np.ndarray) -> np.ndarray:
     return np.concatenate([axis * np.sin(theta / 2), np.cos(theta / 2)], -1)
 
 
-def blendshape_rig(drv, fps: float = 25.0, clip_name: str = "sequence") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def blendshape_rig(drv: BlendshapeDriver, fps: float = 25.0, clip_name: str = "sequence") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """``(sections, header)`` of a :class:`meshsplat.drivers.BlendshapeDriver` as a morph rig.
 
     ``posed = R (neutral + sum w_e delta_e - pivot) + pivot + t`` is one node (rotation R,
@@ -184,14 +191,15 @@ def blendshape_rig(drv, fps: float = 25.0, clip_name: str = "sequence") -> tuple
     return sections, header
 
 
-def bundle_rig(drv, fps: float = 25.0):
+def bundle_rig(drv: GltfDriver | BlendshapeDriver,
+               fps: float = 25.0) -> tuple[dict[str, np.ndarray], dict[str, Any], int]:
     """``(sections, header, num_vertices)`` of a GltfDriver or a BlendshapeDriver."""
     if isinstance(drv, BlendshapeDriver):
         return (*blendshape_rig(drv, fps), int(drv.neutral.shape[0]))
     return (*gltf_rig(drv), drv.num_vertices)
 
 
-def rig_preview_frames(drv, count: int = 16) -> list:
+def rig_preview_frames(drv: GltfDriver | BlendshapeDriver, count: int = 16) -> list:
     """A few posed vertex frames across the default clip / sequence (to frame the camera)."""
     if isinstance(drv, BlendshapeDriver):
         idx = np.unique(np.linspace(0, drv.num_frames - 1, count).round().astype(int))

@@ -16,8 +16,22 @@ from numpy.typing import ArrayLike
 from meshsplat.camera import K_from_focal, K_from_normalized
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    check_in_front, find_file, fit_coeffs, flame_driver_record, flame_model, flame_rows, frame_pixels,
-    has_alpha, mask_choice, pose_model, prepare_out, read_json, save_png, tail_split, write_json)
+    check_in_front,
+    find_file,
+    fit_coeffs,
+    flame_driver_record,
+    flame_model,
+    flame_rows,
+    frame_pixels,
+    has_alpha,
+    mask_choice,
+    pose_model,
+    prepare_out,
+    read_json,
+    save_png,
+    tail_split,
+    write_json,
+)
 from meshsplat.data.png import image_size
 from meshsplat.drivers.body_models import join_flame_pose15, split_flame_pose15
 from meshsplat.errors import MeshsplatError

@@ -18,8 +18,18 @@ import numpy as np
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    check_in_front, find_file, frame_pixels, has_alpha, mask_choice, merge_transform_frames, obj_vertices, prepare_out,
-    save_png, tail_split, write_json)
+    check_in_front,
+    find_file,
+    frame_pixels,
+    has_alpha,
+    mask_choice,
+    merge_transform_frames,
+    obj_vertices,
+    prepare_out,
+    save_png,
+    tail_split,
+    write_json,
+)
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj, write_obj
 

@@ -17,8 +17,21 @@ import numpy as np
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
-    check_in_front, find_file, fit_coeffs, flame_driver_record, flame_model, flame_rows, frame_pixels,
-    has_alpha, mask_choice, merge_transform_frames, pose_model, prepare_out, save_png, write_json)
+    check_in_front,
+    find_file,
+    fit_coeffs,
+    flame_driver_record,
+    flame_model,
+    flame_rows,
+    frame_pixels,
+    has_alpha,
+    mask_choice,
+    merge_transform_frames,
+    pose_model,
+    prepare_out,
+    save_png,
+    write_json,
+)
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]

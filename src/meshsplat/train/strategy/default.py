@@ -35,6 +35,7 @@ parent's rotation, opacity and colour, with canonical scale / (0.8 * split_n).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,7 +44,7 @@ import torch
 from meshsplat.embedding import project_to_surface
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import compose
-from meshsplat.mesh import MeshPose
+from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.mesh.quaternion import quat_to_matrix
 from meshsplat.train.strategy.ops import duplicate, remove, reset_opacity, split_append
 
@@ -80,13 +81,15 @@ class DensifyStrategy:
                 raise MeshsplatError(f"optimizers[{key!r}] must hold exactly params[{key!r}]")
 
     # ---- hooks -----------------------------------------------------------------------
-    def step_pre_backward(self, params, optimizers, state, step: int, info: dict) -> None:
+    def step_pre_backward(self, params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], step: int,
+                          info: dict) -> None:
         m2d = info[self.key_for_gradient]
         if m2d.requires_grad:
             m2d.retain_grad()
 
     @torch.no_grad()
-    def step_post_backward(self, params, optimizers, state, step: int, info: dict, *, mesh=None,
+    def step_post_backward(self, params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], step: int, info: dict, *,
+                           mesh: TriMesh | None = None,
                            scale_mode: str = "sqrt_area") -> dict[str, int]:
         """Update statistics, then refine / reset on schedule. Returns counts of what changed."""
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}

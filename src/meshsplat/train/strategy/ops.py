@@ -8,7 +8,8 @@ in-place edits (opacity reset) keep the same objects.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Mapping
+from typing import Any, Callable
 
 import torch
 
@@ -18,7 +19,7 @@ _MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
 
 
 @torch.no_grad()
-def update_all(params: dict[str, torch.Tensor], optimizers: dict[str, torch.optim.Optimizer],
+def update_all(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer],
                param_fn: Callable[[str, torch.Tensor], torch.Tensor],
                optstate_fn: Callable[[str, torch.Tensor], torch.Tensor]) -> None:
     """Replace ``params[key]`` by ``param_fn(key, p)`` and each moment by ``optstate_fn(key, m)``."""
@@ -52,7 +53,7 @@ def _update_state(state: dict, fn: Callable[[torch.Tensor], torch.Tensor], n: in
 
 
 @torch.no_grad()
-def duplicate(params, optimizers, state, mask: torch.Tensor) -> None:
+def duplicate(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor) -> None:
     """Append a copy of every Gaussian where ``mask [N]`` (embedding copied too; new moments 0)."""
     n = mask.shape[0]
     sel = torch.nonzero(mask).squeeze(1)
@@ -63,7 +64,7 @@ def duplicate(params, optimizers, state, mask: torch.Tensor) -> None:
 
 
 @torch.no_grad()
-def remove(params, optimizers, state, mask: torch.Tensor) -> None:
+def remove(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor) -> None:
     """Delete every Gaussian where ``mask [N]``."""
     n = mask.shape[0]
     keep = torch.nonzero(~mask).squeeze(1)
@@ -72,7 +73,7 @@ def remove(params, optimizers, state, mask: torch.Tensor) -> None:
 
 
 @torch.no_grad()
-def split_append(params, optimizers, state, mask: torch.Tensor, new_values: dict[str, torch.Tensor],
+def split_append(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor, new_values: dict[str, torch.Tensor],
                  repeats: int) -> None:
     """Replace the Gaussians where ``mask [N]`` by ``repeats`` children each (appended at the end).
 
@@ -100,7 +101,7 @@ def split_append(params, optimizers, state, mask: torch.Tensor, new_values: dict
 
 
 @torch.no_grad()
-def zero_moments(optimizers, key: str, rows: torch.Tensor | None = None) -> None:
+def zero_moments(optimizers: Mapping[str, torch.optim.Optimizer], key: str, rows: torch.Tensor | None = None) -> None:
     """Zero the Adam moments of ``key`` (all rows, or ``rows``: bool mask [N] / index tensor)."""
     opt = optimizers.get(key)
     if opt is None:
@@ -118,7 +119,7 @@ def zero_moments(optimizers, key: str, rows: torch.Tensor | None = None) -> None
 
 
 @torch.no_grad()
-def reset_opacity(params, optimizers, value: float) -> None:
+def reset_opacity(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], value: float) -> None:
     """opacity <- min(opacity, value), in place; opacity moments zeroed."""
     logit = torch.logit(torch.tensor(value, dtype=params["opacity_logit"].dtype)).item()
     params["opacity_logit"].clamp_(max=logit)
