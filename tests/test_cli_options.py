@@ -41,7 +41,7 @@ def test_render_options_parse_once():
     q = argparse.ArgumentParser()
     add_render_options(q, device=False, backend=False, background=False, progress=False)
     o = render_options(q.parse_args([]))
-    assert (o.device, o.backend, o.background, o.size, o.progress) == (None, None, None, None, True)
+    assert (o.device, o.backend, o.background, o.size, o.progress) == (None, "auto", None, None, True)
 
 
 @pytest.mark.parametrize("text, match", [("64", "expected WxH"), ("0x64", "pixels per side"), ("axb", "expected WxH")])
