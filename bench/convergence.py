@@ -11,6 +11,10 @@ PSNR/SSIM inside the mask, full-image PSNR; no LPIPS, to keep the points cheap).
 to ``bench/results/<name>-<host>.json`` after every point, with the CPU seconds this process has
 used, and the run keeps checkpoints: rerunning the same command resumes where it stopped (the
 points already measured are kept). ``--plot`` draws the curve (matplotlib) next to the JSON.
+
+The saved curve (``results/convergence-vm.json``) was measured before the strategy keys took gsplat's
+names and units, with the screen-size prune at the paper code's 20 px; to reproduce it with today's
+default (0.15 of the image), pass ``--set strategy.prune_scale2d=0.078125`` (20 px at 256 px).
 """
 from __future__ import annotations
 
