@@ -35,15 +35,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meshsplat.paths import asset
+
 torch.set_num_threads(1)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 # subprocesses run from other folders: make the package under test importable from anywhere
 os.environ["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve()) for p in
                                            os.environ.get("PYTHONPATH", "").split(os.pathsep) if p)
 
-GLB = Path(os.environ.get("MESHSPLAT_ASSETS", Path(__file__).resolve().parents[2] / "shared" / "assets")) / "gltf" / "CesiumMan.glb"
-if not GLB.is_file():
-    GLB = Path("/work/shared/assets/gltf/CesiumMan.glb")
+GLB = asset("gltf/CesiumMan.glb")
 MEM_LIMIT = 3 * 1024**3
 NOBODY = 65534
 TRAIN = ["--iters", "1", "--no-progress", "--device", "cpu", "--set", "backend=torch", "--set", "model.n_init=50"]

@@ -1,4 +1,4 @@
-"""Shared fixtures. Real assets come from ../shared/assets (skip when absent)."""
+"""Shared fixtures. Real assets are the bundled package data (meshsplat/assets)."""
 from __future__ import annotations
 
 import os
@@ -29,10 +29,7 @@ def _seed():
 
 @pytest.fixture(scope="session")
 def assets():
-    root = assets_dir()
-    if root is None:
-        pytest.skip("shared assets not found (set MESHSPLAT_ASSETS)")
-    return root
+    return assets_dir()
 
 
 def pytest_collection_modifyitems(config, items):

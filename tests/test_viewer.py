@@ -263,10 +263,7 @@ def _rig_bundle(tmp_path, name, n=300, seed=0):
     from meshsplat.paths import assets_dir
     from meshsplat.viewer.rig import avatar_driver
 
-    root = assets_dir()
-    if root is None:
-        pytest.skip("shared assets not found")
-    glb = root / "gltf" / f"{name}.glb"
+    glb = assets_dir() / "gltf" / f"{name}.glb"
     drv0 = GltfDriver(glb)
     mesh = TriMesh(drv0.rest_vertices(), drv0.faces)
     av = Avatar(mesh, init_params(mesh, n, generator=torch.Generator().manual_seed(seed)))

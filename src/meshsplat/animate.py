@@ -36,6 +36,7 @@ from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.io.video import to_uint8, write_png_frames, write_video
+from meshsplat.paths import resolve_input
 from meshsplat.render.background import background_color
 
 __all__ = [
@@ -137,7 +138,7 @@ def avatar_gltf_driver(avatar: Avatar, path: str | Path, clip: str | None = None
     ``to_world`` turns the driver's frames into the dataset's axes (None when no turn is needed).
     Otherwise the glTF mesh must be the avatar's canonical mesh (same vertex count) or contain its
     vertices at rest (see :func:`match_vertices`)."""
-    path = Path(path)
+    path = resolve_input(path)
     if not path.is_file():
         raise MeshsplatError(f"glTF file not found: {path}")
     if fps <= 0:
@@ -202,7 +203,7 @@ def _read_sequence(vertices: Any) -> tuple[Any, str]:
     or a folder of OBJ/PLY frames."""
     if not isinstance(vertices, (str, Path)):
         return vertices, "vertex sequence"
-    p = Path(vertices)
+    p = resolve_input(vertices)
     if p.is_dir() or p.suffix.lower() == ".npz":
         return read_mesh_sequence(p, with_uvs=False).vertices, f"mesh sequence {p}"
     if not p.is_file():
@@ -362,7 +363,7 @@ def _read_weights(weights, names: list[str]) -> np.ndarray:
 
 def blendshape_animation(avatar: Avatar, model: BlendshapeDriver | str | Path | None, weights: ArrayLike | str | Path,
                          rotations: ArrayLike | None = None, translations: ArrayLike | None = None) -> list[torch.Tensor]:
-    """Frames of a blend-shape model (``.npz`` path, None for the shared ICT head, or a
+    """Frames of a blend-shape model (``.npz`` path or bundled name, None for the bundled ICT head, or a
     ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
     drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
     w = _read_weights(weights, drv.names)

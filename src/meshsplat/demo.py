@@ -13,7 +13,7 @@ Everything lands under one folder::
     OUT/export/      avatar.ply (standard 3DGS), embedding.json, canonical_mesh.obj
     OUT/summary.json what the demo printed at the end
 
-Asset: CesiumMan (CC-BY 4.0, (c) 2017 Cesium), from ``../shared/assets/gltf``.
+Asset: CesiumMan (CC-BY 4.0, (c) 2017 Cesium), bundled (``meshsplat/assets/gltf``).
 """
 from __future__ import annotations
 

@@ -1,7 +1,9 @@
-"""Where the shared real assets live.
+"""The bundled assets: package data in ``meshsplat/assets`` (licences and attribution in its README.md).
 
-Looked up in order: ``$MESHSPLAT_ASSETS``, ``<project>/../shared/assets``,
-``<project>/assets``. Tests skip and the CLI errors clearly when absent.
+``asset("gltf/CesiumMan.glb")`` looks in ``$MESHSPLAT_ASSETS`` first (a folder laid out the same way,
+optional), then in the package. ``resolve_input`` lets any file argument name a bundled asset
+(``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``, ``aist_demo``). Nothing outside the
+package, or the folder the user names, is ever read.
 """
 from __future__ import annotations
 
@@ -10,27 +12,53 @@ from pathlib import Path
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["assets_dir", "asset"]
+__all__ = ["PACKAGE_ASSETS", "BUNDLED", "assets_dir", "asset", "bundled_asset", "resolve_input"]
 
-_PROJECT_ROOT = Path(__file__).resolve().parents[2]
+PACKAGE_ASSETS = Path(__file__).resolve().parent / "assets"
+
+# name a user types -> file below the assets folder
+BUNDLED: dict[str, str] = {
+    "CesiumMan": "gltf/CesiumMan.glb",
+    "RobotExpressive": "gltf/RobotExpressive.glb",
+    "RiggedSimple": "gltf/RiggedSimple.glb",
+    "ict": "ict_facekit/ict_face_arkit53.npz",
+    "aist_demo": "motion/aist_demo.npz",
+}
+_ALIASES = {"ict_face": "ict", "ict_facekit": "ict", "ict_face_arkit53": "ict"}
 
 
-def assets_dir() -> Path | None:
-    candidates = []
-    if os.environ.get("MESHSPLAT_ASSETS"):
-        candidates.append(Path(os.environ["MESHSPLAT_ASSETS"]))
-    candidates += [_PROJECT_ROOT.parent / "shared" / "assets", _PROJECT_ROOT / "assets"]
-    for c in candidates:
-        if c.is_dir():
-            return c
-    return None
+def assets_dir() -> Path:
+    """The folder of the bundled assets (in a clone: ``src/meshsplat/assets``)."""
+    return PACKAGE_ASSETS
 
 
 def asset(relpath: str) -> Path:
-    """Path to a shared asset such as ``"gltf/CesiumMan.glb"``; raises if missing."""
-    root = assets_dir()
-    if root is None or not (root / relpath).exists():
-        raise MeshsplatError(
-            f"asset {relpath!r} not found; set MESHSPLAT_ASSETS to the folder holding gltf/ and ict_facekit/"
-        )
-    return root / relpath
+    """Path to a bundled asset such as ``"gltf/CesiumMan.glb"`` (``$MESHSPLAT_ASSETS`` first); raises if missing."""
+    extra = os.environ.get("MESHSPLAT_ASSETS")
+    for root in ([Path(extra)] if extra else []) + [PACKAGE_ASSETS]:
+        if (root / relpath).is_file():
+            return root / relpath
+    where = f"$MESHSPLAT_ASSETS ({extra}) or " if extra else ""
+    raise MeshsplatError(f"asset {relpath!r} not found in {where}{PACKAGE_ASSETS}: the installation is incomplete; "
+                         "reinstall meshsplat")
+
+
+def bundled_asset(name: str) -> Path | None:
+    """The bundled file a name stands for (case-insensitive, with or without its extension), else None."""
+    p = Path(name)
+    if p.name != name:  # a path with folders is a path, not a name
+        return None
+    lowered = {n.lower(): n for n in BUNDLED}
+    canonical = lowered.get(p.stem.lower()) or _ALIASES.get(p.stem.lower())
+    if canonical is None or (p.suffix and p.suffix.lower() != Path(BUNDLED[canonical]).suffix):
+        return None
+    return asset(BUNDLED[canonical])
+
+
+def resolve_input(arg: str | Path) -> Path:
+    """A file argument as a path: an existing path wins, else a bundled asset's name (``CesiumMan``,
+    ``aist_demo.npz``, ...), else the path as given (the caller reports it missing)."""
+    p = Path(arg)
+    if p.exists():
+        return p
+    return bundled_asset(str(arg)) or p

@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     drv.add_argument("--gltf", help="glTF/GLB file whose mesh is the avatar's driving mesh")
     drv.add_argument("--vertices", help="vertex sequence: .npy [T,V,3], mesh-sequence .npz or a folder of OBJ/PLY "
                      "frames (canonical vertex order, or the synthesized asset's own order)")
-    drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the shared ICT head)")
+    drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the bundled ICT head)")
     drv.add_argument("--dataset-split", help="render the driving meshes of this dataset split")
     drv.add_argument("--motion", help="SMPL/SMPL-X motion .npz (poses, trans), FLAME flame_params.json or a "
                      "VHAP flame_param/ folder; the avatar keeps its own shape")

@@ -2,7 +2,7 @@
 
 SOURCE is a .glb/.gltf path (skin or morph animation), a mesh sequence (an .npz with faces [F,3] and
 vertices [T,V,3], or a folder of OBJ/PLY frames; docs/bring-your-own-mesh.md), an ICT-layout .npz, a
-shared asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
+bundled asset name (CesiumMan, RobotExpressive, RiggedSimple, ict) or
 a parametric model: smpl / smplx (dancing the AIST++ clip) or flame (talking, nodding), read from
 --model-dir or $MESHSPLAT_MODEL_DIR. --format writes the capture in another layout (e.g. peoplesnapshot
 for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.
@@ -25,7 +25,7 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB file, mesh-sequence .npz or OBJ/PLY frame folder, "
-                        "shared asset name, or smpl/smplx/flame")
+                        "bundled asset name, or smpl/smplx/flame")
     parser.add_argument("--out", required=True, help="output capture folder")
     parser.add_argument("--format", choices=FORMAT_NAMES, default="native", help="layout to write (default native)")
     parser.add_argument("--model-dir", default=None, help="folder with the smpl/, smplx/, flame/ model files "

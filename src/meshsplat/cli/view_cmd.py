@@ -9,7 +9,7 @@ Animation (default: the run's dataset meshes, all stored frames in order):
   --animation vertices FILE              a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
   --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
                                          flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
-  --animation blendshapes [FILE.npz]     a blendshape face (default the shared ICT FaceKit ARKit
+  --animation blendshapes [FILE.npz]     a blendshape face (default the bundled ICT FaceKit ARKit
                                          model) LIVE: one slider per expression, and a procedural
                                          talking sequence (--frames, default 125, at --fps) as a clip
 --frames N keeps the first N frames. The page works from file://; --serve also serves the
@@ -34,6 +34,7 @@ from meshsplat.cli._guards import check_output_dir, check_range
 from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
 from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
+from meshsplat.paths import resolve_input
 from meshsplat.gaussians import Avatar
 from meshsplat.run_folder import LoadedRun, load_run
 from meshsplat.viewer import write_viewer_bundle
@@ -108,7 +109,7 @@ def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -
 
 
 def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
-    """BlendshapeDriver of FILE (default the shared ICT FaceKit model) with a talking sequence."""
+    """BlendshapeDriver of FILE (default the bundled ICT FaceKit head) with a talking sequence."""
     if len(rest) > 1:
         raise MeshsplatError("--animation blendshapes takes at most one FILE.npz")
     drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
@@ -153,9 +154,10 @@ def run(args: argparse.Namespace) -> int:
     if kind == "gltf" and not args.bake:
         if len(rest) != 1:
             raise MeshsplatError("--animation gltf needs exactly one FILE")
-        if not Path(rest[0]).is_file():
+        glb = resolve_input(rest[0])
+        if not glb.is_file():
             raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
-        rig = avatar_driver(r.avatar, rest[0], clip=args.clip, source_map=r.source_map(args.dataset))
+        rig = avatar_driver(r.avatar, glb, clip=args.clip, source_map=r.source_map(args.dataset))
         index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
                                     vertex_encoding=args.vertex_encoding, background=opts.background or "white", rig=rig)
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"

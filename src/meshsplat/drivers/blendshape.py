@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 from meshsplat._checks import check_tensor
 from meshsplat.drivers.base import as_faces, as_vertices
 from meshsplat.errors import MeshsplatError
-from meshsplat.paths import asset
+from meshsplat.paths import resolve_input
 
 __all__ = ["BlendshapeDriver", "axis_angle_to_matrix"]
 
@@ -62,10 +62,8 @@ class BlendshapeDriver:
 
     @classmethod
     def from_npz(cls, path: Path | str | None = None, **sequence: Any) -> "BlendshapeDriver":
-        """Load the ICT FaceKit npz (default: shared asset ``ict_facekit/ict_face_arkit53.npz``)."""
-        if path is None:
-            path = asset("ict_facekit/ict_face_arkit53.npz")
-        p = Path(path)
+        """Load a blend-shape npz (a path or a bundled name; default the bundled ICT FaceKit head ``ict``)."""
+        p = resolve_input("ict" if path is None else path)
         if not p.is_file():
             raise MeshsplatError(f"blendshape file not found: {p}")
         try:

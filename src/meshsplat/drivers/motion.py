@@ -31,6 +31,7 @@ from meshsplat.drivers.body_models import (
     split_smpl_thetas,
 )
 from meshsplat.errors import MeshsplatError
+from meshsplat.paths import resolve_input
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
 
@@ -211,7 +212,7 @@ def _fit_width(params: dict, model: BodyModel, where: str) -> dict:
 
 def load_motion(path: Path | str, model: BodyModel) -> dict:
     """Parameters ``[S, k]`` (numpy float32) for ``model`` from a motion file or folder (see module doc)."""
-    p = Path(path)
+    p = resolve_input(path)
     where = str(p)
     if not p.exists():
         raise MeshsplatError(f"motion file not found: {p}")

@@ -4,7 +4,7 @@ A :class:`ModelSource` has the source interface of :mod:`meshsplat.synth.sources
 ``clips``, ``time_range``, ``pose``, ``rest``, colours) plus the model parameters of every pose, so a
 generated dataset stores its driver (``DatasetWriter.set_driver``). Motions:
 
-- SMPL / SMPL-X: ``motion/aist_demo.npz`` of the shared assets (``poses [S,72]``, ``trans [S,3]``),
+- SMPL / SMPL-X: the bundled ``motion/aist_demo.npz`` (``poses [S,72]``, ``trans [S,3]``),
   played at ``BODY_FPS`` frames per second (clip ``"dance"``); SMPL-X takes the first 21 body joints.
   The clip is stored y-down (camera-like, as PeopleSnapshot); it is turned 180 degrees about x so
   the subject stands along +y.

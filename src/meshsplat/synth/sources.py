@@ -18,7 +18,7 @@ from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, is_mesh_sequence, read_mesh_sequence
 from meshsplat.errors import MeshsplatError
-from meshsplat.paths import asset as shared_asset
+from meshsplat.paths import BUNDLED, resolve_input
 from meshsplat.synth.body_source import MODEL_SOURCES, ModelSource, load_model_source
 from meshsplat.synth.sequence_source import SequenceSource
 
@@ -141,23 +141,16 @@ _ATTRIBUTION = {
 def load_source(asset: Path | str, model_dir: Path | str | None = None,
                 gender: str = "neutral") -> GltfSource | BlendshapeSource | SequenceSource | ModelSource:
     """Load ``asset``: a .glb/.gltf path, a mesh sequence (.npz with faces + vertices, or a folder of
-    OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a shared-asset name
+    OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a bundled asset's name
     (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model
     (``smpl``, ``smplx``, ``flame``; files from ``model_dir`` or ``$MESHSPLAT_MODEL_DIR``)."""
     p = Path(asset)
     if not p.exists() and str(asset).lower() in MODEL_SOURCES:
         return load_model_source(str(asset).lower(), model_dir, gender)
+    p = resolve_input(asset)
     if not p.exists():
-        key = str(asset).lower()
-        if key in ("ict", "ict_face", "ict_facekit"):
-            p = shared_asset("ict_facekit/ict_face_arkit53.npz")
-        else:
-            names = {"cesiumman": "CesiumMan", "robotexpressive": "RobotExpressive", "riggedsimple": "RiggedSimple"}
-            stem = names.get(Path(key).stem)
-            if stem is None:
-                raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path, a folder of OBJ/PLY frames, or one of "
-                                     "CesiumMan, RobotExpressive, RiggedSimple, ict, smpl, smplx, flame)")
-            p = shared_asset(f"gltf/{stem}.glb")
+        raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path, a folder of OBJ/PLY frames, or one of "
+                             f"{', '.join(BUNDLED)}, {', '.join(MODEL_SOURCES)})")
     if p.is_dir() or p.suffix.lower() in (".npz", ".npy"):
         if is_mesh_sequence(p) or p.is_dir() or p.suffix.lower() == ".npy":
             return SequenceSource(read_mesh_sequence(p), name=str(p))
