@@ -53,6 +53,7 @@ TRAIN = ["--iters", "1", "--no-progress", "--device", "cpu", "--set", "backend=t
 def make_dataset(root: Path, n: int = 4, size: int = 32) -> Path:
     import trimesh
 
+    from meshsplat.camera import Camera
     from meshsplat.data import write_dataset
     from meshsplat.gaussians import Avatar, init_params
     from meshsplat.mesh import TriMesh
@@ -70,7 +71,7 @@ def make_dataset(root: Path, n: int = 4, size: int = 32) -> Path:
     for i in range(n):
         v = mesh.vertices * (1 + 0.05 * i)
         with torch.no_grad():
-            out = av.render(v, vm, K, size, size, background=torch.zeros(3), backend="torch")
+            out = av.render(v, Camera(vm, K, size, size), background=torch.zeros(3), backend="torch")
         frames.append({"image": out.image.clamp(0, 1), "mask": out.alpha, "camera_id": "0", "vertices": v})
     cams = {"0": {"K": K, "viewmat": vm, "width": size, "height": size}}
     return write_dataset(root, mesh.vertices, mesh.faces, cams, frames,

@@ -44,8 +44,7 @@ def main() -> None:
             tiles, labels = [gt[y0:y1, x0:x1]], [f"{split} #{i} GT"]
             for run in runs:
                 with torch.no_grad():
-                    img = run.avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height,
-                                            background=torch.ones(3)).image.clamp(0, 1)
+                    img = run.avatar.render(fr.vertices, fr.camera, background=torch.ones(3)).image.clamp(0, 1)
                 tiles.append(img[y0:y1, x0:x1])
                 labels.append(f"{Path(run.run_dir).name} {float(psnr(img, gt, mask=m)):.2f} dB")
             rows.append((tiles, labels))

@@ -9,6 +9,7 @@ import torch
 from PIL import Image
 
 import meshsplat.data.dataset as dataset_mod
+from meshsplat.camera import Camera
 from meshsplat.data import DatasetWriter, open_dataset, write_dataset
 from meshsplat.errors import MeshsplatError
 
@@ -59,8 +60,15 @@ def test_round_trip(ds_root):
     assert 0 <= float(fr.image.min()) and float(fr.image.max()) <= 1
     assert fr.mask.shape == (H, W, 1) and float(fr.mask.sum()) == 60
     torch.testing.assert_close(fr.vertices, torch.from_numpy(VERTS + 0.2))
-    assert fr.K.shape == (3, 3) and fr.viewmat.shape == (4, 4) and fr.viewmat.dtype == torch.float32
-    assert (fr.width, fr.height, fr.index, fr.camera_id, fr.clip) == (W, H, 2, "c0", "walk")
+    cam = fr.camera
+    assert isinstance(cam, Camera) and cam.K.shape == (3, 3) and cam.viewmat.shape == (4, 4)
+    assert cam.viewmat.dtype == torch.float32 and cam.K.dtype == torch.float32
+    assert (cam.width, cam.height, fr.index, fr.camera_id, fr.clip) == (W, H, 2, "c0", "walk")
+    same = ds.frame_camera(2)  # without decoding the image; a new object, equal values
+    assert same is not cam and torch.equal(same.viewmat, cam.viewmat) and torch.equal(same.K, cam.K)
+    assert (same.width, same.height) == (W, H) and torch.equal(ds.camera("c0").K, cam.K)
+    with pytest.raises(MeshsplatError, match="'nope' is not a camera of .*cameras: c0"):
+        ds.camera("nope")
     assert ds.faces.dtype == torch.long and ds.canonical_vertices.shape == (4, 3)
     assert ds[-1].name == fr.name
     assert ds.driver().num_frames == 3

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meshsplat.camera import Camera
 from meshsplat.gaussians import Avatar, init_params
 from meshsplat.io import save_checkpoint
 from meshsplat.mesh import TriMesh
@@ -71,8 +72,7 @@ def make_dataset(avatar: Avatar, root: Path) -> Path:
         for cid, t in plan:
             v = deform(avatar.mesh.vertices, t)
             K, vm = cams[cid]
-            r = avatar.render(v, torch.from_numpy(vm).float(), torch.from_numpy(K).float(), SIZE, SIZE,
-                              torch.zeros(3))
+            r = avatar.render(v, Camera.from_numpy(vm, K, SIZE, SIZE), torch.zeros(3))
             a = r.alpha.clamp(0, 1)
             straight = torch.where(a > 1e-4, r.image / a.clamp_min(1e-4), torch.zeros(()))  # un-premultiplied
             w.add_frame(straight.clamp(0, 1), cid, vertices=v, mask=a, clip="wobble", time=t)

@@ -5,6 +5,7 @@ import pytest
 import torch
 from test_eval_kit import SIZE, camera, deform, make_avatar, make_run
 
+from meshsplat.camera import Camera
 from meshsplat.export import canonical_gaussians, export_avatar, load_exported_avatar
 from meshsplat.io import read_gaussian_ply
 
@@ -12,8 +13,7 @@ from meshsplat.io import read_gaussian_ply
 def _render(av, verts, azimuth):
     K, vm = camera(azimuth)
     with torch.no_grad():
-        return av.render(verts, torch.from_numpy(vm).float(), torch.from_numpy(K).float(), SIZE, SIZE,
-                         torch.ones(3), backend="torch")
+        return av.render(verts, Camera.from_numpy(vm, K, SIZE, SIZE), torch.ones(3), backend="torch")
 
 
 @pytest.mark.parametrize("sh_degree,clamp", [(0, False), (1, True)])

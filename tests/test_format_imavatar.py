@@ -72,9 +72,9 @@ def test_camera_golden_in_imavatars_own_convention(tmp_path, model_dir):
     root = _capture(tmp_path / "cap", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros()),
                                        (_gl_world_mat(R2, t2), *_zeros())])
     ds = imavatar.read(root, model_dir=model_dir)
-    K, vm, w, h = ds.camera(ds.frame_info(0)["camera"])
-    K, vm = K.double().numpy(), vm.double().numpy()
-    assert (w, h) == (W, H)
+    cam0 = ds.frame_camera(0)
+    K, vm = cam0.K.double().numpy(), cam0.viewmat.double().numpy()
+    assert (cam0.width, cam0.height) == (W, H)
     np.testing.assert_allclose(K, [[24, 0, 8], [0, 24, 6], [0, 0, 1]], atol=1e-6)
     # hand-computed: (0.5, 0.25, 0) -> camera (0.5, 0.25, -4); u = W(i0 X/Z + i2) = 11, v = H(i1 Y/Z + i3) = 4.5
     np.testing.assert_allclose(project(K, vm, [0.5, 0.25, 0.0]), [11.0, 4.5], atol=1e-4)

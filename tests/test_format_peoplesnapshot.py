@@ -53,17 +53,17 @@ def test_golden_camera_and_smpl_pose(tmp_path, standin_model_dir):
     root = make_capture(tmp_path / "cap", n=n, betas=betas[None], thetas=thetas, transl=transl)
     ds = ps.read(root, model_dir=standin_model_dir)
 
-    K_, vm, w, h = ds.camera("0")
-    assert (w, h) == (W, H)
-    assert torch.allclose(Camera(vm, K_, w, h).center, torch.tensor([0.0, 0.0, -3.0]))
+    cam = ds.camera("0")
+    assert isinstance(cam, Camera) and (cam.width, cam.height) == (W, H)
+    assert torch.allclose(cam.center, torch.tensor([0.0, 0.0, -3.0]))
     assert np.allclose(ds.canonical_vertices.numpy(), v_shaped, atol=1e-5)
     expected = (v_shaped - J[0]) @ _rot_y(math.pi / 2).T + X
     verts = ds.vertices(0).double().numpy()
     assert np.abs(verts - expected).max() < 1e-5
     pelvis = np.asarray(m["J_regressor"])[0] @ verts
     assert np.allclose(pelvis, X, atol=1e-5)
-    cam = vm.double().numpy() @ np.append(pelvis, 1.0)
-    pix = (K_.double().numpy() @ cam[:3])[:2] / cam[2]
+    p_cam = cam.viewmat.double().numpy() @ np.append(pelvis, 1.0)
+    pix = (cam.K.double().numpy() @ p_cam[:3])[:2] / p_cam[2]
     assert np.allclose(pix, [32 + 100 * 0.3 / 3, 24 - 100 * 0.6 / 3], atol=1e-3)  # (42, 4)
     assert ds.driver_info["type"] == "smpl" and ds.driver_info["gender"] == "neutral"
     fp = ds.frame_params(1)
@@ -250,8 +250,8 @@ def test_synth_write_read_parity(tmp_path, standin_model_dir, masks):
     written = plan["train"] + plan["test"]
     assert len(back) == len(written) == 6
     assert back.split("train") == [0, 1, 2, 3] and back.split("test_frames") == [4, 5]
-    for a, b in zip(nat.camera("0"), back.camera("0")):
-        assert torch.allclose(a, b) if isinstance(a, torch.Tensor) else a == b
+    a, b = nat.camera("0"), back.camera("0")
+    assert torch.allclose(a.K, b.K) and torch.allclose(a.viewmat, b.viewmat) and (a.width, a.height) == (b.width, b.height)
     assert torch.allclose(nat.canonical_vertices, back.canonical_vertices, atol=1e-6)
     assert torch.equal(nat.faces, back.faces)
     for k, i in enumerate(written):

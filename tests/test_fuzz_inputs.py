@@ -19,6 +19,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from test_train import make_tiny_dataset, small_config  # noqa: E402
 
+from meshsplat.camera import Camera  # noqa: E402
 from meshsplat.data import open_dataset  # noqa: E402
 from meshsplat.errors import MeshsplatError  # noqa: E402
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
@@ -101,7 +102,7 @@ def test_fuzz_manifest(dataset):
                 ds = open_dataset(d)
                 for i in range(len(ds)):
                     fr = ds[i]
-                    assert fr.image.shape == (fr.height, fr.width, 3)
+                    assert fr.image.shape == (fr.camera.height, fr.camera.width, 3)
                     assert torch.isfinite(fr.vertices).all()
                 for name in ds.split_names:
                     assert all(0 <= i < len(ds) for i in ds.split(name))
@@ -138,9 +139,9 @@ def test_fuzz_checkpoint_fields(run_ckpt):
                 assert all(v.shape[0] == n for v in av.params.values())
                 v = av.mesh.vertices
                 with torch.no_grad():
-                    out = av.render(v, torch.eye(4) + torch.tensor([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 4.0],
-                                                                   [0, 0, 0, 0]]),
-                                    torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), 16, 16, backend="torch")
+                    cam = Camera(torch.eye(4) + torch.tensor([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 4.0], [0, 0, 0, 0]]),
+                                 torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), 16, 16)
+                    out = av.render(v, cam, backend="torch")
                 assert torch.isfinite(out.image).all()
             _must_be_clean(load)
             assert p.is_file()

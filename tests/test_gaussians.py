@@ -8,6 +8,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
+from meshsplat.camera import Camera
 from meshsplat.embedding import project_uv_to_triangle
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import (
@@ -175,3 +176,68 @@ def test_avatar_state_roundtrip_and_compose():
     assert torch.equal(a.means, b.means) and torch.equal(a.colors, b.colors)
     with pytest.raises(MeshsplatError, match="verts_posed"):
         av.compose(verts[:-1])
+
+
+def _turned_camera(width: int = 40, height: int = 30) -> Camera:
+    c, s = math.cos(0.4), math.sin(0.4)
+    viewmat = torch.tensor([[c, 0, -s, 0.1], [0, -1, 0, 0.05], [-s, 0, -c, 4.0], [0, 0, 0, 1]])
+    K = torch.tensor([[45.0, 0, width / 2 + 0.3], [0, 47.0, height / 2 - 0.2], [0, 0, 1]])
+    return Camera(viewmat, K, width, height)
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_avatar_render_through_a_camera_is_the_rasterizer_on_the_same_tensors(antialiased):
+    from meshsplat.render import rasterize
+    from meshsplat.render.projection import antialias_compensation
+
+    mesh = icosphere(2)
+    av = Avatar(mesh, init_params(mesh, 300, sh_degree=1, generator=torch.Generator().manual_seed(3)),
+                antialiased=antialiased)
+    verts = mesh.vertices * torch.tensor([1.0, 1.2, 0.9])
+    cam = _turned_camera()
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    with torch.no_grad():
+        out = av.render(verts, cam, bg, backend="torch")
+        g = av.compose(verts, campos=torch.linalg.inv(cam.viewmat)[:3, 3])
+        opacities = g.opacities
+        if antialiased:
+            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, cam.viewmat[None], cam.K[None],
+                                                           cam.width, cam.height)[0]
+        ref = rasterize(g.means, g.quats, g.scales, opacities, g.colors, cam.viewmat[None], cam.K[None], cam.width,
+                        cam.height, backgrounds=bg[None], backend="torch")
+        # the camera's tensors are moved to the avatar's dtype, as before
+        as64 = av.render(verts, cam.to(dtype=torch.float64), bg, backend="torch")
+    assert out.image.shape == (30, 40, 3) and float(out.alpha.max()) > 0.5
+    assert torch.equal(out.image, ref.colors[0]) and torch.equal(out.alpha, ref.alphas[0])
+    assert torch.equal(as64.image, out.image)
+
+
+def test_avatar_render_takes_one_camera():
+    mesh = icosphere(1)
+    av = Avatar(mesh, init_params(mesh, 20))
+    cam = _turned_camera()
+    with pytest.raises(MeshsplatError, match=r"camera: expected a meshsplat.Camera, got Tensor .*"
+                                             r"Avatar.render\(vertices, camera, background=None"):
+        av.render(mesh.vertices, cam.viewmat)
+    with pytest.raises(TypeError):  # the four loose arguments of old
+        av.render(mesh.vertices, cam.viewmat, cam.K, 40, 30)  # type: ignore[call-arg]
+    bad = _turned_camera()
+    bad.K = bad.K.clone()
+    bad.K[0, 0] = float("nan")
+    with pytest.raises(MeshsplatError, match="camera K: contains"):
+        av.render(mesh.vertices, bad)
+
+
+def test_camera_checks_its_fields():
+    cam = _turned_camera()
+    with pytest.raises(MeshsplatError, match=r"camera viewmat: expected shape \[4,4\]"):
+        Camera(cam.viewmat[:3], cam.K, 40, 30)
+    with pytest.raises(MeshsplatError, match="camera K: expected a torch.Tensor"):
+        Camera(cam.viewmat, cam.K.numpy(), 40, 30)  # type: ignore[arg-type]
+    with pytest.raises(MeshsplatError, match="camera width: expected a positive integer, got 0"):
+        Camera(cam.viewmat, cam.K, 0, 30)
+    with pytest.raises(MeshsplatError, match="camera height: expected a positive integer, got 30.0"):
+        Camera(cam.viewmat, cam.K, 40, 30.0)  # type: ignore[arg-type]
+    moved = cam.to(dtype=torch.float64)
+    assert moved.viewmat.dtype == moved.K.dtype == torch.float64 and (moved.width, moved.height) == (40, 30)
+    assert cam.viewmat.dtype == torch.float32  # the original is unchanged

@@ -22,8 +22,9 @@ def _assert_same(a, b, mask_equal=True):
         assert a.split(s) == b.split(s)
     assert a.camera_ids == b.camera_ids
     for cid in a.camera_ids:
-        for x, y in zip(a.camera(cid), b.camera(cid)):
-            assert torch.allclose(x, y) if isinstance(x, torch.Tensor) else x == y
+        x, y = a.camera(cid), b.camera(cid)
+        assert torch.allclose(x.K, y.K) and torch.allclose(x.viewmat, y.viewmat)
+        assert (x.width, x.height) == (y.width, y.height)
     assert torch.equal(a.canonical_vertices, b.canonical_vertices) and torch.equal(a.faces, b.faces)
     for i in range(len(a)):
         fa, fb = a[i], b[i]

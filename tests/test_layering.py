@@ -21,6 +21,7 @@ LAYERS = [
     ("train",),
     ("synth", "eval", "export", "animate"),
     ("demo", "viewer"),
+    ("pipeline",),
     ("cli",),
 ]
 RANK = {unit: i for i, units in enumerate(LAYERS) for unit in units}

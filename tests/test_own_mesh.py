@@ -97,7 +97,8 @@ def test_meshseq_capture_imports_and_trains_input(creature, tmp_path):
     assert len(opened) == len(ds) and opened.split("test_clip") == ds.split("test_clip")
     assert torch.equal(opened[2].vertices, ds[2].vertices) and torch.equal(opened[2].image, ds[2].image)
     # the minimal folder: one camera (OpenGL camera->world), images in name order, no frames list
-    K, vm, w, h = ds.camera(ds.frame_info(0)["camera"])
+    cam0 = ds.frame_camera(0)
+    K, vm, w, h = cam0.K, cam0.viewmat, cam0.width, cam0.height
     from meshsplat.camera import opengl_c2w_from_viewmat
 
     mini = tmp_path / "mini"
@@ -110,7 +111,7 @@ def test_meshseq_capture_imports_and_trains_input(creature, tmp_path):
         "K": np.asarray(K).tolist(), "c2w_opengl": opengl_c2w_from_viewmat(np.asarray(vm)).tolist(), "width": w,
         "height": h}}}))
     mds = open_capture(mini)
-    assert len(mds) == 2 and np.allclose(mds.camera("c")[1], np.asarray(vm), atol=1e-6)
+    assert len(mds) == 2 and np.allclose(mds.camera("c").viewmat, np.asarray(vm), atol=1e-6)
     assert (write_native(mds, tmp_path / "native") / "manifest.json").is_file()
     from meshsplat.synth.capture import synth_capture
 
@@ -135,7 +136,8 @@ def test_meshseq_capture_with_a_gltf_mesh(creature, assets, tmp_path):
     for k in range(2):
         (gl / "images" / f"{k:03d}.png").write_bytes((ds.root / ds.frame_info(k)["image"]).read_bytes())
     shutil.copyfile(assets / "gltf" / "RiggedSimple.glb", gl / "mesh.glb")
-    K, vm, w, h = ds.camera(ds.frame_info(0)["camera"])
+    cam0 = ds.frame_camera(0)
+    K, vm, w, h = cam0.K, cam0.viewmat, cam0.width, cam0.height
     doc = {"cameras": {"c": {"K": np.asarray(K).tolist(), "viewmat": np.asarray(vm).tolist(), "width": w, "height": h}},
            "frames": [{"image": "images/000.png", "camera": "c", "time": 0.0},
                       {"image": "images/001.png", "camera": "c", "time": 0.5}]}

@@ -7,6 +7,7 @@ import pytest
 import torch
 from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
+from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
 from meshsplat.gaussians.shading import Shading, sh9_basis, shading_normals
@@ -246,9 +247,10 @@ def test_antialiased_avatar_renders_small_splats_fainter(tmp_path):
     with torch.no_grad():
         p["log_scale"].fill_(math.log(0.004))
         p["opacity_logit"].fill_(4.0)
-    plain = Avatar(mesh, p).render(mesh.vertices, VIEWMAT, K, W, H, backend="torch")
+    cam = Camera(VIEWMAT, K, W, H)
+    plain = Avatar(mesh, p).render(mesh.vertices, cam, backend="torch")
     aa = Avatar(mesh, p, antialiased=True)
-    out = aa.render(mesh.vertices, VIEWMAT, K, W, H, backend="torch")
+    out = aa.render(mesh.vertices, cam, backend="torch")
     assert float(out.alpha.detach().sum()) < 0.5 * float(plain.alpha.detach().sum())
     back = Avatar.from_state_dict(aa.state_dict())
     assert back.antialiased

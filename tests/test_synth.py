@@ -97,10 +97,11 @@ def test_small_synth_round_trip(assets, tmp_path):
     # upright: the head (max y) projects above the feet (min y)
     v = fr.vertices
     top, bottom = v[v[:, 1].argmax()], v[v[:, 1].argmin()]
-    pix = lambda p: (fr.K @ (fr.viewmat[:3, :3] @ p + fr.viewmat[:3, 3]))  # noqa: E731
+    cam_K, viewmat = fr.camera.K, fr.camera.viewmat
+    pix = lambda p: (cam_K @ (viewmat[:3, :3] @ p + viewmat[:3, 3]))  # noqa: E731
     assert (pix(top)[1] / pix(top)[2]) < (pix(bottom)[1] / pix(bottom)[2])
     # the driving mesh projects inside the mask
-    proj = (fr.K @ (v @ fr.viewmat[:3, :3].T + fr.viewmat[:3, 3]).T).T
+    proj = (cam_K @ (v @ viewmat[:3, :3].T + viewmat[:3, 3]).T).T
     px = (proj[:, :2] / proj[:, 2:]).long().clamp(0, 63)
     assert float(fr.mask[px[:, 1], px[:, 0], 0].gt(0).float().mean()) > 0.9
     assert ds.meta["train_clip"] == "clip0" and "CesiumMan" in ds.meta["attribution"]

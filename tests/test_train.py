@@ -9,6 +9,7 @@ import shutil
 import pytest
 import torch
 
+from meshsplat.camera import Camera
 from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
 from meshsplat.run_folder import load_avatar
@@ -55,7 +56,7 @@ def make_tiny_dataset(root):
     for i in range(6):
         v = posed(mesh.vertices, float(i))
         with torch.no_grad():
-            out = av.render(v, VIEWMAT, K, W, H, background=torch.zeros(3), backend="torch")
+            out = av.render(v, Camera(VIEWMAT, K, W, H), background=torch.zeros(3), backend="torch")
         frames.append({"image": out.image.clamp(0, 1), "mask": out.alpha, "camera_id": "cam0", "vertices": v})
     cams = {"cam0": {"K": K, "viewmat": VIEWMAT, "width": W, "height": H}}
     return write_dataset(root, mesh.vertices, mesh.faces, cams, frames, splits={"train": list(range(6))})
@@ -77,8 +78,7 @@ def _psnr_on_train(avatar: Avatar, ds) -> float:
     for i in ds.split("train"):
         fr = ds[i]
         with torch.no_grad():
-            out = avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, background=torch.zeros(3),
-                                backend="torch")
+            out = avatar.render(fr.vertices, fr.camera, background=torch.zeros(3), backend="torch")
         gt = fr.image * fr.mask
         vals.append(float(psnr(out.image.clamp(0, 1), gt)))
     return sum(vals) / len(vals)

@@ -16,6 +16,7 @@ import torch
 from _browser import find_chromium, screenshot
 from test_eval_kit import deform, make_avatar, make_run
 
+from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.compose import effective_uv
@@ -495,8 +496,8 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
     h, a = read_viewer_bundle(tmp_path / "b")
     cam = h["camera"]
     for frame in (0, 1):
-        ref = av.render(torch.from_numpy(a["vertices"][frame]).float(), torch.tensor(cam["viewmat"]).float(),
-                        torch.tensor(cam["K"]).float(), 256, 256, background=torch.ones(3)).image
+        ref = av.render(torch.from_numpy(a["vertices"][frame]).float(), _bundle_camera(cam, 256),
+                        background=torch.ones(3)).image
         ref = ref.detach().clamp(0, 1).numpy() * 255
         img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
         assert img.shape == ref.shape
@@ -513,9 +514,13 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
     assert np.array_equal(same, img)
 
 
+def _bundle_camera(cam, size):
+    """The Camera of a viewer bundle's camera record, rendered at ``size`` x ``size``."""
+    return Camera(torch.tensor(cam["viewmat"]).float(), torch.tensor(cam["K"]).float(), size, size)
+
+
 def _render_ref(av, verts, cam, size=256):
-    ref = av.render(torch.as_tensor(verts).float(), torch.tensor(cam["viewmat"]).float(),
-                    torch.tensor(cam["K"]).float(), size, size, background=torch.ones(3)).image
+    ref = av.render(torch.as_tensor(verts).float(), _bundle_camera(cam, size), background=torch.ones(3)).image
     return ref.detach().clamp(0, 1).numpy() * 255
 
 

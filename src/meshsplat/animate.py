@@ -384,11 +384,7 @@ def dataset_animation(avatar: Avatar, dataset: AvatarDataset, split: str) -> tup
     if dataset.num_vertices != avatar.mesh.num_vertices:
         raise MeshsplatError(f"dataset meshes have {dataset.num_vertices} vertices, the avatar's canonical mesh "
                              f"{avatar.mesh.num_vertices}")
-    cams = []
-    for i in ids:
-        K, vm, w, h = dataset.camera(dataset.frame_info(i)["camera"])
-        cams.append(Camera(vm, K, w, h))
-    return [dataset.vertices(i) for i in ids], cams
+    return [dataset.vertices(i) for i in ids], [dataset.frame_camera(i) for i in ids]
 
 
 # ---------------------------------------------------------------- rendering
@@ -431,7 +427,7 @@ def render_animation(avatar: Avatar, vertices: Iterable[torch.Tensor] | torch.Te
     for i, v in enumerate(seq):
         cam = cam_at(i)
         t0 = time.perf_counter()
-        r = avatar.render(v, cam.viewmat, cam.K, cam.width, cam.height, bg, backend=backend)
+        r = avatar.render(v, cam, bg, backend=backend)
         frames.append(to_uint8(r.image.float().clamp(0, 1)))
         times.append(time.perf_counter() - t0)
         if bar is not None:

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
+from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
 
@@ -36,12 +37,31 @@ _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inv
 
 @dataclass
 class Camera:
-    """``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, image ``width`` x ``height``."""
+    """One view: ``viewmat [4,4]`` world->camera (OpenCV), pinhole ``K [3,3]``, image ``width`` x ``height``.
+
+    What datasets hand out (``dataset.camera(id)``, ``dataset.frame_camera(i)``, ``frame.camera``),
+    ``orbit_cameras`` makes and ``Avatar.render`` takes. Shapes, float dtypes and positive integer sizes
+    are checked on construction; the renderer moves the tensors to the avatar's device and dtype.
+    """
 
     viewmat: torch.Tensor
     K: torch.Tensor
     width: int
     height: int
+
+    def __post_init__(self) -> None:
+        check_tensor("camera viewmat", self.viewmat, "4,4", dtype="float")
+        check_tensor("camera K", self.K, "3,3", dtype="float")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise MeshsplatError(f"camera {name}: expected a positive integer, got {value!r}")
+            setattr(self, name, int(value))
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Camera":
+        """The same camera with its tensors on ``device`` / in ``dtype`` (None keeps each)."""
+        return Camera(self.viewmat.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype),
+                      self.width, self.height)
 
     @classmethod
     def from_numpy(cls, viewmat: ArrayLike, K: ArrayLike, width: int, height: int) -> "Camera":
@@ -59,7 +79,7 @@ class Camera:
         K = self.K.clone()
         K[0] *= width / self.width
         K[1] *= height / self.height
-        K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
+        K[2] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)
         return Camera(self.viewmat, K, int(width), int(height))
 
 
@@ -141,12 +161,8 @@ def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, h
 
 def dataset_camera(dataset: "AvatarDataset", camera_id: str, size: tuple[int, int] | None = None) -> Camera:
     """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
-    if str(camera_id) not in dataset.camera_ids:
-        shown = ", ".join(dataset.camera_ids[:20]) + (" ..." if len(dataset.camera_ids) > 20 else "")
-        raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {dataset.root} (cameras: {shown})")
-    K, vm, w, h = dataset.camera(camera_id)
-    cam = Camera(vm, K, w, h)
-    return cam.resized(*size) if size is not None and tuple(size) != (w, h) else cam
+    cam = dataset.camera(camera_id)
+    return cam.resized(*size) if size is not None and tuple(size) != (cam.width, cam.height) else cam
 
 
 # ---------------------------------------------------------------- converters from other conventions

@@ -38,8 +38,8 @@ def write_native(dataset: AvatarDataset, out: Path | str, overwrite: bool = Fals
     meta = {**dataset.meta, "imported_from": str(dataset.root), "source_format": dataset.format_name}
     w = DatasetWriter(out, dataset.canonical_vertices, dataset.faces, overwrite=True, meta=meta)
     for cid in dataset.camera_ids:
-        K, vm, width, height = dataset.camera(cid)
-        w.add_camera(cid, K, vm, width, height)
+        cam = dataset.camera(cid)
+        w.add_camera(cid, cam.K, cam.viewmat, cam.width, cam.height)
     drv = dataset.driver()
     for r in range(drv.num_frames):
         w.add_mesh(drv.vertices(r))

@@ -12,6 +12,7 @@ from typing import cast
 import numpy as np
 import torch
 
+from meshsplat.camera import Camera
 from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
@@ -54,15 +55,13 @@ def _relative_path(value, what: str, where: str, problems: "Problems", allow_out
 @dataclass
 class Frame:
     """One training/test view: ``image [H,W,3]`` float32 in [0,1], ``mask [H,W,1]`` float32 or None,
-    ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV), driving ``vertices [V,3]``."""
+    its ``camera`` (:class:`~meshsplat.camera.Camera`: ``viewmat``, ``K``, ``width``, ``height``),
+    driving ``vertices [V,3]``."""
 
     image: torch.Tensor
     mask: torch.Tensor | None
-    K: torch.Tensor
-    viewmat: torch.Tensor
+    camera: Camera
     vertices: torch.Tensor
-    width: int
-    height: int
     index: int
     name: str
     camera_id: str
@@ -206,10 +205,18 @@ class AvatarDataset:
         """Manifest record of frame ``i`` (no image decoding)."""
         return dict(self._frames[self._index(i)])
 
-    def camera(self, camera_id: str | int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-        """``(K [3,3], viewmat [4,4], width, height)`` of a camera."""
+    def camera(self, camera_id: str | int) -> Camera:
+        """The camera ``camera_id`` (one of ``camera_ids``), float32 tensors on the CPU."""
+        if str(camera_id) not in self._cameras:
+            ids = self.camera_ids
+            shown = ", ".join(ids[:20]) + (" ..." if len(ids) > 20 else "")
+            raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {self.root} (cameras: {shown})")
         K, vm, w, h = self._cameras[str(camera_id)]
-        return torch.from_numpy(K.astype(np.float32)), torch.from_numpy(vm.astype(np.float32)), w, h
+        return Camera(torch.from_numpy(vm.astype(np.float32)), torch.from_numpy(K.astype(np.float32)), w, h)
+
+    def frame_camera(self, i: int) -> Camera:
+        """The camera of frame ``i`` without loading its image."""
+        return self.camera(self._frames[self._index(i)]["camera"])
 
     def vertices(self, i: int) -> torch.Tensor:
         """Driving vertices ``[V,3]`` of frame ``i`` without loading its image."""
@@ -232,11 +239,10 @@ class AvatarDataset:
             self._cache.move_to_end(i)
             return self._cache[i]
         rec = self._frames[i]
-        K, vm, w, h = self.camera(rec["camera"])
         arr = read_image(self.root / rec["image"], 3)
         img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = self._load_mask(rec)
-        fr = Frame(img, mask, K, vm, self.vertices(i), w, h, i, rec["name"], str(rec["camera"]),
+        fr = Frame(img, mask, self.camera(rec["camera"]), self.vertices(i), i, rec["name"], str(rec["camera"]),
                    rec.get("clip"), rec.get("time"))
         if self._cache_size > 0:
             self._cache[i] = fr

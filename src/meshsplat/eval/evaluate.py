@@ -101,11 +101,11 @@ def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str
             fr = dataset[i]
             fbg = bg if fr.mask is not None else black
             if not warmed:  # untimed warm-up render
-                avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, fbg, backend=backend)
+                avatar.render(fr.vertices, fr.camera, fbg, backend=backend)
                 warmed = True
             _sync(dev)
             t0 = time.perf_counter()
-            out = avatar.render(fr.vertices, fr.viewmat, fr.K, fr.width, fr.height, fbg, backend=backend)
+            out = avatar.render(fr.vertices, fr.camera, fbg, backend=backend)
             _sync(dev)
             ms = (time.perf_counter() - t0) * 1000.0
             img = out.image.float().clamp(0, 1)

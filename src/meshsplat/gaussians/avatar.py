@@ -1,7 +1,7 @@
 """A trained avatar: canonical mesh + embedded Gaussian parameters, renderable in any pose.
 
     avatar = meshsplat.run_folder.load_avatar("runs/demo/run")   # run dir or a ckpt_*.pt file
-    out = avatar.render(verts_posed, viewmat, K, width, height, background=torch.ones(3))
+    out = avatar.render(vertices, camera, background=torch.ones(3))   # camera: a meshsplat.Camera
     out.image  # [H,W,3] in [0,1]; out.alpha [H,W,1]; out.meta (rasterizer meta)
 
 ``Avatar.state_dict()`` is what training checkpoints store under ``"avatar"``: canonical mesh
@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat.camera import Camera
 from meshsplat.embedding import SCALE_MODES, embed
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose, effective_uv
@@ -106,16 +107,22 @@ class Avatar:
             n = shading_normals(self.shading.normal, phong, g.quats.detach(), g.scales.detach())
             return rgb * self.shading.irradiance(n)
 
-    def render(self, verts_posed: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-               background: torch.Tensor | None = None, backend: str = "auto") -> AvatarRender:
-        """Render one view: ``viewmat [4,4]`` world->camera (OpenCV), ``K [3,3]``, ``background [3]``."""
-        check_tensor("viewmat", viewmat, "4,4", dtype="float", finite=True)
-        check_tensor("K", K, "3,3", dtype="float", finite=True)
+    def render(self, vertices: torch.Tensor, camera: Camera, background: torch.Tensor | None = None,
+               backend: str = "auto") -> AvatarRender:
+        """Render the avatar posed by ``vertices [V,3]`` as seen by ``camera`` (a :class:`Camera`: world->camera
+        ``viewmat``, ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``."""
+        if not isinstance(camera, Camera):
+            raise MeshsplatError(f"camera: expected a meshsplat.Camera, got {type(camera).__name__} (the signature is "
+                                 "Avatar.render(vertices, camera, background=None, backend='auto'); make one with "
+                                 "Camera(viewmat, K, width, height))")
+        check_tensor("camera viewmat", camera.viewmat, "4,4", dtype="float", finite=True)
+        check_tensor("camera K", camera.K, "3,3", dtype="float", finite=True)
+        width, height = camera.width, camera.height
         dev, dt = self.device, self.params["uv"].dtype
-        viewmat = viewmat.to(device=dev, dtype=dt)
-        K = K.to(device=dev, dtype=dt)
+        viewmat = camera.viewmat.to(device=dev, dtype=dt)
+        K = camera.K.to(device=dev, dtype=dt)
         campos = torch.linalg.inv(viewmat)[:3, 3] if self.sh_degree > 0 else None
-        g = self.compose(verts_posed, campos=campos)
+        g = self.compose(vertices, campos=campos)
         bg = None
         if background is not None:
             check_tensor("background", background, "3", dtype="float")

@@ -72,7 +72,7 @@ def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = No
     of the densification strategy are divided by (it converts older configs' pixel thresholds)."""
     ids = dataset.split("train") if train_ids is None else train_ids
     cams = {dataset.frame_info(i)["camera"] for i in ids} or set(dataset.camera_ids)
-    return max(max(dataset.camera(c)[2:]) for c in cams)
+    return max(max(dataset.camera(c).width, dataset.camera(c).height) for c in cams)
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -183,7 +183,8 @@ class Trainer:
 
     def _first_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         """Colour of each embedded point seen in the first training frame (grey where unseen)."""
-        image, mask, K, viewmat, verts = self._frame(self.train_ids[0])
+        image, mask, camera, verts = self._frame(self.train_ids[0])
+        K, viewmat = camera.K, camera.viewmat
         pts = surface_points(verts, self.mesh.faces, face, uv)
         cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
         z = cam[:, 2]
@@ -215,7 +216,8 @@ class Trainer:
         acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
         cnt = torch.zeros(face.shape[0], 1, dtype=uv.dtype, device=uv.device)
         for idx in picks:
-            image, mask, K, viewmat, verts = self._frame(idx)
+            image, mask, camera, verts = self._frame(idx)
+            K, viewmat = camera.K, camera.viewmat
             pts, nrm = embed(MeshPose.from_vertices(self.mesh, verts), face, uv, torch.zeros_like(uv[:, 0]))
             campos = torch.linalg.inv(viewmat)[:3, 3]
             cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
@@ -234,15 +236,15 @@ class Trainer:
 
     # ---- data ------------------------------------------------------------------------
     def _frame(self, idx: int) -> tuple:
-        """(image [H,W,3], mask [H,W,1]|None, K [3,3], viewmat [4,4], vertices [V,3]) on device."""
+        """(image [H,W,3], mask [H,W,1]|None, camera, vertices [V,3]) on device (float32)."""
         hit = self._frame_cache.get(idx)
         if hit is not None:
             return hit
         fr = self.dataset[idx]
         dev = self.device
         item = (fr.image.to(dev, torch.float32), None if fr.mask is None else fr.mask.to(dev, torch.float32),
-                fr.K.to(dev, torch.float32), fr.viewmat.to(dev, torch.float32), fr.vertices.to(dev, torch.float32))
-        size = sum(t.numel() * 4 for t in item if t is not None)
+                fr.camera.to(dev, torch.float32), fr.vertices.to(dev, torch.float32))
+        size = sum(t.numel() * 4 for t in item if isinstance(t, torch.Tensor)) + 4 * (16 + 9)
         if self._cache_bytes + size <= 2 * 1024**3:  # keep up to 2 GiB of decoded frames
             self._frame_cache[idx] = item
             self._cache_bytes += size
@@ -272,13 +274,12 @@ class Trainer:
     def render_frame(self, idx: int, background: torch.Tensor) -> tuple[AvatarRender, torch.Tensor]:
         """Render training frame ``idx`` on ``background [3]`` through ``Avatar.render`` (pose-refined
         vertices when refining). Returns (render, ground truth [H,W,3] composited on the same background)."""
-        image, mask, K, viewmat, verts = self._frame(idx)
+        image, mask, camera, verts = self._frame(idx)
         if self.refiner is not None:
             row = int(self.dataset.frame_info(idx)["mesh"])
             if self.refiner.refines(row):
                 verts = self.refiner.vertices(row)
-        out = self.avatar().render(verts, viewmat, K, image.shape[1], image.shape[0], background,
-                                   backend=self.cfg.backend)
+        out = self.avatar().render(verts, camera, background, backend=self.cfg.backend)
         return out, composite(image, mask, background)
 
     def step(self) -> dict[str, float]:
@@ -288,7 +289,7 @@ class Trainer:
         it = self.iteration
         lrs = self.schedule.apply(self.optimizers, it)
         idx = self._next_index()
-        _, mask, _, _, _ = self._frame(idx)
+        _, mask, _, _ = self._frame(idx)
         bg = self._background() if mask is not None else torch.zeros(3, device=self.device)
         out, gt = self.render_frame(idx, bg)
         render, meta = out.image, out.meta

@@ -102,7 +102,7 @@ def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
         center = np.asarray(camera.get("center", base["center"]), np.float64)
         return _camera_dict(center, float(camera.get("distance", base["distance"])), base["azimuth_deg"],
                             base["elevation_deg"], base["fov_deg"], base["width"], base["height"])
-    if hasattr(camera, "viewmat") and hasattr(camera, "K"):
+    if isinstance(camera, Camera):
         # world->camera (OpenCV, no roll) -> orbit about the point of the view axis nearest the animation centre
         vm = camera.viewmat.detach().cpu().double().numpy()
         R, t = vm[:3, :3], vm[:3, 3]

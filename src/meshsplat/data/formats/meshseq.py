@@ -165,9 +165,9 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     (out / "images").mkdir(parents=True, exist_ok=True)
     cams = {}
     for cid in dataset.camera_ids:
-        K, vm, w, h = dataset.camera(cid)
-        cams[cid] = {"K": np.asarray(K, np.float64).tolist(), "viewmat": np.asarray(vm, np.float64).tolist(),
-                     "width": int(w), "height": int(h)}
+        cam = dataset.camera(cid)
+        cams[cid] = {"K": np.asarray(cam.K, np.float64).tolist(), "viewmat": np.asarray(cam.viewmat, np.float64).tolist(),
+                     "width": cam.width, "height": cam.height}
     frames = []
     for i in range(len(dataset)):
         info = dataset.frame_info(i)

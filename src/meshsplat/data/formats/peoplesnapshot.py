@@ -417,9 +417,9 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
     betas = np.asarray(params.get("betas", np.zeros(10)), np.float32).reshape(-1)
     np.savez(out / "poses.npz", betas=betas, thetas=join_smpl_thetas(go, bp).astype(np.float32), transl=tr)
     cam_id = dataset.frame_info(next(iter(plan.values()))[0])["camera"]
-    K, vm, w, h = dataset.camera(cam_id)
-    np.savez(out / "cameras.npz", intrinsic=K.double().numpy(), extrinsic=vm.double().numpy(),
-             height=np.array(h), width=np.array(w))
+    cam = dataset.camera(cam_id)
+    np.savez(out / "cameras.npz", intrinsic=cam.K.double().numpy(), extrinsic=cam.viewmat.double().numpy(),
+             height=np.array(cam.height), width=np.array(cam.width))
     (out / "config.json").write_text(json.dumps(config, indent=1))
     return out
 

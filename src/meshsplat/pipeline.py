@@ -1,0 +1,72 @@
+"""Train an avatar in one call: ``meshsplat.train_avatar``, the front door's training function.
+
+    run_dir = meshsplat.train_avatar("data/cesium", "runs/cesium", iterations=2000)
+    run_dir = meshsplat.train_avatar(config=TrainConfig(data="data/cesium", out="runs/x"))
+
+A preset is a named list of ``section.key=value`` TrainConfig overrides (:func:`preset_overrides`);
+``overrides`` (the same strings as ``meshsplat train --set``) apply after it. Like ``meshsplat train``,
+the run keeps the dataset's ``source_map.npz`` so the run alone can be animated by its source asset.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from meshsplat.data.source_map import copy_source_map
+from meshsplat.demo import PAPER_OVERRIDES, QUALITY_OVERRIDES
+from meshsplat.errors import MeshsplatError
+from meshsplat.train import TrainConfig, Trainer, apply_overrides
+
+__all__ = ["TRAIN_PRESETS", "preset_overrides", "train_avatar"]
+
+# preset name -> TrainConfig overrides: "quality" is the demo's model (docs/quality.md), "paper" the
+# published SplattingAvatar model (the TrainConfig defaults)
+TRAIN_PRESETS: dict[str, tuple[str, ...]] = {"quality": QUALITY_OVERRIDES, "paper": PAPER_OVERRIDES}
+
+
+def preset_overrides(preset: str) -> list[str]:
+    """The TrainConfig overrides of the training preset ``preset`` (one of ``TRAIN_PRESETS``)."""
+    if preset not in TRAIN_PRESETS:
+        raise MeshsplatError(f"preset: expected one of {', '.join(TRAIN_PRESETS)}, got {preset!r}")
+    return list(TRAIN_PRESETS[preset])
+
+
+def train_avatar(dataset: str | Path | None = None, out: str | Path | None = None, *, preset: str | None = None,
+                 iterations: int | None = None, overrides: Sequence[str] = (), config: TrainConfig | None = None,
+                 device: str | None = None, progress: bool | None = None, resume: bool = False) -> Path:
+    """Train an avatar on the capture ``dataset`` (any layout ``open_capture`` reads) into the run folder
+    ``out``; returns the run folder (read it back with ``load_run`` / ``load_avatar``).
+
+    The config is ``config`` if given, else ``TrainConfig()`` with the overrides of ``preset`` (default
+    ``"quality"``; giving both is an error). Then ``dataset``, ``out``, ``overrides`` (``section.key=value``
+    strings), ``iterations``, ``device`` and ``progress`` replace what they name when given. ``resume``
+    continues the run in ``out`` from its newest checkpoint; without it a folder holding a run is refused.
+    """
+    if isinstance(overrides, str):
+        raise MeshsplatError(f"overrides: expected a list of 'section.key=value' strings, got the string {overrides!r}")
+    if config is not None:
+        if not isinstance(config, TrainConfig):
+            raise MeshsplatError(f"config: expected a TrainConfig, got {type(config).__name__}")
+        if preset is not None:
+            raise MeshsplatError("give a preset or a config, not both (a config already says everything)")
+        cfg = TrainConfig.from_dict(config.to_dict())
+    else:
+        cfg = apply_overrides(TrainConfig(), preset_overrides("quality" if preset is None else preset))
+    if dataset is not None:
+        cfg.data = str(dataset)
+    if out is not None:
+        cfg.out = str(out)
+    cfg = apply_overrides(cfg, list(overrides))
+    if iterations is not None:
+        cfg.iterations = int(iterations)
+    if device is not None:
+        cfg.device = device
+    if progress is not None:
+        cfg.progress = bool(progress)
+    if not cfg.data:
+        raise MeshsplatError("dataset: no capture to train on (pass a dataset folder, or a config with data)")
+    if not Path(cfg.data).exists():
+        raise MeshsplatError(f"dataset not found: {cfg.data}")
+    trainer = Trainer(cfg.validate(), resume=resume)
+    copy_source_map(cfg.data, trainer.cfg.out)
+    return trainer.train()
