@@ -4,8 +4,9 @@
     python bench/convergence.py --iters 3000         # a shorter curve
     python bench/convergence.py --preset tiny --iters 200 --points 50 100 200   # seconds, to check
 
-Trains ONE run with the paper-faithful TrainConfig defaults (the 30k-iteration densification
-schedule, opacity reset, lr decay to 30k) plus any ``--set key=value`` overrides, on the demo's
+Trains ONE run of a training preset (``--train-preset``, default ``paper``: the paper-faithful model)
+on the TrainConfig schedule (the 30k-iteration densification schedule, opacity reset, lr decay to
+30k) plus any ``--set key=value`` overrides, on the demo's
 dataset, and at log-spaced iterations evaluates a few held-out frames of each test split (subject
 PSNR/SSIM inside the mask, full-image PSNR; no LPIPS, to keep the points cheap). The curve is written
 to ``bench/results/<name>-<host>.json`` after every point, with the CPU seconds this process has
@@ -83,6 +84,8 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=30_000)
     ap.add_argument("--points", type=int, nargs="*", default=list(DEFAULT_POINTS))
     ap.add_argument("--frames", type=int, default=4, help="held-out frames per split at each point")
+    ap.add_argument("--train-preset", default="paper", choices=("paper", "quality"),
+                    help="training preset (meshsplat.train.presets; default paper)")
     ap.add_argument("--set", nargs="*", default=[], help="TrainConfig overrides key=value")
     ap.add_argument("--work", default="runs/bench-convergence")
     ap.add_argument("--data", default="runs/bench-quality/data", help="dataset folder (generated if missing)")
@@ -103,14 +106,14 @@ def main() -> None:
 
     from meshsplat.data import open_dataset
     from meshsplat.demo import PRESETS, _generate
-    from meshsplat.train import TrainConfig, Trainer, apply_overrides
+    from meshsplat.train import Trainer, apply_overrides, preset_config
 
     preset = PRESETS[args.preset]
     data = _generate(Path(args.data), preset, progress=False)
     ckpt_every = max(1, min(1000, args.iters // 10))
-    cfg = TrainConfig(data=str(data), out=str(Path(args.work) / "run"), iterations=args.iters,
-                      progress=False, log_every=100, preview_every=10 ** 9, checkpoint_every=ckpt_every,
-                      keep_checkpoints=2)
+    cfg = preset_config(args.train_preset)
+    cfg.data, cfg.out, cfg.iterations, cfg.progress = str(data), str(Path(args.work) / "run"), args.iters, False
+    cfg.log_every, cfg.preview_every, cfg.checkpoint_every, cfg.keep_checkpoints = 100, 10 ** 9, ckpt_every, 2
     cfg.model.n_init = preset.n_init
     cfg = apply_overrides(cfg, args.set).validate()
     out = results_path(args.name)
@@ -121,7 +124,8 @@ def main() -> None:
     ds = open_dataset(data)
     done = {p["iteration"] for p in doc["points"]}
     doc.update({"data": str(data), "data_desc": f"CesiumMan {preset.resolution}px {preset.frames} frames",
-                "iterations": args.iters, "overrides": args.set, "config": cfg.to_dict(),
+                "iterations": args.iters, "train_preset": args.train_preset, "overrides": args.set,
+                "config": cfg.to_dict(),
                 "frames_per_split": args.frames, "machine": machine_info(),
                 "note": "cpu_s / wall_s: process CPU and wall seconds of training (evaluation excluded), "
                         "summed over resumed sessions"})

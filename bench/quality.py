@@ -6,7 +6,8 @@
     python bench/quality.py --asset RobotExpressive --variants paper default        # novel poses (test_clip:
                                                             # Walking -> Wave, Dance)
 
-Variants (TrainConfig overrides on top of the preset's short schedule):
+Variants (a training preset plus TrainConfig overrides, on top of the demo preset's short schedule;
+all but ``default`` start from the ``paper`` preset):
   paper         the paper-faithful baseline: one colour per Gaussian, colours from the first frame
                 (what the demo trained with before issue 13; ``full`` is an alias)
   no_walk       walking disabled: (u+du, v+dv) clipped to the embedding triangle (paper, Table A2)
@@ -22,7 +23,7 @@ Variants (TrainConfig overrides on top of the preset's short schedule):
   antialiased   opacity compensated for the rasterizer's 0.3 px^2 low-pass (gsplat "antialiased")
   dens_low      densification threshold grow_grad2d 1e-4 instead of 2e-4 (the subject is a small target)
   lr_color      colour learning rate 1e-2 instead of 2.5e-3 (short runs)
-  default       the demo's new defaults (demo.QUALITY_OVERRIDES)
+  default       the ``quality`` training preset (the default of meshsplat train and the demo)
 
 Prints full-image and subject (inside the mask) PSNR / SSIM / LPIPS per test split and saves
 bench/results/<name>-<host>.json after every variant (a rerun resumes finished variants' runs).
@@ -36,25 +37,24 @@ from pathlib import Path
 
 from _machine import machine_info, results_path
 
-from meshsplat.demo import PAPER_OVERRIDES, QUALITY_OVERRIDES
-
-VARIANTS = {
-    "paper": list(PAPER_OVERRIDES),
-    "full": list(PAPER_OVERRIDES),
-    "no_walk": list(PAPER_OVERRIDES) + ["walk.enabled=false"],
-    "frozen": list(PAPER_OVERRIDES) + ["model.freeze_embedding=true"],
-    "scale_area": list(PAPER_OVERRIDES) + ["model.scale_mode=area"],
-    "unfold": list(PAPER_OVERRIDES) + ["walk.mode=unfold"],
-    "shading": list(PAPER_OVERRIDES) + ["model.shading=sh2"],
-    "shading_axis": list(PAPER_OVERRIDES) + ["model.shading=sh2", "model.shading_normal=axis"],
-    "sh1_world": list(PAPER_OVERRIDES) + ["model.sh_degree=1"],
-    "sh1_triangle": list(PAPER_OVERRIDES) + ["model.sh_degree=1", "model.sh_frame=triangle"],
-    "init_multi": list(PAPER_OVERRIDES) + ["model.init_color_frames=8"],
-    "mask_loss": list(PAPER_OVERRIDES) + ["loss.lambda_mask=0.1"],
-    "antialiased": list(PAPER_OVERRIDES) + ["model.antialiased=true"],
-    "dens_low": list(PAPER_OVERRIDES) + ["strategy.grow_grad2d=1e-4"],
-    "lr_color": list(PAPER_OVERRIDES) + ["optim.lr_color=1e-2"],
-    "default": list(QUALITY_OVERRIDES),
+# name -> (training preset, TrainConfig overrides on top of it)
+VARIANTS: dict[str, tuple[str, list[str]]] = {
+    "paper": ("paper", []),
+    "full": ("paper", []),
+    "no_walk": ("paper", ["walk.enabled=false"]),
+    "frozen": ("paper", ["model.freeze_embedding=true"]),
+    "scale_area": ("paper", ["model.scale_mode=area"]),
+    "unfold": ("paper", ["walk.mode=unfold"]),
+    "shading": ("paper", ["model.shading=sh2"]),
+    "shading_axis": ("paper", ["model.shading=sh2", "model.shading_normal=axis"]),
+    "sh1_world": ("paper", ["model.sh_degree=1"]),
+    "sh1_triangle": ("paper", ["model.sh_degree=1", "model.sh_frame=triangle"]),
+    "init_multi": ("paper", ["model.init_color_frames=8"]),
+    "mask_loss": ("paper", ["loss.lambda_mask=0.1"]),
+    "antialiased": ("paper", ["model.antialiased=true"]),
+    "dens_low": ("paper", ["strategy.grow_grad2d=1e-4"]),
+    "lr_color": ("paper", ["optim.lr_color=1e-2"]),
+    "default": ("quality", []),
 }
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask", "psnr_crop", "ssim_crop", "lpips_crop")
 
@@ -113,8 +113,8 @@ def main() -> None:
     out = results_path(args.name)
     rows = {}
     for name in args.variants:
-        cfg = demo_train_config(data, work / name, preset, VARIANTS[name] + args.set, progress=False,
-                                quality=False)
+        train_preset, overrides = VARIANTS[name]
+        cfg = demo_train_config(data, work / name, preset, overrides + args.set, progress=False, preset=train_preset)
         c0 = time.process_time()
         t0 = time.perf_counter()
         trainer = Trainer(cfg, resume=True)
@@ -123,7 +123,7 @@ def main() -> None:
         cpu_s = time.process_time() - c0
         m = evaluate_run(work / name, report=True)
         rows[name] = {"train_s": train_s, "train_cpu_s": cpu_s, "gaussians": trainer.num_gaussians,
-                      "overrides": VARIANTS[name] + args.set,
+                      "preset": train_preset, "overrides": overrides + args.set,
                       "walked_total": getattr(trainer, "walked_total", None),
                       "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()}}
         print(f"[{name}] trained in {train_s:.0f} s", flush=True)

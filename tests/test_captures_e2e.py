@@ -11,7 +11,9 @@ import pytest
 
 from meshsplat.cli.main import main
 
-TINY = ["--iters", "30", "--no-progress", "--set", "model.n_init=800", "--set", "strategy.refine_start_iter=10",
+# The paper preset: the tolerances below were set on it. With the quality preset's 8-frame colour init,
+# IMavatar trails native by 1.1 dB PSNR (17.42 vs 16.28; 0.6 dB with init_color_frames=1): open question.
+TINY = ["--iters", "30", "--no-progress", "--preset", "paper", "--set", "model.n_init=800", "--set", "strategy.refine_start_iter=10",
         "--set", "strategy.refine_stop_iter=25", "--set", "strategy.refine_every=10", "--set", "walk.every=10",
         "--set", "loss.lambda_lpips=0", "--set", "preview_every=1000", "--set", "checkpoint_every=1000"]
 

@@ -189,11 +189,11 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
     with pytest.raises(MeshsplatError, match="shading"):
-        Trainer(small_config(tiny_dataset, tmp_path / "res", 30), resume=True)
+        Trainer(small_config(tiny_dataset, tmp_path / "res", 30, ["model.shading=none"]), resume=True)
 
 
 def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # noqa: F811
-    one = Trainer(small_config(tiny_dataset, tmp_path / "a", 1))
+    one = Trainer(small_config(tiny_dataset, tmp_path / "a", 1, ["model.init_color_frames=1"]))
     many = Trainer(small_config(tiny_dataset, tmp_path / "b", 1, ["model.init_color_frames=6"]))
     c1, c6 = sh0_to_rgb(one.params["sh0"].detach()), sh0_to_rgb(many.params["sh0"].detach())
     assert torch.equal(one.params["face"], many.params["face"])

@@ -34,15 +34,15 @@ from meshsplat.export import export_avatar
 from meshsplat.paths import asset
 from meshsplat.run_folder import RunFolder, load_avatar
 from meshsplat.synth import contact_sheet, generate
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_overrides, preset_config
 
-__all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames", "PAPER_OVERRIDES",
-           "QUALITY_OVERRIDES"]
+__all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames"]
 
 
 @dataclass(frozen=True)
 class DemoPreset:
-    """Sizes of one demo run. ``overrides`` are TrainConfig ``key=value`` overrides."""
+    """Sizes of one demo run. ``overrides`` are TrainConfig ``key=value`` overrides (its schedule);
+    the model comes from a training preset (``meshsplat.train.presets``)."""
 
     frames: int
     resolution: int
@@ -54,7 +54,7 @@ class DemoPreset:
 
 
 # Densification, walking and the lr decay are scaled to the short schedules; the paper's 30k-iteration
-# protocol is the TrainConfig default. Opacity reset is off in short runs (it needs thousands of
+# schedule is the TrainConfig default. Opacity reset is off in short runs (it needs thousands of
 # iterations to recover).
 PRESETS: dict[str, DemoPreset] = {
     "default": DemoPreset(
@@ -72,21 +72,14 @@ PRESETS: dict[str, DemoPreset] = {
 }
 
 
-# The paper-faithful model is the TrainConfig default (one colour per Gaussian, first-frame colours).
-PAPER_OVERRIDES: tuple[str, ...] = ()
-# The demo's quality options on top of it (issue 13; measured by bench/quality.py, docs/quality.md).
-QUALITY_OVERRIDES: tuple[str, ...] = ("model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2")
-
-
-def demo_train_config(data: Path, out: Path, preset: DemoPreset, extra: list[str] | None = None,
-                      progress: bool = True, quality: bool = True) -> TrainConfig:
-    """The TrainConfig the demo trains with: the preset's schedule, then ``QUALITY_OVERRIDES`` (unless
-    ``quality=False``: the paper-faithful model), then ``extra`` (bench/quality.py's variants)."""
-    cfg = TrainConfig(data=str(data), out=str(out), iterations=preset.iterations, device="auto",
-                      progress=progress)
-    cfg.model.n_init = preset.n_init
-    chosen = QUALITY_OVERRIDES if quality else PAPER_OVERRIDES
-    return apply_overrides(cfg, list(preset.overrides) + list(chosen) + list(extra or [])).validate()
+def demo_train_config(data: Path, out: Path, sizes: DemoPreset, extra: list[str] | None = None,
+                      progress: bool = True, preset: str = DEFAULT_PRESET) -> TrainConfig:
+    """The TrainConfig the demo trains with: the model of training preset ``preset`` (``quality``,
+    or ``paper``: the published method), the schedule of ``sizes``, then ``extra`` (bench variants)."""
+    cfg = preset_config(preset)
+    cfg.data, cfg.out, cfg.device, cfg.progress = str(data), str(out), "auto", progress
+    cfg.iterations, cfg.model.n_init = sizes.iterations, sizes.n_init
+    return apply_overrides(cfg, list(sizes.overrides) + list(extra or [])).validate()
 
 
 def continuous_frames(ds: AvatarDataset, n: int, split: str = "test_frames") -> list[int]:

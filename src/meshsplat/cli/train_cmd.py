@@ -1,7 +1,11 @@
 """Train a mesh-embedded Gaussian avatar on a dataset (writes RUN/{config.json,checkpoints,log.csv,previews}).
 
-Configuration precedence: defaults, then --config FILE (or RUN/config.json with --resume), then
---set KEY=VALUE overrides (e.g. --set strategy.refine_every=200 --set walk.enabled=false), then flags.
+Presets (--preset): quality (default: pose-dependent shading, colours from 8 frames, colour lr 1e-2)
+or paper (the published method: one colour per Gaussian from the first frame); docs/config.md.
+Configuration precedence: the preset, then --config FILE (or RUN/config.json with --resume), then
+--set KEY=VALUE overrides, then flags. --set takes several pairs; put it after the dataset:
+  meshsplat train DATA --out RUN --set strategy.refine_every=200 walk.enabled=false
+A preset named with --resume must be the run's (the resume check refuses another one).
 --resume continues bit for bit from the newest checkpoint in RUN/checkpoints; it refuses unreadable
 checkpoints and config changes other than paths, device/backend, logging/checkpoint cadence and
 --iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
@@ -20,6 +24,7 @@ from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, apply_overrides, load_config
+from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
 from meshsplat.train.trainer import Trainer, training_image_size
 
 __all__ = ["add_arguments", "run", "build_config"]
@@ -38,16 +43,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
-    parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. strategy.refine_every=200 (repeatable)")
+    parser.add_argument("--preset", choices=tuple(PRESETS), default=None,
+                        help=f"model preset (default {DEFAULT_PRESET}; paper: the published method); docs/config.md")
+    parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig) over the preset")
+    parser.add_argument("--set", nargs="+", action=_SetAction, default=[], metavar="KEY=VALUE",
+                        help="override config values, e.g. --set strategy.refine_every=200 walk.enabled=false "
+                        "(several after one --set, or repeated; put --set after the dataset)")
     add_render_options(parser, device=None, backend=False, background=False)
     parser.add_argument("--seed", type=int, default=None)
     add_threads_argument(parser)
 
 
+class _SetAction(argparse.Action):
+    """``--set KEY=VALUE [KEY=VALUE ...]``: extends the list; an item without "=" (a dataset swallowed
+    after ``--set``) is one clear parser error."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        items = list(values) if isinstance(values, list) else [str(values)]
+        for item in items:
+            if "=" not in item:
+                raise argparse.ArgumentError(self, f"expected KEY=VALUE, got {item!r}; --set takes every word up to "
+                                             "the next option, so put the dataset before --set "
+                                             "(meshsplat train DATA --out RUN --set a.b=1 c.d=2)")
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), *items])
+
+
 def build_config(args: argparse.Namespace) -> TrainConfig:
-    """TrainConfig from defaults, the config file, --set overrides and flags."""
+    """TrainConfig from the preset, the config file, --set overrides and flags (in that order)."""
     out = Path(args.out)
     run = RunFolder(out)
     opts = render_options(args)
@@ -55,12 +78,15 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
         return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir))
 
-    if args.config:
-        cfg = load_config(args.config, image_size)
-    elif args.resume and run.config_path.is_file():
-        cfg = load_config(run.config_path, image_size)
-    else:
-        cfg = TrainConfig()
+    preset = args.preset or DEFAULT_PRESET
+    cfg = preset_config(preset)
+    config_file = args.config or (run.config_path if args.resume and run.config_path.is_file() else None)
+    if config_file:
+        cfg = load_config(config_file, image_size, base=cfg)
+        if args.resume and args.preset:  # compared with the checkpoint's config by the resume check
+            cfg = apply_overrides(cfg, list(preset_overrides(args.preset)))
+        elif not args.resume and preset_differences(cfg, preset):
+            print(f"note: {config_file} sets {', '.join(preset_differences(cfg, preset))}")
     cfg = apply_overrides(cfg, args.set)
     cfg.data = str(args.dataset)
     if args.format is not None:

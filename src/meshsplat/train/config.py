@@ -6,11 +6,14 @@ error, nothing is ever evaluated) and accept command-line overrides such as
 
 Sizes marked "relative" are multiplied by the canonical mesh extent (half the diagonal of its
 bounding box) so that the same defaults work for a head in metres and a body in centimetres.
-Every key, with its type, default, unit and meaning, is in docs/config.md.
+Every key, with its type, default, unit and meaning, is in docs/config.md. The defaults are the
+``quality`` preset; ``meshsplat.train.presets`` also has ``paper``, the published method.
 
-Older run folders store ``config.json`` with the strategy keys ``refine_start`` / ``refine_stop``
-(now gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
-fraction of the image size): ``upgrade_config_dict`` maps them (see there).
+``config.json`` carries ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION}`` beside the keys.
+A dict without a version is version 1, written by an older meshsplat: when the defaults were the
+paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
+gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
+fraction of the image size): ``upgrade_config_dict`` reads it as it was written (see there).
 """
 from __future__ import annotations
 
@@ -32,7 +35,8 @@ from meshsplat.train.strategy.default import DensifyStrategy
 __all__ = [
     "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "PoseRefineConfig", "TrainConfig",
     "apply_overrides", "load_config", "upgrade_config_dict", "is_legacy_config", "RENAMED_KEYS",
-    "INIT_COLORS", "UV_LR_UNITS", "TRAIN_BACKGROUNDS",
+    "INIT_COLORS", "UV_LR_UNITS", "TRAIN_BACKGROUNDS", "CONFIG_FORMAT", "CONFIG_VERSION", "VERSION_1_DEFAULTS",
+    "config_version",
 ]
 
 INIT_COLORS = ("image", "grey")  # model.init_color
@@ -41,6 +45,12 @@ TRAIN_BACKGROUNDS = ("random", *BACKGROUNDS)  # background behind the Gaussians 
 # keys renamed to gsplat's DefaultStrategy names (old name -> new name)
 RENAMED_KEYS = {"strategy.refine_start": "strategy.refine_start_iter",
                 "strategy.refine_stop": "strategy.refine_stop_iter"}
+CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
+# 1: no "format"/"version" fields (older meshsplat; defaults were the paper's). 2: the quality defaults.
+CONFIG_VERSION = 2
+# Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
+# set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
+VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
 
 
 @dataclass
@@ -56,10 +66,11 @@ class ModelConfig:
     freeze_embedding: bool = False  # ablation: (duv, d) not optimised, Gaussians stay at (face, uv, 0)
     # Colour initialisation from several frames ("image" only): average over this many training frames,
     # spread over the sequence, of the pixel each point projects to where it faces the camera inside the mask.
-    init_color_frames: int = 1
+    # The paper's: 1 (the first frame's colour; the `paper` preset).
+    init_color_frames: int = 8
     # Pose-dependent shading (meshsplat.gaussians.shading): "none" (paper: one colour per Gaussian) or "sh2":
     # the SH colour is an albedo, times a learned 2nd-order SH irradiance of the Gaussian's posed normal.
-    shading: str = "none"
+    shading: str = "sh2"
     shading_normal: str = "phong"  # "phong": the embedding's interpolated normal | "axis": shortest Gaussian axis
     sh_frame: str = "world"  # SH degree > 0: view direction in "world" (published code) or "triangle" frame
     antialiased: bool = False  # opacity x sqrt(det S / det(S + 0.3 I)) per view (gsplat's "antialiased" mode)
@@ -67,14 +78,15 @@ class ModelConfig:
 
 @dataclass
 class OptimConfig:
-    """Adam (one optimizer per parameter key) with the paper's learning rates."""
+    """Adam (one optimizer per parameter key) with the paper's learning rates, except ``lr_color``
+    (the paper's 2.5e-3 in the ``paper`` preset)."""
 
     lr_embedding: float = 1.6e-4  # relative: times extent for d; see uv_lr_units for duv
     lr_embedding_final: float = 1.6e-6
     lr_delay_mult: float = 0.01
     lr_delay_steps: int = 0  # 3DGS default: the delay multiplier acts only when this is > 0
     uv_lr_units: str = "world"  # "world": duv lr * extent / mean edge length; "barycentric": raw lr
-    lr_color: float = 2.5e-3
+    lr_color: float = 1e-2
     lr_shN: float = 2.5e-3 / 20.0
     lr_opacity: float = 5e-2
     lr_scale: float = 5e-3
@@ -127,7 +139,8 @@ class PoseRefineConfig:
 
 @dataclass
 class TrainConfig:
-    """Everything a training run needs. Every key (type, default, unit, meaning, gsplat name) is
+    """Everything a training run needs; ``TrainConfig()`` is the ``quality`` preset
+    (``meshsplat.train.presets``). Every key (type, default, unit, meaning, gsplat name) is
     in the table of docs/config.md (tests/test_config_doc.py keeps it complete)."""
 
     data: str = ""
@@ -156,12 +169,20 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], image_size: int | typing.Callable[[], int] | None = None) -> "TrainConfig":
-        """From a (full or partial) dict; an older run's dict is upgraded first (``upgrade_config_dict``)."""
-        return _from_dict(cls, upgrade_config_dict(d, image_size), "")
+    def from_dict(cls, d: dict[str, Any], image_size: int | typing.Callable[[], int] | None = None,
+                  base: "TrainConfig | None" = None) -> "TrainConfig":
+        """From a (full or partial) dict, upgraded first (``upgrade_config_dict``: a dict without a
+        "version" is read as version 1, where unset keys meant the paper's values); keys it does not
+        set come from ``base`` (default ``TrainConfig()``, the quality preset)."""
+        upgraded = upgrade_config_dict(d, image_size)
+        if base is not None and isinstance(upgraded, dict):
+            upgraded = _merged(base.to_dict(), upgraded)
+        return _from_dict(cls, upgraded, "")
 
     def to_json(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        """Write ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION, **to_dict()}`` (every key)."""
+        doc = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, **self.to_dict()}
+        Path(path).write_text(json.dumps(doc, indent=2) + "\n")
 
     def validate(self) -> "TrainConfig":
         checks = [
@@ -215,6 +236,14 @@ MAX_GAUSSIANS = 20_000_000
 # fields whose name starts with one of these are rates, weights, thresholds or sizes: never negative
 _NON_NEGATIVE = ("lr_", "lambda_", "scale_", "grow_", "prune_", "reset_", "refine_", "init_", "eps",
                  "keep_", "max_", "n_init", "split_")
+
+
+def _merged(base: dict, over: dict) -> dict:
+    """``base`` with the keys of ``over`` set in it (nested dicts merged key by key)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def _flat_items(d: dict, prefix: str = ""):
@@ -294,9 +323,12 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str] | None) -> TrainConfi
     return TrainConfig.from_dict(d)
 
 
-def load_config(path: str | Path, image_size: int | typing.Callable[[], int] | None = None) -> TrainConfig:
-    """Read a JSON config file (a full or partial ``TrainConfig`` dict); ``image_size``: see
-    ``upgrade_config_dict`` (needed only for some configs written by older versions)."""
+def load_config(path: str | Path, image_size: int | typing.Callable[[], int] | None = None,
+                base: TrainConfig | None = None) -> TrainConfig:
+    """Read a JSON config file (a full or partial ``TrainConfig`` dict) as it was written: keys a
+    versioned file does not set come from ``base`` (default ``TrainConfig()``); a file without a
+    version is an older meshsplat's (see ``upgrade_config_dict``). ``image_size``: see there (needed
+    only for some configs written by older versions)."""
     path = Path(path)
     if not path.is_file():
         raise MeshsplatError(f"config file not found: {path}")
@@ -304,7 +336,7 @@ def load_config(path: str | Path, image_size: int | typing.Callable[[], int] | N
         d = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise MeshsplatError(f"config file {path} is not valid JSON: {exc}") from None
-    return TrainConfig.from_dict(d, image_size)
+    return TrainConfig.from_dict(d, image_size, base)
 
 
 def _legacy_prune_can_act(st: dict) -> bool:
@@ -325,17 +357,43 @@ def is_legacy_config(d: Any) -> bool:
     return isinstance(st, dict) and bool({"refine_start", "refine_stop"} & set(st))
 
 
-def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | None = None) -> Any:
-    """A config dict written by an older version, in today's keys (a copy; other dicts unchanged).
+def config_version(d: dict) -> int:
+    """The format version of a config dict: its "version" (1 when absent); one MeshsplatError for
+    another file's "format", a version that is not a positive integer, or one newer than this meshsplat's."""
+    fmt = d.get("format", CONFIG_FORMAT)
+    if fmt != CONFIG_FORMAT:
+        raise MeshsplatError(f"config: format {fmt!r} is not a training config (expected {CONFIG_FORMAT!r})")
+    version = d.get("version", 1)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise MeshsplatError(f"config: version must be a positive integer, got {version!r}")
+    if version > CONFIG_VERSION:
+        raise MeshsplatError(f"config: format version {version} is newer than this meshsplat reads "
+                             f"({CONFIG_VERSION}); update meshsplat to use this config")
+    return version
 
-    An old dict is one whose ``strategy`` holds ``refine_start`` or ``refine_stop``. They become
+
+def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | None = None) -> Any:
+    """A config dict as written (any version, see ``config_version``) in today's keys and meaning,
+    without its "format" / "version" fields (a copy; non-dicts are returned unchanged).
+
+    Version 1 (no "version" field; older meshsplat, whose defaults were the paper's): each key of
+    ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
+    version (or an older partial file) keeps its meaning under today's defaults.
+
+    A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
     pixels / ``image_size`` (the largest side of the training images; an int, or a callable
     asked only when needed). When that prune could never act under the old config (opacity
     reset off or after ``refine_stop``, as in every demo run) the value is dropped for today's
     default, which changes nothing. Otherwise, without ``image_size``, one MeshsplatError says so.
     """
-    if not is_legacy_config(d):
+    if not isinstance(d, dict):
+        return d
+    version = config_version(d)
+    d = {k: v for k, v in d.items() if k not in ("format", "version")}
+    if version == 1:
+        d = _with_version_1_defaults(d)
+    if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])
     for old, new in RENAMED_KEYS.items():
@@ -354,3 +412,14 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
                                      "pixels / max(width, height) (e.g. 20/256 = 0.078), or pass image_size")
             st["prune_scale2d"] = _coerce(pixels, float, "strategy.prune_scale2d") / float(size)
     return {**d, "strategy": st}
+
+
+def _with_version_1_defaults(d: dict) -> dict:
+    """``d`` with each ``VERSION_1_DEFAULTS`` key it does not set (and whose section is a dict or absent) set."""
+    out = dict(d)
+    for key, value in VERSION_1_DEFAULTS.items():
+        section, name = key.split(".")
+        sec = out.get(section, {})
+        if isinstance(sec, dict) and name not in sec:
+            out[section] = {**sec, name: value}
+    return out

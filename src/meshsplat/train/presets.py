@@ -1,0 +1,53 @@
+"""Training presets: named models, each a set of ``TrainConfig`` overrides.
+
+    quality   the default (``TrainConfig()``, ``meshsplat train``): pose-dependent shading
+              (model.shading=sh2), colours initialised from 8 frames, colour lr 1e-2;
+              measured in docs/quality.md (bench/quality.py)
+    paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
+              first frame, the paper's learning rates, on the same 30k-iteration schedule
+
+Both set the same keys, so applying a preset's overrides to any config gives that preset's model
+(``meshsplat train --resume --preset NAME`` relies on it: the resume check then refuses a preset
+other than the run's). Schedules (iterations, densification) are not part of a preset.
+
+    from meshsplat.train import preset_config, train
+    cfg = preset_config("paper")
+    cfg.data, cfg.out = "path/to/dataset", "runs/paper"
+    train(cfg)
+"""
+from __future__ import annotations
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.train.config import TrainConfig, apply_overrides
+
+__all__ = ["PRESETS", "DEFAULT_PRESET", "preset_overrides", "preset_config", "preset_differences"]
+
+PRESETS: dict[str, tuple[str, ...]] = {
+    "quality": ("model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2"),
+    "paper": ("model.shading=none", "model.init_color_frames=1", "optim.lr_color=2.5e-3"),
+}
+DEFAULT_PRESET = "quality"
+
+
+def preset_overrides(name: str) -> tuple[str, ...]:
+    """The ``key=value`` overrides of preset ``name``; one MeshsplatError for an unknown name."""
+    if name not in PRESETS:
+        raise MeshsplatError(f"preset: expected one of {', '.join(PRESETS)}, got {name!r}")
+    return PRESETS[name]
+
+
+def preset_config(name: str = DEFAULT_PRESET) -> TrainConfig:
+    """A new ``TrainConfig`` of preset ``name`` (the defaults with its overrides applied)."""
+    return apply_overrides(TrainConfig(), list(preset_overrides(name)))
+
+
+def preset_differences(cfg: TrainConfig, name: str) -> list[str]:
+    """``"key=value (the NAME preset's: value)"`` for each key of preset ``name`` that ``cfg`` sets otherwise."""
+    want = preset_config(name).to_dict()
+    have = cfg.to_dict()
+    out = []
+    for item in preset_overrides(name):
+        section, key = item.split("=", 1)[0].split(".")
+        if have[section][key] != want[section][key]:
+            out.append(f"{section}.{key}={have[section][key]!r} (the {name} preset's: {want[section][key]!r})")
+    return out

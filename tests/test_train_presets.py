@@ -1,0 +1,146 @@
+"""Training presets: quality is the default, paper stays the published method; config.json versions."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from meshsplat.demo import PRESETS as DEMO_SIZES
+from meshsplat.demo import demo_train_config
+from meshsplat.errors import MeshsplatError
+from meshsplat.train import DEFAULT_PRESET, PRESETS, TrainConfig, apply_overrides, load_config, preset_config
+from meshsplat.train.config import CONFIG_FORMAT, CONFIG_VERSION, VERSION_1_DEFAULTS, upgrade_config_dict
+from meshsplat.train.presets import preset_differences, preset_overrides
+
+
+def test_quality_is_the_default_preset():
+    assert DEFAULT_PRESET == "quality" and set(PRESETS) == {"quality", "paper"}
+    assert preset_config() == preset_config("quality") == TrainConfig()
+    q = TrainConfig()
+    assert (q.model.shading, q.model.init_color_frames, q.optim.lr_color) == ("sh2", 8, 1e-2)
+
+
+def test_paper_preset_is_the_published_method():
+    c = preset_config("paper")
+    # model: one colour per Gaussian (SH degree 0, no shading), colours from the first training frame
+    m = c.model
+    assert (m.shading, m.sh_degree, m.init_color, m.init_color_frames) == ("none", 0, "image", 1)
+    assert (m.n_init, m.init_opacity, m.init_knn, m.sh_frame) == (10_000, 0.1, 3, "world")
+    assert not m.freeze_embedding and not m.antialiased
+    # sqrt_area is our documented fix of the published pose scale (README "Where we differ"); area is the paper's
+    assert m.scale_mode == "sqrt_area"
+    # the paper's (3DGS) learning rates
+    o = c.optim
+    assert (o.lr_embedding, o.lr_embedding_final, o.lr_delay_mult, o.lr_delay_steps) == (1.6e-4, 1.6e-6, 0.01, 0)
+    assert (o.lr_color, o.lr_shN, o.lr_opacity, o.lr_scale, o.lr_rotation) == (2.5e-3, 2.5e-3 / 20, 5e-2, 5e-3, 1e-3)
+    assert o.eps == 1e-15 and o.uv_lr_units == "world"
+    # L1 + 0.01 LPIPS + the scale regulariser (T_s = 0.004 x bbox diagonal, T_r = 10), nothing else
+    los = c.loss
+    assert (los.lambda_l1, los.lambda_lpips, los.lambda_scale, los.scale_max, los.scale_ratio) == (1.0, 0.01, 1.0,
+                                                                                                  0.008, 10.0)
+    assert (los.lambda_mse, los.lambda_ssim, los.lambda_mask) == (0.0, 0.0, 0.0)
+    # the 30k-iteration schedule: densify 600..15000 every 100, opacity reset every 3000
+    s = c.strategy
+    assert c.iterations == 30_000 and s.enabled
+    assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every, s.reset_every) == (600, 15_000, 100, 3000)
+    assert (s.grow_grad2d, s.grow_scale3d, s.prune_opa, s.prune_scale3d) == (2e-4, 0.01, 0.005, 0.1)
+    assert (s.reset_opa, s.split_n, s.max_gaussians) == (0.01, 2, 150_000)
+    # gsplat's 0.15 of the image (docs/config.md: the paper's code used 20 px, 0.078 at 256 px)
+    assert s.prune_scale2d == 0.15
+    # walking on triangles (Algorithm 1) every 100 iterations, the paper's re-expression
+    assert (c.walk.enabled, c.walk.every, c.walk.mode) == (True, 100, "paper")
+    assert not c.pose_refine.enabled and c.background == "random"
+
+
+def test_presets_set_the_same_keys_and_differ_only_there():
+    keys = {name: [item.split("=")[0] for item in PRESETS[name]] for name in PRESETS}
+    assert keys["quality"] == keys["paper"]
+    flat = lambda c: {f"{s}.{k}": v for s, sec in c.to_dict().items() if isinstance(sec, dict)  # noqa: E731
+                      for k, v in sec.items()}
+    q, p = flat(preset_config("quality")), flat(preset_config("paper"))
+    assert sorted(k for k in q if q[k] != p[k]) == sorted(keys["paper"])
+    # applying a preset's overrides to any config gives that preset's model
+    assert apply_overrides(preset_config("quality"), list(preset_overrides("paper"))) == preset_config("paper")
+    assert preset_differences(preset_config("paper"), "quality") == [
+        "model.shading='none' (the quality preset's: 'sh2')", "model.init_color_frames=1 (the quality preset's: 8)",
+        "optim.lr_color=0.0025 (the quality preset's: 0.01)"]
+    assert preset_differences(preset_config("paper"), "paper") == []
+    with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
+        preset_config("best")
+
+
+def test_version_1_defaults_are_the_paper_preset():
+    paper = preset_config("paper").to_dict()
+    assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in VERSION_1_DEFAULTS} == VERSION_1_DEFAULTS
+
+
+# The demo's TrainConfig before training presets existed (hand-coded from demo.py of that time): the defaults
+# were the paper's, then the sizes' schedule, then QUALITY_OVERRIDES unless quality=False.
+_OLD_DEFAULTS = ["model.shading=none", "model.init_color_frames=1", "optim.lr_color=2.5e-3"]
+_OLD_QUALITY = ["model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2"]
+_OLD_SCHEDULES = {
+    "default": ["strategy.refine_start_iter=300", "strategy.refine_stop_iter=1200", "strategy.refine_every=100",
+                "strategy.reset_every=100000", "strategy.max_gaussians=40000", "walk.every=100",
+                "preview_every=250", "checkpoint_every=250", "log_every=10"],
+    "tiny": ["strategy.refine_start_iter=20", "strategy.refine_stop_iter=50", "strategy.refine_every=20",
+             "strategy.reset_every=100000", "walk.every=20", "preview_every=30", "checkpoint_every=30", "log_every=5"],
+}
+_OLD_SIZES = {"default": (1500, 10_000), "tiny": (60, 1500)}
+
+
+@pytest.mark.parametrize("sizes", ["default", "tiny"])
+@pytest.mark.parametrize("preset", ["quality", "paper"])
+def test_demo_config_is_unchanged_by_presets(sizes, preset):
+    iterations, n_init = _OLD_SIZES[sizes]
+    old = TrainConfig(data="/d", out="/o", iterations=iterations, device="auto", progress=False)
+    old.model.n_init = n_init
+    model = _OLD_QUALITY if preset == "quality" else []
+    old = apply_overrides(old, _OLD_DEFAULTS + _OLD_SCHEDULES[sizes] + model + ["seed=3"])
+    new = demo_train_config(Path("/d"), Path("/o"), DEMO_SIZES[sizes], ["seed=3"], progress=False, preset=preset)
+    assert new.to_dict() == old.to_dict()
+    if preset == "quality":
+        assert demo_train_config(Path("/d"), Path("/o"), DEMO_SIZES[sizes], ["seed=3"], progress=False) == new
+
+
+def test_config_json_carries_its_format_version(tmp_path):
+    cfg = apply_overrides(preset_config("paper"), ["seed=4"])
+    cfg.to_json(tmp_path / "config.json")
+    doc = json.loads((tmp_path / "config.json").read_text())
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 2)
+    assert load_config(tmp_path / "config.json") == cfg
+    assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
+    # a partial file of this version sits over the base (default: the quality preset)
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 2, "seed": 5}))
+    assert load_config(tmp_path / "partial.json").model.shading == "sh2"
+    assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
+        preset_config("paper"), ["seed=5"])
+
+
+def test_config_without_version_is_read_as_older_meshsplat_wrote_it(tmp_path):
+    # an older run's config.json: no version, and (before issue 13) no shading / init_color_frames keys
+    old = preset_config("paper").to_dict()
+    del old["model"]["shading"], old["model"]["init_color_frames"]
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    for base in (None, preset_config("quality"), preset_config("paper")):
+        assert load_config(tmp_path / "config.json", base=base) == preset_config("paper")
+    # a partial one likewise: keys it does not set meant the defaults of then (the paper's)
+    (tmp_path / "partial.json").write_text(json.dumps({"model": {"n_init": 500}, "optim": {"lr_color": 0.02}}))
+    got = load_config(tmp_path / "partial.json", base=preset_config("quality"))
+    assert (got.model.shading, got.model.init_color_frames, got.optim.lr_color, got.model.n_init) == ("none", 1, 0.02,
+                                                                                                      500)
+    assert TrainConfig.from_dict({"seed": 1}).model.shading == "none"
+    assert "version" not in upgrade_config_dict({"version": 2, "seed": 1})
+
+
+@pytest.mark.parametrize("doc, match", [
+    ({"version": 3}, r"^config: format version 3 is newer than this meshsplat reads \(2\); update meshsplat"),
+    ({"version": "2"}, "version must be a positive integer, got '2'"),
+    ({"version": 0}, "version must be a positive integer"),
+    ({"version": True}, "version must be a positive integer"),
+    ({"format": "meshsplat-checkpoint", "version": 2}, "is not a training config"),
+])
+def test_config_versions_refused(tmp_path, doc, match):
+    (tmp_path / "c.json").write_text(json.dumps({**doc, "seed": 1}))
+    with pytest.raises(MeshsplatError, match=match):
+        load_config(tmp_path / "c.json")
