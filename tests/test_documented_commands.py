@@ -22,16 +22,11 @@ import pytest
 
 from meshsplat.cli.main import COMMANDS, build_parser, main
 from meshsplat.cli.view_cmd import _KINDS as VIEW_ANIMATION_KINDS
-from meshsplat.paths import assets_dir
 from meshsplat.train import DEFAULT_PRESET, apply_overrides, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 PLACEHOLDER = re.compile(r"^[A-Z][A-Z0-9_]*$")
-# TODO(lead, bundled assets): README/docs still name ../shared/assets/... files, which a user of the package
-# does not have; they are being rewritten to bundled asset names (--gltf CesiumMan, --motion aist_demo).
-# Once no documented command contains it, delete this exemption (test_commands_name_no_checkout_paths).
-CHECKOUT_PATH_EXEMPT = "../shared"
 
 
 @dataclass(frozen=True)
@@ -233,25 +228,20 @@ def test_documented_command_parses(cmd):
 def test_commands_name_no_checkout_paths():
     """A user has the package, not this checkout: no command names a file outside the repository."""
     outside = [f"{c.where}: {c.text}" for c in COMMANDS_IN_DOCS
-               if "../" in c.text and CHECKOUT_PATH_EXEMPT not in c.text]
+               if "../" in c.text]
     assert not outside
 
 
 # The README's command-line chain, run as written except for this table: (README text, what runs instead).
-# Only sizes, thread counts and progress output change (tiny, 1 thread), plus the TODO paths. Every entry must
+# Only sizes, thread counts and progress output change (tiny, 1 thread), nothing else. Every entry must
 # match its README command, so the table cannot silently go stale.
-_ASSETS = str(assets_dir() or "ASSETS")
 README_SUBSTITUTIONS: dict[str, list[tuple[str, str]]] = {
     "synth": [("--frames 100 --resolution 512", "--frames 8 --resolution 32 --threads 1")],
     "train": [("--out runs/cesium", "--out runs/cesium --iters 4 --threads 1 --no-progress --set model.n_init=300")],
     "eval": [("runs/cesium", "runs/cesium --threads 1 --no-progress")],
-    "render": [("--out renders/", "--out renders/ --seconds 0.2 --threads 1 --no-progress"),
-               # TODO(lead, bundled assets): drop once the README names the bundled asset (--gltf CesiumMan)
-               ("../shared/assets", shlex.quote(_ASSETS))],
+    "render": [("--out renders/", "--out renders/ --seconds 0.2 --threads 1 --no-progress")],
     "export": [],
-    # TODO(lead, bundled assets): README's `--animation gltf CesiumMan.glb` fails outside a folder holding that
-    # file ("glTF file not found"); drop this once `view --animation gltf` accepts bundled asset names.
-    "view": [("gltf CesiumMan.glb", "gltf " + shlex.quote(str(Path(_ASSETS) / "gltf" / "CesiumMan.glb")))],
+    "view": [],
 }
 README_OUTPUTS = {
     "synth": "data/cesium/manifest.json", "train": "runs/cesium/checkpoints/ckpt_00000004.pt",

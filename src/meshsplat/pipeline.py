@@ -3,7 +3,7 @@
     run_dir = meshsplat.train_avatar("data/cesium", "runs/cesium", iterations=2000)
     run_dir = meshsplat.train_avatar(config=TrainConfig(data="data/cesium", out="runs/x"))
 
-A preset is a named list of ``section.key=value`` TrainConfig overrides (:func:`preset_overrides`);
+A preset is a named model (``meshsplat.train.presets``: ``quality``, the default, or ``paper``);
 ``overrides`` (the same strings as ``meshsplat train --set``) apply after it. Like ``meshsplat train``,
 the run keeps the dataset's ``source_map.npz`` so the run alone can be animated by its source asset.
 """
@@ -13,22 +13,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from meshsplat.data.source_map import copy_source_map
-from meshsplat.demo import PAPER_OVERRIDES, QUALITY_OVERRIDES
 from meshsplat.errors import MeshsplatError
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_overrides, preset_config
 
-__all__ = ["TRAIN_PRESETS", "preset_overrides", "train_avatar"]
-
-# preset name -> TrainConfig overrides: "quality" is the demo's model (docs/quality.md), "paper" the
-# published SplattingAvatar model (the TrainConfig defaults)
-TRAIN_PRESETS: dict[str, tuple[str, ...]] = {"quality": QUALITY_OVERRIDES, "paper": PAPER_OVERRIDES}
-
-
-def preset_overrides(preset: str) -> list[str]:
-    """The TrainConfig overrides of the training preset ``preset`` (one of ``TRAIN_PRESETS``)."""
-    if preset not in TRAIN_PRESETS:
-        raise MeshsplatError(f"preset: expected one of {', '.join(TRAIN_PRESETS)}, got {preset!r}")
-    return list(TRAIN_PRESETS[preset])
+__all__ = ["train_avatar"]
 
 
 def train_avatar(dataset: str | Path | None = None, out: str | Path | None = None, *, preset: str | None = None,
@@ -51,7 +39,7 @@ def train_avatar(dataset: str | Path | None = None, out: str | Path | None = Non
             raise MeshsplatError("give a preset or a config, not both (a config already says everything)")
         cfg = TrainConfig.from_dict(config.to_dict())
     else:
-        cfg = apply_overrides(TrainConfig(), preset_overrides("quality" if preset is None else preset))
+        cfg = preset_config(DEFAULT_PRESET if preset is None else preset)
     if dataset is not None:
         cfg.data = str(dataset)
     if out is not None:
