@@ -1,6 +1,8 @@
 """Shared by the bench scripts: what machine a number came from, and where results go."""
+
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import socket
@@ -22,13 +24,17 @@ def cpu_model() -> str:
 def machine_info() -> dict:
     import torch
 
-    info = {"hostname": socket.gethostname(), "cpu": cpu_model(), "cores": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
-            "torch": torch.__version__, "platform": platform.platform()}
-    try:
+    info = {
+        "hostname": socket.gethostname(),
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+    }
+    with contextlib.suppress(OSError):
         info["load_avg_1m"] = os.getloadavg()[0]
-    except OSError:
-        pass
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)
     return info

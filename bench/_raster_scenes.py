@@ -1,4 +1,5 @@
 """Synthetic scenes for the rasterizer benchmark and preview (no assets needed)."""
+
 from __future__ import annotations
 
 import math
@@ -61,11 +62,14 @@ def avatar_scene(n: int, size: int, seed: int = 0, dtype=torch.float32, framing:
     tangent = tangent / tangent.norm(dim=1, keepdim=True)
     frame = torch.stack([tangent, torch.linalg.cross(normal, tangent), normal], dim=-1)
     spacing = math.sqrt(float(areas.sum()) / n)
-    scales = torch.stack([
-        spacing * (0.4 + 0.5 * torch.rand(n, generator=g)),
-        spacing * (0.4 + 0.5 * torch.rand(n, generator=g)),
-        torch.full((n,), spacing * 0.08),
-    ], dim=1)
+    scales = torch.stack(
+        [
+            spacing * (0.4 + 0.5 * torch.rand(n, generator=g)),
+            spacing * (0.4 + 0.5 * torch.rand(n, generator=g)),
+            torch.full((n,), spacing * 0.08),
+        ],
+        dim=1,
+    )
     # camera 2.6 m away; full body: 1.7 m over ~80% of the height; upper body: ~0.95 m field
     fy, look_y = (1.2 * size, -0.1) if framing == "full_body" else (2.7 * size, 0.3)
     K = torch.tensor([[fy, 0, size / 2], [0, fy, size / 2], [0, 0, 1]])

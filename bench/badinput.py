@@ -12,6 +12,7 @@ Outcomes: ``error`` = exit 2 with one line (what we want for bad input), ``ok`` 
 cases a 1 MiB tmpfs (both need mount rights; skipped otherwise). Signal and kill-and-resume cases
 run real subprocesses.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,9 @@ from meshsplat.paths import asset
 torch.set_num_threads(1)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 # subprocesses run from other folders: make the package under test importable from anywhere
-os.environ["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve()) for p in
-                                           os.environ.get("PYTHONPATH", "").split(os.pathsep) if p)
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    str(Path(p).resolve()) for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p
+)
 
 GLB = asset("gltf/CesiumMan.glb")
 MEM_LIMIT = 3 * 1024**3
@@ -74,8 +76,9 @@ def make_dataset(root: Path, n: int = 4, size: int = 32) -> Path:
             out = av.render(v, Camera(vm, K, size, size), background=torch.zeros(3), backend="torch")
         frames.append({"image": out.image.clamp(0, 1), "mask": out.alpha, "camera_id": "0", "vertices": v})
     cams = {"0": {"K": K, "viewmat": vm, "width": size, "height": size}}
-    return write_dataset(root, mesh.vertices, mesh.faces, cams, frames,
-                         splits={"train": list(range(n - 1)), "test_frames": [n - 1]})
+    return write_dataset(
+        root, mesh.vertices, mesh.faces, cams, frames, splits={"train": list(range(n - 1)), "test_frames": [n - 1]}
+    )
 
 
 def train_run(ds: Path, out: Path, iters: int = 4, cwd: Path | None = None) -> Path:
@@ -128,17 +131,17 @@ class Evil:
 # ---- running one case --------------------------------------------------------------------
 def run_forked(fn, timeout: float = 240.0, uid: int | None = None) -> tuple[str, str]:
     """Run ``fn()`` (returns an exit code) in a forked child; returns (outcome, last stderr line)."""
-    errf = tempfile.NamedTemporaryFile(delete=False, suffix=".err")
-    errf.close()
+    handle, err_path = tempfile.mkstemp(suffix=".err")
+    os.close(handle)
     pid = os.fork()
     if pid == 0:  # child
         code = 1
         try:
-            fd = os.open(errf.name, os.O_WRONLY | os.O_TRUNC)
+            fd = os.open(err_path, os.O_WRONLY | os.O_TRUNC)
             os.dup2(fd, 2)
             os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
             sys.stderr = io.TextIOWrapper(os.fdopen(2, "wb", closefd=False), write_through=True)
-            sys.stdout = open(os.devnull, "w")
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - the forked child's stdout until it exits
             resource.setrlimit(resource.RLIMIT_AS, (MEM_LIMIT, MEM_LIMIT))
             if uid is not None:
                 os.setgid(uid)
@@ -146,7 +149,7 @@ def run_forked(fn, timeout: float = 240.0, uid: int | None = None) -> tuple[str,
             code = int(fn() or 0)
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
-        except BaseException:
+        except BaseException:  # noqa: BLE001 - the child reports every failure as an exit code
             traceback.print_exc()
             code = 1
         finally:
@@ -162,8 +165,8 @@ def run_forked(fn, timeout: float = 240.0, uid: int | None = None) -> tuple[str,
             os.waitpid(pid, 0)
             return "timeout", ""
         time.sleep(0.05)
-    err = Path(errf.name).read_text(errors="replace")
-    os.unlink(errf.name)
+    err = Path(err_path).read_text(errors="replace")
+    os.unlink(err_path)
     return classify(os.waitstatus_to_exitcode(status), err)
 
 
@@ -177,7 +180,9 @@ def classify(rc: int, err: str) -> tuple[str, str]:
     if rc == 0:
         return "ok", last[:160]
     if rc == 2:
-        return ("error" if len([ln for ln in lines if ln.startswith("meshsplat")]) == 1 else "error (multi-line)"), last[:160]
+        return (
+            "error" if len([ln for ln in lines if ln.startswith("meshsplat")]) == 1 else "error (multi-line)"
+        ), last[:160]
     return f"exit {rc}", last[:160]
 
 
@@ -186,6 +191,7 @@ def cli(*argv):
         from meshsplat.cli.main import main
 
         return main([str(a) for a in argv])
+
     return fn
 
 
@@ -197,6 +203,7 @@ def case(cls, name, expect="error"):
     def deco(builder):
         CASES.append((cls, name, expect, builder))
         return builder
+
     return deco
 
 
@@ -234,9 +241,15 @@ manifest_case("a split is a number", lambda m: m["splits"].__setitem__("train", 
 manifest_case("a split holds a string", lambda m: m["splits"].__setitem__("train", ["0"]))
 manifest_case("meta is a list", lambda m: m.__setitem__("meta", [1]))
 manifest_case("frames is an object", lambda m: m.__setitem__("frames", {"0": m["frames"][0]}))
-manifest_case("image outside the dataset (../, file exists)", lambda m: m["frames"][0].__setitem__("image", "../ds/" + m["frames"][0]["image"]))
+manifest_case(
+    "image outside the dataset (../, file exists)",
+    lambda m: m["frames"][0].__setitem__("image", "../ds/" + m["frames"][0]["image"]),
+)
 manifest_case("image at an absolute path", lambda m: m["frames"][0].__setitem__("image", "/etc/passwd"))
-manifest_case("mask at an absolute path (file exists)", lambda m: m["frames"][0].__setitem__("mask", str(_DS[0] / m["frames"][0]["mask"])))
+manifest_case(
+    "mask at an absolute path (file exists)",
+    lambda m: m["frames"][0].__setitem__("mask", str(_DS[0] / m["frames"][0]["mask"])),
+)
 manifest_case("vertices outside the dataset", lambda m: m.__setitem__("vertices", "/dev/zero"))
 
 
@@ -251,21 +264,30 @@ def _corrupt(ctx):
     def check():
         gone = [p.name for p in files if not p.exists() or p.read_bytes() != b"garbage" * 10]
         return f"deleted/overwrote {len(gone)} unreadable file(s)" if gone else None
+
     return cli("train", ctx["ds"], "--out", run, "--resume", *TRAIN, "--iters", "6"), {}, check
 
 
 @case("lost/silent", "resume with --set model.sh_degree=1")
 def _resume_sh(ctx):
     run = copy_tree(ctx["run"], ctx["tmp"] / "sh_run")
-    return cli("train", ctx["ds"], "--out", run, "--resume", "--iters", "6", "--no-progress", "--set",
-               "model.sh_degree=1"), {}, None
+    return (
+        cli(
+            "train", ctx["ds"], "--out", run, "--resume", "--iters", "6", "--no-progress", "--set", "model.sh_degree=1"
+        ),
+        {},
+        None,
+    )
 
 
 @case("lost/silent", "resume with --set loss.lambda_l1=2 (changes the objective)")
 def _resume_loss(ctx):
     run = copy_tree(ctx["run"], ctx["tmp"] / "l1_run")
-    return cli("train", ctx["ds"], "--out", run, "--resume", "--iters", "6", "--no-progress", "--set",
-               "loss.lambda_l1=2"), {}, None
+    return (
+        cli("train", ctx["ds"], "--out", run, "--resume", "--iters", "6", "--no-progress", "--set", "loss.lambda_l1=2"),
+        {},
+        None,
+    )
 
 
 @case("lost/silent", "resume with more --iters (safe change)", expect="ok")
@@ -283,16 +305,39 @@ def _overwrite_run(ctx):
         after = sorted(p.name for p in (run / "checkpoints").glob("ckpt_*.pt"))
         lost = set(before) - set(after)
         return f"old checkpoints {sorted(lost)} deleted" if lost else None
-    return cli("train", ctx["ds"], "--out", run, *TRAIN, "--iters", "6", "--set", "checkpoint_every=1",
-               "--set", "keep_checkpoints=2"), {}, check
+
+    return (
+        cli(
+            "train",
+            ctx["ds"],
+            "--out",
+            run,
+            *TRAIN,
+            "--iters",
+            "6",
+            "--set",
+            "checkpoint_every=1",
+            "--set",
+            "keep_checkpoints=2",
+        ),
+        {},
+        check,
+    )
 
 
-for _k, _v in [("loss.lambda_l1", "nan"), ("optim.lr_color", "inf"), ("loss.lambda_lpips", "-1"),
-               ("strategy.grow_grad2d", "nan"), ("model.init_opacity", "nan")]:
+for _k, _v in [
+    ("loss.lambda_l1", "nan"),
+    ("optim.lr_color", "inf"),
+    ("loss.lambda_lpips", "-1"),
+    ("strategy.grow_grad2d", "nan"),
+    ("model.init_opacity", "nan"),
+]:
+
     def _mk(k=_k, v=_v):
         @case("lost/silent", f"--set {k}={v}")
         def _b(ctx):
             return cli("train", ctx["ds"], "--out", ctx["tmp"] / "nan_out", *TRAIN, "--set", f"{k}={v}"), {}, None
+
     _mk()
 
 
@@ -322,10 +367,12 @@ def _png16(ctx):
         ei = float((fr.image.numpy() - img / 65535.0).__abs__().max())
         if em > 1e-4 or ei > 1.5 / 255:  # grey: exact; RGB: Pillow keeps the high byte (one 8-bit level)
             sat = float((fr.mask == 1.0).float().mean()) * 100
-            print(f"wrong values: max error mask {em:.3f} image {ei:.3f}; {sat:.0f}% of mask saturated",
-                  file=sys.stderr)
+            print(
+                f"wrong values: max error mask {em:.3f} image {ei:.3f}; {sat:.0f}% of mask saturated", file=sys.stderr
+            )
             return 3
         return 0
+
     return fn, {}, None
 
 
@@ -352,6 +399,7 @@ def _relpath(ctx):
         from meshsplat.cli.main import main
 
         return main(["eval", str(work / "run"), "--no-lpips", "--no-report", "--no-progress", "--device", "cpu"])
+
     return fn, {}, None
 
 
@@ -365,6 +413,7 @@ def _moved(ctx):
 
     def check():
         return None
+
     return cli("eval", work / "run", "--no-lpips", "--no-report", "--no-progress", "--device", "cpu"), {}, check
 
 
@@ -376,11 +425,30 @@ def _signal_case(sig):
 
         def fn():
             code = "import sys; from meshsplat.cli.main import main; sys.exit(main(sys.argv[1:]))"
-            argv = ["train", str(ctx["ds"]), "--out", str(out), "--iters", "100000", "--no-progress", "--device",
-                    "cpu", "--set", "backend=torch", "--set", "model.n_init=50", "--set", "log_every=1"]
+            argv = [
+                "train",
+                str(ctx["ds"]),
+                "--out",
+                str(out),
+                "--iters",
+                "100000",
+                "--no-progress",
+                "--device",
+                "cpu",
+                "--set",
+                "backend=torch",
+                "--set",
+                "model.n_init=50",
+                "--set",
+                "log_every=1",
+            ]
             # a background shell starts jobs with SIGINT ignored, and Python then keeps it ignored
-            p = subprocess.Popen([sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True,
-                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+            p = subprocess.Popen(
+                [sys.executable, "-c", code, *argv],
+                stderr=subprocess.PIPE,
+                text=True,
+                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+            )
             t0 = time.time()
             while time.time() - t0 < 120:
                 log = out / "log.csv"
@@ -402,7 +470,9 @@ def _signal_case(sig):
                 return 3
             print(f"exit {p.returncode}; checkpoint {ck[-1].name} written", file=sys.stderr)
             return 0
+
         return fn, {}, None
+
     return builder
 
 
@@ -412,9 +482,27 @@ case("lost/silent", "SIGTERM during training", expect="ok")(_signal_case(signal.
 
 @case("lost/silent", "kill -9 after a checkpoint, resume (default loss): bit-exact", expect="ok")
 def _killresume(ctx):
-    base = ["--no-progress", "--device", "cpu", "--set", "backend=torch", "--set", "model.n_init=100",
-            "--set", "strategy.refine_start_iter=2", "--set", "strategy.refine_every=2", "--set", "strategy.grow_grad2d=1e-6",
-            "--set", "checkpoint_every=5", "--set", "keep_checkpoints=10", "--set", "walk.every=3"]
+    base = [
+        "--no-progress",
+        "--device",
+        "cpu",
+        "--set",
+        "backend=torch",
+        "--set",
+        "model.n_init=100",
+        "--set",
+        "strategy.refine_start_iter=2",
+        "--set",
+        "strategy.refine_every=2",
+        "--set",
+        "strategy.grow_grad2d=1e-6",
+        "--set",
+        "checkpoint_every=5",
+        "--set",
+        "keep_checkpoints=10",
+        "--set",
+        "walk.every=3",
+    ]
 
     def fn():
         a, b = ctx["tmp"] / "kr_full", ctx["tmp"] / "kr_resumed"
@@ -424,22 +512,29 @@ def _killresume(ctx):
         rc, err = cli_subprocess(["train", str(ctx["ds"]), "--out", str(a), "--iters", "10", *base])
         assert rc == 0, err
         code = "import sys; from meshsplat.cli.main import main; sys.exit(main(sys.argv[1:]))"
-        p = subprocess.Popen([sys.executable, "-c", code, "train", str(ctx["ds"]), "--out", str(b), "--iters", "10",
-                              *base], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        p = subprocess.Popen(
+            [sys.executable, "-c", code, "train", str(ctx["ds"]), "--out", str(b), "--iters", "10", *base],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         while p.poll() is None and not (b / "checkpoints" / "ckpt_00000005.pt").is_file():
             time.sleep(0.01)
         p.send_signal(signal.SIGKILL)  # right after the checkpoint at 5 (a few iterations may follow)
         p.wait()
-        rc, err = cli_subprocess(["train", str(ctx["ds"]), "--out", str(b), "--iters", "10", "--resume", "--no-progress"])
+        rc, err = cli_subprocess(
+            ["train", str(ctx["ds"]), "--out", str(b), "--iters", "10", "--resume", "--no-progress"]
+        )
         assert rc == 0, err
         sa = torch.load(a / "checkpoints" / "ckpt_00000010.pt", weights_only=True)["state"]["avatar"]["params"]
         sb = torch.load(b / "checkpoints" / "ckpt_00000010.pt", weights_only=True)["state"]["avatar"]["params"]
         diff = [k for k in sa if sa[k].shape != sb[k].shape or not torch.equal(sa[k], sb[k])]
         if diff:
-            print(f"resumed run differs ({sa['sh0'].shape[0]} vs {sb['sh0'].shape[0]} Gaussians; {diff})",
-                  file=sys.stderr)
+            print(
+                f"resumed run differs ({sa['sh0'].shape[0]} vs {sb['sh0'].shape[0]} Gaussians; {diff})", file=sys.stderr
+            )
             return 3
         return 0
+
     return fn, {}, None
 
 
@@ -457,6 +552,7 @@ def _out_cmds(ctx, out):
 
 
 for _cmd in ("train", "synth", "eval", "render", "export", "view"):
+
     def _mk(cmd=_cmd):
         @case("output location", f"{cmd} --out names an existing file")
         def _file(ctx):
@@ -486,6 +582,7 @@ for _cmd in ("train", "synth", "eval", "render", "export", "view"):
             st = os.statvfs(fs)
             (fs / "filler").write_bytes(b"\0" * max(0, st.f_bavail * st.f_frsize - 8192))
             return cli(*argv), {}, None
+
     _mk()
 
 
@@ -510,13 +607,19 @@ def _ckpt_full(ctx):
         for p in prev:
             try:
                 load_checkpoint(p)
-            except Exception:
+            except Exception:  # noqa: BLE001 - any failure to load counts as a bad checkpoint
                 bad.append(p.name)
         tmp = [p.name for p in (run / "checkpoints").iterdir() if p.name.endswith(".tmp")]
         msg = (f"previous checkpoint(s) {bad} unreadable; " if bad else "") + (f"stray {tmp}" if tmp else "")
         return msg or None
-    return cli("train", ctx["ds"], "--out", run, "--resume", "--iters", "8", "--no-progress",
-               "--set", "checkpoint_every=1"), {}, check
+
+    return (
+        cli(
+            "train", ctx["ds"], "--out", run, "--resume", "--iters", "8", "--no-progress", "--set", "checkpoint_every=1"
+        ),
+        {},
+        check,
+    )
 
 
 @case("output location", "train --out below a file (file/sub)")
@@ -528,37 +631,173 @@ def _below_file(ctx):
 
 # -- absurd sizes
 SIZE_CASES = [
-    ("render --size 16384x16384", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--size", "16384x16384", "--no-progress", "--no-mp4", "--device", "cpu"]),
-    ("render --size 0x5", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--size", "0x5"]),
-    ("render --size 100000x100000", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--size", "100000x100000"]),
+    (
+        "render --size 16384x16384",
+        lambda c: [
+            "render",
+            c["run"],
+            "--out",
+            c["tmp"] / "r",
+            "--dataset-split",
+            "train",
+            "--size",
+            "16384x16384",
+            "--no-progress",
+            "--no-mp4",
+            "--device",
+            "cpu",
+        ],
+    ),
+    (
+        "render --size 0x5",
+        lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--size", "0x5"],
+    ),
+    (
+        "render --size 100000x100000",
+        lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--size", "100000x100000"],
+    ),
     ("render --fps 0", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--gltf", GLB, "--fps", "0"]),
-    ("render --fps 1e9 (glTF)", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--gltf", GLB, "--fps", "1e9", "--no-progress"]),
-    ("render --seconds 1e9 (glTF)", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--gltf", GLB, "--seconds", "1e9", "--no-progress"]),
-    ("render --fov 0", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--orbit", "90", "--fov", "0", "--no-progress"]),
-    ("render --fov 400", lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--dataset-split", "train", "--orbit", "90", "--fov", "400", "--no-progress"]),
-    ("synth --resolution 100000", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "100000"]),
+    (
+        "render --fps 1e9 (glTF)",
+        lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--gltf", GLB, "--fps", "1e9", "--no-progress"],
+    ),
+    (
+        "render --seconds 1e9 (glTF)",
+        lambda c: ["render", c["run"], "--out", c["tmp"] / "r", "--gltf", GLB, "--seconds", "1e9", "--no-progress"],
+    ),
+    (
+        "render --fov 0",
+        lambda c: [
+            "render",
+            c["run"],
+            "--out",
+            c["tmp"] / "r",
+            "--dataset-split",
+            "train",
+            "--orbit",
+            "90",
+            "--fov",
+            "0",
+            "--no-progress",
+        ],
+    ),
+    (
+        "render --fov 400",
+        lambda c: [
+            "render",
+            c["run"],
+            "--out",
+            c["tmp"] / "r",
+            "--dataset-split",
+            "train",
+            "--orbit",
+            "90",
+            "--fov",
+            "400",
+            "--no-progress",
+        ],
+    ),
+    (
+        "synth --resolution 100000",
+        lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "100000"],
+    ),
     ("synth --resolution 0", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "0"]),
     ("synth --frames 0", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "0", "--resolution", "32"]),
-    ("synth --frames 100000000", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "100000000", "--resolution", "32"]),
-    ("synth --views 0 (multiview)", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--rig", "multiview", "--views", "0", "--frames", "2", "--resolution", "32"]),
-    ("synth --supersample 100", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "64", "--supersample", "100"]),
-    ("synth --train-fraction 1.5", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "32", "--train-fraction", "1.5"]),
-    ("synth --test-views -1", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "32", "--test-views", "-1"]),
-    ("synth --driver-decimate 0", lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "32", "--driver-decimate", "0"]),
+    (
+        "synth --frames 100000000",
+        lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "100000000", "--resolution", "32"],
+    ),
+    (
+        "synth --views 0 (multiview)",
+        lambda c: [
+            "synth",
+            GLB,
+            "--out",
+            c["tmp"] / "s",
+            "--rig",
+            "multiview",
+            "--views",
+            "0",
+            "--frames",
+            "2",
+            "--resolution",
+            "32",
+        ],
+    ),
+    (
+        "synth --supersample 100",
+        lambda c: [
+            "synth",
+            GLB,
+            "--out",
+            c["tmp"] / "s",
+            "--frames",
+            "2",
+            "--resolution",
+            "64",
+            "--supersample",
+            "100",
+        ],
+    ),
+    (
+        "synth --train-fraction 1.5",
+        lambda c: [
+            "synth",
+            GLB,
+            "--out",
+            c["tmp"] / "s",
+            "--frames",
+            "2",
+            "--resolution",
+            "32",
+            "--train-fraction",
+            "1.5",
+        ],
+    ),
+    (
+        "synth --test-views -1",
+        lambda c: ["synth", GLB, "--out", c["tmp"] / "s", "--frames", "2", "--resolution", "32", "--test-views", "-1"],
+    ),
+    (
+        "synth --driver-decimate 0",
+        lambda c: [
+            "synth",
+            GLB,
+            "--out",
+            c["tmp"] / "s",
+            "--frames",
+            "2",
+            "--resolution",
+            "32",
+            "--driver-decimate",
+            "0",
+        ],
+    ),
     ("view --frames 0", lambda c: ["view", c["run"], "--out", c["tmp"] / "v", "--frames", "0"]),
     ("view --frames -3", lambda c: ["view", c["run"], "--out", c["tmp"] / "v", "--frames", "-3"]),
     ("view --port 99999 --serve", lambda c: ["view", c["run"], "--out", c["tmp"] / "v", "--serve", "--port", "99999"]),
-    ("eval --max-frames 0", lambda c: ["eval", c["run"], "--out", c["tmp"] / "e", "--max-frames", "0", "--no-lpips", "--no-progress"]),
+    (
+        "eval --max-frames 0",
+        lambda c: ["eval", c["run"], "--out", c["tmp"] / "e", "--max-frames", "0", "--no-lpips", "--no-progress"],
+    ),
     ("train --iters 0", lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--iters", "0"]),
-    ("train --set model.n_init=10000000000", lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--set", "model.n_init=10000000000"]),
-    ("train --set strategy.max_gaussians=-1", lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--set", "strategy.max_gaussians=-1"]),
+    (
+        "train --set model.n_init=10000000000",
+        lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--set", "model.n_init=10000000000"],
+    ),
+    (
+        "train --set strategy.max_gaussians=-1",
+        lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--set", "strategy.max_gaussians=-1"],
+    ),
     ("train --set log_every=0", lambda c: ["train", c["ds"], "--out", c["tmp"] / "t", *TRAIN, "--set", "log_every=0"]),
 ]
 for _name, _argv in SIZE_CASES:
+
     def _mk(name=_name, argv=_argv):
         @case("size", name)
         def _b(ctx):
             return cli(*argv(ctx)), {}, None
+
     _mk()
 
 
@@ -584,12 +823,28 @@ DEGEN = [
     ("render --vertices: pickled object array", lambda c: np.array([Evil()], dtype=object)),
 ]
 for _name, _arr in DEGEN:
+
     def _mk(name=_name, arr=_arr):
         @case("degenerate", name)
         def _b(ctx):
             p = _vert_file(ctx, name.split(":")[1].strip().replace(" ", "_").replace(",", "") + ".npy", arr(ctx))
-            return cli("render", ctx["run"], "--out", ctx["tmp"] / "rv", "--vertices", p, "--no-progress",
-                       "--no-mp4", "--device", "cpu"), {}, None
+            return (
+                cli(
+                    "render",
+                    ctx["run"],
+                    "--out",
+                    ctx["tmp"] / "rv",
+                    "--vertices",
+                    p,
+                    "--no-progress",
+                    "--no-mp4",
+                    "--device",
+                    "cpu",
+                ),
+                {},
+                None,
+            )
+
     _mk()
 
 
@@ -630,11 +885,14 @@ def _evil_ckpt(ctx):
     run = copy_tree(ctx["run"], ctx["tmp"] / "evil_run")
     for p in (run / "checkpoints").glob("ckpt_*.pt"):
         p.unlink()
-    torch.save({"format": "meshsplat-checkpoint", "version": 1, "state": {"x": Evil()}},
-               run / "checkpoints" / "ckpt_00000001.pt")
+    torch.save(
+        {"format": "meshsplat-checkpoint", "version": 1, "state": {"x": Evil()}},
+        run / "checkpoints" / "ckpt_00000001.pt",
+    )
 
     def check():
         return "the payload ran" if Path("/tmp/meshsplat_badinput_pwned").exists() else None
+
     return cli("export", run, "--out", ctx["tmp"] / "ex2"), {}, check
 
 
@@ -674,10 +932,12 @@ def print_table(before: str, after: str) -> None:
     print("|---|---|---|---|---|")
     for r in rows:
         old = b.get(r["case"], {})
+
         def cell(x):
             msg = re.sub(r"/tmp/badinput_[^/ ]+/", "", x.get("message", "")).replace("meshsplat ", "")
             text = x.get("outcome", "-") + (f": {msg}" if msg and x.get("outcome") != "ok" else "")
             return text.replace("|", "/")[:110]
+
         print(f"| {r['class']} | {r['case']} | {r['expect']} | {cell(old)} | {cell(r)} |")
     nb = sum(x["good"] for x in b.values())
     na = sum(x["good"] for x in rows)
@@ -705,8 +965,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=None)
     ap.add_argument("--only", default=None, help="run only cases whose name contains this")
-    ap.add_argument("--compare", nargs=2, metavar=("BEFORE.json", "AFTER.json"), default=None,
-                    help="print the markdown table class | case | before | after of two --json results")
+    ap.add_argument(
+        "--compare",
+        nargs=2,
+        metavar=("BEFORE.json", "AFTER.json"),
+        default=None,
+        help="print the markdown table class | case | before | after of two --json results",
+    )
     a = ap.parse_args()
     if a.compare:
         print_table(*a.compare)
@@ -734,8 +999,9 @@ def main() -> int:
                 if extra:
                     outcome += f"; {extra}"
             good = outcome == expect
-            results.append({"class": cls, "case": name, "expect": expect, "outcome": outcome, "good": good,
-                            "message": line})
+            results.append(
+                {"class": cls, "case": name, "expect": expect, "outcome": outcome, "good": good, "message": line}
+            )
             print(f"{'PASS' if good else 'FAIL'} | {cls} | {name} | {outcome} | {line}", flush=True)
     finally:
         for m in ("tmpfs", "rofs"):

@@ -13,6 +13,7 @@ Equal metrics prove the readers' conventions (cameras, pose layouts, scale, mask
 Prints format | detected as | frames | train s | PSNR/SSIM/LPIPS (full image and in the subject's
 mask) on the held-out frames, and saves bench/results/captures-<host>.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -60,8 +61,16 @@ def main() -> None:
         native = work / cap / "native"
         if not (native / "manifest.json").is_file():
             t0 = time.perf_counter()
-            generate(kind, native, rig=rig, frames=preset.frames, resolution=preset.resolution,
-                     test_views=0 if rig == "monocular-turn" else 1, model_dir=models, overwrite=True)
+            generate(
+                kind,
+                native,
+                rig=rig,
+                frames=preset.frames,
+                resolution=preset.resolution,
+                test_views=0 if rig == "monocular-turn" else 1,
+                model_dir=models,
+                overwrite=True,
+            )
             print(f"[{cap}] synthesized in {time.perf_counter() - t0:.0f} s", flush=True)
         for layout in ["native"] + layouts:
             data = native if layout == "native" else work / cap / layout
@@ -79,23 +88,50 @@ def main() -> None:
             m = evaluate_run(run, report=False)
             split = "test_frames" if "test_frames" in m["splits"] else sorted(m["splits"])[0]
             res = {k: m["splits"][split].get(k) for k in KEYS}
-            rows.append({"capture": cap, "layout": layout, "detected": detected, "frames": n_frames,
-                         "train_frames": len(trainer.train_ids), "split": split, "train_s": train_s,
-                         "gaussians": trainer.num_gaussians, **res})
-            print(f"[{cap}/{layout}] {train_s:.0f} s, {split} PSNR {res['psnr']:.2f} / mask {res['psnr_mask']:.2f}",
-                  flush=True)
+            rows.append(
+                {
+                    "capture": cap,
+                    "layout": layout,
+                    "detected": detected,
+                    "frames": n_frames,
+                    "train_frames": len(trainer.train_ids),
+                    "split": split,
+                    "train_s": train_s,
+                    "gaussians": trainer.num_gaussians,
+                    **res,
+                }
+            )
+            print(
+                f"[{cap}/{layout}] {train_s:.0f} s, {split} PSNR {res['psnr']:.2f} / mask {res['psnr_mask']:.2f}",
+                flush=True,
+            )
 
     f = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(f"\ncaptures, {args.preset} preset ({preset.iterations} iterations, {preset.resolution} px), held-out frames")
-    print(f"{'capture':<9}{'layout':<16}{'detected':<16}{'frames':>7}{'train s':>9}"
-          f"{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'PSNRm':>8}{'SSIMm':>8}{'LPIPSm':>8}")
+    print(
+        f"{'capture':<9}{'layout':<16}{'detected':<16}{'frames':>7}{'train s':>9}"
+        f"{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'PSNRm':>8}{'SSIMm':>8}{'LPIPSm':>8}"
+    )
     for r in rows:
-        print(f"{r['capture']:<9}{r['layout']:<16}{r['detected']:<16}{r['frames']:>7}{r['train_s']:>9.0f}"
-              f"{f(r['psnr'], 2):>8}{f(r['ssim'], 4):>8}{f(r['lpips'], 4):>8}"
-              f"{f(r['psnr_mask'], 2):>8}{f(r['ssim_mask'], 4):>8}{f(r['lpips_mask'], 4):>8}")
+        print(
+            f"{r['capture']:<9}{r['layout']:<16}{r['detected']:<16}{r['frames']:>7}{r['train_s']:>9.0f}"
+            f"{f(r['psnr'], 2):>8}{f(r['ssim'], 4):>8}{f(r['lpips'], 4):>8}"
+            f"{f(r['psnr_mask'], 2):>8}{f(r['ssim_mask'], 4):>8}{f(r['lpips_mask'], 4):>8}"
+        )
     out = results_path("captures" if args.preset == "default" else f"captures-{args.preset}")
-    out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset, "iterations": preset.iterations,
-                               "resolution": preset.resolution, "rows": rows}, indent=2) + "\n")
+    out.write_text(
+        json.dumps(
+            {
+                "machine": machine_info(),
+                "preset": args.preset,
+                "iterations": preset.iterations,
+                "resolution": preset.resolution,
+                "rows": rows,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
     print(f"saved {out}")
 
 

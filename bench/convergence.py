@@ -17,6 +17,7 @@ The saved curve (``results/convergence-vm.json``) was measured before the strate
 names and units, with the screen-size prune at the paper code's 20 px; to reproduce it with today's
 default (0.15 of the image), pass ``--set strategy.prune_scale2d=0.078125`` (20 px at 256 px).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,9 @@ def _cpu_s() -> float:
 def measure(trainer, dataset, frames: int) -> dict:
     from meshsplat.eval.evaluate import evaluate_avatar
 
-    res, _ = evaluate_avatar(trainer.avatar(), dataset, max_frames_per_split=frames, lpips_net=None,
-                             samples_per_split=0)
+    res, _ = evaluate_avatar(
+        trainer.avatar(), dataset, max_frames_per_split=frames, lpips_net=None, samples_per_split=0
+    )
     keys = ("psnr", "ssim", "psnr_mask", "ssim_mask", "psnr_crop")
     return {s: {k: v.get(k) for k in keys} for s, v in res["splits"].items()}
 
@@ -84,8 +86,12 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=30_000)
     ap.add_argument("--points", type=int, nargs="*", default=list(DEFAULT_POINTS))
     ap.add_argument("--frames", type=int, default=4, help="held-out frames per split at each point")
-    ap.add_argument("--train-preset", default="paper", choices=("paper", "quality"),
-                    help="training preset (meshsplat.train.presets; default paper)")
+    ap.add_argument(
+        "--train-preset",
+        default="paper",
+        choices=("paper", "quality"),
+        help="training preset (meshsplat.train.presets; default paper)",
+    )
     ap.add_argument("--set", nargs="*", default=[], help="TrainConfig overrides key=value")
     ap.add_argument("--work", default="runs/bench-convergence")
     ap.add_argument("--data", default="runs/bench-quality/data", help="dataset folder (generated if missing)")
@@ -113,7 +119,7 @@ def main() -> None:
     ckpt_every = max(1, min(1000, args.iters // 10))
     cfg = preset_config(args.train_preset)
     cfg.data, cfg.out, cfg.iterations, cfg.progress = str(data), str(Path(args.work) / "run"), args.iters, False
-    cfg.log_every, cfg.preview_every, cfg.checkpoint_every, cfg.keep_checkpoints = 100, 10 ** 9, ckpt_every, 2
+    cfg.log_every, cfg.preview_every, cfg.checkpoint_every, cfg.keep_checkpoints = 100, 10**9, ckpt_every, 2
     cfg.model.n_init = preset.n_init
     cfg = apply_overrides(cfg, args.set).validate()
     out = results_path(args.name)
@@ -123,12 +129,20 @@ def main() -> None:
     trainer = Trainer(cfg, resume=True)
     ds = open_dataset(data)
     done = {p["iteration"] for p in doc["points"]}
-    doc.update({"data": str(data), "data_desc": f"CesiumMan {preset.resolution}px {preset.frames} frames",
-                "iterations": args.iters, "train_preset": args.train_preset, "overrides": args.set,
-                "config": cfg.to_dict(),
-                "frames_per_split": args.frames, "machine": machine_info(),
-                "note": "cpu_s / wall_s: process CPU and wall seconds of training (evaluation excluded), "
-                        "summed over resumed sessions"})
+    doc.update(
+        {
+            "data": str(data),
+            "data_desc": f"CesiumMan {preset.resolution}px {preset.frames} frames",
+            "iterations": args.iters,
+            "train_preset": args.train_preset,
+            "overrides": args.set,
+            "config": cfg.to_dict(),
+            "frames_per_split": args.frames,
+            "machine": machine_info(),
+            "note": "cpu_s / wall_s: process CPU and wall seconds of training (evaluation excluded), "
+            "summed over resumed sessions",
+        }
+    )
     cpu_train = doc.get("cpu_s_total", 0.0)
     wall_train = doc.get("wall_s_total", 0.0)
     last = max((p["iteration"] for p in doc["points"]), default=0)
@@ -149,18 +163,26 @@ def main() -> None:
         splits = measure(trainer, ds, args.frames)
         st = cfg.strategy
         resets = [r for r in range(st.reset_every, min(trainer.iteration, st.refine_stop_iter) + 1, st.reset_every)]
-        doc["points"].append({"iteration": trainer.iteration, "cpu_s": cpu_train, "wall_s": wall_train,
-                              "since_reset": trainer.iteration - resets[-1] if resets else None,
-                              "gaussians": trainer.num_gaussians, "splits": splits,
-                              "load_avg_1m": os.getloadavg()[0]})
+        doc["points"].append(
+            {
+                "iteration": trainer.iteration,
+                "cpu_s": cpu_train,
+                "wall_s": wall_train,
+                "since_reset": trainer.iteration - resets[-1] if resets else None,
+                "gaussians": trainer.num_gaussians,
+                "splits": splits,
+                "load_avg_1m": os.getloadavg()[0],
+            }
+        )
         doc["cpu_s_total"], doc["wall_s_total"] = cpu_train, wall_train
         doc["cpu_s_per_iteration"] = cpu_train / max(1, trainer.iteration)
         tmp = out.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
         tmp.replace(out)
         msg = "  ".join(f"{s}: {v['psnr_mask']:.2f} mask / {v['psnr']:.2f} full" for s, v in splits.items())
-        print(f"it {trainer.iteration:>6}  cpu {cpu_train / 60:7.1f} min  N {trainer.num_gaussians:>6}  {msg}",
-              flush=True)
+        print(
+            f"it {trainer.iteration:>6}  cpu {cpu_train / 60:7.1f} min  N {trainer.num_gaussians:>6}  {msg}", flush=True
+        )
         if args.plot:
             plot(doc, out.with_suffix(".png"))
     print(f"saved {out}")

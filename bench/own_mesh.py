@@ -5,6 +5,7 @@ Default: 60 training frames at 128 px, 400 iterations, 1 thread (a few minutes p
 ``--quick``: 12 frames at 64 px, 60 iterations. Prints the metrics and the last logged loss/scale of
 both units; saves bench/results/own_mesh-<hostname>.json. The creature is tests/_creature.py.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,14 +20,21 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from _creature import write_creature_npz  # noqa: E402
-from _machine import machine_info, results_path  # noqa: E402
+from _creature import write_creature_npz
+from _machine import machine_info, results_path
+from meshsplat.cli.main import main as cli
 
-from meshsplat.cli.main import main as cli  # noqa: E402
-
-TRAIN_SET = ("strategy.refine_start_iter=100", "strategy.refine_stop_iter=350", "strategy.refine_every=50",
-             "strategy.reset_every=100000", "walk.every=50", "preview_every=200", "checkpoint_every=200",
-             "log_every=20", "model.n_init=6000")
+TRAIN_SET = (
+    "strategy.refine_start_iter=100",
+    "strategy.refine_stop_iter=350",
+    "strategy.refine_every=50",
+    "strategy.reset_every=100000",
+    "walk.every=50",
+    "preview_every=200",
+    "checkpoint_every=200",
+    "log_every=20",
+    "model.n_init=6000",
+)
 
 
 def _run(cmd: list[str]) -> None:
@@ -51,8 +59,21 @@ def main() -> int:
     for unit, asset in (("cm", cm), ("m", work / "creature_m.npz")):
         ds, run = work / f"ds_{unit}", work / f"run_{unit}"
         t = time.perf_counter()
-        _run(["synth", str(asset), "--out", str(ds), "--resolution", str(res), "--frames", str(frames),
-              "--threads", "1", "--overwrite"])
+        _run(
+            [
+                "synth",
+                str(asset),
+                "--out",
+                str(ds),
+                "--resolution",
+                str(res),
+                "--frames",
+                str(frames),
+                "--threads",
+                "1",
+                "--overwrite",
+            ]
+        )
         t_synth = time.perf_counter() - t
         t = time.perf_counter()
         train = ["train", str(ds), "--out", str(run), "--iters", str(iters), "--threads", "1", "--no-progress"]
@@ -64,17 +85,41 @@ def main() -> int:
         metrics = json.loads((run / "eval" / "metrics.json").read_text())
         with open(run / "log.csv") as fh:
             last = list(csv.DictReader(fh))[-1]
-        out["units"][unit] = {"synth_s": round(t_synth, 1), "train_s": round(t_train, 1),
-                              "last_loss": float(last["loss"]), "last_scale": float(last["scale"]),
-                              "splits": {k: {m: v.get(m) for m in ("psnr", "ssim", "lpips", "psnr_mask", "n_frames")}
-                                         for k, v in metrics["splits"].items()}}
-    _run(["render", str(work / "run_cm"), "--vertices", str(cm), "--size", f"{res}x{res}", "--orbit", "90",
-          "--no-mp4", "--no-progress", "--threads", "1", "--out", str(work / "anim")])
+        out["units"][unit] = {
+            "synth_s": round(t_synth, 1),
+            "train_s": round(t_train, 1),
+            "last_loss": float(last["loss"]),
+            "last_scale": float(last["scale"]),
+            "splits": {
+                k: {m: v.get(m) for m in ("psnr", "ssim", "lpips", "psnr_mask", "n_frames")}
+                for k, v in metrics["splits"].items()
+            },
+        }
+    _run(
+        [
+            "render",
+            str(work / "run_cm"),
+            "--vertices",
+            str(cm),
+            "--size",
+            f"{res}x{res}",
+            "--orbit",
+            "90",
+            "--no-mp4",
+            "--no-progress",
+            "--threads",
+            "1",
+            "--out",
+            str(work / "anim"),
+        ]
+    )
     print(f"\n{'unit':<5}{'split':<13}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}  last loss / scale")
     for unit, r in out["units"].items():
         for k, s in r["splits"].items():
-            print(f"{unit:<5}{k:<13}{s['psnr']:>7.2f}{s['ssim']:>7.3f}{(s['lpips'] or 0):>7.3f}"
-                  f"  {r['last_loss']:.4g} / {r['last_scale']:.4g}")
+            print(
+                f"{unit:<5}{k:<13}{s['psnr']:>7.2f}{s['ssim']:>7.3f}{(s['lpips'] or 0):>7.3f}"
+                f"  {r['last_loss']:.4g} / {r['last_scale']:.4g}"
+            )
     path = results_path("own_mesh")
     path.write_text(json.dumps(out, indent=1))
     print(f"saved {path}; work folder {work}")

@@ -11,6 +11,7 @@ with ``--refine-pose``. Test frames keep their true parameters. Prints PSNR/SSIM
 frames (full image and in the mask) and the parameter error before/after refinement; saves
 bench/results/pose_refine-<host>.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,6 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
 from _machine import machine_info, results_path
 
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")
@@ -68,8 +70,12 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=None, help="pose_refine.lr (default: the config's)")
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
-    ap.add_argument("--variants", nargs="*", default=["true", "perturbed", "perturbed+refine"],
-                    choices=["true", "perturbed", "perturbed+refine"])
+    ap.add_argument(
+        "--variants",
+        nargs="*",
+        default=["true", "perturbed", "perturbed+refine"],
+        choices=["true", "perturbed", "perturbed+refine"],
+    )
     args = ap.parse_args()
 
     from meshsplat.data import open_dataset
@@ -88,8 +94,16 @@ def main() -> None:
         write_standin_models(models, kinds=("smpl",))
     native = work / "true"
     if not (native / "manifest.json").is_file():
-        generate("smpl", native, rig="monocular-turn", frames=preset.frames, resolution=preset.resolution,
-                 test_views=0, model_dir=models, overwrite=True)
+        generate(
+            "smpl",
+            native,
+            rig="monocular-turn",
+            frames=preset.frames,
+            resolution=preset.resolution,
+            test_views=0,
+            model_dir=models,
+            overwrite=True,
+        )
     noisy = work / "perturbed"
     pert = perturb(native, noisy, models, args.pose_noise, args.transl_noise)
     true_params = open_dataset(native).driver_params
@@ -111,8 +125,11 @@ def main() -> None:
         trainer.train()
         train_s = time.perf_counter() - t0
         m = evaluate_run(run, report=False)
-        rec = {"train_s": train_s, "gaussians": trainer.num_gaussians,
-               "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()}}
+        rec = {
+            "train_s": train_s,
+            "gaussians": trainer.num_gaussians,
+            "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
+        }
         if refine:
             refined = dict(np.load(run / "refined_params.npz"))
             order = {int(r): j for j, r in enumerate(refined["mesh_rows"])}
@@ -126,21 +143,39 @@ def main() -> None:
     before = param_error(pert["params"], true_params, pert["rows"])
 
     f = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
-    print(f"\npose refinement, {args.preset} preset ({preset.iterations} iterations, {preset.resolution} px), "
-          f"noise {args.pose_noise} rad / {args.transl_noise} x height")
+    print(
+        f"\npose refinement, {args.preset} preset ({preset.iterations} iterations, {preset.resolution} px), "
+        f"noise {args.pose_noise} rad / {args.transl_noise} x height"
+    )
     print(f"{'variant':<18}{'split':<13}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'PSNRm':>8}{'SSIMm':>8}{'LPIPSm':>8}")
     for name, r in rows.items():
         for s, m in r["splits"].items():
-            print(f"{name:<18}{s:<13}{f(m['psnr'], 2):>8}{f(m['ssim'], 4):>8}{f(m['lpips'], 4):>8}"
-                  f"{f(m['psnr_mask'], 2):>8}{f(m['ssim_mask'], 4):>8}{f(m['lpips_mask'], 4):>8}")
+            print(
+                f"{name:<18}{s:<13}{f(m['psnr'], 2):>8}{f(m['ssim'], 4):>8}{f(m['lpips'], 4):>8}"
+                f"{f(m['psnr_mask'], 2):>8}{f(m['ssim_mask'], 4):>8}{f(m['lpips_mask'], 4):>8}"
+            )
     print("mean |param - true| on training frames: before " + json.dumps({k: round(v, 5) for k, v in before.items()}))
     if "perturbed+refine" in rows:
-        print("                                        after  " + json.dumps(
-            {k: round(v, 5) for k, v in rows["perturbed+refine"]["param_error_after"].items()}))
+        print(
+            "                                        after  "
+            + json.dumps({k: round(v, 5) for k, v in rows["perturbed+refine"]["param_error_after"].items()})
+        )
     out = results_path(args.name or ("pose_refine" if args.preset == "default" else f"pose_refine-{args.preset}"))
-    out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset, "iterations": preset.iterations,
-                               "pose_noise_rad": args.pose_noise, "transl_noise_height": args.transl_noise,
-                               "param_error_before": before, "variants": rows}, indent=2) + "\n")
+    out.write_text(
+        json.dumps(
+            {
+                "machine": machine_info(),
+                "preset": args.preset,
+                "iterations": preset.iterations,
+                "pose_noise_rad": args.pose_noise,
+                "transl_noise_height": args.transl_noise,
+                "param_error_before": before,
+                "variants": rows,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
     print(f"saved {out}")
 
 

@@ -2,6 +2,7 @@
 
 Usage: python bench/project.py [--quick] [--out bench/results/project-<host>.json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -13,11 +14,10 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _machine import machine_info, results_path  # noqa: E402
-from walk import bench_mesh  # noqa: E402
-
-from meshsplat.embedding import embed, project_to_surface, sample_surface  # noqa: E402
-from meshsplat.mesh import MeshPose  # noqa: E402
+from _machine import machine_info, results_path
+from meshsplat.embedding import embed, project_to_surface, sample_surface
+from meshsplat.mesh import MeshPose
+from walk import bench_mesh
 
 
 def main() -> None:
@@ -40,19 +40,32 @@ def main() -> None:
         dt = time.perf_counter() - t0
         x2, _ = embed(pose, f2, uv2, d2)
         err = (x2 - x).norm(dim=1) / diag
-        rows.append({"k": k, "n_starts": n_starts, "n": n, "faces": mesh.num_faces, "seconds": dt,
-                     "points_per_s": n / dt, "frac_err_below_1e-4_diag": float((err < 1e-4).float().mean()),
-                     "median_rel_err": float(err.median()), "max_rel_err": float(err.max()),
-                     "nan": bool(torch.isnan(err).any())})
+        rows.append(
+            {
+                "k": k,
+                "n_starts": n_starts,
+                "n": n,
+                "faces": mesh.num_faces,
+                "seconds": dt,
+                "points_per_s": n / dt,
+                "frac_err_below_1e-4_diag": float((err < 1e-4).float().mean()),
+                "median_rel_err": float(err.median()),
+                "max_rel_err": float(err.max()),
+                "nan": bool(torch.isnan(err).any()),
+            }
+        )
     print(f"project_to_surface: N={n}, F={mesh.num_faces}")
     print(f"{'k':>3} {'starts':>6} {'seconds':>8} {'kpts/s':>8} {'<1e-4 diag':>11} {'median err':>11}")
     for r in rows:
-        print(f"{r['k']:3d} {r['n_starts']:6d} {r['seconds']:8.2f} {r['points_per_s'] / 1e3:8.1f} "
-              f"{r['frac_err_below_1e-4_diag']:11.4f} {r['median_rel_err']:11.2e}")
+        print(
+            f"{r['k']:3d} {r['n_starts']:6d} {r['seconds']:8.2f} {r['points_per_s'] / 1e3:8.1f} "
+            f"{r['frac_err_below_1e-4_diag']:11.4f} {r['median_rel_err']:11.2e}"
+        )
     out = Path(args.out) if args.out else results_path("project")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"bench": "project", "quick": args.quick, "machine": machine_info(), "rows": rows},
-                              indent=2))
+    out.write_text(
+        json.dumps({"bench": "project", "quick": args.quick, "machine": machine_info(), "rows": rows}, indent=2)
+    )
     print(f"saved {out}")
 
 

@@ -28,6 +28,7 @@ all but ``default`` start from the ``paper`` preset):
 Prints full-image and subject (inside the mask) PSNR / SSIM / LPIPS per test split and saves
 bench/results/<name>-<host>.json after every variant (a rerun resumes finished variants' runs).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -69,9 +70,18 @@ def _dataset(args, preset, work: Path) -> Path:
 
     data = work / "data"
     if not (data / "manifest.json").exists():
-        generate(asset(f"gltf/{args.asset}.glb"), data, rig="monocular-turn", frames=preset.frames,
-                 resolution=preset.resolution, test_views=preset.test_views, driver_smooth=5,
-                 clip=args.clip, test_clips=args.test_clips, overwrite=True)
+        generate(
+            asset(f"gltf/{args.asset}.glb"),
+            data,
+            rig="monocular-turn",
+            frames=preset.frames,
+            resolution=preset.resolution,
+            test_views=preset.test_views,
+            driver_smooth=5,
+            clip=args.clip,
+            test_clips=args.test_clips,
+            overwrite=True,
+        )
     return data
 
 
@@ -85,8 +95,9 @@ def main() -> None:
     ap.add_argument("--clip", default=None, help="training clip (RobotExpressive: Walking)")
     ap.add_argument("--test-clips", nargs="*", default=None, help="novel-pose clips (split test_clip)")
     ap.add_argument("--work", default=None, help="scratch folder (dataset + runs)")
-    ap.add_argument("--variants", nargs="*", default=["paper", "no_walk", "frozen", "shading", "default"],
-                    choices=list(VARIANTS))
+    ap.add_argument(
+        "--variants", nargs="*", default=["paper", "no_walk", "frozen", "shading", "default"], choices=list(VARIANTS)
+    )
     ap.add_argument("--set", nargs="*", default=[], help="extra TrainConfig overrides for every variant")
     ap.add_argument("--name", default="quality", help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 on a shared machine)")
@@ -122,27 +133,50 @@ def main() -> None:
         train_s = time.perf_counter() - t0
         cpu_s = time.process_time() - c0
         m = evaluate_run(work / name, report=True)
-        rows[name] = {"train_s": train_s, "train_cpu_s": cpu_s, "gaussians": trainer.num_gaussians,
-                      "preset": train_preset, "overrides": overrides + args.set,
-                      "walked_total": getattr(trainer, "walked_total", None),
-                      "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()}}
+        rows[name] = {
+            "train_s": train_s,
+            "train_cpu_s": cpu_s,
+            "gaussians": trainer.num_gaussians,
+            "preset": train_preset,
+            "overrides": overrides + args.set,
+            "walked_total": getattr(trainer, "walked_total", None),
+            "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
+        }
         print(f"[{name}] trained in {train_s:.0f} s", flush=True)
-        out.write_text(json.dumps({"machine": machine_info(), "preset": args.preset, "asset": args.asset,
-                                   "clip": args.clip, "test_clips": args.test_clips, "data": str(data),
-                                   "iterations": preset.iterations, "resolution": preset.resolution,
-                                   "frames": preset.frames, "variants": rows}, indent=2) + "\n")
+        out.write_text(
+            json.dumps(
+                {
+                    "machine": machine_info(),
+                    "preset": args.preset,
+                    "asset": args.asset,
+                    "clip": args.clip,
+                    "test_clips": args.test_clips,
+                    "data": str(data),
+                    "iterations": preset.iterations,
+                    "resolution": preset.resolution,
+                    "frames": preset.frames,
+                    "variants": rows,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
 
     splits = sorted({s for r in rows.values() for s in r["splits"]})
     fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(f"\n{args.asset}, {preset.iterations} iterations, {preset.resolution}px; full image | inside the mask")
-    print(f"{'variant':<14}{'split':<12}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7} |{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}"
-          f"{'N':>7}{'train s':>8}")
+    print(
+        f"{'variant':<14}{'split':<12}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7} |{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}"
+        f"{'N':>7}{'train s':>8}"
+    )
     for name, r in rows.items():
         for s in splits:
             m = r["splits"].get(s, {})
-            print(f"{name:<14}{s:<12}{fmt(m.get('psnr'), 2):>7}{fmt(m.get('ssim'), 3):>7}{fmt(m.get('lpips'), 3):>7} |"
-                  f"{fmt(m.get('psnr_mask'), 2):>7}{fmt(m.get('ssim_mask'), 3):>7}{fmt(m.get('lpips_mask'), 3):>7}"
-                  f"{r['gaussians']:>7}{r['train_s']:>8.0f}")
+            print(
+                f"{name:<14}{s:<12}{fmt(m.get('psnr'), 2):>7}{fmt(m.get('ssim'), 3):>7}{fmt(m.get('lpips'), 3):>7} |"
+                f"{fmt(m.get('psnr_mask'), 2):>7}{fmt(m.get('ssim_mask'), 3):>7}{fmt(m.get('lpips_mask'), 3):>7}"
+                f"{r['gaussians']:>7}{r['train_s']:>8.0f}"
+            )
     print(f"saved {out}")
 
 

@@ -11,6 +11,7 @@ torch imported), i.e. the extra resident memory the renderer needed.
 
     python bench/raster.py [--quick] [--threads N] [--out PATH]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,7 +45,6 @@ def run_case(n: int, size: int, repeats: int, mode: str) -> dict:
 
     sys.path.insert(0, str(HERE))
     from _raster_scenes import avatar_scene
-
     from meshsplat.render import rasterize
     from meshsplat.render.backends._dense_reference import rasterize_dense
 
@@ -76,8 +76,11 @@ def run_case(n: int, size: int, repeats: int, mode: str) -> dict:
             times.append(time.perf_counter() - t0)
             bwd.append(tb)
     return {
-        "gaussians": n, "size": size, "mode": mode,
-        "fwd_bwd_s": statistics.median(times), "bwd_s": statistics.median(bwd),
+        "gaussians": n,
+        "size": size,
+        "mode": mode,
+        "fwd_bwd_s": statistics.median(times),
+        "bwd_s": statistics.median(bwd),
         "peak_extra_mib": max(0.0, _maxrss_mib() - base_rss),
         "pairs": int(info.get("n_pairs", 0)),
         "visible": int(info["visible"].sum()) if "visible" in info else None,
@@ -123,8 +126,10 @@ def main(argv=None) -> int:
         tgt = TARGETS.get((r["gaussians"], r["size"])) if r["mode"] == "custom" else None
         ok = "" if tgt is None else ("ok" if r["fwd_bwd_s"] < tgt[0] and r["peak_extra_mib"] < tgt[1] else "MISSED")
         tgt_s = "" if tgt is None else f"<{tgt[0]}s <{tgt[1]}MiB {ok}"
-        print(f"{r['gaussians']:>7}@{r['size']:<6} {r['mode']:>9} {r['fwd_bwd_s']:>10.3f} {r['bwd_s']:>8.3f} "
-              f"{r['peak_extra_mib']:>9.0f} {r['pairs']:>9} {r['coverage']:>6.2f}  {tgt_s}")
+        print(
+            f"{r['gaussians']:>7}@{r['size']:<6} {r['mode']:>9} {r['fwd_bwd_s']:>10.3f} {r['bwd_s']:>8.3f} "
+            f"{r['peak_extra_mib']:>9.0f} {r['pairs']:>9} {r['coverage']:>6.2f}  {tgt_s}"
+        )
     fast_small = next(r for r in rows if r["mode"] == "custom" and r["size"] == CASES[0][1])
     ratio = dense["fwd_bwd_s"] / fast_small["fwd_bwd_s"]
     print(f"dense reference / torch backend on {CASES[0][0]}@{CASES[0][1]}: {ratio:.0f}x slower")
@@ -132,8 +137,10 @@ def main(argv=None) -> int:
         auto = [r for r in rows if r["mode"] == "autograd" and r["size"] == s]
         cust = [r for r in rows if r["mode"] == "custom" and r["size"] == s]
         if auto and cust:
-            print(f"autograd backward / custom backward at {n}@{s}: "
-                  f"{auto[0]['bwd_s'] / cust[0]['bwd_s']:.2f}x (fwd+bwd {auto[0]['fwd_bwd_s'] / cust[0]['fwd_bwd_s']:.2f}x)")
+            print(
+                f"autograd backward / custom backward at {n}@{s}: "
+                f"{auto[0]['bwd_s'] / cust[0]['bwd_s']:.2f}x (fwd+bwd {auto[0]['fwd_bwd_s'] / cust[0]['fwd_bwd_s']:.2f}x)"
+            )
 
     sys.path.insert(0, str(HERE))
     from _machine import machine_info  # shared by the bench scripts
@@ -141,9 +148,18 @@ def main(argv=None) -> int:
     info = machine_info()
     out = args.out or HERE / "results" / f"raster-{info['hostname']}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": info, "quick": args.quick, "dense_ratio": ratio,
-                               "memory_method": "ru_maxrss delta in a fresh subprocess per case",
-                               "results": rows}, indent=2))
+    out.write_text(
+        json.dumps(
+            {
+                "machine": info,
+                "quick": args.quick,
+                "dense_ratio": ratio,
+                "memory_method": "ru_maxrss delta in a fresh subprocess per case",
+                "results": rows,
+            },
+            indent=2,
+        )
+    )
     print(f"saved {out}")
     return 0
 

@@ -5,6 +5,7 @@ Right: the benchmark's avatar-like scene (2k Gaussians) and its expected depth.
 
     python bench/raster_scene.py [--out bench/results/raster_scene.png]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,7 +20,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _raster_scenes import avatar_scene, ring_scene  # noqa: E402
-
 from meshsplat.render import rasterize  # noqa: E402
 
 

@@ -6,6 +6,7 @@ Renders the newest checkpoint of each run on a few frames of each test split (wh
 crops the mask's bounding box (padded) and scales it up by ``--zoom`` (nearest) so blotches and
 silhouettes are visible. Row labels give the subject PSNR (inside the mask) of each render.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,7 +36,7 @@ def main() -> None:
     rows = []
     for split in [s for s in ds.split_names if s != "train"]:
         ids = ds.split(split)
-        pick = [ids[int(round(x))] for x in np.linspace(0, len(ids) - 1, min(args.per_split, len(ids)))]
+        pick = [ids[round(x)] for x in np.linspace(0, len(ids) - 1, min(args.per_split, len(ids)))]
         for i in pick:
             fr = ds[i]
             m = fr.mask
@@ -54,7 +55,7 @@ def main() -> None:
     canvas = Image.new("RGB", (tw * (len(runs) + 1), th * len(rows)), "white")
     draw = ImageDraw.Draw(canvas)
     for r, (tiles, labels) in enumerate(rows):
-        for c, (t, lab) in enumerate(zip(tiles, labels)):
+        for c, (t, lab) in enumerate(zip(tiles, labels, strict=True)):
             arr = (t.numpy() * 255 + 0.5).astype(np.uint8).repeat(z, 0).repeat(z, 1)
             canvas.paste(Image.fromarray(arr), (c * tw, r * th + 14))
             draw.text((c * tw + 2, r * th), lab, fill="black")

@@ -3,6 +3,7 @@
 Default 100 training frames at 512x512 (goal < 60 s on a 2-core CPU); ``--quick``: 12 frames at 128.
 Results: bench/results/synth-<hostname>.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -11,8 +12,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _machine import machine_info, results_path  # noqa: E402
-
+from _machine import machine_info, results_path
 from meshsplat.data import open_dataset
 from meshsplat.synth import generate
 
@@ -30,9 +30,17 @@ def main() -> int:
         out = generate("CesiumMan", Path(tmp) / "ds", frames=frames, resolution=res, test_frames=0, test_views=0)
         secs = time.perf_counter() - t0
         n = len(open_dataset(out, check_masks=False))
-    result = {"benchmark": "synth", "asset": "CesiumMan", "frames": n, "resolution": res, "seconds": round(secs, 2),
-              "seconds_per_frame": round(secs / n, 4), "goal_seconds_100_frames_512": 60,
-              "machine": machine_info(), "quick": bool(args.quick)}
+    result = {
+        "benchmark": "synth",
+        "asset": "CesiumMan",
+        "frames": n,
+        "resolution": res,
+        "seconds": round(secs, 2),
+        "seconds_per_frame": round(secs / n, 4),
+        "goal_seconds_100_frames_512": 60,
+        "machine": machine_info(),
+        "quick": bool(args.quick),
+    }
     print(f"synth: {n} frames of CesiumMan at {res}x{res} in {secs:.1f} s ({secs / n * 1000:.0f} ms/frame)")
     results_path("synth").write_text(json.dumps(result, indent=1))
     return 0

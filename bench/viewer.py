@@ -16,6 +16,7 @@ Old player, main thread per frame: poseGaussians + sortByDepth + packing 13 floa
 
 Usage: python bench/viewer.py [--quick] [--out bench/results/viewer-<host>.json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _machine import machine_info, results_path  # noqa: E402
 
+from _machine import machine_info, results_path
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import make_params
 from meshsplat.mesh import TriMesh
@@ -48,8 +49,12 @@ def old_bundle_module(tmp: Path):
     folder = tmp / "old_viewer"
     (folder / "static").mkdir(parents=True)
     for rel in ("bundle.py", "static/viewer.js", "static/index.html"):
-        src = subprocess.run(["git", "-C", str(ROOT), "show", f"{OLD_COMMIT}:src/meshsplat/viewer/{rel}"],
-                             check=True, capture_output=True, text=True).stdout
+        src = subprocess.run(
+            ["git", "-C", str(ROOT), "show", f"{OLD_COMMIT}:src/meshsplat/viewer/{rel}"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
         (folder / rel).write_text(src)
     spec = importlib.util.spec_from_file_location("old_viewer_bundle", folder / "bundle.py")
     mod = importlib.util.module_from_spec(spec)
@@ -69,9 +74,15 @@ def random_avatar(mesh: TriMesh, n: int, seed: int = 0) -> Avatar:
     s = math.sqrt(area.sum() / n)
     q = rng.normal(size=(n, 4))
     t = lambda x: torch.from_numpy(np.asarray(x, np.float32))  # noqa: E731
-    params = make_params(torch.from_numpy(face), t(uv), d=t(rng.normal(0, 0.2 * s, n)),
-                         log_scale=t(np.log(s * rng.uniform(0.3, 1.0, (n, 3)))), rotation=t(q),
-                         opacity_logit=t(rng.normal(1, 1, n)), sh0=t(rng.normal(0, 0.5, (n, 1, 3))))
+    params = make_params(
+        torch.from_numpy(face),
+        t(uv),
+        d=t(rng.normal(0, 0.2 * s, n)),
+        log_scale=t(np.log(s * rng.uniform(0.3, 1.0, (n, 3)))),
+        rotation=t(q),
+        opacity_logit=t(rng.normal(1, 1, n)),
+        sh0=t(rng.normal(0, 0.5, (n, 1, 3))),
+    )
     return Avatar(mesh, params)
 
 
@@ -82,8 +93,16 @@ def cesium(frames: int):
     glb = assets_dir() / "gltf" / "CesiumMan.glb"
     drv = GltfDriver(glb, fps=25)
     mesh = TriMesh(drv.rest_vertices(), drv.faces)
-    probe = Avatar(mesh, make_params(torch.zeros(1, dtype=torch.long), torch.full((1, 2), 0.3),
-                                     log_scale=torch.zeros(1, 3), opacity_logit=torch.zeros(1), sh0=torch.zeros(1, 1, 3)))
+    probe = Avatar(
+        mesh,
+        make_params(
+            torch.zeros(1, dtype=torch.long),
+            torch.full((1, 2), 0.3),
+            log_scale=torch.zeros(1, 3),
+            opacity_logit=torch.zeros(1),
+            sh0=torch.zeros(1, 1, 3),
+        ),
+    )
     seq = animate.gltf_animation(probe, glb, fps=25)
     return mesh, [seq[i % len(seq)] for i in range(frames)]
 
@@ -111,8 +130,13 @@ def sphere(frames: int):
 
 
 def node_bench(viewer_js: Path, bundle: Path, mode: str, frames: int) -> dict:
-    r = subprocess.run(["node", str(NODE_SCRIPT), str(viewer_js), str(bundle), mode, str(frames)],
-                       check=True, capture_output=True, text=True, timeout=3600)
+    r = subprocess.run(
+        ["node", str(NODE_SCRIPT), str(viewer_js), str(bundle), mode, str(frames)],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=3600,
+    )
     return json.loads(r.stdout)
 
 
@@ -140,46 +164,85 @@ def main() -> None:
                 write_viewer_bundle(av, frames, nb)
                 old.write_viewer_bundle(av, frames, ob)
                 if name == "CesiumMan" and n in (20_000, 100_000):
-                    sizes.append({"case": f"{name} 60 frames, {n // 1000}k Gaussians",
-                                  **{f"{k}_{f}": (d / f).stat().st_size for k, d in (("old", ob), ("new", nb))
-                                     for f in ("avatar.bin", "index.html")}})
+                    sizes.append(
+                        {
+                            "case": f"{name} 60 frames, {n // 1000}k Gaussians",
+                            **{
+                                f"{k}_{f}": (d / f).stat().st_size
+                                for k, d in (("old", ob), ("new", nb))
+                                for f in ("avatar.bin", "index.html")
+                            },
+                        }
+                    )
                 new = node_bench(new_js, nb, "new", timed)
                 prev = node_bench(old_js, ob, "old", max(3, timed // 4) if n >= 500_000 else timed)
-                rows.append({"mesh": name, "driver": "frames", "vertices": mesh.num_vertices, "gaussians": n,
-                             "new": new, "old": prev})
+                rows.append(
+                    {
+                        "mesh": name,
+                        "driver": "frames",
+                        "vertices": mesh.num_vertices,
+                        "gaussians": n,
+                        "new": new,
+                        "old": prev,
+                    }
+                )
                 if name == "CesiumMan":
                     lb = tmp / f"live-{n}"
                     write_viewer_bundle(av, None, lb, rig=live_rig(av))
                     if n in (20_000, 100_000):
                         sizes[-1].update({f"live_{f}": (lb / f).stat().st_size for f in ("avatar.bin", "index.html")})
-                    rows.append({"mesh": name, "driver": "live glTF", "vertices": mesh.num_vertices, "gaussians": n,
-                                 "new": node_bench(new_js, lb, "new", timed), "old": None})
+                    rows.append(
+                        {
+                            "mesh": name,
+                            "driver": "live glTF",
+                            "vertices": mesh.num_vertices,
+                            "gaussians": n,
+                            "new": node_bench(new_js, lb, "new", timed),
+                            "old": None,
+                        }
+                    )
                     shutil.rmtree(lb)
                 for r in rows[-2:] if name == "CesiumMan" else rows[-1:]:
                     o = r["old"]
-                    print(f"{name:10s} {r['driver']:9s} {n:>7,d} G: main old "
-                          f"{o['main_ms'] if o else float('nan'):8.2f} ms  new {r['new']['main_ms']:6.2f} ms | sort old "
-                          f"(main) {o['sort_ms'] if o else float('nan'):6.2f} ms  new (worker) {r['new']['sort_ms']:6.2f} ms",
-                          flush=True)
+                    print(
+                        f"{name:10s} {r['driver']:9s} {n:>7,d} G: main old "
+                        f"{o['main_ms'] if o else float('nan'):8.2f} ms  new {r['new']['main_ms']:6.2f} ms | sort old "
+                        f"(main) {o['sort_ms'] if o else float('nan'):6.2f} ms  new (worker) {r['new']['sort_ms']:6.2f} ms",
+                        flush=True,
+                    )
                 shutil.rmtree(nb)
                 shutil.rmtree(ob)
     ms = lambda r, k: f"{r[k]:.2f} ({r[k.replace('_ms', '_min_ms')]:.2f}) ms" if r else "n/a"  # noqa: E731
     print("\nmedian (min) over the timed frames")
-    print("\n| mesh (vertices) | driver | Gaussians | main thread / frame, old | new | sort, old (main thread) | new (worker) |")
+    print(
+        "\n| mesh (vertices) | driver | Gaussians | main thread / frame, old | new | sort, old (main thread) | new (worker) |"
+    )
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['mesh']} ({r['vertices']:,}) | {r['driver']} | {r['gaussians'] // 1000}k | {ms(r['old'], 'main_ms')} | "
-              f"**{ms(r['new'], 'main_ms')}** | {ms(r['old'], 'sort_ms')} | **{ms(r['new'], 'sort_ms')}** |")
+        print(
+            f"| {r['mesh']} ({r['vertices']:,}) | {r['driver']} | {r['gaussians'] // 1000}k | {ms(r['old'], 'main_ms')} | "
+            f"**{ms(r['new'], 'main_ms')}** | {ms(r['old'], 'sort_ms')} | **{ms(r['new'], 'sort_ms')}** |"
+        )
     print("\n| bundle | avatar.bin old | new | new, live glTF | index.html old | new | new, live glTF |")
     print("|---|---|---|---|---|---|---|")
     mb = lambda s, k: f"{s[k] / 1e6:.2f} MB" if k in s else "n/a"  # noqa: E731
     for s in sizes:
-        print(f"| {s['case']} | {mb(s, 'old_avatar.bin')} | {mb(s, 'new_avatar.bin')} | {mb(s, 'live_avatar.bin')} | "
-              f"{mb(s, 'old_index.html')} | {mb(s, 'new_index.html')} | {mb(s, 'live_index.html')} |")
+        print(
+            f"| {s['case']} | {mb(s, 'old_avatar.bin')} | {mb(s, 'new_avatar.bin')} | {mb(s, 'live_avatar.bin')} | "
+            f"{mb(s, 'old_index.html')} | {mb(s, 'new_index.html')} | {mb(s, 'live_index.html')} |"
+        )
     out = Path(args.out) if args.out else results_path("viewer" + ("-quick" if args.quick else ""))
-    out.write_text(json.dumps({"machine": machine_info(), "node": subprocess.run(
-        ["node", "--version"], capture_output=True, text=True).stdout.strip(), "rows": rows, "sizes": sizes},
-        indent=1))
+    out.write_text(
+        json.dumps(
+            {
+                "machine": machine_info(),
+                "node": subprocess.run(["node", "--version"], capture_output=True, text=True).stdout.strip(),
+                "rows": rows,
+                "sizes": sizes,
+            },
+            indent=1,
+        )
+    )
     print(f"saved {out}")
 
 

@@ -5,6 +5,7 @@ points of the same data, in the same run; the table shows points/s of both and t
 
 Usage: python bench/walk.py [--quick] [--out bench/results/walk-<host>.json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -16,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from _machine import machine_info, results_path  # noqa: E402
 
+from _machine import machine_info, results_path
 from meshsplat.embedding import WALK_MODES, sample_surface, walk_on_triangles
 from meshsplat.embedding._walk_reference import walk_on_triangles_reference
 from meshsplat.mesh import TriMesh
@@ -63,33 +64,54 @@ def main() -> None:
         for mode in WALK_MODES:
             for label, size in sizes.items():
                 step = (direction * size * torch.rand(n, 1, generator=gen)).to(dev)
-                res = walk_on_triangles(mesh, verts, f, u, step, mode=mode)          # warm-up
-                times = timed(lambda: walk_on_triangles(mesh, verts, f, u, step, mode=mode), repeats, dev)
+                res = walk_on_triangles(mesh, verts, f, u, step, mode=mode)  # warm-up
+                times = timed(lambda a=(mesh, verts, f, u, step), m=mode: walk_on_triangles(*a, mode=m), repeats, dev)
                 med = statistics.median(times)
-                row = {"device": dev.type, "mode": mode, "step": label, "step_size": size, "n": n,
-                       "faces": mesh.num_faces, "median_ms": med, "min_ms": min(times),
-                       "points_per_s": n / (med / 1e3), "changed_frac": float(res.changed.float().mean())}
+                row = {
+                    "device": dev.type,
+                    "mode": mode,
+                    "step": label,
+                    "step_size": size,
+                    "n": n,
+                    "faces": mesh.num_faces,
+                    "median_ms": med,
+                    "min_ms": min(times),
+                    "points_per_s": n / (med / 1e3),
+                    "changed_frac": float(res.changed.float().mean()),
+                }
                 if dev.type == "cpu":  # per-point Python reference on a subset, same points
                     args_ref = (mesh, verts, f[:n_ref], u[:n_ref], step[:n_ref])
-                    ref_times = timed(lambda: walk_on_triangles_reference(*args_ref, mode=mode), ref_repeats, dev)
+                    ref_times = timed(
+                        lambda a=args_ref, m=mode: walk_on_triangles_reference(*a, mode=m), ref_repeats, dev
+                    )
                     ref_med = statistics.median(ref_times)
                     row.update(ref_n=n_ref, ref_median_ms=ref_med, ref_points_per_s=n_ref / (ref_med / 1e3))
                     row["speedup_vs_ref"] = row["points_per_s"] / row["ref_points_per_s"]
                 rows.append(row)
-    print(f"walk_on_triangles: N={n}, F={mesh.num_faces}, repeats={repeats} (median); "
-          f"reference: N={n_ref}, repeats={ref_repeats}; torch threads={torch.get_num_threads()}, "
-          f"load avg {machine_info().get('load_avg_1m', float('nan')):.2f}")
-    print(f"{'device':6} {'mode':6} {'step':20} {'median ms':>10} {'Mpts/s':>8} {'changed':>8} "
-          f"{'ref kpts/s':>10} {'speed-up':>9}")
+    print(
+        f"walk_on_triangles: N={n}, F={mesh.num_faces}, repeats={repeats} (median); "
+        f"reference: N={n_ref}, repeats={ref_repeats}; torch threads={torch.get_num_threads()}, "
+        f"load avg {machine_info().get('load_avg_1m', float('nan')):.2f}"
+    )
+    print(
+        f"{'device':6} {'mode':6} {'step':20} {'median ms':>10} {'Mpts/s':>8} {'changed':>8} "
+        f"{'ref kpts/s':>10} {'speed-up':>9}"
+    )
     for r in rows:
-        ref = (f"{r['ref_points_per_s'] / 1e3:10.2f} {r['speedup_vs_ref']:8.0f}x" if "ref_points_per_s" in r
-               else f"{'-':>10} {'-':>9}")
-        print(f"{r['device']:6} {r['mode']:6} {r['step']:20} {r['median_ms']:10.2f} "
-              f"{r['points_per_s'] / 1e6:8.2f} {r['changed_frac']:8.3f} {ref}")
+        ref = (
+            f"{r['ref_points_per_s'] / 1e3:10.2f} {r['speedup_vs_ref']:8.0f}x"
+            if "ref_points_per_s" in r
+            else f"{'-':>10} {'-':>9}"
+        )
+        print(
+            f"{r['device']:6} {r['mode']:6} {r['step']:20} {r['median_ms']:10.2f} "
+            f"{r['points_per_s'] / 1e6:8.2f} {r['changed_frac']:8.3f} {ref}"
+        )
     out = Path(args.out) if args.out else results_path("walk")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"bench": "walk", "quick": args.quick, "machine": machine_info(), "rows": rows},
-                              indent=2))
+    out.write_text(
+        json.dumps({"bench": "walk", "quick": args.quick, "machine": machine_info(), "rows": rows}, indent=2)
+    )
     print(f"saved {out}")
 
 

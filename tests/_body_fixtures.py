@@ -1,4 +1,5 @@
 """Tiny hand-made SMPL / SMPL-X / FLAME model dicts in smplx's key layout (golden tests)."""
+
 from __future__ import annotations
 
 import pickle
@@ -32,8 +33,15 @@ def tiny_smpl() -> dict:
     jreg[np.arange(J), np.arange(J)] = 1
     shapedirs = np.zeros((V, 3, 10))
     shapedirs[L_ELBOW, 0, 0] = 0.5  # beta0 moves the elbow (vertex and regressed joint) along +x
-    return {"v_template": v, "f": np.array([[0, 16, 18], [16, 18, 24]], np.uint32), "shapedirs": shapedirs,
-            "posedirs": np.zeros((V, 3, 207)), "J_regressor": jreg, "weights": w, "kintree_table": _kintree(SMPL_PARENTS)}
+    return {
+        "v_template": v,
+        "f": np.array([[0, 16, 18], [16, 18, 24]], np.uint32),
+        "shapedirs": shapedirs,
+        "posedirs": np.zeros((V, 3, 207)),
+        "J_regressor": jreg,
+        "weights": w,
+        "kintree_table": _kintree(SMPL_PARENTS),
+    }
 
 
 def tiny_flame() -> dict:
@@ -51,9 +59,15 @@ def tiny_flame() -> dict:
     sd = np.zeros((V, 3, 400))
     sd[5, 2, 300] = 0.01  # expression 0 pushes the chin vertex forward by 1 cm
     sd[5, 1, 0] = 0.02  # beta 0 lifts it by 2 cm
-    return {"v_template": v, "f": np.array([[0, 1, 5], [1, 5, 6]], np.int64), "shapedirs": sd,
-            "posedirs": np.zeros((V, 3, 36)), "J_regressor": jreg, "weights": w,
-            "kintree_table": _kintree([-1, 0, 1, 1, 1])}
+    return {
+        "v_template": v,
+        "f": np.array([[0, 1, 5], [1, 5, 6]], np.int64),
+        "shapedirs": sd,
+        "posedirs": np.zeros((V, 3, 36)),
+        "J_regressor": jreg,
+        "weights": w,
+        "kintree_table": _kintree([-1, 0, 1, 1, 1]),
+    }
 
 
 def write_pickle(path, data):
@@ -65,15 +79,30 @@ def write_pickle(path, data):
 
 def tiny_smplx() -> dict:
     """55 joints (SMPL-X tree), one vertex per joint at x = joint index / 100, 10 shape + 10 expression."""
-    parents = SMPL_PARENTS[:22] + [15, 15, 15] + [20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38] + \
-        [21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53]
+    parents = (
+        SMPL_PARENTS[:22]
+        + [15, 15, 15]
+        + [20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38]
+        + [21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53]
+    )
     J = 55
     v = np.stack([np.arange(J) / 100, np.zeros(J), np.zeros(J)], 1)
     eye = np.eye(J)
-    return {"v_template": v, "f": np.array([[0, 1, 2]], np.int64), "shapedirs": np.zeros((J, 3, 20)),
-            "posedirs": np.zeros((J, 3, 486)), "J_regressor": eye, "weights": eye, "kintree_table": _kintree(parents),
-            "hands_componentsl": np.eye(45), "hands_componentsr": np.eye(45), "hands_meanl": np.zeros(45),
-            "hands_meanr": np.zeros(45), "lmk_faces_idx": np.zeros(51, np.int64), "lmk_bary_coords": np.ones((51, 3)) / 3}
+    return {
+        "v_template": v,
+        "f": np.array([[0, 1, 2]], np.int64),
+        "shapedirs": np.zeros((J, 3, 20)),
+        "posedirs": np.zeros((J, 3, 486)),
+        "J_regressor": eye,
+        "weights": eye,
+        "kintree_table": _kintree(parents),
+        "hands_componentsl": np.eye(45),
+        "hands_componentsr": np.eye(45),
+        "hands_meanl": np.zeros(45),
+        "hands_meanr": np.zeros(45),
+        "lmk_faces_idx": np.zeros(51, np.int64),
+        "lmk_bary_coords": np.ones((51, 3)) / 3,
+    }
 
 
 def write_tiny_models(root):

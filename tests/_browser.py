@@ -5,9 +5,11 @@ messages separated by NUL bytes on file descriptors 3 and 4), standard library o
 ``document.body.dataset.ready = "1"`` (the viewer does once the drawn depth order belongs to the
 drawn pose and view), and saves a PNG. Raises ``BrowserError`` with the page's error text on failure.
 """
+
 from __future__ import annotations
 
 import base64
+import contextlib
 import fcntl
 import json
 import os
@@ -19,9 +21,20 @@ from pathlib import Path
 
 __all__ = ["find_chromium", "screenshot", "BrowserError"]
 
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-         "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
-         "--disable-sync", "--hide-scrollbars", "--remote-debugging-pipe"]
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--remote-debugging-pipe",
+]
 
 
 class BrowserError(RuntimeError):
@@ -61,13 +74,14 @@ class _Pipe:
             self.events.append(reply)
 
 
-def screenshot(url: str, width: int, height: int, out_png: Path, chromium: str | None = None,
-               timeout: float = 120.0) -> Path:
+def screenshot(
+    url: str, width: int, height: int, out_png: Path, chromium: str | None = None, timeout: float = 120.0
+) -> Path:
     chromium = chromium or find_chromium()
     if chromium is None:
         raise BrowserError("chromium is not installed")
     profile = tempfile.mkdtemp(prefix="meshsplat-chromium-")
-    to_r, to_w = os.pipe()     # we write to_w, chromium reads fd 3
+    to_r, to_w = os.pipe()  # we write to_w, chromium reads fd 3
     from_r, from_w = os.pipe()  # chromium writes fd 4, we read from_r
 
     # copies above 9, so that placing them at 3 and 4 in the child cannot overwrite one another
@@ -77,20 +91,30 @@ def screenshot(url: str, width: int, height: int, out_png: Path, chromium: str |
         os.dup2(hi_r, 3)  # dup2 leaves the new descriptors inheritable
         os.dup2(hi_w, 4)
 
-    proc = subprocess.Popen([chromium, *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}"],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            preexec_fn=child_fds, close_fds=False)
+    proc = subprocess.Popen(
+        [chromium, *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        preexec_fn=child_fds,
+        close_fds=False,
+    )
     for fd in (to_r, from_w, hi_r, hi_w):
         os.close(fd)
     pipe = _Pipe(proc, to_w, from_r)
     try:
         target = pipe.call("Target.createTarget", {"url": "about:blank"})["targetId"]
         session = pipe.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        pipe.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
-                                                         "mobile": False}, session)
+        pipe.call(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+            session,
+        )
         pipe.call("Page.navigate", {"url": url}, session)
-        probe = ("JSON.stringify([document.body ? document.body.dataset.ready || '' : '', "
-                 "(document.getElementById('error') || {}).textContent || ''])")
+        probe = (
+            "JSON.stringify([document.body ? document.body.dataset.ready || '' : '', "
+            "(document.getElementById('error') || {}).textContent || ''])"
+        )
         deadline = time.monotonic() + timeout
         while True:
             res = pipe.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)
@@ -107,9 +131,8 @@ def screenshot(url: str, width: int, height: int, out_png: Path, chromium: str |
         out_png.write_bytes(base64.b64decode(shot["data"]))
         return out_png
     finally:
-        try:
+        with contextlib.suppress(BrowserError):
             pipe.call("Browser.close", timeout=5)
-        except BrowserError:
             pass
         os.close(to_w)
         os.close(from_r)

@@ -4,6 +4,7 @@ A striped, spotted caterpillar about 60 cm long, z-up, in centimetres: a tube al
 caps, a texture on a UV layout with a seam (duplicated vertices, as exported meshes have), and two
 clips: ``crawl`` (a travelling body wave, the head lifting) and ``idle`` (slow breathing).
 """
+
 from __future__ import annotations
 
 import math
@@ -50,8 +51,12 @@ def creature_rest(rings: int = 20, segments: int = 14) -> tuple[np.ndarray, np.n
         for j in range(segments):
             a, b = ring(i, j), ring(i, j + 1)
             faces.append([pole, b, a] if sign < 0 else [pole, a, b])
-    return (np.asarray(verts, np.float32), np.asarray(faces, np.int64), np.asarray(uvs, np.float32),
-            np.asarray(axial, np.float32))
+    return (
+        np.asarray(verts, np.float32),
+        np.asarray(faces, np.int64),
+        np.asarray(uvs, np.float32),
+        np.asarray(axial, np.float32),
+    )
 
 
 def creature_frames(frames_per_clip: int = 32, fps: float = 24.0, **mesh) -> dict:
@@ -74,10 +79,17 @@ def creature_frames(frames_per_clip: int = 32, fps: float = 24.0, **mesh) -> dic
         v[:, 1:] = (v[:, 1:] - [0.0, 6.5]) * s + [0.0, 6.5]
         out.append(v)
     n = frames_per_clip
-    return {"faces": faces, "vertices": np.stack(out).astype(np.float32), "uvs": uvs, "texture": _texture(),
-            "fps": np.float32(fps), "up": np.str_("z"),
-            "attribution": np.str_("procedural caterpillar (meshsplat tests, CC0)"),
-            "clip_names": np.array(["crawl", "idle"]), "clip_ranges": np.array([[0, n - 1], [n, 2 * n - 1]])}
+    return {
+        "faces": faces,
+        "vertices": np.stack(out).astype(np.float32),
+        "uvs": uvs,
+        "texture": _texture(),
+        "fps": np.float32(fps),
+        "up": np.str_("z"),
+        "attribution": np.str_("procedural caterpillar (meshsplat tests, CC0)"),
+        "clip_names": np.array(["crawl", "idle"]),
+        "clip_ranges": np.array([[0, n - 1], [n, 2 * n - 1]]),
+    }
 
 
 def write_creature_npz(path, **kw) -> Path:

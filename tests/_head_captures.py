@@ -6,6 +6,7 @@ its own joint), so joint positions are readable from the posed mesh. Surface ver
 (root), 12/13 eyes. ``flame2023.pkl`` is the same model shifted by +1 cm in x, so using the wrong
 FLAME version moves every vertex.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,12 +21,38 @@ from meshsplat.data.writer import DatasetWriter
 from meshsplat.drivers.body_models import BodyModel, driver_record
 
 JOINTS = np.array([[0, -0.08, -0.02], [0, -0.06, -0.02], [0, -0.02, 0.0], [0.03, 0.03, 0.04], [-0.03, 0.03, 0.04]])
-SURFACE = np.array([[0, 0.07, 0.06], [0.06, 0.0, 0.04], [-0.06, 0.0, 0.04], [0, -0.06, 0.07], [0, -0.035, 0.08],
-                    [0, 0.02, -0.08], [0, -0.1, -0.02], [0.03, 0.03, 0.06], [-0.03, 0.03, 0.06]])
+SURFACE = np.array(
+    [
+        [0, 0.07, 0.06],
+        [0.06, 0.0, 0.04],
+        [-0.06, 0.0, 0.04],
+        [0, -0.06, 0.07],
+        [0, -0.035, 0.08],
+        [0, 0.02, -0.08],
+        [0, -0.1, -0.02],
+        [0.03, 0.03, 0.06],
+        [-0.03, 0.03, 0.06],
+    ]
+)
 SKIN = [1, 1, 1, 2, 2, 1, 0, 3, 4]  # joint of each surface vertex 5..13
 JAW_VERTS = {2, 8, 9}  # jaw joint vertex + chin + lower lip
-FACES = np.array([[5, 6, 7], [6, 8, 7], [8, 9, 6], [5, 10, 6], [5, 7, 10], [11, 6, 7], [12, 5, 6], [13, 7, 5],
-                  [0, 1, 11], [2, 8, 9], [3, 12, 5], [4, 13, 5]], np.int64)
+FACES = np.array(
+    [
+        [5, 6, 7],
+        [6, 8, 7],
+        [8, 9, 6],
+        [5, 10, 6],
+        [5, 7, 10],
+        [11, 6, 7],
+        [12, 5, 6],
+        [13, 7, 5],
+        [0, 1, 11],
+        [2, 8, 9],
+        [3, 12, 5],
+        [4, 13, 5],
+    ],
+    np.int64,
+)
 V = len(JOINTS) + len(SURFACE)
 SHIFT_2023 = np.array([0.01, 0.0, 0.0])
 
@@ -43,8 +70,15 @@ def tiny_flame(shift=(0.0, 0.0, 0.0)) -> dict:
     sd[8, 2, 300] = 0.01  # expression 0 pushes the chin forward
     sd[9, 1, 399] = -0.01  # expression 99 lowers the lip
     kt = np.stack([np.array([4294967295, 0, 1, 1, 1], np.int64), np.arange(5)])
-    return {"v_template": v, "f": FACES, "shapedirs": sd, "posedirs": np.zeros((V, 3, 36)),
-            "J_regressor": jreg, "weights": w, "kintree_table": kt}
+    return {
+        "v_template": v,
+        "f": FACES,
+        "shapedirs": sd,
+        "posedirs": np.zeros((V, 3, 36)),
+        "J_regressor": jreg,
+        "weights": w,
+        "kintree_table": kt,
+    }
 
 
 def write_tiny_flame(model_dir: Path) -> Path:
@@ -86,10 +120,22 @@ def random_params(T: int, seed: int = 0, transl: bool = True, betas: int = 300, 
     return p
 
 
-def native_flame_dataset(out: Path, model_dir: Path, rows: int = 4, views: int = 2, scale: float = 1.0,
-                         flame_version: str = "2020", transl: bool = True, masks: bool = True, size=(12, 10),
-                         static_offset: bool = False, shared_K: bool = True, seed: int = 0, n_betas: int = 300,
-                         n_expr: int = 100) -> Path:
+def native_flame_dataset(
+    out: Path,
+    model_dir: Path,
+    rows: int = 4,
+    views: int = 2,
+    scale: float = 1.0,
+    flame_version: str = "2020",
+    transl: bool = True,
+    masks: bool = True,
+    size=(12, 10),
+    static_offset: bool = False,
+    shared_K: bool = True,
+    seed: int = 0,
+    n_betas: int = 300,
+    n_expr: int = 100,
+) -> Path:
     """A native dataset: ``rows`` FLAME poses seen by ``views`` cameras on an arc in front of the face,
     tiny random images/masks, splits train (all but the last row), test_frames (last row, camera 0),
     test_views (the last camera on training rows, when views > 1)."""

@@ -1,4 +1,5 @@
 """Small meshes shared by tests."""
+
 from __future__ import annotations
 
 import torch

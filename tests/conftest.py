@@ -1,4 +1,5 @@
 """Shared fixtures. Real assets are the bundled package data (meshsplat/assets)."""
+
 from __future__ import annotations
 
 import os
@@ -14,8 +15,13 @@ try:
     from hypothesis import HealthCheck, settings
 
     # under CI (CI=true) the examples are derandomized so a run is reproducible; locally they vary
-    settings.register_profile("ci", deadline=None, max_examples=40, derandomize=bool(os.environ.get("CI")),
-                              suppress_health_check=[HealthCheck.too_slow])
+    settings.register_profile(
+        "ci",
+        deadline=None,
+        max_examples=40,
+        derandomize=bool(os.environ.get("CI")),
+        suppress_health_check=[HealthCheck.too_slow],
+    )
     settings.register_profile("thorough", deadline=None, max_examples=500)
     settings.load_profile(os.environ["HYPOTHESIS_PROFILE"])
 except ImportError:  # pragma: no cover

@@ -1,4 +1,5 @@
 """Barycentric helpers (meshsplat.embedding.barycentric) and background compositing (meshsplat.render)."""
+
 import pytest
 import torch
 
@@ -34,7 +35,7 @@ def test_surface_points_hit_corners_and_match_embed_at_zero_offset():
 
 
 def test_interpolate_is_linear_in_values():
-    verts, faces = _mesh()
+    _verts, faces = _mesh()
     face = torch.randint(0, 40, (25,))
     w = barycentric_weights(torch.rand(25, 2, dtype=torch.float64) * 0.5)
     a, b = torch.randn(30, 4, dtype=torch.float64), torch.randn(30, 4, dtype=torch.float64)

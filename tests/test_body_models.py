@@ -1,4 +1,5 @@
 """BodyModel (SMPL / SMPL-X / FLAME over smplx LBS): golden hand-made models, file lookup, params files."""
+
 from __future__ import annotations
 
 import math
@@ -9,8 +10,8 @@ import types
 import numpy as np
 import pytest
 import torch
-from _body_fixtures import tiny_flame, tiny_smpl, write_pickle
 
+from _body_fixtures import tiny_flame, tiny_smpl, write_pickle
 from meshsplat.drivers.body_models import (
     REGISTER_SITES,
     BodyModel,
@@ -43,7 +44,7 @@ def _rz(deg):
 
 def _body_pose(joint, aa):
     bp = torch.zeros(1, 69)
-    bp[0, (joint - 1) * 3:(joint - 1) * 3 + 3] = torch.tensor(aa)
+    bp[0, (joint - 1) * 3 : (joint - 1) * 3 + 3] = torch.tensor(aa)
     return bp
 
 
@@ -152,8 +153,12 @@ def test_batched_equals_per_frame(tiny_dir):
 
 def test_check_params_lists_every_problem(tiny_dir):
     m = BodyModel("smpl", tiny_dir)
-    bad = {"body_pose": np.zeros((3, 63)), "transl": np.full((4, 3), np.nan), "jaw_pose": np.zeros((3, 3)),
-           "betas": np.zeros(11)}
+    bad = {
+        "body_pose": np.zeros((3, 63)),
+        "transl": np.full((4, 3), np.nan),
+        "jaw_pose": np.zeros((3, 3)),
+        "betas": np.zeros(11),
+    }
     with pytest.raises(MeshsplatError) as e:
         m.check_params(bad)
     msg = str(e.value)
@@ -171,13 +176,13 @@ def test_missing_file_error_names_file_dirs_and_site(tmp_path):
             BodyModel(kind, tmp_path, gender="male")
         msg = str(e.value)
         assert "\n" not in msg and name in msg and str(tmp_path / kind) in msg and REGISTER_SITES[kind] in msg
-    with pytest.raises(MeshsplatError, match="flame2023.pkl.*flame.is.tue.mpg.de"):
+    with pytest.raises(MeshsplatError, match=r"flame2023.pkl.*flame.is.tue.mpg.de"):
         find_model_file("flame", tmp_path, flame_version="2023")
 
 
 def test_model_dir_resolution(tmp_path, monkeypatch):
     monkeypatch.delenv("MESHSPLAT_MODEL_DIR", raising=False)
-    with pytest.raises(MeshsplatError, match="--model-dir.*MESHSPLAT_MODEL_DIR"):
+    with pytest.raises(MeshsplatError, match=r"--model-dir.*MESHSPLAT_MODEL_DIR"):
         resolve_model_dir(None)
     with pytest.raises(MeshsplatError, match="does not exist"):
         resolve_model_dir(tmp_path / "nope")
@@ -200,7 +205,7 @@ def test_unreadable_and_wrong_files(tmp_path):
     p = tmp_path / "smpl" / "SMPL_NEUTRAL.pkl"
     p.parent.mkdir()
     p.write_bytes(b"not a pickle")
-    with pytest.raises(MeshsplatError, match="cannot read the model file.*smpl.is.tue.mpg.de"):
+    with pytest.raises(MeshsplatError, match=r"cannot read the model file.*smpl.is.tue.mpg.de"):
         BodyModel("smpl", tmp_path)
     d = tiny_smpl()
     d["posedirs"] = np.zeros((26, 3, 36))
@@ -244,10 +249,15 @@ def test_params_roundtrip_and_record(tiny_dir, tmp_path):
     p = save_driver_params(tmp_path / "driver_params.npz", params)
     back = load_driver_params(p)
     assert set(back) == set(params) and back["body_pose"].shape == (3, 69) and back["betas"].dtype == np.float32
-    assert driver_record(m) == {"type": "smpl", "gender": "neutral", "flame_version": "2020", "scale": 2.0,
-                                "params": "driver_params.npz"}
+    assert driver_record(m) == {
+        "type": "smpl",
+        "gender": "neutral",
+        "flame_version": "2020",
+        "scale": 2.0,
+        "params": "driver_params.npz",
+    }
     np.savez(tmp_path / "bad.npz", body_pose=np.zeros((3, 69)), names=np.array([{"a": 1}], dtype=object))
-    with pytest.raises(MeshsplatError, match="bad.npz"):
+    with pytest.raises(MeshsplatError, match=r"bad.npz"):
         load_driver_params(tmp_path / "bad.npz")
     with pytest.raises(MeshsplatError, match="unknown key"):
         save_driver_params(tmp_path / "x.npz", {"pose": np.zeros(3)})
@@ -265,8 +275,10 @@ STANDIN = {  # kind: (V, J, posedirs P, shapedirs S, faces or None)
 def test_standin_files_load_in_smplx_and_match(standin_model_dir, kind):
     smplx = pytest.importorskip("smplx")
     V, J, P, S, F = STANDIN[kind]
-    kw = {"smplx": dict(use_pca=False, flat_hand_mean=True, num_expression_coeffs=10),
-          "flame": dict(num_betas=300, num_expression_coeffs=100)}.get(kind, {})
+    kw = {
+        "smplx": dict(use_pca=False, flat_hand_mean=True, num_expression_coeffs=10),
+        "flame": dict(num_betas=300, num_expression_coeffs=100),
+    }.get(kind, {})
     ref = smplx.create(str(standin_model_dir), model_type=kind, gender="neutral", **kw)
     assert ref.v_template.shape == (V, 3) and ref.posedirs.shape == (P, 3 * V) and ref.J_regressor.shape == (J, V)
     bm = BodyModel(kind, standin_model_dir)

@@ -1,4 +1,5 @@
 """Golden cases for every camera convention meshsplat converts from (hand-computed pixels)."""
+
 from __future__ import annotations
 
 import math

@@ -1,6 +1,7 @@
 """Every capture layout end to end through the CLI, on stand-in SMPL/FLAME models:
 synth in layout X -> train (tiny) -> eval -> render with a new motion, and the same capture trained
 natively reaches the same metrics (the readers' conventions match the writers')."""
+
 from __future__ import annotations
 
 import json
@@ -13,9 +14,29 @@ from meshsplat.cli.main import main
 
 # The paper preset: the tolerances below were set on it. With the quality preset's 8-frame colour init,
 # IMavatar trails native by 1.1 dB PSNR (17.42 vs 16.28; 0.6 dB with init_color_frames=1): open question.
-TINY = ["--iters", "30", "--no-progress", "--preset", "paper", "--set", "model.n_init=800", "--set", "strategy.refine_start_iter=10",
-        "--set", "strategy.refine_stop_iter=25", "--set", "strategy.refine_every=10", "--set", "walk.every=10",
-        "--set", "loss.lambda_lpips=0", "--set", "preview_every=1000", "--set", "checkpoint_every=1000"]
+TINY = [
+    "--iters",
+    "30",
+    "--no-progress",
+    "--preset",
+    "paper",
+    "--set",
+    "model.n_init=800",
+    "--set",
+    "strategy.refine_start_iter=10",
+    "--set",
+    "strategy.refine_stop_iter=25",
+    "--set",
+    "strategy.refine_every=10",
+    "--set",
+    "walk.every=10",
+    "--set",
+    "loss.lambda_lpips=0",
+    "--set",
+    "preview_every=1000",
+    "--set",
+    "checkpoint_every=1000",
+]
 
 CASES = {  # layout -> (model, rig)
     "peoplesnapshot": ("smpl", "monocular-turn"),
@@ -32,8 +53,14 @@ def _flame_motion(path: Path) -> Path:
         pose = np.zeros(15)
         pose[1] = 0.2 * t  # global yaw
         pose[6] = 0.15 * t  # jaw open
-        frames.append({"file_path": f"./image/{t + 1}", "world_mat": np.eye(4)[:3].tolist(),
-                       "expression": np.full(50, 0.1 * t).tolist(), "pose": pose.tolist()})
+        frames.append(
+            {
+                "file_path": f"./image/{t + 1}",
+                "world_mat": np.eye(4)[:3].tolist(),
+                "expression": np.full(50, 0.1 * t).tolist(),
+                "pose": pose.tolist(),
+            }
+        )
     path.write_text(json.dumps({"intrinsics": [-1.5, 1.5, 0.5, 0.5], "shape_params": [0.5] * 100, "frames": frames}))
     return path
 
@@ -45,8 +72,29 @@ def test_layout_trains_evaluates_and_animates(tmp_path, standin_model_dir, asset
     native, data = tmp_path / "native", tmp_path / layout
     common = ["--model-dir", str(standin_model_dir)]
     views = ["--test-views", "0"] if rig == "monocular-turn" else ["--views", "3", "--test-views", "1"]
-    assert main(["synth", kind, "--out", str(data), "--format", layout, "--native-out", str(native), "--rig", rig,
-                 "--frames", "6", "--resolution", "48", *views, *common]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                kind,
+                "--out",
+                str(data),
+                "--format",
+                layout,
+                "--native-out",
+                str(native),
+                "--rig",
+                rig,
+                "--frames",
+                "6",
+                "--resolution",
+                "48",
+                *views,
+                *common,
+            ]
+        )
+        == 0
+    )
     metrics = {}
     for name, folder in (("native", native), (layout, data)):
         run = tmp_path / f"run_{name}"
@@ -63,8 +111,25 @@ def test_layout_trains_evaluates_and_animates(tmp_path, standin_model_dir, asset
 
     motion = (Path(assets) / "motion" / "aist_demo.npz") if kind == "smpl" else _flame_motion(tmp_path / "other.json")
     out = tmp_path / "anim"
-    assert main(["render", str(tmp_path / f"run_{layout}"), "--motion", str(motion), "--frames", "3",
-                 "--size", "48x48", "--no-mp4", "--no-progress", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(tmp_path / f"run_{layout}"),
+                "--motion",
+                str(motion),
+                "--frames",
+                "3",
+                "--size",
+                "48x48",
+                "--no-mp4",
+                "--no-progress",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     pngs = sorted((out / "frames").glob("*.png"))
     assert len(pngs) == 3
     from PIL import Image

@@ -1,4 +1,5 @@
 """cli/_options.py: the run and render options are declared once and mean the same in every command."""
+
 from __future__ import annotations
 
 import argparse

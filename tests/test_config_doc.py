@@ -1,4 +1,5 @@
 """docs/config.md lists every TrainConfig key with the code's type and default (it cannot go stale)."""
+
 from __future__ import annotations
 
 import json

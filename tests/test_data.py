@@ -1,4 +1,5 @@
 """Native dataset format: writer/loader round trip, lazy loading and one test per validation error."""
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,14 @@ def _make(root, n=3):
         for i in range(n):
             mask = np.zeros((H, W), np.uint8)
             mask[4:10, 5:15] = 255
-            w.add_frame(rng.random((H, W, 3)).astype(np.float32), "c0", vertices=VERTS + 0.1 * i, mask=mask,
-                        clip="walk", time=i / 10)
+            w.add_frame(
+                rng.random((H, W, 3)).astype(np.float32),
+                "c0",
+                vertices=VERTS + 0.1 * i,
+                mask=mask,
+                clip="walk",
+                time=i / 10,
+            )
         w.set_split("train", [0, 1])
         w.set_split("test_frames", [2])
     return root
@@ -57,7 +64,7 @@ def test_round_trip(ds_root):
     assert len(ds) == 3 and ds.split("train") == [0, 1] and "test_frames" in ds.split_names
     fr = ds[2]
     assert fr.image.shape == (H, W, 3) and fr.image.dtype == torch.float32
-    assert 0 <= float(fr.image.min()) and float(fr.image.max()) <= 1
+    assert float(fr.image.min()) >= 0 and float(fr.image.max()) <= 1
     assert fr.mask.shape == (H, W, 1) and float(fr.mask.sum()) == 60
     torch.testing.assert_close(fr.vertices, torch.from_numpy(VERTS + 0.2))
     cam = fr.camera
@@ -67,7 +74,7 @@ def test_round_trip(ds_root):
     same = ds.frame_camera(2)  # without decoding the image; a new object, equal values
     assert same is not cam and torch.equal(same.viewmat, cam.viewmat) and torch.equal(same.K, cam.K)
     assert (same.width, same.height) == (W, H) and torch.equal(ds.camera("c0").K, cam.K)
-    with pytest.raises(MeshsplatError, match="'nope' is not a camera of .*cameras: c0"):
+    with pytest.raises(MeshsplatError, match=r"'nope' is not a camera of .*cameras: c0"):
         ds.camera("nope")
     assert ds.faces.dtype == torch.long and ds.canonical_vertices.shape == (4, 3)
     assert ds[-1].name == fr.name
@@ -90,8 +97,13 @@ def test_images_load_lazily(ds_root, monkeypatch):
 
 def test_write_dataset_one_call(tmp_path):
     K, vm = _camera()
-    root = write_dataset(tmp_path / "w", VERTS, FACES, {"a": dict(K=K, viewmat=vm, width=W, height=H)},
-                         [dict(image=np.zeros((H, W, 3), np.uint8), camera_id="a", vertices=VERTS)])
+    root = write_dataset(
+        tmp_path / "w",
+        VERTS,
+        FACES,
+        {"a": dict(K=K, viewmat=vm, width=W, height=H)},
+        [dict(image=np.zeros((H, W, 3), np.uint8), camera_id="a", vertices=VERTS)],
+    )
     assert open_dataset(root).split("train") == [0]
 
 

@@ -1,4 +1,5 @@
 """End to end: the demo pipeline in its tiny preset (synth -> train -> eval -> render -> export)."""
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,14 @@ def test_tiny_demo_runs_end_to_end_and_learns(tmp_path, assets, capsys):
     header = log[0].split(",")
     psnr = [float(r.split(",")[header.index("psnr")]) for r in log[1:]]
     assert max(psnr[-3:]) > psnr[0] + 1.0, "training did not improve PSNR"
-    for rel in ("data/contact_sheet.png", "run/eval/report.html", "run/eval/metrics.json",
-                "export/avatar.ply", "export/embedding.json", "export/canonical_mesh.obj"):
+    for rel in (
+        "data/contact_sheet.png",
+        "run/eval/report.html",
+        "run/eval/metrics.json",
+        "export/avatar.ply",
+        "export/embedding.json",
+        "export/canonical_mesh.obj",
+    ):
         assert (out / rel).is_file(), rel
     assert any((out / "animation").rglob("*.png")) or (out / "animation" / "avatar_orbit.mp4").is_file()
     assert "PSNR" in capsys.readouterr().out

@@ -1,4 +1,5 @@
 """The README and docs: no links leave the repository, and every relative link resolves."""
+
 import re
 from pathlib import Path
 

@@ -8,11 +8,13 @@ usage synopsis (``[--rig a|b|c]``, ``...``) is checked once per alternative. An 
 no positional argument (``meshsplat train --set section.key=value``, ``meshsplat export --format``) is a
 reference to a command or flag: its subcommand and flags must exist and given choices be valid.
 """
+
 from __future__ import annotations
 
 import argparse
 import contextlib
 import io
+import itertools
 import re
 import shlex
 from dataclasses import dataclass
@@ -103,7 +105,7 @@ def _variants(words: list[str]) -> list[list[str]]:
     base = [w.split("|")[0] for w in words]
     out = [base]
     for i, w in enumerate(words):
-        out += [base[:i] + [alt] + base[i + 1:] for alt in w.split("|")[1:]]
+        out += [base[:i] + [alt] + base[i + 1 :] for alt in w.split("|")[1:]]
     return out
 
 
@@ -135,7 +137,7 @@ def _fill_placeholders(sub: argparse.ArgumentParser, args: list[str]) -> tuple[l
             continue
         if action.nargs == 0 or "=" in word:
             continue
-        many = action.nargs in ("+", "*") or isinstance(action.nargs, int) and action.nargs > 1
+        many = action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
         limit = action.nargs if isinstance(action.nargs, int) else (len(args) if many else 1)
         taken = 0
         while i < len(args) and taken < limit and not args[i].startswith("-"):
@@ -170,12 +172,19 @@ def check_command(cmd: DocCommand) -> list[str]:
         for variant in _variants(words[2:]):
             args, positionals = _fill_placeholders(sub, variant)
             if cmd.inline and positionals == 0:  # a reference to the command or its flags
-                problems += [f"{name}: unknown option {w}" for w in args
-                             if w.startswith("-") and w.split("=")[0] not in sub._option_string_actions]
-                for flag, value in zip(args, args[1:]):
+                problems += [
+                    f"{name}: unknown option {w}"
+                    for w in args
+                    if w.startswith("-") and w.split("=")[0] not in sub._option_string_actions
+                ]
+                for flag, value in itertools.pairwise(args):
                     action = sub._option_string_actions.get(flag)
-                    if action is not None and action.choices and not value.startswith("-") \
-                            and value not in action.choices:
+                    if (
+                        action is not None
+                        and action.choices
+                        and not value.startswith("-")
+                        and value not in action.choices
+                    ):
                         problems.append(f"{name} {flag}: invalid choice {value!r}")
                 continue
             ns, error = _parse_error(parser, [name, *args])
@@ -215,9 +224,11 @@ def test_checker_catches_what_fails():
         assert problems and expected in problems[0], (text, problems)
     assert check_command(DocCommand("x", "meshsplat export --frmat", True)) == ["export: unknown option --frmat"]
     assert check_command(DocCommand("x", "meshsplat synth --format NAME", True)) == []
-    assert check_command(DocCommand("x", "meshsplat synth A --out D [--rig monocular-turn|orbit|nope]", True)) \
-        and not check_command(DocCommand("x", "meshsplat synth A --out D [--rig orbit|multiview] [--threads N|auto]",
-                                         True))
+    assert check_command(
+        DocCommand("x", "meshsplat synth A --out D [--rig monocular-turn|orbit|nope]", True)
+    ) and not check_command(
+        DocCommand("x", "meshsplat synth A --out D [--rig orbit|multiview] [--threads N|auto]", True)
+    )
 
 
 @pytest.mark.parametrize("cmd", COMMANDS_IN_DOCS, ids=[c.where for c in COMMANDS_IN_DOCS])
@@ -227,8 +238,7 @@ def test_documented_command_parses(cmd):
 
 def test_commands_name_no_checkout_paths():
     """A user has the package, not this checkout: no command names a file outside the repository."""
-    outside = [f"{c.where}: {c.text}" for c in COMMANDS_IN_DOCS
-               if "../" in c.text]
+    outside = [f"{c.where}: {c.text}" for c in COMMANDS_IN_DOCS if "../" in c.text]
     assert not outside
 
 
@@ -244,8 +254,11 @@ README_SUBSTITUTIONS: dict[str, list[tuple[str, str]]] = {
     "view": [],
 }
 README_OUTPUTS = {
-    "synth": "data/cesium/manifest.json", "train": "runs/cesium/checkpoints/ckpt_00000004.pt",
-    "eval": "runs/cesium/eval/metrics.json", "render": "renders/frames", "export": "runs/cesium/export/avatar.ply",
+    "synth": "data/cesium/manifest.json",
+    "train": "runs/cesium/checkpoints/ckpt_00000004.pt",
+    "eval": "runs/cesium/eval/metrics.json",
+    "render": "renders/frames",
+    "export": "runs/cesium/export/avatar.ply",
     "view": "viewer/index.html",
 }
 
@@ -268,7 +281,7 @@ def readme_chain() -> list[str]:
 @pytest.mark.slow
 def test_readme_command_line_runs(tmp_path, monkeypatch, assets, capsys):
     monkeypatch.chdir(tmp_path)
-    for text, (name, output) in zip(readme_chain(), README_OUTPUTS.items()):
+    for text, (_name, output) in zip(readme_chain(), README_OUTPUTS.items(), strict=True):
         rc = main(shlex.split(text)[1:])
         err = capsys.readouterr().err
         assert rc == 0, f"{text}: exit {rc}: {err.strip().splitlines()[-1:] if err.strip() else ''}"

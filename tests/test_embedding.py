@@ -1,4 +1,5 @@
 """embed / pose_frame / sample_surface: geometry, pose rotation and scale, gradients."""
+
 from __future__ import annotations
 
 import math
@@ -38,7 +39,7 @@ def test_embed_on_surface_and_displacement():
     mu, n2 = embed(pose, face, uv, d)
     assert torch.allclose(mu, mu0 + d[:, None] * n) and torch.allclose(n, n2)
     assert torch.allclose(n.norm(dim=1), torch.ones(500, dtype=torch.float64))
-    assert bool(((n * mu0).sum(1) > 0.98 * mu0.norm(dim=1)).all())   # outward on a sphere
+    assert bool(((n * mu0).sum(1) > 0.98 * mu0.norm(dim=1)).all())  # outward on a sphere
 
 
 def test_rigid_pose_moves_and_rotates_points():
@@ -47,8 +48,8 @@ def test_rigid_pose_moves_and_rotates_points():
     pose0, pose = MeshPose.canonical(mesh), MeshPose.from_vertices(mesh, posed)
     face, uv = sample_surface(mesh.vertices, mesh.faces, 300)
     d = torch.randn(300, dtype=torch.float64) * 0.05
-    mu0, n0 = embed(pose0, face, uv, d)
-    mu, n = embed(pose, face, uv, d)
+    mu0, _n0 = embed(pose0, face, uv, d)
+    mu, _n = embed(pose, face, uv, d)
     assert torch.allclose(mu, mu0 @ r.T + torch.tensor([1.0, 2.0, 3.0], dtype=r.dtype), atol=1e-10)
     dq, s = pose_frame(pose, face, uv)
     aligned = torch.where((dq @ q)[:, None] < 0, -dq, dq)
@@ -94,7 +95,7 @@ def test_sample_surface_area_weighted_and_inside():
     # uniform inside a triangle: mean barycentric is (1/3, 1/3, 1/3), mass in the sub-triangle near a corner
     assert torch.allclose(w.mean(0), torch.full((3,), 1 / 3), atol=0.01)
     assert abs(float((w[:, 0] > 0.5).float().mean()) - 0.25) < 0.01
-    face2, uv2 = sample_surface(v, f, 100, generator=torch.Generator().manual_seed(1))
+    face2, _uv2 = sample_surface(v, f, 100, generator=torch.Generator().manual_seed(1))
     assert torch.equal(face2, face[:100])
 
 

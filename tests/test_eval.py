@@ -1,15 +1,16 @@
 """meshsplat eval: metrics on test splits, background compositing, report files, CLI."""
+
 from __future__ import annotations
 
 import json
 
 import pytest
-from test_eval_kit import make_avatar, make_dataset, make_run
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.eval import evaluate_avatar, evaluate_run
 from meshsplat.metrics import lpips_available
 from meshsplat.run_folder import load_run
+from test_eval_kit import make_avatar, make_dataset, make_run
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +23,7 @@ def setup(tmp_path_factory):
 
 
 def test_evaluate_run_scores_the_true_avatar_and_writes_report(setup):
-    av, ds, run = setup
+    av, _ds, run = setup
     m = evaluate_run(run, device="cpu")
     assert set(m["splits"]) == {"test_frames", "test_views"}  # every split but train
     assert m["iteration"] == 7 and m["n_gaussians"] == av.num_gaussians
@@ -57,7 +58,7 @@ def test_metrics_drop_for_a_wrong_avatar_and_background_is_consistent(setup):
 
 
 def test_evaluate_errors(setup, tmp_path):
-    av, ds, run = setup
+    av, ds, _run = setup
     from meshsplat.data import open_dataset
 
     d = open_dataset(ds)
@@ -84,10 +85,24 @@ def test_evaluate_errors(setup, tmp_path):
 def test_cli_eval(setup, tmp_path, capsys):
     from meshsplat.cli.main import main
 
-    _, ds, run = setup
+    _, _ds, run = setup
     out = tmp_path / "ev"
-    rc = main(["eval", str(run), "--out", str(out), "--splits", "test_views", "--max-frames", "1",
-               "--no-progress", "--no-lpips", "--background", "black"])
+    rc = main(
+        [
+            "eval",
+            str(run),
+            "--out",
+            str(out),
+            "--splits",
+            "test_views",
+            "--max-frames",
+            "1",
+            "--no-progress",
+            "--no-lpips",
+            "--background",
+            "black",
+        ]
+    )
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     assert list(m["splits"]) == ["test_views"] and m["background"] == "black"

@@ -3,6 +3,7 @@
 The dataset's ground truth is the avatar's own render (on black, with its alpha as the mask), so a
 correct evaluation of that avatar scores near-perfect metrics.
 """
+
 from __future__ import annotations
 
 import csv
@@ -29,8 +30,14 @@ def make_avatar(n: int = 300, sh_degree: int = 0, clamp_to_face: bool = False, s
     ico = trimesh.creation.icosphere(subdivisions=1)
     mesh = TriMesh(torch.tensor(ico.vertices, dtype=torch.float32), torch.tensor(ico.faces, dtype=torch.long))
     g = torch.Generator().manual_seed(seed)
-    p = init_params(mesh, n, sh_degree=sh_degree, init_opacity=0.6, generator=g,
-                    colors_fn=lambda f, uv: torch.rand(f.shape[0], 3, generator=g))
+    p = init_params(
+        mesh,
+        n,
+        sh_degree=sh_degree,
+        init_opacity=0.6,
+        generator=g,
+        colors_fn=lambda f, uv: torch.rand(f.shape[0], 3, generator=g),
+    )
     with torch.no_grad():
         p["d"].copy_(0.05 * torch.randn(n, generator=g))
         p["duv"].copy_(0.15 * torch.randn(n, 2, generator=g))  # some leave their triangle

@@ -1,13 +1,14 @@
 """meshsplat export: PLY in the canonical pose, embedding JSON + OBJ round trip, CLI."""
+
 from __future__ import annotations
 
 import pytest
 import torch
-from test_eval_kit import SIZE, camera, deform, make_avatar, make_run
 
 from meshsplat.camera import Camera
 from meshsplat.export import canonical_gaussians, export_avatar, load_exported_avatar
 from meshsplat.io import read_gaussian_ply
+from test_eval_kit import SIZE, camera, deform, make_avatar, make_run
 
 
 def _render(av, verts, azimuth):
@@ -40,7 +41,7 @@ def test_export_load_renders_identically(tmp_path, sh_degree, clamp):
 def test_ply_holds_the_composed_canonical_gaussians(tmp_path):
     av = make_avatar(n=150, sh_degree=1)
     res = export_avatar(av, tmp_path)
-    g, normals = canonical_gaussians(av)
+    g, _normals = canonical_gaussians(av)
     ply = read_gaussian_ply(res.ply)
     assert torch.equal(ply["means"], g.means)
     assert torch.equal(ply["quats"], g.quats)

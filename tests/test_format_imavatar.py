@@ -1,4 +1,5 @@
 """IMavatar / DECA layout: golden cameras and FLAME x4 poses written by hand, validation, write -> read."""
+
 from __future__ import annotations
 
 import json
@@ -6,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from _head_captures import (
     JAW_VERTS,
     JOINTS,
@@ -19,7 +21,6 @@ from _head_captures import (
     same_cameras,
     write_tiny_flame,
 )
-
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, imavatar, open_capture
 from meshsplat.data.formats._heads import tail_split
@@ -53,8 +54,15 @@ def _capture(root, frames, alpha=True, shape=None, extra=None):
     items = []
     for k, (wm, pose, expr) in enumerate(frames, start=1):
         write_png(root / "image" / f"{k}.png", _rgba(alpha))
-        items.append({"file_path": f"./image/{k}", "world_mat": wm, "pose": list(pose), "expression": list(expr),
-                      "bbox": [-1, -1, 1, 1]})
+        items.append(
+            {
+                "file_path": f"./image/{k}",
+                "world_mat": wm,
+                "pose": list(pose),
+                "expression": list(expr),
+                "bbox": [-1, -1, 1, 1],
+            }
+        )
     data = {"intrinsics": INTR, "shape_params": list(shape if shape is not None else np.zeros(100)), "frames": items}
     data.update(extra or {})
     (root / "flame_params.json").write_text(json.dumps(data))
@@ -69,8 +77,9 @@ def test_camera_golden_in_imavatars_own_convention(tmp_path, model_dir):
     # DECA's default camera: R = I, T = (0, 0, -4): OpenGL-like, the head at the origin 4 units in front
     R2 = ry(math.radians(30)) @ rx(math.radians(10))
     t2 = np.array([0.1, -0.2, -4.5])
-    root = _capture(tmp_path / "cap", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros()),
-                                       (_gl_world_mat(R2, t2), *_zeros())])
+    root = _capture(
+        tmp_path / "cap", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros()), (_gl_world_mat(R2, t2), *_zeros())]
+    )
     ds = imavatar.read(root, model_dir=model_dir)
     cam0 = ds.frame_camera(0)
     K, vm = cam0.K.double().numpy(), cam0.viewmat.double().numpy()
@@ -101,9 +110,18 @@ def test_flame_pose15_golden(tmp_path, model_dir):
     expr[0] = 1.0
     shape = np.zeros(100)
     shape[0] = 1.0
-    root = _capture(tmp_path / "cap", [(wm, np.zeros(15), np.zeros(50)), (wm, pose_jaw, np.zeros(50)),
-                                       (wm, pose_glob, np.zeros(50)), (wm, pose_neck, np.zeros(50)),
-                                       (wm, pose_eye, np.zeros(50)), (wm, np.zeros(15), expr)], shape=shape)
+    root = _capture(
+        tmp_path / "cap",
+        [
+            (wm, np.zeros(15), np.zeros(50)),
+            (wm, pose_jaw, np.zeros(50)),
+            (wm, pose_glob, np.zeros(50)),
+            (wm, pose_neck, np.zeros(50)),
+            (wm, pose_eye, np.zeros(50)),
+            (wm, np.zeros(15), expr),
+        ],
+        shape=shape,
+    )
     ds = imavatar.read(root, model_dir=model_dir, test_frames=1)
     rest = np.concatenate([JOINTS, SURFACE])
     rest[5, 1] += 0.01  # shape_params[0] lifts the forehead by 1 cm (before the x4)
@@ -196,8 +214,9 @@ def test_detect(tmp_path, model_dir):
 
 def test_write_read_round_trip_exact(tmp_path, model_dir):
     # a native dataset already in DECA's units (FLAME x4, no translation) comes back identical
-    src = open_dataset(native_flame_dataset(tmp_path / "native", model_dir, scale=4.0, transl=False,
-                                            n_betas=100, n_expr=50))
+    src = open_dataset(
+        native_flame_dataset(tmp_path / "native", model_dir, scale=4.0, transl=False, n_betas=100, n_expr=50)
+    )
     out = imavatar.write(src, tmp_path / "ima")
     data = json.loads((out / "flame_params.json").read_text())
     assert data["intrinsics"][0] < 0 and len(data["shape_params"]) == 100
@@ -216,8 +235,9 @@ def test_write_read_round_trip_exact(tmp_path, model_dir):
 
 def test_write_moves_translation_into_the_camera(tmp_path, model_dir):
     # metres + per-frame translation -> DECA x4 units without translation; every pixel stays put
-    src = open_dataset(native_flame_dataset(tmp_path / "native", model_dir, scale=1.0, transl=True,
-                                            n_betas=100, n_expr=50))
+    src = open_dataset(
+        native_flame_dataset(tmp_path / "native", model_dir, scale=1.0, transl=True, n_betas=100, n_expr=50)
+    )
     back = imavatar.read(imavatar.write(src, tmp_path / "ima"), model_dir=model_dir)
     transl = src.driver_params["transl"]
     for i in range(len(src)):
@@ -226,9 +246,10 @@ def test_write_moves_translation_into_the_camera(tmp_path, model_dir):
         assert_vertices_close(4.0 * (va - transl[row]), vb)
         ca = src.manifest["cameras"][src.frame_info(i)["camera"]]
         cb = back.manifest["cameras"][back.frame_info(i)["camera"]]
-        for p, q in zip(va, vb):
-            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q),
-                                       atol=1e-3)
+        for p, q in zip(va, vb, strict=True):
+            np.testing.assert_allclose(
+                project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q), atol=1e-3
+            )
 
 
 def test_writer_refuses_what_the_layout_cannot_hold(tmp_path, model_dir):
@@ -251,8 +272,9 @@ def test_standin_flame_jaw_and_round_trip(tmp_path, standin_model_dir):
     wm = _gl_world_mat(np.eye(3), [0, 0, -4])
     pose = np.zeros(15)
     pose[6] = 0.3
-    ds = imavatar.read(_capture(tmp_path / "cap", [(wm, *_zeros()), (wm, pose, np.zeros(50))]),
-                       model_dir=standin_model_dir)
+    ds = imavatar.read(
+        _capture(tmp_path / "cap", [(wm, *_zeros()), (wm, pose, np.zeros(50))]), model_dir=standin_model_dir
+    )
     v0, v1 = ds.vertices(0).numpy(), ds.vertices(1).numpy()
     moved = np.abs(v1 - v0).max(1) > 1e-5
     assert ds.num_vertices == 5023 and moved.sum() > 50
@@ -260,8 +282,11 @@ def test_standin_flame_jaw_and_round_trip(tmp_path, standin_model_dir):
     low = np.median(v0[moved, 1])
     assert low < 4 * eye_y and low < np.median(v0[~moved, 1]) - 0.1  # the lower face
     np.testing.assert_allclose(v0, 4 * m["v_template"], atol=1e-5)
-    src = open_dataset(native_flame_dataset(tmp_path / "native", standin_model_dir, rows=3, views=2, scale=4.0,
-                                            transl=False, n_betas=100, n_expr=50))
+    src = open_dataset(
+        native_flame_dataset(
+            tmp_path / "native", standin_model_dir, rows=3, views=2, scale=4.0, transl=False, n_betas=100, n_expr=50
+        )
+    )
     back = imavatar.read(imavatar.write(src, tmp_path / "ima"), model_dir=standin_model_dir)
     for i in range(len(src)):
         same_cameras(src, back, i)

@@ -1,12 +1,13 @@
 """INSTA layout: golden OpenCV camera->world cameras, stored per-frame meshes, validation, write -> read."""
+
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
-from _head_captures import assert_vertices_close, native_flame_dataset, project, same_cameras, write_tiny_flame
 
+from _head_captures import assert_vertices_close, native_flame_dataset, project, same_cameras, write_tiny_flame
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, insta, open_capture
 from meshsplat.data.formats._heads import obj_vertices
@@ -50,8 +51,15 @@ def _capture(root, splits, masks="folder", canonical=True):
                 m[2:9, 3:12] = 255
                 (root / "masks").mkdir(exist_ok=True)
                 write_png(root / "masks" / f"{fid}.png", m)
-            recs.append({"transform_matrix": c2w, "file_path": f"images/{fid}.png", "mesh_path": f"meshes/{mid}.obj",
-                         "exp_path": f"flame/exp/{fid}.txt", "seg_mask_path": f"seg_mask/{fid}.png"})
+            recs.append(
+                {
+                    "transform_matrix": c2w,
+                    "file_path": f"images/{fid}.png",
+                    "mesh_path": f"meshes/{mid}.obj",
+                    "exp_path": f"flame/exp/{fid}.txt",
+                    "seg_mask_path": f"seg_mask/{fid}.png",
+                }
+            )
         data = {"w": W, "h": H, "cx": 8.0, "cy": 6.0, "fl_x": F, "fl_y": F, "frames": recs}
         (root / f"transforms_{name}.json").write_text(json.dumps(data))
     return root
@@ -86,10 +94,14 @@ def test_vhap_mesh_export_is_opengl(tmp_path):
 
 
 def test_meshes_rows_masks_and_splits(tmp_path):
-    root = _capture(tmp_path / "cap", {
-        "train": [("00010", C2W_FRONT, "00010"), ("00002", C2W_FRONT, "00002"), ("00003", C2W_FRONT, "00002")],
-        "test": [("00011", C2W_FRONT, "00011"), ("00012", C2W_FRONT, "00012")],
-        "val": [("00012", C2W_FRONT, "00012")]})
+    root = _capture(
+        tmp_path / "cap",
+        {
+            "train": [("00010", C2W_FRONT, "00010"), ("00002", C2W_FRONT, "00002"), ("00003", C2W_FRONT, "00002")],
+            "test": [("00011", C2W_FRONT, "00011"), ("00012", C2W_FRONT, "00012")],
+            "val": [("00012", C2W_FRONT, "00012")],
+        },
+    )
     ds = insta.read(root)
     names = [ds.frame_info(i)["name"] for i in range(len(ds))]
     assert names == ["00002", "00003", "00010", "00011", "00012"]  # capture (natural) order
@@ -105,8 +117,12 @@ def test_meshes_rows_masks_and_splits(tmp_path):
     ds = insta.read(_capture(tmp_path / "rgba", {"train": [("1", C2W_FRONT, "1")]}, masks="alpha"))
     assert ds.frame_info(0)["mask_kind"] == "alpha" and ds[0].mask.numpy()[0, 0, 0] == 0.0
     # transforms.json only: the tail rule; no canonical.obj: the first frame's mesh
-    root = _capture(tmp_path / "one", {"train": [(f"{k:03d}", C2W_FRONT, f"{k:03d}") for k in range(5)]},
-                    masks="none", canonical=False)
+    root = _capture(
+        tmp_path / "one",
+        {"train": [(f"{k:03d}", C2W_FRONT, f"{k:03d}") for k in range(5)]},
+        masks="none",
+        canonical=False,
+    )
     (root / "transforms_train.json").rename(root / "transforms.json")
     ds = insta.read(root, test_frames=2)
     assert ds.split("test_frames") == [3, 4] and ds[0].mask is None
@@ -132,8 +148,16 @@ def test_every_problem_in_one_error(tmp_path):
     with pytest.raises(MeshsplatError) as e:
         insta.read(root)
     msg = str(e.value)
-    for part in ("frame 0 ('images/0.png')", "transform_matrix", "frame 1", "meshes/1.obj has 3 vertices",
-                 "frame 2", "meshes/2.obj is missing", "3.png is missing", "masks/4.png is missing"):
+    for part in (
+        "frame 0 ('images/0.png')",
+        "transform_matrix",
+        "frame 1",
+        "meshes/1.obj has 3 vertices",
+        "frame 2",
+        "meshes/2.obj is missing",
+        "3.png is missing",
+        "masks/4.png is missing",
+    ):
         assert part in msg, part
 
 

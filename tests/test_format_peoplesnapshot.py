@@ -1,5 +1,6 @@
 """PeopleSnapshot (InstantAvatar / Anim-NeRF layout): golden hand-made folders, validation, masks,
 anim_nerf precedence, default splits, and synth -> write -> read parity."""
+
 from __future__ import annotations
 
 import math
@@ -10,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 from PIL import Image
 
+from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 from meshsplat.camera import Camera
 from meshsplat.data import DatasetWriter, open_dataset
 from meshsplat.data.formats import peoplesnapshot as ps
@@ -78,9 +79,17 @@ def test_body_pose_and_splits(tmp_path, standin_model_dir):
     thetas = np.zeros((n, 72))
     thetas[:, 3 * 16] = np.linspace(0, 1.2, n)  # left shoulder (joint 16) and elbow (joint 18) bend
     thetas[:, 3 * 18 + 2] = np.linspace(0, 1.2, n)
-    root = make_capture(tmp_path / "cap", n=n, thetas=thetas,
-                        config={"gender": "female", "train": {"start": 0, "end": 4, "skip": 2},
-                                "val": {"start": 5, "end": 5, "skip": 1}, "test": {"start": 5, "end": 5, "skip": 1}})
+    root = make_capture(
+        tmp_path / "cap",
+        n=n,
+        thetas=thetas,
+        config={
+            "gender": "female",
+            "train": {"start": 0, "end": 4, "skip": 2},
+            "val": {"start": 5, "end": 5, "skip": 1},
+            "test": {"start": 5, "end": 5, "skip": 1},
+        },
+    )
     ds = ps.read(root, model_dir=standin_model_dir)
     assert [ds.frame_info(i)["frame_index"] for i in range(len(ds))] == [0, 2, 4, 5]
     assert ds.split("train") == [0, 1, 2] and ds.split("val") == [3] and ds.split("test_frames") == [3]
@@ -97,21 +106,40 @@ def test_every_problem_in_one_error(tmp_path, standin_model_dir):
     transl = np.zeros((n, 3))
     transl[2, 1] = np.nan  # a used row
     transl[3, 1] = np.inf  # an unused row (train skips it): not a problem
-    root = make_capture(tmp_path / "cap", n=n, transl=transl,
-                        config={"gender": "robot", "train": {"start": 0, "end": 4, "skip": 2},
-                                "test": {"start": 5, "end": 9, "skip": 1}})
+    root = make_capture(
+        tmp_path / "cap",
+        n=n,
+        transl=transl,
+        config={
+            "gender": "robot",
+            "train": {"start": 0, "end": 4, "skip": 2},
+            "test": {"start": 5, "end": 9, "skip": 1},
+        },
+    )
     (root / "images" / "image_0002.png").unlink()
     (root / "masks" / "mask_0006.png").unlink()
     Image.fromarray(np.zeros((H + 2, W, 3), np.uint8)).save(root / "images" / "image_0004.png")
     (root / "poses").mkdir()
-    np.savez(root / "poses" / "anim_nerf_test.npz", betas=np.zeros((1, 10)), global_orient=np.zeros((3, 3)),
-             body_pose=np.zeros((3, 69)), transl=np.zeros((3, 3)))
+    np.savez(
+        root / "poses" / "anim_nerf_test.npz",
+        betas=np.zeros((1, 10)),
+        global_orient=np.zeros((3, 3)),
+        body_pose=np.zeros((3, 69)),
+        transl=np.zeros((3, 3)),
+    )
     with pytest.raises(MeshsplatError) as e:
         ps.read(root, model_dir=standin_model_dir)
     msg = str(e.value)
-    for part in ("unknown gender 'robot'", "anim_nerf_test.npz: rows", "do not match the 5 frames",
-                 "poses.npz: NaN/Inf parameters in rows 2", "no mask_%04d.png or .npy for frames 6, 8, 9",
-                 "image_0002.png is missing", "image_0008.png is missing", "image size mismatch: images/image_0004.png"):
+    for part in (
+        "unknown gender 'robot'",
+        "anim_nerf_test.npz: rows",
+        "do not match the 5 frames",
+        "poses.npz: NaN/Inf parameters in rows 2",
+        "no mask_%04d.png or .npy for frames 6, 8, 9",
+        "image_0002.png is missing",
+        "image_0008.png is missing",
+        "image size mismatch: images/image_0004.png",
+    ):
         assert part in msg, (part, msg)
     assert "rows 2, 3" not in msg
     assert msg.count("\n  - ") >= 7
@@ -163,7 +191,7 @@ def test_masks_png_and_npy(tmp_path, standin_model_dir, kind):
     # an empty mask is a problem
     if kind == "npy":
         np.save(root / "masks" / "mask_0001.npy", np.zeros((H, W), np.uint8))
-        with pytest.raises(MeshsplatError, match="empty mask masks/mask_0001.npy"):
+        with pytest.raises(MeshsplatError, match=r"empty mask masks/mask_0001.npy"):
             ps.read(root, model_dir=standin_model_dir)
 
 
@@ -172,24 +200,36 @@ def test_anim_nerf_precedence(tmp_path, standin_model_dir):
     n = 10
     transl = np.zeros((n, 3))
     transl[:, 0] = np.arange(n)  # poses.npz: x = absolute index
-    cfg = {"gender": "neutral", "train": {"start": 0, "end": 6, "skip": 2},
-           "val": {"start": 7, "end": 8, "skip": 1}, "test": {"start": 7, "end": 8, "skip": 1}}
+    cfg = {
+        "gender": "neutral",
+        "train": {"start": 0, "end": 6, "skip": 2},
+        "val": {"start": 7, "end": 8, "skip": 1},
+        "test": {"start": 7, "end": 8, "skip": 1},
+    }
     root = make_capture(tmp_path / "cap", n=n, transl=transl, config=cfg)
     (root / "poses").mkdir()
     for split, base, rows in (("train", 100.0, 4), ("test", 200.0, 2)):
         t = np.zeros((rows, 3), np.float32)
         t[:, 0] = base + np.arange(rows)  # x = base + position in split
-        np.savez(root / "poses" / f"anim_nerf_{split}.npz", betas=np.zeros((1, 10), np.float32),
-                 global_orient=np.zeros((rows, 3), np.float32), body_pose=np.zeros((rows, 69), np.float32), transl=t)
+        np.savez(
+            root / "poses" / f"anim_nerf_{split}.npz",
+            betas=np.zeros((1, 10), np.float32),
+            global_orient=np.zeros((rows, 3), np.float32),
+            body_pose=np.zeros((rows, 69), np.float32),
+            transl=t,
+        )
     ds = ps.read(root, model_dir=standin_model_dir)
     x = {ds.frame_info(i)["frame_index"]: float(ds.frame_params(i)["transl"][0, 0]) for i in range(len(ds))}
     assert x == {0: 100.0, 2: 101.0, 4: 102.0, 6: 103.0, 7: 200.0, 8: 201.0}
-    i4 = [i for i in range(len(ds)) if ds.frame_info(i)["frame_index"] == 4][0]
+    i4 = next(i for i in range(len(ds)) if ds.frame_info(i)["frame_index"] == 4)
     rest = ds.canonical_vertices
     assert torch.allclose(ds.vertices(i4) - rest, torch.tensor([102.0, 0, 0]).expand_as(rest), atol=1e-4)
     assert ds.split("val") == ds.split("test_frames")
-    assert ds.meta["params_source"] == {"train": "poses/anim_nerf_train.npz", "val": "poses.npz",
-                                        "test_frames": "poses/anim_nerf_test.npz"}
+    assert ds.meta["params_source"] == {
+        "train": "poses/anim_nerf_train.npz",
+        "val": "poses.npz",
+        "test_frames": "poses/anim_nerf_test.npz",
+    }
     # without the refined files the absolute rows of poses.npz are used
     for f in (root / "poses").iterdir():
         f.unlink()
@@ -201,8 +241,13 @@ def test_default_split_without_config(tmp_path, standin_model_dir):
     root = make_capture(tmp_path / "cap", n=10)
     (root / "config.json").unlink()
     (root / "poses").mkdir()
-    np.savez(root / "poses" / "anim_nerf_train.npz", betas=np.zeros((1, 10)), global_orient=np.zeros((3, 3)),
-             body_pose=np.zeros((3, 69)), transl=np.ones((3, 3)))
+    np.savez(
+        root / "poses" / "anim_nerf_train.npz",
+        betas=np.zeros((1, 10)),
+        global_orient=np.zeros((3, 3)),
+        body_pose=np.zeros((3, 69)),
+        transl=np.ones((3, 3)),
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = ps.read(root, model_dir=standin_model_dir, gender="male")
@@ -239,9 +284,18 @@ def test_synth_write_read_parity(tmp_path, standin_model_dir, masks):
     """synth smpl (native) -> write peoplesnapshot -> read: same cameras, vertices, images, masks, params."""
     from meshsplat.synth.capture import synth_capture
 
-    out = synth_capture("smpl", tmp_path / "ps", format="peoplesnapshot", native_dir=tmp_path / "native",
-                        write_options={"masks": masks}, frames=4, resolution=64, test_frames=2, test_views=1,
-                        model_dir=standin_model_dir)
+    out = synth_capture(
+        "smpl",
+        tmp_path / "ps",
+        format="peoplesnapshot",
+        native_dir=tmp_path / "native",
+        write_options={"masks": masks},
+        frames=4,
+        resolution=64,
+        test_frames=2,
+        test_views=1,
+        model_dir=standin_model_dir,
+    )
     nat = open_dataset(tmp_path / "native")
     assert nat.driver_info["type"] == "smpl" and "test_views" in nat.split_names
     assert ps.detect(out)
@@ -251,7 +305,9 @@ def test_synth_write_read_parity(tmp_path, standin_model_dir, masks):
     assert len(back) == len(written) == 6
     assert back.split("train") == [0, 1, 2, 3] and back.split("test_frames") == [4, 5]
     a, b = nat.camera("0"), back.camera("0")
-    assert torch.allclose(a.K, b.K) and torch.allclose(a.viewmat, b.viewmat) and (a.width, a.height) == (b.width, b.height)
+    assert (
+        torch.allclose(a.K, b.K) and torch.allclose(a.viewmat, b.viewmat) and (a.width, a.height) == (b.width, b.height)
+    )
     assert torch.allclose(nat.canonical_vertices, back.canonical_vertices, atol=1e-6)
     assert torch.equal(nat.faces, back.faces)
     for k, i in enumerate(written):
@@ -272,5 +328,5 @@ def test_config_problems(tmp_path, standin_model_dir):
         ps.read(root, model_dir=standin_model_dir)
     assert "has no 'train' range" in str(e.value) and "'test': need 0 <= start <= end" in str(e.value)
     (root / "config.json").write_text("{not json")
-    with pytest.raises(MeshsplatError, match="config.json: invalid JSON"):
+    with pytest.raises(MeshsplatError, match=r"config.json: invalid JSON"):
         ps.read(root, model_dir=standin_model_dir)

@@ -1,10 +1,12 @@
 """GaussianAvatars / VHAP layout: golden OpenGL cameras and FLAME npz poses, validation, write -> read."""
+
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
+
 from _head_captures import (
     JAW_VERTS,
     JOINTS,
@@ -19,7 +21,6 @@ from _head_captures import (
     same_cameras,
     write_tiny_flame,
 )
-
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, open_capture, vhap
 from meshsplat.data.png import write_png
@@ -36,9 +37,15 @@ def model_dir(tmp_path_factory):
 
 
 def _npz(path, **kw):
-    p = {"translation": np.zeros((1, 3)), "rotation": np.zeros((1, 3)), "neck_pose": np.zeros((1, 3)),
-         "jaw_pose": np.zeros((1, 3)), "eyes_pose": np.zeros((1, 6)), "shape": np.zeros(300),
-         "expr": np.zeros((1, 100))}
+    p = {
+        "translation": np.zeros((1, 3)),
+        "rotation": np.zeros((1, 3)),
+        "neck_pose": np.zeros((1, 3)),
+        "jaw_pose": np.zeros((1, 3)),
+        "eyes_pose": np.zeros((1, 6)),
+        "shape": np.zeros(300),
+        "expr": np.zeros((1, 100)),
+    }
     p.update(kw)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **{k: np.asarray(v, np.float32) for k, v in p.items()})
@@ -57,8 +64,13 @@ def _capture(root, splits, params=None, masks=True, top_level=True):
         for t, c, c2w in frames:
             stem = f"{t:05d}_{c:02d}"
             write_png(root / "images" / f"{stem}.png", np.full((H, W, 3), 60 + c, np.uint8))
-            rec = {"timestep_index": t, "camera_index": c, "transform_matrix": c2w, "file_path": f"images/{stem}.png",
-                   "flame_param_path": f"flame_param/{t:05d}.npz"}
+            rec = {
+                "timestep_index": t,
+                "camera_index": c,
+                "transform_matrix": c2w,
+                "file_path": f"images/{stem}.png",
+                "flame_param_path": f"flame_param/{t:05d}.npz",
+            }
             if not top_level:
                 rec.update(intr)
             if masks:
@@ -96,10 +108,12 @@ def test_flame_npz_golden(tmp_path, model_dir):
     expr = np.zeros((1, 100))
     expr[0, 99] = 1.0  # the 100th expression lowers the lip by 1 cm
     tr = np.array([[0.1, -0.05, 0.02]])
-    params = {0: {"shape": shape, "static_offset": offset},
-              1: {"shape": shape, "static_offset": offset, "translation": tr, "jaw_pose": [[0.3, 0, 0]]},
-              2: {"shape": shape, "static_offset": offset, "eyes_pose": [[0, 0.4, 0, 0, 0, 0]], "expr": expr},
-              3: {"shape": shape, "static_offset": offset, "rotation": [[0, 0.5, 0]]}}
+    params = {
+        0: {"shape": shape, "static_offset": offset},
+        1: {"shape": shape, "static_offset": offset, "translation": tr, "jaw_pose": [[0.3, 0, 0]]},
+        2: {"shape": shape, "static_offset": offset, "eyes_pose": [[0, 0.4, 0, 0, 0, 0]], "expr": expr},
+        3: {"shape": shape, "static_offset": offset, "rotation": [[0, 0.5, 0]]},
+    }
     root = _capture(tmp_path / "cap", {"train": [(t, 0, C2W_FRONT) for t in range(4)]}, params)
     ds = vhap.read(root, model_dir=model_dir)  # FLAME 2023 by default: the template shifted +1 cm in x
     rest = np.concatenate([JOINTS, SURFACE]) + SHIFT_2023
@@ -126,10 +140,15 @@ def test_flame_npz_golden(tmp_path, model_dir):
 
 
 def test_splits_views_and_timesteps(tmp_path, model_dir):
-    root = _capture(tmp_path / "cap", {
-        "train": [(0, 0, C2W_FRONT), (1, 0, C2W_FRONT)],
-        "val": [(0, 1, C2W_SIDE), (1, 1, C2W_SIDE)],
-        "test": [(2, 0, C2W_FRONT), (2, 1, C2W_SIDE)]}, top_level=False)
+    root = _capture(
+        tmp_path / "cap",
+        {
+            "train": [(0, 0, C2W_FRONT), (1, 0, C2W_FRONT)],
+            "val": [(0, 1, C2W_SIDE), (1, 1, C2W_SIDE)],
+            "test": [(2, 0, C2W_FRONT), (2, 1, C2W_SIDE)],
+        },
+        top_level=False,
+    )
     ds = vhap.read(root, model_dir=model_dir)
     assert len(ds) == 6 and len(ds.camera_ids) == 2 and ds.driver().num_frames == 3
     assert ds.split("train") == [0, 1] and ds.split("test_views") == [2, 3] and ds.split("test_frames") == [4, 5]
@@ -160,16 +179,20 @@ def test_every_problem_in_one_error(tmp_path, model_dir):
     with pytest.raises(MeshsplatError, match="behind its camera"):
         vhap.read(root, model_dir=model_dir)
     # per-frame dynamic offsets cannot be posed: say so, and how to go on
-    root = _capture(tmp_path / "dyn", {"train": [(0, 0, C2W_FRONT)]},
-                    {0: {"dynamic_offset": np.full((1, V + 120, 3), 0.001)}})
+    root = _capture(
+        tmp_path / "dyn", {"train": [(0, 0, C2W_FRONT)]}, {0: {"dynamic_offset": np.full((1, V + 120, 3), 0.001)}}
+    )
     with pytest.raises(MeshsplatError, match="ignore_dynamic_offset"):
         vhap.read(root, model_dir=model_dir)
     assert len(vhap.read(root, model_dir=model_dir, ignore_dynamic_offset=True)) == 1
 
 
 def test_write_read_round_trip(tmp_path, model_dir):
-    src = open_dataset(native_flame_dataset(tmp_path / "native", model_dir, rows=3, views=3, flame_version="2023",
-                                            static_offset=True, shared_K=False))
+    src = open_dataset(
+        native_flame_dataset(
+            tmp_path / "native", model_dir, rows=3, views=3, flame_version="2023", static_offset=True, shared_K=False
+        )
+    )
     out = vhap.write(src, tmp_path / "vhap")
     with np.load(out / "flame_param" / "00000.npz") as z:
         assert z["static_offset"].shape == (1, V + 120, 3) and z["expr"].shape == (1, 100)
@@ -199,14 +222,18 @@ def test_write_scales_world_to_flame_units(tmp_path, model_dir):
         assert_vertices_close(va / 4.0, vb)
         ca = src.manifest["cameras"][src.frame_info(i)["camera"]]
         cb = back.manifest["cameras"][back.frame_info(i)["camera"]]
-        for p, q in zip(va, vb):
-            np.testing.assert_allclose(project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q),
-                                       atol=1e-3)
+        for p, q in zip(va, vb, strict=True):
+            np.testing.assert_allclose(
+                project(ca["K"], ca["viewmat"], p), project(cb["K"], cb["viewmat"], q), atol=1e-3
+            )
 
 
 def test_standin_flame_round_trip_with_teeth_rows(tmp_path, standin_model_dir):
-    src = open_dataset(native_flame_dataset(tmp_path / "native", standin_model_dir, rows=3, views=2,
-                                            flame_version="2023", static_offset=True))
+    src = open_dataset(
+        native_flame_dataset(
+            tmp_path / "native", standin_model_dir, rows=3, views=2, flame_version="2023", static_offset=True
+        )
+    )
     out = vhap.write(src, tmp_path / "vhap")
     with np.load(out / "flame_param" / "00001.npz") as z:
         assert z["static_offset"].shape == (1, 5143, 3)  # FLAME's 5023 + VHAP's 120 teeth rows

@@ -1,4 +1,5 @@
 """`import meshsplat as ms`: the curated names, every subpackage as an attribute, a light import, train_avatar."""
+
 from __future__ import annotations
 
 import importlib
@@ -9,15 +10,29 @@ import types
 from pathlib import Path
 
 import pytest
-from test_train import tiny_dataset  # noqa: F401  (fixture)
 
 import meshsplat as ms
 from meshsplat.errors import MeshsplatError
+from test_train import tiny_dataset  # noqa: F401  (fixture)
 
 PKG = Path(ms.__file__).parent
-CURATED = ["synthesize", "open_capture", "TrainConfig", "train_avatar", "load_run", "load_avatar", "Avatar", "Camera",
-           "orbit_cameras", "render_animation", "evaluate", "export_avatar", "write_viewer", "MeshsplatError",
-           "__version__"]
+CURATED = [
+    "synthesize",
+    "open_capture",
+    "TrainConfig",
+    "train_avatar",
+    "load_run",
+    "load_avatar",
+    "Avatar",
+    "Camera",
+    "orbit_cameras",
+    "render_animation",
+    "evaluate",
+    "export_avatar",
+    "write_viewer",
+    "MeshsplatError",
+    "__version__",
+]
 
 
 def _public_modules() -> set[str]:
@@ -28,14 +43,22 @@ def _public_modules() -> set[str]:
 
 def test_the_front_door_is_the_curated_list():
     assert sorted(ms.__all__) == sorted(CURATED) == sorted([*ms._FRONT_DOOR, "MeshsplatError", "__version__"])
-    defining = {"synthesize": "meshsplat.synth.generate.generate", "evaluate": "meshsplat.eval.evaluate.evaluate_run",
-                "write_viewer": "meshsplat.viewer.bundle.write_viewer_bundle",
-                "open_capture": "meshsplat.data.formats.open_capture", "TrainConfig": "meshsplat.train.config.TrainConfig",
-                "train_avatar": "meshsplat.pipeline.train_avatar", "load_run": "meshsplat.run_folder.load_run",
-                "load_avatar": "meshsplat.run_folder.load_avatar", "Avatar": "meshsplat.gaussians.avatar.Avatar",
-                "Camera": "meshsplat.camera.Camera", "orbit_cameras": "meshsplat.camera.orbit_cameras",
-                "render_animation": "meshsplat.animate.render_animation",
-                "export_avatar": "meshsplat.export.export_avatar", "MeshsplatError": "meshsplat.errors.MeshsplatError"}
+    defining = {
+        "synthesize": "meshsplat.synth.generate.generate",
+        "evaluate": "meshsplat.eval.evaluate.evaluate_run",
+        "write_viewer": "meshsplat.viewer.bundle.write_viewer_bundle",
+        "open_capture": "meshsplat.data.formats.open_capture",
+        "TrainConfig": "meshsplat.train.config.TrainConfig",
+        "train_avatar": "meshsplat.pipeline.train_avatar",
+        "load_run": "meshsplat.run_folder.load_run",
+        "load_avatar": "meshsplat.run_folder.load_avatar",
+        "Avatar": "meshsplat.gaussians.avatar.Avatar",
+        "Camera": "meshsplat.camera.Camera",
+        "orbit_cameras": "meshsplat.camera.orbit_cameras",
+        "render_animation": "meshsplat.animate.render_animation",
+        "export_avatar": "meshsplat.export.export_avatar",
+        "MeshsplatError": "meshsplat.errors.MeshsplatError",
+    }
     for name, where in defining.items():
         module, attr = where.rsplit(".", 1)
         assert getattr(ms, name) is getattr(sys.modules.get(module) or importlib.import_module(module), attr), name
@@ -67,9 +90,11 @@ def test_no_front_door_name_is_a_module_name():
 
 
 def test_import_meshsplat_stays_light():
-    code = ("import sys, meshsplat; dir(meshsplat); "
-            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'numpy', 'gsplat', 'smplx', 'imageio')); "
-            "own = sorted(m for m in sys.modules if m.startswith('meshsplat')); print(heavy, own)")
+    code = (
+        "import sys, meshsplat; dir(meshsplat); "
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'numpy', 'gsplat', 'smplx', 'imageio')); "
+        "own = sorted(m for m in sys.modules if m.startswith('meshsplat')); print(heavy, own)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[] ['meshsplat', 'meshsplat.errors']"
 
@@ -81,8 +106,9 @@ def test_train_avatar_presets_and_overrides(tiny_dataset, tmp_path):  # noqa: F8
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["model"]["shading"] == "sh2" and cfg["model"]["n_init"] == 200  # the quality preset, then overrides
     assert ms.load_run(run).iteration == 2
-    paper = ms.train_avatar(tiny_dataset, tmp_path / "p", preset="paper", iterations=1, overrides=fast,
-                            device="cpu", progress=False)
+    paper = ms.train_avatar(
+        tiny_dataset, tmp_path / "p", preset="paper", iterations=1, overrides=fast, device="cpu", progress=False
+    )
     assert json.loads((paper / "config.json").read_text())["model"]["shading"] == "none"
     base = ms.TrainConfig(data=str(tiny_dataset), out=str(tmp_path / "c"), iterations=1, device="cpu", progress=False)
     from_config = ms.train_avatar(config=base, overrides=fast)
@@ -90,15 +116,18 @@ def test_train_avatar_presets_and_overrides(tiny_dataset, tmp_path):  # noqa: F8
     assert base.model.n_init != 200  # the caller's config is not modified
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"preset": "fastest"}, "preset: expected one of quality, paper, got 'fastest'"),
-    ({"config": "cfg.json"}, "config: expected a TrainConfig, got str"),
-    ({"preset": "paper", "config": ms.TrainConfig()}, "give a preset or a config, not both"),
-    ({"overrides": "model.n_init=5"}, "overrides: expected a list"),
-    ({"dataset": None}, "dataset: no capture to train on"),
-    ({"dataset": "no/such/folder"}, "dataset not found: no/such/folder"),
-    ({"overrides": ["model.bogus=1"]}, "config: unknown key 'model.bogus'"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"preset": "fastest"}, "preset: expected one of quality, paper, got 'fastest'"),
+        ({"config": "cfg.json"}, "config: expected a TrainConfig, got str"),
+        ({"preset": "paper", "config": ms.TrainConfig()}, "give a preset or a config, not both"),
+        ({"overrides": "model.n_init=5"}, "overrides: expected a list"),
+        ({"dataset": None}, "dataset: no capture to train on"),
+        ({"dataset": "no/such/folder"}, "dataset not found: no/such/folder"),
+        ({"overrides": ["model.bogus=1"]}, "config: unknown key 'model.bogus'"),
+    ],
+)
 def test_train_avatar_refuses_bad_input_in_one_line(tmp_path, kwargs, message):
     args = {"dataset": tmp_path, "out": tmp_path / "run", **kwargs}
     with pytest.raises(MeshsplatError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:

@@ -3,6 +3,7 @@
 Hypothesis puts random JSON values (or tensors) into every field of a valid file; reading it must
 end either in a valid load or in one MeshsplatError, never in another exception.
 """
+
 from __future__ import annotations
 
 import copy
@@ -17,7 +18,6 @@ import torch
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-from test_train import make_tiny_dataset, small_config  # noqa: E402
 
 from meshsplat.camera import Camera  # noqa: E402
 from meshsplat.data import open_dataset  # noqa: E402
@@ -25,13 +25,35 @@ from meshsplat.errors import MeshsplatError  # noqa: E402
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from meshsplat.io.embedding_json import read_embedding_json, write_embedding_json  # noqa: E402
 from meshsplat.run_folder import load_run  # noqa: E402
+from test_train import make_tiny_dataset, small_config  # noqa: E402
 
 JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**12, 10**12) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.text(max_size=12) | st.sampled_from(["", "..", "/etc/passwd", "images/000000.png", "0", "cam0", "object",
-                                             "float16", "complex64", "int8", "<U3", "bool", "list", "base64"]),
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**12), 10**12)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=12)
+    | st.sampled_from(
+        [
+            "",
+            "..",
+            "/etc/passwd",
+            "images/000000.png",
+            "0",
+            "cam0",
+            "object",
+            "float16",
+            "complex64",
+            "int8",
+            "<U3",
+            "bool",
+            "list",
+            "base64",
+        ]
+    ),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
-    max_leaves=12)
+    max_leaves=12,
+)
 DELETE = object()
 
 
@@ -108,15 +130,22 @@ def test_fuzz_manifest(dataset):
                     assert all(0 <= i < len(ds) for i in ds.split(name))
                 assert isinstance(ds.meta, dict)
                 return ds
+
             _must_be_clean(load)
+
     check()
 
 
 def _random_leaf():
-    tensors = st.builds(lambda shape, kind: torch.zeros(shape, dtype=kind).fill_(float("nan"))
-                        if kind.is_floating_point and shape and shape[0] == 2 else torch.zeros(shape, dtype=kind),
-                        st.lists(st.integers(0, 5), max_size=3).map(tuple),
-                        st.sampled_from([torch.float32, torch.float64, torch.int64, torch.bool, torch.uint8]))
+    tensors = st.builds(
+        lambda shape, kind: (
+            torch.zeros(shape, dtype=kind).fill_(float("nan"))
+            if kind.is_floating_point and shape and shape[0] == 2
+            else torch.zeros(shape, dtype=kind)
+        ),
+        st.lists(st.integers(0, 5), max_size=3).map(tuple),
+        st.sampled_from([torch.float32, torch.float64, torch.int64, torch.bool, torch.uint8]),
+    )
     plain = st.none() | st.booleans() | st.integers(-5, 10**6) | st.floats() | st.text(max_size=8)
     return tensors | plain | st.lists(plain, max_size=3) | st.dictionaries(st.text(max_size=5), plain, max_size=3)
 
@@ -139,12 +168,18 @@ def test_fuzz_checkpoint_fields(run_ckpt):
                 assert all(v.shape[0] == n for v in av.params.values())
                 v = av.mesh.vertices
                 with torch.no_grad():
-                    cam = Camera(torch.eye(4) + torch.tensor([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 4.0], [0, 0, 0, 0]]),
-                                 torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), 16, 16)
+                    cam = Camera(
+                        torch.eye(4) + torch.tensor([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 4.0], [0, 0, 0, 0]]),
+                        torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]),
+                        16,
+                        16,
+                    )
                     out = av.render(v, cam, backend="torch")
                 assert torch.isfinite(out.image).all()
+
             _must_be_clean(load)
             assert p.is_file()
+
     check()
 
 
@@ -152,8 +187,10 @@ def test_fuzz_checkpoint_bytes(run_ckpt):
     data = run_ckpt.read_bytes()
 
     @settings(max_examples=60, deadline=None)
-    @given(cut=st.integers(0, len(data)), flips=st.lists(st.tuples(st.integers(0, len(data) - 1),
-                                                                    st.integers(1, 255)), max_size=4))
+    @given(
+        cut=st.integers(0, len(data)),
+        flips=st.lists(st.tuples(st.integers(0, len(data) - 1), st.integers(1, 255)), max_size=4),
+    )
     def check(cut, flips):
         b = bytearray(data[:cut] if cut < len(data) // 2 else data)
         for i, x in flips:
@@ -163,6 +200,7 @@ def test_fuzz_checkpoint_bytes(run_ckpt):
             p = Path(d) / "ckpt_00000001.pt"
             p.write_bytes(bytes(b))
             _must_be_clean(lambda: load_run(p))
+
     check()
 
 
@@ -195,7 +233,10 @@ def test_fuzz_embedding_json(tmp_path):
                 n = out["face"].shape[0]
                 assert all(t.shape[0] == n for t in out.values())
                 assert out["face"].dtype == torch.long and all(
-                    t.dtype == torch.float32 and torch.isfinite(t).all() for k, t in out.items() if k != "face")
+                    t.dtype == torch.float32 and torch.isfinite(t).all() for k, t in out.items() if k != "face"
+                )
                 assert isinstance(meta, dict)
+
             _must_be_clean(load)
+
     check()

@@ -1,4 +1,5 @@
 """Gaussian parameters, composition in a pose, Avatar persistence."""
+
 from __future__ import annotations
 
 import math
@@ -82,8 +83,14 @@ def test_compose_position_uses_uv_plus_duv():
         p["duv"].copy_(torch.rand(32, 2) * 0.1 - 0.05)
         p["d"].copy_(torch.rand(32) * 0.01)
     g = compose(p, pose)
-    q = make_params(p["face"], p["uv"] + p["duv"], d=p["d"], log_scale=p["log_scale"],
-                    opacity_logit=p["opacity_logit"], sh0=p["sh0"])
+    q = make_params(
+        p["face"],
+        p["uv"] + p["duv"],
+        d=p["d"],
+        log_scale=p["log_scale"],
+        opacity_logit=p["opacity_logit"],
+        sh0=p["sh0"],
+    )
     g2 = compose(q, pose)
     assert torch.allclose(g.means, g2.means, atol=1e-6)
     assert not torch.allclose(g.means, compose({**p, "duv": torch.zeros(32, 2)}, pose).means)
@@ -191,8 +198,9 @@ def test_avatar_render_through_a_camera_is_the_rasterizer_on_the_same_tensors(an
     from meshsplat.render.projection import antialias_compensation
 
     mesh = icosphere(2)
-    av = Avatar(mesh, init_params(mesh, 300, sh_degree=1, generator=torch.Generator().manual_seed(3)),
-                antialiased=antialiased)
+    av = Avatar(
+        mesh, init_params(mesh, 300, sh_degree=1, generator=torch.Generator().manual_seed(3)), antialiased=antialiased
+    )
     verts = mesh.vertices * torch.tensor([1.0, 1.2, 0.9])
     cam = _turned_camera()
     bg = torch.tensor([0.2, 0.3, 0.4])
@@ -201,10 +209,25 @@ def test_avatar_render_through_a_camera_is_the_rasterizer_on_the_same_tensors(an
         g = av.compose(verts, campos=torch.linalg.inv(cam.viewmat)[:3, 3])
         opacities = g.opacities
         if antialiased:
-            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, cam.viewmat[None], cam.K[None],
-                                                           cam.width, cam.height)[0]
-        ref = rasterize(g.means, g.quats, g.scales, opacities, g.colors, cam.viewmat[None], cam.K[None], cam.width,
-                        cam.height, backgrounds=bg[None], backend="torch")
+            opacities = (
+                opacities
+                * antialias_compensation(
+                    g.means, g.quats, g.scales, cam.viewmat[None], cam.K[None], cam.width, cam.height
+                )[0]
+            )
+        ref = rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            opacities,
+            g.colors,
+            cam.viewmat[None],
+            cam.K[None],
+            cam.width,
+            cam.height,
+            backgrounds=bg[None],
+            backend="torch",
+        )
         # the camera's tensors are moved to the avatar's dtype, as before
         as64 = av.render(verts, cam.to(dtype=torch.float64), bg, backend="torch")
     assert out.image.shape == (30, 40, 3) and float(out.alpha.max()) > 0.5
@@ -216,8 +239,11 @@ def test_avatar_render_takes_one_camera():
     mesh = icosphere(1)
     av = Avatar(mesh, init_params(mesh, 20))
     cam = _turned_camera()
-    with pytest.raises(MeshsplatError, match=r"camera: expected a meshsplat.Camera, got Tensor .*"
-                                             r"Avatar.render\(vertices, camera, background=None"):
+    with pytest.raises(
+        MeshsplatError,
+        match=r"camera: expected a meshsplat.Camera, got Tensor .*"
+        r"Avatar.render\(vertices, camera, background=None",
+    ):
         av.render(mesh.vertices, cam.viewmat)
     with pytest.raises(TypeError):  # the four loose arguments of old
         av.render(mesh.vertices, cam.viewmat, cam.K, 40, 30)  # type: ignore[call-arg]
@@ -232,11 +258,11 @@ def test_camera_checks_its_fields():
     cam = _turned_camera()
     with pytest.raises(MeshsplatError, match=r"camera viewmat: expected shape \[4,4\]"):
         Camera(cam.viewmat[:3], cam.K, 40, 30)
-    with pytest.raises(MeshsplatError, match="camera K: expected a torch.Tensor"):
+    with pytest.raises(MeshsplatError, match=r"camera K: expected a torch.Tensor"):
         Camera(cam.viewmat, cam.K.numpy(), 40, 30)  # type: ignore[arg-type]
     with pytest.raises(MeshsplatError, match="camera width: expected a positive integer, got 0"):
         Camera(cam.viewmat, cam.K, 0, 30)
-    with pytest.raises(MeshsplatError, match="camera height: expected a positive integer, got 30.0"):
+    with pytest.raises(MeshsplatError, match=r"camera height: expected a positive integer, got 30.0"):
         Camera(cam.viewmat, cam.K, 40, 30.0)  # type: ignore[arg-type]
     moved = cam.to(dtype=torch.float64)
     assert moved.viewmat.dtype == moved.K.dtype == torch.float64 and (moved.width, moved.height) == (40, 30)

@@ -1,12 +1,13 @@
 """`meshsplat import`: any capture layout -> native (PNG images and masks, meshes, splits, driver parameters),
 and `meshsplat synth SOURCE --format NAME`."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 
+from _peoplesnapshot import EXTRINSIC, H, K, W, make_capture
 from meshsplat.cli.main import main
 from meshsplat.data import DatasetWriter, open_dataset
 from meshsplat.data.convert import write_native
@@ -40,8 +41,15 @@ def test_import_peoplesnapshot_keeps_everything(tmp_path, standin_model_dir, cap
     rng = np.random.default_rng(0)
     thetas = rng.normal(0, 0.2, (n, 72))
     transl = rng.normal(0, 0.1, (n, 3))
-    root = make_capture(tmp_path / "cap", n=n, masks="npy", thetas=thetas, transl=transl, gender="female",
-                        betas=rng.normal(0, 0.5, (1, 10)))
+    root = make_capture(
+        tmp_path / "cap",
+        n=n,
+        masks="npy",
+        thetas=thetas,
+        transl=transl,
+        gender="female",
+        betas=rng.normal(0, 0.5, (1, 10)),
+    )
     out = tmp_path / "native"
     assert main(["import", str(root), "--out", str(out), "--model-dir", str(standin_model_dir)]) == 0
     printed = capsys.readouterr().out
@@ -72,9 +80,16 @@ def test_import_native_round_trip_and_alpha_masks(tmp_path):
     rng = np.random.default_rng(1)
     for k in range(3):
         m = np.zeros((H, W), np.uint8)
-        m[5:20, 5 + k:30] = 200
-        w.add_frame(rng.integers(0, 255, (H, W, 3), dtype=np.uint8), "cam/0", vertices=v + k, mask=m,
-                    name=f"f:{k}", clip="c", time=0.5 * k)
+        m[5:20, 5 + k : 30] = 200
+        w.add_frame(
+            rng.integers(0, 255, (H, W, 3), dtype=np.uint8),
+            "cam/0",
+            vertices=v + k,
+            mask=m,
+            name=f"f:{k}",
+            clip="c",
+            time=0.5 * k,
+        )
     w.set_split("test_frames", [2])
     src = open_dataset(w.close())
     out = write_native(src, tmp_path / "b")
@@ -93,16 +108,55 @@ def test_import_cli_errors(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a capture layout meshsplat reads" in err[0]
     root = make_capture(tmp_path / "cap", n=3)
-    assert main(["import", str(root), "--format", "peoplesnapshot", "--out", str(tmp_path / "o"),
-                 "--model-dir", str(tmp_path / "nowhere")]) == 2
+    assert (
+        main(
+            [
+                "import",
+                str(root),
+                "--format",
+                "peoplesnapshot",
+                "--out",
+                str(tmp_path / "o"),
+                "--model-dir",
+                str(tmp_path / "nowhere"),
+            ]
+        )
+        == 2
+    )
     assert "model directory" in capsys.readouterr().err
 
 
 def test_synth_cli_peoplesnapshot_then_import(tmp_path, standin_model_dir, capsys):
     ps_dir, nat_dir = tmp_path / "ps", tmp_path / "nat"
-    assert main(["synth", "smpl", "--format", "peoplesnapshot", "--out", str(ps_dir), "--model-dir",
-                 str(standin_model_dir), "--gender", "male", "--frames", "3", "--resolution", "48",
-                 "--test-frames", "2", "--test-views", "0", "--masks", "npy", "--native-out", str(tmp_path / "n0")]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                "smpl",
+                "--format",
+                "peoplesnapshot",
+                "--out",
+                str(ps_dir),
+                "--model-dir",
+                str(standin_model_dir),
+                "--gender",
+                "male",
+                "--frames",
+                "3",
+                "--resolution",
+                "48",
+                "--test-frames",
+                "2",
+                "--test-views",
+                "0",
+                "--masks",
+                "npy",
+                "--native-out",
+                str(tmp_path / "n0"),
+            ]
+        )
+        == 0
+    )
     assert "peoplesnapshot capture written" in capsys.readouterr().out
     assert sorted(p.name for p in (ps_dir / "masks").iterdir())[0] == "mask_0000.npy"
     assert main(["import", str(ps_dir), "--out", str(nat_dir), "--model-dir", str(standin_model_dir)]) == 0

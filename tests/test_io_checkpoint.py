@@ -1,5 +1,6 @@
 """Atomic checkpoints: round trip, crash safety, corrupt files, listing/pruning (which one a run reads:
 test_run_folder.py)."""
+
 from __future__ import annotations
 
 import random

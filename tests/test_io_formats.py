@@ -1,4 +1,5 @@
 """3DGS .ply, embedding JSON and OBJ: exact round trips and clear errors."""
+
 from __future__ import annotations
 
 import json
@@ -23,9 +24,14 @@ from meshsplat.io.ply import gaussian_ply_fields
 
 def _gaussians(n=6, k=3):
     g = torch.Generator().manual_seed(1)
-    return dict(means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
-                log_scales=torch.randn(n, 3, generator=g) - 4, opacity_logits=torch.randn(n, generator=g),
-                sh0=torch.randn(n, 1, 3, generator=g), shN=torch.randn(n, k, 3, generator=g))
+    return dict(
+        means=torch.randn(n, 3, generator=g),
+        quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.randn(n, 3, generator=g) - 4,
+        opacity_logits=torch.randn(n, generator=g),
+        sh0=torch.randn(n, 1, 3, generator=g),
+        shN=torch.randn(n, k, 3, generator=g),
+    )
 
 
 def _header(path):
@@ -46,9 +52,9 @@ def test_ply_round_trip_with_padding(tmp_path):
     assert len(body) == 6 * 62 * 4
     rows = np.frombuffer(body, "<f4").reshape(6, 62)
     # f_rest is channel-major: f_rest_0..14 red, 15..29 green, 30..44 blue.
-    assert rows[2, 9 + 15 + 1] == g["shN"][2, 1, 1].item()   # green, coefficient 1
-    assert rows[2, 9 + 30 + 2] == g["shN"][2, 2, 2].item()   # blue, coefficient 2
-    assert np.all(rows[:, 9 + 3:9 + 15] == 0)                # red coefficients 3..14 padded
+    assert rows[2, 9 + 15 + 1] == g["shN"][2, 1, 1].item()  # green, coefficient 1
+    assert rows[2, 9 + 30 + 2] == g["shN"][2, 2, 2].item()  # blue, coefficient 2
+    assert np.all(rows[:, 9 + 3 : 9 + 15] == 0)  # red coefficients 3..14 padded
     back = read_gaussian_ply(p)
     for key in ("means", "quats", "log_scales", "opacity_logits", "sh0"):
         assert torch.equal(back[key], g[key]), key
@@ -58,20 +64,28 @@ def test_ply_round_trip_with_padding(tmp_path):
 
 def test_ply_degree0_without_padding_and_flat_sh0(tmp_path):
     g = _gaussians(n=4)
-    p = write_gaussian_ply(tmp_path / "b.ply", g["means"], g["quats"], g["log_scales"],
-                           g["opacity_logits"], g["sh0"][:, 0], None, sh_degree_pad=None)
+    p = write_gaussian_ply(
+        tmp_path / "b.ply",
+        g["means"],
+        g["quats"],
+        g["log_scales"],
+        g["opacity_logits"],
+        g["sh0"][:, 0],
+        None,
+        sh_degree_pad=None,
+    )
     back = read_gaussian_ply(p)
     assert back["shN"].shape == (4, 0, 3) and torch.equal(back["sh0"], g["sh0"])
-    p3 = write_gaussian_ply(tmp_path / "c.ply", g["means"], g["quats"], g["log_scales"],
-                            g["opacity_logits"], g["sh0"])
+    p3 = write_gaussian_ply(tmp_path / "c.ply", g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["sh0"])
     assert read_gaussian_ply(p3)["shN"].shape == (4, 15, 3)
 
 
 def test_ply_errors(tmp_path):
     g = _gaussians(n=4)
     with pytest.raises(MeshsplatError, match="quats"):
-        write_gaussian_ply(tmp_path / "x.ply", g["means"], g["quats"][:3], g["log_scales"],
-                           g["opacity_logits"], g["sh0"])
+        write_gaussian_ply(
+            tmp_path / "x.ply", g["means"], g["quats"][:3], g["log_scales"], g["opacity_logits"], g["sh0"]
+        )
     with pytest.raises(MeshsplatError, match="more than degree 0"):
         write_gaussian_ply(tmp_path / "x.ply", **g, sh_degree_pad=0)
     ascii_ply = tmp_path / "ascii.ply"
@@ -84,8 +98,10 @@ def test_ply_errors(tmp_path):
     with pytest.raises(MeshsplatError, match="truncated"):
         read_gaussian_ply(trunc)
     mesh = tmp_path / "mesh.ply"
-    mesh.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
-                     b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes())
+    mesh.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes()
+    )
     with pytest.raises(MeshsplatError, match="not a Gaussian PLY"):
         read_gaussian_ply(mesh)
     with pytest.raises(MeshsplatError, match="not found"):
@@ -94,10 +110,15 @@ def test_ply_errors(tmp_path):
 
 def _params(n=5, k=0):
     g = torch.Generator().manual_seed(2)
-    p = dict(face=torch.randint(0, 100, (n,), generator=g), uv=torch.rand(n, 2, generator=g) * 0.5,
-             d=torch.randn(n, generator=g) * 1e-3, rotation=torch.randn(n, 4, generator=g),
-             log_scale=torch.randn(n, 3, generator=g) - 5, opacity_logit=torch.randn(n, generator=g),
-             sh0=torch.randn(n, 1, 3, generator=g))
+    p = dict(
+        face=torch.randint(0, 100, (n,), generator=g),
+        uv=torch.rand(n, 2, generator=g) * 0.5,
+        d=torch.randn(n, generator=g) * 1e-3,
+        rotation=torch.randn(n, 4, generator=g),
+        log_scale=torch.randn(n, 3, generator=g) - 5,
+        opacity_logit=torch.randn(n, generator=g),
+        sh0=torch.randn(n, 1, 3, generator=g),
+    )
     if k:
         p["shN"] = torch.randn(n, k, 3, generator=g)
     return p
@@ -175,7 +196,7 @@ def test_obj_reader_strictness(tmp_path):
         read_obj(oor)
     junk = tmp_path / "junk.obj"
     junk.write_text("v 0 0 zero\n")
-    with pytest.raises(MeshsplatError, match="junk.obj:1: bad vertex"):
+    with pytest.raises(MeshsplatError, match=r"junk.obj:1: bad vertex"):
         read_obj(junk)
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing\n")

@@ -1,4 +1,5 @@
 """Video output: MP4 through imageio-ffmpeg, PNG frames, and the PNG fallback."""
+
 from __future__ import annotations
 
 import subprocess
@@ -38,8 +39,22 @@ def test_mp4_written_with_odd_size(tmp_path):
     imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
     res = write_video(_frames(n=5), tmp_path / "out.mp4", fps=10)
     assert res.error is None and res.mp4 is not None and res.pngs == []
-    decoded = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(res.mp4),
-                              "-f", "rawvideo", "-pix_fmt", "rgb24", "-"], capture_output=True, check=True)
+    decoded = subprocess.run(
+        [
+            imageio_ffmpeg.get_ffmpeg_exe(),
+            "-v",
+            "error",
+            "-i",
+            str(res.mp4),
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-",
+        ],
+        capture_output=True,
+        check=True,
+    )
     frames = np.frombuffer(decoded.stdout, np.uint8).reshape(-1, 18, 24, 3)
     assert len(frames) == 5 and frames[0].shape == (18, 24, 3)  # padded to even size
     assert abs(int(frames[-1][5, 5, 0]) - 255) < 8 and int(frames[0][5, 5, 0]) < 8

@@ -2,6 +2,7 @@
 
 Imports under ``if TYPE_CHECKING:`` (annotations only) are not counted; function-local imports are.
 """
+
 import ast
 from pathlib import Path
 
@@ -78,8 +79,13 @@ def test_own_modules_are_imported_at_the_top():
             if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
             for node in ast.walk(fn):
-                names = ([node.module or ""] if isinstance(node, ast.ImportFrom)
-                         else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+                names = (
+                    [node.module or ""]
+                    if isinstance(node, ast.ImportFrom)
+                    else [a.name for a in node.names]
+                    if isinstance(node, ast.Import)
+                    else []
+                )
                 if any(n.startswith("meshsplat") for n in names):
                     where = f"{path.relative_to(PKG)}:{node.lineno}"
                     if str(path.relative_to(PKG)) not in LOCAL_IMPORT_ALLOWED:

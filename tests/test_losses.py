@@ -1,4 +1,5 @@
 """Training losses: scale regulariser, D-SSIM, perceptual loss (and its fallback), avatar_loss."""
+
 from __future__ import annotations
 
 import math
@@ -21,12 +22,15 @@ from meshsplat.train.losses import (
 
 
 def test_scale_regularizer_selects_long_and_thin():
-    scales = torch.tensor([
-        [0.05, 0.001, 0.002],   # long (0.05 > 0.01) and thin (50 > 10): counted
-        [0.05, 0.04, 0.03],     # long, not thin
-        [0.005, 0.0001, 0.001], # thin, not long
-        [0.001, 0.02, 0.0015],  # long and thin, largest on axis 1: counted
-    ], requires_grad=True)
+    scales = torch.tensor(
+        [
+            [0.05, 0.001, 0.002],  # long (0.05 > 0.01) and thin (50 > 10): counted
+            [0.05, 0.04, 0.03],  # long, not thin
+            [0.005, 0.0001, 0.001],  # thin, not long
+            [0.001, 0.02, 0.0015],  # long and thin, largest on axis 1: counted
+        ],
+        requires_grad=True,
+    )
     loss = scale_regularizer(scales, thresh_scale=0.01, thresh_ratio=10.0)
     assert loss.item() == pytest.approx((0.05 + 0.02) / 2)
     loss.backward()
@@ -77,8 +81,7 @@ def test_gradcheck_d_ssim_and_scale_regularizer():
     a = torch.rand(1, 6, 7, 3, generator=g, dtype=torch.float64, requires_grad=True)
     b = torch.rand(1, 6, 7, 3, generator=g, dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda x: d_ssim(x, b), (a,), fast_mode=True)
-    s = torch.tensor([[0.5, 0.01, 0.02], [0.3, 0.2, 0.25], [0.02, 0.8, 0.01]],
-                     dtype=torch.float64, requires_grad=True)
+    s = torch.tensor([[0.5, 0.01, 0.02], [0.3, 0.2, 0.25], [0.02, 0.8, 0.01]], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: scale_regularizer(x, 0.1), (s,))
 
 
@@ -98,8 +101,9 @@ def test_perceptual_uses_lpips_when_available():
     loss = make_perceptual_loss("alex")
     assert loss.kind == "lpips-alex"
     ramp = torch.linspace(0, 1, 32)
-    a = torch.stack([ramp.view(32, 1).expand(32, 32), ramp.view(1, 32).expand(32, 32),
-                     torch.full((32, 32), 0.5)], dim=-1)
+    a = torch.stack(
+        [ramp.view(32, 1).expand(32, 32), ramp.view(1, 32).expand(32, 32), torch.full((32, 32), 0.5)], dim=-1
+    )
     assert loss(a, a).item() == 0.0 and loss(a, torch.rand_like(a)).item() > 0.1
     tiny = torch.rand(2, 12, 20, 3, requires_grad=True)  # below LPIPS's minimum: upsampled
     val = loss(tiny, torch.rand(2, 12, 20, 3))
@@ -115,8 +119,7 @@ def test_avatar_loss_combines_parts():
     def perceptual(x, y):  # a real (if simple) perceptual stand-in: D-SSIM
         return d_ssim(x, y)
 
-    total, parts = avatar_loss(render, gt, scales, thresh_scale=0.1, perceptual=perceptual,
-                               lambda_mse=10.0)
+    total, parts = avatar_loss(render, gt, scales, thresh_scale=0.1, perceptual=perceptual, lambda_mse=10.0)
     l1 = (render - gt).abs().mean()
     expected = l1 + 0.01 * d_ssim(render, gt) + 1.0 * 0.5 + 10.0 * (render - gt).pow(2).mean()
     assert total.item() == pytest.approx(expected.item(), rel=1e-6)

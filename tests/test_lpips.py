@@ -1,6 +1,8 @@
 """LPIPS: offline weight loading, restricted unpickling, and the metric's properties."""
+
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import pickle
@@ -36,18 +38,24 @@ def structured_image(h=96, w=96, seed=0) -> torch.Tensor:
             ph = torch.rand(1, generator=g) * 2 * math.pi
             img[c] += torch.sin(2 * math.pi * (f[0] * xx + f[1] * yy) + ph) / 6
     img = (img * 0.5 + 0.5).clamp(0, 1)
-    img[:, h // 3: 2 * h // 3, w // 4: 3 * w // 4] = torch.tensor([0.9, 0.2, 0.1]).view(3, 1, 1)
+    img[:, h // 3 : 2 * h // 3, w // 4 : 3 * w // 4] = torch.tensor([0.9, 0.2, 0.1]).view(3, 1, 1)
     return img[None]
 
 
 def _fake_alex_params(rng: np.random.Generator) -> dict:
     spec = [(11, 3, 64), (5, 64, 192), (3, 192, 384), (3, 384, 256), (3, 256, 256)]
-    net = {f"Conv_{i}": {"kernel": rng.standard_normal((k, k, ci, co)).astype(np.float32) * 0.05,
-                         "bias": rng.standard_normal(co).astype(np.float32) * 0.01}
-           for i, (k, ci, co) in enumerate(spec)}
+    net = {
+        f"Conv_{i}": {
+            "kernel": rng.standard_normal((k, k, ci, co)).astype(np.float32) * 0.05,
+            "bias": rng.standard_normal(co).astype(np.float32) * 0.01,
+        }
+        for i, (k, ci, co) in enumerate(spec)
+    }
     params = {"AlexNet_0": net}
     for j, (_, _, co) in enumerate(spec):
-        params[f"NetLinLayer_{j}"] = {"Conv_0": {"kernel": np.abs(rng.standard_normal((1, 1, co, 1))).astype(np.float32)}}
+        params[f"NetLinLayer_{j}"] = {
+            "Conv_0": {"kernel": np.abs(rng.standard_normal((1, 1, co, 1))).astype(np.float32)}
+        }
     return params
 
 
@@ -61,8 +69,9 @@ def test_loads_weights_from_explicit_file_with_flax_layout(tmp_path):
     assert torch.equal(w[7, 5, 1, 3], torch.tensor(k[1, 3, 5, 7]))
     assert torch.equal(w[7, 5, 3, 1], torch.tensor(k[3, 1, 5, 7]))
     assert torch.equal(model.convs[4].bias, torch.from_numpy(params["AlexNet_0"]["Conv_4"]["bias"]))
-    assert torch.equal(model.lins[2].weight.flatten(),
-                       torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel()))
+    assert torch.equal(
+        model.lins[2].weight.flatten(), torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel())
+    )
     assert not any(p.requires_grad for p in model.parameters()) and not model.training
     x = structured_image(64, 64)
     assert model(x, x).item() == 0.0 and model(x, 1 - x).item() > 0
@@ -119,7 +128,7 @@ def test_identity_symmetry_batch():
     xb = torch.cat([x, structured_image(64, 64, seed=2), structured_image(64, 64, seed=3)])
     yb = (xb + 0.05 * torch.randn_like(xb)).clamp(0, 1)
     batched = model(xb, yb)
-    single = torch.stack([model(xb[i:i + 1], yb[i:i + 1])[0] for i in range(3)])
+    single = torch.stack([model(xb[i : i + 1], yb[i : i + 1])[0] for i in range(3)])
     torch.testing.assert_close(batched, single, rtol=1e-4, atol=1e-6)
 
 
@@ -129,12 +138,12 @@ def test_monotone_in_noise_and_blur_and_plausible_range():
     x = structured_image(96, 96)
     noise = torch.randn_like(x)
     d_noise = [model(x, (x + s * noise).clamp(0, 1)).item() for s in (0.02, 0.05, 0.1, 0.3)]
-    assert all(a < b for a, b in zip(d_noise, d_noise[1:])), d_noise
+    assert all(a < b for a, b in itertools.pairwise(d_noise)), d_noise
     d_blur = []
     for k in (3, 5, 9, 15):
         b = F.avg_pool2d(F.pad(x, (k // 2,) * 4, mode="replicate"), k, 1)
         d_blur.append(model(x, b).item())
-    assert all(a < b for a, b in zip(d_blur, d_blur[1:])), d_blur
+    assert all(a < b for a, b in itertools.pairwise(d_blur)), d_blur
     # Slight noise is perceptually close, strong noise far: published LPIPS-alex scale.
     assert 0.002 < d_noise[0] < 0.2, d_noise
     assert 0.3 < d_noise[-1] < 1.2

@@ -1,4 +1,5 @@
 """Differentiable geometry: normals, areas, frames, rotations, vertex quaternions."""
+
 from __future__ import annotations
 
 import math
@@ -100,11 +101,18 @@ def test_sign_alignment_near_half_turn():
 
 def test_degenerate_faces_finite_values_and_gradients():
     v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [3, 0, 0]], dtype=torch.float64, requires_grad=True)
-    f = torch.tensor([[0, 1, 2], [1, 3, 4], [0, 0, 2]])          # face 1 collinear, face 2 repeats a vertex
+    f = torch.tensor([[0, 1, 2], [1, 3, 4], [0, 0, 2]])  # face 1 collinear, face 2 repeats a vertex
     posed = v * 1.5
-    outs = [face_normals(v, f), face_areas(v, f), vertex_normals(v, f), vertex_normals(v, f, "angle"),
-            face_frames(v, f), face_rotations(v, posed, f), vertex_quaternions(v, posed, f),
-            face_area_ratio(v, posed, f)]
+    outs = [
+        face_normals(v, f),
+        face_areas(v, f),
+        vertex_normals(v, f),
+        vertex_normals(v, f, "angle"),
+        face_frames(v, f),
+        face_rotations(v, posed, f),
+        vertex_quaternions(v, posed, f),
+        face_area_ratio(v, posed, f),
+    ]
     total = sum(o.sum() for o in outs)
     (g,) = torch.autograd.grad(total, v)
     assert all(bool(torch.isfinite(o).all()) for o in outs) and bool(torch.isfinite(g).all())
@@ -131,6 +139,8 @@ def test_geometry_gradcheck():
     v, f = _sphere(0)
     v = (v + 0.05 * torch.randn_like(v)).requires_grad_(True)
     posed = v.detach() * 1.2 + 0.1 * torch.randn_like(v)
-    assert torch.autograd.gradcheck(lambda x: vertex_quaternions(v.detach(), x, f), (posed.clone().requires_grad_(True),))
+    assert torch.autograd.gradcheck(
+        lambda x: vertex_quaternions(v.detach(), x, f), (posed.clone().requires_grad_(True),)
+    )
     assert torch.autograd.gradcheck(lambda x: vertex_normals(x, f, "angle"), (v,))
     assert torch.autograd.gradcheck(lambda x: face_area_ratio(v.detach(), x, f), (posed.clone().requires_grad_(True),))

@@ -1,4 +1,5 @@
 """Topology, TriMesh validation and check() report."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,7 +40,7 @@ def test_grid_topology():
     assert len(topo.nonmanifold_edges) == 0 and len(topo.inconsistent_edges) == 0
     assert (topo.face_adj >= 0).sum() == 2 * (topo.num_edges - 12)
     assert torch.all(topo.edges[:, 0] < topo.edges[:, 1])
-    e = topo.edges[topo.face_edges]                      # [F,3,2]
+    e = topo.edges[topo.face_edges]  # [F,3,2]
     start, end = topo.faces, topo.faces[:, [1, 2, 0]]
     assert torch.equal(e[..., 0], torch.minimum(start, end)) and torch.equal(e[..., 1], torch.maximum(start, end))
     _adjacency_is_symmetric(topo)
@@ -55,8 +56,9 @@ def test_closed_sphere_every_edge_two_faces():
 
 def test_nonmanifold_edge_has_no_adjacency():
     # three quads (6 triangles) sharing the edge (0, 1)
-    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, -1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1]],
-                     dtype=torch.float32)
+    v = torch.tensor(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, -1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1]], dtype=torch.float32
+    )
     f = torch.tensor([[0, 1, 3], [0, 3, 2], [1, 0, 4], [1, 4, 5], [0, 1, 7], [0, 7, 6]])
     mesh = TriMesh(v, f)
     topo = mesh.topology
@@ -83,7 +85,7 @@ def test_inconsistent_orientation_detected_and_adjacency_kept():
 
 def test_degenerate_faces_reported_not_fatal():
     v = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 0, 0]], dtype=torch.float32)
-    f = torch.tensor([[0, 1, 2], [0, 1, 3], [1, 1, 2]])      # collinear face and repeated index
+    f = torch.tensor([[0, 1, 2], [0, 1, 3], [1, 1, 2]])  # collinear face and repeated index
     mesh = TriMesh(v, f)
     assert mesh.degenerate_faces().tolist() == [False, True, True]
     rep = mesh.check()

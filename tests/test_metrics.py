@@ -1,4 +1,5 @@
 """PSNR and SSIM against plain independent computations."""
+
 from __future__ import annotations
 
 import math
@@ -15,16 +16,16 @@ from meshsplat.metrics import psnr, ssim
 def _ssim_reference(x: np.ndarray, y: np.ndarray) -> float:
     """Wang et al. SSIM, written plainly: 11x11 Gaussian (sigma 1.5), valid windows, channel mean."""
     r = np.arange(11) - 5.0
-    g = np.exp(-r ** 2 / (2 * 1.5 ** 2))
+    g = np.exp(-(r**2) / (2 * 1.5**2))
     win = np.outer(g, g) / np.outer(g, g).sum()
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    c1, c2 = 0.01**2, 0.03**2
     vals = []
     for c in range(x.shape[2]):
         a, b = x[:, :, c], y[:, :, c]
         f = lambda z: convolve2d(z, win, mode="valid")  # noqa: E731  (symmetric window)
         ma, mb = f(a), f(b)
-        va, vb, cov = f(a * a) - ma ** 2, f(b * b) - mb ** 2, f(a * b) - ma * mb
-        s = ((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma ** 2 + mb ** 2 + c1) * (va + vb + c2))
+        va, vb, cov = f(a * a) - ma**2, f(b * b) - mb**2, f(a * b) - ma * mb
+        s = ((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
         vals.append(s.mean())
     return float(np.mean(vals))
 

@@ -1,4 +1,5 @@
 """Motion files (SMPL / AMASS / IMavatar / VHAP) and re-enactment."""
+
 from __future__ import annotations
 
 import json
@@ -7,8 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from _body_fixtures import write_tiny_models
 
+from _body_fixtures import write_tiny_models
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver, save_driver_params
 from meshsplat.drivers.motion import load_motion, motion_frame_rate, reenact
 from meshsplat.errors import MeshsplatError
@@ -67,8 +68,15 @@ def test_amass_smplh_156_and_split_keys(tmp_path, models):
     np.testing.assert_array_equal(p["left_hand_pose"], poses[:, 66:111])
     np.testing.assert_array_equal(p["right_hand_pose"], poses[:, 111:156])
     assert not p["jaw_pose"].any()
-    np.savez(tmp_path / "n.npz", root_orient=poses[:, :3], pose_body=poses[:, 3:66], pose_hand=poses[:, 66:156],
-             pose_jaw=np.full((S, 3), 0.1), pose_eye=np.full((S, 6), 0.2), trans=np.zeros((S, 3)))
+    np.savez(
+        tmp_path / "n.npz",
+        root_orient=poses[:, :3],
+        pose_body=poses[:, 3:66],
+        pose_hand=poses[:, 66:156],
+        pose_jaw=np.full((S, 3), 0.1),
+        pose_eye=np.full((S, 6), 0.2),
+        trans=np.zeros((S, 3)),
+    )
     q = load_motion(tmp_path / "n.npz", models["smplx"])
     np.testing.assert_array_equal(q["left_hand_pose"], p["left_hand_pose"])
     assert np.allclose(q["jaw_pose"], 0.1) and np.allclose(q["reye_pose"], 0.2)
@@ -77,9 +85,19 @@ def test_amass_smplh_156_and_split_keys(tmp_path, models):
 def test_imavatar_flame_params_json(tmp_path, models):
     S = 3
     pose, expr = _ramp(S, 15), _ramp(S, 50)
-    doc = {"shape_params": [0.5] * 100, "intrinsics": [-1, 1, 0.5, 0.5],
-           "frames": [{"file_path": f"./image/{i + 1}", "pose": pose[i].tolist(), "expression": expr[i].tolist(),
-                       "world_mat": np.eye(4)[:3].tolist()} for i in range(S)]}
+    doc = {
+        "shape_params": [0.5] * 100,
+        "intrinsics": [-1, 1, 0.5, 0.5],
+        "frames": [
+            {
+                "file_path": f"./image/{i + 1}",
+                "pose": pose[i].tolist(),
+                "expression": expr[i].tolist(),
+                "world_mat": np.eye(4)[:3].tolist(),
+            }
+            for i in range(S)
+        ],
+    }
     (tmp_path / "flame_params.json").write_text(json.dumps(doc))
     for src in (tmp_path / "flame_params.json", tmp_path):
         p = load_motion(src, models["flame"])
@@ -97,10 +115,17 @@ def test_vhap_flame_param_folder(tmp_path, models):
     folder = tmp_path / "flame_param"
     folder.mkdir()
     for t in (10, 2, 1):  # numeric order, not file-name order
-        np.savez(folder / f"{t:d}.npz", translation=np.full((1, 3), t, np.float32),
-                 rotation=np.full((1, 3), 0.01 * t), neck_pose=np.zeros((1, 3)), jaw_pose=np.full((1, 3), 0.1),
-                 eyes_pose=np.arange(6, dtype=np.float32)[None] + t, shape=np.ones(300), expr=np.zeros((1, 100)),
-                 static_offset=np.zeros((1, 5143, 3)))
+        np.savez(
+            folder / f"{t:d}.npz",
+            translation=np.full((1, 3), t, np.float32),
+            rotation=np.full((1, 3), 0.01 * t),
+            neck_pose=np.zeros((1, 3)),
+            jaw_pose=np.full((1, 3), 0.1),
+            eyes_pose=np.arange(6, dtype=np.float32)[None] + t,
+            shape=np.ones(300),
+            expr=np.zeros((1, 100)),
+            static_offset=np.zeros((1, 5143, 3)),
+        )
     for src in (folder, tmp_path):
         p = load_motion(src, models["flame"])
         assert p["transl"][:, 0].tolist() == [1, 2, 10]
@@ -116,14 +141,17 @@ def test_driver_params_npz_as_motion(tmp_path, models):
     np.testing.assert_array_equal(p["body_pose"], params["body_pose"])
 
 
-@pytest.mark.parametrize("keys, kind, match", [
-    ({"poses": np.zeros((3, 70)), "trans": np.zeros((3, 3))}, "smpl", r"\[S,72\].*AIST"),
-    ({"poses": np.zeros((3, 72)), "trans": np.zeros((4, 3))}, "smpl", "disagree"),
-    ({"rotation": np.zeros((3, 3)), "expr": np.zeros((3, 100))}, "smpl", "FLAME motion"),
-    ({"poses": np.zeros((3, 72)), "trans": np.zeros((3, 3))}, "flame", "missing.*VHAP"),
-    ({"trans": np.zeros((3, 3))}, "smplx", "no body poses.*AMASS"),
-    ({"poses": np.full((3, 72), np.nan), "trans": np.zeros((3, 3))}, "smpl", "NaN"),
-])
+@pytest.mark.parametrize(
+    "keys, kind, match",
+    [
+        ({"poses": np.zeros((3, 70)), "trans": np.zeros((3, 3))}, "smpl", r"\[S,72\].*AIST"),
+        ({"poses": np.zeros((3, 72)), "trans": np.zeros((4, 3))}, "smpl", "disagree"),
+        ({"rotation": np.zeros((3, 3)), "expr": np.zeros((3, 100))}, "smpl", "FLAME motion"),
+        ({"poses": np.zeros((3, 72)), "trans": np.zeros((3, 3))}, "flame", "missing.*VHAP"),
+        ({"trans": np.zeros((3, 3))}, "smplx", "no body poses.*AMASS"),
+        ({"poses": np.full((3, 72), np.nan), "trans": np.zeros((3, 3))}, "smpl", "NaN"),
+    ],
+)
 def test_wrong_layouts_are_one_line_errors(tmp_path, models, keys, kind, match):
     np.savez(tmp_path / "bad.npz", **keys)
     with pytest.raises(MeshsplatError, match=match) as e:
@@ -137,8 +165,14 @@ def test_wrong_files(tmp_path, models):
     (tmp_path / "flame_params.json").write_text('{"frames": [{"pose": [0, 0]}]}')
     with pytest.raises(MeshsplatError, match="IMavatar"):
         load_motion(tmp_path / "flame_params.json", models["flame"])
-    np.savez(tmp_path / "expr.npz", rotation=np.zeros((2, 3)), neck_pose=np.zeros((2, 3)), jaw_pose=np.zeros((2, 3)),
-             eyes_pose=np.zeros((2, 6)), expr=np.ones((2, 120)))
+    np.savez(
+        tmp_path / "expr.npz",
+        rotation=np.zeros((2, 3)),
+        neck_pose=np.zeros((2, 3)),
+        jaw_pose=np.zeros((2, 3)),
+        eyes_pose=np.zeros((2, 6)),
+        expr=np.ones((2, 120)),
+    )
     with pytest.raises(MeshsplatError, match="120 components"):
         load_motion(tmp_path / "expr.npz", models["flame"])
     with pytest.raises(MeshsplatError, match="SMPL model takes an npz"):
@@ -150,10 +184,19 @@ def _rz(deg):
 
 
 def test_reenact_keeps_subject_shape_and_takes_motion():
-    motion = {"global_orient": np.array([_rz(90), _rz(90)], np.float32), "body_pose": _ramp(2, 69),
-              "transl": np.array([[5, 5, 5], [6, 5, 5]], np.float32), "betas": np.full(10, 9.0)}
-    subject = {"betas": np.full(10, 0.5), "static_offset": np.ones((7, 3)), "global_orient": np.zeros((3, 3)),
-               "transl": np.array([[0, 1, 2]] * 3, np.float32), "body_pose": np.zeros((3, 69))}
+    motion = {
+        "global_orient": np.array([_rz(90), _rz(90)], np.float32),
+        "body_pose": _ramp(2, 69),
+        "transl": np.array([[5, 5, 5], [6, 5, 5]], np.float32),
+        "betas": np.full(10, 9.0),
+    }
+    subject = {
+        "betas": np.full(10, 0.5),
+        "static_offset": np.ones((7, 3)),
+        "global_orient": np.zeros((3, 3)),
+        "transl": np.array([[0, 1, 2]] * 3, np.float32),
+        "body_pose": np.zeros((3, 69)),
+    }
     r = reenact(motion, subject, align="none")
     assert np.allclose(r["betas"], 0.5) and r["static_offset"].shape == (7, 3)
     np.testing.assert_array_equal(r["body_pose"], motion["body_pose"])
@@ -170,11 +213,18 @@ def test_reenact_keeps_subject_shape_and_takes_motion():
 
 def test_reenact_flame_expression_from_driver(tmp_path, models):
     m = models["flame"]
-    subject = {"betas": np.full(300, 0.1, np.float32), "expression": np.zeros((2, 100), np.float32),
-               "global_orient": np.zeros((2, 3), np.float32)}
-    motion = {"global_orient": np.zeros((4, 3), np.float32), "jaw_pose": np.full((4, 3), 0.2, np.float32),
-              "expression": np.ones((4, 50), np.float32), "betas": np.full(100, 3.0, np.float32),
-              "transl": np.zeros((4, 3), np.float32)}
+    subject = {
+        "betas": np.full(300, 0.1, np.float32),
+        "expression": np.zeros((2, 100), np.float32),
+        "global_orient": np.zeros((2, 3), np.float32),
+    }
+    motion = {
+        "global_orient": np.zeros((4, 3), np.float32),
+        "jaw_pose": np.full((4, 3), 0.2, np.float32),
+        "expression": np.ones((4, 50), np.float32),
+        "betas": np.full(100, 3.0, np.float32),
+        "transl": np.zeros((4, 3), np.float32),
+    }
     r = reenact(motion, subject)
     assert np.allclose(r["betas"], 0.1) and r["expression"].shape == (4, 50) and np.allclose(r["jaw_pose"], 0.2)
     drv = ParametricDriver(m, r)

@@ -1,5 +1,6 @@
 """Your own mesh, your own animation (issue 12): mesh sequences as inputs, vertex order, re-derived
 driving meshes, axes and units, clip defaults, credits, threads, the demo's continuous animation."""
+
 from __future__ import annotations
 
 import json
@@ -8,9 +9,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from _creature import creature_frames, write_creature_frames, write_creature_npz
-from test_eval_kit import make_dataset, make_run
 
+from _creature import creature_frames, write_creature_frames, write_creature_npz
 from meshsplat import animate
 from meshsplat.data import open_dataset
 from meshsplat.data.source_map import read_source_map
@@ -20,6 +20,7 @@ from meshsplat.gaussians.params import init_params
 from meshsplat.mesh import TriMesh
 from meshsplat.synth import generate
 from meshsplat.synth.sources import load_source
+from test_eval_kit import make_dataset, make_run
 
 TINY = dict(frames=4, resolution=32, test_views=1, test_frames=2, test_view_frames=1, supersample=1)
 
@@ -40,7 +41,7 @@ def creature(tmp_path_factory):
 
 # ---------------------------------------------------------------- mesh sequences are inputs
 def test_npz_sequence_synthesizes_with_defaults_from_its_clips(creature):
-    npz, ds = creature
+    _npz, ds = creature
     m = ds.meta
     assert m["asset_up"] == "z" and m["train_clip"] == "crawl" and m["test_clips"] == ["idle"]
     assert "procedural caterpillar" in m["attribution"]
@@ -61,9 +62,21 @@ def test_obj_and_ply_frame_folders_are_sources(tmp_path):
     plys = tmp_path / "plys"
     plys.mkdir()
     for k, v in enumerate(d["vertices"][:2]):
-        lines = ["ply", "format ascii 1.0", f"element vertex {len(v)}", "property float x", "property float y",
-                 "property float z", f"element face {len(d['faces'])}", "property list uchar int vertex_indices",
-                 "end_header"] + [f"{a} {b} {c}" for a, b, c in v] + [f"3 {a} {b} {c}" for a, b, c in d["faces"]]
+        lines = (
+            [
+                "ply",
+                "format ascii 1.0",
+                f"element vertex {len(v)}",
+                "property float x",
+                "property float y",
+                "property float z",
+                f"element face {len(d['faces'])}",
+                "property list uchar int vertex_indices",
+                "end_header",
+            ]
+            + [f"{a} {b} {c}" for a, b, c in v]
+            + [f"3 {a} {b} {c}" for a, b, c in d["faces"]]
+        )
         (plys / f"f{k}.ply").write_text("\n".join(lines) + "\n")
     ply_src = load_source(plys)
     assert torch.allclose(ply_src.pose("sequence", 1 / 30), torch.from_numpy(d["vertices"][1]))
@@ -74,7 +87,7 @@ def test_layout_errors_name_the_layout(tmp_path):
     with pytest.raises(MeshsplatError, match="npz mesh sequence"):
         load_source(tmp_path / "seq.npy")
     np.savez(tmp_path / "other.npz", verts=np.zeros((2, 3, 3)))
-    with pytest.raises(MeshsplatError, match="npz mesh sequence.*blend-shape head npz"):
+    with pytest.raises(MeshsplatError, match=r"npz mesh sequence.*blend-shape head npz"):
         load_source(tmp_path / "other.npz")
     np.savez(tmp_path / "bad.npz", faces=np.array([[0, 1, 5]]), vertices=np.zeros((2, 3, 3), np.float32))
     with pytest.raises(MeshsplatError, match=r"face indices.*npz mesh sequence"):
@@ -82,7 +95,7 @@ def test_layout_errors_name_the_layout(tmp_path):
     (tmp_path / "frames").mkdir()
     write_creature_frames(tmp_path / "frames", frames=2, with_texture=False)
     (tmp_path / "frames" / "frame_001.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(MeshsplatError, match="same mesh.*OBJ/PLY frames"):
+    with pytest.raises(MeshsplatError, match=r"same mesh.*OBJ/PLY frames"):
         load_source(tmp_path / "frames")
 
 
@@ -107,9 +120,20 @@ def test_meshseq_capture_imports_and_trains_input(creature, tmp_path):
         (mini / "images" / f"{k:03d}.png").write_bytes((ds.root / ds.frame_info(k)["image"]).read_bytes())
     seq = np.stack([ds.vertices(0).numpy(), ds.vertices(0).numpy()])
     np.savez(mini / "mesh.npz", faces=ds.faces.numpy(), vertices=seq)
-    (mini / "cameras.json").write_text(json.dumps({"cameras": {"c": {
-        "K": np.asarray(K).tolist(), "c2w_opengl": opengl_c2w_from_viewmat(np.asarray(vm)).tolist(), "width": w,
-        "height": h}}}))
+    (mini / "cameras.json").write_text(
+        json.dumps(
+            {
+                "cameras": {
+                    "c": {
+                        "K": np.asarray(K).tolist(),
+                        "c2w_opengl": opengl_c2w_from_viewmat(np.asarray(vm)).tolist(),
+                        "width": w,
+                        "height": h,
+                    }
+                }
+            }
+        )
+    )
     mds = open_capture(mini)
     assert len(mds) == 2 and np.allclose(mds.camera("c").viewmat, np.asarray(vm), atol=1e-6)
     assert (write_native(mds, tmp_path / "native") / "manifest.json").is_file()
@@ -138,9 +162,13 @@ def test_meshseq_capture_with_a_gltf_mesh(creature, assets, tmp_path):
     shutil.copyfile(assets / "gltf" / "RiggedSimple.glb", gl / "mesh.glb")
     cam0 = ds.frame_camera(0)
     K, vm, w, h = cam0.K, cam0.viewmat, cam0.width, cam0.height
-    doc = {"cameras": {"c": {"K": np.asarray(K).tolist(), "viewmat": np.asarray(vm).tolist(), "width": w, "height": h}},
-           "frames": [{"image": "images/000.png", "camera": "c", "time": 0.0},
-                      {"image": "images/001.png", "camera": "c", "time": 0.5}]}
+    doc = {
+        "cameras": {"c": {"K": np.asarray(K).tolist(), "viewmat": np.asarray(vm).tolist(), "width": w, "height": h}},
+        "frames": [
+            {"image": "images/000.png", "camera": "c", "time": 0.0},
+            {"image": "images/001.png", "camera": "c", "time": 0.5},
+        ],
+    }
     (gl / "cameras.json").write_text(json.dumps(doc))
     gds = open_capture(gl)
     assert torch.allclose(gds[1].vertices, GltfDriver(gl / "mesh.glb").vertices_at(0.5))
@@ -175,8 +203,25 @@ def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
     run = make_run(av, tmp_path / "run", ds.root)
     from meshsplat.cli.main import main
 
-    assert main(["render", str(run), "--vertices", str(npz), "--size", "24x24", "--no-mp4", "--no-progress",
-                 "--threads", "1", "--out", str(tmp_path / "r")]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--vertices",
+                str(npz),
+                "--size",
+                "24x24",
+                "--no-mp4",
+                "--no-progress",
+                "--threads",
+                "1",
+                "--out",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 0
+    )
     assert len(list((tmp_path / "r" / "frames").glob("*.png"))) == raw.shape[0]
 
 
@@ -184,8 +229,9 @@ def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
 @pytest.mark.parametrize("smooth,decimate", [(3, None), (0, 0.5)])
 def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, decimate):
     path = assets / "gltf" / "CesiumMan.glb"
-    ds = open_dataset(generate(path, tmp_path / "ds", rig="orbit", driver_smooth=smooth, driver_decimate=decimate,
-                               **TINY))
+    ds = open_dataset(
+        generate(path, tmp_path / "ds", rig="orbit", driver_smooth=smooth, driver_decimate=decimate, **TINY)
+    )
     av = _avatar(ds)
     smap = read_source_map(ds.root)
     assert not smap.exact
@@ -196,15 +242,36 @@ def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, deci
     t0 = GltfDriver(path).time_range()[0]  # render times count from the clip's start
     frames = animate.gltf_animation(av, path, fps=1000.0, seconds=0.0, start=t - t0, source_map=smap)
     assert torch.allclose(frames[0], ds.vertices(i), atol=1e-4 * float(ds.canonical_vertices.abs().max()))
-    with pytest.raises(MeshsplatError, match="no source_map.npz"):
+    with pytest.raises(MeshsplatError, match=r"no source_map.npz"):
         animate.gltf_animation(av, path, fps=5, seconds=0.2)
     with pytest.raises(MeshsplatError, match="not the asset this avatar was synthesized from"):
         animate.gltf_animation(av, assets / "gltf" / "RiggedSimple.glb", fps=5, seconds=0.2, source_map=smap)
     run = make_run(av, tmp_path / "run", ds.root)  # the CLI finds the map through the run's dataset
     from meshsplat.cli.main import main
 
-    assert main(["render", str(run), "--gltf", str(path), "--seconds", "0.2", "--fps", "10", "--size", "16x16",
-                 "--no-mp4", "--no-progress", "--threads", "1", "--out", str(tmp_path / "r")]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--gltf",
+                str(path),
+                "--seconds",
+                "0.2",
+                "--fps",
+                "10",
+                "--size",
+                "16x16",
+                "--no-mp4",
+                "--no-progress",
+                "--threads",
+                "1",
+                "--out",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 0
+    )
     if smooth:  # a sequence of the asset's own vertices also drives the smoothed mesh (rotation-aware offsets)
         seq = torch.stack([load_source(path).pose(ds.frame_info(i)["clip"], t)])
         got = animate.sequence_animation(av, seq, source_map=smap)[0]
@@ -215,9 +282,25 @@ def test_training_copies_the_source_map_into_the_run(creature, tmp_path):
     from meshsplat.cli.main import main
 
     _, ds = creature
-    rc = main(["train", str(ds.root), "--out", str(tmp_path / "run"), "--iters", "2", "--no-progress",
-               "--threads", "1", "--set", "model.n_init=50", "--set", "preview_every=100000",
-               "--set", "checkpoint_every=100000"])
+    rc = main(
+        [
+            "train",
+            str(ds.root),
+            "--out",
+            str(tmp_path / "run"),
+            "--iters",
+            "2",
+            "--no-progress",
+            "--threads",
+            "1",
+            "--set",
+            "model.n_init=50",
+            "--set",
+            "preview_every=100000",
+            "--set",
+            "checkpoint_every=100000",
+        ]
+    )
     assert rc == 0 and (tmp_path / "run" / "source_map.npz").is_file()
 
 
@@ -237,9 +320,8 @@ def test_up_axis_choice_and_message(creature, tmp_path, capsys):
 
 
 def test_scale_log_is_relative_to_mesh_size(tmp_path):
-    from test_eval_kit import make_avatar
-
     from meshsplat.train import TrainConfig, Trainer
+    from test_eval_kit import make_avatar
 
     logs = []
     for unit in (1.0, 100.0):
@@ -286,8 +368,11 @@ def test_gltf_copyright_reaches_dataset_and_report(assets, tmp_path):
     import pygltflib
 
     doc = pygltflib.GLTF2().load(str(assets / "gltf" / "RiggedSimple.glb"))
-    doc.asset = pygltflib.Asset(version="2.0", copyright="(c) 2026 Test Author",
-                                extras={"license": "CC-BY 4.0", "source": "https://example.org/model"})
+    doc.asset = pygltflib.Asset(
+        version="2.0",
+        copyright="(c) 2026 Test Author",
+        extras={"license": "CC-BY 4.0", "source": "https://example.org/model"},
+    )
     doc.save_binary(str(tmp_path / "credited.glb"))
     ds = open_dataset(generate(tmp_path / "credited.glb", tmp_path / "ds", rig="orbit", **TINY))
     assert ds.meta["attribution"] == "(c) 2026 Test Author; license: CC-BY 4.0; source: https://example.org/model"

@@ -1,4 +1,5 @@
 """project_to_surface recovers embeddings of points generated on the Phong surface."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,9 +18,9 @@ def _points_with_hard_cases(mesh, n, seed, dmax=0.02):
     face, uv = sample_surface(mesh.vertices, mesh.faces, n, generator=gen)
     uv = uv.double()
     q = n // 4
-    uv[:q, 1] = 1 - uv[:q, 0] - 1e-7 * torch.rand(q, generator=gen, dtype=torch.float64)   # near an edge
-    uv[q:2 * q] = torch.tensor([1.0, 0.0], dtype=torch.float64)                            # on a vertex
-    uv[2 * q:2 * q + q // 2] = torch.tensor([0.0, 0.0], dtype=torch.float64) + 1e-6        # near a vertex
+    uv[:q, 1] = 1 - uv[:q, 0] - 1e-7 * torch.rand(q, generator=gen, dtype=torch.float64)  # near an edge
+    uv[q : 2 * q] = torch.tensor([1.0, 0.0], dtype=torch.float64)  # on a vertex
+    uv[2 * q : 2 * q + q // 2] = torch.tensor([0.0, 0.0], dtype=torch.float64) + 1e-6  # near a vertex
     diag = mesh.bbox_diagonal()
     d = (2 * torch.rand(n, generator=gen, dtype=torch.float64) - 1) * dmax * diag
     return face, uv, d, diag
@@ -68,7 +69,7 @@ def test_far_points_no_nan():
     s = trimesh.creation.icosphere(subdivisions=2)
     mesh = TriMesh(torch.tensor(s.vertices), torch.tensor(s.faces))
     x = torch.cat([torch.randn(200, 3, dtype=torch.float64) * 100, torch.zeros(1, 3, dtype=torch.float64)])
-    f, uv, d = project_to_surface(mesh, mesh.vertices, x)
+    _f, uv, d = project_to_surface(mesh, mesh.vertices, x)
     assert bool(torch.isfinite(uv).all() and torch.isfinite(d).all())
     # far outside: displacement about |x| - 1 (normal direction)
     assert torch.allclose(d[:200], x[:200].norm(dim=1) - 1, rtol=0.01)
@@ -78,7 +79,7 @@ def test_closest_point_matches_dense_sampling():
     s = trimesh.creation.icosphere(subdivisions=0)
     rng = np.random.default_rng(0)
     x = torch.as_tensor(rng.normal(size=(200, 3)) * 1.5)
-    tri = torch.tensor(s.vertices[s.faces])                      # [F,3,3]
+    tri = torch.tensor(s.vertices[s.faces])  # [F,3,3]
     d2, w = closest_point_on_triangles(x[:, None], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
     # the reported weights reproduce the reported distance
     p = (w[..., None] * tri[None]).sum(-2)
@@ -87,7 +88,7 @@ def test_closest_point_matches_dense_sampling():
     g = torch.linspace(0, 1, 81, dtype=torch.float64)
     gu, gv = torch.meshgrid(g, g, indexing="ij")
     keep = (gu + gv) <= 1
-    bw = torch.stack([gu[keep], gv[keep], 1 - gu[keep] - gv[keep]], -1)          # [S,3]
+    bw = torch.stack([gu[keep], gv[keep], 1 - gu[keep] - gv[keep]], -1)  # [S,3]
     samples = torch.einsum("sk,fkc->fsc", bw, tri).reshape(-1, 3)
     brute = torch.cdist(x, samples).min(1).values
     ours = d2.min(1).values.sqrt()

@@ -1,11 +1,11 @@
 """Issue 13's options: pose-dependent shading, SH in the triangle frame, multi-frame colour init, mask loss."""
+
 from __future__ import annotations
 
 import math
 
 import pytest
 import torch
-from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
@@ -14,6 +14,7 @@ from meshsplat.gaussians.shading import Shading, sh9_basis, shading_normals
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import TrainConfig, Trainer
+from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
 def _sphere() -> TriMesh:
@@ -75,8 +76,7 @@ def test_shading_gradients_reach_albedo_and_illumination():
     sh = Shading(normal="axis")
     sh.coeffs.requires_grad_(True)
     g = compose(p, MeshPose.canonical(mesh), shading=sh)
-    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, VIEWMAT[None], K[None], W, H,
-                    backend="torch")
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, VIEWMAT[None], K[None], W, H, backend="torch")
     out.colors.sum().backward()
     assert sh.coeffs.grad is not None and sh.coeffs.grad.abs().sum() > 0
     assert p["sh0"].grad.abs().sum() > 0
@@ -158,8 +158,13 @@ def test_export_ships_illumination_and_bakes_the_ply(tmp_path):
 
 
 def test_config_switches_validate():
-    for bad in ("model.shading=phong", "model.shading_normal=face", "model.sh_frame=camera",
-                "model.init_color_frames=0", "loss.lambda_mask=-1"):
+    for bad in (
+        "model.shading=phong",
+        "model.shading_normal=face",
+        "model.sh_frame=camera",
+        "model.init_color_frames=0",
+        "loss.lambda_mask=-1",
+    ):
         from meshsplat.train import apply_overrides
 
         with pytest.raises(MeshsplatError):
@@ -169,9 +174,14 @@ def test_config_switches_validate():
 def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811
     import shutil
 
-    opts = ["model.shading=sh2", "model.init_color_frames=3", "model.sh_degree=1", "model.sh_frame=triangle",
-            "model.antialiased=true",
-            "loss.lambda_mask=0.1"]
+    opts = [
+        "model.shading=sh2",
+        "model.init_color_frames=3",
+        "model.sh_degree=1",
+        "model.sh_frame=triangle",
+        "model.antialiased=true",
+        "loss.lambda_mask=0.1",
+    ]
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, opts))
     assert full.shading is not None
     c0 = full.shading.coeffs.detach().clone()
@@ -203,8 +213,9 @@ def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # 
     f, uv = one.params["face"], one.params["uv"]
     tri = one.mesh.vertices[one.mesh.faces[f]]
     pos = uv[:, :1] * tri[:, 0] + uv[:, 1:] * tri[:, 1] + (1 - uv.sum(-1, keepdim=True)) * tri[:, 2]
-    truth = torch.stack([0.5 + 0.5 * torch.sin(5 * pos[:, 0]), 0.5 + 0.5 * torch.cos(4 * pos[:, 1]),
-                         (pos[:, 2] > 0).float()], -1)
+    truth = torch.stack(
+        [0.5 + 0.5 * torch.sin(5 * pos[:, 0]), 0.5 + 0.5 * torch.cos(4 * pos[:, 1]), (pos[:, 2] > 0).float()], -1
+    )
     seen = (c6 - 0.5).abs().amax(-1) > 1e-6
     assert int(seen.sum()) > 0.8 * len(seen)
     err1 = float((c1 - truth)[seen].abs().mean())
@@ -221,7 +232,7 @@ def test_viewer_bundle_bakes_the_canonical_shading(tmp_path):
     write_viewer_bundle(av, mesh.vertices[None].numpy(), tmp_path)
     _, arrays = read_viewer_bundle(tmp_path)
     # the bundle stores colours as half floats (relative error <= 2^-11)
-    assert torch.allclose(torch.tensor(arrays["gaussian_rgb"].copy()), av.base_rgb(), atol=1e-5, rtol=2.0 ** -11)
+    assert torch.allclose(torch.tensor(arrays["gaussian_rgb"].copy()), av.base_rgb(), atol=1e-5, rtol=2.0**-11)
     assert not torch.allclose(av.base_rgb(), Avatar(mesh, p).base_rgb(), atol=1e-2)
 
 

@@ -1,4 +1,5 @@
 """The README's Python example runs as written (in a temporary folder) and makes what its comments say."""
+
 from __future__ import annotations
 
 import re
@@ -25,8 +26,17 @@ def test_the_example_uses_only_the_front_door():
 
     used = set(re.findall(r"\bms\.(\w+)", code))
     assert used <= set(ms.__all__), used - set(ms.__all__)
-    assert {"synthesize", "open_capture", "train_avatar", "load_avatar", "orbit_cameras", "render_animation",
-            "evaluate", "export_avatar", "write_viewer"} <= used
+    assert {
+        "synthesize",
+        "open_capture",
+        "train_avatar",
+        "load_avatar",
+        "orbit_cameras",
+        "render_animation",
+        "evaluate",
+        "export_avatar",
+        "write_viewer",
+    } <= used
 
 
 @pytest.mark.slow

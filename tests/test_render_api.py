@@ -1,4 +1,5 @@
 """meshsplat.render.rasterize: contract, validation, backend choice and geometric properties."""
+
 from __future__ import annotations
 
 import sys
@@ -24,8 +25,17 @@ def simple_scene(n=5, dtype=torch.float32, C=2):
     colors = torch.rand(n, 3, generator=g, dtype=dtype)
     viewmats = torch.eye(4, dtype=dtype).expand(C, 4, 4).clone()
     Ks = torch.tensor([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]], dtype=dtype).expand(C, 3, 3).clone()
-    return dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors,
-                viewmats=viewmats, Ks=Ks, width=32, height=24)
+    return dict(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opac,
+        colors=colors,
+        viewmats=viewmats,
+        Ks=Ks,
+        width=32,
+        height=24,
+    )
 
 
 def test_output_contract_and_means2d_grad():
@@ -172,7 +182,9 @@ def test_constant_colour_everywhere_when_background_matches(c, seed):
     """sum_i w_i + T_final = 1 per pixel, so one colour for all splats and background is exact."""
     g = torch.Generator().manual_seed(seed)
     s = simple_scene(n=20, dtype=torch.float64, C=1)
-    s["means"] = torch.randn(20, 3, generator=g, dtype=torch.float64) * 0.4 + torch.tensor([0, 0, 3.0], dtype=torch.float64)
+    s["means"] = torch.randn(20, 3, generator=g, dtype=torch.float64) * 0.4 + torch.tensor(
+        [0, 0, 3.0], dtype=torch.float64
+    )
     s["colors"] = torch.full((20, 3), c, dtype=torch.float64)
     out = rasterize(**s, backgrounds=torch.full((1, 3), c, dtype=torch.float64), backend="torch")
     torch.testing.assert_close(out.colors, torch.full_like(out.colors, c), atol=1e-12, rtol=0)
@@ -183,7 +195,9 @@ def test_constant_colour_everywhere_when_background_matches(c, seed):
 def test_integer_principal_point_shift_translates_image(shift_x, shift_y, seed):
     g = torch.Generator().manual_seed(seed)
     s = simple_scene(n=12, dtype=torch.float64, C=1)
-    s["means"] = torch.randn(12, 3, generator=g, dtype=torch.float64) * 0.25 + torch.tensor([0, 0, 3.0], dtype=torch.float64)
+    s["means"] = torch.randn(12, 3, generator=g, dtype=torch.float64) * 0.25 + torch.tensor(
+        [0, 0, 3.0], dtype=torch.float64
+    )
     s["width"], s["height"] = 48, 40
     s["Ks"] = torch.tensor([[[40.0, 0, 24], [0, 40, 20], [0, 0, 1]]], dtype=torch.float64)
     base = rasterize(**s, backend="torch").colors[0]

@@ -1,4 +1,5 @@
 """meshsplat render: drivers -> vertex frames (with vertex matching), cameras, frames + MP4, CLI."""
+
 from __future__ import annotations
 
 import json
@@ -7,10 +8,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
 from meshsplat import animate, camera
 from meshsplat.errors import MeshsplatError
+from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,7 @@ def test_orbit_cameras_frame_the_animation(avatar):
     assert torch.allclose(d, d[0].expand(3), rtol=1e-5)  # constant distance
     az = [math.degrees(math.atan2(float(c[0] - mid[0]), float(c[2] - mid[2]))) % 360 for c in centres]
     assert np.allclose(az, [0, 120, 240], atol=1e-3)  # 360 degrees over 3 frames
-    for cam, v in zip(cams, frames):
+    for cam, v in zip(cams, frames, strict=True):
         px, z = _project(cam, v)
         assert (z > 0).all()
         assert (px[:, 0] > 0).all() and (px[:, 0] < 64).all() and (px[:, 1] > 0).all() and (px[:, 1] < 48).all()
@@ -118,7 +119,7 @@ def test_gltf_driver_vertex_count_and_matching(avatar, assets):
         assert torch.allclose(frames[i], want, atol=1e-5)
     assert not torch.allclose(frames[0], frames[9], atol=1e-3)  # it animates
     full = animate.gltf_animation(welded, path, fps=4)  # whole clip, end included
-    assert len(full) == int(math.floor(drv.duration() * 4 + 1e-6)) + 1
+    assert len(full) == math.floor(drv.duration() * 4 + 1e-6) + 1
 
 
 def test_cli_render(tmp_path, capsys):
@@ -129,8 +130,22 @@ def test_cli_render(tmp_path, capsys):
     run = make_run(av, tmp_path / "run", ds)
     np.save(tmp_path / "seq.npy", torch.stack([deform(av.mesh.vertices, t) for t in (0, 1)]).numpy())
     out = tmp_path / "orbit"
-    rc = main(["render", str(run), "--vertices", str(tmp_path / "seq.npy"), "--orbit", "90", "--size", "24x16",
-               "--out", str(out), "--no-progress", "--no-mp4"])
+    rc = main(
+        [
+            "render",
+            str(run),
+            "--vertices",
+            str(tmp_path / "seq.npy"),
+            "--orbit",
+            "90",
+            "--size",
+            "24x16",
+            "--out",
+            str(out),
+            "--no-progress",
+            "--no-mp4",
+        ]
+    )
     assert rc == 0
     from PIL import Image
 
@@ -138,8 +153,23 @@ def test_cli_render(tmp_path, capsys):
     assert len(pngs) == 2 and Image.open(pngs[0]).size == (24, 16)
     # the dataset's own frames and cameras reproduce its ground truth
     out2 = tmp_path / "split"
-    assert main(["render", str(run), "--dataset-split", "test_frames", "--out", str(out2), "--no-progress",
-                 "--no-mp4", "--background", "black"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--dataset-split",
+                "test_frames",
+                "--out",
+                str(out2),
+                "--no-progress",
+                "--no-mp4",
+                "--background",
+                "black",
+            ]
+        )
+        == 0
+    )
     from meshsplat.data import open_dataset
 
     d = open_dataset(ds)
@@ -147,12 +177,40 @@ def test_cli_render(tmp_path, capsys):
     got = np.asarray(Image.open(out2 / "frames" / "frame_00000.png")).astype(np.float32) / 255
     want = (fr.image * fr.mask).numpy()
     assert np.abs(got - want).max() < 0.03
-    assert main(["render", str(run), "--vertices", str(tmp_path / "seq.npy"), "--camera", "dataset:side",
-                 "--out", str(tmp_path / "cam"), "--no-progress", "--no-mp4"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--vertices",
+                str(tmp_path / "seq.npy"),
+                "--camera",
+                "dataset:side",
+                "--out",
+                str(tmp_path / "cam"),
+                "--no-progress",
+                "--no-mp4",
+            ]
+        )
+        == 0
+    )
     assert Image.open(tmp_path / "cam" / "frames" / "frame_00001.png").size == (SIZE, SIZE)
     capsys.readouterr()
-    assert main(["render", str(run), "--vertices", str(tmp_path / "seq.npy"), "--camera", "dataset:nope",
-                 "--out", str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--vertices",
+                str(tmp_path / "seq.npy"),
+                "--camera",
+                "dataset:nope",
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
+        == 2
+    )
     assert "not a camera" in capsys.readouterr().err
     assert main(["render", str(tmp_path / "missing"), "--vertices", "x.npy", "--out", str(tmp_path / "m")]) == 2
     assert "run not found" in capsys.readouterr().err

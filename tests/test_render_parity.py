@@ -1,4 +1,5 @@
 """Fast torch rasterizer vs the brute-force dense reference, gradcheck, and gsplat parity (GPU)."""
+
 from __future__ import annotations
 
 import pytest
@@ -26,20 +27,34 @@ def random_scene(n=40, seed=0, dtype=torch.float64, width=32, height=24):
     one outside, one oblique, one inside the cloud (behind-camera and off-screen splats)."""
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.6
-    means[:8] = torch.tensor([0.05, -0.02, 0.0], dtype=torch.float64) + 0.01 * torch.arange(8.0, dtype=torch.float64)[:, None]
+    means[:8] = (
+        torch.tensor([0.05, -0.02, 0.0], dtype=torch.float64) + 0.01 * torch.arange(8.0, dtype=torch.float64)[:, None]
+    )
     quats = torch.randn(n, 4, generator=g, dtype=torch.float64) * 2.0
     scales = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.15 + 0.02
     scales[:8] = 0.2
     opac = torch.rand(n, generator=g, dtype=torch.float64) * 0.9 + 0.05
     opac[:8] = 0.95
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    viewmats = torch.stack([look_at([0, 0, -3], [0, 0, 0]), look_at([2.5, 0.5, -1], [0, 0, 0]),
-                            look_at([0.1, 0, 0.3], [0, 0, 3])])
-    K = torch.tensor([[1.3 * width, 0, width / 2 + 0.3], [0, 1.25 * width, height / 2 - 0.2], [0, 0, 1]],
-                     dtype=torch.float64)
+    viewmats = torch.stack(
+        [look_at([0, 0, -3], [0, 0, 0]), look_at([2.5, 0.5, -1], [0, 0, 0]), look_at([0.1, 0, 0.3], [0, 0, 3])]
+    )
+    K = torch.tensor(
+        [[1.3 * width, 0, width / 2 + 0.3], [0, 1.25 * width, height / 2 - 0.2], [0, 0, 1]], dtype=torch.float64
+    )
     bg = torch.rand(3, 3, generator=g, dtype=torch.float64)
-    scene = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors,
-                 viewmats=viewmats, Ks=K.expand(3, 3, 3).clone(), width=width, height=height, backgrounds=bg)
+    scene = dict(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opac,
+        colors=colors,
+        viewmats=viewmats,
+        Ks=K.expand(3, 3, 3).clone(),
+        width=width,
+        height=height,
+        backgrounds=bg,
+    )
     return {k: (v.to(dtype) if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
 
 
@@ -131,8 +146,20 @@ def test_gradcheck_torch_backend(render_mode):
     means, quats, scales, opac, colors, viewmats, K, bg = _gradcheck_scene()
 
     def f(means, quats, scales, opac, colors, bg):
-        out = rasterize(means, quats, scales, opac, colors, viewmats, K, 16, 12, backgrounds=bg,
-                        render_mode=render_mode, backend="torch")
+        out = rasterize(
+            means,
+            quats,
+            scales,
+            opac,
+            colors,
+            viewmats,
+            K,
+            16,
+            12,
+            backgrounds=bg,
+            render_mode=render_mode,
+            backend="torch",
+        )
         return out.colors, out.alphas
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, bg))
@@ -146,8 +173,10 @@ def test_gsplat_backend_matches_torch_backend():
     pytest.importorskip("gsplat")
     scene = random_scene(seed=6, dtype=torch.float32, width=64, height=48)
     cpu_in = _with_grad(scene)
-    gpu_in = {k: (v.detach().cuda().requires_grad_(v.requires_grad) if isinstance(v, torch.Tensor) else v)
-              for k, v in cpu_in.items()}
+    gpu_in = {
+        k: (v.detach().cuda().requires_grad_(v.requires_grad) if isinstance(v, torch.Tensor) else v)
+        for k, v in cpu_in.items()
+    }
     a = rasterize(**cpu_in, backend="torch")
     b = rasterize(**gpu_in, backend="gsplat")
     assert b.meta["backend"] == "gsplat"

@@ -1,4 +1,5 @@
 """Nothing lost, nothing silent: resume safety, interruption, full disks, bad manifests, sizes, paths."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_train import make_tiny_dataset, small_config
 
 from meshsplat.cli.main import main
 from meshsplat.data import open_dataset
@@ -22,6 +22,7 @@ from meshsplat.io.checkpoint import list_checkpoints, load_checkpoint, save_chec
 from meshsplat.run_folder import load_run
 from meshsplat.train import TrainConfig, Trainer, apply_overrides
 from meshsplat.train.config import load_config
+from test_train import make_tiny_dataset, small_config
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -67,13 +68,41 @@ def test_fresh_run_refuses_a_folder_with_checkpoints(ds, run, tmp_path, capsys):
 def test_resume_refuses_model_changes_and_allows_safe_ones(ds, run, tmp_path, capsys):
     r = _copy(run, tmp_path / "r")
     cfg_before = (r / "config.json").read_text()
-    rc = main(["train", str(ds), "--out", str(r), "--resume", "--iters", "6", "--no-progress",
-               "--set", "model.sh_degree=1", "--set", "loss.lambda_l1=2"])
+    rc = main(
+        [
+            "train",
+            str(ds),
+            "--out",
+            str(r),
+            "--resume",
+            "--iters",
+            "6",
+            "--no-progress",
+            "--set",
+            "model.sh_degree=1",
+            "--set",
+            "loss.lambda_l1=2",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "model.sh_degree: 0 -> 1" in err and "loss.lambda_l1" in err and err.count("\n") == 1
     assert (r / "config.json").read_text() == cfg_before
-    rc = main(["train", str(ds), "--out", str(r), "--resume", "--iters", "6", "--no-progress",
-               "--set", "log_every=2", "--device", "cpu"])
+    rc = main(
+        [
+            "train",
+            str(ds),
+            "--out",
+            str(r),
+            "--resume",
+            "--iters",
+            "6",
+            "--no-progress",
+            "--set",
+            "log_every=2",
+            "--device",
+            "cpu",
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0 and "iterations: 4 -> 6" in out and "log_every: 1 -> 2" in out
     assert load_config(r / "config.json").iterations == 6
@@ -98,26 +127,51 @@ def test_sigterm_and_sigint_checkpoint_before_stopping(ds, tmp_path):
         out = tmp_path / f"s{int(sig)}"
         code = "import sys; from meshsplat.cli.main import main; sys.exit(main(sys.argv[1:]))"
         env = dict(os.environ, PYTHONPATH=SRC, OMP_NUM_THREADS="1")
-        p = subprocess.Popen([sys.executable, "-c", code, "train", str(ds), "--out", str(out), "--iters", "100000",
-                              "--no-progress", "--device", "cpu", "--set", "backend=torch", "--set", "model.n_init=60",
-                              "--set", "log_every=1", "--set", "loss.lambda_lpips=0"], env=env,
-                             stderr=subprocess.PIPE, text=True,
-                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        p = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                code,
+                "train",
+                str(ds),
+                "--out",
+                str(out),
+                "--iters",
+                "100000",
+                "--no-progress",
+                "--device",
+                "cpu",
+                "--set",
+                "backend=torch",
+                "--set",
+                "model.n_init=60",
+                "--set",
+                "log_every=1",
+                "--set",
+                "loss.lambda_lpips=0",
+            ],
+            env=env,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         t0 = time.time()
-        while time.time() - t0 < 120 and not ((out / "log.csv").is_file()
-                                              and len((out / "log.csv").read_text().splitlines()) > 4):
+        while time.time() - t0 < 120 and not (
+            (out / "log.csv").is_file() and len((out / "log.csv").read_text().splitlines()) > 4
+        ):
             time.sleep(0.1)
         p.send_signal(sig)
         _, err = p.communicate(timeout=120)
         assert p.returncode == 128 + int(sig), err
-        (step, path), = list_checkpoints(out / "checkpoints")
+        ((step, path),) = list_checkpoints(out / "checkpoints")
         assert step >= 4 and f"checkpoint {path}" in err and "--resume" in err
         assert load_checkpoint(path)["iteration"] == step
 
 
 def test_wall_time_checkpoints(ds, tmp_path):
-    t = Trainer(small_config(ds, tmp_path / "w", 3, ["model.n_init=40", "checkpoint_every=1000",
-                                                      "checkpoint_every_s=1e-9"]))
+    t = Trainer(
+        small_config(ds, tmp_path / "w", 3, ["model.n_init=40", "checkpoint_every=1000", "checkpoint_every_s=1e-9"])
+    )
     t.train()
     assert [s for s, _ in list_checkpoints(tmp_path / "w" / "checkpoints")] == [1, 2, 3]
 
@@ -140,8 +194,12 @@ except MeshsplatError as exc:
 def test_checkpoint_write_failure_keeps_previous_and_leaves_no_tmp(tmp_path):
     good = save_checkpoint(tmp_path / "ckpt_00000001.pt", {"x": torch.ones(3)})
     (tmp_path / ".ckpt_00000001.pt.stray.tmp").write_bytes(b"left by a killed writer")
-    p = subprocess.run([sys.executable, "-c", FULL_DISK, str(tmp_path / "ckpt_00000002.pt")], capture_output=True,
-                       text=True, env=dict(os.environ, PYTHONPATH=SRC))
+    p = subprocess.run(
+        [sys.executable, "-c", FULL_DISK, str(tmp_path / "ckpt_00000002.pt")],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=SRC),
+    )
     assert p.returncode == 2, p.stderr
     assert "cannot write checkpoint" in p.stdout and "untouched" in p.stdout
     assert torch.equal(load_checkpoint(good)["x"], torch.ones(3))
@@ -165,9 +223,20 @@ def test_checkpoint_holding_code_is_refused_plainly(tmp_path):
 
 
 # ---- config -------------------------------------------------------------------------------
-@pytest.mark.parametrize("override", ["loss.lambda_l1=nan", "optim.lr_color=inf", "loss.lambda_lpips=-1",
-                                      "strategy.grow_grad2d=nan", "log_every=0", "model.n_init=1e12",
-                                      "strategy.max_gaussians=-1", "checkpoint_every_s=0", "walk.enabled=2"])
+@pytest.mark.parametrize(
+    "override",
+    [
+        "loss.lambda_l1=nan",
+        "optim.lr_color=inf",
+        "loss.lambda_lpips=-1",
+        "strategy.grow_grad2d=nan",
+        "log_every=0",
+        "model.n_init=1e12",
+        "strategy.max_gaussians=-1",
+        "checkpoint_every_s=0",
+        "walk.enabled=2",
+    ],
+)
 def test_config_refuses_non_finite_negative_and_absurd_values(override):
     with pytest.raises(MeshsplatError, match=override.split("=")[0].split(".")[-1]):
         apply_overrides(TrainConfig(), [override]).validate()
@@ -196,12 +265,19 @@ def test_manifest_wrong_types_are_all_listed_in_one_error(ds, tmp_path):
         m["splits"]["test"] = 3
         m["cameras"]["cam0"]["width"] = 32.5
         m["canonical"] = None
+
     d = _edit(ds, tmp_path / "d", fn)
     with pytest.raises(MeshsplatError) as ei:
         open_dataset(d)
     msg = str(ei.value)
-    for part in ("mesh must be an integer", "image path must be a file path", "time must be a number",
-                 "split 'test'", "width and height must be integers", "canonical must be a file path"):
+    for part in (
+        "mesh must be an integer",
+        "image path must be a file path",
+        "time must be a number",
+        "split 'test'",
+        "width and height must be integers",
+        "canonical must be a file path",
+    ):
         assert part in msg, part
     d2 = _edit(ds, tmp_path / "d2", lambda m: m.__setitem__("cameras", [1]))
     with pytest.raises(MeshsplatError, match="'cameras' must be an object"):
@@ -211,7 +287,7 @@ def test_manifest_wrong_types_are_all_listed_in_one_error(ds, tmp_path):
 def test_manifest_paths_must_stay_inside_the_dataset(ds, tmp_path, monkeypatch):
     shutil.copy(Path(ds) / "images" / "000000.png", tmp_path / "outside.png")
     d = _edit(ds, tmp_path / "d", lambda m: m["frames"][0].__setitem__("image", "../outside.png"))
-    with pytest.raises(MeshsplatError, match="outside the dataset folder.*MESHSPLAT_ALLOW_OUTSIDE_FILES"):
+    with pytest.raises(MeshsplatError, match=r"outside the dataset folder.*MESHSPLAT_ALLOW_OUTSIDE_FILES"):
         open_dataset(d)
     monkeypatch.setenv("MESHSPLAT_ALLOW_OUTSIDE_FILES", "1")
     assert open_dataset(d)[0].image.shape[-1] == 3
@@ -241,15 +317,20 @@ def test_bad_canonical_mesh_is_refused(ds, tmp_path, what):
     else:
         f = np.zeros((0, 3), np.int32)
     np.savez(d / "canonical.npz", vertices=v, faces=f)
-    with pytest.raises(MeshsplatError, match={"float faces": "faces must be integers", "single point": "single point",
-                                              "no faces": "empty"}[what]):
+    with pytest.raises(
+        MeshsplatError,
+        match={"float faces": "faces must be integers", "single point": "single point", "no faces": "empty"}[what],
+    ):
         open_dataset(d)
 
 
 # ---- command line: sizes, outputs, degenerate inputs -------------------------------------
 def test_absurd_sizes_are_refused_before_work(run, tmp_path, capsys):
     cases = [
-        (["render", str(run), "--out", str(tmp_path / "r"), "--dataset-split", "train", "--size", "16384x16384"], "8192"),
+        (
+            ["render", str(run), "--out", str(tmp_path / "r"), "--dataset-split", "train", "--size", "16384x16384"],
+            "8192",
+        ),
         (["synth", "CesiumMan", "--out", str(tmp_path / "s"), "--resolution", "100000"], "16..4096"),
         (["synth", "CesiumMan", "--out", str(tmp_path / "s"), "--frames", "0"], "--frames"),
         (["view", str(run), "--out", str(tmp_path / "v"), "--frames", "0"], "--frames"),
@@ -273,8 +354,11 @@ def test_memory_estimate_is_in_the_refusal():
 def test_output_locations_are_checked_first(run, tmp_path, capsys):
     f = tmp_path / "a_file"
     f.write_text("x")
-    for argv in (["export", str(run), "--out", str(f)], ["view", str(run), "--out", str(f)],
-                 ["eval", str(run), "--out", str(f / "sub"), "--no-lpips"]):
+    for argv in (
+        ["export", str(run), "--out", str(f)],
+        ["view", str(run), "--out", str(f)],
+        ["eval", str(run), "--out", str(f / "sub"), "--no-lpips"],
+    ):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert str(f) in err and err.count("\n") == 1
@@ -285,6 +369,7 @@ def test_os_errors_are_one_line(run, tmp_path, capsys, monkeypatch):
 
     def full(*a, **k):  # what a write on a full disk raises
         raise OSError(28, "No space left on device", str(tmp_path / "x.ply"))
+
     monkeypatch.setattr(export, "write_gaussian_ply", full)
     assert main(["export", str(run), "--out", str(tmp_path / "ex")]) == 2
     err = capsys.readouterr().err
@@ -293,9 +378,25 @@ def test_os_errors_are_one_line(run, tmp_path, capsys, monkeypatch):
 
 def test_degenerate_vertex_sequences_are_refused(run, tmp_path, capsys):
     n = load_run(run).avatar.mesh.num_vertices
-    for name, arr in [("point", np.zeros((2, n, 3), np.float32)), ("empty", np.zeros((0, n, 3), np.float32)),
-                      ("objects", np.array([None, 1], dtype=object))]:
+    for name, arr in [
+        ("point", np.zeros((2, n, 3), np.float32)),
+        ("empty", np.zeros((0, n, 3), np.float32)),
+        ("objects", np.array([None, 1], dtype=object)),
+    ]:
         np.save(tmp_path / f"{name}.npy", arr, allow_pickle=True)
-        assert main(["render", str(run), "--out", str(tmp_path / "r"), "--vertices", str(tmp_path / f"{name}.npy"),
-                     "--no-progress", "--no-mp4"]) == 2, name
+        assert (
+            main(
+                [
+                    "render",
+                    str(run),
+                    "--out",
+                    str(tmp_path / "r"),
+                    "--vertices",
+                    str(tmp_path / f"{name}.npy"),
+                    "--no-progress",
+                    "--no-mp4",
+                ]
+            )
+            == 2
+        ), name
         assert capsys.readouterr().err.count("\n") == 1

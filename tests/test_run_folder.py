@@ -1,15 +1,16 @@
 """meshsplat.run_folder: names of a run's files, which checkpoint a run is read from, clear one-line errors."""
+
 from __future__ import annotations
 
 import json
 
 import pytest
 import torch
-from test_eval_kit import make_avatar, make_run
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io import checkpoint_path, save_checkpoint
 from meshsplat.run_folder import LoadedRun, RunFolder, load_avatar, load_run
+from test_eval_kit import make_avatar, make_run
 
 
 def _one_line(exc_info) -> str:
@@ -68,7 +69,7 @@ def test_missing_or_unreadable_runs_say_so_in_one_line(tmp_path):
         RunFolder(tmp_path / "missing").latest_checkpoint()
     _one_line(e)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(MeshsplatError, match="no checkpoint in .*is this a training run folder") as e:
+    with pytest.raises(MeshsplatError, match=r"no checkpoint in .*is this a training run folder") as e:
         load_run(tmp_path / "empty")
     _one_line(e)
     bad = RunFolder(tmp_path / "bad")
@@ -90,11 +91,11 @@ def test_config(tmp_path):
     run.config_path.write_text('{"data": "x", "iterations": 3}')
     assert run.load_config() == {"data": "x", "iterations": 3}
     run.config_path.write_text("{nope")
-    with pytest.raises(MeshsplatError, match="config.json: not valid JSON") as e:
+    with pytest.raises(MeshsplatError, match=r"config.json: not valid JSON") as e:
         run.load_config()
     _one_line(e)
     run.config_path.write_text("[1, 2]")
-    with pytest.raises(MeshsplatError, match="config.json: expected a JSON object, got list"):
+    with pytest.raises(MeshsplatError, match=r"config.json: expected a JSON object, got list"):
         run.load_config()
 
 
@@ -117,8 +118,9 @@ def test_load_run_and_avatar(tmp_path):
 def test_config_falls_back_to_the_checkpoint_and_dataset_errors(tmp_path):
     av = make_avatar(n=40)
     run = RunFolder(tmp_path / "run")
-    save_checkpoint(run.checkpoint_path(2), {"iteration": 2, "avatar": av.state_dict(),
-                                             "config": {"data": "moved/away"}})
+    save_checkpoint(
+        run.checkpoint_path(2), {"iteration": 2, "avatar": av.state_dict(), "config": {"data": "moved/away"}}
+    )
     r = load_run(run.root)
     assert r.config == {"data": "moved/away"}  # no config.json: the checkpoint's copy
     with pytest.raises(MeshsplatError, match=r"dataset moved/away .* is not there.*--dataset PATH") as e:

@@ -1,4 +1,5 @@
 """The repository stands alone: nothing refers outside it, and the bundled assets carry their licences."""
+
 from __future__ import annotations
 
 import os
@@ -12,8 +13,21 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.paths import BUNDLED, PACKAGE_ASSETS, asset, bundled_asset, resolve_input
 
 ROOT = Path(__file__).resolve().parents[1]
-SKIP_DIRS = {".git", ".venv", "node_modules", ".node-tools", "runs", "build", "dist", "__pycache__", ".pytest_cache",
-             ".hypothesis", ".mypy_cache", ".ruff_cache", "results"}
+SKIP_DIRS = {
+    ".git",
+    ".venv",
+    "node_modules",
+    ".node-tools",
+    "runs",
+    "build",
+    "dist",
+    "__pycache__",
+    ".pytest_cache",
+    ".hypothesis",
+    ".mypy_cache",
+    ".ruff_cache",
+    "results",
+}
 TEXT_SUFFIXES = {".py", ".md", ".js", ".html", ".toml", ".cfg", ".sh", ".yaml", ".yml", ".txt", ".json"}
 HOST_PATHS = re.compile(r"(?<![\w.])/(?:work|home|root|Users|mnt)/[\w.-]+")
 UPWARD = re.compile(r"(?:\.\./)+[\w.\-/]*")
@@ -56,8 +70,10 @@ def test_checker_catches_outside_paths(tmp_path):
         found = _outside_references(probe)
     finally:
         probe.unlink()
-    assert found == ["tests/_probe_outside.md:1: ../../shared/assets/gltf/CesiumMan.glb",
-                     "tests/_probe_outside.md:1: /work/shared"]
+    assert found == [
+        "tests/_probe_outside.md:1: ../../shared/assets/gltf/CesiumMan.glb",
+        "tests/_probe_outside.md:1: /work/shared",
+    ]
 
 
 def test_no_file_refers_outside_the_repository():

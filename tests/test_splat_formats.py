@@ -2,6 +2,7 @@
 quantization, `meshsplat export --format`, and checks against independent readers when installed:
 gsply (PyPI), pygltflib (a dependency), and, with MESHSPLAT_NODE_TOOLS=<folder with node_modules>,
 PlayCanvas splat-transform and the Khronos glTF validator (npm)."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_eval_kit import make_avatar, make_run
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.export import canonical_gaussians, export_avatar
@@ -26,6 +26,7 @@ from meshsplat.io.splat_formats import (
     write_splat,
     write_spz,
 )
+from test_eval_kit import make_avatar, make_run
 
 # independent Node readers: `make test` installs them into .node-tools (or point MESHSPLAT_NODE_TOOLS elsewhere)
 NODE_TOOLS = os.environ.get("MESHSPLAT_NODE_TOOLS") or str(Path(__file__).resolve().parents[1] / ".node-tools")
@@ -34,9 +35,14 @@ NODE_TOOLS = os.environ.get("MESHSPLAT_NODE_TOOLS") or str(Path(__file__).resolv
 def _gaussians(n=300, k=15, seed=0, extent=1.0):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
-    return {"means": rng.normal(size=(n, 3)) * extent, "quats": q / np.linalg.norm(q, axis=1, keepdims=True),
-            "log_scales": rng.uniform(-6, -1, (n, 3)), "opacity_logits": rng.uniform(-4, 4, n),
-            "sh0": rng.uniform(-1.5, 1.5, (n, 3)), "shN": rng.uniform(-0.5, 0.5, (n, k, 3))}
+    return {
+        "means": rng.normal(size=(n, 3)) * extent,
+        "quats": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "log_scales": rng.uniform(-6, -1, (n, 3)),
+        "opacity_logits": rng.uniform(-4, 4, n),
+        "sh0": rng.uniform(-1.5, 1.5, (n, 3)),
+        "shN": rng.uniform(-0.5, 0.5, (n, k, 3)),
+    }
 
 
 def _align(b, ref):
@@ -79,9 +85,17 @@ def test_gltf_layout_follows_khr_gaussian_splatting(tmp_path, degree):
     assert prim.mode == pygltflib.POINTS
     assert prim.extensions["KHR_gaussian_splatting"] == {"kernel": "ellipse", "colorSpace": "srgb_rec709_display"}
     attrs = {k: v for k, v in vars(prim.attributes).items() if v is not None}
-    names = {"POSITION", "COLOR_0", "KHR_gaussian_splatting:ROTATION", "KHR_gaussian_splatting:SCALE",
-             "KHR_gaussian_splatting:OPACITY", "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0"}
-    names |= {f"KHR_gaussian_splatting:SH_DEGREE_{lv}_COEF_{c}" for lv in range(1, degree + 1) for c in range(2 * lv + 1)}
+    names = {
+        "POSITION",
+        "COLOR_0",
+        "KHR_gaussian_splatting:ROTATION",
+        "KHR_gaussian_splatting:SCALE",
+        "KHR_gaussian_splatting:OPACITY",
+        "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0",
+    }
+    names |= {
+        f"KHR_gaussian_splatting:SH_DEGREE_{lv}_COEF_{c}" for lv in range(1, degree + 1) for c in range(2 * lv + 1)
+    }
     assert set(attrs) == names
     blob = doc.binary_blob()
 
@@ -93,8 +107,9 @@ def test_gltf_layout_follows_khr_gaussian_splatting(tmp_path, degree):
 
     np.testing.assert_allclose(column("KHR_gaussian_splatting:ROTATION", 4), g["quats"][:, [1, 2, 3, 0]], atol=1e-7)
     np.testing.assert_allclose(column("KHR_gaussian_splatting:SCALE", 3), np.exp(g["log_scales"]), rtol=1e-6)
-    np.testing.assert_allclose(column("KHR_gaussian_splatting:OPACITY", 1)[:, 0], _sigmoid(g["opacity_logits"]),
-                               atol=1e-7)
+    np.testing.assert_allclose(
+        column("KHR_gaussian_splatting:OPACITY", 1)[:, 0], _sigmoid(g["opacity_logits"]), atol=1e-7
+    )
     pos = doc.accessors[attrs["POSITION"]]
     np.testing.assert_allclose(pos.min, g["means"].min(0), atol=1e-6)
     np.testing.assert_allclose(pos.max, g["means"].max(0), atol=1e-6)
@@ -110,7 +125,9 @@ def test_spz_round_trip_within_quantization(tmp_path, extent):
     np.testing.assert_allclose(b["log_scales"], g["log_scales"], atol=0.5 / 16 + 1e-9)
     np.testing.assert_allclose(_sigmoid(b["opacity_logits"]), _sigmoid(g["opacity_logits"]), atol=0.5 / 255 + 1e-6)
     np.testing.assert_allclose(b["sh0"], g["sh0"], atol=0.5 / (0.15 * 255) + 1e-9)
-    np.testing.assert_allclose(b["shN"][:, :3], g["shN"][:, :3], atol=4.5 / 128 + 1e-9)  # degree 1: 5 bits (+ rounding to 1/128)
+    np.testing.assert_allclose(
+        b["shN"][:, :3], g["shN"][:, :3], atol=4.5 / 128 + 1e-9
+    )  # degree 1: 5 bits (+ rounding to 1/128)
     np.testing.assert_allclose(b["shN"][:, 3:], g["shN"][:, 3:], atol=8.5 / 128 + 1e-9)  # higher: 4 bits
     _same_rotation(b["quats"], g["quats"], 0.02)
 
@@ -156,11 +173,14 @@ def test_export_every_format_holds_the_canonical_gaussians(tmp_path):
     res = export_avatar(av, tmp_path, formats=("ply", "splat", "spz", "gltf"))
     assert set(res.splats) == {"ply", "splat", "spz", "gltf"} and res.ply == tmp_path / "avatar.ply"
     g, _ = canonical_gaussians(av)
-    ref = {"means": g.means.double().numpy(), "quats": g.quats.double().numpy(),
-           "log_scales": g.scales.log().double().numpy(),
-           "opacity_logits": av.params["opacity_logit"].detach().double().numpy(),
-           "sh0": av.params["sh0"].detach().double().numpy().reshape(-1, 3),
-           "shN": av.params["shN"].detach().double().numpy()}
+    ref = {
+        "means": g.means.double().numpy(),
+        "quats": g.quats.double().numpy(),
+        "log_scales": g.scales.log().double().numpy(),
+        "opacity_logits": av.params["opacity_logit"].detach().double().numpy(),
+        "sh0": av.params["sh0"].detach().double().numpy().reshape(-1, 3),
+        "shN": av.params["shN"].detach().double().numpy(),
+    }
     gl = read_gltf_splats(res.splats["gltf"])
     np.testing.assert_allclose(gl["means"], ref["means"], atol=1e-6)
     np.testing.assert_allclose(gl["shN"], ref["shN"], atol=1e-6)
@@ -183,8 +203,12 @@ def test_cli_export_formats(tmp_path, capsys):
 
     run = make_run(make_avatar(n=60), tmp_path / "run", None, iteration=2)
     assert main(["export", str(run), "--out", str(tmp_path / "e"), "--format", "spz,gltf", "--format", "splat"]) == 0
-    assert {p.name for p in (tmp_path / "e").iterdir()} >= {"avatar.spz", "avatar.glb", "avatar.splat",
-                                                             "embedding.json"}
+    assert {p.name for p in (tmp_path / "e").iterdir()} >= {
+        "avatar.spz",
+        "avatar.glb",
+        "avatar.splat",
+        "embedding.json",
+    }
     assert not (tmp_path / "e" / "avatar.ply").exists()
     assert main(["export", str(run), "--out", str(tmp_path / "x"), "--format", "usdz"]) == 2
     assert "--format" in capsys.readouterr().err
@@ -202,8 +226,9 @@ def test_gsply_reads_our_spz_and_ply(tmp_path):
     np.testing.assert_allclose(np.asarray(spz.shN), ours["shN"], atol=1e-5)
     _same_rotation(np.asarray(spz.quats, np.float64), ours["quats"], 1e-5)
     t = {k: torch.from_numpy(v).float() for k, v in g.items()}
-    write_gaussian_ply(tmp_path / "a.ply", t["means"], t["quats"], t["log_scales"], t["opacity_logits"], t["sh0"],
-                       t["shN"])
+    write_gaussian_ply(
+        tmp_path / "a.ply", t["means"], t["quats"], t["log_scales"], t["opacity_logits"], t["sh0"], t["shN"]
+    )
     ply = gsply.plyread(str(tmp_path / "a.ply"))
     np.testing.assert_allclose(np.asarray(ply.means), g["means"], atol=1e-6)
     np.testing.assert_allclose(np.asarray(ply.shN), g["shN"], atol=1e-6)
@@ -211,7 +236,9 @@ def test_gsply_reads_our_spz_and_ply(tmp_path):
 
 def _node_tool(name: str) -> Path:
     if not NODE_TOOLS or shutil.which("node") is None:
-        pytest.skip("set MESHSPLAT_NODE_TOOLS to a folder with node_modules/{@playcanvas/splat-transform,gltf-validator}")
+        pytest.skip(
+            "set MESHSPLAT_NODE_TOOLS to a folder with node_modules/{@playcanvas/splat-transform,gltf-validator}"
+        )
     path = Path(NODE_TOOLS) / "node_modules" / name
     if not path.exists():
         pytest.skip(f"{path} is not installed")
@@ -223,8 +250,10 @@ def test_splat_transform_reads_our_files(tmp_path):
     its documented axis change from SPZ's y-up (RUB) to PLY's y-down (RDF)."""
     cli = _node_tool(".bin/splat-transform")
     g = _gaussians(k=15)
-    files = {"splat": (write_splat(tmp_path / "a.splat", g), read_splat),
-             "spz": (write_spz(tmp_path / "a.spz", g), read_spz)}
+    files = {
+        "splat": (write_splat(tmp_path / "a.splat", g), read_splat),
+        "spz": (write_spz(tmp_path / "a.spz", g), read_spz),
+    }
     for fmt, (path, reader) in files.items():
         out = tmp_path / f"st_{fmt}.ply"
         r = subprocess.run([str(cli), "-w", str(path), str(out)], capture_output=True, text=True, timeout=120)
@@ -251,11 +280,13 @@ def test_khronos_validator_accepts_our_glb(tmp_path):
     script.write_text(
         "const v = require(" + json.dumps(str(Path(NODE_TOOLS) / "node_modules" / "gltf-validator")) + ");\n"
         "const bytes = new Uint8Array(require('fs').readFileSync(process.argv[2]));\n"
-        "v.validateBytes(bytes).then((r) => console.log(JSON.stringify(r.issues.messages)));\n")
+        "v.validateBytes(bytes).then((r) => console.log(JSON.stringify(r.issues.messages)));\n"
+    )
     r = subprocess.run(["node", str(script), str(glb)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     issues = json.loads(r.stdout)
     errors = [m for m in issues if m["severity"] == 0]
-    assert errors and all(m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and "KHR_gaussian_splatting:" in m["pointer"]
-                          for m in errors), errors
+    assert errors and all(
+        m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and "KHR_gaussian_splatting:" in m["pointer"] for m in errors
+    ), errors
     assert not [m for m in issues if m["severity"] == 1]  # no warnings

@@ -1,12 +1,13 @@
 """Densification ops and strategy: every per-Gaussian tensor and Adam moment stays aligned."""
+
 from __future__ import annotations
 
 import math
 
 import pytest
 import torch
-from _meshes import plane
 
+from _meshes import plane
 from meshsplat.gaussians import compose, init_params
 from meshsplat.mesh import MeshPose
 from meshsplat.train.optim import build_optimizers
@@ -98,11 +99,15 @@ def test_remove_keeps_everything_aligned():
 
 
 def test_split_append_replaces_parents_with_children():
-    mesh, p, opts, state = tagged_setup()
+    _mesh, p, opts, state = tagged_setup()
     mask = torch.zeros(40, dtype=torch.bool)
     mask[[5, 9]] = True
-    new = {"face": torch.tensor([1, 2, 3, 4]), "uv": torch.full((4, 2), 0.25), "d": torch.full((4,), 0.5),
-           "log_scale": torch.full((4, 3), -7.0)}
+    new = {
+        "face": torch.tensor([1, 2, 3, 4]),
+        "uv": torch.full((4, 2), 0.25),
+        "d": torch.full((4,), 0.5),
+        "log_scale": torch.full((4, 3), -7.0),
+    }
     split_append(p, opts, state, mask, new, 2)
     assert p["face"].shape[0] == 42
     assert [row_id(p, r) for r in range(38, 42)] == [5, 9, 5, 9]  # repeat-major
@@ -119,7 +124,7 @@ def test_split_append_replaces_parents_with_children():
 
 
 def test_reset_opacity_in_place_zeroes_moments():
-    mesh, p, opts, state = tagged_setup()
+    _mesh, p, opts, _state = tagged_setup()
     with torch.no_grad():
         p["opacity_logit"].copy_(torch.linspace(-6, 6, 40))
     obj = p["opacity_logit"]
@@ -136,8 +141,13 @@ def _fake_info(n: int, grad_norm: torch.Tensor, radii: torch.Tensor, width=64, h
     g = torch.zeros(1, n, 2)
     g[0, :, 0] = grad_norm / (0.5 * width)
     means2d.grad = g
-    return {"means2d": means2d, "radii": radii.reshape(1, n, 1).expand(1, n, 2).int(),
-            "width": width, "height": height, "n_cameras": 1}
+    return {
+        "means2d": means2d,
+        "radii": radii.reshape(1, n, 1).expand(1, n, 2).int(),
+        "width": width,
+        "height": height,
+        "n_cameras": 1,
+    }
 
 
 def test_strategy_clone_split_prune_on_schedule():
@@ -148,10 +158,10 @@ def test_strategy_clone_split_prune_on_schedule():
     strat = DensifyStrategy(refine_start_iter=2, refine_every=2, refine_stop_iter=100, reset_every=1000)
     state = strat.initialize_state(extent=1.0)
     with torch.no_grad():
-        p["log_scale"][:10] = math.log(0.005)   # small -> clone
+        p["log_scale"][:10] = math.log(0.005)  # small -> clone
         p["log_scale"][10:20] = math.log(0.05)  # large -> split
         p["log_scale"][20:] = math.log(0.005)
-        p["opacity_logit"][25:] = -10.0         # transparent -> pruned
+        p["opacity_logit"][25:] = -10.0  # transparent -> pruned
     grad = torch.zeros(n)
     grad[:20] = 1e-3  # high
     radii = torch.full((n,), 3)
@@ -177,11 +187,18 @@ def test_screen_size_prune_is_a_fraction_of_the_image_size():
     n = 10
     p = init_params(mesh, n, generator=torch.Generator().manual_seed(3))
     opts = build_optimizers(p, LRS)
-    strat = DensifyStrategy(refine_start_iter=1, refine_every=4, reset_every=2, grow_grad2d=1.0,
-                            prune_opa=0.0, prune_scale2d=0.15, prune_scale3d=100.0)
+    strat = DensifyStrategy(
+        refine_start_iter=1,
+        refine_every=4,
+        reset_every=2,
+        grow_grad2d=1.0,
+        prune_opa=0.0,
+        prune_scale2d=0.15,
+        prune_scale3d=100.0,
+    )
     state = strat.initialize_state(extent=1.0)
-    radii = torch.full((n,), 20)   # 20 / 128 = 0.156 > 0.15 at 128 px wide
-    radii[:6] = 19                 # 19 / 128 = 0.148: kept
+    radii = torch.full((n,), 20)  # 20 / 128 = 0.156 > 0.15 at 128 px wide
+    radii[:6] = 19  # 19 / 128 = 0.148: kept
     grad = torch.zeros(n)
     for step in (1, 2, 3):
         strat.step_post_backward(p, opts, state, step, _fake_info(n, grad, radii, width=128, height=96), mesh=mesh)
@@ -203,8 +220,9 @@ def test_split_children_land_on_surface():
     strat = DensifyStrategy(refine_start_iter=1, refine_every=1, grow_scale3d=0.01)
     state = strat.initialize_state(1.0)
     torch.manual_seed(0)
-    out = strat.step_post_backward(p, opts, state, 1, _fake_info(n, torch.full((n,), 1.0), torch.full((n,), 4)),
-                                   mesh=mesh)
+    out = strat.step_post_backward(
+        p, opts, state, 1, _fake_info(n, torch.full((n,), 1.0), torch.full((n,), 4)), mesh=mesh
+    )
     assert out["split"] == n and p["face"].shape[0] == 2 * n
     assert torch.all(p["d"].abs() < 1e-4)  # flat parents on a flat mesh: children on the surface
     bary = torch.cat([p["uv"], 1 - p["uv"].sum(-1, keepdim=True)], -1)

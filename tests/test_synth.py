@@ -1,4 +1,5 @@
 """Ground-truth generator: rasterizer correctness, driving meshes, a small end-to-end run."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -72,7 +73,7 @@ def test_driving_mesh_helpers():
     dup = np.concatenate([v, v[:10]])
     f2 = f.copy()
     f2[f2 < 10] += len(v)  # faces use the duplicated copies
-    group, rep, wf = weld([dup], np.concatenate([f, f2[:5]]), 1e-9)
+    _group, rep, wf = weld([dup], np.concatenate([f, f2[:5]]), 1e-9)
     assert len(rep) == len(v) and wf.max() < len(v)
     noisy = v + np.random.default_rng(0).normal(0, 0.02, v.shape)
     s = taubin_smooth(noisy, f, 10)
@@ -84,8 +85,15 @@ def test_driving_mesh_helpers():
 
 @pytest.mark.slow
 def test_small_synth_round_trip(assets, tmp_path):
-    out = generate(assets / "gltf" / "CesiumMan.glb", tmp_path / "cm", frames=4, resolution=64, test_frames=2,
-                   test_views=1, test_view_frames=2)
+    out = generate(
+        assets / "gltf" / "CesiumMan.glb",
+        tmp_path / "cm",
+        frames=4,
+        resolution=64,
+        test_frames=2,
+        test_views=1,
+        test_view_frames=2,
+    )
     ds = open_dataset(out)
     assert {k: len(ds.split(k)) for k in ds.split_names} == {"train": 4, "test_frames": 2, "test_views": 2}
     fr = ds[0]
@@ -98,7 +106,7 @@ def test_small_synth_round_trip(assets, tmp_path):
     v = fr.vertices
     top, bottom = v[v[:, 1].argmax()], v[v[:, 1].argmin()]
     cam_K, viewmat = fr.camera.K, fr.camera.viewmat
-    pix = lambda p: (cam_K @ (viewmat[:3, :3] @ p + viewmat[:3, 3]))  # noqa: E731
+    pix = lambda p: cam_K @ (viewmat[:3, :3] @ p + viewmat[:3, 3])  # noqa: E731
     assert (pix(top)[1] / pix(top)[2]) < (pix(bottom)[1] / pix(bottom)[2])
     # the driving mesh projects inside the mask
     proj = (cam_K @ (v @ viewmat[:3, :3].T + viewmat[:3, 3]).T).T
@@ -109,9 +117,26 @@ def test_small_synth_round_trip(assets, tmp_path):
 
 @pytest.mark.slow
 def test_synth_cli_smoothed_decimated_driver(assets, tmp_path):
-    rc = cli_main(["synth", str(assets / "gltf" / "RiggedSimple.glb"), "--out", str(tmp_path / "rs"),
-                   "--frames", "3", "--resolution", "48", "--rig", "orbit", "--test-views", "1",
-                   "--driver-smooth", "3", "--driver-decimate", "0.5"])
+    rc = cli_main(
+        [
+            "synth",
+            str(assets / "gltf" / "RiggedSimple.glb"),
+            "--out",
+            str(tmp_path / "rs"),
+            "--frames",
+            "3",
+            "--resolution",
+            "48",
+            "--rig",
+            "orbit",
+            "--test-views",
+            "1",
+            "--driver-smooth",
+            "3",
+            "--driver-decimate",
+            "0.5",
+        ]
+    )
     assert rc == 0
     ds = open_dataset(tmp_path / "rs")
     assert ds.num_vertices < 0.6 * ds.meta["render_vertices"]

@@ -1,5 +1,6 @@
 """Synthetic captures from parametric models (stand-in SMPL / SMPL-X / FLAME files): stored driver
 parameters reproduce the stored meshes, the dance stands upright, colours, and `--format` plumbing."""
+
 from __future__ import annotations
 
 import math
@@ -32,8 +33,12 @@ def _params_reproduce_meshes(ds, model_dir, atol=1e-5):
 def test_rotate_params_rotates_the_posed_mesh(standin_model_dir):
     model = BodyModel("smpl", standin_model_dir)
     rng = np.random.default_rng(3)
-    p = {"betas": rng.normal(0, 0.5, 10).astype(np.float32), "global_orient": rng.normal(0, 1, (2, 3)),
-         "body_pose": rng.normal(0, 0.2, (2, 69)), "transl": rng.normal(0, 1, (2, 3))}
+    p = {
+        "betas": rng.normal(0, 0.5, 10).astype(np.float32),
+        "global_orient": rng.normal(0, 1, (2, 3)),
+        "body_pose": rng.normal(0, 0.2, (2, 69)),
+        "transl": rng.normal(0, 1, (2, 3)),
+    }
     with torch.no_grad():
         j0 = model.forward({"betas": p["betas"]}).joints[0, 0].double().numpy()
         before = model.forward(p).vertices.double().numpy()
@@ -48,7 +53,10 @@ def test_smpl_dance_stands_up_and_stores_its_parameters(tmp_path, standin_model_
     out = generate("smpl", tmp_path / "d", model_dir=standin_model_dir, **TINY)
     ds = open_dataset(out)
     assert ds.driver_info["type"] == "smpl" and sorted(ds.driver_info["per_frame"]) == [
-        "body_pose", "global_orient", "transl"]
+        "body_pose",
+        "global_orient",
+        "transl",
+    ]
     assert ds.driver_params["betas"].shape == (10,) and np.abs(ds.driver_params["betas"]).max() > 0
     _params_reproduce_meshes(ds, standin_model_dir)
     model = BodyModel("smpl", standin_model_dir)
@@ -74,8 +82,9 @@ def test_flame_talks_and_nods(tmp_path, standin_model_dir):
 def test_smplx_source(tmp_path, standin_model_dir):
     src = load_model_source("smplx", standin_model_dir)
     assert src.motions["dance"]["body_pose"].shape[1] == 63
-    out = generate("smplx", tmp_path / "x", model_dir=standin_model_dir, frames=2, resolution=32, test_frames=1,
-                   test_views=0)
+    out = generate(
+        "smplx", tmp_path / "x", model_dir=standin_model_dir, frames=2, resolution=32, test_frames=1, test_views=0
+    )
     _params_reproduce_meshes(open_dataset(out), standin_model_dir)
 
 
@@ -105,8 +114,9 @@ def test_model_source_errors(tmp_path, standin_model_dir):
 @pytest.mark.parametrize("fmt", ["imavatar", "insta", "vhap"])
 def test_synth_head_formats_plumbing(tmp_path, standin_model_dir, fmt):
     """`synth flame --format NAME` hands the native dataset to that format's writer; it reads back."""
-    out = synth_capture("flame", tmp_path / fmt, format=fmt, native_dir=tmp_path / "native",
-                        model_dir=standin_model_dir, **TINY)
+    out = synth_capture(
+        "flame", tmp_path / fmt, format=fmt, native_dir=tmp_path / "native", model_dir=standin_model_dir, **TINY
+    )
     assert detect_format(out) == fmt
     back = open_capture(out, model_dir=standin_model_dir)
     assert len(back) > 0 and back.num_vertices == open_dataset(tmp_path / "native").num_vertices

@@ -1,4 +1,5 @@
 """Trainer end to end on a tiny dataset: run layout, learning, bit-exact resume, CLI."""
+
 from __future__ import annotations
 
 import csv
@@ -46,8 +47,9 @@ def make_tiny_dataset(root):
         from meshsplat.mesh import MeshPose
 
         pos = compose(teacher, MeshPose.canonical(mesh)).means
-        rgb = torch.stack([0.5 + 0.5 * torch.sin(5 * pos[:, 0]), 0.5 + 0.5 * torch.cos(4 * pos[:, 1]),
-                           (pos[:, 2] > 0).float()], -1)
+        rgb = torch.stack(
+            [0.5 + 0.5 * torch.sin(5 * pos[:, 0]), 0.5 + 0.5 * torch.cos(4 * pos[:, 1]), (pos[:, 2] > 0).float()], -1
+        )
         teacher["sh0"].copy_(rgb_to_sh0(rgb))
         teacher["opacity_logit"].fill_(3.0)
         teacher["log_scale"].fill_(math.log(0.09))
@@ -63,12 +65,26 @@ def make_tiny_dataset(root):
 
 
 def small_config(data, out, iterations, extra=()):
-    cfg = TrainConfig(data=str(data), out=str(out), iterations=iterations, device="cpu", backend="torch",
-                      progress=False)
-    return apply_overrides(cfg, [
-        "model.n_init=200", "checkpoint_every=10", "keep_checkpoints=5", "preview_every=10", "log_every=1",
-        "strategy.refine_start_iter=4", "strategy.refine_every=4", "strategy.reset_every=12",
-        "strategy.grow_grad2d=1e-5", "strategy.max_gaussians=500", "walk.every=5", *extra])
+    cfg = TrainConfig(
+        data=str(data), out=str(out), iterations=iterations, device="cpu", backend="torch", progress=False
+    )
+    return apply_overrides(
+        cfg,
+        [
+            "model.n_init=200",
+            "checkpoint_every=10",
+            "keep_checkpoints=5",
+            "preview_every=10",
+            "log_every=1",
+            "strategy.refine_start_iter=4",
+            "strategy.refine_every=4",
+            "strategy.reset_every=12",
+            "strategy.grow_grad2d=1e-5",
+            "strategy.max_gaussians=500",
+            "walk.every=5",
+            *extra,
+        ],
+    )
 
 
 def _psnr_on_train(avatar: Avatar, ds) -> float:
@@ -138,9 +154,19 @@ def test_training_learns_and_writes_run_dir(tiny_dataset, tmp_path):
     from meshsplat.data import open_dataset
 
     ds = open_dataset(tiny_dataset)
-    cfg = small_config(tiny_dataset, tmp_path / "run", 60,
-                       ["model.init_color=grey", "optim.lr_color=0.03", "model.n_init=400",
-                        "strategy.grow_grad2d=2e-4", "strategy.reset_every=1000", "strategy.max_gaussians=800"])
+    cfg = small_config(
+        tiny_dataset,
+        tmp_path / "run",
+        60,
+        [
+            "model.init_color=grey",
+            "optim.lr_color=0.03",
+            "model.n_init=400",
+            "strategy.grow_grad2d=2e-4",
+            "strategy.reset_every=1000",
+            "strategy.max_gaussians=800",
+        ],
+    )
     tr = Trainer(cfg)
     before = _psnr_on_train(tr.avatar(), ds)
     run = tr.train()
@@ -150,9 +176,17 @@ def test_training_learns_and_writes_run_dir(tiny_dataset, tmp_path):
     assert avatar.num_gaussians == tr.num_gaussians
     assert (run / "config.json").is_file()
     assert TrainConfig.from_dict(json.loads((run / "config.json").read_text())) == cfg
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
-        "ckpt_00000010.pt", "ckpt_00000020.pt", "ckpt_00000030.pt", "ckpt_00000040.pt", "ckpt_00000050.pt",
-        "ckpt_00000060.pt"][-5:]
+    assert (
+        sorted(p.name for p in (run / "checkpoints").iterdir())
+        == [
+            "ckpt_00000010.pt",
+            "ckpt_00000020.pt",
+            "ckpt_00000030.pt",
+            "ckpt_00000040.pt",
+            "ckpt_00000050.pt",
+            "ckpt_00000060.pt",
+        ][-5:]
+    )
     assert (run / "previews" / "preview_000060.png").is_file()
     with open(run / "log.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -168,8 +202,9 @@ def test_ablation_switches(tiny_dataset, tmp_path):
     frozen.train()
     assert "duv" not in frozen.optimizers and "d" not in frozen.optimizers
     assert torch.all(frozen.params["d"] == 0) and torch.all(frozen.params["duv"] == 0)
-    nowalk = Trainer(small_config(tiny_dataset, tmp_path / "nowalk", 10,
-                                  ["walk.enabled=false", "strategy.enabled=false"]))
+    nowalk = Trainer(
+        small_config(tiny_dataset, tmp_path / "nowalk", 10, ["walk.enabled=false", "strategy.enabled=false"])
+    )
     face0 = nowalk.params["face"].clone()
     nowalk.train()
     assert torch.equal(nowalk.params["face"], face0)
@@ -182,9 +217,25 @@ def test_cli_train_and_resume(tiny_dataset, tmp_path, capsys):
     from meshsplat.cli.main import main
 
     out = tmp_path / "cli"
-    args = ["train", str(tiny_dataset), "--out", str(out), "--iters", "6", "--device", "cpu", "--no-progress",
-            "--set", "model.n_init=100", "--set", "backend=torch", "--set", "checkpoint_every=3",
-            "--set", "log_every=1"]
+    args = [
+        "train",
+        str(tiny_dataset),
+        "--out",
+        str(out),
+        "--iters",
+        "6",
+        "--device",
+        "cpu",
+        "--no-progress",
+        "--set",
+        "model.n_init=100",
+        "--set",
+        "backend=torch",
+        "--set",
+        "checkpoint_every=3",
+        "--set",
+        "log_every=1",
+    ]
     assert main(args) == 0
     assert (out / "checkpoints" / "ckpt_00000006.pt").is_file()
     assert main(["train", str(tiny_dataset), "--out", str(out), "--iters", "8", "--resume", "--no-progress"]) == 0

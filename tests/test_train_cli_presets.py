@@ -1,16 +1,17 @@
 """meshsplat train --preset / --config / --set precedence, --set forms, resuming across presets and versions."""
+
 from __future__ import annotations
 
 import json
 
 import pytest
 import torch
-from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 from meshsplat.cli import train_cmd
 from meshsplat.cli.main import build_parser, main
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from meshsplat.train import Trainer, apply_overrides, load_config, preset_config
+from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
 def _config(argv: list[str]):
@@ -34,13 +35,16 @@ def test_precedence_preset_then_config_then_set_then_flags(tmp_path, capsys):
     assert _model(cfg) == ("sh2", 5, 1e-2) and cfg.seed == 11  # --set over the file, flags over --set
 
 
-@pytest.mark.parametrize("argv", [
-    ["DATA", "--set", "seed=3", "walk.every=7", "--out", "R"],
-    ["DATA", "--out", "R", "--set", "seed=3", "walk.every=7"],
-    ["DATA", "--set", "seed=3", "--out", "R", "--set", "walk.every=7"],
-    ["--set", "seed=3", "walk.every=7", "--out", "R", "DATA"],
-    ["--out", "R", "DATA", "--set", "seed=3", "--set", "walk.every=7"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["DATA", "--set", "seed=3", "walk.every=7", "--out", "R"],
+        ["DATA", "--out", "R", "--set", "seed=3", "walk.every=7"],
+        ["DATA", "--set", "seed=3", "--out", "R", "--set", "walk.every=7"],
+        ["--set", "seed=3", "walk.every=7", "--out", "R", "DATA"],
+        ["--out", "R", "DATA", "--set", "seed=3", "--set", "walk.every=7"],
+    ],
+)
 def test_set_takes_several_pairs_and_repeats(argv):
     args = build_parser("train").parse_args(["train", *argv])
     assert (args.dataset, args.out, args.set) == ("DATA", "R", ["seed=3", "walk.every=7"])
@@ -53,9 +57,11 @@ def test_set_before_the_dataset_is_one_clear_error(capsys):
         build_parser("train").parse_args(["train", "--set", "seed=3", "DATA", "--out", "R"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err == ("meshsplat train: error: argument --set: expected KEY=VALUE, got 'DATA'; --set takes every word "
-                   "up to the next option, so put the dataset before --set (meshsplat train DATA --out RUN --set "
-                   "a.b=1 c.d=2)")
+    assert err == (
+        "meshsplat train: error: argument --set: expected KEY=VALUE, got 'DATA'; --set takes every word "
+        "up to the next option, so put the dataset before --set (meshsplat train DATA --out RUN --set "
+        "a.b=1 c.d=2)"
+    )
 
 
 def test_resume_refuses_another_preset(tiny_dataset, tmp_path, capsys):  # noqa: F811
@@ -71,7 +77,9 @@ def test_resume_refuses_another_preset(tiny_dataset, tmp_path, capsys):  # noqa:
     assert "model.shading: 'none' -> 'sh2'" in err and "optim.lr_color: 0.0025 -> 0.01" in err
     assert main(common + ["--iters", "3", "--resume"]) == 0  # no --preset: the run's own
     assert main(common + ["--iters", "4", "--resume", "--preset", "paper"]) == 0
-    assert load_checkpoint(tmp_path / "run" / "checkpoints" / "ckpt_00000004.pt")["config"]["model"]["shading"] == "none"
+    assert (
+        load_checkpoint(tmp_path / "run" / "checkpoints" / "ckpt_00000004.pt")["config"]["model"]["shading"] == "none"
+    )
 
 
 def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_path):  # noqa: F811

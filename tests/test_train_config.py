@@ -1,4 +1,5 @@
 """Training config (JSON round trip, --set overrides) and learning-rate schedule."""
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,17 @@ def test_defaults_are_the_quality_preset_on_the_papers_schedule():
 
 
 def test_json_roundtrip(tmp_path):
-    c = apply_overrides(TrainConfig(), ["strategy.refine_every=200", "walk.enabled=false", "loss.lambda_mse=10",
-                                        "model.scale_mode=area", "iterations=1e3", "seed=7"])
+    c = apply_overrides(
+        TrainConfig(),
+        [
+            "strategy.refine_every=200",
+            "walk.enabled=false",
+            "loss.lambda_mse=10",
+            "model.scale_mode=area",
+            "iterations=1e3",
+            "seed=7",
+        ],
+    )
     assert c.strategy.refine_every == 200 and c.walk.enabled is False and c.loss.lambda_mse == 10.0
     assert c.model.scale_mode == "area" and c.iterations == 1000 and c.seed == 7
     c.to_json(tmp_path / "c.json")
@@ -34,19 +44,25 @@ def test_json_roundtrip(tmp_path):
     assert p.strategy.max_gaussians == 5000 and p.strategy.refine_every == 100
 
 
-@pytest.mark.parametrize("item, match", [
-    ("strategy.nope=1", "unknown key"),
-    ("nope.x=1", "unknown section"),
-    ("walk.enabled=maybe", "true/false"),
-    ("strategy.refine_every=1.5", "expects int"),
-    ("loss.lambda_l1=abc", "expects float"),
-    ("strategy", "key=value"),
-    ("model=3", "unknown key"),
-    ("strategy.refine_start=5", r"strategy.refine_start was renamed to strategy.refine_start_iter \(gsplat's name\)"),
-    ("strategy.refine_stop=5", "renamed to strategy.refine_stop_iter"),
-    ("strategy.prune_scale2d=20", "fraction of the image size"),
-    ("backend=vulkan", "backend: auto"),
-])
+@pytest.mark.parametrize(
+    "item, match",
+    [
+        ("strategy.nope=1", "unknown key"),
+        ("nope.x=1", "unknown section"),
+        ("walk.enabled=maybe", "true/false"),
+        ("strategy.refine_every=1.5", "expects int"),
+        ("loss.lambda_l1=abc", "expects float"),
+        ("strategy", "key=value"),
+        ("model=3", "unknown key"),
+        (
+            "strategy.refine_start=5",
+            r"strategy.refine_start was renamed to strategy.refine_start_iter \(gsplat's name\)",
+        ),
+        ("strategy.refine_stop=5", "renamed to strategy.refine_stop_iter"),
+        ("strategy.prune_scale2d=20", "fraction of the image size"),
+        ("backend=vulkan", "backend: auto"),
+    ],
+)
 def test_override_errors(item, match):
     with pytest.raises(MeshsplatError, match=match):
         apply_overrides(TrainConfig(), [item]).validate()
@@ -79,7 +95,7 @@ def test_old_run_config_is_upgraded(tmp_path):
         TrainConfig.from_dict(_old_config())
     both = _old_config()
     both["strategy"]["refine_start_iter"] = 5
-    with pytest.raises(MeshsplatError, match="both strategy.refine_start"):
+    with pytest.raises(MeshsplatError, match=r"both strategy.refine_start"):
         TrainConfig.from_dict(both, image_size=256)
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()  # today's dicts pass unchanged
 
@@ -104,7 +120,8 @@ def test_expon_lr_matches_3dgs_schedule():
     # delay multiplier: warm-up from 0.01x to 1x over the delay steps (3DGS)
     assert expon_lr(0, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(0.01)
     assert expon_lr(5, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(
-        0.01 + 0.99 * math.sin(math.pi / 4))
+        0.01 + 0.99 * math.sin(math.pi / 4)
+    )
     assert expon_lr(10, 1.0, 1.0, 100, lr_delay_steps=10, lr_delay_mult=0.01) == pytest.approx(1.0)
 
 

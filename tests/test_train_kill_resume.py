@@ -1,5 +1,6 @@
 """Kill -9 at random moments (and inside checkpoint writes), resume, and end bit for bit equal to
 an uninterrupted run with the default loss (LPIPS on). Each training run is a real subprocess."""
+
 from __future__ import annotations
 
 import csv
@@ -13,16 +14,42 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_train import make_tiny_dataset
 
 from meshsplat.metrics.lpips_net import lpips_available
+from test_train import make_tiny_dataset
 
 ITERS = 16
-ARGS = ["--iters", str(ITERS), "--no-progress", "--device", "cpu",
-        "--set", "backend=torch", "--set", "model.n_init=200", "--set", "checkpoint_every=2",
-        "--set", "keep_checkpoints=3", "--set", "log_every=1", "--set", "preview_every=1000",
-        "--set", "strategy.refine_start_iter=2", "--set", "strategy.refine_every=2", "--set", "strategy.reset_every=9",
-        "--set", "strategy.grow_grad2d=1e-6", "--set", "strategy.max_gaussians=3000", "--set", "walk.every=3"]
+ARGS = [
+    "--iters",
+    str(ITERS),
+    "--no-progress",
+    "--device",
+    "cpu",
+    "--set",
+    "backend=torch",
+    "--set",
+    "model.n_init=200",
+    "--set",
+    "checkpoint_every=2",
+    "--set",
+    "keep_checkpoints=3",
+    "--set",
+    "log_every=1",
+    "--set",
+    "preview_every=1000",
+    "--set",
+    "strategy.refine_start_iter=2",
+    "--set",
+    "strategy.refine_every=2",
+    "--set",
+    "strategy.reset_every=9",
+    "--set",
+    "strategy.grow_grad2d=1e-6",
+    "--set",
+    "strategy.max_gaussians=3000",
+    "--set",
+    "walk.every=3",
+]
 
 # Runs the CLI; with KILL_AT_FSYNC=k the process SIGKILLs itself at the k-th fsync of a checkpoint
 # file: the temporary file is fully written but not yet moved into place.
@@ -54,8 +81,9 @@ def _env(**extra):
 
 def _train(ds, out, resume=False, kill_after=None, kill_at_fsync=0):
     argv = [sys.executable, "-c", DRIVER, "train", str(ds), "--out", str(out), *ARGS] + (["--resume"] if resume else [])
-    p = subprocess.Popen(argv, env=_env(KILL_AT_FSYNC=str(kill_at_fsync)), stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        argv, env=_env(KILL_AT_FSYNC=str(kill_at_fsync)), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     if kill_after is not None:
         try:
             p.wait(timeout=kill_after)
@@ -87,15 +115,11 @@ def test_kill_at_random_moments_then_resume_is_bit_exact(tmp_path):
     assert rc == -signal.SIGKILL, err
     assert any(p.name.endswith(".tmp") for p in (out / "checkpoints").iterdir())  # the interrupted write
     startup = time.perf_counter() - t0
-    kills = 0
-    for attempt in range(12):
-        if kills >= 3:
-            break
+    for _kill in range(3):
         rc, err = _train(ds, out, resume=True, kill_after=rng.uniform(0.3, 1.5) * startup)
         if rc == 0:  # finished before the kill: start the killed phase again from a checkpoint
             break
         assert rc == -signal.SIGKILL, err
-        kills += 1
     rc, err = _train(ds, out, resume=True, kill_at_fsync=2)  # one more kill inside a write
     if rc != 0:
         assert rc == -signal.SIGKILL, err

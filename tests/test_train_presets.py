@@ -1,4 +1,5 @@
 """Training presets: quality is the default, paper stays the published method; config.json versions."""
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,13 @@ def test_paper_preset_is_the_published_method():
     assert o.eps == 1e-15 and o.uv_lr_units == "world"
     # L1 + 0.01 LPIPS + the scale regulariser (T_s = 0.004 x bbox diagonal, T_r = 10), nothing else
     los = c.loss
-    assert (los.lambda_l1, los.lambda_lpips, los.lambda_scale, los.scale_max, los.scale_ratio) == (1.0, 0.01, 1.0,
-                                                                                                  0.008, 10.0)
+    assert (los.lambda_l1, los.lambda_lpips, los.lambda_scale, los.scale_max, los.scale_ratio) == (
+        1.0,
+        0.01,
+        1.0,
+        0.008,
+        10.0,
+    )
     assert (los.lambda_mse, los.lambda_ssim, los.lambda_mask) == (0.0, 0.0, 0.0)
     # the 30k-iteration schedule: densify 600..15000 every 100, opacity reset every 3000
     s = c.strategy
@@ -56,15 +62,19 @@ def test_paper_preset_is_the_published_method():
 def test_presets_set_the_same_keys_and_differ_only_there():
     keys = {name: [item.split("=")[0] for item in PRESETS[name]] for name in PRESETS}
     assert keys["quality"] == keys["paper"]
-    flat = lambda c: {f"{s}.{k}": v for s, sec in c.to_dict().items() if isinstance(sec, dict)  # noqa: E731
-                      for k, v in sec.items()}
+
+    def flat(c):
+        return {f"{s}.{k}": v for s, sec in c.to_dict().items() if isinstance(sec, dict) for k, v in sec.items()}
+
     q, p = flat(preset_config("quality")), flat(preset_config("paper"))
     assert sorted(k for k in q if q[k] != p[k]) == sorted(keys["paper"])
     # applying a preset's overrides to any config gives that preset's model
     assert apply_overrides(preset_config("quality"), list(preset_overrides("paper"))) == preset_config("paper")
     assert preset_differences(preset_config("paper"), "quality") == [
-        "model.shading='none' (the quality preset's: 'sh2')", "model.init_color_frames=1 (the quality preset's: 8)",
-        "optim.lr_color=0.0025 (the quality preset's: 0.01)"]
+        "model.shading='none' (the quality preset's: 'sh2')",
+        "model.init_color_frames=1 (the quality preset's: 8)",
+        "optim.lr_color=0.0025 (the quality preset's: 0.01)",
+    ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
         preset_config("best")
@@ -80,11 +90,27 @@ def test_version_1_defaults_are_the_paper_preset():
 _OLD_DEFAULTS = ["model.shading=none", "model.init_color_frames=1", "optim.lr_color=2.5e-3"]
 _OLD_QUALITY = ["model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2"]
 _OLD_SCHEDULES = {
-    "default": ["strategy.refine_start_iter=300", "strategy.refine_stop_iter=1200", "strategy.refine_every=100",
-                "strategy.reset_every=100000", "strategy.max_gaussians=40000", "walk.every=100",
-                "preview_every=250", "checkpoint_every=250", "log_every=10"],
-    "tiny": ["strategy.refine_start_iter=20", "strategy.refine_stop_iter=50", "strategy.refine_every=20",
-             "strategy.reset_every=100000", "walk.every=20", "preview_every=30", "checkpoint_every=30", "log_every=5"],
+    "default": [
+        "strategy.refine_start_iter=300",
+        "strategy.refine_stop_iter=1200",
+        "strategy.refine_every=100",
+        "strategy.reset_every=100000",
+        "strategy.max_gaussians=40000",
+        "walk.every=100",
+        "preview_every=250",
+        "checkpoint_every=250",
+        "log_every=10",
+    ],
+    "tiny": [
+        "strategy.refine_start_iter=20",
+        "strategy.refine_stop_iter=50",
+        "strategy.refine_every=20",
+        "strategy.reset_every=100000",
+        "walk.every=20",
+        "preview_every=30",
+        "checkpoint_every=30",
+        "log_every=5",
+    ],
 }
 _OLD_SIZES = {"default": (1500, 10_000), "tiny": (60, 1500)}
 
@@ -114,7 +140,8 @@ def test_config_json_carries_its_format_version(tmp_path):
     (tmp_path / "partial.json").write_text(json.dumps({"version": 2, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
-        preset_config("paper"), ["seed=5"])
+        preset_config("paper"), ["seed=5"]
+    )
 
 
 def test_config_without_version_is_read_as_older_meshsplat_wrote_it(tmp_path):
@@ -127,19 +154,26 @@ def test_config_without_version_is_read_as_older_meshsplat_wrote_it(tmp_path):
     # a partial one likewise: keys it does not set meant the defaults of then (the paper's)
     (tmp_path / "partial.json").write_text(json.dumps({"model": {"n_init": 500}, "optim": {"lr_color": 0.02}}))
     got = load_config(tmp_path / "partial.json", base=preset_config("quality"))
-    assert (got.model.shading, got.model.init_color_frames, got.optim.lr_color, got.model.n_init) == ("none", 1, 0.02,
-                                                                                                      500)
+    assert (got.model.shading, got.model.init_color_frames, got.optim.lr_color, got.model.n_init) == (
+        "none",
+        1,
+        0.02,
+        500,
+    )
     assert TrainConfig.from_dict({"seed": 1}).model.shading == "none"
     assert "version" not in upgrade_config_dict({"version": 2, "seed": 1})
 
 
-@pytest.mark.parametrize("doc, match", [
-    ({"version": 3}, r"^config: format version 3 is newer than this meshsplat reads \(2\); update meshsplat"),
-    ({"version": "2"}, "version must be a positive integer, got '2'"),
-    ({"version": 0}, "version must be a positive integer"),
-    ({"version": True}, "version must be a positive integer"),
-    ({"format": "meshsplat-checkpoint", "version": 2}, "is not a training config"),
-])
+@pytest.mark.parametrize(
+    "doc, match",
+    [
+        ({"version": 3}, r"^config: format version 3 is newer than this meshsplat reads \(2\); update meshsplat"),
+        ({"version": "2"}, "version must be a positive integer, got '2'"),
+        ({"version": 0}, "version must be a positive integer"),
+        ({"version": True}, "version must be a positive integer"),
+        ({"format": "meshsplat-checkpoint", "version": 2}, "is not a training config"),
+    ],
+)
 def test_config_versions_refused(tmp_path, doc, match):
     (tmp_path / "c.json").write_text(json.dumps({**doc, "seed": 1}))
     with pytest.raises(MeshsplatError, match=match):

@@ -1,9 +1,10 @@
 """Lifted optimisation: Gaussians must slide across triangles to match a target image."""
+
 from __future__ import annotations
 
 import torch
-from _meshes import plane
 
+from _meshes import plane
 from meshsplat.gaussians import compose, make_params, rgb_to_sh0
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.render import rasterize
@@ -34,8 +35,19 @@ def locate(mesh: TriMesh, pts: torch.Tensor):
 
 def render(mesh, params, viewmat, K):
     g = compose(params, MeshPose.canonical(mesh), "none")
-    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat[None], K[None], W, H,
-                    backgrounds=torch.zeros(1, 3), backend="torch")
+    out = rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.colors,
+        viewmat[None],
+        K[None],
+        W,
+        H,
+        backgrounds=torch.zeros(1, 3),
+        backend="torch",
+    )
     return out.colors[0], g
 
 
@@ -52,8 +64,13 @@ def test_embeddings_slide_across_faces_to_fit_target():
     def make(pts):
         face, uv = locate(mesh, pts)
         n = len(pts)
-        return make_params(face, uv, log_scale=torch.log(torch.tensor([0.04, 0.04, 0.01])).expand(n, 3),
-                           opacity_logit=torch.full((n,), 2.0), sh0=rgb_to_sh0(torch.ones(n, 3)))
+        return make_params(
+            face,
+            uv,
+            log_scale=torch.log(torch.tensor([0.04, 0.04, 0.01])).expand(n, 3),
+            opacity_logit=torch.full((n,), 2.0),
+            sh0=rgb_to_sh0(torch.ones(n, 3)),
+        )
 
     with torch.no_grad():
         target, _ = render(mesh, make(start + shift), viewmat, K)

@@ -1,4 +1,5 @@
 """Static types: mypy (a dev dependency) over the package, with the settings in pyproject.toml ([tool.mypy])."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -22,10 +23,10 @@ def _incomplete_public_signatures() -> list[str]:
         if any(part.startswith("_") and part != "__init__.py" for part in rel.parts):
             continue
 
-        def visit(body: list, cls: str | None = None) -> None:
+        def visit(body: list, cls: str | None = None, rel: Path = rel) -> None:
             for node in body:
                 if isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
-                    visit(node.body, node.name)
+                    visit(node.body, node.name, rel)
                 elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                     if node.name.startswith("_") and node.name != "__init__":
                         continue

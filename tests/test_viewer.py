@@ -1,5 +1,6 @@
 """Viewer bundle: binary layout round trip, the JS posing/sorting math under Node vs compose, CLI,
 and (slow, when chromium is installed) a headless-browser screenshot vs the Python rasterizer."""
+
 from __future__ import annotations
 
 import base64
@@ -13,15 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _browser import find_chromium, screenshot
-from test_eval_kit import deform, make_avatar, make_run
 
+from _browser import find_chromium, screenshot
 from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
+from test_eval_kit import deform, make_avatar, make_run
 
 NODE = shutil.which("node")
 needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
@@ -102,8 +103,9 @@ def test_bundle_round_trip(tmp_path, clamp):
     assert "<title>tiny &lt;test&gt;</title>" in page and "__VIEWER_JS__" not in page
 
 
-@pytest.mark.parametrize("title", ["__VIEWER_JS__", "__AVATAR_DATA__ </script><script>alert(1)</script>",
-                                   "a & b <!-- \u2028 __TITLE__"])
+@pytest.mark.parametrize(
+    "title", ["__VIEWER_JS__", "__AVATAR_DATA__ </script><script>alert(1)</script>", "a & b <!-- \u2028 __TITLE__"]
+)
 def test_title_cannot_break_the_page(tmp_path, title):
     """User text is inserted once, escaped, after the template is filled (no placeholder re-expansion)."""
     av = make_avatar(n=20)
@@ -118,6 +120,7 @@ def test_title_cannot_break_the_page(tmp_path, title):
     data = re.search(r'id="avatar-data">([^<]*)<', page).group(1)
     assert base64.b64decode(data) == (tmp_path / "avatar.bin").read_bytes()
     import html as html_mod
+
     assert f"<title>{html_mod.escape(title)}</title>" in page
 
 
@@ -186,12 +189,26 @@ def _bundle_avatar(av, a, mode):
     from meshsplat.gaussians.params import make_params
     from meshsplat.mesh import TriMesh
 
-    t = {k: torch.from_numpy(np.asarray(a[k], np.float64)) for k in
-         ("gaussian_uv", "gaussian_d", "gaussian_rotation", "gaussian_scale", "gaussian_opacity", "gaussian_rgb")}
-    params = make_params(torch.from_numpy(a["gaussian_face"].astype(np.int64)), t["gaussian_uv"],
-                         d=t["gaussian_d"], log_scale=t["gaussian_scale"].log(), rotation=t["gaussian_rotation"],
-                         opacity_logit=torch.logit(t["gaussian_opacity"]),
-                         sh0=((t["gaussian_rgb"] - 0.5) / SH_C0)[:, None, :])
+    t = {
+        k: torch.from_numpy(np.asarray(a[k], np.float64))
+        for k in (
+            "gaussian_uv",
+            "gaussian_d",
+            "gaussian_rotation",
+            "gaussian_scale",
+            "gaussian_opacity",
+            "gaussian_rgb",
+        )
+    }
+    params = make_params(
+        torch.from_numpy(a["gaussian_face"].astype(np.int64)),
+        t["gaussian_uv"],
+        d=t["gaussian_d"],
+        log_scale=t["gaussian_scale"].log(),
+        rotation=t["gaussian_rotation"],
+        opacity_logit=torch.logit(t["gaussian_opacity"]),
+        sh0=((t["gaussian_rgb"] - 0.5) / SH_C0)[:, None, :],
+    )
     return Avatar(TriMesh(av.mesh.vertices.double(), av.mesh.faces), params, mode)
 
 
@@ -226,8 +243,12 @@ def test_js_pose_matches_compose(tmp_path, mode, encoding):
 @needs_node
 def test_js_sort_and_camera(tmp_path):
     av = make_avatar(n=50)
-    write_viewer_bundle(av, _frames(av), tmp_path, camera={"azimuth_deg": 30, "elevation_deg": 25,
-                                                           "width": 640, "height": 480, "fov_deg": 40})
+    write_viewer_bundle(
+        av,
+        _frames(av),
+        tmp_path,
+        camera={"azimuth_deg": 30, "elevation_deg": 25, "width": 640, "height": 480, "fov_deg": 40},
+    )
     h = read_viewer_bundle(tmp_path)[0]
     cam = h["camera"]
     rng = np.random.default_rng(0)
@@ -278,7 +299,7 @@ def _rig_bundle(tmp_path, name, n=300, seed=0):
 def test_js_rig_matches_gltf_driver(tmp_path, name):
     """evalRig + skinVertices (the page's clip evaluation and, on the CPU, its GPU skinning) equal
     GltfDriver.vertices_at, morph weight overrides included."""
-    av, drv = _rig_bundle(tmp_path, name, n=20)
+    _av, drv = _rig_bundle(tmp_path, name, n=20)
     h = read_viewer_bundle(tmp_path)[0]
     clips = h["driver"]["clips"]
     cases = [(0, 0.0, None), (0, 0.37, None), (len(clips) - 1, 0.9, None), (0, 123.0, None)]
@@ -301,7 +322,7 @@ console.log(JSON.stringify(out));
 """
     js = _node(script, tmp_path)
     extent = float(np.abs(drv.rest_vertices().numpy()).max())
-    for (clip, t, ov), got in zip(cases, js):
+    for (clip, t, ov), got in zip(cases, js, strict=True):
         name_ = clips[clip]["name"]
         morph = None
         if ov:
@@ -315,8 +336,9 @@ console.log(JSON.stringify(out));
         ref = drv.vertices_at(clips[clip]["start"] + t, clip=name_, morph_weights=morph).numpy()
         np.testing.assert_allclose(np.asarray(got).reshape(-1, 3), ref, atol=2e-6 * extent)
     if groups:  # the override moved something
-        assert not np.allclose(js[-1], drv.vertices_at(clips[2]["start"] + 0.5, clip=clips[2]["name"]).numpy().ravel(),
-                               atol=1e-6)
+        assert not np.allclose(
+            js[-1], drv.vertices_at(clips[2]["start"] + 0.5, clip=clips[2]["name"]).numpy().ravel(), atol=1e-6
+        )
 
 
 @needs_node
@@ -362,9 +384,15 @@ def _small_blendshapes(av, frames=6, seed=1):
     g = torch.Generator().manual_seed(seed)
     v = av.mesh.vertices
     deltas = (0.2 * torch.randn(4, *v.shape, generator=g)).half().float()
-    return BlendshapeDriver(v, av.mesh.faces, deltas, names=["jawOpen", "mouthSmile_L", "browInnerUp_L", "eyeBlink_R"],
-                            weights=torch.rand(frames, 4, generator=g), rotations=0.3 * torch.randn(frames, 3, generator=g),
-                            translations=0.1 * torch.randn(frames, 3, generator=g))
+    return BlendshapeDriver(
+        v,
+        av.mesh.faces,
+        deltas,
+        names=["jawOpen", "mouthSmile_L", "browInnerUp_L", "eyeBlink_R"],
+        weights=torch.rand(frames, 4, generator=g),
+        rotations=0.3 * torch.randn(frames, 3, generator=g),
+        translations=0.1 * torch.randn(frames, 3, generator=g),
+    )
 
 
 @needs_node
@@ -393,23 +421,41 @@ console.log(JSON.stringify(out));
         np.testing.assert_allclose(np.asarray(js[i]).reshape(-1, 3), drv.vertices(i).numpy(), atol=2e-6)
     wts = drv.weights[2].clone()
     wts[1] = 0.9
-    np.testing.assert_allclose(np.asarray(js[6]).reshape(-1, 3),
-                               drv.pose(wts, drv.rotations[2], drv.translations[2]).numpy(), atol=2e-6)
+    np.testing.assert_allclose(
+        np.asarray(js[6]).reshape(-1, 3), drv.pose(wts, drv.rotations[2], drv.translations[2]).numpy(), atol=2e-6
+    )
 
 
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
-    from test_eval_kit import make_dataset
-
     from meshsplat.cli.main import main
+    from test_eval_kit import make_dataset
 
     av = make_avatar(n=80)
     ds = make_dataset(av, tmp_path / "ds")
     run = make_run(av, tmp_path / "run", ds)
     seq = torch.stack(_frames(av, ts=(0.0, 0.2, 0.5, 0.9)))
     np.save(tmp_path / "seq.npy", seq.numpy())
-    assert main(["view", str(run), "--out", str(tmp_path / "v1"), "--animation", "vertices",
-                 str(tmp_path / "seq.npy"), "--frames", "3", "--fps", "10", "--vertex-encoding", "float32"]) == 0
+    assert (
+        main(
+            [
+                "view",
+                str(run),
+                "--out",
+                str(tmp_path / "v1"),
+                "--animation",
+                "vertices",
+                str(tmp_path / "seq.npy"),
+                "--frames",
+                "3",
+                "--fps",
+                "10",
+                "--vertex-encoding",
+                "float32",
+            ]
+        )
+        == 0
+    )
     h, a = read_viewer_bundle(tmp_path / "v1")
     assert h["num_frames"] == 3 and h["fps"] == 10.0 and h["title"] == "run"
     np.testing.assert_array_equal(a["vertices"], seq[:3].double().numpy())
@@ -445,8 +491,23 @@ def test_view_cli_gltf(tmp_path, assets):
     mesh = TriMesh(drv.rest_vertices(), drv.faces)
     av = Avatar(mesh, init_params(mesh, 2000, generator=torch.Generator().manual_seed(0)))
     run = make_run(av, tmp_path / "run", None)
-    assert main(["view", str(run), "--out", str(tmp_path / "v"), "--animation", "gltf", str(glb), "--bake",
-                 "--frames", "20"]) == 0
+    assert (
+        main(
+            [
+                "view",
+                str(run),
+                "--out",
+                str(tmp_path / "v"),
+                "--animation",
+                "gltf",
+                str(glb),
+                "--bake",
+                "--frames",
+                "20",
+            ]
+        )
+        == 0
+    )
     h, a = read_viewer_bundle(tmp_path / "v")
     assert h["num_frames"] == 20 and h["num_vertices"] == mesh.num_vertices and h["driver"] == {"kind": "frames"}
     assert np.abs(a["vertices"][10] - a["vertices"][0]).max() > 1e-2  # it moves
@@ -457,7 +518,9 @@ def test_view_cli_gltf(tmp_path, assets):
     assert h["driver"]["kind"] == "gltf" and h["num_frames"] == 0 and "frames" not in a
     assert [c["name"] for c in h["driver"]["clips"]] == drv.clips and a["rig_base"].shape == (mesh.num_vertices, 3)
     assert (tmp_path / "live" / "index.html").stat().st_size < (tmp_path / "v" / "index.html").stat().st_size
-    assert main(["view", str(run), "--out", str(tmp_path / "x"), "--animation", "gltf", str(glb), "--clip", "nope"]) == 2
+    assert (
+        main(["view", str(run), "--out", str(tmp_path / "x"), "--animation", "gltf", str(glb), "--clip", "nope"]) == 2
+    )
 
 
 # ---------------------------------------------------------------- headless browser (slow)
@@ -496,8 +559,9 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
     h, a = read_viewer_bundle(tmp_path / "b")
     cam = h["camera"]
     for frame in (0, 1):
-        ref = av.render(torch.from_numpy(a["vertices"][frame]).float(), _bundle_camera(cam, 256),
-                        background=torch.ones(3)).image
+        ref = av.render(
+            torch.from_numpy(a["vertices"][frame]).float(), _bundle_camera(cam, 256), background=torch.ones(3)
+        ).image
         ref = ref.detach().clamp(0, 1).numpy() * 255
         img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
         assert img.shape == ref.shape
@@ -508,8 +572,13 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
     # sorting on the main thread (?worker=0, the fallback without Web Workers) draws the same image
     from PIL import Image
 
-    screenshot((tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&worker=0", 256, 256, tmp_path / "main.png",
-               chromium=_chromium())
+    screenshot(
+        (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&worker=0",
+        256,
+        256,
+        tmp_path / "main.png",
+        chromium=_chromium(),
+    )
     same = np.asarray(Image.open(tmp_path / "main.png").convert("RGB"), dtype=np.float64)
     assert np.array_equal(same, img)
 
@@ -537,8 +606,13 @@ def test_browser_live_blendshapes_match_rasterizer(tmp_path):
     wts = drv.weights[3].clone()
     wts[0] = 1.0
     ref = _render_ref(av, drv.pose(wts, drv.rotations[3], drv.translations[3]), cam)
-    screenshot((tmp_path / "b" / "index.html").as_uri() + "?time=0.3&morph=0:1&ui=0", 256, 256, tmp_path / "s.png",
-               chromium=_chromium())
+    screenshot(
+        (tmp_path / "b" / "index.html").as_uri() + "?time=0.3&morph=0:1&ui=0",
+        256,
+        256,
+        tmp_path / "s.png",
+        chromium=_chromium(),
+    )
     img = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"), dtype=np.float64)
     psnr = _psnr(img, ref)
     print(f"browser live blendshapes vs rasterizer: PSNR {psnr:.1f} dB")
@@ -551,13 +625,19 @@ def test_browser_live_gltf_skin_and_morphs_match_rasterizer(tmp_path):
     GltfDriver's vertices at the same clip time and weights."""
     from PIL import Image
 
-    for name, query, morph in (("CesiumMan", "time=0.8", None), ("RobotExpressive", "clip=Wave&time=0.5&morph=0:1,4:0.7", True)):
+    for name, query, morph in (
+        ("CesiumMan", "time=0.8", None),
+        ("RobotExpressive", "clip=Wave&time=0.5&morph=0:1,4:0.7", True),
+    ):
         folder = tmp_path / name
         av, drv = _rig_bundle(folder, name, n=3000)
         h = read_viewer_bundle(folder)[0]
         cam, d = h["camera"], h["driver"]
-        clip = next(c for c in d["clips"] if c["name"] == (query.split("clip=")[1].split("&")[0] if "clip=" in query
-                                                                 else d["clip"]))
+        clip = next(
+            c
+            for c in d["clips"]
+            if c["name"] == (query.split("clip=")[1].split("&")[0] if "clip=" in query else d["clip"])
+        )
         t = clip["start"] + float(query.split("time=")[1].split("&")[0])
         weights = None
         if morph:

@@ -1,4 +1,5 @@
 """walk_on_triangles: validity on many mesh kinds, exactness of `unfold` on flat meshes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,8 +49,9 @@ def open_cylinder() -> TriMesh:
 
 
 def three_quads() -> TriMesh:
-    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, -1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1]],
-                     dtype=torch.float64)
+    v = torch.tensor(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, -1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1]], dtype=torch.float64
+    )
     f = torch.tensor([[0, 1, 3], [0, 3, 2], [1, 0, 4], [1, 4, 5], [0, 1, 7], [0, 7, 6]])
     return TriMesh(v, f)
 
@@ -57,7 +59,7 @@ def three_quads() -> TriMesh:
 def with_degenerate() -> TriMesh:
     m = flat_grid(4, 0, jitter=0.0)
     v = m.vertices.clone()
-    f = torch.cat([m.faces, torch.tensor([[0, 1, 2], [5, 5, 6]])])   # collinear boundary sliver + repeated index
+    f = torch.cat([m.faces, torch.tensor([[0, 1, 2], [5, 5, 6]])])  # collinear boundary sliver + repeated index
     return TriMesh(v, f)
 
 
@@ -73,7 +75,7 @@ def step_for(mesh, face, disp):
     """Barycentric (du, dv) in `face` for an in-plane 3D displacement (least squares)."""
     f = mesh.faces[face]
     a, b, c = (mesh.vertices[f[:, i]] for i in range(3))
-    m = torch.stack([a - c, b - c], -1)                              # [N,3,2]
+    m = torch.stack([a - c, b - c], -1)  # [N,3,2]
     return torch.linalg.lstsq(m, disp.unsqueeze(-1)).solution.squeeze(-1)
 
 
@@ -110,18 +112,20 @@ def test_unfold_is_straight_on_flat_grids(seed, n, scale):
     p0 = point(mesh, face, uv)
     target = p0.clone()
     target[:, :2] += torch.as_tensor(rng.normal(size=(200, 2))) * scale
-    target[:, :2] = target[:, :2].clamp(0.0, 1.0)                   # convex domain: segment stays inside
+    target[:, :2] = target[:, :2].clamp(0.0, 1.0)  # convex domain: segment stays inside
     step = step_for(mesh, face, target - p0)
     res = walk_on_triangles(mesh, mesh.vertices, face, uv, step, mode="unfold", max_crossings=256)
     assert_valid(mesh, res, 200)
     assert torch.allclose(point(mesh, res.face, res.uv), target, atol=1e-7)
     assert torch.equal(res.changed, res.face != face)
     # walking back by the negated 3D step returns to the start
-    back = walk_on_triangles(mesh, mesh.vertices, res.face, res.uv, step_for(mesh, res.face, p0 - target),
-                             mode="unfold", max_crossings=256)
+    back = walk_on_triangles(
+        mesh, mesh.vertices, res.face, res.uv, step_for(mesh, res.face, p0 - target), mode="unfold", max_crossings=256
+    )
     assert torch.allclose(point(mesh, back.face, back.uv), p0, atol=1e-7)
-    ref = walk_on_triangles_reference(mesh, mesh.vertices, face[:20], uv[:20], step[:20], mode="unfold",
-                                      max_crossings=256)
+    ref = walk_on_triangles_reference(
+        mesh, mesh.vertices, face[:20], uv[:20], step[:20], mode="unfold", max_crossings=256
+    )
     assert torch.allclose(point(mesh, ref.face, ref.uv), target[:20], atol=1e-7)
 
 
@@ -129,12 +133,22 @@ MESH_KINDS = ["sphere", "cylinder", "holes", "nonmanifold", "degenerate", "grid"
 
 
 def mesh_of_kind(kind: str, seed: int) -> TriMesh:
-    return {"sphere": lambda: sphere(1), "cylinder": open_cylinder, "holes": lambda: flat_grid(6, seed, holes=8),
-            "nonmanifold": three_quads, "degenerate": with_degenerate, "grid": lambda: flat_grid(5, seed)}[kind]()
+    return {
+        "sphere": lambda: sphere(1),
+        "cylinder": open_cylinder,
+        "holes": lambda: flat_grid(6, seed, holes=8),
+        "nonmanifold": three_quads,
+        "degenerate": with_degenerate,
+        "grid": lambda: flat_grid(5, seed),
+    }[kind]()
 
 
-@given(seed=st.integers(0, 10_000), mode=st.sampled_from(WALK_MODES), kind=st.sampled_from(MESH_KINDS),
-       scale=st.sampled_from([0.01, 0.3, 3.0, 30.0]))
+@given(
+    seed=st.integers(0, 10_000),
+    mode=st.sampled_from(WALK_MODES),
+    kind=st.sampled_from(MESH_KINDS),
+    scale=st.sampled_from([0.01, 0.3, 3.0, 30.0]),
+)
 def test_always_valid_output(seed, mode, kind, scale):
     rng = np.random.default_rng(seed)
     mesh = mesh_of_kind(kind, seed)
@@ -157,13 +171,18 @@ def assert_matches_reference(mesh, fast, ref, uv_atol, rel3d):
     assert torch.equal(fast.changed[same], ref.changed[same])
 
 
-@given(seed=st.integers(0, 10_000), mode=st.sampled_from(WALK_MODES), kind=st.sampled_from(MESH_KINDS),
-       scale=st.sampled_from([0.05, 0.5, 3.0, 30.0]), max_crossings=st.sampled_from([0, 1, 3, 64]))
+@given(
+    seed=st.integers(0, 10_000),
+    mode=st.sampled_from(WALK_MODES),
+    kind=st.sampled_from(MESH_KINDS),
+    scale=st.sampled_from([0.05, 0.5, 3.0, 30.0]),
+    max_crossings=st.sampled_from([0, 1, 3, 64]),
+)
 def test_matches_reference(seed, mode, kind, scale, max_crossings):
     # the per-point reference works from the 3D geometry (edge lookup, Rodrigues unfolding), not the rate maps
     rng = np.random.default_rng(seed)
     mesh = mesh_of_kind(kind, seed)
-    face, uv = random_starts(mesh, 150, rng)                 # a quarter on vertices, a quarter on edges
+    face, uv = random_starts(mesh, 150, rng)  # a quarter on vertices, a quarter on edges
     step = torch.as_tensor(rng.normal(size=(150, 2))) * scale
     # a third graze the edge w2 = 0 (rate of corner 2 = du * eps): tests the tolerance rule. Not for unfold on
     # the sphere: a walk along an edge runs exactly through vertices, and round-off picks the side; around a
@@ -236,8 +255,8 @@ def test_paper_mode_follows_algorithm_1_on_a_folded_pair():
     v_fold = v.clone()
     v_fold[3] = torch.tensor([0.5, 0.5, 0.7071], dtype=torch.float64)
     face = torch.tensor([0])
-    uv = torch.tensor([[0.6, 0.3]], dtype=torch.float64)        # weights: v0 0.6, v1 0.3, v2 0.1
-    step = torch.tensor([[-0.1, -0.5]], dtype=torch.float64)    # rates (-0.1, -0.5, +0.6): exits via edge (v2, v0)
+    uv = torch.tensor([[0.6, 0.3]], dtype=torch.float64)  # weights: v0 0.6, v1 0.3, v2 0.1
+    step = torch.tensor([[-0.1, -0.5]], dtype=torch.float64)  # rates (-0.1, -0.5, +0.6): exits via edge (v2, v0)
     for verts, walk in ((v, walk_on_triangles), (v_fold, walk_on_triangles), (v_fold, walk_on_triangles_reference)):
         r = walk(TriMesh(verts, faces), verts, face, uv, step, mode="paper")
         # exit at t=0.6 -> (0.54, 0, 0.46); remaining (-0.04, -0.2, 0.24) re-expressed in face 1 corners
@@ -258,15 +277,26 @@ def test_stops_on_boundary_and_nonmanifold_edges():
 
     nm = three_quads()
     face = torch.tensor([0, 2, 4])
-    uv = torch.full((3, 2), 0.25, dtype=torch.float64)        # heading to edge (0,1), shared by 3 faces
+    uv = torch.full((3, 2), 0.25, dtype=torch.float64)  # heading to edge (0,1), shared by 3 faces
     for mode in WALK_MODES:
-        res = walk_on_triangles(nm, nm.vertices, face, uv, torch.tensor([[0.6, 0.6]] * 3, dtype=torch.float64),
-                                mode=mode)
+        res = walk_on_triangles(
+            nm, nm.vertices, face, uv, torch.tensor([[0.6, 0.6]] * 3, dtype=torch.float64), mode=mode
+        )
         assert torch.equal(res.face, face)
         w = torch.cat([res.uv, 1 - res.uv.sum(1, keepdim=True)], 1)
-        on_01 = torch.stack([w[i, [(j + 2) % 3 for j in range(3) if
-                                   {int(nm.faces[face[i], j]), int(nm.faces[face[i], (j + 1) % 3])} == {0, 1}][0]]
-                             for i in range(3)])
+        on_01 = torch.stack(
+            [
+                w[
+                    i,
+                    next(
+                        (j + 2) % 3
+                        for j in range(3)
+                        if {int(nm.faces[face[i], j]), int(nm.faces[face[i], (j + 1) % 3])} == {0, 1}
+                    ),
+                ]
+                for i in range(3)
+            ]
+        )
         assert torch.allclose(on_01, torch.zeros(3, dtype=torch.float64), atol=1e-12)
 
 

@@ -1,5 +1,6 @@
 """The package as a stranger gets it: a wheel built with the standard front end, installed (not editable)
 into a fresh virtual environment outside the repository, runs the tiny demo from an unrelated folder."""
+
 from __future__ import annotations
 
 import json
@@ -41,9 +42,15 @@ def test_wheel_carries_assets_viewer_and_licences(wheel):
     assert f"meshsplat-{meshsplat.__version__}-py3-none-any.whl" == wheel.name
     for rel in BUNDLED.values():
         assert f"meshsplat/assets/{rel}" in names, rel
-    for rel in ("assets/README.md", "assets/licenses/CC-BY-4.0.txt", "assets/licenses/CC0-1.0.txt",
-                "assets/licenses/ICT-FaceKit-MIT.txt", "viewer/static/index.html", "viewer/static/viewer.js",
-                "py.typed"):
+    for rel in (
+        "assets/README.md",
+        "assets/licenses/CC-BY-4.0.txt",
+        "assets/licenses/CC0-1.0.txt",
+        "assets/licenses/ICT-FaceKit-MIT.txt",
+        "viewer/static/index.html",
+        "viewer/static/viewer.js",
+        "py.typed",
+    ):
         assert f"meshsplat/{rel}" in names, rel
     info = f"meshsplat-{meshsplat.__version__}.dist-info"
     assert {f"{info}/licenses/LICENSE", f"{info}/licenses/NOTICE"} <= names
@@ -59,8 +66,14 @@ def test_wheel_installs_into_a_fresh_env_and_runs_the_tiny_demo(wheel, tmp_path)
     _run([str(py), "-m", "pip", "install", "-q", torch_pin, str(wheel)], cwd=tmp_path)
     elsewhere = tmp_path / "somewhere" / "else"
     elsewhere.mkdir(parents=True)
-    where = _run([str(py), "-c", "import meshsplat, meshsplat.paths as p; print(meshsplat.__file__); "
-                  "print(p.asset('gltf/CesiumMan.glb'))"], cwd=elsewhere).stdout.split()
+    where = _run(
+        [
+            str(py),
+            "-c",
+            "import meshsplat, meshsplat.paths as p; print(meshsplat.__file__); print(p.asset('gltf/CesiumMan.glb'))",
+        ],
+        cwd=elsewhere,
+    ).stdout.split()
     assert all(Path(w).is_relative_to(env_dir) for w in where), where  # not the checkout's sources
     _run([str(env_dir / "bin" / "meshsplat"), "demo", "--preset", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
     summary = json.loads((elsewhere / "X" / "summary.json").read_text())
@@ -69,8 +82,10 @@ def test_wheel_installs_into_a_fresh_env_and_runs_the_tiny_demo(wheel, tmp_path)
     _run([str(env_dir / "bin" / "meshsplat"), "view", "X/run", "--out", str(page)], cwd=elsewhere)
     assert (page / "index.html").is_file()
     # the extras resolve in the same environment without replacing its torch, and [smplx] really imports
-    plan = _run([str(py), "-m", "pip", "install", "--dry-run", f"meshsplat[cuda,smplx,video,dev] @ {wheel.as_uri()}"],
-                cwd=tmp_path).stdout
+    plan = _run(
+        [str(py), "-m", "pip", "install", "--dry-run", f"meshsplat[cuda,smplx,video,dev] @ {wheel.as_uri()}"],
+        cwd=tmp_path,
+    ).stdout
     would = next((line for line in plan.splitlines() if line.startswith("Would install")), "")
     for name in ("gsplat-", "smplx-", "imageio_ffmpeg-", "pytest-", "ruff-", "build-"):
         assert name in would.replace("imageio-ffmpeg", "imageio_ffmpeg"), (name, would)

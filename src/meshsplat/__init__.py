@@ -18,6 +18,7 @@ first use, so ``import meshsplat`` stays light (no torch, gsplat, smplx or video
 ``train_avatar`` and ``export_avatar`` keep their ``_avatar``: ``meshsplat.train`` and
 ``meshsplat.export`` are modules, and importing a module rebinds its name on the package.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -47,13 +48,45 @@ _FRONT_DOOR: dict[str, tuple[str, str]] = {
 
 # every public module and subpackage, reachable as ``meshsplat.<name>``
 _SUBMODULES = (
-    "errors", "paths", "io", "metrics", "camera", "drivers", "mesh", "embedding", "render", "gaussians",
-    "data", "run_folder", "train", "synth", "eval", "export", "animate", "demo", "viewer", "pipeline", "cli",
+    "errors",
+    "paths",
+    "io",
+    "metrics",
+    "camera",
+    "drivers",
+    "mesh",
+    "embedding",
+    "render",
+    "gaussians",
+    "data",
+    "run_folder",
+    "train",
+    "synth",
+    "eval",
+    "export",
+    "animate",
+    "demo",
+    "viewer",
+    "pipeline",
+    "cli",
 )
 
 __all__ = [
-    "synthesize", "open_capture", "TrainConfig", "train_avatar", "load_run", "load_avatar", "Avatar", "Camera",
-    "orbit_cameras", "render_animation", "evaluate", "export_avatar", "write_viewer", "MeshsplatError", "__version__",
+    "synthesize",
+    "open_capture",
+    "TrainConfig",
+    "train_avatar",
+    "load_run",
+    "load_avatar",
+    "Avatar",
+    "Camera",
+    "orbit_cameras",
+    "render_animation",
+    "evaluate",
+    "export_avatar",
+    "write_viewer",
+    "MeshsplatError",
+    "__version__",
 ]
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors

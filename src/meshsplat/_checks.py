@@ -4,6 +4,7 @@
 the expected shape and what was received. Letters in the spec are bound on
 first use through ``dims`` so that several arguments can share a size.
 """
+
 from __future__ import annotations
 
 import torch
@@ -38,12 +39,12 @@ def check_tensor(
     if want and want[0] == "...":
         want = want[1:]
         ok = len(shape) >= len(want)
-        tail = shape[len(shape) - len(want):] if ok else shape
+        tail = shape[len(shape) - len(want) :] if ok else shape
     else:
         ok = len(shape) == len(want)
         tail = shape
     if ok:
-        for w, s in zip(want, tail):
+        for w, s in zip(want, tail, strict=True):
             if w.isdigit():
                 ok &= int(w) == s
             elif w in dims:

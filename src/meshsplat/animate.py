@@ -13,13 +13,15 @@ the mesh size) with a driver vertex, or a clear error says so. A run synthesized
 mesh was welded, smoothed or decimated.
 Cameras follow the project convention (world->camera ``viewmat`` in OpenCV axes, world +y up).
 """
+
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,8 +42,14 @@ from meshsplat.paths import resolve_input
 from meshsplat.render.background import background_color
 
 __all__ = [
-    "AnimationResult", "render_animation", "motion_animation",
-    "match_vertices", "avatar_gltf_driver", "gltf_animation", "blendshape_animation", "sequence_animation",
+    "AnimationResult",
+    "render_animation",
+    "motion_animation",
+    "match_vertices",
+    "avatar_gltf_driver",
+    "gltf_animation",
+    "blendshape_animation",
+    "sequence_animation",
     "dataset_animation",
 ]
 
@@ -58,9 +66,13 @@ class AnimationResult:
 
 
 # ---------------------------------------------------------------- drivers -> vertex frames
-def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: float = 1e-5,
-                   driver_faces: torch.Tensor | None = None, canonical_faces: torch.Tensor | None = None
-                   ) -> torch.Tensor:
+def match_vertices(
+    driver_rest: torch.Tensor,
+    canonical: torch.Tensor,
+    rel_tol: float = 1e-5,
+    driver_faces: torch.Tensor | None = None,
+    canonical_faces: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Index ``[V]`` of the driver vertex that is each canonical vertex, matched by rest position.
 
     ``driver_rest [Vd,3]``, ``canonical [V,3]``; a match lies within ``rel_tol`` times the canonical
@@ -82,7 +94,8 @@ def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: 
         raise MeshsplatError(
             f"driver mesh has {d.shape[0]} vertices, the avatar's canonical mesh {c.shape[0]}, "
             f"and {bad} canonical vertices match no driver vertex at rest (largest gap {float(dist.max()):.3g}, "
-            f"tolerance {tol:.3g}): this animation does not drive the avatar's mesh")
+            f"tolerance {tol:.3g}): this animation does not drive the avatar's mesh"
+        )
     idx = np.asarray(nearest, np.int64)
     cands = cKDTree(d).query_ball_point(c, r=tol)
     ambiguous = [i for i, cs in enumerate(cands) if len(cs) > 1]
@@ -99,17 +112,20 @@ def match_vertices(driver_rest: torch.Tensor, canonical: torch.Tensor, rel_tol: 
                 c_of[i].append(f)
         sets = [set(cs) for cs in cands]
         for i in ambiguous:
-            def score(j: int) -> int:
+
+            def score(j: int, i: int = i) -> int:
                 hit = 0
                 for f in c_of[i]:
                     p, q = [k for k in f if k != i][:2]
                     for g in d_of[j]:
                         o = [k for k in g if k != j]
-                        if len(o) == 2 and ((o[0] in sets[p] and o[1] in sets[q]) or
-                                            (o[1] in sets[p] and o[0] in sets[q])):
+                        if len(o) == 2 and (
+                            (o[0] in sets[p] and o[1] in sets[q]) or (o[1] in sets[p] and o[0] in sets[q])
+                        ):
                             hit += 1
                             break
                 return hit
+
             idx[i] = max(sorted(cands[i]), key=score)
     return torch.from_numpy(idx)
 
@@ -127,9 +143,9 @@ def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> l
     return frames
 
 
-def avatar_gltf_driver(avatar: Avatar, path: str | Path, clip: str | None = None, fps: float = 25.0,
-                       source_map: SourceMap | None = None
-                       ) -> tuple[GltfDriver, Callable[[torch.Tensor], torch.Tensor] | None]:
+def avatar_gltf_driver(
+    avatar: Avatar, path: str | Path, clip: str | None = None, fps: float = 25.0, source_map: SourceMap | None = None
+) -> tuple[GltfDriver, Callable[[torch.Tensor], torch.Tensor] | None]:
     """``(driver, to_world)``: a ``GltfDriver`` of ``path`` posing the avatar's canonical vertices.
 
     With ``source_map`` (the run's or dataset's :class:`~meshsplat.data.source_map.SourceMap`) the asset
@@ -156,20 +172,32 @@ def avatar_gltf_driver(avatar: Avatar, path: str | Path, clip: str | None = None
         if not np.allclose(source_map.rotation, np.eye(3)):
             to_world = source_map.to_world
     elif drv.num_vertices != v_avatar:
-        hint = ("" if source_map is not None else " (this run and its dataset have no source_map.npz, which records "
-                "how a smoothed/decimated driving mesh was derived: re-run `meshsplat synth` with this version)")
+        hint = (
+            ""
+            if source_map is not None
+            else " (this run and its dataset have no source_map.npz, which records "
+            "how a smoothed/decimated driving mesh was derived: re-run `meshsplat synth` with this version)"
+        )
         try:
-            src = match_vertices(drv.rest_vertices(), canonical, driver_faces=drv.faces,
-                                 canonical_faces=avatar.mesh.faces)
+            src = match_vertices(
+                drv.rest_vertices(), canonical, driver_faces=drv.faces, canonical_faces=avatar.mesh.faces
+            )
         except MeshsplatError as exc:
-            what = ("its mesh is not the asset this avatar was synthesized from" if source_map is not None else "")
+            what = "its mesh is not the asset this avatar was synthesized from" if source_map is not None else ""
             raise MeshsplatError(f"{path}: {exc}{'; ' + what if what else ''}{hint}") from None
         drv = drv.derive(src.numpy(), avatar.mesh.faces.cpu().numpy())
     return drv, to_world
 
 
-def gltf_animation(avatar: Avatar, path: str | Path, clip: str | None = None, fps: float = 25.0,
-                   seconds: float | None = None, start: float = 0.0, source_map: SourceMap | None = None) -> list[torch.Tensor]:
+def gltf_animation(
+    avatar: Avatar,
+    path: str | Path,
+    clip: str | None = None,
+    fps: float = 25.0,
+    seconds: float | None = None,
+    start: float = 0.0,
+    source_map: SourceMap | None = None,
+) -> list[torch.Tensor]:
     """Vertex frames ``[V,3]`` of glTF ``clip`` (default the first) sampled at ``fps`` for ``seconds``
     (default the clip's length) from ``start``; the driver as :func:`avatar_gltf_driver` derives it."""
     drv, to_world = avatar_gltf_driver(avatar, path, clip, fps, source_map)
@@ -178,10 +206,11 @@ def gltf_animation(avatar: Avatar, path: str | Path, clip: str | None = None, fp
     length = drv.duration() if seconds is None else float(seconds)
     if length < 0:
         raise MeshsplatError(f"seconds: expected >= 0, got {seconds}")
-    n = max(1, int(math.floor(length * fps + 1e-6)) + (1 if seconds is None else 0))
+    n = max(1, math.floor(length * fps + 1e-6) + (1 if seconds is None else 0))
     if n > MAX_ANIMATION_FRAMES:
-        raise MeshsplatError(f"{length:g} s at {fps:g} fps is {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} "
-                             "(lower --fps or --seconds)")
+        raise MeshsplatError(
+            f"{length:g} s at {fps:g} fps is {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} (lower --fps or --seconds)"
+        )
     frames = [drv.vertices_at(t0 + start + i / fps) for i in range(n)]
     if to_world is not None:
         frames = [to_world(v) for v in frames]
@@ -214,8 +243,9 @@ def _read_sequence(vertices: Any) -> tuple[Any, str]:
         raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
 
 
-def sequence_animation(avatar: Avatar, vertices: ArrayLike | str | Path, source_map: SourceMap | None = None,
-                       max_mismatch: float = 0.05) -> list[torch.Tensor]:
+def sequence_animation(
+    avatar: Avatar, vertices: ArrayLike | str | Path, source_map: SourceMap | None = None, max_mismatch: float = 0.05
+) -> list[torch.Tensor]:
     """Frames of a vertex sequence ``[T,V,3]``: an array/tensor, a ``.npy``, a mesh-sequence ``.npz``
     (``vertices`` key) or a folder of OBJ/PLY frames.
 
@@ -231,8 +261,9 @@ def sequence_animation(avatar: Avatar, vertices: ArrayLike | str | Path, source_
     vs = source_map.num_source_vertices if source_map is not None else None
     if len(shape) != 3 or shape[2] != 3 or shape[0] < 1 or shape[1] not in (v, vs):
         also = f" or [T,{vs},3] (the source asset's vertices, in its order)" if vs is not None and vs != v else ""
-        raise MeshsplatError(f"{what}: expected shape [T,{v},3] (the avatar's {v} canonical vertices){also}, "
-                             f"got {list(shape)}")
+        raise MeshsplatError(
+            f"{what}: expected shape [T,{v},3] (the avatar's {v} canonical vertices){also}, got {list(shape)}"
+        )
     if isinstance(seq, np.ndarray) and seq.dtype.kind not in "fiu":
         raise MeshsplatError(f"{what}: expected numbers, got dtype {seq.dtype}")
     if shape[0] > MAX_ANIMATION_FRAMES:
@@ -255,13 +286,17 @@ def sequence_animation(avatar: Avatar, vertices: ArrayLike | str | Path, source_
     worst = {k: (max(b for b, _ in r), max(abs(math.log(max(m, 1e-30))) for _, m in r)) for k, r in scores.items()}
     fits = [k for k, (bad, logscale) in worst.items() if bad <= max_mismatch and logscale <= math.log(1.5)]
     if not fits:
-        why = "; ".join(f"in the {'canonical' if k == 'canonical' else 'source asset'} order "
-                        f"{100 * worst[k][0]:.0f}% of edges change length beyond 3x and edges are "
-                        f"{math.exp(worst[k][1]) if worst[k][1] else 1:.3g}x their rest length (median)"
-                        for k in scores)
-        raise MeshsplatError(f"{what}: does not match the avatar's canonical mesh at rest ({why}): it is not "
-                             "an animation of this mesh, its vertices are in another order, or it is in other "
-                             "units (scale it to the dataset's)")
+        why = "; ".join(
+            f"in the {'canonical' if k == 'canonical' else 'source asset'} order "
+            f"{100 * worst[k][0]:.0f}% of edges change length beyond 3x and edges are "
+            f"{math.exp(worst[k][1]) if worst[k][1] else 1:.3g}x their rest length (median)"
+            for k in scores
+        )
+        raise MeshsplatError(
+            f"{what}: does not match the avatar's canonical mesh at rest ({why}): it is not "
+            "an animation of this mesh, its vertices are in another order, or it is in other "
+            "units (scale it to the dataset's)"
+        )
     order = min(fits, key=lambda k: worst[k][0])
     if order == "canonical":
         frames = [frame(i) for i in range(shape[0])]
@@ -274,9 +309,14 @@ def sequence_animation(avatar: Avatar, vertices: ArrayLike | str | Path, source_
 _TOPOLOGY_KINDS = {6890: "smpl", 10475: "smplx", 5023: "flame"}  # vertex counts of the released models
 
 
-def motion_animation(avatar: Avatar, dataset: AvatarDataset, motion: str | Path, model_dir: str | Path | None = None,
-                     max_frames: int | None = None,
-                     align: str = "pose") -> list[torch.Tensor]:
+def motion_animation(
+    avatar: Avatar,
+    dataset: AvatarDataset,
+    motion: str | Path,
+    model_dir: str | Path | None = None,
+    max_frames: int | None = None,
+    align: str = "pose",
+) -> list[torch.Tensor]:
     """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
     ``motion``: an SMPL ``.npz`` (``poses [S,72]``, ``trans [S,3]``), an SMPL-X/AMASS ``.npz``, an IMavatar
@@ -293,23 +333,34 @@ def motion_animation(avatar: Avatar, dataset: AvatarDataset, motion: str | Path,
         # per-frame meshes only (INSTA): a standard topology is posed with the capture's rest mesh as offsets
         kind = _TOPOLOGY_KINDS.get(avatar.mesh.num_vertices)
         if kind is None:
-            raise MeshsplatError(f"--motion needs an avatar of a SMPL/SMPL-X/FLAME capture, but {dataset.root} "
-                                 f"({dataset.format_name}) has no model parameters and its {avatar.mesh.num_vertices}-vertex "
-                                 f"mesh is no standard topology; use --gltf or --vertices")
+            raise MeshsplatError(
+                f"--motion needs an avatar of a SMPL/SMPL-X/FLAME capture, but {dataset.root} "
+                f"({dataset.format_name}) has no model parameters and its {avatar.mesh.num_vertices}-vertex "
+                f"mesh is no standard topology; use --gltf or --vertices"
+            )
         info = {"type": kind}
-    model = BodyModel(info["type"], model_dir, gender=info.get("gender", "neutral"),
-                      flame_version=str(info.get("flame_version", "2020")), scale=float(info.get("scale", 1.0)))
+    model = BodyModel(
+        info["type"],
+        model_dir,
+        gender=info.get("gender", "neutral"),
+        flame_version=str(info.get("flame_version", "2020")),
+        scale=float(info.get("scale", 1.0)),
+    )
     if model.num_vertices != avatar.mesh.num_vertices:
-        raise MeshsplatError(f"the {info['type']} model in {model.path} has {model.num_vertices} vertices but the "
-                             f"avatar's mesh {avatar.mesh.num_vertices}: not the model it was trained with")
+        raise MeshsplatError(
+            f"the {info['type']} model in {model.path} has {model.num_vertices} vertices but the "
+            f"avatar's mesh {avatar.mesh.num_vertices}: not the model it was trained with"
+        )
     if subject is None:
         with torch.no_grad():
             template = model.rest_vertices({}).cpu() / model.scale
         subject = {"static_offset": (dataset.canonical_vertices / model.scale - template).numpy()}
     params = load_motion(motion, model)
     if max_frames is not None:
-        params = {k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
-                  for k, v in params.items()}
+        params = {
+            k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
+            for k, v in params.items()
+        }
     verts = ParametricDriver(model, reenact(params, subject, align=align)).all_vertices()
     return _check_frames(list(verts), avatar.mesh.num_vertices, f"motion {motion}")
 
@@ -354,23 +405,33 @@ def _read_weights(weights, names: list[str]) -> np.ndarray:
     if w.ndim == 1:
         w = w[None]
     if w.ndim != 2 or w.shape[1] != len(names) or w.shape[0] < 1:
-        raise MeshsplatError(f"weights: expected shape [T,{len(names)}] (one column per blend shape), "
-                             f"got {list(w.shape)}")
+        raise MeshsplatError(
+            f"weights: expected shape [T,{len(names)}] (one column per blend shape), got {list(w.shape)}"
+        )
     if not np.isfinite(w).all():
         raise MeshsplatError("weights: contain NaN/Inf values")
     return w
 
 
-def blendshape_animation(avatar: Avatar, model: BlendshapeDriver | str | Path | None, weights: ArrayLike | str | Path,
-                         rotations: ArrayLike | None = None, translations: ArrayLike | None = None) -> list[torch.Tensor]:
+def blendshape_animation(
+    avatar: Avatar,
+    model: BlendshapeDriver | str | Path | None,
+    weights: ArrayLike | str | Path,
+    rotations: ArrayLike | None = None,
+    translations: ArrayLike | None = None,
+) -> list[torch.Tensor]:
     """Frames of a blend-shape model (``.npz`` path or bundled name, None for the bundled ICT head, or a
     ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
     drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
     w = _read_weights(weights, drv.names)
     v_avatar = avatar.mesh.num_vertices
     if drv.neutral.shape[0] != v_avatar:
-        src = match_vertices(drv.neutral, avatar.mesh.vertices.detach().cpu().float(), driver_faces=drv.faces,
-                             canonical_faces=avatar.mesh.faces)
+        src = match_vertices(
+            drv.neutral,
+            avatar.mesh.vertices.detach().cpu().float(),
+            driver_faces=drv.faces,
+            canonical_faces=avatar.mesh.faces,
+        )
         drv = BlendshapeDriver(drv.neutral[src], avatar.mesh.faces.cpu(), drv.deltas[:, src], names=drv.names)
     drv.set_sequence(w, rotations, translations)
     return _check_frames([drv.vertices(i) for i in range(drv.num_frames)], v_avatar, "blend-shape animation")
@@ -382,17 +443,28 @@ def dataset_animation(avatar: Avatar, dataset: AvatarDataset, split: str) -> tup
     if not ids:
         raise MeshsplatError(f"split {split!r} of {dataset.root} is empty")
     if dataset.num_vertices != avatar.mesh.num_vertices:
-        raise MeshsplatError(f"dataset meshes have {dataset.num_vertices} vertices, the avatar's canonical mesh "
-                             f"{avatar.mesh.num_vertices}")
+        raise MeshsplatError(
+            f"dataset meshes have {dataset.num_vertices} vertices, the avatar's canonical mesh "
+            f"{avatar.mesh.num_vertices}"
+        )
     return [dataset.vertices(i) for i in ids], [dataset.frame_camera(i) for i in ids]
 
 
 # ---------------------------------------------------------------- rendering
 @torch.no_grad()
-def render_animation(avatar: Avatar, vertices: Iterable[torch.Tensor] | torch.Tensor,
-                     cameras: Camera | Sequence[Camera] | Callable[[int], Camera], out_dir: str | Path, fps: float = 25.0,
-                     background: str | Sequence[float] | torch.Tensor = (1.0, 1.0, 1.0), name: str = "animation", write_pngs: bool = True,
-                     write_mp4: bool = True, backend: str = "auto", progress: bool = False) -> AnimationResult:
+def render_animation(
+    avatar: Avatar,
+    vertices: Iterable[torch.Tensor] | torch.Tensor,
+    cameras: Camera | Sequence[Camera] | Callable[[int], Camera],
+    out_dir: str | Path,
+    fps: float = 25.0,
+    background: str | Sequence[float] | torch.Tensor = (1.0, 1.0, 1.0),
+    name: str = "animation",
+    write_pngs: bool = True,
+    write_mp4: bool = True,
+    backend: str = "auto",
+    progress: bool = False,
+) -> AnimationResult:
     """Render ``avatar`` at every frame of ``vertices`` (each ``[V,3]``) to ``out_dir``.
 
     ``cameras``: one :class:`Camera` for all frames, one per frame, or ``frame -> Camera``.
@@ -414,6 +486,7 @@ def render_animation(avatar: Avatar, vertices: Iterable[torch.Tensor] | torch.Te
             if i >= len(cam_list):
                 raise MeshsplatError(f"cameras: {len(cam_list)} given, but the animation has more frames")
             return cam_list[i]
+
     bg = background_color(background)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

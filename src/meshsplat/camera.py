@@ -10,11 +10,13 @@ conventions; convert them here, once:
   negative) -> :func:`K_from_normalized`.
 - Rodrigues vector + translation (PeopleSnapshot ``camera.pkl``) -> :func:`viewmat_from_rodrigues`.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,9 +29,20 @@ if TYPE_CHECKING:  # data sits above camera: annotation only
     from meshsplat.data.dataset import AvatarDataset
 
 __all__ = [
-    "Camera", "look_at", "intrinsics", "orbit_position", "yaw_matrix", "orbit_cameras", "dataset_camera",
-    "viewmat_from_opengl_c2w", "opengl_c2w_from_viewmat", "K_from_normalized", "K_from_focal",
-    "rodrigues", "viewmat_from_rodrigues", "camera_center",
+    "Camera",
+    "look_at",
+    "intrinsics",
+    "orbit_position",
+    "yaw_matrix",
+    "orbit_cameras",
+    "dataset_camera",
+    "viewmat_from_opengl_c2w",
+    "opengl_c2w_from_viewmat",
+    "K_from_normalized",
+    "K_from_focal",
+    "rodrigues",
+    "viewmat_from_rodrigues",
+    "camera_center",
 ]
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
@@ -58,15 +71,20 @@ class Camera:
                 raise MeshsplatError(f"camera {name}: expected a positive integer, got {value!r}")
             setattr(self, name, int(value))
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Camera":
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Camera:
         """The same camera with its tensors on ``device`` / in ``dtype`` (None keeps each)."""
-        return Camera(self.viewmat.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype),
-                      self.width, self.height)
+        return Camera(
+            self.viewmat.to(device=device, dtype=dtype), self.K.to(device=device, dtype=dtype), self.width, self.height
+        )
 
     @classmethod
-    def from_numpy(cls, viewmat: ArrayLike, K: ArrayLike, width: int, height: int) -> "Camera":
-        return cls(torch.as_tensor(np.asarray(viewmat), dtype=torch.float32),
-                   torch.as_tensor(np.asarray(K), dtype=torch.float32), int(width), int(height))
+    def from_numpy(cls, viewmat: ArrayLike, K: ArrayLike, width: int, height: int) -> Camera:
+        return cls(
+            torch.as_tensor(np.asarray(viewmat), dtype=torch.float32),
+            torch.as_tensor(np.asarray(K), dtype=torch.float32),
+            int(width),
+            int(height),
+        )
 
     @property
     def center(self) -> torch.Tensor:
@@ -74,7 +92,7 @@ class Camera:
         R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
         return -R.T @ t
 
-    def resized(self, width: int, height: int) -> "Camera":
+    def resized(self, width: int, height: int) -> Camera:
         """Same view at another resolution (intrinsics scaled per axis)."""
         K = self.K.clone()
         K[0] *= width / self.width
@@ -110,8 +128,9 @@ def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
 def orbit_position(center: ArrayLike, distance: float, azimuth: float, elevation: float) -> np.ndarray:
     """Point at ``distance`` from ``center``; azimuth 0 is +z (the glTF front), angles in radians."""
     c = np.asarray(center, np.float64)
-    return c + distance * np.array([math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
-                                    math.cos(elevation) * math.cos(azimuth)])
+    return c + distance * np.array(
+        [math.cos(elevation) * math.sin(azimuth), math.sin(elevation), math.cos(elevation) * math.cos(azimuth)]
+    )
 
 
 def yaw_matrix(angle: float) -> np.ndarray:
@@ -120,10 +139,18 @@ def yaw_matrix(angle: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, height: int,
-                  num_frames: int | None = None, orbit_deg: float = 0.0, azimuth_deg: float = 0.0,
-                  elevation_deg: float = 10.0, distance: float | None = None, fov_deg: float = 30.0,
-                  margin: float = 1.05) -> list[Camera]:
+def orbit_cameras(
+    vertices: Sequence[torch.Tensor] | torch.Tensor,
+    width: int,
+    height: int,
+    num_frames: int | None = None,
+    orbit_deg: float = 0.0,
+    azimuth_deg: float = 0.0,
+    elevation_deg: float = 10.0,
+    distance: float | None = None,
+    fov_deg: float = 30.0,
+    margin: float = 1.05,
+) -> list[Camera]:
     """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), +y up.
 
     The camera turns ``orbit_deg`` in total about the vertical axis through the box centre over
@@ -159,7 +186,7 @@ def orbit_cameras(vertices: Sequence[torch.Tensor] | torch.Tensor, width: int, h
     return cams
 
 
-def dataset_camera(dataset: "AvatarDataset", camera_id: str, size: tuple[int, int] | None = None) -> Camera:
+def dataset_camera(dataset: AvatarDataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
     """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
     cam = dataset.camera(camera_id)
     return cam.resized(*size) if size is not None and tuple(size) != (cam.width, cam.height) else cam
@@ -199,7 +226,9 @@ def K_from_normalized(intr: ArrayLike, width: int, height: int) -> np.ndarray:
     """``K`` from ``[fx/W, fy/H, cx/W, cy/H]`` (IMavatar/DECA; signs are dropped: DECA stores fx < 0)."""
     a = np.abs(np.asarray(intr, np.float64).reshape(-1))
     if a.shape != (4,) or not np.isfinite(a).all():
-        raise MeshsplatError(f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {list(np.shape(intr))}")
+        raise MeshsplatError(
+            f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {list(np.shape(intr))}"
+        )
     return K_from_focal(a[0] * width, a[1] * height, a[2] * width, a[3] * height)
 
 

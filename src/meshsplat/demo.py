@@ -15,6 +15,7 @@ Everything lands under one folder::
 
 Asset: CesiumMan (CC-BY 4.0, (c) 2017 Cesium), bundled (``meshsplat/assets/gltf``).
 """
+
 from __future__ import annotations
 
 import json
@@ -58,22 +59,53 @@ class DemoPreset:
 # iterations to recover).
 PRESETS: dict[str, DemoPreset] = {
     "default": DemoPreset(
-        frames=100, resolution=256, test_views=2, iterations=1500, n_init=10_000, animation_frames=30,
-        overrides=("strategy.refine_start_iter=300", "strategy.refine_stop_iter=1200", "strategy.refine_every=100",
-                   "strategy.reset_every=100000", "strategy.max_gaussians=40000", "walk.every=100",
-                   "preview_every=250", "checkpoint_every=250", "log_every=10"),
+        frames=100,
+        resolution=256,
+        test_views=2,
+        iterations=1500,
+        n_init=10_000,
+        animation_frames=30,
+        overrides=(
+            "strategy.refine_start_iter=300",
+            "strategy.refine_stop_iter=1200",
+            "strategy.refine_every=100",
+            "strategy.reset_every=100000",
+            "strategy.max_gaussians=40000",
+            "walk.every=100",
+            "preview_every=250",
+            "checkpoint_every=250",
+            "log_every=10",
+        ),
     ),
     "tiny": DemoPreset(
-        frames=12, resolution=64, test_views=1, iterations=60, n_init=1500, animation_frames=4,
-        overrides=("strategy.refine_start_iter=20", "strategy.refine_stop_iter=50", "strategy.refine_every=20",
-                   "strategy.reset_every=100000", "walk.every=20", "preview_every=30",
-                   "checkpoint_every=30", "log_every=5"),
+        frames=12,
+        resolution=64,
+        test_views=1,
+        iterations=60,
+        n_init=1500,
+        animation_frames=4,
+        overrides=(
+            "strategy.refine_start_iter=20",
+            "strategy.refine_stop_iter=50",
+            "strategy.refine_every=20",
+            "strategy.reset_every=100000",
+            "walk.every=20",
+            "preview_every=30",
+            "checkpoint_every=30",
+            "log_every=5",
+        ),
     ),
 }
 
 
-def demo_train_config(data: Path, out: Path, sizes: DemoPreset, extra: list[str] | None = None,
-                      progress: bool = True, preset: str = DEFAULT_PRESET) -> TrainConfig:
+def demo_train_config(
+    data: Path,
+    out: Path,
+    sizes: DemoPreset,
+    extra: list[str] | None = None,
+    progress: bool = True,
+    preset: str = DEFAULT_PRESET,
+) -> TrainConfig:
     """The TrainConfig the demo trains with: the model of training preset ``preset`` (``quality``,
     or ``paper``: the published method), the schedule of ``sizes``, then ``extra`` (bench variants)."""
     cfg = preset_config(preset)
@@ -104,15 +136,24 @@ def continuous_frames(ds: AvatarDataset, n: int, split: str = "test_frames") -> 
 def _generate(data_dir: Path, preset: DemoPreset, progress: bool) -> Path:
     if (data_dir / "manifest.json").exists():
         return data_dir  # reuse a dataset from an earlier (interrupted) demo run
-    generate(asset("gltf/CesiumMan.glb"), data_dir, rig="monocular-turn", frames=preset.frames,
-             resolution=preset.resolution, test_views=preset.test_views, driver_smooth=5,
-             progress=progress, overwrite=True)
+    generate(
+        asset("gltf/CesiumMan.glb"),
+        data_dir,
+        rig="monocular-turn",
+        frames=preset.frames,
+        resolution=preset.resolution,
+        test_views=preset.test_views,
+        driver_smooth=5,
+        progress=progress,
+        overwrite=True,
+    )
     contact_sheet(open_dataset(data_dir), data_dir / "contact_sheet.png")
     return data_dir
 
 
-def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progress: bool = True,
-             iterations: int | None = None) -> dict[str, Any]:
+def run_demo(
+    out_dir: str | Path = "runs/demo", preset: str = "default", progress: bool = True, iterations: int | None = None
+) -> dict[str, Any]:
     """Run the whole pipeline into ``out_dir``; returns (and writes) the summary. Resumes training
     from the last checkpoint if an earlier demo in the same folder was interrupted."""
     if preset not in PRESETS:
@@ -148,8 +189,7 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
     avatar = load_avatar(run.root)
     ds = open_dataset(data)
     verts = [ds.vertices(i) for i in continuous_frames(ds, p.animation_frames)]
-    cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts), orbit_deg=360.0,
-                         elevation_deg=15.0)
+    cams = orbit_cameras(verts, p.resolution, p.resolution, num_frames=len(verts), orbit_deg=360.0, elevation_deg=15.0)
     anim = render_animation(avatar, verts, cams, out / "animation", fps=12.0, name="avatar_orbit")
     timings["render_s"] = time.perf_counter() - t
 
@@ -162,13 +202,18 @@ def run_demo(out_dir: str | Path = "runs/demo", preset: str = "default", progres
         "asset": "CesiumMan (CC-BY 4.0, (c) 2017 Cesium)",
         "iterations": trainer.iteration,
         "gaussians": avatar.num_gaussians,
-        "metrics": {name: {k: s.get(k) for k in ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")}
-                    for name, s in metrics.get("splits", {}).items()},
+        "metrics": {
+            name: {k: s.get(k) for k in ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")}
+            for name, s in metrics.get("splits", {}).items()
+        },
         "timings_s": {k: round(v, 1) for k, v in timings.items()},
         "outputs": {
-            "dataset": str(data), "contact_sheet": str(data / "contact_sheet.png"), "run": str(run.root),
+            "dataset": str(data),
+            "contact_sheet": str(data / "contact_sheet.png"),
+            "run": str(run.root),
             "report": str(run.eval_dir / "report.html"),
-            "animation": str(anim.mp4 or (out / "animation" / "frames")), "export": str(exp.folder),
+            "animation": str(anim.mp4 or (out / "animation" / "frames")),
+            "export": str(exp.folder),
         },
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

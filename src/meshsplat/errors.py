@@ -1,4 +1,5 @@
 """User-facing error type: the CLI prints its message without a traceback."""
+
 from __future__ import annotations
 
 import errno

@@ -6,11 +6,13 @@ The embedding JSON stores the effective barycentric coordinate the renderer uses
 projected onto the triangle for ``clamp_to_face`` avatars), so the re-loaded avatar has ``duv = 0``
 and ``clamp_to_face = False`` and composes bit-identical Gaussians in every pose.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -24,8 +26,16 @@ from meshsplat.io import read_embedding_json, read_obj, write_embedding_json, wr
 from meshsplat.io.splat_formats import write_gltf_splats, write_splat, write_spz
 from meshsplat.mesh import TriMesh
 
-__all__ = ["ExportResult", "export_avatar", "load_exported_avatar", "canonical_gaussians",
-           "PLY_NAME", "EMBEDDING_NAME", "MESH_NAME", "SPLAT_FORMATS"]
+__all__ = [
+    "ExportResult",
+    "export_avatar",
+    "load_exported_avatar",
+    "canonical_gaussians",
+    "PLY_NAME",
+    "EMBEDDING_NAME",
+    "MESH_NAME",
+    "SPLAT_FORMATS",
+]
 
 PLY_NAME = "avatar.ply"
 EMBEDDING_NAME = "embedding.json"
@@ -98,15 +108,20 @@ def canonical_gaussians(avatar: Avatar) -> tuple[ComposedGaussians, torch.Tensor
 
 _FORMAT_NOTES = {
     "splat": "antimatter15 .splat: 32 bytes per Gaussian (float32 xyz and linear scale, uint8 RGBA and\n"
-             "    quaternion wxyz), DC colour only, sorted by size x opacity.",
+    "    quaternion wxyz), DC colour only, sorted by size x opacity.",
     "spz": "Niantic SPZ version 3 (gzip): quantized positions (24-bit), colours, scales, rotations and SH.",
     "gltf": "glTF 2.0 binary with KHR_gaussian_splatting (release candidate): a POINTS primitive with\n"
-            "    linear scale, linear opacity, xyzw rotation, SH per degree, and a COLOR_0 fallback.",
+    "    linear scale, linear opacity, xyzw rotation, SH per degree, and a COLOR_0 fallback.",
 }
 
 
-def export_avatar(avatar: Avatar, out_dir: str | Path, source: str = "", iteration: int | None = None,
-                  formats: Sequence[str] = ("ply",)) -> ExportResult:
+def export_avatar(
+    avatar: Avatar,
+    out_dir: str | Path,
+    source: str = "",
+    iteration: int | None = None,
+    formats: Sequence[str] = ("ply",),
+) -> ExportResult:
     """Write the canonical-pose splats in ``formats`` (any of ``SPLAT_FORMATS``: ply, splat, spz, gltf),
     ``embedding.json``, ``canonical_mesh.obj`` and ``README.txt`` to ``out_dir``."""
     if not isinstance(avatar, Avatar):
@@ -121,14 +136,28 @@ def export_avatar(avatar: Avatar, out_dir: str | Path, source: str = "", iterati
     g, normals = canonical_gaussians(avatar)
     ply_sh0 = p["sh0"]
     if avatar.shading is not None:  # the static PLY gets the canonical pose's shading baked into its DC colour
-
         ply_sh0 = rgb_to_sh0(avatar.base_rgb())
     splats: dict[str, Path] = {}
     if "ply" in formats:
-        splats["ply"] = write_gaussian_ply(out / PLY_NAME, g.means, g.quats, g.scales.log(), p["opacity_logit"],
-                                           ply_sh0, p.get("shN"), sh_degree_pad=3, normals=normals)
-    arrays: dict[str, Any] = {"means": g.means, "quats": g.quats, "log_scales": g.scales.log(), "opacity_logits": p["opacity_logit"],
-              "sh0": ply_sh0.reshape(-1, 3), "shN": p.get("shN")}
+        splats["ply"] = write_gaussian_ply(
+            out / PLY_NAME,
+            g.means,
+            g.quats,
+            g.scales.log(),
+            p["opacity_logit"],
+            ply_sh0,
+            p.get("shN"),
+            sh_degree_pad=3,
+            normals=normals,
+        )
+    arrays: dict[str, Any] = {
+        "means": g.means,
+        "quats": g.quats,
+        "log_scales": g.scales.log(),
+        "opacity_logits": p["opacity_logit"],
+        "sh0": ply_sh0.reshape(-1, 3),
+        "shN": p.get("shN"),
+    }
     arrays = {k: (None if v is None else v.detach().cpu().double().numpy()) for k, v in arrays.items()}
     writers = {"splat": write_splat, "spz": write_spz, "gltf": write_gltf_splats}
     for fmt in formats:
@@ -136,37 +165,72 @@ def export_avatar(avatar: Avatar, out_dir: str | Path, source: str = "", iterati
             splats[fmt] = writers[fmt](out / SPLAT_FORMATS[fmt], arrays)
     with torch.no_grad():
         uv = effective_uv(avatar.params, avatar.clamp_to_face).detach()
-    emb_params = {"face": p["face"], "uv": uv, "d": p["d"], "rotation": p["rotation"],
-                  "log_scale": p["log_scale"], "opacity_logit": p["opacity_logit"], "sh0": p["sh0"]}
+    emb_params = {
+        "face": p["face"],
+        "uv": uv,
+        "d": p["d"],
+        "rotation": p["rotation"],
+        "log_scale": p["log_scale"],
+        "opacity_logit": p["opacity_logit"],
+        "sh0": p["sh0"],
+    }
     if "shN" in p:
         emb_params["shN"] = p["shN"]
-    meta = {"scale_mode": avatar.scale_mode, "uv_includes_duv": True,
-            "uv_clamped_to_face": bool(avatar.clamp_to_face), "num_vertices": avatar.mesh.num_vertices,
-            "num_faces": avatar.mesh.num_faces, "mesh": MESH_NAME, "source": str(source),
-            "iteration": iteration, "color": "rgb = 0.5 + 0.28209479177387814 * sh0 (+ SH bands)",
-            "opacity": "sigmoid(opacity_logit)", "scale": "exp(log_scale) * pose scale factor",
-            "quaternion": "wxyz", "sh_frame": avatar.sh_frame, "antialiased": avatar.antialiased}
+    meta = {
+        "scale_mode": avatar.scale_mode,
+        "uv_includes_duv": True,
+        "uv_clamped_to_face": bool(avatar.clamp_to_face),
+        "num_vertices": avatar.mesh.num_vertices,
+        "num_faces": avatar.mesh.num_faces,
+        "mesh": MESH_NAME,
+        "source": str(source),
+        "iteration": iteration,
+        "color": "rgb = 0.5 + 0.28209479177387814 * sh0 (+ SH bands)",
+        "opacity": "sigmoid(opacity_logit)",
+        "scale": "exp(log_scale) * pose scale factor",
+        "quaternion": "wxyz",
+        "sh_frame": avatar.sh_frame,
+        "antialiased": avatar.antialiased,
+    }
     if avatar.shading is not None:
         sd = avatar.shading.state_dict()
-        meta["shading"] = {"coeffs": sd["coeffs"].tolist(), "normal": sd["normal"], "space": sd["space"],
-                           "order": sd["order"], "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)"}
+        meta["shading"] = {
+            "coeffs": sd["coeffs"].tolist(),
+            "normal": sd["normal"],
+            "space": sd["space"],
+            "order": sd["order"],
+            "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)",
+        }
     emb = write_embedding_json(out / EMBEDDING_NAME, emb_params, meta)
     mesh = write_obj(out / MESH_NAME, avatar.mesh.vertices.detach(), avatar.mesh.faces)
     readme = out / "README.txt"
-    others = "".join(f"\n\n{SPLAT_FORMATS[f]}  {_FORMAT_NOTES[f]} Same Gaussians as {PLY_NAME} (same axes)."
-                     for f in formats if f != "ply")
-    readme.write_text(_README.format(
-        source=source or "(in-memory avatar)", n=avatar.num_gaussians, sh=avatar.sh_degree,
-        scale_mode=avatar.scale_mode, clamp=", trained without walking (uv clamped to the face)"
-        if avatar.clamp_to_face else "", ply=PLY_NAME, emb=EMBEDDING_NAME, mesh=MESH_NAME,
-        uv_note=", projected onto the triangle" if avatar.clamp_to_face else "",
-        splat_files="" if "ply" in formats else f"({PLY_NAME} was not written: --format {','.join(formats)})\n",
-        other_formats=others,
-        shading=_SHADING_README.format(emb=EMBEDDING_NAME, ply=PLY_NAME) if avatar.shading is not None else ""))
+    others = "".join(
+        f"\n\n{SPLAT_FORMATS[f]}  {_FORMAT_NOTES[f]} Same Gaussians as {PLY_NAME} (same axes)."
+        for f in formats
+        if f != "ply"
+    )
+    readme.write_text(
+        _README.format(
+            source=source or "(in-memory avatar)",
+            n=avatar.num_gaussians,
+            sh=avatar.sh_degree,
+            scale_mode=avatar.scale_mode,
+            clamp=", trained without walking (uv clamped to the face)" if avatar.clamp_to_face else "",
+            ply=PLY_NAME,
+            emb=EMBEDDING_NAME,
+            mesh=MESH_NAME,
+            uv_note=", projected onto the triangle" if avatar.clamp_to_face else "",
+            splat_files="" if "ply" in formats else f"({PLY_NAME} was not written: --format {','.join(formats)})\n",
+            other_formats=others,
+            shading=_SHADING_README.format(emb=EMBEDDING_NAME, ply=PLY_NAME) if avatar.shading is not None else "",
+        )
+    )
     return ExportResult(out, splats.get("ply"), emb, mesh, readme, splats)
 
 
-def load_exported_avatar(path: str | Path, mesh_path: str | Path | None = None, device: torch.device | str = "cpu") -> Avatar:
+def load_exported_avatar(
+    path: str | Path, mesh_path: str | Path | None = None, device: torch.device | str = "cpu"
+) -> Avatar:
     """Avatar from an export folder (or its ``embedding.json``), mesh from ``canonical_mesh.obj``."""
     path = Path(path)
     emb_path = path / EMBEDDING_NAME if path.is_dir() else path
@@ -177,10 +241,24 @@ def load_exported_avatar(path: str | Path, mesh_path: str | Path | None = None, 
     mesh = TriMesh(obj.vertices.to(device), obj.faces.to(device))
     a = {k: v.to(device) for k, v in arrays.items()}
     shN = a.get("shN")
-    params = make_params(a["face"], a["uv"], d=a["d"], log_scale=a["log_scale"], rotation=a["rotation"],
-                         opacity_logit=a["opacity_logit"], sh0=a["sh0"],
-                         shN=shN if shN is not None and shN.shape[1] > 0 else None)
+    params = make_params(
+        a["face"],
+        a["uv"],
+        d=a["d"],
+        log_scale=a["log_scale"],
+        rotation=a["rotation"],
+        opacity_logit=a["opacity_logit"],
+        sh0=a["sh0"],
+        shN=shN if shN is not None and shN.shape[1] > 0 else None,
+    )
 
     shading = Shading.from_state_dict(meta.get("shading"), device)
-    return Avatar(mesh, params, meta.get("scale_mode", "sqrt_area"), clamp_to_face=False, shading=shading,
-                  sh_frame=meta.get("sh_frame", "world"), antialiased=bool(meta.get("antialiased", False)))
+    return Avatar(
+        mesh,
+        params,
+        meta.get("scale_mode", "sqrt_area"),
+        clamp_to_face=False,
+        shading=shading,
+        sh_frame=meta.get("sh_frame", "world"),
+        antialiased=bool(meta.get("antialiased", False)),
+    )

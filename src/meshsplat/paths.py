@@ -5,6 +5,7 @@ optional), then in the package. ``resolve_input`` lets any file argument name a 
 (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``, ``aist_demo``). Nothing outside the
 package, or the folder the user names, is ever read.
 """
+
 from __future__ import annotations
 
 import os
@@ -39,8 +40,9 @@ def asset(relpath: str) -> Path:
         if (root / relpath).is_file():
             return root / relpath
     where = f"$MESHSPLAT_ASSETS ({extra}) or " if extra else ""
-    raise MeshsplatError(f"asset {relpath!r} not found in {where}{PACKAGE_ASSETS}: the installation is incomplete; "
-                         "reinstall meshsplat")
+    raise MeshsplatError(
+        f"asset {relpath!r} not found in {where}{PACKAGE_ASSETS}: the installation is incomplete; reinstall meshsplat"
+    )
 
 
 def bundled_asset(name: str) -> Path | None:

@@ -7,6 +7,7 @@ A preset is a named model (``meshsplat.train.presets``: ``quality``, the default
 ``overrides`` (the same strings as ``meshsplat train --set``) apply after it. Like ``meshsplat train``,
 the run keeps the dataset's ``source_map.npz`` so the run alone can be animated by its source asset.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -19,9 +20,18 @@ from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_override
 __all__ = ["train_avatar"]
 
 
-def train_avatar(dataset: str | Path | None = None, out: str | Path | None = None, *, preset: str | None = None,
-                 iterations: int | None = None, overrides: Sequence[str] = (), config: TrainConfig | None = None,
-                 device: str | None = None, progress: bool | None = None, resume: bool = False) -> Path:
+def train_avatar(
+    dataset: str | Path | None = None,
+    out: str | Path | None = None,
+    *,
+    preset: str | None = None,
+    iterations: int | None = None,
+    overrides: Sequence[str] = (),
+    config: TrainConfig | None = None,
+    device: str | None = None,
+    progress: bool | None = None,
+    resume: bool = False,
+) -> Path:
     """Train an avatar on the capture ``dataset`` (any layout ``open_capture`` reads) into the run folder
     ``out``; returns the run folder (read it back with ``load_run`` / ``load_avatar``).
 

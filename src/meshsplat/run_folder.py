@@ -15,6 +15,7 @@ Layer: just below ``train`` (it imports io, gaussians and data, never train), so
 through :class:`RunFolder` and everything above reads through :func:`load_run`. Wherever a run is
 asked for, a checkpoint file inside it (``RUN/checkpoints/ckpt_*.pt``) may be given instead.
 """
+
 from __future__ import annotations
 
 import json
@@ -51,7 +52,7 @@ class RunFolder:
         self.root = Path(root)
 
     @classmethod
-    def of(cls, path: str | Path) -> "RunFolder":
+    def of(cls, path: str | Path) -> RunFolder:
         """The run folder ``path`` names: the folder itself, or the run holding the checkpoint file ``path``."""
         path = Path(path)
         if path.is_dir():
@@ -121,8 +122,9 @@ class RunFolder:
                 except MeshsplatError as exc:
                     problems.append(str(exc))
             raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {problems[0]}")
-        raise MeshsplatError(f"no checkpoint in {self.root} (looked for {self.checkpoint_dir}/ckpt_*.pt); "
-                             "is this a training run folder?")
+        raise MeshsplatError(
+            f"no checkpoint in {self.root} (looked for {self.checkpoint_dir}/ckpt_*.pt); is this a training run folder?"
+        )
 
     def load_config(self) -> dict[str, Any] | None:
         """``RUN/config.json`` as a dict, or None when the file is absent."""
@@ -186,12 +188,15 @@ class LoadedRun:
         if not p.exists() and not p.is_absolute() and (self.run_dir / p).exists():
             p = self.run_dir / p
         if not p.exists():
-            raise MeshsplatError(f"the run's dataset {data} (from {self.folder.config_path}) is not there: was it "
-                                 "moved or deleted? Pass --dataset PATH")
+            raise MeshsplatError(
+                f"the run's dataset {data} (from {self.folder.config_path}) is not there: was it "
+                "moved or deleted? Pass --dataset PATH"
+            )
         return p
 
-    def open_dataset(self, dataset: str | Path | None = None, model_dir: str | Path | None = None,
-                     check_masks: bool = True) -> AvatarDataset:
+    def open_dataset(
+        self, dataset: str | Path | None = None, model_dir: str | Path | None = None, check_masks: bool = True
+    ) -> AvatarDataset:
         """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
 
         ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``.

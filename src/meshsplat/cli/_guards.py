@@ -6,6 +6,7 @@ on CPU (bench/badinput.py exercises them): the PyTorch rasterizer needs about 16
 pixel plus up to 1.5 GB for its band of (pixel, Gaussian) pairs; the synth rasterizer about
 128 bytes per supersampled pixel.
 """
+
 from __future__ import annotations
 
 import os
@@ -49,8 +50,9 @@ def check_range(name: str, value, limit: str | None = None) -> None:
     if value is None:
         return
     if value != value or not lo <= value <= hi:  # NaN fails too
-        raise MeshsplatError(f"{name}: expected {lo:g}..{hi:g}{' ' + unit if unit else ''}, got {value:g} "
-                             "(see docs/limits.md)")
+        raise MeshsplatError(
+            f"{name}: expected {lo:g}..{hi:g}{' ' + unit if unit else ''}, got {value:g} (see docs/limits.md)"
+        )
 
 
 def available_memory() -> int | None:
@@ -82,8 +84,7 @@ def check_memory(what: str, needed: float, advice: str) -> None:
     """Refuse a request whose estimated memory does not fit in what is available."""
     avail = available_memory()
     if avail is not None and needed > _MEMORY_HEADROOM * avail:
-        raise MeshsplatError(f"{what} needs about {_gb(needed)} of memory but only {_gb(avail)} is available; "
-                             f"{advice}")
+        raise MeshsplatError(f"{what} needs about {_gb(needed)} of memory but only {_gb(avail)} is available; {advice}")
 
 
 def render_bytes(width: int, height: int, frames: int = 1) -> float:

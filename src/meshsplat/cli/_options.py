@@ -4,6 +4,7 @@
 flags (``--device --backend --background --size --no-progress``, each only where the command takes
 it); ``render_options(args)`` turns them into the values the library takes.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -12,7 +13,15 @@ from dataclasses import dataclass
 from meshsplat.cli._guards import LIMITS
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["add_run_argument", "add_dataset_option", "add_render_options", "render_options", "RenderOptions", "parse_size"]
+__all__ = [
+    "add_run_argument",
+    "add_dataset_option",
+    "add_render_options",
+    "render_options",
+    "RenderOptions",
+    "parse_size",
+]
+
 
 def add_run_argument(parser: argparse.ArgumentParser, dataset: bool = True) -> None:
     """Positional ``run`` (a training run folder or a checkpoint file) and, with ``dataset``, ``--dataset``."""
@@ -25,8 +34,15 @@ def add_dataset_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
 
 
-def add_render_options(parser: argparse.ArgumentParser, *, device: str | None | bool = "auto", backend: bool = True,
-                       background: bool | tuple[str, ...] = True, size: bool = False, progress: bool = True) -> None:
+def add_render_options(
+    parser: argparse.ArgumentParser,
+    *,
+    device: str | bool | None = "auto",
+    backend: bool = True,
+    background: bool | tuple[str, ...] = True,
+    size: bool = False,
+    progress: bool = True,
+) -> None:
     """Add the rendering flags a command takes.
 
     ``device``: the ``--device`` default (``"auto"``; ``None`` leaves the choice to the config), or
@@ -38,12 +54,18 @@ def add_render_options(parser: argparse.ArgumentParser, *, device: str | None | 
     if background is True:
         parser.add_argument("--background", default="white", help="white, black or R,G,B in [0,1] (default white)")
     elif background:
-        parser.add_argument("--background", choices=tuple(background), default=background[0],
-                            help=f"initial background (default {background[0]})")
+        parser.add_argument(
+            "--background",
+            choices=tuple(background),
+            default=background[0],
+            help=f"initial background (default {background[0]})",
+        )
     if device is not False:
         parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1 or auto (default auto)")
     if backend:
-        parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, torch or gsplat (default auto)")
+        parser.add_argument(
+            "--backend", default="auto", help="rasterizer backend: auto, torch or gsplat (default auto)"
+        )
     if progress:
         parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -75,6 +97,10 @@ def parse_size(text: str) -> tuple[int, int]:
 def render_options(args: argparse.Namespace) -> RenderOptions:
     """The rendering flags of ``args`` as library values (``--size`` checked and parsed)."""
     size = getattr(args, "size", None)
-    return RenderOptions(device=getattr(args, "device", None), backend=getattr(args, "backend", "auto"),
-                         background=getattr(args, "background", None), size=parse_size(size) if size else None,
-                         progress=not getattr(args, "no_progress", False))
+    return RenderOptions(
+        device=getattr(args, "device", None),
+        backend=getattr(args, "backend", "auto"),
+        background=getattr(args, "background", None),
+        size=parse_size(size) if size else None,
+        progress=not getattr(args, "no_progress", False),
+    )

@@ -7,6 +7,7 @@ Examples:
 Renders and ground truth share one background colour (ground truth composited through its mask);
 writes metrics.json, samples_<split>.png (ground truth | render | error), curves.png and report.html.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,19 +40,34 @@ def run(args: argparse.Namespace) -> int:
     opts = render_options(args)
     apply_threads(args)
 
-    m = evaluate_run(args.run, dataset=args.dataset, splits=args.splits, out_dir=args.out,
-                     max_frames_per_split=args.max_frames, background=opts.background or "white", device=opts.device,
-                     lpips_net=None if args.no_lpips else "alex", report=not args.no_report,
-                     backend=opts.backend, progress=opts.progress)
-    print(f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "
-          f"background {m['background']}")
+    m = evaluate_run(
+        args.run,
+        dataset=args.dataset,
+        splits=args.splits,
+        out_dir=args.out,
+        max_frames_per_split=args.max_frames,
+        background=opts.background or "white",
+        device=opts.device,
+        lpips_net=None if args.no_lpips else "alex",
+        report=not args.no_report,
+        backend=opts.backend,
+        progress=opts.progress,
+    )
+    print(
+        f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "
+        f"background {m['background']}"
+    )
     fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(f"{'':<23}{'full image':^25}{'subject (in mask)':^25}")
-    print(f"{'split':<16}{'frames':>7}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'ms/frame':>10}")
+    print(
+        f"{'split':<16}{'frames':>7}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'ms/frame':>10}"
+    )
     for name, s in m["splits"].items():
-        print(f"{name:<16}{s['n_frames']:>7}{fmt(s['psnr'], 2):>9}{fmt(s['ssim'], 3):>8}{fmt(s['lpips'], 3):>8}"
-              f"{fmt(s.get('psnr_mask'), 2):>9}{fmt(s.get('ssim_mask'), 3):>8}{fmt(s.get('lpips_mask'), 3):>8}"
-              f"{fmt(s['render_ms'], 1):>10}")
+        print(
+            f"{name:<16}{s['n_frames']:>7}{fmt(s['psnr'], 2):>9}{fmt(s['ssim'], 3):>8}{fmt(s['lpips'], 3):>8}"
+            f"{fmt(s.get('psnr_mask'), 2):>9}{fmt(s.get('ssim_mask'), 3):>8}{fmt(s.get('lpips_mask'), 3):>8}"
+            f"{fmt(s['render_ms'], 1):>10}"
+        )
     if m.get("lpips_note"):
         print(f"note: {m['lpips_note']}")
     print(f"wrote {m['files'].get('report', m['files']['metrics'])}")

@@ -5,6 +5,7 @@ Examples:
   meshsplat export runs/cesium                     # writes runs/cesium/export/
   meshsplat export runs/cesium --out web/avatar --format ply,spz,gltf
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,8 +23,13 @@ __all__ = ["add_arguments", "run"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_argument(parser, dataset=False)
     parser.add_argument("--out", default=None, help="output folder (default RUN/export)")
-    parser.add_argument("--format", action="append", default=None, metavar="FMT",
-                        help="ply (default), splat, spz or gltf; comma-separated or repeated")
+    parser.add_argument(
+        "--format",
+        action="append",
+        default=None,
+        metavar="FMT",
+        help="ply (default), splat, spz or gltf; comma-separated or repeated",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,6 +3,7 @@
 The layout is detected unless --format is given. Images and masks are written as PNG (npy and alpha
 masks are converted), meshes row for row, and the body/head model parameters are kept.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,8 +18,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", metavar="DIR", help="capture folder")
     parser.add_argument("--out", required=True, help="native dataset folder to write")
     parser.add_argument("--format", choices=FORMAT_NAMES, default=None, help="capture layout (default: detect)")
-    parser.add_argument("--model-dir", default=None, help="folder with the smpl/, smplx/, flame/ model files "
-                        "(default $MESHSPLAT_MODEL_DIR)")
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="folder with the smpl/, smplx/, flame/ model files (default $MESHSPLAT_MODEL_DIR)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
 
 
@@ -26,8 +30,10 @@ def run(args: argparse.Namespace) -> int:
     fmt = args.format or detect_format(args.capture)
     print(f"format: {fmt}{'' if args.format else ' (detected)'}")
     ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir)
-    print(f"{len(ds)} frames, {len(ds.camera_ids)} camera(s), splits: "
-          + ", ".join(f"{s} {len(ds.split(s))}" for s in ds.split_names))
+    print(
+        f"{len(ds)} frames, {len(ds.camera_ids)} camera(s), splits: "
+        + ", ".join(f"{s} {len(ds.split(s))}" for s in ds.split_names)
+    )
     out = write_native(ds, args.out, overwrite=args.overwrite)
     driver = ds.driver_info
     print(f"native dataset written to {out}" + (f" (driver: {driver['type']})" if driver else ""))

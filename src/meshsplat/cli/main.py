@@ -4,6 +4,7 @@ Each subcommand module defines ``add_arguments(parser)`` and ``run(args) -> int`
 and a one-line docstring used as its help. User errors (MeshsplatError,
 missing files) print one clear line and exit 2, never a traceback.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,11 @@ def _load(name: str):
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="meshsplat", description="Mesh-embedded Gaussian avatars.",
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="meshsplat",
+        description="Mesh-embedded Gaussian avatars.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
@@ -44,8 +48,12 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         except ModuleNotFoundError:
             continue
         doc = (mod.__doc__ or "").strip().splitlines()
-        p = sub.add_parser(name, help=doc[0] if doc else None, description=(mod.__doc__ or "").strip(),
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p = sub.add_parser(
+            name,
+            help=doc[0] if doc else None,
+            description=(mod.__doc__ or "").strip(),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         mod.add_arguments(p)
     return parser
 

@@ -17,6 +17,7 @@ Examples:
   meshsplat render runs/cesium --gltf CesiumMan.glb --orbit 360 --size 512x512 --out out/orbit
   meshsplat render runs/cesium --dataset-split test_clip --out out/test_clip
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,14 +39,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (frames/ and <name>.mp4)")
     drv = parser.add_mutually_exclusive_group(required=True)
     drv.add_argument("--gltf", help="glTF/GLB file whose mesh is the avatar's driving mesh")
-    drv.add_argument("--vertices", help="vertex sequence: .npy [T,V,3], mesh-sequence .npz or a folder of OBJ/PLY "
-                     "frames (canonical vertex order, or the synthesized asset's own order)")
+    drv.add_argument(
+        "--vertices",
+        help="vertex sequence: .npy [T,V,3], mesh-sequence .npz or a folder of OBJ/PLY "
+        "frames (canonical vertex order, or the synthesized asset's own order)",
+    )
     drv.add_argument("--blendshapes", help="blend-shape model .npz (or 'ict' for the bundled ICT head)")
     drv.add_argument("--dataset-split", help="render the driving meshes of this dataset split")
-    drv.add_argument("--motion", help="SMPL/SMPL-X motion .npz (poses, trans), FLAME flame_params.json or a "
-                     "VHAP flame_param/ folder; the avatar keeps its own shape")
-    parser.add_argument("--model-dir", default=None,
-                        help="--motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
+    drv.add_argument(
+        "--motion",
+        help="SMPL/SMPL-X motion .npz (poses, trans), FLAME flame_params.json or a "
+        "VHAP flame_param/ folder; the avatar keeps its own shape",
+    )
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="--motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)",
+    )
     parser.add_argument("--frames", type=int, default=None, help="--motion: render at most N frames")
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--fps", type=float, default=25.0, help="frame rate (default 25)")
@@ -91,8 +101,9 @@ def run(args: argparse.Namespace) -> int:
 
     frame_cams = None
     if args.gltf:
-        frames = animate.gltf_animation(avatar, args.gltf, args.clip, args.fps, args.seconds, args.start,
-                                        source_map=r.source_map(args.dataset))
+        frames = animate.gltf_animation(
+            avatar, args.gltf, args.clip, args.fps, args.seconds, args.start, source_map=r.source_map(args.dataset)
+        )
     elif args.vertices:
         frames = animate.sequence_animation(avatar, args.vertices, source_map=r.source_map(args.dataset))
     elif args.blendshapes:
@@ -103,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
     elif args.motion:
         if args.frames is not None and args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
-        frames = animate.motion_animation(avatar, dataset(), args.motion, args.model_dir or r.config.get("model_dir") or None,
-                                          max_frames=args.frames)
+        frames = animate.motion_animation(
+            avatar, dataset(), args.motion, args.model_dir or r.config.get("model_dir") or None, max_frames=args.frames
+        )
     else:
         frames, frame_cams = animate.dataset_animation(avatar, dataset(), args.dataset_split)
 
@@ -119,17 +131,37 @@ def run(args: argparse.Namespace) -> int:
         cameras = [c.resized(*size) for c in frame_cams] if size else frame_cams
     else:
         w, h = size or (512, 512)
-        cameras = camera.orbit_cameras(frames, w, h, orbit_deg=args.orbit or 0.0, azimuth_deg=args.azimuth,
-                                        elevation_deg=10.0 if args.elevation is None else args.elevation,
-                                        distance=args.distance, fov_deg=args.fov)
+        cameras = camera.orbit_cameras(
+            frames,
+            w,
+            h,
+            orbit_deg=args.orbit or 0.0,
+            azimuth_deg=args.azimuth,
+            elevation_deg=10.0 if args.elevation is None else args.elevation,
+            distance=args.distance,
+            fov_deg=args.fov,
+        )
     check_range("frames to render", len(frames), "render frames")
     sizes = [(c.width, c.height) for c in (cameras if isinstance(cameras, list) else [cameras])]
     w, h = max(sizes, key=lambda s: s[0] * s[1])
-    check_memory(f"rendering {len(frames)} frames at {w}x{h}", render_bytes(w, h, len(frames)),
-                 "lower --size, or render fewer frames (--seconds, --fps)")
-    res = animate.render_animation(avatar, frames, cameras, Path(args.out), fps=args.fps, background=opts.background or "white",
-                                   name=args.name, write_pngs=not args.no_png, write_mp4=not args.no_mp4,
-                                   backend=opts.backend, progress=opts.progress)
+    check_memory(
+        f"rendering {len(frames)} frames at {w}x{h}",
+        render_bytes(w, h, len(frames)),
+        "lower --size, or render fewer frames (--seconds, --fps)",
+    )
+    res = animate.render_animation(
+        avatar,
+        frames,
+        cameras,
+        Path(args.out),
+        fps=args.fps,
+        background=opts.background or "white",
+        name=args.name,
+        write_pngs=not args.no_png,
+        write_mp4=not args.no_mp4,
+        backend=opts.backend,
+        progress=opts.progress,
+    )
     print(f"rendered {res.num_frames} frames ({res.render_ms_mean:.1f} ms/frame) to {args.out}")
     if res.mp4 is not None:
         print(f"  video: {res.mp4}")

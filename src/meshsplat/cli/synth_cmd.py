@@ -7,6 +7,7 @@ a parametric model: smpl / smplx (dancing the AIST++ clip) or flame (talking, no
 --model-dir or $MESHSPLAT_MODEL_DIR. --format writes the capture in another layout (e.g. peoplesnapshot
 for smpl; imavatar, insta, vhap for flame) from a native dataset rendered first.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,34 +25,61 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("asset", metavar="SOURCE", help="glTF/GLB file, mesh-sequence .npz or OBJ/PLY frame folder, "
-                        "bundled asset name, or smpl/smplx/flame")
+    parser.add_argument(
+        "asset",
+        metavar="SOURCE",
+        help="glTF/GLB file, mesh-sequence .npz or OBJ/PLY frame folder, bundled asset name, or smpl/smplx/flame",
+    )
     parser.add_argument("--out", required=True, help="output capture folder")
     parser.add_argument("--format", choices=FORMAT_NAMES, default="native", help="layout to write (default native)")
-    parser.add_argument("--model-dir", default=None, help="folder with the smpl/, smplx/, flame/ model files "
-                        "(default $MESHSPLAT_MODEL_DIR)")
-    parser.add_argument("--gender", default="neutral", choices=("neutral", "male", "female"),
-                        help="body model gender (smpl/smplx)")
-    parser.add_argument("--native-out", default=None, metavar="DIR",
-                        help="with --format other than native: also keep the native dataset here")
-    parser.add_argument("--masks", choices=("png", "npy"), default=None,
-                        help="mask files for --format peoplesnapshot (default png)")
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="folder with the smpl/, smplx/, flame/ model files (default $MESHSPLAT_MODEL_DIR)",
+    )
+    parser.add_argument(
+        "--gender", default="neutral", choices=("neutral", "male", "female"), help="body model gender (smpl/smplx)"
+    )
+    parser.add_argument(
+        "--native-out",
+        default=None,
+        metavar="DIR",
+        help="with --format other than native: also keep the native dataset here",
+    )
+    parser.add_argument(
+        "--masks", choices=("png", "npy"), default=None, help="mask files for --format peoplesnapshot (default png)"
+    )
     parser.add_argument("--rig", choices=RIGS, default="monocular-turn")
     parser.add_argument("--frames", type=int, default=60, help="training time steps (per camera)")
     parser.add_argument("--resolution", type=int, default=256, help="square image size in pixels")
     parser.add_argument("--clip", default=None, help="training clip (default: the clip with the most motion)")
-    parser.add_argument("--test-clips", nargs="*", default=None,
-                        help="clips for the novel-pose test split (default: up to two other moving clips)")
-    parser.add_argument("--up", choices=("y", "z"), default=None,
-                        help="the asset's up axis (default: the asset's own, glTF y; else y)")
+    parser.add_argument(
+        "--test-clips",
+        nargs="*",
+        default=None,
+        help="clips for the novel-pose test split (default: up to two other moving clips)",
+    )
+    parser.add_argument(
+        "--up", choices=("y", "z"), default=None, help="the asset's up axis (default: the asset's own, glTF y; else y)"
+    )
     parser.add_argument("--train-fraction", type=float, default=0.7, help="leading part of the clip used for training")
     parser.add_argument("--test-frames", type=int, default=None, help="frames per test split (default frames/4)")
     parser.add_argument("--test-views", type=int, default=2, help="held-out cameras")
     parser.add_argument("--views", type=int, default=8, help="cameras of the multiview rig")
-    parser.add_argument("--driver-smooth", type=int, default=0, metavar="ITERS",
-                        help="Taubin smoothing iterations applied to the stored driving mesh")
-    parser.add_argument("--driver-decimate", type=float, default=None, metavar="RATIO",
-                        help="keep about RATIO of the driving mesh's vertices (vertex clustering)")
+    parser.add_argument(
+        "--driver-smooth",
+        type=int,
+        default=0,
+        metavar="ITERS",
+        help="Taubin smoothing iterations applied to the stored driving mesh",
+    )
+    parser.add_argument(
+        "--driver-decimate",
+        type=float,
+        default=None,
+        metavar="RATIO",
+        help="keep about RATIO of the driving mesh's vertices (vertex clustering)",
+    )
     parser.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2 up to 384 px)")
     parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet (native only)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
@@ -70,8 +98,11 @@ def run(args: argparse.Namespace) -> int:
     check_range("--supersample", args.supersample, "synth --supersample")
     ss = args.supersample or (2 if args.resolution <= 384 else 1)
     check_range("--resolution x --supersample", args.resolution * ss, "synth resolution x supersample")
-    check_memory(f"synth at {args.resolution} px with supersample {ss}", synth_bytes(args.resolution, ss),
-                 "lower --resolution or --supersample")
+    check_memory(
+        f"synth at {args.resolution} px with supersample {ss}",
+        synth_bytes(args.resolution, ss),
+        "lower --resolution or --supersample",
+    )
     check_output_dir(args.out)
     if args.contact_sheet:
         check_output_dir(Path(args.contact_sheet).parent, "--contact-sheet")
@@ -82,14 +113,31 @@ def run(args: argparse.Namespace) -> int:
         raise MeshsplatError("--contact-sheet needs --format native (or use --native-out and `meshsplat synth` output)")
     threads = apply_threads(args)
     write_options = {"masks": args.masks} if args.masks else {}
-    out = synth_capture(args.asset, args.out, format=args.format, native_dir=args.native_out,
-                        overwrite=args.overwrite, write_options=write_options,
-                        rig=args.rig, frames=args.frames, resolution=args.resolution,
-                        clip=args.clip, test_clips=args.test_clips, train_fraction=args.train_fraction,
-                        test_frames=args.test_frames, test_views=args.test_views, views=args.views,
-                        driver_smooth=args.driver_smooth, driver_decimate=args.driver_decimate,
-                        supersample=args.supersample, progress=True, model_dir=args.model_dir, gender=args.gender,
-                        up=args.up, threads=threads)
+    out = synth_capture(
+        args.asset,
+        args.out,
+        format=args.format,
+        native_dir=args.native_out,
+        overwrite=args.overwrite,
+        write_options=write_options,
+        rig=args.rig,
+        frames=args.frames,
+        resolution=args.resolution,
+        clip=args.clip,
+        test_clips=args.test_clips,
+        train_fraction=args.train_fraction,
+        test_frames=args.test_frames,
+        test_views=args.test_views,
+        views=args.views,
+        driver_smooth=args.driver_smooth,
+        driver_decimate=args.driver_decimate,
+        supersample=args.supersample,
+        progress=True,
+        model_dir=args.model_dir,
+        gender=args.gender,
+        up=args.up,
+        threads=threads,
+    )
     print(f"{args.format} capture written to {out}")
     if args.contact_sheet:
         print(f"contact sheet: {contact_sheet(out, args.contact_sheet)}")

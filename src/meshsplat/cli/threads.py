@@ -5,6 +5,7 @@ times the CPU time of one thread, so ``auto`` times a short representative workl
 matrix products and an image-sized convolution) at 1 thread and at torch's default count (all
 cores unless ``OMP_NUM_THREADS`` says otherwise) and keeps the faster, saying how it chose.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,8 +18,12 @@ __all__ = ["add_threads_argument", "apply_threads", "choose_threads"]
 
 
 def add_threads_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--threads", default="auto", metavar="N|auto",
-                        help="torch CPU threads (default auto: the faster of 1 and all cores, measured at start)")
+    parser.add_argument(
+        "--threads",
+        default="auto",
+        metavar="N|auto",
+        help="torch CPU threads (default auto: the faster of 1 and all cores, measured at start)",
+    )
 
 
 def _workload_seconds(threads: int, repeats: int = 3) -> float:

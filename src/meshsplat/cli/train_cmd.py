@@ -11,6 +11,7 @@ checkpoints and config changes other than paths, device/backend, logging/checkpo
 --iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
 checkpoint_every_s seconds (default 900).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,24 +32,46 @@ __all__ = ["add_arguments", "run", "build_config"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", help="capture folder: native (docs/dataset-format.md) or PeopleSnapshot, "
-                        "IMavatar, INSTA, VHAP/GaussianAvatars, meshseq (your images + cameras + mesh sequence; "
-                        "docs/formats/); the layout is detected")
-    parser.add_argument("--format", default=None, help="capture layout (default: detect); one of "
-                        "native, meshseq, peoplesnapshot, imavatar, insta, vhap")
-    parser.add_argument("--model-dir", default=None,
-                        help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)")
-    parser.add_argument("--refine-pose", action="store_true",
-                        help="optimise the tracker's per-frame pose/expression parameters of the training frames")
+    parser.add_argument(
+        "dataset",
+        help="capture folder: native (docs/dataset-format.md) or PeopleSnapshot, "
+        "IMavatar, INSTA, VHAP/GaussianAvatars, meshseq (your images + cameras + mesh sequence; "
+        "docs/formats/); the layout is detected",
+    )
+    parser.add_argument(
+        "--format",
+        default=None,
+        help="capture layout (default: detect); one of native, meshseq, peoplesnapshot, imavatar, insta, vhap",
+    )
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)",
+    )
+    parser.add_argument(
+        "--refine-pose",
+        action="store_true",
+        help="optimise the tracker's per-frame pose/expression parameters of the training frames",
+    )
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
-    parser.add_argument("--preset", choices=tuple(PRESETS), default=None,
-                        help=f"model preset (default {DEFAULT_PRESET}; paper: the published method); docs/config.md")
+    parser.add_argument(
+        "--preset",
+        choices=tuple(PRESETS),
+        default=None,
+        help=f"model preset (default {DEFAULT_PRESET}; paper: the published method); docs/config.md",
+    )
     parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig) over the preset")
-    parser.add_argument("--set", nargs="+", action=_SetAction, default=[], metavar="KEY=VALUE",
-                        help="override config values, e.g. --set strategy.refine_every=200 walk.enabled=false "
-                        "(several after one --set, or repeated; put --set after the dataset)")
+    parser.add_argument(
+        "--set",
+        nargs="+",
+        action=_SetAction,
+        default=[],
+        metavar="KEY=VALUE",
+        help="override config values, e.g. --set strategy.refine_every=200 walk.enabled=false "
+        "(several after one --set, or repeated; put --set after the dataset)",
+    )
     add_render_options(parser, device=None, backend=False, background=False)
     parser.add_argument("--seed", type=int, default=None)
     add_threads_argument(parser)
@@ -58,14 +81,22 @@ class _SetAction(argparse.Action):
     """``--set KEY=VALUE [KEY=VALUE ...]``: extends the list; an item without "=" (a dataset swallowed
     after ``--set``) is one clear parser error."""
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
         items = list(values) if isinstance(values, list) else [str(values)]
         for item in items:
             if "=" not in item:
-                raise argparse.ArgumentError(self, f"expected KEY=VALUE, got {item!r}; --set takes every word up to "
-                                             "the next option, so put the dataset before --set "
-                                             "(meshsplat train DATA --out RUN --set a.b=1 c.d=2)")
+                raise argparse.ArgumentError(
+                    self,
+                    f"expected KEY=VALUE, got {item!r}; --set takes every word up to "
+                    "the next option, so put the dataset before --set "
+                    "(meshsplat train DATA --out RUN --set a.b=1 c.d=2)",
+                )
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), *items])
 
 
@@ -118,15 +149,20 @@ def run(args: argparse.Namespace) -> int:
     print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
     cfg.data_format = fmt
     n = max(cfg.model.n_init, min(cfg.strategy.max_gaussians, 4 * cfg.model.n_init))
-    check_memory(f"training with model.n_init={cfg.model.n_init}", 2e8 + 1200.0 * n,
-                 "lower model.n_init / strategy.max_gaussians")
+    check_memory(
+        f"training with model.n_init={cfg.model.n_init}",
+        2e8 + 1200.0 * n,
+        "lower model.n_init / strategy.max_gaussians",
+    )
     trainer = Trainer(cfg, resume=args.resume)
     copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
         for note in trainer.resume_notes:
-            print(f"  changed on resume: {note}" + (" (the learning-rate schedule follows the new total)"
-                                                    if note.startswith("iterations:") else ""))
+            print(
+                f"  changed on resume: {note}"
+                + (" (the learning-rate schedule follows the new total)" if note.startswith("iterations:") else "")
+            )
     elif args.resume:
         print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
     if trainer.iteration >= cfg.iterations:

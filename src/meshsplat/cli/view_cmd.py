@@ -20,6 +20,7 @@ Examples:
   meshsplat view runs/demo --animation gltf CesiumMan.glb --out out/viewer
   meshsplat view runs/demo --animation gltf CesiumMan.glb --bake --frames 60 --out out/viewer
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,8 @@ from meshsplat.cli._guards import check_output_dir, check_range
 from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
 from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
-from meshsplat.paths import resolve_input
 from meshsplat.gaussians import Avatar
+from meshsplat.paths import resolve_input
 from meshsplat.run_folder import LoadedRun, load_run
 from meshsplat.viewer import write_viewer_bundle
 from meshsplat.viewer.rig import avatar_driver
@@ -48,13 +49,25 @@ _KINDS = ("dataset", "gltf", "vertices", "blendshapes", "motion")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
-    parser.add_argument("--animation", nargs="+", default=["dataset"], metavar=("KIND", "FILE"),
-                        help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, OBJ/PLY "
-                        "folder), blendshapes [FILE.npz] or motion FILE")
-    parser.add_argument("--motion", default=None, metavar="FILE",
-                        help="same as --animation motion FILE (SMPL/SMPL-X .npz, flame_params.json, flame_param/)")
-    parser.add_argument("--model-dir", default=None,
-                        help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)")
+    parser.add_argument(
+        "--animation",
+        nargs="+",
+        default=["dataset"],
+        metavar=("KIND", "FILE"),
+        help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, OBJ/PLY "
+        "folder), blendshapes [FILE.npz] or motion FILE",
+    )
+    parser.add_argument(
+        "--motion",
+        default=None,
+        metavar="FILE",
+        help="same as --animation motion FILE (SMPL/SMPL-X .npz, flame_params.json, flame_param/)",
+    )
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)",
+    )
     parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
     parser.add_argument("--split", default=None, help="dataset: only the frames of this split")
     add_dataset_option(parser)
@@ -62,10 +75,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=25.0, help="playback (and glTF sampling) rate (default 25)")
     parser.add_argument("--title", default=None, help="page title (default: the run folder's name)")
     add_render_options(parser, device=False, backend=False, background=("white", "black"), progress=False)
-    parser.add_argument("--vertex-encoding", choices=("int16", "float32"), default="int16",
-                        help="storage of the animated vertices (default int16, quantized per bundle)")
-    parser.add_argument("--bake", action="store_true",
-                        help="gltf / blendshapes: ship vertex frames (at --fps) instead of the live rig")
+    parser.add_argument(
+        "--vertex-encoding",
+        choices=("int16", "float32"),
+        default="int16",
+        help="storage of the animated vertices (default int16, quantized per bundle)",
+    )
+    parser.add_argument(
+        "--bake", action="store_true", help="gltf / blendshapes: ship vertex frames (at --fps) instead of the live rig"
+    )
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
@@ -92,15 +110,15 @@ def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
         if kind == "gltf":
-            frames = animate.gltf_animation(avatar, rest[0], clip=args.clip, fps=args.fps,
-                                            source_map=run_info.source_map(args.dataset))
+            frames = animate.gltf_animation(
+                avatar, rest[0], clip=args.clip, fps=args.fps, source_map=run_info.source_map(args.dataset)
+            )
         elif kind == "motion":
             ds = run_info.open_dataset(args.dataset, check_masks=False)
             mdir = args.model_dir or run_info.config.get("model_dir") or None
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
-            frames = animate.sequence_animation(avatar, rest[0],
-                                                source_map=run_info.source_map(args.dataset))
+            frames = animate.sequence_animation(avatar, rest[0], source_map=run_info.source_map(args.dataset))
     if args.frames is not None:
         if args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
@@ -115,8 +133,10 @@ def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
     drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
     v = int(drv.neutral.shape[0])
     if v != avatar.mesh.num_vertices:
-        raise MeshsplatError(f"--animation blendshapes: the model has {v} vertices, the avatar's mesh "
-                             f"{avatar.mesh.num_vertices}; use the blendshape model the avatar was trained on")
+        raise MeshsplatError(
+            f"--animation blendshapes: the model has {v} vertices, the avatar's mesh "
+            f"{avatar.mesh.num_vertices}; use the blendshape model the avatar was trained on"
+        )
     n = 125 if args.frames is None else args.frames
     if n < 1:
         raise MeshsplatError(f"--frames: expected >= 1, got {n}")
@@ -158,22 +178,47 @@ def run(args: argparse.Namespace) -> int:
         if not glb.is_file():
             raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
         rig = avatar_driver(r.avatar, glb, clip=args.clip, source_map=r.source_map(args.dataset))
-        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=opts.background or "white", rig=rig)
+        index = write_viewer_bundle(
+            r.avatar,
+            None,
+            Path(args.out),
+            fps=args.fps,
+            title=title,
+            vertex_encoding=args.vertex_encoding,
+            background=opts.background or "white",
+            rig=rig,
+        )
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
     elif kind == "blendshapes" and not args.bake:
         rig = _blendshape_driver(r.avatar, rest, args)
-        index = write_viewer_bundle(r.avatar, None, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=opts.background or "white", rig=rig)
+        index = write_viewer_bundle(
+            r.avatar,
+            None,
+            Path(args.out),
+            fps=args.fps,
+            title=title,
+            vertex_encoding=args.vertex_encoding,
+            background=opts.background or "white",
+            rig=rig,
+        )
         what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
     else:
         frames = load_frames(r.avatar, args, r)
-        index = write_viewer_bundle(r.avatar, frames, Path(args.out), fps=args.fps, title=title,
-                                    vertex_encoding=args.vertex_encoding, background=opts.background or "white")
+        index = write_viewer_bundle(
+            r.avatar,
+            frames,
+            Path(args.out),
+            fps=args.fps,
+            title=title,
+            vertex_encoding=args.vertex_encoding,
+            background=opts.background or "white",
+        )
         what = f"{len(frames)} frames"
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
-    print(f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "
-          f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)")
+    print(
+        f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "
+        f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)"
+    )
     print(f"  open file://{index.resolve()}")
     if args.serve:
         _serve(index.parent, args.port)

@@ -1,4 +1,5 @@
 """Native dataset format: validated lazy loader and writer (docs/dataset-format.md)."""
+
 from meshsplat.data.dataset import AvatarDataset, Frame, open_dataset
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION, DatasetWriter, write_dataset
 

@@ -1,4 +1,5 @@
 """Converting any opened capture (:func:`meshsplat.data.formats.open_capture`) to the native format."""
+
 from __future__ import annotations
 
 import re
@@ -23,8 +24,12 @@ def _safe_name(name: str, taken: set[str]) -> str:
     return out
 
 
-def write_native(dataset: AvatarDataset, out: Path | str, overwrite: bool = False,
-                 progress: Callable[[int, int], object] | None = None) -> Path:
+def write_native(
+    dataset: AvatarDataset,
+    out: Path | str,
+    overwrite: bool = False,
+    progress: Callable[[int, int], object] | None = None,
+) -> Path:
     """Write ``dataset`` as a native dataset at ``out``: PNG images, PNG masks (npy / alpha masks are
     converted), the same cameras, meshes (row for row), frames, splits and driver parameters.
 
@@ -48,8 +53,16 @@ def write_native(dataset: AvatarDataset, out: Path | str, overwrite: bool = Fals
         info = dataset.frame_info(i)
         fr = dataset[i]
         extra = {k: v for k, v in info.items() if k not in _RECORD_KEYS}
-        w.add_frame(fr.image, fr.camera_id, mesh=int(info["mesh"]), mask=fr.mask, name=_safe_name(fr.name, taken),
-                    clip=fr.clip, time=fr.time, extra=extra or None)
+        w.add_frame(
+            fr.image,
+            fr.camera_id,
+            mesh=int(info["mesh"]),
+            mask=fr.mask,
+            name=_safe_name(fr.name, taken),
+            clip=fr.clip,
+            time=fr.time,
+            extra=extra or None,
+        )
         if progress is not None:
             progress(i + 1, len(dataset))
     for name in dataset.split_names:

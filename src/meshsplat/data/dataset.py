@@ -1,4 +1,5 @@
 """Loading and validating datasets in the native format (see docs/dataset-format.md)."""
+
 from __future__ import annotations
 
 import json
@@ -35,19 +36,29 @@ def _is_number(x) -> bool:
 
 
 def _type_name(x) -> str:
-    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null",
-            int: "a number", float: "a number"}.get(type(x), type(x).__name__)
+    return {
+        dict: "an object",
+        list: "a list",
+        str: "a string",
+        bool: "a boolean",
+        type(None): "null",
+        int: "a number",
+        float: "a number",
+    }.get(type(x), type(x).__name__)
 
 
-def _relative_path(value, what: str, where: str, problems: "Problems", allow_outside: bool) -> str | None:
+def _relative_path(value, what: str, where: str, problems: Problems, allow_outside: bool) -> str | None:
     """A manifest path: a string naming a file inside the dataset folder (unless allowed)."""
     if not isinstance(value, str) or not value:
         problems.add(where, f"{what} must be a file path (a string), got {_type_name(value)}")
         return None
     norm = os.path.normpath(value)
     if not allow_outside and (os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep)):
-        problems.add(where, f"{what} {value!r} lies outside the dataset folder; copy it into the folder, "
-                     f"or set {ALLOW_OUTSIDE_ENV}=1 to allow it")
+        problems.add(
+            where,
+            f"{what} {value!r} lies outside the dataset folder; copy it into the folder, "
+            f"or set {ALLOW_OUTSIDE_ENV}=1 to allow it",
+        )
         return None
     return value
 
@@ -135,9 +146,18 @@ def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, 
 class AvatarDataset:
     """A validated dataset; frames load lazily (``cache_size`` most recent kept in memory)."""
 
-    def __init__(self, root: Path, manifest: dict, canonical: np.ndarray, faces: np.ndarray,
-                 vertices: np.ndarray, cameras: dict, cache_size: int = 8,
-                 driver_params: dict[str, np.ndarray] | None = None, format_name: str = "native") -> None:
+    def __init__(
+        self,
+        root: Path,
+        manifest: dict,
+        canonical: np.ndarray,
+        faces: np.ndarray,
+        vertices: np.ndarray,
+        cameras: dict,
+        cache_size: int = 8,
+        driver_params: dict[str, np.ndarray] | None = None,
+        format_name: str = "native",
+    ) -> None:
         self.root = root
         self.manifest = manifest
         self.format_name = format_name
@@ -177,8 +197,11 @@ class AvatarDataset:
         if "per_frame" in info:
             return [k for k in info["per_frame"] if k in self.driver_params]
         n = self._verts.shape[0] if self._verts is not None else -1
-        return [k for k, v in self.driver_params.items()
-                if k not in ("betas", "static_offset") and v.ndim == 2 and v.shape[0] == n]
+        return [
+            k
+            for k, v in self.driver_params.items()
+            if k not in ("betas", "static_offset") and v.ndim == 2 and v.shape[0] == n
+        ]
 
     def frame_params(self, i: int) -> dict[str, np.ndarray] | None:
         """Model parameters of frame ``i`` (per-frame rows ``[1,k]``, shared ones as stored)."""
@@ -186,7 +209,7 @@ class AvatarDataset:
             return None
         row = self._frames[self._index(i)]["mesh"]
         per_frame = set(self.per_frame_param_names)
-        return {k: (v[row:row + 1] if k in per_frame else v) for k, v in self.driver_params.items()}
+        return {k: (v[row : row + 1] if k in per_frame else v) for k, v in self.driver_params.items()}
 
     @property
     def num_vertices(self) -> int:
@@ -242,8 +265,17 @@ class AvatarDataset:
         arr = read_image(self.root / rec["image"], 3)
         img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = self._load_mask(rec)
-        fr = Frame(img, mask, self.camera(rec["camera"]), self.vertices(i), i, rec["name"], str(rec["camera"]),
-                   rec.get("clip"), rec.get("time"))
+        fr = Frame(
+            img,
+            mask,
+            self.camera(rec["camera"]),
+            self.vertices(i),
+            i,
+            rec["name"],
+            str(rec["camera"]),
+            rec.get("clip"),
+            rec.get("time"),
+        )
         if self._cache_size > 0:
             self._cache[i] = fr
             while len(self._cache) > self._cache_size:
@@ -273,7 +305,7 @@ def _read_npy_mask(path: Path) -> np.ndarray:
     except (OSError, ValueError) as exc:
         raise MeshsplatError(f"{path}: cannot read mask array ({exc})") from None
     a = np.squeeze(np.asarray(a))
-    if a.ndim != 2 or not np.issubdtype(a.dtype, np.number) and a.dtype != bool:
+    if a.ndim != 2 or (not np.issubdtype(a.dtype, np.number) and a.dtype != bool):
         raise MeshsplatError(f"{path}: expected a numeric [H,W] mask array, got {a.dtype} {list(a.shape)}")
     a = a.astype(np.float32)
     if a.max(initial=0.0) > 1.0:
@@ -297,7 +329,7 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
         else:
             with np.load(p, allow_pickle=False) as z:
                 v, f = z["vertices"], z["faces"]
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is one reported problem
         problems.add(rel, f"cannot read canonical mesh ({exc})")
         return None, None
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -325,8 +357,9 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
     return v, f
 
 
-def open_dataset(path: Path | str, check_masks: bool = True, cache_size: int = 8,
-                 allow_outside: bool | None = None) -> AvatarDataset:
+def open_dataset(
+    path: Path | str, check_masks: bool = True, cache_size: int = 8, allow_outside: bool | None = None
+) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
     Checks the JSON type of every manifest field, files, PNG sizes (headers only) against the
@@ -355,7 +388,9 @@ def open_dataset(path: Path | str, check_masks: bool = True, cache_size: int = 8
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise MeshsplatError(f"{mpath}: 'format' must be {FORMAT_NAME!r}")
     if not _is_int(manifest.get("version")) or manifest.get("version") != FORMAT_VERSION:
-        raise MeshsplatError(f"{mpath}: unsupported format version {manifest.get('version')!r} (this reader: {FORMAT_VERSION})")
+        raise MeshsplatError(
+            f"{mpath}: unsupported format version {manifest.get('version')!r} (this reader: {FORMAT_VERSION})"
+        )
     for key in ("canonical", "vertices", "cameras", "frames"):
         if key not in manifest:
             raise MeshsplatError(f"{mpath}: missing key {key!r}")
@@ -376,7 +411,7 @@ def open_dataset(path: Path | str, check_masks: bool = True, cache_size: int = 8
     else:
         try:
             verts = np.load(vpath, mmap_mode="r", allow_pickle=False)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is one reported problem
             problems.add(rel_vertices, f"cannot read ({exc})")
         if verts is not None and not isinstance(verts, np.ndarray):
             problems.add(rel_vertices, "expected one .npy array [T,V,3]")
@@ -385,13 +420,26 @@ def open_dataset(path: Path | str, check_masks: bool = True, cache_size: int = 8
             problems.add(rel_vertices, f"expected a number array [T,V,3], got {verts.dtype} {list(verts.shape)}")
             verts = None
         if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
-            problems.add(rel_vertices, f"vertex count mismatch: {verts.shape[1]} posed vertices per "
-                         f"frame but the canonical mesh has {canonical.shape[0]}")
+            problems.add(
+                rel_vertices,
+                f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+                f"frame but the canonical mesh has {canonical.shape[0]}",
+            )
     driver_params = None
     if manifest.get("driver") is not None:
         driver_params = _load_driver_params(root, manifest["driver"], problems, allow_outside)
-    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, driver_params=driver_params, allow_outside=allow_outside)
+    return build_dataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        driver_params=driver_params,
+        allow_outside=allow_outside,
+    )
 
 
 def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: bool) -> dict[str, np.ndarray] | None:
@@ -409,10 +457,19 @@ def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: b
         return None
 
 
-def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, faces: np.ndarray | None,
-                  verts: np.ndarray | None, problems: Problems | None = None,
-                  check_masks: bool = True, cache_size: int = 8, driver_params: dict | None = None,
-                  format_name: str = "native", allow_outside: bool = True) -> AvatarDataset:
+def build_dataset(
+    root: Path,
+    manifest: dict,
+    canonical: np.ndarray | None,
+    faces: np.ndarray | None,
+    verts: np.ndarray | None,
+    problems: Problems | None = None,
+    check_masks: bool = True,
+    cache_size: int = 8,
+    driver_params: dict | None = None,
+    format_name: str = "native",
+    allow_outside: bool = True,
+) -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
 
     The one validation path of every reader: ``manifest`` has ``cameras`` (id -> K, viewmat, width,
@@ -429,18 +486,23 @@ def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, face
         problems.add(vname, f"expected shape [T,V,3], got {list(verts.shape)}")
         verts = None
     if verts is not None and canonical is not None and verts.shape[1] != canonical.shape[0]:
-        problems.add(vname, f"vertex count mismatch: {verts.shape[1]} posed vertices per "
-                     f"frame but the canonical mesh has {canonical.shape[0]}")
+        problems.add(
+            vname,
+            f"vertex count mismatch: {verts.shape[1]} posed vertices per "
+            f"frame but the canonical mesh has {canonical.shape[0]}",
+        )
     bad_meshes: dict[int, int] = {}
     if verts is not None:
         for s in range(0, verts.shape[0], 256):
-            nonfinite = (~np.isfinite(np.asarray(verts[s:s + 256]))).sum(axis=(1, 2))
+            nonfinite = (~np.isfinite(np.asarray(verts[s : s + 256]))).sum(axis=(1, 2))
             for j in np.nonzero(nonfinite)[0]:
                 bad_meshes[s + int(j)] = int(nonfinite[j])
 
     cams_in = manifest["cameras"]
     if not isinstance(cams_in, dict):
-        problems.add("manifest", f"'cameras' must be an object mapping camera ids to cameras, got {_type_name(cams_in)}")
+        problems.add(
+            "manifest", f"'cameras' must be an object mapping camera ids to cameras, got {_type_name(cams_in)}"
+        )
         cams_in = None
     cameras = {}
     for cid, cam in (cams_in or {}).items():
@@ -455,13 +517,17 @@ def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, face
         if not isinstance(rec, dict) or "image" not in rec or "camera" not in rec or "mesh" not in rec:
             problems.add(where, f"needs 'image', 'camera' and 'mesh' (got {_type_name(rec)})")
             continue
-        bad_types = [f"{k} must be {want}, got {_type_name(rec[k])}" for k, want, ok in (
-            ("name", "a string", lambda x: isinstance(x, str)),
-            ("camera", "a camera id (string)", lambda x: isinstance(x, str) or _is_int(x)),
-            ("mesh", "an integer", _is_int),
-            ("clip", "a string or null", lambda x: x is None or isinstance(x, str)),
-            ("time", "a number or null", lambda x: x is None or _is_number(x)),
-        ) if k in rec and not ok(rec[k])]
+        bad_types = [
+            f"{k} must be {want}, got {_type_name(rec[k])}"
+            for k, want, ok in (
+                ("name", "a string", lambda x: isinstance(x, str)),
+                ("camera", "a camera id (string)", lambda x: isinstance(x, str) or _is_int(x)),
+                ("mesh", "an integer", _is_int),
+                ("clip", "a string or null", lambda x: x is None or isinstance(x, str)),
+                ("time", "a number or null", lambda x: x is None or _is_number(x)),
+            )
+            if k in rec and not ok(rec[k])
+        ]
         if bad_types:
             problems.add(where, "; ".join(bad_types))
             continue
@@ -484,8 +550,9 @@ def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, face
     if splits is None:
         splits = {}
     if not isinstance(splits, dict):
-        problems.add("manifest", f"'splits' must be an object mapping names to lists of frame indices, "
-                     f"got {_type_name(splits)}")
+        problems.add(
+            "manifest", f"'splits' must be an object mapping names to lists of frame indices, got {_type_name(splits)}"
+        )
         splits = {}
     for sname, idx in splits.items():
         if not isinstance(idx, list):
@@ -499,12 +566,22 @@ def build_dataset(root: Path, manifest: dict, canonical: np.ndarray | None, face
     problems.raise_if_any()
     assert canonical is not None and faces is not None and verts is not None, "a None array comes with a problem"
     manifest["splits"] = splits
-    return AvatarDataset(root, manifest, canonical, faces, verts, cameras, cache_size=cache_size,
-                         driver_params=driver_params, format_name=format_name)
+    return AvatarDataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        cameras,
+        cache_size=cache_size,
+        driver_params=driver_params,
+        format_name=format_name,
+    )
 
 
-def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems,
-                       allow_outside: bool = True) -> None:
+def _check_frame_files(
+    root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems, allow_outside: bool = True
+) -> None:
     """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
     kind = rec.get("mask_kind", "png")
     if kind not in MASK_KINDS:
@@ -532,11 +609,15 @@ def _check_frame_files(root: Path, rec: dict, where: str, size, check_masks: boo
             else:
                 wh = image_size(p)
         except (MeshsplatError, OSError, ValueError):
-            problems.add(where, f"{what} file {rel} is not a readable {'array' if kind == 'npy' and what == 'mask' else 'image'}")
+            problems.add(
+                where, f"{what} file {rel} is not a readable {'array' if kind == 'npy' and what == 'mask' else 'image'}"
+            )
             return
         if size is not None and wh != size:
-            problems.add(where, f"{what} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {rec['camera']!r} "
-                         f"says {size[0]}x{size[1]}")
+            problems.add(
+                where,
+                f"{what} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {rec['camera']!r} says {size[0]}x{size[1]}",
+            )
             return
     if not check_masks or not (rec.get("mask") or kind == "alpha"):
         return

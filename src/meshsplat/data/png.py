@@ -1,4 +1,5 @@
 """PNG reading/writing helpers: header-only size query, lazy decode, fast encode."""
+
 from __future__ import annotations
 
 import struct

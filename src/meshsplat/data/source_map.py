@@ -8,6 +8,7 @@ world), ``rotation [3,3]`` (asset axes -> world), ``exact`` (canonical rest equa
 ``source_index``), ``smooth`` and ``decimate``. With it, vertex sequences in the asset's own order
 and every clip of the asset drive the avatar (:mod:`meshsplat.animate`).
 """
+
 from __future__ import annotations
 
 import shutil
@@ -72,9 +73,16 @@ def read_source_map(folder: Path | str) -> SourceMap | None:
     need = ("source_index", "source_rest", "source_faces", "rotation", "exact")
     if any(k not in d for k in need):
         raise MeshsplatError(f"{p}: source map lacks {[k for k in need if k not in d]}; delete it to go without")
-    return SourceMap(d["source_index"].astype(np.int64), d["source_rest"].astype(np.float32),
-                     d["source_faces"].astype(np.int64), d["rotation"].astype(np.float64), bool(d["exact"]),
-                     int(d.get("smooth", 0)), float(d.get("decimate", 1.0)), p)
+    return SourceMap(
+        d["source_index"].astype(np.int64),
+        d["source_rest"].astype(np.float32),
+        d["source_faces"].astype(np.int64),
+        d["rotation"].astype(np.float64),
+        bool(d["exact"]),
+        int(d.get("smooth", 0)),
+        float(d.get("decimate", 1.0)),
+        p,
+    )
 
 
 def copy_source_map(dataset_root: Path | str, run_dir: Path | str) -> Path | None:

@@ -1,4 +1,5 @@
 """Writing datasets in the native format (see docs/dataset-format.md)."""
+
 from __future__ import annotations
 
 import json
@@ -41,8 +42,14 @@ class DatasetWriter:
     ``canonical_vertices [V,3]``, ``faces [F,3]``: the rest (canonical) driving mesh.
     """
 
-    def __init__(self, root: Path | str, canonical_vertices: torch.Tensor | ArrayLike,
-                 faces: torch.Tensor | ArrayLike, overwrite: bool = False, meta: dict | None = None) -> None:
+    def __init__(
+        self,
+        root: Path | str,
+        canonical_vertices: torch.Tensor | ArrayLike,
+        faces: torch.Tensor | ArrayLike,
+        overwrite: bool = False,
+        meta: dict | None = None,
+    ) -> None:
         self.root = Path(root)
         if (self.root / "manifest.json").exists() and not overwrite:
             raise MeshsplatError(f"{self.root}: a dataset already exists here (pass overwrite=True)")
@@ -62,10 +69,16 @@ class DatasetWriter:
         self.driver_params: dict[str, np.ndarray] | None = None
         self.source_map: dict[str, np.ndarray] | None = None
 
-    def set_source_map(self, source_index: torch.Tensor | ArrayLike, source_rest: torch.Tensor | ArrayLike,
-                       source_faces: torch.Tensor | ArrayLike, rotation: torch.Tensor | ArrayLike | None = None,
-                       exact: bool = True,
-                       smooth: int = 0, decimate: float | None = None) -> None:
+    def set_source_map(
+        self,
+        source_index: torch.Tensor | ArrayLike,
+        source_rest: torch.Tensor | ArrayLike,
+        source_faces: torch.Tensor | ArrayLike,
+        rotation: torch.Tensor | ArrayLike | None = None,
+        exact: bool = True,
+        smooth: int = 0,
+        decimate: float | None = None,
+    ) -> None:
         """Record how the driving mesh derives from the asset (``source_map.npz``, see
         :mod:`meshsplat.data.source_map`): ``source_index [V]`` asset vertex of each canonical vertex,
         ``source_rest [Vs,3]`` / ``source_faces [Fs,3]`` the asset's rest mesh in this dataset's world,
@@ -74,12 +87,18 @@ class DatasetWriter:
         idx = _np(source_index, np.int64).reshape(-1)
         rest = _np(source_rest)
         if idx.shape[0] != self.canonical.shape[0] or idx.min() < 0 or idx.max() >= rest.shape[0]:
-            raise MeshsplatError(f"source_index: expected {self.canonical.shape[0]} indices into "
-                                 f"{rest.shape[0]} asset vertices")
-        self.source_map = {"source_index": idx, "source_rest": rest, "source_faces": _np(source_faces, np.int64),
-                           "rotation": _np(np.eye(3) if rotation is None else rotation, np.float64),
-                           "exact": np.asarray(bool(exact)), "smooth": np.asarray(int(smooth)),
-                           "decimate": np.asarray(1.0 if decimate is None else float(decimate))}
+            raise MeshsplatError(
+                f"source_index: expected {self.canonical.shape[0]} indices into {rest.shape[0]} asset vertices"
+            )
+        self.source_map = {
+            "source_index": idx,
+            "source_rest": rest,
+            "source_faces": _np(source_faces, np.int64),
+            "rotation": _np(np.eye(3) if rotation is None else rotation, np.float64),
+            "exact": np.asarray(bool(exact)),
+            "smooth": np.asarray(int(smooth)),
+            "decimate": np.asarray(1.0 if decimate is None else float(decimate)),
+        }
 
     def set_driver(self, record: dict, params: dict) -> None:
         """Store the body/head model parameters the meshes were posed with (``driver_params.npz``).
@@ -90,12 +109,22 @@ class DatasetWriter:
         self.driver = {**dict(record), "params": "driver_params.npz"}
         self.driver_params = {k: _np(v) for k, v in params.items()}
 
-    def add_camera(self, camera_id: str | int, K: torch.Tensor | ArrayLike, viewmat: torch.Tensor | ArrayLike,
-                   width: int, height: int) -> str:
+    def add_camera(
+        self,
+        camera_id: str | int,
+        K: torch.Tensor | ArrayLike,
+        viewmat: torch.Tensor | ArrayLike,
+        width: int,
+        height: int,
+    ) -> str:
         """Register a camera: ``K [3,3]``, world->camera ``viewmat [4,4]`` (OpenCV axes)."""
         cid = str(camera_id)
-        self.cameras[cid] = {"K": _np(K, np.float64).tolist(), "viewmat": _np(viewmat, np.float64).tolist(),
-                             "width": int(width), "height": int(height)}
+        self.cameras[cid] = {
+            "K": _np(K, np.float64).tolist(),
+            "viewmat": _np(viewmat, np.float64).tolist(),
+            "width": int(width),
+            "height": int(height),
+        }
         return cid
 
     def add_mesh(self, vertices: torch.Tensor | ArrayLike) -> int:
@@ -106,11 +135,18 @@ class DatasetWriter:
         self.meshes.append(v)
         return len(self.meshes) - 1
 
-    def add_frame(self, image: torch.Tensor | ArrayLike, camera_id: str | int,
-                  vertices: torch.Tensor | ArrayLike | None = None, mesh: int | None = None,
-                  mask: torch.Tensor | ArrayLike | None = None,
-                  name: str | None = None, clip: str | None = None, time: float | None = None,
-                  extra: dict | None = None) -> int:
+    def add_frame(
+        self,
+        image: torch.Tensor | ArrayLike,
+        camera_id: str | int,
+        vertices: torch.Tensor | ArrayLike | None = None,
+        mesh: int | None = None,
+        mask: torch.Tensor | ArrayLike | None = None,
+        name: str | None = None,
+        clip: str | None = None,
+        time: float | None = None,
+        extra: dict | None = None,
+    ) -> int:
         """Write one frame: ``image [H,W,3]`` (uint8 or float in [0,1]), optional ``mask [H,W]|[H,W,1]``;
         the driving mesh is ``vertices [V,3]`` or an index from :meth:`add_mesh`. Returns the frame index."""
         cid = str(camera_id)
@@ -160,14 +196,21 @@ class DatasetWriter:
         splits = dict(self.splits)
         splits.setdefault("train", list(range(len(self.frames))))
         manifest = {
-            "format": FORMAT_NAME, "version": FORMAT_VERSION,
-            "canonical": "canonical.npz", "vertices": "vertices.npy",
-            "num_vertices": int(self.canonical.shape[0]), "num_faces": int(self.faces.shape[0]),
-            "cameras": self.cameras, "frames": self.frames, "splits": splits, "meta": self.meta,
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "canonical": "canonical.npz",
+            "vertices": "vertices.npy",
+            "num_vertices": int(self.canonical.shape[0]),
+            "num_faces": int(self.faces.shape[0]),
+            "cameras": self.cameras,
+            "frames": self.frames,
+            "splits": splits,
+            "meta": self.meta,
         }
         if self.driver is not None and self.driver_params is not None:
-            per_frame = self.driver.get("per_frame", [k for k, v in self.driver_params.items()
-                                                      if v.ndim == 2 and len(v) == len(self.meshes)])
+            per_frame = self.driver.get(
+                "per_frame", [k for k, v in self.driver_params.items() if v.ndim == 2 and len(v) == len(self.meshes)]
+            )
             bad = [k for k in per_frame if len(self.driver_params[k]) != len(self.meshes)]
             if bad:
                 raise MeshsplatError(f"driver params {bad}: expected one row per mesh ({len(self.meshes)})")
@@ -183,26 +226,42 @@ class DatasetWriter:
         os.replace(tmp, self.root / "manifest.json")
         return self.root
 
-    def __enter__(self) -> "DatasetWriter":
+    def __enter__(self) -> DatasetWriter:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is None:
             self.close()
 
 
-def write_dataset(root: Path | str, canonical_vertices: torch.Tensor | ArrayLike,
-                  faces: torch.Tensor | ArrayLike, cameras: dict, frames: list[dict],
-                  splits: dict | None = None, overwrite: bool = False, meta: dict | None = None) -> Path:
+def write_dataset(
+    root: Path | str,
+    canonical_vertices: torch.Tensor | ArrayLike,
+    faces: torch.Tensor | ArrayLike,
+    cameras: dict,
+    frames: list[dict],
+    splits: dict | None = None,
+    overwrite: bool = False,
+    meta: dict | None = None,
+) -> Path:
     """One-call writer. ``cameras``: id -> dict(K, viewmat, width, height); ``frames``: dicts with
     ``image``, ``camera_id``, ``vertices`` and optional ``mask``, ``name``, ``clip``, ``time``."""
     w = DatasetWriter(root, canonical_vertices, faces, overwrite=overwrite, meta=meta)
     for cid, cam in cameras.items():
         w.add_camera(cid, cam["K"], cam["viewmat"], cam["width"], cam["height"])
     for fr in frames:
-        w.add_frame(fr["image"], fr["camera_id"], vertices=fr.get("vertices"), mesh=fr.get("mesh"),
-                    mask=fr.get("mask"), name=fr.get("name"), clip=fr.get("clip"), time=fr.get("time"))
+        w.add_frame(
+            fr["image"],
+            fr["camera_id"],
+            vertices=fr.get("vertices"),
+            mesh=fr.get("mesh"),
+            mask=fr.get("mask"),
+            name=fr.get("name"),
+            clip=fr.get("clip"),
+            time=fr.get("time"),
+        )
     for k, v in (splits or {}).items():
         w.set_split(k, v)
     return w.close()

@@ -1,4 +1,5 @@
 """Mesh driver protocol and the per-frame vertex sequence driver."""
+
 from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
@@ -37,8 +38,9 @@ def as_faces(name: str, faces: torch.Tensor | ArrayLike, num_vertices: int | Non
     return f
 
 
-def as_vertices(name: str, verts: torch.Tensor | ArrayLike, spec: str = "V,3",
-                dims: dict | None = None) -> torch.Tensor:
+def as_vertices(
+    name: str, verts: torch.Tensor | ArrayLike, spec: str = "V,3", dims: dict | None = None
+) -> torch.Tensor:
     """Vertices as float32 tensor of shape ``spec``, finite."""
     v = verts if isinstance(verts, torch.Tensor) else torch.as_tensor(np.asarray(verts))
     check_tensor(name, v, spec, dims=dims, dtype="float", finite=True)
@@ -51,8 +53,12 @@ class SequenceDriver:
     ``rest`` defaults to frame 0. Arrays may be numpy (memory-mapped is fine) or torch.
     """
 
-    def __init__(self, vertices: np.ndarray | torch.Tensor, faces: torch.Tensor | ArrayLike,
-                 rest: torch.Tensor | ArrayLike | None = None) -> None:
+    def __init__(
+        self,
+        vertices: np.ndarray | torch.Tensor,
+        faces: torch.Tensor | ArrayLike,
+        rest: torch.Tensor | ArrayLike | None = None,
+    ) -> None:
         if isinstance(vertices, np.ndarray) and vertices.ndim != 3:
             raise MeshsplatError(f"vertices: expected shape [T,V,3], got {list(vertices.shape)}")
         self._seq = vertices

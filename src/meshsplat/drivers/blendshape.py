@@ -3,6 +3,7 @@
 ``posed = R @ (neutral + sum_i w_i * delta_i - pivot) + pivot + t`` with ``pivot`` the neutral's
 bounding-box centre. Loads the ICT FaceKit ARKit npz (keys: neutral, faces, expr_names, expr_deltas).
 """
+
 from __future__ import annotations
 
 import math
@@ -45,10 +46,18 @@ class BlendshapeDriver:
     T taken from whichever is given, default 1 neutral frame).
     """
 
-    def __init__(self, neutral: torch.Tensor | ArrayLike, faces: torch.Tensor | ArrayLike,
-                 deltas: torch.Tensor | ArrayLike, names: Sequence[str] | None = None,
-                 weights: _Rows | None = None, rotations: _Rows | None = None, translations: _Rows | None = None,
-                 face_material: torch.Tensor | ArrayLike | None = None, material_names: Sequence[str] | None = None) -> None:
+    def __init__(
+        self,
+        neutral: torch.Tensor | ArrayLike,
+        faces: torch.Tensor | ArrayLike,
+        deltas: torch.Tensor | ArrayLike,
+        names: Sequence[str] | None = None,
+        weights: _Rows | None = None,
+        rotations: _Rows | None = None,
+        translations: _Rows | None = None,
+        face_material: torch.Tensor | ArrayLike | None = None,
+        material_names: Sequence[str] | None = None,
+    ) -> None:
         self.neutral = as_vertices("neutral", neutral)
         dims = {"V": self.neutral.shape[0]}
         d = deltas if isinstance(deltas, torch.Tensor) else torch.from_numpy(np.asarray(deltas, np.float32))
@@ -61,7 +70,7 @@ class BlendshapeDriver:
         self.set_sequence(weights, rotations, translations)
 
     @classmethod
-    def from_npz(cls, path: Path | str | None = None, **sequence: Any) -> "BlendshapeDriver":
+    def from_npz(cls, path: Path | str | None = None, **sequence: Any) -> BlendshapeDriver:
         """Load a blend-shape npz (a path or a bundled name; default the bundled ICT FaceKit head ``ict``)."""
         p = resolve_input("ict" if path is None else path)
         if not p.is_file():
@@ -78,25 +87,39 @@ class BlendshapeDriver:
             raise MeshsplatError(f"{p}: cannot read as a blend-shape .npz ({exc})") from None
         if arrays["expr_deltas"].dtype.kind not in "fiu":
             raise MeshsplatError(f"{p}: expr_deltas must be numbers, got {arrays['expr_deltas'].dtype}")
-        return cls(arrays["neutral"], arrays["faces"], arrays["expr_deltas"].astype(np.float32),
-                   names=[str(s) for s in arrays["expr_names"]] if "expr_names" in arrays else None,
-                   face_material=arrays.get("face_material"),
-                   material_names=[str(s) for s in arrays["material_names"]] if "material_names" in arrays else None,
-                   **sequence)
+        return cls(
+            arrays["neutral"],
+            arrays["faces"],
+            arrays["expr_deltas"].astype(np.float32),
+            names=[str(s) for s in arrays["expr_names"]] if "expr_names" in arrays else None,
+            face_material=arrays.get("face_material"),
+            material_names=[str(s) for s in arrays["material_names"]] if "material_names" in arrays else None,
+            **sequence,
+        )
 
-    def set_sequence(self, weights: _Rows | None = None, rotations: _Rows | None = None,
-                     translations: _Rows | None = None) -> None:
+    def set_sequence(
+        self, weights: _Rows | None = None, rotations: _Rows | None = None, translations: _Rows | None = None
+    ) -> None:
         e = self.deltas.shape[0]
         lens = [len(x) for x in (weights, rotations, translations) if x is not None]
         t = lens[0] if lens else 1
         dims = {"T": t, "E": e}
         as_t = lambda x: x.float() if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, np.float32))  # noqa: E731
-        self.weights = check_tensor("weights", as_t(weights), "T,E", dims, finite=True) if weights is not None \
+        self.weights = (
+            check_tensor("weights", as_t(weights), "T,E", dims, finite=True)
+            if weights is not None
             else torch.zeros(t, e)
-        self.rotations = check_tensor("rotations", as_t(rotations), "T,3", dims, finite=True) if rotations is not None \
+        )
+        self.rotations = (
+            check_tensor("rotations", as_t(rotations), "T,3", dims, finite=True)
+            if rotations is not None
             else torch.zeros(t, 3)
-        self.translations = check_tensor("translations", as_t(translations), "T,3", dims, finite=True) \
-            if translations is not None else torch.zeros(t, 3)
+        )
+        self.translations = (
+            check_tensor("translations", as_t(translations), "T,3", dims, finite=True)
+            if translations is not None
+            else torch.zeros(t, 3)
+        )
 
     @property
     def num_frames(self) -> int:
@@ -105,8 +128,12 @@ class BlendshapeDriver:
     def rest_vertices(self) -> torch.Tensor:
         return self.neutral.clone()
 
-    def pose(self, weights: torch.Tensor | ArrayLike, rotation: torch.Tensor | ArrayLike | None = None,
-             translation: torch.Tensor | ArrayLike | None = None) -> torch.Tensor:
+    def pose(
+        self,
+        weights: torch.Tensor | ArrayLike,
+        rotation: torch.Tensor | ArrayLike | None = None,
+        translation: torch.Tensor | ArrayLike | None = None,
+    ) -> torch.Tensor:
         """Vertices ``[V,3]`` for ``weights [E]``, axis-angle ``rotation [3]``, ``translation [3]``."""
         w = check_tensor("weights", torch.as_tensor(weights, dtype=torch.float32), "E", {"E": self.deltas.shape[0]})
         v = self.neutral + torch.einsum("e,evc->vc", w, self.deltas)
@@ -128,17 +155,26 @@ class BlendshapeDriver:
         t = np.asarray(times, np.float64).reshape(-1)
         w = np.zeros((len(t), self.deltas.shape[0]), np.float32)
         blink = np.clip(1 - np.abs((t % 3.1) - 1.5) / 0.12, 0, 1)
-        curves = {"jawOpen": 0.35 * (1 - np.cos(2 * math.pi * 1.3 * t)) / 2,
-                  "mouthSmile_L": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t)) / 2,
-                  "mouthSmile_R": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t + 0.3)) / 2,
-                  "browInnerUp_L": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
-                  "browInnerUp_R": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
-                  "eyeBlink_L": blink, "eyeBlink_R": blink}
+        curves = {
+            "jawOpen": 0.35 * (1 - np.cos(2 * math.pi * 1.3 * t)) / 2,
+            "mouthSmile_L": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t)) / 2,
+            "mouthSmile_R": 0.5 * (1 + np.sin(2 * math.pi * 0.4 * t + 0.3)) / 2,
+            "browInnerUp_L": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
+            "browInnerUp_R": 0.4 * np.clip(np.sin(2 * math.pi * 0.3 * t), 0, 1),
+            "eyeBlink_L": blink,
+            "eyeBlink_R": blink,
+        }
         for name, c in curves.items():
             if name in self.names:
                 w[:, self.names.index(name)] = c
-        rot = np.stack([0.12 * np.sin(2 * math.pi * 0.25 * t + 0.7), 0.35 * np.sin(2 * math.pi * 0.15 * t + 1.9),
-                        0.06 * np.sin(2 * math.pi * 0.2 * t + 4.0)], 1).astype(np.float32)
+        rot = np.stack(
+            [
+                0.12 * np.sin(2 * math.pi * 0.25 * t + 0.7),
+                0.35 * np.sin(2 * math.pi * 0.15 * t + 1.9),
+                0.06 * np.sin(2 * math.pi * 0.2 * t + 4.0),
+            ],
+            1,
+        ).astype(np.float32)
         return torch.from_numpy(w), torch.from_numpy(rot)
 
     def talking_sequence(self, num_frames: int, fps: float = 25.0) -> None:

@@ -12,6 +12,7 @@ expression columns ``[300:]`` when ``shapedirs`` has >= 400 columns, else ``[10:
 posed vertices and joints (same as scaling template, shapedirs, posedirs and static offsets, as
 IMavatar/DECA's FLAME x4 does); ``transl`` is added after scaling.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,9 +28,22 @@ from meshsplat.drivers.model_files import read_model_file
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
-    "MODEL_KINDS", "REGISTER_SITES", "GENDERS", "BodyModel", "BodyOutput", "ParametricDriver",
-    "resolve_model_dir", "find_model_file", "split_smpl_thetas", "join_smpl_thetas", "split_flame_pose15",
-    "join_flame_pose15", "save_driver_params", "load_driver_params", "driver_record", "POSE_KEYS",
+    "MODEL_KINDS",
+    "REGISTER_SITES",
+    "GENDERS",
+    "BodyModel",
+    "BodyOutput",
+    "ParametricDriver",
+    "resolve_model_dir",
+    "find_model_file",
+    "split_smpl_thetas",
+    "join_smpl_thetas",
+    "split_flame_pose15",
+    "join_flame_pose15",
+    "save_driver_params",
+    "load_driver_params",
+    "driver_record",
+    "POSE_KEYS",
 ]
 
 MODEL_KINDS = ("smpl", "smplx", "flame")
@@ -45,8 +59,15 @@ _NUM_JOINTS = {"smpl": 24, "smplx": 55, "flame": 5}
 # pose parameters in the order of the full pose vector (joint order of the kinematic tree)
 POSE_KEYS = {
     "smpl": (("global_orient", 3), ("body_pose", 69)),
-    "smplx": (("global_orient", 3), ("body_pose", 63), ("jaw_pose", 3), ("leye_pose", 3), ("reye_pose", 3),
-              ("left_hand_pose", 45), ("right_hand_pose", 45)),
+    "smplx": (
+        ("global_orient", 3),
+        ("body_pose", 63),
+        ("jaw_pose", 3),
+        ("leye_pose", 3),
+        ("reye_pose", 3),
+        ("left_hand_pose", 45),
+        ("right_hand_pose", 45),
+    ),
     "flame": (("global_orient", 3), ("neck_pose", 3), ("jaw_pose", 3), ("leye_pose", 3), ("reye_pose", 3)),
 }
 _SHARED_KEYS = ("betas", "static_offset")
@@ -60,24 +81,34 @@ def resolve_model_dir(model_dir: str | Path | None) -> Path:
     if model_dir is None or str(model_dir) == "":
         env = os.environ.get(ENV_MODEL_DIR, "")
         if not env:
-            raise MeshsplatError(f"no body/head model directory: pass --model-dir DIR or set {ENV_MODEL_DIR} to the "
-                                 "folder holding your smpl/, smplx/ or flame/ model files")
+            raise MeshsplatError(
+                f"no body/head model directory: pass --model-dir DIR or set {ENV_MODEL_DIR} to the "
+                "folder holding your smpl/, smplx/ or flame/ model files"
+            )
         model_dir = env
     p = Path(model_dir).expanduser()
     if p.is_file():
-        raise MeshsplatError(f"model directory {p} is a file; pass the folder that holds smpl/, smplx/ or flame/ "
-                             "(or the model files) as --model-dir")
+        raise MeshsplatError(
+            f"model directory {p} is a file; pass the folder that holds smpl/, smplx/ or flame/ "
+            "(or the model files) as --model-dir"
+        )
     if not p.is_dir():
-        raise MeshsplatError(f"model directory {p} does not exist; pass --model-dir DIR or set {ENV_MODEL_DIR} to the "
-                             "folder holding your smpl/, smplx/ or flame/ model files")
+        raise MeshsplatError(
+            f"model directory {p} does not exist; pass --model-dir DIR or set {ENV_MODEL_DIR} to the "
+            "folder holding your smpl/, smplx/ or flame/ model files"
+        )
     return p
 
 
 def _candidate_names(kind: str, gender: str, flame_version: str) -> list[str]:
     g, G = gender.lower(), gender.upper()
     if kind == "smpl":
-        return [f"SMPL_{G}.pkl", f"SMPL_{G}.npz", f"basicmodel_{g}_lbs_10_207_0_v1.1.0.pkl",
-                f"basicModel_{g}_lbs_10_207_0_v1.0.0.pkl"]
+        return [
+            f"SMPL_{G}.pkl",
+            f"SMPL_{G}.npz",
+            f"basicmodel_{g}_lbs_10_207_0_v1.1.0.pkl",
+            f"basicModel_{g}_lbs_10_207_0_v1.0.0.pkl",
+        ]
     if kind == "smplx":
         return [f"SMPLX_{G}.npz", f"SMPLX_{G}.pkl"]
     if flame_version == "2023":
@@ -104,8 +135,9 @@ def _check_choice(name: str, value: str, allowed) -> str:
     return v
 
 
-def find_model_file(kind: str, model_dir: Path | str | None, gender: str = "neutral",
-                    flame_version: str = "2020") -> Path:
+def find_model_file(
+    kind: str, model_dir: Path | str | None, gender: str = "neutral", flame_version: str = "2020"
+) -> Path:
     """Path of the model file for ``kind`` / ``gender`` under the model directory.
 
     Looks in ``DIR/<kind>/``, ``DIR/<KIND>/`` (FLAME also ``DIR/FLAME2020/`` or ``DIR/FLAME2023/``) and
@@ -124,7 +156,8 @@ def find_model_file(kind: str, model_dir: Path | str | None, gender: str = "neut
     raise MeshsplatError(
         f"{_TITLE[kind]} model file not found: expected {' or '.join(names)} in {', '.join(str(d) for d in dirs)}; "
         f"these files are licensed and not shipped: register at {REGISTER_SITES[kind]}, download the model and "
-        f"put it there (or pass --model-dir)")
+        f"put it there (or pass --model-dir)"
+    )
 
 
 # ---------------------------------------------------------------- pose layouts
@@ -152,8 +185,13 @@ def join_smpl_thetas(global_orient: _ArrayT, body_pose: _ArrayT) -> _ArrayT:
     return cast(_ArrayT, torch.cat([g, b], 1) if isinstance(g, torch.Tensor) else np.concatenate([g, b], 1))
 
 
-_FLAME15 = (("global_orient", 0, 3), ("neck_pose", 3, 6), ("jaw_pose", 6, 9), ("leye_pose", 9, 12),
-            ("reye_pose", 12, 15))
+_FLAME15 = (
+    ("global_orient", 0, 3),
+    ("neck_pose", 3, 6),
+    ("jaw_pose", 6, 9),
+    ("leye_pose", 9, 12),
+    ("reye_pose", 12, 15),
+)
 
 
 def split_flame_pose15(pose: np.ndarray | torch.Tensor) -> dict:
@@ -182,7 +220,9 @@ def _import_smplx_lbs():
     try:
         from smplx.lbs import lbs
     except ImportError:
-        raise MeshsplatError("SMPL/SMPL-X/FLAME models need the smplx package: pip install 'meshsplat[smplx]'") from None
+        raise MeshsplatError(
+            "SMPL/SMPL-X/FLAME models need the smplx package: pip install 'meshsplat[smplx]'"
+        ) from None
     return lbs
 
 
@@ -194,39 +234,55 @@ class BodyModel:
     ``device``. ``path`` loads one file directly instead of searching ``model_dir``.
     """
 
-    def __init__(self, kind: str, model_dir: Path | str | None = None, gender: str = "neutral",
-                 flame_version: str = "2020", scale: float = 1.0, device: str | torch.device = "cpu",
-                 path: Path | str | None = None) -> None:
+    def __init__(
+        self,
+        kind: str,
+        model_dir: Path | str | None = None,
+        gender: str = "neutral",
+        flame_version: str = "2020",
+        scale: float = 1.0,
+        device: str | torch.device = "cpu",
+        path: Path | str | None = None,
+    ) -> None:
         self.kind = _check_choice("model kind", kind, MODEL_KINDS)
         self.gender = _check_choice("gender", gender, GENDERS)
         self.flame_version = _check_choice("flame_version", str(flame_version), FLAME_VERSIONS)
         if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
             raise MeshsplatError(f"scale: expected a positive number, got {scale!r}")
         self.scale = float(scale)
-        self.path = Path(path) if path is not None else find_model_file(self.kind, model_dir, self.gender,
-                                                                          self.flame_version)
+        self.path = (
+            Path(path) if path is not None else find_model_file(self.kind, model_dir, self.gender, self.flame_version)
+        )
         if not self.path.is_file():
-            raise MeshsplatError(f"{_TITLE[self.kind]} model file {self.path} does not exist; register at "
-                                 f"{REGISTER_SITES[self.kind]} and download it")
+            raise MeshsplatError(
+                f"{_TITLE[self.kind]} model file {self.path} does not exist; register at "
+                f"{REGISTER_SITES[self.kind]} and download it"
+            )
         self._lbs = _import_smplx_lbs()
         self.device = torch.device(device)
         try:
             data = read_model_file(self.path)
         except MeshsplatError as e:
             msg = " ".join(str(e).split())
-            raise MeshsplatError(f"{msg}; expected the {_TITLE[self.kind]} model file from {REGISTER_SITES[self.kind]}") \
-                from None
+            raise MeshsplatError(
+                f"{msg}; expected the {_TITLE[self.kind]} model file from {REGISTER_SITES[self.kind]}"
+            ) from None
         self._load(data)
 
     # ------------------------------------------------------------ loading
     def _load(self, d: dict) -> None:
         where = f"{self.path}"
-        missing = [k for k in ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
-                   if k not in d]
+        missing = [
+            k
+            for k in ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
+            if k not in d
+        ]
         if missing:
             raise MeshsplatError(f"{where}: not a {_TITLE[self.kind]} model file, missing keys {missing}")
-        arr = {k: np.asarray(d[k]) for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights",
-                                             "kintree_table", "f")}
+        arr = {
+            k: np.asarray(d[k])
+            for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
+        }
         v = arr["v_template"]
         J = _NUM_JOINTS[self.kind]
         if v.ndim != 2 or v.shape[1] != 3:
@@ -234,13 +290,14 @@ class BodyModel:
         V = v.shape[0]
         sd = arr["shapedirs"]
         sd = sd[:, :, None] if sd.ndim == 2 else sd
-        checks = [("shapedirs", sd.shape[:2] == (V, 3) and sd.ndim == 3, "[V,3,S]", sd.shape),
-                  ("posedirs", arr["posedirs"].shape == (V, 3, (J - 1) * 9), f"[{V},3,{(J - 1) * 9}]",
-                   arr["posedirs"].shape),
-                  ("J_regressor", arr["J_regressor"].shape == (J, V), f"[{J},{V}]", arr["J_regressor"].shape),
-                  ("weights", arr["weights"].shape == (V, J), f"[{V},{J}]", arr["weights"].shape),
-                  ("kintree_table", arr["kintree_table"].shape == (2, J), f"[2,{J}]", arr["kintree_table"].shape),
-                  ("f", arr["f"].ndim == 2 and arr["f"].shape[1] == 3, "[F,3]", arr["f"].shape)]
+        checks = [
+            ("shapedirs", sd.shape[:2] == (V, 3) and sd.ndim == 3, "[V,3,S]", sd.shape),
+            ("posedirs", arr["posedirs"].shape == (V, 3, (J - 1) * 9), f"[{V},3,{(J - 1) * 9}]", arr["posedirs"].shape),
+            ("J_regressor", arr["J_regressor"].shape == (J, V), f"[{J},{V}]", arr["J_regressor"].shape),
+            ("weights", arr["weights"].shape == (V, J), f"[{V},{J}]", arr["weights"].shape),
+            ("kintree_table", arr["kintree_table"].shape == (2, J), f"[2,{J}]", arr["kintree_table"].shape),
+            ("f", arr["f"].ndim == 2 and arr["f"].shape[1] == 3, "[F,3]", arr["f"].shape),
+        ]
         bad = [f"{k} {list(s)} (expected {want})" for k, ok, want, s in checks if not ok]
         if bad:
             raise MeshsplatError(f"{where}: not a {_TITLE[self.kind]} model file: " + "; ".join(bad))
@@ -251,8 +308,9 @@ class BodyModel:
             nb, ex = 300, (300, S)
         else:
             if S < 11:
-                raise MeshsplatError(f"{where}: shapedirs has {S} columns; {_TITLE[self.kind]} needs >= 11 "
-                                     "(shape then expression)")
+                raise MeshsplatError(
+                    f"{where}: shapedirs has {S} columns; {_TITLE[self.kind]} needs >= 11 (shape then expression)"
+                )
             nb, ex = 10, (10, min(S, 20))
         dev, f32 = self.device, torch.float32
         t = lambda x: torch.as_tensor(np.ascontiguousarray(x, np.float32), device=dev)  # noqa: E731
@@ -260,7 +318,7 @@ class BodyModel:
         self.num_betas, self.num_expression = nb, ex[1] - ex[0]
         self.v_template = t(v)
         self.shapedirs = t(sd[:, :, :nb])
-        self.exprdirs = t(sd[:, :, ex[0]:ex[1]])
+        self.exprdirs = t(sd[:, :, ex[0] : ex[1]])
         self.posedirs = t(arr["posedirs"].reshape(-1, (J - 1) * 9).T)  # [P, 3V] as smplx
         self.J_regressor = t(arr["J_regressor"])
         self.lbs_weights = t(arr["weights"])
@@ -276,8 +334,10 @@ class BodyModel:
         self._dtype = f32
 
     def __repr__(self) -> str:
-        return (f"BodyModel({self.kind}, {self.gender}, V={self.num_vertices}, J={self.num_joints}, "
-                f"betas={self.num_betas}, expression={self.num_expression}, scale={self.scale}, file={self.path})")
+        return (
+            f"BodyModel({self.kind}, {self.gender}, V={self.num_vertices}, J={self.num_joints}, "
+            f"betas={self.num_betas}, expression={self.num_expression}, scale={self.scale}, file={self.path})"
+        )
 
     # ------------------------------------------------------------ parameters
     def check_params(self, params: dict, num_frames: int | None = None) -> int:
@@ -296,7 +356,9 @@ class BodyModel:
             if k == "static_offset":
                 shape = tuple(x.shape) if hasattr(x, "shape") else None
                 if shape not in ((V, 3), (1, V, 3)):
-                    problems.append(f"static_offset: expected [{V},3], got {list(shape) if shape else type(x).__name__}")
+                    problems.append(
+                        f"static_offset: expected [{V},3], got {list(shape) if shape else type(x).__name__}"
+                    )
                 elif not _finite(x):
                     problems.append("static_offset: contains NaN or Inf")
                 continue
@@ -306,10 +368,16 @@ class BodyModel:
             shape = tuple(x.shape) if hasattr(x, "shape") else None
             width = self.param_shapes[k]
             padded = k in ("betas", "expression")
-            if shape is None or len(shape) not in (1, 2) or shape[-1] == 0 or \
-                    (shape[-1] > width if padded else shape[-1] != width):
+            if (
+                shape is None
+                or len(shape) not in (1, 2)
+                or shape[-1] == 0
+                or (shape[-1] > width if padded else shape[-1] != width)
+            ):
                 want = f"<= {width}" if padded else f"{width}"
-                problems.append(f"{k}: expected [T, {want}] or [{want}], got {list(shape) if shape else type(x).__name__}")
+                problems.append(
+                    f"{k}: expected [T, {want}] or [{want}], got {list(shape) if shape else type(x).__name__}"
+                )
                 continue
             if not _finite(x):
                 problems.append(f"{k}: contains NaN or Inf")
@@ -317,10 +385,12 @@ class BodyModel:
                 frames[k] = shape[0]
         counts = set(frames.values())
         if len(counts) > 1:
-            problems.append("per-frame parameters disagree on the number of frames: " +
-                            ", ".join(f"{k}={n}" for k, n in frames.items()))
+            problems.append(
+                "per-frame parameters disagree on the number of frames: "
+                + ", ".join(f"{k}={n}" for k, n in frames.items())
+            )
         T = counts.pop() if len(counts) == 1 else (num_frames or 1)
-        if num_frames is not None and T != num_frames and frames:
+        if num_frames is not None and num_frames != T and frames:
             problems.append(f"expected {num_frames} frames, parameters have {T}")
         if problems:
             raise MeshsplatError(f"{_TITLE[self.kind]} parameters: " + "; ".join(problems))
@@ -354,8 +424,17 @@ class BodyModel:
         template = self.v_template
         if params.get("static_offset") is not None:
             template = template + self._tensor(params["static_offset"]).reshape(self.num_vertices, 3)
-        verts, joints = self._lbs(torch.cat(coeffs, 1), pose, template, torch.cat(dirs, 2), self.posedirs,
-                                  self.J_regressor, self.parents, self.lbs_weights, pose2rot=True)
+        verts, joints = self._lbs(
+            torch.cat(coeffs, 1),
+            pose,
+            template,
+            torch.cat(dirs, 2),
+            self.posedirs,
+            self.J_regressor,
+            self.parents,
+            self.lbs_weights,
+            pose2rot=True,
+        )
         transl = self._frames(params, "transl", T, 3)[:, None]
         return BodyOutput(verts * self.scale + transl, joints * self.scale + transl)
 
@@ -466,5 +545,10 @@ def load_driver_params(path: Path | str) -> dict:
 
 def driver_record(model: BodyModel, params_file: str = "driver_params.npz") -> dict:
     """Manifest entry naming the model (not its file: that stays with the user) and the params file."""
-    return {"type": model.kind, "gender": model.gender, "flame_version": model.flame_version,
-            "scale": model.scale, "params": params_file}
+    return {
+        "type": model.kind,
+        "gender": model.gender,
+        "flame_version": model.flame_version,
+        "scale": model.scale,
+        "params": params_file,
+    }

@@ -4,6 +4,7 @@ All meshes and primitives of the scene are merged into one fixed-topology triang
 vertices are kept, seams included). Skinned meshes ignore their node transform (glTF spec);
 other meshes follow their node's world transform, so a mesh attached to a bone moves rigidly.
 """
+
 from __future__ import annotations
 
 import copy
@@ -52,8 +53,10 @@ def _triangles(mode: int, idx: np.ndarray) -> np.ndarray:
     if mode == 4:
         return idx[: len(idx) // 3 * 3].reshape(-1, 3)
     if mode == 5:  # strip: alternate winding
-        tris = [(idx[i], idx[i + 1], idx[i + 2]) if i % 2 == 0 else (idx[i + 1], idx[i], idx[i + 2])
-                for i in range(len(idx) - 2)]
+        tris = [
+            (idx[i], idx[i + 1], idx[i + 2]) if i % 2 == 0 else (idx[i + 1], idx[i], idx[i + 2])
+            for i in range(len(idx) - 2)
+        ]
         return np.array(tris, np.int64).reshape(-1, 3)
     if mode == 6:  # fan
         return np.stack([np.full(len(idx) - 2, idx[0]), idx[1:-1], idx[2:]], 1)
@@ -112,8 +115,11 @@ class GltfDriver:
     def _node_trs(n):
         if n.matrix is not None:
             return None
-        return (np.array(n.translation or [0, 0, 0], np.float64), np.array(n.rotation or [0, 0, 0, 1], np.float64),
-                np.array(n.scale or [1, 1, 1], np.float64))
+        return (
+            np.array(n.translation or [0, 0, 0], np.float64),
+            np.array(n.rotation or [0, 0, 0, 1], np.float64),
+            np.array(n.scale or [1, 1, 1], np.float64),
+        )
 
     @staticmethod
     def _node_local(n) -> np.ndarray:
@@ -172,8 +178,11 @@ class GltfDriver:
                     continue
                 pos = self.file.accessor(a.POSITION)
                 n = len(pos)
-                idx = (self.file.accessor(prim.indices, as_float=False)[:, 0].astype(np.int64)
-                       if prim.indices is not None else np.arange(n))
+                idx = (
+                    self.file.accessor(prim.indices, as_float=False)[:, 0].astype(np.int64)
+                    if prim.indices is not None
+                    else np.arange(n)
+                )
                 tri = _triangles(mode, idx)
                 if len(tri) == 0:
                     continue
@@ -181,8 +190,11 @@ class GltfDriver:
                     if node.skin not in skin_offset:
                         skin = doc.skins[node.skin]
                         skin_offset[node.skin] = len(pairs_node)
-                        ibm = (self.file.accessor(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
-                               if skin.inverseBindMatrices is not None else np.tile(np.eye(4), (len(skin.joints), 1, 1)))
+                        ibm = (
+                            self.file.accessor(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+                            if skin.inverseBindMatrices is not None
+                            else np.tile(np.eye(4), (len(skin.joints), 1, 1))
+                        )
                         pairs_node.extend(skin.joints)
                         pairs_ibm.extend(ibm)
                     j_parts = [self.file.accessor(a.JOINTS_0, as_float=False).astype(np.int64)]
@@ -221,8 +233,14 @@ class GltfDriver:
                 pidx.append(j)
                 pw.append(w)
                 if prim.targets:
-                    d = np.stack([self.file.accessor(t["POSITION"]) if isinstance(t, dict) and t.get("POSITION") is not None
-                                  else np.zeros((n, 3)) for t in prim.targets])
+                    d = np.stack(
+                        [
+                            self.file.accessor(t["POSITION"])
+                            if isinstance(t, dict) and t.get("POSITION") is not None
+                            else np.zeros((n, 3))
+                            for t in prim.targets
+                        ]
+                    )
                     dw = getattr(node, "weights", None) or mesh.weights or [0.0] * len(prim.targets)
                     morphs.append(MorphGroup(ni, np.arange(nv, nv + n), d, np.asarray(dw, np.float64)))
                 nv += n
@@ -232,8 +250,12 @@ class GltfDriver:
         pad = lambda x, v: np.concatenate([x, np.full((len(x), k - x.shape[1]), v, x.dtype)], 1)  # noqa: E731
         self._pair_node = np.asarray(pairs_node, np.int64)
         self._pair_ibm = np.stack(pairs_ibm)
-        self._rig = _Rig(np.concatenate(base), np.concatenate([pad(x, 0) for x in pidx]),
-                         np.concatenate([pad(x, 0.0) for x in pw]), morphs)
+        self._rig = _Rig(
+            np.concatenate(base),
+            np.concatenate([pad(x, 0) for x in pidx]),
+            np.concatenate([pad(x, 0.0) for x in pw]),
+            morphs,
+        )
         self.faces = torch.from_numpy(np.concatenate(faces)).long()
         self.uvs = torch.from_numpy(np.concatenate(uvs)).float()
         self.vertex_colors = torch.from_numpy(np.concatenate(colors)).float()
@@ -298,8 +320,9 @@ class GltfDriver:
             raise MeshsplatError(f"frame: expected 0 <= frame < {self.num_frames}, got {frame}")
         return self.vertices_at(frame / self.fps)
 
-    def vertices_at(self, time: float, clip: str | None = None, morph_weights: dict[int, np.ndarray] | None = None
-                    ) -> torch.Tensor:
+    def vertices_at(
+        self, time: float, clip: str | None = None, morph_weights: dict[int, np.ndarray] | None = None
+    ) -> torch.Tensor:
         """Posed vertices ``[V, 3]`` at ``time`` seconds of ``clip`` (clamped to the clip's range).
 
         ``morph_weights`` maps a mesh node index to weights overriding default and animation.
@@ -368,8 +391,12 @@ class GltfDriver:
         return torch.from_numpy(x.astype(np.float32))
 
     # ---------------------------------------------------------------- derived rigs
-    def derive(self, source_index: ArrayLike, faces: torch.Tensor | ArrayLike,
-               rest_vertices: torch.Tensor | ArrayLike | None = None) -> "GltfDriver":
+    def derive(
+        self,
+        source_index: ArrayLike,
+        faces: torch.Tensor | ArrayLike,
+        rest_vertices: torch.Tensor | ArrayLike | None = None,
+    ) -> GltfDriver:
         """A driver on another mesh carried through the same skinning and morphs.
 
         Vertex ``i`` of the new mesh copies skin weights and morph deltas of glTF vertex
@@ -393,8 +420,9 @@ class GltfDriver:
         base = r.base[src].copy()
         out._rig = _Rig(base, pi, pw, morphs)
         if rest_vertices is not None:
-            rv = np.asarray(rest_vertices.detach().cpu() if isinstance(rest_vertices, torch.Tensor) else rest_vertices,
-                            np.float64)
+            rv = np.asarray(
+                rest_vertices.detach().cpu() if isinstance(rest_vertices, torch.Tensor) else rest_vertices, np.float64
+            )
             if rv.shape != (src.size, 3) or not np.isfinite(rv).all():
                 raise MeshsplatError(f"rest_vertices: expected finite shape [{src.size}, 3], got {list(rv.shape)}")
             m = out._blend_matrices(out.node_world_matrices(None, None))

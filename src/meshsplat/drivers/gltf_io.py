@@ -2,6 +2,7 @@
 
 Everything here is plain numpy in float64; quaternions in glTF files are ``[x, y, z, w]``.
 """
+
 from __future__ import annotations
 
 import base64
@@ -15,7 +16,12 @@ from numpy.typing import ArrayLike
 from meshsplat.errors import MeshsplatError
 
 __all__ = [
-    "GltfFile", "Channel", "quat_xyzw_to_matrix", "trs_matrix", "slerp_xyzw", "sample_channel",
+    "GltfFile",
+    "Channel",
+    "quat_xyzw_to_matrix",
+    "trs_matrix",
+    "slerp_xyzw",
+    "sample_channel",
 ]
 
 _COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
@@ -34,7 +40,7 @@ class GltfFile:
             raise MeshsplatError(f"glTF file not found: {self.path}")
         try:
             self.doc = pygltflib.GLTF2().load(str(self.path))
-        except Exception as exc:  # pygltflib raises assorted errors on bad files
+        except Exception as exc:  # noqa: BLE001 - pygltflib raises assorted errors on bad files
             raise MeshsplatError(f"{self.path}: not a readable glTF/GLB file ({exc})") from None
         if self.doc is None:
             raise MeshsplatError(f"{self.path}: not a readable glTF/GLB file")
@@ -63,7 +69,7 @@ class GltfFile:
     def view_bytes(self, view_index: int) -> bytes:
         bv = self.doc.bufferViews[view_index]
         start = bv.byteOffset or 0
-        return self.buffer(bv.buffer)[start:start + bv.byteLength]
+        return self.buffer(bv.buffer)[start : start + bv.byteLength]
 
     def accessor(self, index: int, as_float: bool = True) -> np.ndarray:
         """Accessor ``index`` as ``[count, ncomp]`` (float64 when ``as_float``; normalized ints scaled)."""
@@ -82,9 +88,13 @@ class GltfFile:
         if sp is not None and sp.count:
             idt = np.dtype(_COMPONENT[sp.indices.componentType])
             ib = self.doc.bufferViews[sp.indices.bufferView]
-            idx = np.frombuffer(self.buffer(ib.buffer), idt, sp.count, (ib.byteOffset or 0) + (sp.indices.byteOffset or 0))
+            idx = np.frombuffer(
+                self.buffer(ib.buffer), idt, sp.count, (ib.byteOffset or 0) + (sp.indices.byteOffset or 0)
+            )
             vb = self.doc.bufferViews[sp.values.bufferView]
-            vals = np.frombuffer(self.buffer(vb.buffer), dt, sp.count * n, (vb.byteOffset or 0) + (sp.values.byteOffset or 0))
+            vals = np.frombuffer(
+                self.buffer(vb.buffer), dt, sp.count * n, (vb.byteOffset or 0) + (sp.values.byteOffset or 0)
+            )
             out[idx.astype(np.int64)] = vals.reshape(sp.count, n)
         if not as_float:
             return out
@@ -101,7 +111,7 @@ class GltfFile:
         try:
             pil: Image.Image = Image.open(io.BytesIO(raw))
             pil = pil.convert("RGBA" if "A" in pil.getbands() else "RGB")
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - PIL raises assorted errors on bad images
             raise MeshsplatError(f"{self.path}: image {index} cannot be decoded ({exc})") from None
         return np.asarray(pil, dtype=np.uint8).copy()
 
@@ -110,11 +120,20 @@ def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     """Unit quaternions ``[..., 4]`` (x, y, z, w) to rotation matrices ``[..., 3, 3]``."""
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     x, y, z, w = np.moveaxis(q, -1, 0)
-    m = np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], axis=-1)
+    m = np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
     return m.reshape(q.shape[:-1] + (3, 3))
 
 

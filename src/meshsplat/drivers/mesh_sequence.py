@@ -13,6 +13,7 @@
 
 Every error names the layout and what it expects.
 """
+
 from __future__ import annotations
 
 import json
@@ -104,7 +105,7 @@ def _clips(names, ranges, t: int, layout: str, where) -> dict:
     if len(names) != len(r):
         raise MeshsplatError(f"{where}: {len(names)} clip names but {len(r)} clip ranges ({layout})")
     out = {}
-    for n, (a, b) in zip(names, r):
+    for n, (a, b) in zip(names, r, strict=True):
         if not 0 <= a <= b < t:
             raise MeshsplatError(f"{where}: clip {n!r} frames [{a}, {b}] outside [0, {t - 1}] ({layout})")
         out[str(n)] = (int(a), int(b))
@@ -200,8 +201,10 @@ def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
     for q in files[1:]:
         v, f, _, _, _ = _read_frame(q, False)
         if v.shape != v0.shape or f.shape != f0.shape or not np.array_equal(f, f0):
-            raise MeshsplatError(f"{q}: {len(v)} vertices / {len(f)} faces differ from {files[0].name} "
-                                 f"({len(v0)} / {len(f0)}): every frame needs the same mesh ({L})")
+            raise MeshsplatError(
+                f"{q}: {len(v)} vertices / {len(f)} faces differ from {files[0].name} "
+                f"({len(v0)} / {len(f0)}): every frame needs the same mesh ({L})"
+            )
         frames.append(v)
     verts = np.stack(frames).astype(np.float32)
     faces = f0.astype(np.int64)
@@ -249,6 +252,7 @@ def read_mesh_sequence(path: Path | str, with_uvs: bool = True) -> MeshSequence:
     if p.suffix.lower() == ".npz":
         return _read_npz(p)
     if p.suffix.lower() == ".npy":
-        raise MeshsplatError(f"{p}: a .npy vertex array has no faces; save faces and vertices together as an "
-                             f"{NPZ_LAYOUT}")
+        raise MeshsplatError(
+            f"{p}: a .npy vertex array has no faces; save faces and vertices together as an {NPZ_LAYOUT}"
+        )
     raise MeshsplatError(f"{p}: expected an {NPZ_LAYOUT} or a {FRAMES_LAYOUT}")

@@ -5,6 +5,7 @@ that builds only numpy arrays, scipy sparse matrices and plain containers; objec
 (which the official pickles use and which breaks on numpy >= 1.24) are read without importing
 chumpy: a leaf ``Ch`` keeps its array in its state under ``x``.
 """
+
 from __future__ import annotations
 
 import pickle
@@ -17,11 +18,19 @@ from meshsplat.errors import MeshsplatError
 __all__ = ["read_model_file"]
 
 _NUMPY_GLOBALS = {
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.numeric", "_frombuffer"),
-    ("numpy._core.numeric", "_frombuffer"), ("copyreg", "_reconstructor"), ("builtins", "object"),
-    ("__builtin__", "object"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+    ("numpy.core.numeric", "_frombuffer"),
+    ("numpy._core.numeric", "_frombuffer"),
+    ("copyreg", "_reconstructor"),
+    ("builtins", "object"),
+    ("__builtin__", "object"),
+    ("copy_reg", "_reconstructor"),
+    ("_codecs", "encode"),
 }
 
 
@@ -71,8 +80,10 @@ def _to_array(value, path: Path, key: str):
             return cls((st["data"], st["indices"], st["indptr"]), shape=tuple(shape)).toarray()
         if isinstance(st.get("x"), np.ndarray):
             return np.asarray(st["x"])
-        raise MeshsplatError(f"{path}: key {key!r} is a derived chumpy expression; install chumpy or convert the file "
-                             "to plain numpy arrays")
+        raise MeshsplatError(
+            f"{path}: key {key!r} is a derived chumpy expression; install chumpy or convert the file "
+            "to plain numpy arrays"
+        )
     if hasattr(value, "toarray"):
         return value.toarray()
     return value

@@ -15,6 +15,7 @@ Layouts read (all numbers float, one row per frame ``S``):
   keys stacked over frames), or a folder/dataset holding ``flame_param/``.
 * meshsplat's own ``driver_params.npz`` (:func:`meshsplat.drivers.body_models.save_driver_params`).
 """
+
 from __future__ import annotations
 
 import json
@@ -36,10 +37,14 @@ from meshsplat.paths import resolve_input
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
 
 ALIGN_MODES = ("none", "translation", "pose")
-_BODY_LAYOUTS = ("SMPL poses [S,72] + trans [S,3] (AIST / InstantAvatar animation), SMPL-X poses [S,165] or "
-                 "SMPL-H poses [S,156] + trans (AMASS)")
-_FLAME_LAYOUTS = ("IMavatar flame_params.json, a VHAP flame_param/ folder of npz (translation, rotation, "
-                  "neck_pose, jaw_pose, eyes_pose, expr)")
+_BODY_LAYOUTS = (
+    "SMPL poses [S,72] + trans [S,3] (AIST / InstantAvatar animation), SMPL-X poses [S,165] or "
+    "SMPL-H poses [S,156] + trans (AMASS)"
+)
+_FLAME_LAYOUTS = (
+    "IMavatar flame_params.json, a VHAP flame_param/ folder of npz (translation, rotation, "
+    "neck_pose, jaw_pose, eyes_pose, expr)"
+)
 _VHAP_KEYS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "expr")
 _SHARED = ("betas", "static_offset")
 
@@ -66,8 +71,9 @@ def _body_parts(z: dict, where: str) -> dict:
     if "poses" in z:
         p = _f32(z["poses"], "poses", where)
         if p.ndim != 2 or p.shape[1] not in (72, 156, 165):
-            raise MeshsplatError(f"{where}: poses must be [S,72], [S,156] or [S,165], got {list(p.shape)}; "
-                                 f"expected {_BODY_LAYOUTS}")
+            raise MeshsplatError(
+                f"{where}: poses must be [S,72], [S,156] or [S,165], got {list(p.shape)}; expected {_BODY_LAYOUTS}"
+            )
         out["global_orient"], out["body21"] = p[:, :3], p[:, 3:66]
         if p.shape[1] == 72:
             out["smpl_hands"] = p[:, 66:72]
@@ -133,11 +139,15 @@ def _flame_from_imavatar(path: Path) -> dict:
         pose = np.array([f["pose"] for f in frames], np.float32)
         expr = np.array([f["expression"] for f in frames], np.float32)
     except (OSError, ValueError, KeyError, TypeError) as e:
-        raise MeshsplatError(f"{path}: not an IMavatar flame_params.json (frames[].pose [15], "
-                             f"frames[].expression) ({type(e).__name__}: {e})") from None
+        raise MeshsplatError(
+            f"{path}: not an IMavatar flame_params.json (frames[].pose [15], "
+            f"frames[].expression) ({type(e).__name__}: {e})"
+        ) from None
     if pose.ndim != 2 or pose.shape[1] != 15 or expr.ndim != 2 or len(expr) != len(pose) or not len(pose):
-        raise MeshsplatError(f"{path}: frames[].pose must be 15 numbers and frames[].expression one row per frame, "
-                             f"got pose {list(pose.shape)}, expression {list(expr.shape)}")
+        raise MeshsplatError(
+            f"{path}: frames[].pose must be 15 numbers and frames[].expression one row per frame, "
+            f"got pose {list(pose.shape)}, expression {list(expr.shape)}"
+        )
     out = {k: _f32(v, k, str(path)) for k, v in split_flame_pose15(pose).items()}
     out["expression"] = _f32(expr, "expression", str(path))
     out["transl"] = np.zeros((len(pose), 3), np.float32)
@@ -153,11 +163,17 @@ def _flame_from_vhap(z: dict, where: str) -> dict:
     rot = _f32(z["rotation"], "rotation", where, 3)
     S = len(rot)
     eyes = _f32(z["eyes_pose"], "eyes_pose", where, 6)
-    out = {"global_orient": rot, "neck_pose": _f32(z["neck_pose"], "neck_pose", where, 3),
-           "jaw_pose": _f32(z["jaw_pose"], "jaw_pose", where, 3), "leye_pose": eyes[:, :3], "reye_pose": eyes[:, 3:],
-           "expression": _f32(z["expr"], "expr", where).reshape(S, -1),
-           "transl": _f32(z["translation"], "translation", where, 3) if "translation" in z
-           else np.zeros((S, 3), np.float32)}
+    out = {
+        "global_orient": rot,
+        "neck_pose": _f32(z["neck_pose"], "neck_pose", where, 3),
+        "jaw_pose": _f32(z["jaw_pose"], "jaw_pose", where, 3),
+        "leye_pose": eyes[:, :3],
+        "reye_pose": eyes[:, 3:],
+        "expression": _f32(z["expr"], "expr", where).reshape(S, -1),
+        "transl": _f32(z["translation"], "translation", where, 3)
+        if "translation" in z
+        else np.zeros((S, 3), np.float32),
+    }
     bad = {k: len(v) for k, v in out.items() if len(v) != S}
     if bad:
         raise MeshsplatError(f"{where}: arrays disagree on the number of frames ({S} rotations, {bad})")
@@ -204,8 +220,10 @@ def _fit_width(params: dict, model: BodyModel, where: str) -> dict:
             del out[k]
         elif x.shape[-1] > width:
             if k == "expression" and np.any(x[..., width:] != 0):
-                raise MeshsplatError(f"{where}: expression has {x.shape[-1]} components, the {model.kind} model "
-                                     f"takes {width}; use a model file with more expression components")
+                raise MeshsplatError(
+                    f"{where}: expression has {x.shape[-1]} components, the {model.kind} model "
+                    f"takes {width}; use a model file with more expression components"
+                )
             out[k] = x[..., :width]
     return out
 

@@ -15,6 +15,7 @@ below ``-tol * max|δ|`` (``tol = eps(dtype)**0.75``), ties to the lowest corner
 back through the edge just entered; stop on the exit edge at walls and after
 ``max_crossings`` crossings. Slow (microseconds per crossing per point); for tests.
 """
+
 from __future__ import annotations
 
 import math
@@ -96,12 +97,12 @@ def _unfold(m: _Mesh, f, j, g, k, rem):
     """Rates in g of the remaining step ``rem`` (rates in f) leaving f through its edge j."""
     p, q = m.corners(f), m.corners(g)
     i = (j + 2) % 3
-    d = [sum(rem[c] * p[c][x] for c in range(3)) for x in range(3)]          # 3D remaining step
+    d = [sum(rem[c] * p[c][x] for c in range(3)) for x in range(3)]  # 3D remaining step
     axis = _unit(_sub(p[(j + 1) % 3], p[j]))
     to_i = _sub(p[i], p[j])
     out_f = _unit(_scale(_sub(to_i, _scale(axis, _dot(to_i, axis))), -1.0))  # leaving f, across the edge
     to_far = _sub(q[(k + 2) % 3], p[j])
-    in_g = _unit(_sub(to_far, _scale(axis, _dot(to_far, axis))))            # entering g, across the edge
+    in_g = _unit(_sub(to_far, _scale(axis, _dot(to_far, axis))))  # entering g, across the edge
     ang = math.atan2(_dot(_cross(out_f, in_g), axis), _dot(out_f, in_g))
     c, s = math.cos(ang), math.sin(ang)
     axd = _cross(axis, d)
@@ -128,19 +129,19 @@ def _walk_one(m: _Mesh, f, uv, step, mode, max_crossings, tol):
             return f, _clamp_bary([b[c] + r[c] for c in range(3)])
         b_exit = [0.0 if c == i else b[c] + t * r[c] for c in range(3)]
         b_exit = _clamp_bary(b_exit)
-        j = (i + 1) % 3                                                      # exit edge, opposite i
+        j = (i + 1) % 3  # exit edge, opposite i
         nb = m.neighbour(f, j)
         if nb is None or crossings == max_crossings:
             return f, b_exit
         g, k = nb
         rem = [(1.0 - t) * x for x in r]
-        from_f = {m.faces[f][c]: c for c in (j, (j + 1) % 3)}                 # shared vertex -> corner of f
+        from_f = {m.faces[f][c]: c for c in (j, (j + 1) % 3)}  # shared vertex -> corner of f
         b_new, r_new = [0.0] * 3, [0.0] * 3
         if mode == "unfold":
             r_new = _unfold(m, f, j, g, k, rem)
         for cg in range(3):
             cf = from_f.get(m.faces[g][cg])
-            if cf is None:                                                   # g's far corner
+            if cf is None:  # g's far corner
                 if mode == "paper":
                     r_new[cg] = -rem[i]
                 entry = cg
@@ -166,7 +167,7 @@ def walk_on_triangles_reference(
     m = _Mesh(mesh, verts)
     tol = torch.finfo(uv.dtype).eps ** 0.75
     faces, uvs = [], []
-    for f, p, s in zip(face.tolist(), uv.detach().double().tolist(), step.detach().double().tolist()):
+    for f, p, s in zip(face.tolist(), uv.detach().double().tolist(), step.detach().double().tolist(), strict=True):
         g, b = _walk_one(m, f, p, s, mode, int(max_crossings), tol)
         faces.append(g)
         uvs.append(b[:2])

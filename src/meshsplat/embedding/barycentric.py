@@ -3,6 +3,7 @@
 Convention: for ``faces[k] = (a, b, c)``, ``u`` weights ``a``, ``v`` weights ``b`` and
 ``w = 1 - u - v`` weights ``c``. ``uv`` outside the triangle (a component < 0) extrapolates the face.
 """
+
 from __future__ import annotations
 
 import torch
@@ -17,7 +18,7 @@ def barycentric_weights(uv: torch.Tensor) -> torch.Tensor:
 
 def interpolate(values: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Blend per-vertex ``values [V,C]`` at the points ``(face [N], weights [N,3])`` -> ``[N,C]``."""
-    corners = values[faces[face]]                   # [N,3,C]
+    corners = values[faces[face]]  # [N,3,C]
     return (weights.unsqueeze(-1).to(corners.dtype) * corners).sum(-2)
 
 

@@ -2,6 +2,7 @@
 
 Barycentric convention: ``meshsplat.embedding.barycentric``. Callers pass ``uv + duv`` so the trainable offsets get gradients.
 """
+
 from __future__ import annotations
 
 import torch
@@ -25,7 +26,9 @@ def _check(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor) -> dict:
     check_tensor("face", face, "N", dims, dtype="int")
     check_tensor("uv", uv, "N,2", dims, dtype="float")
     if face.numel() and (int(face.min()) < 0 or int(face.max()) >= pose.num_faces):
-        raise MeshsplatError(f"face: indices must lie in [0, {pose.num_faces}), got [{int(face.min())}, {int(face.max())}]")
+        raise MeshsplatError(
+            f"face: indices must lie in [0, {pose.num_faces}), got [{int(face.min())}, {int(face.max())}]"
+        )
     return dims
 
 
@@ -56,7 +59,7 @@ def pose_frame(
     if scale_mode not in SCALE_MODES:
         raise MeshsplatError(f"scale_mode: expected one of {SCALE_MODES}, got {scale_mode!r}")
     w = barycentric_weights(uv)
-    q = pose.vertex_quats[pose.faces[face]]                          # [N,3,4]
+    q = pose.vertex_quats[pose.faces[face]]  # [N,3,4]
     sign = torch.where((q * q[:, :1]).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
     delta_q = quat_normalize((w.unsqueeze(-1).to(q.dtype) * sign * q).sum(-2), eps=1e-12)
     ratio = pose.area_ratio[face].unsqueeze(-1)

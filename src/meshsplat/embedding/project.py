@@ -7,6 +7,7 @@
    when uv leaves the triangle the step is walked across faces (``unfold`` walk).
 3. The start with the smallest residual wins.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,8 +32,9 @@ def _seg_closest(x: torch.Tensor, p: torch.Tensor, q: torch.Tensor) -> tuple[tor
     return s, (diff * diff).sum(-1)
 
 
-def closest_point_on_triangles(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
-                               c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def closest_point_on_triangles(
+    x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact closest point of ``x [...,3]`` on triangles ``(a, b, c) [...,3]``.
 
     Returns ``(dist2 [...], w [...,3])`` with barycentric weights of a, b, c.
@@ -55,20 +57,24 @@ def closest_point_on_triangles(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     s_ca, d_ca = _seg_closest(x, c, a)
     z = torch.zeros_like(s_ab)
     cands_d = torch.stack([torch.where(inside, dplane, torch.full_like(dplane, float("inf"))), d_ab, d_bc, d_ca], -1)
-    cands_w = torch.stack([
-        torch.stack([wa, wb, wc], -1),
-        torch.stack([1 - s_ab, s_ab, z], -1),
-        torch.stack([z, 1 - s_bc, s_bc], -1),
-        torch.stack([s_ca, z, 1 - s_ca], -1),
-    ], -2)
+    cands_w = torch.stack(
+        [
+            torch.stack([wa, wb, wc], -1),
+            torch.stack([1 - s_ab, s_ab, z], -1),
+            torch.stack([z, 1 - s_bc, s_bc], -1),
+            torch.stack([s_ca, z, 1 - s_ca], -1),
+        ],
+        -2,
+    )
     best = cands_d.argmin(-1)
     dist2 = torch.gather(cands_d, -1, best.unsqueeze(-1)).squeeze(-1)
     w = torch.gather(cands_w, -2, best[..., None, None].expand(best.shape + (1, 3))).squeeze(-2)
     return dist2, w
 
 
-def _candidates(points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, k: int, n_starts: int,
-                chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _candidates(
+    points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, k: int, n_starts: int, chunk: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Best ``n_starts`` faces per point (by exact distance among the k nearest centroids)."""
     from scipy.spatial import cKDTree
 
@@ -80,9 +86,9 @@ def _candidates(points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, 
     pts_np = points.cpu().numpy()
     out_f, out_w = [], []
     for s in range(0, points.shape[0], chunk):
-        _, cand = tree.query(pts_np[s:s + chunk], k=k)
+        _, cand = tree.query(pts_np[s : s + chunk], k=k)
         cand = torch.as_tensor(np.asarray(cand).reshape(-1, k), device=points.device, dtype=torch.long)
-        x = points[s:s + chunk].unsqueeze(1)
+        x = points[s : s + chunk].unsqueeze(1)
         d2, w = closest_point_on_triangles(x, a[cand], b[cand], c[cand])
         order = d2.argsort(-1)[:, :n_starts]
         out_f.append(torch.gather(cand, 1, order))
@@ -90,11 +96,18 @@ def _candidates(points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, 
     return torch.cat(out_f), torch.cat(out_w)
 
 
-def _residual(verts: torch.Tensor, vn: torch.Tensor, faces: torch.Tensor, f: torch.Tensor, uv: torch.Tensor, d: torch.Tensor,
-              x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def _residual(
+    verts: torch.Tensor,
+    vn: torch.Tensor,
+    faces: torch.Tensor,
+    f: torch.Tensor,
+    uv: torch.Tensor,
+    d: torch.Tensor,
+    x: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
     fc = faces[f]
     w = barycentric_weights(uv).unsqueeze(-1)
-    pv, nv = verts[fc], vn[fc]                                  # [M,3,3]
+    pv, nv = verts[fc], vn[fc]  # [M,3,3]
     p = (w * pv).sum(1)
     nint = (w * nv).sum(1)
     n = safe_normalize(nint)
@@ -139,21 +152,22 @@ def project_to_surface(
         uv = cand_w.reshape(-1, 3)[:, :2].contiguous()
         xs = x.repeat_interleave(s, 0)
         d = torch.zeros(f.shape[0], dtype=torch.float64, device=dev)
-        r, *_ , n = _residual(v, vn, faces, f, uv, d, xs)
-        d = -(r * n).sum(-1)                                       # initial displacement along n
+        r, *_, n = _residual(v, vn, faces, f, uv, d, xs)
+        d = -(r * n).sum(-1)  # initial displacement along n
         eye = torch.eye(3, dtype=torch.float64, device=dev)
         for _ in range(iters):
-            r, p, pv, nv, nint, n = _residual(v, vn, faces, f, uv, d, xs)
+            r, _p, pv, nv, nint, n = _residual(v, vn, faces, f, uv, d, xs)
             proj = (eye - n.unsqueeze(-1) * n.unsqueeze(-2)) / nint.norm(dim=-1).clamp_min(1e-12)[:, None, None]
             dn_du = (proj @ (nv[:, 0] - nv[:, 2]).unsqueeze(-1)).squeeze(-1)
             dn_dv = (proj @ (nv[:, 1] - nv[:, 2]).unsqueeze(-1)).squeeze(-1)
             ju = pv[:, 0] - pv[:, 2] + d.unsqueeze(-1) * dn_du
             jv = pv[:, 1] - pv[:, 2] + d.unsqueeze(-1) * dn_dv
-            jac = torch.stack([ju, jv, n], -1)                      # [M,3,3]
+            jac = torch.stack([ju, jv, n], -1)  # [M,3,3]
             jtj = jac.transpose(-1, -2) @ jac
             lam = 1e-9 * jtj.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
-            delta = torch.linalg.solve(jtj + lam[:, None, None] * eye,
-                                       -(jac.transpose(-1, -2) @ r.unsqueeze(-1))).squeeze(-1)
+            delta = torch.linalg.solve(
+                jtj + lam[:, None, None] * eye, -(jac.transpose(-1, -2) @ r.unsqueeze(-1))
+            ).squeeze(-1)
             delta = torch.nan_to_num(delta).clamp(-4.0, 4.0)
             if bool(delta[:, :2].abs().max() < 1e-13):
                 d = d + delta[:, 2]

@@ -1,4 +1,5 @@
 """Area-weighted uniform sampling of embeddings on a mesh surface."""
+
 from __future__ import annotations
 
 import torch

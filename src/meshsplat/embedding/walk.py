@@ -18,6 +18,7 @@ A point stops on the edge at boundary edges, non-manifold edges, edges of
 degenerate faces, and after ``max_crossings`` crossings. Outputs are always a
 valid face and barycentrics in [0, 1] summing to 1.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -35,8 +36,8 @@ WALK_MODES = ("paper", "unfold")
 
 
 class WalkResult(NamedTuple):
-    face: torch.Tensor     # [N] long
-    uv: torch.Tensor       # [N,2]
+    face: torch.Tensor  # [N] long
+    uv: torch.Tensor  # [N,2]
     changed: torch.Tensor  # [N] bool, face differs from the start face
 
 
@@ -73,39 +74,44 @@ def _tables(mesh: TriMesh, verts: torch.Tensor, dtype: torch.dtype, mode: str) -
     j = torch.arange(3, device=dev).expand(nf, 3)
     j1, i = (j + 1) % 3, (j + 2) % 3
     k1, k2 = (k + 1) % 3, (k + 2) % 3
-    same = faces[g, k] == faces                                   # orientation of the shared edge
+    same = faces[g, k] == faces  # orientation of the shared edge
     dst_j, dst_j1 = torch.where(same, k, k1), torch.where(same, k1, k)
     src = torch.empty(nf, 3, 3, dtype=torch.long, device=dev)
     src.scatter_(2, dst_j.unsqueeze(2), j.unsqueeze(2).contiguous())
     src.scatter_(2, dst_j1.unsqueeze(2), j1.unsqueeze(2))
     src.scatter_(2, k2.unsqueeze(2), i.unsqueeze(2))
     if mode == "paper":
-        m = torch.zeros(nf, 3, 3, 3, dtype=dtype, device=dev)    # [F, j, row (g corner), col (f corner)]
+        m = torch.zeros(nf, 3, 3, 3, dtype=dtype, device=dev)  # [F, j, row (g corner), col (f corner)]
         one = torch.ones(nf, 3, 1, 1, dtype=dtype, device=dev)
         for row, col, val in ((dst_j, j, 1), (dst_j1, j1, 1), (dst_j, i, 1), (dst_j1, i, 1), (k2, i, -1)):
             flat = (row * 3 + col).reshape(nf, 3, 1)
             m.view(nf, 3, 9).scatter_add_(2, flat, (val * one).reshape(nf, 3, 1))
     else:
         v = verts.detach().to(dtype)
-        p = torch.stack(face_corners(v, faces), dim=1)                             # [F, corner, xyz]
+        p = torch.stack(face_corners(v, faces), dim=1)  # [F, corner, xyz]
         nrm = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
         n2 = (nrm * nrm).sum(-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
-        opp = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]                                      # edge opposite corner c
+        opp = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]  # edge opposite corner c
         grad = torch.linalg.cross(nrm.unsqueeze(1).expand_as(opp), opp, dim=-1) / n2.unsqueeze(1)
-        grad = torch.where(deg[:, None, None], torch.zeros_like(grad), grad)         # [F, corner, xyz]
-        e = safe_normalize(p[:, [1, 2, 0]] - p)                                      # local edge j direction
-        pin = safe_normalize(grad[:, [2, 0, 1]])                                     # inward normal of edge j
-        pin_g = pin[g, k]                                                            # [F,3,xyz]
-        rot = e.unsqueeze(-1) * e.unsqueeze(-2) - pin_g.unsqueeze(-1) * pin.unsqueeze(-2)   # [F,3,3,3]
+        grad = torch.where(deg[:, None, None], torch.zeros_like(grad), grad)  # [F, corner, xyz]
+        e = safe_normalize(p[:, [1, 2, 0]] - p)  # local edge j direction
+        pin = safe_normalize(grad[:, [2, 0, 1]])  # inward normal of edge j
+        pin_g = pin[g, k]  # [F,3,xyz]
+        rot = e.unsqueeze(-1) * e.unsqueeze(-2) - pin_g.unsqueeze(-1) * pin.unsqueeze(-2)  # [F,3,3,3]
         # rates in f -> 3D (sum_c rate_c p_c) -> rotate about the edge -> rates in g
         m = grad[g] @ rot @ p.transpose(-1, -2).unsqueeze(1)
     m = torch.where(wall[..., None, None], torch.zeros_like(m), m)
     allow = torch.ones(nf, 3, 3, dtype=dtype, device=dev)
     allow.scatter_(2, k2.unsqueeze(2), 0.0)
     # corner-major copies for the walk: [3, 3F] / [9, 3F]
-    out = {"adj": adj.reshape(-1), "src_t": src.reshape(-1, 3).t().contiguous(),
-           "allow_t": allow.reshape(-1, 3).t().contiguous(), "rate_map_t": m.reshape(-1, 9).t().contiguous(),
-           "deg": deg, "any_deg": bool(deg.any())}
+    out = {
+        "adj": adj.reshape(-1),
+        "src_t": src.reshape(-1, 3).t().contiguous(),
+        "allow_t": allow.reshape(-1, 3).t().contiguous(),
+        "rate_map_t": m.reshape(-1, 9).t().contiguous(),
+        "deg": deg,
+        "any_deg": bool(deg.any()),
+    }
     cache[key] = out
     return out
 
@@ -138,14 +144,24 @@ def walk_on_triangles(
     check_tensor("step", step, "N,2", dims, dtype="float", finite=True)
     dev = check_same_device(verts=verts, face=face, uv=uv, step=step)
     if face.numel() and (int(face.min()) < 0 or int(face.max()) >= mesh.num_faces):
-        raise MeshsplatError(f"face: indices must lie in [0, {mesh.num_faces}), got [{int(face.min())}, {int(face.max())}]")
+        raise MeshsplatError(
+            f"face: indices must lie in [0, {mesh.num_faces}), got [{int(face.min())}, {int(face.max())}]"
+        )
 
     with torch.no_grad():
         return _walk(mesh, verts, face.long(), uv.detach(), step.detach().to(uv.dtype), mode, int(max_crossings), dev)
 
 
-def _walk(mesh: TriMesh, verts: torch.Tensor, face0: torch.Tensor, uv: torch.Tensor, step: torch.Tensor, mode: str,
-          max_crossings: int, dev: torch.device) -> WalkResult:
+def _walk(
+    mesh: TriMesh,
+    verts: torch.Tensor,
+    face0: torch.Tensor,
+    uv: torch.Tensor,
+    step: torch.Tensor,
+    mode: str,
+    max_crossings: int,
+    dev: torch.device,
+) -> WalkResult:
     """Rounds over the moving points, corner-major ``[3, n]`` layout (contiguous per corner).
 
     Branch-free arithmetic replaces masks where torch's CPU kernels are slow on random
@@ -156,16 +172,16 @@ def _walk(mesh: TriMesh, verts: torch.Tensor, face0: torch.Tensor, uv: torch.Ten
     adj, src_t, allow_t, map_t = tb["adj"], tb["src_t"], tb["allow_t"], tb["rate_map_t"]
     tol = torch.finfo(dtype).eps ** 0.75  # relative: grazing rates below this count as zero
     u, v = uv.unbind(1)
-    b = _clamp_bary_t(torch.stack([u, v, 1.0 - (u + v)]))                        # [3, N]
+    b = _clamp_bary_t(torch.stack([u, v, 1.0 - (u + v)]))  # [3, N]
     du, dv = step.unbind(1)
-    r = torch.stack([du, dv, -(du + dv)])                                         # barycentric rates [3, N]
+    r = torch.stack([du, dv, -(du + dv)])  # barycentric rates [3, N]
     if mode == "unfold" and tb["any_deg"]:  # the 3D step is undefined on a degenerate face: it does not move
         r = r.masked_fill(tb["deg"][face0].unsqueeze(0), 0.0)
     f, idx, allow = face0, None, None
     out_face, out_b = face0, b
     for rnd in range(max_crossings + 1):
         # candidate exit corners: rate clearly negative (and not the corner we entered opposite to)
-        neg = (r.abs().amax(0) * -tol - r).sign_().clamp_min_(0.0)              # 1.0 where r < -tol*max|r|
+        neg = (r.abs().amax(0) * -tol - r).sign_().clamp_min_(0.0)  # 1.0 where r < -tol*max|r|
         if allow is not None:
             neg.mul_(allow)
         other = 1.0 - neg
@@ -173,13 +189,13 @@ def _walk(mesh: TriMesh, verts: torch.Tensor, face0: torch.Tensor, uv: torch.Ten
         t3 = b.add(other, alpha=2.0).div_(torch.addcmul(other, neg, r, value=-1.0))
         t = t3.amin(0)
         cross = t < 1.0
-        first = (t - t3).sign_().add_(1.0)                                        # 1.0 at the minimum
-        first[1].mul_(1.0 - first[0])                                             # ties: first index wins
+        first = (t - t3).sign_().add_(1.0)  # 1.0 at the minimum
+        first[1].mul_(1.0 - first[0])  # ties: first index wins
         first[2] = 1.0 - first[0] - first[1]
-        b_end = torch.addcmul(b, r, t.clamp_max(1.0))                            # inside: b + r; else exit point
-        b_end.mul_(1.0 - first * cross.to(dtype))                                 # exit coordinate := 0
+        b_end = torch.addcmul(b, r, t.clamp_max(1.0))  # inside: b + r; else exit point
+        b_end.mul_(1.0 - first * cross.to(dtype))  # exit coordinate := 0
         b_end = _clamp_bary_t(b_end)
-        h = f * 3 + (first[0] + 2.0 * first[1]).long()                            # exit half-edge (edge (i+1)%3)
+        h = f * 3 + (first[0] + 2.0 * first[1]).long()  # exit half-edge (edge (i+1)%3)
         nb = adj.index_select(0, h)
         keep = None if rnd == max_crossings else torch.nonzero(cross & (nb >= 0)).squeeze(1)
         n = f.shape[0]
@@ -198,8 +214,8 @@ def _walk(mesh: TriMesh, verts: torch.Tensor, face0: torch.Tensor, uv: torch.Ten
             f = nb
             if idx is None:
                 idx, out_face, out_b = torch.arange(n, device=dev), face0.clone(), b_end
-        m = map_t.index_select(1, h).view(3, 3, -1)                               # [row, col, n]
-        r = (m * (r * (1.0 - t)).unsqueeze(0)).sum(1)                             # remaining rates, re-expressed
+        m = map_t.index_select(1, h).view(3, 3, -1)  # [row, col, n]
+        r = (m * (r * (1.0 - t)).unsqueeze(0)).sum(1)  # remaining rates, re-expressed
         b = b_end.gather(0, src_t.index_select(1, h))
         allow = allow_t.index_select(1, h)
     return WalkResult(out_face, out_b[:2].t().contiguous(), out_face != face0)

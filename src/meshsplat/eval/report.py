@@ -2,6 +2,7 @@
 
 matplotlib (Agg backend) is imported only here, when a report is written.
 """
+
 from __future__ import annotations
 
 import base64
@@ -52,8 +53,9 @@ def plot_samples(samples: list, path: str | Path, title: str = "") -> Path:
     h, w = samples[0][1].shape[:2]
     cell = 2.6
     fig_w, fig_h = 3 * cell * max(w / h, 0.5) + 0.9, rows * cell + 0.5
-    fig, axes = plt.subplots(rows, 3, figsize=(fig_w, fig_h), squeeze=False,
-                             gridspec_kw={"wspace": 0.04, "hspace": 0.28})
+    fig, axes = plt.subplots(
+        rows, 3, figsize=(fig_w, fig_h), squeeze=False, gridspec_kw={"wspace": 0.04, "hspace": 0.28}
+    )
     dpi = max(80, min(200, int(min(w, 512) / cell)))
     im = None
     for r, (label, gt, img, rec) in enumerate(samples):
@@ -95,12 +97,12 @@ def plot_curves(log: dict[str, np.ndarray], path: str | Path) -> Path | None:
     panels = [("loss", "loss", True), ("psnr", "train PSNR (dB)", False), ("n_gaussians", "#Gaussians", False)]
     panels = [p for p in panels if p[0] in log]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
-    for ax, (key, label, logy) in zip(axes[0], panels):
+    for ax, (key, label, logy) in zip(axes[0], panels, strict=True):
         y = log[key]
         ax.plot(it, y, lw=0.8, color="tab:blue", alpha=0.45 if len(y) > 20 else 1.0)
         if len(y) > 20:  # moving average over ~5% of the rows
             k = max(2, len(y) // 20)
-            ax.plot(it[k - 1:], np.convolve(y, np.ones(k) / k, mode="valid"), lw=1.5, color="tab:blue")
+            ax.plot(it[k - 1 :], np.convolve(y, np.ones(k) / k, mode="valid"), lw=1.5, color="tab:blue")
         if logy and bool((y > 0).all()):
             ax.set_yscale("log")
         ax.set_xlabel("iteration")
@@ -119,7 +121,7 @@ def _img_tag(path: Path) -> str:
 
 
 def _fmt(x, digits: int = 3) -> str:
-    return "–" if x is None else f"{x:.{digits}f}"
+    return "-" if x is None else f"{x:.{digits}f}"
 
 
 def write_report(out_dir: str | Path, metrics: dict, samples: dict, log_csv: str | Path) -> dict[str, str]:
@@ -129,8 +131,11 @@ def write_report(out_dir: str | Path, metrics: dict, samples: dict, log_csv: str
     sheets = {}
     for name, rows in samples.items():
         if rows:
-            sheets[name] = plot_samples(rows, out / f"samples_{name}.png",
-                                        f"{name}: ground truth | render | error (iteration {metrics.get('iteration')})")
+            sheets[name] = plot_samples(
+                rows,
+                out / f"samples_{name}.png",
+                f"{name}: ground truth | render | error (iteration {metrics.get('iteration')})",
+            )
             files[f"samples_{name}"] = str(sheets[name])
     curves = plot_curves(read_log(log_csv), out / "curves.png")
     if curves is not None:
@@ -141,7 +146,8 @@ def write_report(out_dir: str | Path, metrics: dict, samples: dict, log_csv: str
         f"<td>{_fmt(s['lpips'])}</td><td>{_fmt(s.get('psnr_mask'), 2)}</td><td>{_fmt(s.get('ssim_mask'))}</td>"
         f"<td>{_fmt(s.get('lpips_mask'))}</td><td>{_fmt(s.get('psnr_crop'), 2)}</td><td>{_fmt(s.get('ssim_crop'))}</td>"
         f"<td>{_fmt(s.get('lpips_crop'))}</td><td>{_fmt(s['render_ms'], 1)}</td></tr>"
-        for n, s in metrics["splits"].items())
+        for n, s in metrics["splits"].items()
+    )
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>meshsplat evaluation</title><style>",
         "body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse;margin:1em 0}",
@@ -171,9 +177,13 @@ def write_report(out_dir: str | Path, metrics: dict, samples: dict, log_csv: str
         body = "".join(
             f"<tr><td>{f['index']} {e(str(f['name']))}</td><td>{e(str(f['camera_id']))}</td>"
             f"<td>{_fmt(f['psnr'], 2)}</td><td>{_fmt(f['ssim'])}</td><td>{_fmt(f['lpips'])}</td>"
-            f"<td>{_fmt(f['render_ms'], 1)}</td></tr>" for f in s["frames"])
-        parts.append(f"<details><summary>{e(name)}: per-frame metrics</summary><table><tr><th>frame</th>"
-                     f"<th>camera</th><th>PSNR</th><th>SSIM</th><th>LPIPS</th><th>ms</th></tr>{body}</table></details>")
+            f"<td>{_fmt(f['render_ms'], 1)}</td></tr>"
+            for f in s["frames"]
+        )
+        parts.append(
+            f"<details><summary>{e(name)}: per-frame metrics</summary><table><tr><th>frame</th>"
+            f"<th>camera</th><th>PSNR</th><th>SSIM</th><th>LPIPS</th><th>ms</th></tr>{body}</table></details>"
+        )
     parts.append("</body></html>")
     (out / "report.html").write_text("\n".join(parts), encoding="utf-8")
     files["report"] = str(out / "report.html")

@@ -10,6 +10,7 @@
 ``antialiased`` (opacity compensated for the screen-space dilation per view), ``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
 albedo and every render is shaded by the posed normals).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -41,9 +42,16 @@ class AvatarRender:
 class Avatar:
     """Canonical ``TriMesh`` + parameter dict + how to pose it (``scale_mode``)."""
 
-    def __init__(self, mesh: TriMesh, params: dict[str, torch.Tensor], scale_mode: str = "sqrt_area",
-                 clamp_to_face: bool = False, shading: Shading | None = None, sh_frame: str = "world",
-                 antialiased: bool = False) -> None:
+    def __init__(
+        self,
+        mesh: TriMesh,
+        params: dict[str, torch.Tensor],
+        scale_mode: str = "sqrt_area",
+        clamp_to_face: bool = False,
+        shading: Shading | None = None,
+        sh_frame: str = "world",
+        antialiased: bool = False,
+    ) -> None:
         if not isinstance(mesh, TriMesh):
             raise MeshsplatError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         check_params(params)
@@ -74,7 +82,7 @@ class Avatar:
     def device(self) -> torch.device:
         return self.params["uv"].device
 
-    def to(self, device: torch.device | str) -> "Avatar":
+    def to(self, device: torch.device | str) -> Avatar:
         """A copy on ``device`` (parameters detached)."""
         params = {k: v.detach().to(device) for k, v in self.params.items()}
         mesh = TriMesh(self.mesh.vertices.to(device), self.mesh.faces.to(device))
@@ -89,8 +97,15 @@ class Avatar:
 
     def compose(self, verts_posed: torch.Tensor, campos: torch.Tensor | None = None) -> ComposedGaussians:
         """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]``."""
-        return compose(self.params, self.pose(verts_posed), self.scale_mode, campos=campos,
-                       clamp_to_face=self.clamp_to_face, shading=self.shading, sh_frame=self.sh_frame)
+        return compose(
+            self.params,
+            self.pose(verts_posed),
+            self.scale_mode,
+            campos=campos,
+            clamp_to_face=self.clamp_to_face,
+            shading=self.shading,
+            sh_frame=self.sh_frame,
+        )
 
     def base_rgb(self, verts_posed: torch.Tensor | None = None) -> torch.Tensor:
         """View-independent colour ``[N,3]`` (SH DC band), with the shading of the pose ``verts_posed [V,3]``
@@ -102,19 +117,23 @@ class Avatar:
                 return rgb
             g = self.compose(self.mesh.vertices if verts_posed is None else verts_posed)
             pose = self.pose(self.mesh.vertices if verts_posed is None else verts_posed)
-            _, phong = embed(pose, self.params["face"], effective_uv(self.params, self.clamp_to_face),
-                             self.params["d"].detach())
+            _, phong = embed(
+                pose, self.params["face"], effective_uv(self.params, self.clamp_to_face), self.params["d"].detach()
+            )
             n = shading_normals(self.shading.normal, phong, g.quats.detach(), g.scales.detach())
             return rgb * self.shading.irradiance(n)
 
-    def render(self, vertices: torch.Tensor, camera: Camera, background: torch.Tensor | None = None,
-               backend: str = "auto") -> AvatarRender:
+    def render(
+        self, vertices: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto"
+    ) -> AvatarRender:
         """Render the avatar posed by ``vertices [V,3]`` as seen by ``camera`` (a :class:`Camera`: world->camera
         ``viewmat``, ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``."""
         if not isinstance(camera, Camera):
-            raise MeshsplatError(f"camera: expected a meshsplat.Camera, got {type(camera).__name__} (the signature is "
-                                 "Avatar.render(vertices, camera, background=None, backend='auto'); make one with "
-                                 "Camera(viewmat, K, width, height))")
+            raise MeshsplatError(
+                f"camera: expected a meshsplat.Camera, got {type(camera).__name__} (the signature is "
+                "Avatar.render(vertices, camera, background=None, backend='auto'); make one with "
+                "Camera(viewmat, K, width, height))"
+            )
         check_tensor("camera viewmat", camera.viewmat, "4,4", dtype="float", finite=True)
         check_tensor("camera K", camera.K, "3,3", dtype="float", finite=True)
         width, height = camera.width, camera.height
@@ -129,10 +148,23 @@ class Avatar:
             bg = background.to(device=dev, dtype=dt)[None]
         opacities = g.opacities
         if self.antialiased:
-            opacities = opacities * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None],
-                                                           int(width), int(height))[0]
-        out = rasterize(g.means, g.quats, g.scales, opacities, g.colors, viewmat[None], K[None],
-                        int(width), int(height), backgrounds=bg, backend=backend)
+            opacities = (
+                opacities
+                * antialias_compensation(g.means, g.quats, g.scales, viewmat[None], K[None], int(width), int(height))[0]
+            )
+        out = rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            opacities,
+            g.colors,
+            viewmat[None],
+            K[None],
+            int(width),
+            int(height),
+            backgrounds=bg,
+            backend=backend,
+        )
         return AvatarRender(out.colors[0], out.alphas[0], out.meta)
 
     # ---- persistence -----------------------------------------------------------------
@@ -150,7 +182,7 @@ class Avatar:
         }
 
     @classmethod
-    def from_state_dict(cls, sd: dict[str, Any], device: torch.device | str = "cpu") -> "Avatar":
+    def from_state_dict(cls, sd: dict[str, Any], device: torch.device | str = "cpu") -> Avatar:
         verts, faces, params = _checked_state(sd)
         mesh = TriMesh(verts.to(device), faces.to(device))
         sh_frame, antialiased = sd.get("sh_frame", "world"), sd.get("antialiased", False)
@@ -162,12 +194,21 @@ class Avatar:
             shading = Shading.from_state_dict(sd.get("shading"), device)
         except (KeyError, AttributeError, TypeError, ValueError) as exc:
             raise MeshsplatError(f"avatar shading state is invalid ({exc})") from None
-        return cls(mesh, {k: v.to(device) for k, v in params.items()}, sd.get("scale_mode", "sqrt_area"),
-                   sd.get("clamp_to_face", False), shading, sh_frame, antialiased)
+        return cls(
+            mesh,
+            {k: v.to(device) for k, v in params.items()},
+            sd.get("scale_mode", "sqrt_area"),
+            sd.get("clamp_to_face", False),
+            shading,
+            sh_frame,
+            antialiased,
+        )
 
     def __repr__(self) -> str:
-        return (f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
-                f"sh_degree={self.sh_degree}, shading={self.shading!r})")
+        return (
+            f"Avatar(N={self.num_gaussians}, mesh={self.mesh!r}, scale_mode={self.scale_mode!r}, "
+            f"sh_degree={self.sh_degree}, shading={self.shading!r})"
+        )
 
 
 def _checked_state(sd: Any) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:

@@ -13,6 +13,7 @@ The position uses ``uv + duv`` so that the trainable offsets receive gradients; 
 ``uv + duv`` may leave the triangle (linear extrapolation of the face). ``clamp_to_face=True``
 (the no-walking ablation) projects ``uv + duv`` back onto the triangle instead.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -32,8 +33,15 @@ SH_FRAMES = ("world", "triangle")
 
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 @dataclass
@@ -47,9 +55,10 @@ class ComposedGaussians:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
-    def detach(self) -> "ComposedGaussians":
-        return ComposedGaussians(*(t.detach() for t in (self.means, self.quats, self.scales,
-                                                         self.opacities, self.colors)))
+    def detach(self) -> ComposedGaussians:
+        return ComposedGaussians(
+            *(t.detach() for t in (self.means, self.quats, self.scales, self.opacities, self.colors))
+        )
 
 
 def effective_uv(params: dict[str, torch.Tensor], clamp_to_face: bool = False) -> torch.Tensor:
@@ -71,21 +80,38 @@ def eval_sh(sh0: torch.Tensor, shN: torch.Tensor | None, dirs: torch.Tensor | No
         rgb = rgb - _C1 * y * shN[:, 0] + _C1 * z * shN[:, 1] - _C1 * x * shN[:, 2]
         if k >= 8:
             xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-            rgb = (rgb + _C2[0] * xy * shN[:, 3] + _C2[1] * yz * shN[:, 4]
-                   + _C2[2] * (2 * zz - xx - yy) * shN[:, 5] + _C2[3] * xz * shN[:, 6]
-                   + _C2[4] * (xx - yy) * shN[:, 7])
+            rgb = (
+                rgb
+                + _C2[0] * xy * shN[:, 3]
+                + _C2[1] * yz * shN[:, 4]
+                + _C2[2] * (2 * zz - xx - yy) * shN[:, 5]
+                + _C2[3] * xz * shN[:, 6]
+                + _C2[4] * (xx - yy) * shN[:, 7]
+            )
             if k >= 15:
-                rgb = (rgb + _C3[0] * y * (3 * xx - yy) * shN[:, 8] + _C3[1] * xy * z * shN[:, 9]
-                       + _C3[2] * y * (4 * zz - xx - yy) * shN[:, 10]
-                       + _C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * shN[:, 11]
-                       + _C3[4] * x * (4 * zz - xx - yy) * shN[:, 12]
-                       + _C3[5] * z * (xx - yy) * shN[:, 13] + _C3[6] * x * (xx - 3 * yy) * shN[:, 14])
+                rgb = (
+                    rgb
+                    + _C3[0] * y * (3 * xx - yy) * shN[:, 8]
+                    + _C3[1] * xy * z * shN[:, 9]
+                    + _C3[2] * y * (4 * zz - xx - yy) * shN[:, 10]
+                    + _C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * shN[:, 11]
+                    + _C3[4] * x * (4 * zz - xx - yy) * shN[:, 12]
+                    + _C3[5] * z * (xx - yy) * shN[:, 13]
+                    + _C3[6] * x * (xx - 3 * yy) * shN[:, 14]
+                )
     return (rgb + 0.5).clamp_min(0.0)
 
 
-def compose(params: dict[str, torch.Tensor], pose: MeshPose, scale_mode: str = "sqrt_area", *,
-            campos: torch.Tensor | None = None, clamp_to_face: bool = False, shading: Shading | None = None,
-            sh_frame: str = "world") -> ComposedGaussians:
+def compose(
+    params: dict[str, torch.Tensor],
+    pose: MeshPose,
+    scale_mode: str = "sqrt_area",
+    *,
+    campos: torch.Tensor | None = None,
+    clamp_to_face: bool = False,
+    shading: Shading | None = None,
+    sh_frame: str = "world",
+) -> ComposedGaussians:
     """Renderable Gaussians for one posed mesh (``pose``: a ``MeshPose``).
 
     campos [3]: camera centre for view-dependent colour (SH degree > 0); without it only the

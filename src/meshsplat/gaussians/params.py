@@ -13,10 +13,11 @@ Embedding state (plain tensors, no gradient): ``face [N] long``, ``uv [N,2]``.
 The rendered position uses ``uv + duv``; with ``trainable_embedding=False`` (ablation) ``duv``
 and ``d`` are kept as frozen zero tensors.
 """
+
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -27,8 +28,18 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.mesh import TriMesh
 
 __all__ = [
-    "SH_C0", "PARAM_KEYS", "EMBEDDING_STATE_KEYS", "num_sh_rest", "rgb_to_sh0", "sh0_to_rgb",
-    "knn_scales", "make_params", "init_params", "check_params", "num_gaussians", "sh_degree_of",
+    "SH_C0",
+    "PARAM_KEYS",
+    "EMBEDDING_STATE_KEYS",
+    "num_sh_rest",
+    "rgb_to_sh0",
+    "sh0_to_rgb",
+    "knn_scales",
+    "make_params",
+    "init_params",
+    "check_params",
+    "num_gaussians",
+    "sh_degree_of",
 ]
 
 SH_C0 = 0.28209479177387814
@@ -61,15 +72,24 @@ def knn_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
     kk = min(k, n - 1)
     dist, _ = cKDTree(pts).query(pts, k=kk + 1)
     dist = np.asarray(dist).reshape(n, kk + 1)[:, 1:]
-    mean_sq = (dist ** 2).mean(axis=1)
+    mean_sq = (dist**2).mean(axis=1)
     out = np.sqrt(np.maximum(mean_sq, 1e-14))
     return torch.from_numpy(out).to(points)
 
 
-def make_params(face: torch.Tensor, uv: torch.Tensor, *, d: torch.Tensor | None = None,
-                duv: torch.Tensor | None = None, log_scale: torch.Tensor, rotation: torch.Tensor | None = None,
-                opacity_logit: torch.Tensor, sh0: torch.Tensor, shN: torch.Tensor | None = None,
-                trainable_embedding: bool = True) -> dict[str, torch.Tensor]:
+def make_params(
+    face: torch.Tensor,
+    uv: torch.Tensor,
+    *,
+    d: torch.Tensor | None = None,
+    duv: torch.Tensor | None = None,
+    log_scale: torch.Tensor,
+    rotation: torch.Tensor | None = None,
+    opacity_logit: torch.Tensor,
+    sh0: torch.Tensor,
+    shN: torch.Tensor | None = None,
+    trainable_embedding: bool = True,
+) -> dict[str, torch.Tensor]:
     """Assemble a parameter dict from tensors (copied; trainable ones wrapped as Parameters)."""
     n = face.shape[0]
     dev, dt = uv.device, uv.dtype
@@ -93,9 +113,17 @@ def make_params(face: torch.Tensor, uv: torch.Tensor, *, d: torch.Tensor | None 
     return params
 
 
-def init_params(mesh: TriMesh, n: int = 10_000, *, sh_degree: int = 0, init_opacity: float = 0.1,
-                knn: int = 3, colors_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None, generator: torch.Generator | None = None,
-                trainable_embedding: bool = True) -> dict[str, torch.Tensor]:
+def init_params(
+    mesh: TriMesh,
+    n: int = 10_000,
+    *,
+    sh_degree: int = 0,
+    init_opacity: float = 0.1,
+    knn: int = 3,
+    colors_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    generator: torch.Generator | None = None,
+    trainable_embedding: bool = True,
+) -> dict[str, torch.Tensor]:
     """Paper initialisation on the canonical ``mesh`` (a ``TriMesh``).
 
     ``n`` area-weighted samples (face, uv), d = 0, duv = 0, identity rotation, isotropic scale
@@ -117,7 +145,8 @@ def init_params(mesh: TriMesh, n: int = 10_000, *, sh_degree: int = 0, init_opac
     logit = math.log(init_opacity / (1.0 - init_opacity))
     k = num_sh_rest(sh_degree)
     return make_params(
-        face, uv,
+        face,
+        uv,
         log_scale=scale.log()[:, None].repeat(1, 3),
         opacity_logit=torch.full((n,), logit, dtype=verts.dtype, device=verts.device),
         sh0=rgb_to_sh0(rgb),
@@ -132,7 +161,7 @@ def num_gaussians(params: dict[str, torch.Tensor]) -> int:
 
 def sh_degree_of(params: dict[str, torch.Tensor]) -> int:
     k = params["shN"].shape[1] if "shN" in params else 0
-    return int(round(math.sqrt(k + 1))) - 1
+    return round(math.sqrt(k + 1)) - 1
 
 
 def check_params(params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -14,6 +14,7 @@ Normals (``normal``): ``"phong"`` - the interpolated vertex normal of the embedd
 mesh (smooth, follows the surface); ``"axis"`` - the Gaussian's own shortest posed axis, signed to
 face the same side as the Phong normal (follows the flattened splat).
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -34,12 +35,20 @@ _Y00 = 0.28209479177387814
 def sh9_basis(n: torch.Tensor) -> torch.Tensor:
     """Real SH basis up to order 2 at unit directions ``n [N,3]`` -> ``[N,9]``."""
     x, y, z = n.unbind(-1)
-    return torch.stack([
-        torch.full_like(x, _Y00),
-        0.4886025119029199 * y, 0.4886025119029199 * z, 0.4886025119029199 * x,
-        1.0925484305920792 * x * y, 1.0925484305920792 * y * z, 0.31539156525252005 * (3 * z * z - 1),
-        1.0925484305920792 * x * z, 0.5462742152960396 * (x * x - y * y),
-    ], dim=-1)
+    return torch.stack(
+        [
+            torch.full_like(x, _Y00),
+            0.4886025119029199 * y,
+            0.4886025119029199 * z,
+            0.4886025119029199 * x,
+            1.0925484305920792 * x * y,
+            1.0925484305920792 * y * z,
+            0.31539156525252005 * (3 * z * z - 1),
+            1.0925484305920792 * x * z,
+            0.5462742152960396 * (x * x - y * y),
+        ],
+        dim=-1,
+    )
 
 
 def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -58,8 +67,13 @@ def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales:
 class Shading:
     """Learned illumination ``coeffs [9,3]`` (world-space SH irradiance) and which normal it shades."""
 
-    def __init__(self, coeffs: torch.Tensor | None = None, normal: str = "phong", device: Device | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        coeffs: torch.Tensor | None = None,
+        normal: str = "phong",
+        device: Device | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
         if coeffs is None:
@@ -76,18 +90,20 @@ class Shading:
         """``E(n) [N,3]`` (clamped at 0) for unit ``normals [N,3]``."""
         return (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
 
-    def shade(self, albedo: torch.Tensor, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    def shade(
+        self, albedo: torch.Tensor, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
+    ) -> torch.Tensor:
         """Displayed colour ``[N,3]`` = albedo * E(normal)."""
         return albedo * self.irradiance(shading_normals(self.normal, phong, quats, scales))
 
-    def to(self, device: Device) -> "Shading":
+    def to(self, device: Device) -> Shading:
         return Shading(self.coeffs.detach().to(device), self.normal)
 
     def state_dict(self) -> dict[str, Any]:
         return {"coeffs": self.coeffs.detach().cpu().clone(), "normal": self.normal, "space": "world", "order": 2}
 
     @classmethod
-    def from_state_dict(cls, sd: dict[str, Any] | None, device: Device = "cpu") -> "Shading | None":
+    def from_state_dict(cls, sd: dict[str, Any] | None, device: Device = "cpu") -> Shading | None:
         if sd is None:
             return None
         if not isinstance(sd, dict) or "coeffs" not in sd or not isinstance(sd.get("normal"), str):

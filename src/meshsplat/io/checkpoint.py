@@ -9,8 +9,10 @@ arrays must be converted to tensors); it is loaded with ``torch.load(weights_onl
 A folder of checkpoints names them ``ckpt_<step:08d>.pt`` (:func:`checkpoint_path`); where a run keeps
 that folder and which checkpoint a run is read from is ``meshsplat.run_folder``'s business.
 """
+
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import pickle
@@ -41,7 +43,7 @@ _PLAIN = (bool, int, float, complex, str, bytes, type(None), torch.dtype, torch.
 
 
 def _check_state(obj, where: str = "state") -> None:
-    if isinstance(obj, torch.Tensor) or isinstance(obj, _PLAIN):
+    if isinstance(obj, (torch.Tensor, *_PLAIN)):
         return
     if isinstance(obj, dict):
         for k, v in obj.items():
@@ -89,13 +91,12 @@ def save_checkpoint(path: str | os.PathLike, state: dict, keep_last: int | None 
         os.replace(tmp, path)
     except BaseException as exc:
         if tmp is not None:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
-            except FileNotFoundError:
-                pass
         if isinstance(exc, OSError):
-            raise MeshsplatError(f"cannot write checkpoint {path}: {os_error_text(exc)}; "
-                                 "earlier checkpoints are untouched") from None
+            raise MeshsplatError(
+                f"cannot write checkpoint {path}: {os_error_text(exc)}; earlier checkpoints are untouched"
+            ) from None
         raise
     _fsync_dir(path.parent)
     remove_stray_tmp(path.parent)
@@ -118,22 +119,29 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     except pickle.UnpicklingError as exc:
         text = str(exc)
         if "unsupported global" in text.lower():
-            raise MeshsplatError(f"checkpoint {str(path)!r} holds Python code or objects, not just data; it was "
-                                 "not loaded (meshsplat never runs code from a file)") from None
+            raise MeshsplatError(
+                f"checkpoint {str(path)!r} holds Python code or objects, not just data; it was "
+                "not loaded (meshsplat never runs code from a file)"
+            ) from None
         # torch's refusal text advises weights_only=False: never relay that; keep only its reason
-        reason = next((ln.strip() for ln in text.split("WeightsUnpickler error:")[-1].splitlines() if ln.strip()),
-                      "") if "WeightsUnpickler error:" in text else ("unsupported content" if "weights_only" in text
-                                                              else _first_line(exc))
-        raise MeshsplatError(f"checkpoint {str(path)!r} is corrupt or truncated, or not a checkpoint "
-                             f"({reason[:120]}); it was not loaded") from None
-    except Exception as exc:  # truncated zip, garbage
+        reason = (
+            next((ln.strip() for ln in text.split("WeightsUnpickler error:")[-1].splitlines() if ln.strip()), "")
+            if "WeightsUnpickler error:" in text
+            else ("unsupported content" if "weights_only" in text else _first_line(exc))
+        )
+        raise MeshsplatError(
+            f"checkpoint {str(path)!r} is corrupt or truncated, or not a checkpoint ({reason[:120]}); it was not loaded"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - truncated zip, garbage: one clear line
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise MeshsplatError(f"checkpoint {str(path)!r} is corrupt or truncated ({first[:200]})") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT_TAG:
         raise MeshsplatError(f"checkpoint {str(path)!r} is not a meshsplat checkpoint")
     if blob.get("version") != FORMAT_VERSION:
-        raise MeshsplatError(f"checkpoint {str(path)!r} has format version {blob.get('version')!r}; "
-                             f"this meshsplat reads version {FORMAT_VERSION}")
+        raise MeshsplatError(
+            f"checkpoint {str(path)!r} has format version {blob.get('version')!r}; "
+            f"this meshsplat reads version {FORMAT_VERSION}"
+        )
     state = blob.get("state")
     if not isinstance(state, dict):
         raise MeshsplatError(f"checkpoint {str(path)!r} holds no state dict")

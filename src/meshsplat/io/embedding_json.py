@@ -16,13 +16,14 @@ compact and exact (decode in JS with ``new Float32Array(bytes.buffer)``).
 also round-trips exactly, at about 3x the size. ``uv`` is the effective barycentric
 coordinate the renderer uses: ``uv + duv`` when the parameters hold a ``duv``.
 """
+
 from __future__ import annotations
 
 import base64
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import torch
@@ -35,9 +36,14 @@ __all__ = ["write_embedding_json", "read_embedding_json", "EMBEDDING_FORMAT", "E
 EMBEDDING_FORMAT = "meshsplat-embedding"
 EMBEDDING_VERSION = 1
 _SPECS = {
-    "face": ("N", "int32"), "uv": ("N,2", "float32"), "d": ("N", "float32"),
-    "rotation": ("N,4", "float32"), "log_scale": ("N,3", "float32"),
-    "opacity_logit": ("N", "float32"), "sh0": ("N,1,3", "float32"), "shN": ("N,K,3", "float32"),
+    "face": ("N", "int32"),
+    "uv": ("N,2", "float32"),
+    "d": ("N", "float32"),
+    "rotation": ("N,4", "float32"),
+    "log_scale": ("N,3", "float32"),
+    "opacity_logit": ("N", "float32"),
+    "sh0": ("N,1,3", "float32"),
+    "shN": ("N,K,3", "float32"),
 }
 
 
@@ -66,8 +72,9 @@ def _decode(name: str, entry, encoding: str, path: Path) -> np.ndarray:
         raise MeshsplatError(f"{str(path)!r}: array {name!r} is malformed ({exc})") from None
 
 
-def write_embedding_json(path: str | os.PathLike, params: Mapping[str, torch.Tensor],
-                         meta: Mapping | None = None, encoding: str = "base64") -> Path:
+def write_embedding_json(
+    path: str | os.PathLike, params: Mapping[str, torch.Tensor], meta: Mapping | None = None, encoding: str = "base64"
+) -> Path:
     """Write the embedding and Gaussian parameters of ``params`` to JSON.
 
     params needs ``face [N], uv [N,2], d [N], rotation [N,4], log_scale [N,3],
@@ -97,13 +104,19 @@ def write_embedding_json(path: str | os.PathLike, params: Mapping[str, torch.Ten
             continue
         arrays[name] = _encode(t.detach().cpu().numpy().astype(dt), encoding)
     k = p["shN"].shape[1] if p.get("shN") is not None else 0
-    sh_degree = int(round((k + 1) ** 0.5)) - 1
+    sh_degree = round((k + 1) ** 0.5) - 1
     if (sh_degree + 1) ** 2 - 1 != k:
         raise MeshsplatError(f"shN: {k} coefficients is not (degree+1)^2-1 for any degree")
     meta_out = dict(meta or {})
     meta_out.setdefault("sh_degree", sh_degree)
-    doc = {"format": EMBEDDING_FORMAT, "version": EMBEDDING_VERSION, "count": dims["N"],
-           "encoding": encoding, "meta": meta_out, "arrays": arrays}
+    doc = {
+        "format": EMBEDDING_FORMAT,
+        "version": EMBEDDING_VERSION,
+        "count": dims["N"],
+        "encoding": encoding,
+        "meta": meta_out,
+        "arrays": arrays,
+    }
     try:
         text = json.dumps(doc, separators=(",", ":"))
     except (TypeError, ValueError) as exc:

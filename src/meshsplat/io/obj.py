@@ -5,6 +5,7 @@ negative relative indices) and ignores normals, groups, objects, smoothing, mate
 and comments. Polygons are rejected unless ``triangulate=True`` (fan triangulation).
 Errors name the file and line.
 """
+
 from __future__ import annotations
 
 import os
@@ -32,8 +33,13 @@ class ObjMesh:
     face_uvs: torch.Tensor | None = None
 
 
-def write_obj(path: str | os.PathLike, vertices: torch.Tensor, faces: torch.Tensor,
-              uvs: torch.Tensor | None = None, face_uvs: torch.Tensor | None = None) -> Path:
+def write_obj(
+    path: str | os.PathLike,
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    uvs: torch.Tensor | None = None,
+    face_uvs: torch.Tensor | None = None,
+) -> Path:
     """Write ``vertices [V,3]``, ``faces [F,3]`` (0-based) and optional ``uvs [T,2]`` with ``face_uvs [F,3]``."""
     dims: dict[str, int] = {}
     check_tensor("vertices", vertices, "V,3", dims, dtype="float", finite=True)
@@ -54,8 +60,7 @@ def write_obj(path: str | os.PathLike, vertices: torch.Tensor, faces: torch.Tens
         if ft.size and (ft.min() < 0 or ft.max() >= len(t)):
             raise MeshsplatError(f"face_uvs: indices must lie in [0, {len(t) - 1}]")
         lines += [f"vt {a:.9g} {b:.9g}" for a, b in t]
-        lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}"
-                  for (a, b, c), (ta, tb, tc) in zip(f + 1, ft + 1)]
+        lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(f + 1, ft + 1, strict=True)]
     else:
         lines += [f"f {a} {b} {c}" for a, b, c in f + 1]
     path = Path(path)
@@ -109,8 +114,9 @@ def read_obj(path: str | os.PathLike, triangulate: bool = False) -> ObjMesh:
                 if len(args) < 3:
                     raise MeshsplatError(f"{where}: face needs at least 3 vertices, got {raw.strip()!r}")
                 if len(args) > 3 and not triangulate:
-                    raise MeshsplatError(f"{where}: face has {len(args)} vertices; only triangles are "
-                                         "accepted (pass triangulate=True)")
+                    raise MeshsplatError(
+                        f"{where}: face has {len(args)} vertices; only triangles are accepted (pass triangulate=True)"
+                    )
                 vi, ti = [], []
                 for a in args:
                     sub = a.split("/")
@@ -125,8 +131,9 @@ def read_obj(path: str | os.PathLike, triangulate: bool = False) -> ObjMesh:
             elif key not in _IGNORED:
                 raise MeshsplatError(f"{where}: unsupported OBJ statement {key!r}")
     if not verts or not faces:
-        raise MeshsplatError(f"{str(path)!r}: OBJ has {len(verts)} vertices and {len(faces)} faces; "
-                             "need at least one of each")
+        raise MeshsplatError(
+            f"{str(path)!r}: OBJ has {len(verts)} vertices and {len(faces)} faces; need at least one of each"
+        )
     vertices = torch.from_numpy(np.asarray(verts, np.float32))
     if not bool(torch.isfinite(vertices).all()):
         raise MeshsplatError(f"{str(path)!r}: vertices contain NaN/Inf")

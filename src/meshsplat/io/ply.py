@@ -9,6 +9,7 @@ Vertex properties, all float32, in this order::
 with zeros up to ``sh_degree_pad`` (default 3 -> K = 15, 45 values). ``opacity`` is the
 logit, ``scale_*`` the log-scale, ``rot_*`` the quaternion wxyz (not normalized).
 """
+
 from __future__ import annotations
 
 import os
@@ -23,17 +24,32 @@ from meshsplat.errors import MeshsplatError
 __all__ = ["write_gaussian_ply", "read_gaussian_ply", "gaussian_ply_fields"]
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
-    "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
 }
 
 
 def gaussian_ply_fields(num_rest_coeffs: int) -> list[str]:
     """Property names in file order for ``num_rest_coeffs`` = K higher-order SH coefficients."""
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(3 * num_rest_coeffs)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * num_rest_coeffs)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def _np(x: torch.Tensor) -> np.ndarray:
@@ -122,8 +138,10 @@ def _read_header(fh, path: Path) -> tuple[int, list[tuple[str, str]]]:
             break
         if parts[0] == "format":
             if len(parts) < 2 or parts[1] != "binary_little_endian":
-                raise MeshsplatError(f"{str(path)!r}: only binary_little_endian PLY is supported, "
-                                     f"got {' '.join(parts[1:2]) or 'nothing'}")
+                raise MeshsplatError(
+                    f"{str(path)!r}: only binary_little_endian PLY is supported, "
+                    f"got {' '.join(parts[1:2]) or 'nothing'}"
+                )
         elif parts[0] == "element":
             element = parts[1] if len(parts) > 1 else None
             if count is None:
@@ -161,8 +179,22 @@ def read_gaussian_ply(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     arr = np.frombuffer(raw, dtype=dtype, count=n)
     assert dtype.names is not None  # built from a field list
     names = set(dtype.names)
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-                "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    required = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     missing = [r for r in required if r not in names]
     if missing:
         raise MeshsplatError(f"{str(path)!r}: not a Gaussian PLY, missing properties {missing}")

@@ -4,6 +4,7 @@ Reads the ``vertex`` element (``x y z``; optional ``red green blue`` and ``s t``
 ``texture_u texture_v``) and the ``face`` element's index list (polygons fan-triangulated).
 Other elements and properties are skipped. Errors name the file.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -16,9 +17,24 @@ from meshsplat.errors import MeshsplatError
 
 __all__ = ["PlyMesh", "read_ply_mesh"]
 
-_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-          "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-          "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 
 
 @dataclass

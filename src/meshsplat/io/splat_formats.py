@@ -22,6 +22,7 @@ Coordinates are written as they are (the avatar's mesh frame), with no axis conv
   (linear), ``:SH_DEGREE_l_COEF_n`` (float VEC3 per coefficient and degree) and a ``COLOR_0``
   fallback (DC colour and opacity) for viewers without the extension.
 """
+
 from __future__ import annotations
 
 import gzip
@@ -34,8 +35,7 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["write_splat", "read_splat", "write_spz", "read_spz", "write_gltf_splats", "read_gltf_splats",
-           "SH_C0"]
+__all__ = ["write_splat", "read_splat", "write_spz", "read_spz", "write_gltf_splats", "read_gltf_splats", "SH_C0"]
 
 SH_C0 = 0.28209479177387814
 _K_TO_DEGREE = {0: 0, 3: 1, 8: 2, 15: 3}
@@ -58,15 +58,20 @@ def _checked(g: dict) -> dict:
     try:
         means = np.asarray(g["means"], np.float64)
         n = means.shape[0]
-        out = {"means": means.reshape(n, 3), "quats": np.asarray(g["quats"], np.float64).reshape(n, 4),
-               "log_scales": np.asarray(g["log_scales"], np.float64).reshape(n, 3),
-               "opacity_logits": np.asarray(g["opacity_logits"], np.float64).reshape(n),
-               "sh0": np.asarray(g["sh0"], np.float64).reshape(n, 3)}
+        out = {
+            "means": means.reshape(n, 3),
+            "quats": np.asarray(g["quats"], np.float64).reshape(n, 4),
+            "log_scales": np.asarray(g["log_scales"], np.float64).reshape(n, 3),
+            "opacity_logits": np.asarray(g["opacity_logits"], np.float64).reshape(n),
+            "sh0": np.asarray(g["sh0"], np.float64).reshape(n, 3),
+        }
         shN = g.get("shN")
         out["shN"] = np.zeros((n, 0, 3)) if shN is None else np.asarray(shN, np.float64).reshape(n, -1, 3)
     except (KeyError, ValueError) as exc:
-        raise MeshsplatError(f"splats: expected means [N,3], quats [N,4], log_scales [N,3], opacity_logits [N], "
-                             f"sh0 [N,3], shN [N,K,3] ({exc})") from None
+        raise MeshsplatError(
+            f"splats: expected means [N,3], quats [N,4], log_scales [N,3], opacity_logits [N], "
+            f"sh0 [N,3], shN [N,K,3] ({exc})"
+        ) from None
     if out["shN"].shape[1] not in _K_TO_DEGREE:
         raise MeshsplatError(f"splats: shN has {out['shN'].shape[1]} coefficients; expected 0, 3, 8 or 15")
     if not all(np.isfinite(v).all() for v in out.values()):
@@ -112,11 +117,14 @@ def read_splat(path: str | os.PathLike) -> dict:
     rec = np.frombuffer(raw, _SPLAT_DTYPE)
     n = len(rec)
     q = (rec["rot"].astype(np.float64) - 128) / 128
-    return {"means": rec["xyz"].astype(np.float64), "quats": q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True),
-                                                                            1e-12),
-            "log_scales": np.log(np.maximum(rec["scale"].astype(np.float64), 1e-30)),
-            "opacity_logits": _logit(rec["rgba"][:, 3] / 255.0),
-            "sh0": (rec["rgba"][:, :3] / 255.0 - 0.5) / SH_C0, "shN": np.zeros((n, 0, 3))}
+    return {
+        "means": rec["xyz"].astype(np.float64),
+        "quats": q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12),
+        "log_scales": np.log(np.maximum(rec["scale"].astype(np.float64), 1e-30)),
+        "opacity_logits": _logit(rec["rgba"][:, 3] / 255.0),
+        "sh0": (rec["rgba"][:, :3] / 255.0 - 0.5) / SH_C0,
+        "shN": np.zeros((n, 0, 3)),
+    }
 
 
 # ------------------------------------------------------------------ .spz (version 2)
@@ -166,10 +174,16 @@ def write_spz(path: str | os.PathLike, g: dict) -> Path:
         step = np.where(np.arange(k) < 3, 8, 16)[None, :, None]  # degree 1 coefficients: finer steps
         sh = np.floor((sh + step // 2) / step) * step
     header = struct.pack("<IIIBBBB", _SPZ_MAGIC, 3, n, _K_TO_DEGREE[k], frac, 0, 0)
-    body = b"".join([pos.tobytes(), _u8(_sigmoid(g["opacity_logits"]) * 255).tobytes(),
-                     _u8(g["sh0"] * (_SPZ_COLOR_SCALE * 255) + 127.5).tobytes(),
-                     _u8((g["log_scales"] + 10) * 16).tobytes(), _smallest_three(g["quats"]).astype("<u4").tobytes(),
-                     _u8(sh).tobytes()])
+    body = b"".join(
+        [
+            pos.tobytes(),
+            _u8(_sigmoid(g["opacity_logits"]) * 255).tobytes(),
+            _u8(g["sh0"] * (_SPZ_COLOR_SCALE * 255) + 127.5).tobytes(),
+            _u8((g["log_scales"] + 10) * 16).tobytes(),
+            _smallest_three(g["quats"]).astype("<u4").tobytes(),
+            _u8(sh).tobytes(),
+        ]
+    )
     path = Path(path)
     path.write_bytes(gzip.compress(header + body, compresslevel=9, mtime=0))
     return path
@@ -181,8 +195,9 @@ def read_spz(path: str | os.PathLike) -> dict:
     try:
         data = gzip.decompress(raw)
     except (OSError, EOFError) as exc:
-        raise MeshsplatError(f"{str(path)!r}: not a gzip .spz file ({exc}); "
-                             "only gzip SPZ versions 2 and 3 are read") from None
+        raise MeshsplatError(
+            f"{str(path)!r}: not a gzip .spz file ({exc}); only gzip SPZ versions 2 and 3 are read"
+        ) from None
     if len(data) < 16:
         raise MeshsplatError(f"{str(path)!r}: .spz header is truncated")
     magic, version, n, degree, frac, _flags, _ = struct.unpack_from("<IIIBBBB", data)
@@ -208,10 +223,14 @@ def read_spz(path: str | os.PathLike) -> dict:
     else:
         r = rot.reshape(n, 4)
         quats = _from_smallest_three(r[:, 0] | (r[:, 1] << 8) | (r[:, 2] << 16) | (r[:, 3] << 24))
-    return {"means": fixed.reshape(n, 3) / float(1 << frac), "quats": quats,
-            "log_scales": scl.reshape(n, 3) / 16.0 - 10.0, "opacity_logits": _logit(alpha / 255.0),
-            "sh0": (col.reshape(n, 3) / 255.0 - 0.5) / _SPZ_COLOR_SCALE,
-            "shN": (sh.reshape(n, k, 3) - 128) / 128.0}
+    return {
+        "means": fixed.reshape(n, 3) / float(1 << frac),
+        "quats": quats,
+        "log_scales": scl.reshape(n, 3) / 16.0 - 10.0,
+        "opacity_logits": _logit(alpha / 255.0),
+        "sh0": (col.reshape(n, 3) / 255.0 - 0.5) / _SPZ_COLOR_SCALE,
+        "shN": (sh.reshape(n, k, 3) - 128) / 128.0,
+    }
 
 
 # ------------------------------------------------------------------ glTF KHR_gaussian_splatting
@@ -226,11 +245,13 @@ def write_gltf_splats(path: str | os.PathLike, g: dict, color_space: str = "srgb
     if n == 0:
         raise MeshsplatError("gltf: no Gaussians to write")
     alpha = _sigmoid(g["opacity_logits"])
-    columns = [("POSITION", "VEC3", g["means"]),
-               (f"{_KHR}:ROTATION", "VEC4", g["quats"][:, [1, 2, 3, 0]]),  # glTF quaternions are xyzw
-               (f"{_KHR}:SCALE", "VEC3", np.exp(g["log_scales"])),
-               (f"{_KHR}:OPACITY", "SCALAR", alpha),
-               (f"{_KHR}:SH_DEGREE_0_COEF_0", "VEC3", g["sh0"])]
+    columns = [
+        ("POSITION", "VEC3", g["means"]),
+        (f"{_KHR}:ROTATION", "VEC4", g["quats"][:, [1, 2, 3, 0]]),  # glTF quaternions are xyzw
+        (f"{_KHR}:SCALE", "VEC3", np.exp(g["log_scales"])),
+        (f"{_KHR}:OPACITY", "SCALAR", alpha),
+        (f"{_KHR}:SH_DEGREE_0_COEF_0", "VEC3", g["sh0"]),
+    ]
     columns += [(name, "VEC3", g["shN"][:, i]) for i, name in enumerate(_sh_attribute_names(_K_TO_DEGREE[k]))]
     columns.append(("COLOR_0", "VEC4", np.clip(np.concatenate([0.5 + SH_C0 * g["sh0"], alpha[:, None]], 1), 0, 1)))
     blob, views, accessors, attributes = bytearray(), [], [], {}
@@ -246,10 +267,23 @@ def write_gltf_splats(path: str | os.PathLike, g: dict, color_space: str = "srgb
     doc = {
         "asset": {"version": "2.0", "generator": "meshsplat"},
         "extensionsUsed": [_KHR],
-        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "avatar"}],
-        "meshes": [{"primitives": [{"mode": 0, "attributes": attributes,
-                                    "extensions": {_KHR: {"kernel": "ellipse", "colorSpace": color_space}}}]}],
-        "buffers": [{"byteLength": len(blob)}], "bufferViews": views, "accessors": accessors,
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "avatar"}],
+        "meshes": [
+            {
+                "primitives": [
+                    {
+                        "mode": 0,
+                        "attributes": attributes,
+                        "extensions": {_KHR: {"kernel": "ellipse", "colorSpace": color_space}},
+                    }
+                ]
+            }
+        ],
+        "buffers": [{"byteLength": len(blob)}],
+        "bufferViews": views,
+        "accessors": accessors,
     }
     js = json.dumps(doc, separators=(",", ":")).encode()
     js += b" " * (-len(js) % 4)
@@ -267,10 +301,10 @@ def read_gltf_splats(path: str | os.PathLike) -> dict:
     if len(raw) < 20 or raw[:4] != b"glTF":
         raise MeshsplatError(f"{str(path)!r}: not a binary glTF (.glb) file")
     jlen = struct.unpack_from("<I", raw, 12)[0]
-    doc = json.loads(raw[20:20 + jlen])
+    doc = json.loads(raw[20 : 20 + jlen])
     boff = 20 + jlen
     blen, _ = struct.unpack_from("<II", raw, boff)
-    blob = raw[boff + 8:boff + 8 + blen]
+    blob = raw[boff + 8 : boff + 8 + blen]
     prim = next((p for m in doc.get("meshes", []) for p in m["primitives"] if _KHR in p.get("extensions", {})), None)
     if prim is None:
         raise MeshsplatError(f"{str(path)!r}: no {_KHR} primitive")
@@ -288,7 +322,11 @@ def read_gltf_splats(path: str | os.PathLike) -> dict:
     degree = max((lv for lv in range(1, 4) if f"{_KHR}:SH_DEGREE_{lv}_COEF_0" in prim["attributes"]), default=0)
     n = doc["accessors"][prim["attributes"]["POSITION"]]["count"]
     shN = np.stack([attr(a) for a in _sh_attribute_names(degree)], 1) if degree else np.zeros((n, 0, 3))
-    return {"means": attr("POSITION"), "quats": attr(f"{_KHR}:ROTATION")[:, [3, 0, 1, 2]],
-            "log_scales": np.log(np.maximum(attr(f"{_KHR}:SCALE"), 1e-30)),
-            "opacity_logits": _logit(attr(f"{_KHR}:OPACITY")[:, 0]),
-            "sh0": attr(f"{_KHR}:SH_DEGREE_0_COEF_0"), "shN": shN}
+    return {
+        "means": attr("POSITION"),
+        "quats": attr(f"{_KHR}:ROTATION")[:, [3, 0, 1, 2]],
+        "log_scales": np.log(np.maximum(attr(f"{_KHR}:SCALE"), 1e-30)),
+        "opacity_logits": _logit(attr(f"{_KHR}:OPACITY")[:, 0]),
+        "sh0": attr(f"{_KHR}:SH_DEGREE_0_COEF_0"),
+        "shN": shN,
+    }

@@ -4,15 +4,16 @@ Frames are ``[H,W,3]`` (or ``[H,W,4]``/``[H,W,1]``) arrays or tensors, float in 
 or uint8. When the MP4 cannot be written (no ffmpeg), :func:`write_video` says why and
 writes PNGs instead.
 """
+
 from __future__ import annotations
 
 import errno
 import os
 import shutil
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 import torch
@@ -67,14 +68,16 @@ def write_mp4(frames: Iterable, path: str | os.PathLike, fps: float = 30.0, qual
         import imageio.v2 as imageio
         import imageio_ffmpeg  # noqa: F401  (ensures the ffmpeg binary package is present)
     except ImportError as exc:
-        raise MeshsplatError(f"MP4 output needs imageio and imageio-ffmpeg "
-                             f"(pip install 'meshsplat[video]'): {exc}") from None
+        raise MeshsplatError(
+            f"MP4 output needs imageio and imageio-ffmpeg (pip install 'meshsplat[video]'): {exc}"
+        ) from None
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     count = 0
     try:
-        writer = imageio.get_writer(str(path), fps=fps, codec="libx264", quality=quality,
-                                    pixelformat="yuv420p", macro_block_size=1)
+        writer = imageio.get_writer(
+            str(path), fps=fps, codec="libx264", quality=quality, pixelformat="yuv420p", macro_block_size=1
+        )
         try:
             for fr in frames:
                 writer.append_data(_even(to_uint8(fr)[..., :3]))
@@ -83,7 +86,7 @@ def write_mp4(frames: Iterable, path: str | os.PathLike, fps: float = 30.0, qual
             writer.close()
     except MeshsplatError:
         raise
-    except Exception as exc:  # ffmpeg missing or failing
+    except Exception as exc:  # noqa: BLE001 - ffmpeg missing or failing: fall back to PNG frames
         path.unlink(missing_ok=True)
         raise MeshsplatError(f"could not write MP4 {str(path)!r}: {type(exc).__name__}: {exc}") from None
     if count == 0:
@@ -119,8 +122,13 @@ class VideoResult:
     error: str | None = None
 
 
-def write_video(frames: Iterable, path: str | os.PathLike, fps: float = 30.0,
-                png_dir: str | os.PathLike | None = None, png_fallback: bool = True) -> VideoResult:
+def write_video(
+    frames: Iterable,
+    path: str | os.PathLike,
+    fps: float = 30.0,
+    png_dir: str | os.PathLike | None = None,
+    png_fallback: bool = True,
+) -> VideoResult:
     """Write ``frames`` to the MP4 ``path``; PNGs too when ``png_dir`` is given.
 
     If the MP4 fails and ``png_fallback`` is true, the frames are written as PNGs to
@@ -142,6 +150,9 @@ def write_video(frames: Iterable, path: str | os.PathLike, fps: float = 30.0,
         if not result.pngs:
             folder = Path(png_dir) if png_dir is not None else path.with_name(path.stem + "_frames")
             result.pngs = write_png_frames(frames, folder)
-        warnings.warn(f"{exc}; wrote {len(result.pngs)} PNG frames to {result.pngs[0].parent} instead",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"{exc}; wrote {len(result.pngs)} PNG frames to {result.pngs[0].parent} instead",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return result

@@ -1,4 +1,5 @@
 """Triangle mesh: topology, differentiable geometry, posed quantities, quaternions."""
+
 from meshsplat.mesh.geometry import (
     degenerate_faces,
     face_area_ratio,
@@ -15,8 +16,22 @@ from meshsplat.mesh.topology import MeshTopology
 from meshsplat.mesh.trimesh import MeshReport, TriMesh, validate_mesh
 
 __all__ = [
-    "TriMesh", "MeshReport", "validate_mesh", "MeshTopology", "MeshPose",
-    "face_normals", "face_areas", "vertex_normals", "face_frames", "face_rotations", "vertex_quaternions",
-    "face_area_ratio", "degenerate_faces",
-    "quat_multiply", "quat_to_matrix", "matrix_to_quat", "quat_normalize", "quat_conjugate",
+    "TriMesh",
+    "MeshReport",
+    "validate_mesh",
+    "MeshTopology",
+    "MeshPose",
+    "face_normals",
+    "face_areas",
+    "vertex_normals",
+    "face_frames",
+    "face_rotations",
+    "vertex_quaternions",
+    "face_area_ratio",
+    "degenerate_faces",
+    "quat_multiply",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "quat_normalize",
+    "quat_conjugate",
 ]

@@ -4,6 +4,7 @@
 Every normalization is eps-guarded, so degenerate (zero-area) faces give
 finite values and finite gradients, never NaN.
 """
+
 from __future__ import annotations
 
 import torch
@@ -12,8 +13,16 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import matrix_to_quat, quat_normalize
 
 __all__ = [
-    "safe_normalize", "face_corners", "face_normals", "face_areas", "vertex_normals", "face_frames",
-    "face_rotations", "vertex_quaternions", "face_area_ratio", "degenerate_faces",
+    "safe_normalize",
+    "face_corners",
+    "face_normals",
+    "face_areas",
+    "vertex_normals",
+    "face_frames",
+    "face_rotations",
+    "vertex_quaternions",
+    "face_area_ratio",
+    "degenerate_faces",
 ]
 
 _EPS = 1e-12
@@ -116,24 +125,24 @@ def vertex_quaternions(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch
     Signs are aligned per vertex to the quaternion of its largest incident face
     (posed area) before averaging; vertices with no usable face get identity.
     """
-    q_face = matrix_to_quat(face_rotations(v_cano, v_posed, faces))           # [..., F, 4]
-    w_face = face_areas(v_posed, faces)                                        # [..., F]
+    q_face = matrix_to_quat(face_rotations(v_cano, v_posed, faces))  # [..., F, 4]
+    w_face = face_areas(v_posed, faces)  # [..., F]
     lead = q_face.shape[:-2]
     nf, nv = faces.shape[0], v_posed.shape[-2]
     q = q_face.reshape(-1, nf, 4)
     w = w_face.expand(lead + (nf,)).reshape(-1, nf)
     bsz = q.shape[0]
-    vidx = faces.reshape(-1)                                                   # corner -> vertex
-    fidx = torch.arange(nf, device=faces.device).repeat_interleave(3)          # corner -> face
-    wc = w[:, fidx].detach()                                                   # [B, 3F]
+    vidx = faces.reshape(-1)  # corner -> vertex
+    fidx = torch.arange(nf, device=faces.device).repeat_interleave(3)  # corner -> face
+    wc = w[:, fidx].detach()  # [B, 3F]
     # reference face per vertex: largest weight, ties -> largest face index
     wmax = wc.new_full((bsz, nv), -1.0).scatter_reduce(1, vidx.expand(bsz, -1), wc, "amax")
     is_max = wc >= wmax[:, vidx]
     cand = torch.where(is_max, fidx.expand(bsz, -1), torch.full_like(wc, -1, dtype=torch.long))
     ref_face = torch.full((bsz, nv), -1, dtype=torch.long, device=faces.device)
     ref_face = ref_face.scatter_reduce(1, vidx.expand(bsz, -1), cand, "amax").clamp_min(0)
-    q_ref = torch.gather(q.detach(), 1, ref_face[..., None].expand(-1, -1, 4))   # [B, V, 4]
-    qc = q[:, fidx]                                                            # [B, 3F, 4]
+    q_ref = torch.gather(q.detach(), 1, ref_face[..., None].expand(-1, -1, 4))  # [B, V, 4]
+    qc = q[:, fidx]  # [B, 3F, 4]
     sign = torch.where((qc.detach() * q_ref[:, vidx]).sum(-1) < 0, -1.0, 1.0).to(q.dtype)
     contrib = (w[:, fidx] * sign)[..., None] * qc
     acc = q.new_zeros(bsz, nv, 4).index_add(1, vidx, contrib)
@@ -144,7 +153,9 @@ def vertex_quaternions(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch
     return out.reshape(lead + (nv, 4))
 
 
-def face_area_ratio(v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+def face_area_ratio(
+    v_cano: torch.Tensor, v_posed: torch.Tensor, faces: torch.Tensor, eps: float = 1e-12
+) -> torch.Tensor:
     """Posed / canonical face area ``[..., F]``; 1 where the canonical face is degenerate."""
     a0 = face_areas(v_cano, faces)
     a1 = face_areas(v_posed, faces)

@@ -1,4 +1,5 @@
 """One frame's posed mesh quantities used to place embedded Gaussians."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ class MeshPose:
     faces: torch.Tensor
 
     @classmethod
-    def from_vertices(cls, mesh: TriMesh, verts: torch.Tensor, normal_weighting: str = "area") -> "MeshPose":
+    def from_vertices(cls, mesh: TriMesh, verts: torch.Tensor, normal_weighting: str = "area") -> MeshPose:
         """Posed quantities for ``verts [V,3]`` (differentiable w.r.t. verts)."""
         if not isinstance(mesh, TriMesh):
             raise MeshsplatError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
@@ -41,7 +42,7 @@ class MeshPose:
         )
 
     @classmethod
-    def canonical(cls, mesh: TriMesh) -> "MeshPose":
+    def canonical(cls, mesh: TriMesh) -> MeshPose:
         """The rest pose: identity rotations, unit area ratios."""
         return cls.from_vertices(mesh, mesh.vertices)
 

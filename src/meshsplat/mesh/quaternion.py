@@ -2,6 +2,7 @@
 
 Same convention as gsplat: ``q = [w, x, y, z]`` rotates ``v`` as ``q v q*``.
 """
+
 from __future__ import annotations
 
 import torch
@@ -40,9 +41,15 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
     return torch.stack(
         [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+            1 - 2 * (yy + zz),
+            2 * (xy - wz),
+            2 * (xz + wy),
+            2 * (xy + wz),
+            1 - 2 * (xx + zz),
+            2 * (yz - wx),
+            2 * (xz - wy),
+            2 * (yz + wx),
+            1 - 2 * (xx + yy),
         ],
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -57,9 +64,7 @@ def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
     m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
     m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
     m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
-    cands_sq = torch.stack(
-        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
-    )
+    cands_sq = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1)
     # each row: 4 * q_i * q (unnormalized), valid when cands_sq[i] is large
     rows = torch.stack(
         [

@@ -6,6 +6,7 @@ boundary edges (one face) and non-manifold edges (three or more faces) get
 ``face_adj == -1``. Faces with a repeated vertex index produce a self-loop
 edge ``(a, a)`` and are reported as degenerate by index.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -65,14 +66,14 @@ class MeshTopology:
     index_degenerate_faces: torch.Tensor
 
     @classmethod
-    def from_faces(cls, faces: ArrayLike, num_vertices: int | None = None) -> "MeshTopology":
+    def from_faces(cls, faces: ArrayLike, num_vertices: int | None = None) -> MeshTopology:
         faces = as_face_tensor(faces, num_vertices)
         nf = faces.shape[0]
         nv = int(faces.max()) + 1 if num_vertices is None else int(num_vertices)
-        start = faces                                   # [F,3] corner j
-        end = faces[:, [1, 2, 0]]                        # [F,3] corner j+1
+        start = faces  # [F,3] corner j
+        end = faces[:, [1, 2, 0]]  # [F,3] corner j+1
         lo, hi = torch.minimum(start, end), torch.maximum(start, end)
-        key = (lo * nv + hi).reshape(-1)                 # half-edge h = 3*f + j
+        key = (lo * nv + hi).reshape(-1)  # half-edge h = 3*f + j
         uniq, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
         edges = torch.stack([uniq // nv, uniq % nv], dim=1)
         face_edges = inverse.reshape(nf, 3)
@@ -94,11 +95,17 @@ class MeshTopology:
         incons = manifold[flipped[h0] == flipped[h1]]
         idx_degen = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
         return cls(
-            faces=faces, num_vertices=nv, edges=edges, face_edges=face_edges,
-            face_adj=face_adj.reshape(nf, 3), adj_local=adj_local.reshape(nf, 3),
-            edge_face_count=counts, boundary_edges=torch.nonzero(counts == 1).squeeze(1),
+            faces=faces,
+            num_vertices=nv,
+            edges=edges,
+            face_edges=face_edges,
+            face_adj=face_adj.reshape(nf, 3),
+            adj_local=adj_local.reshape(nf, 3),
+            edge_face_count=counts,
+            boundary_edges=torch.nonzero(counts == 1).squeeze(1),
             nonmanifold_edges=torch.nonzero(counts > 2).squeeze(1),
-            edge_flipped=flipped.reshape(nf, 3), inconsistent_edges=incons,
+            edge_flipped=flipped.reshape(nf, 3),
+            inconsistent_edges=incons,
             index_degenerate_faces=torch.nonzero(idx_degen).squeeze(1),
         )
 

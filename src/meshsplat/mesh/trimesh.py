@@ -1,4 +1,5 @@
 """Canonical triangle mesh: validated vertices/faces, cached topology, a readable check()."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -79,7 +80,7 @@ class TriMesh:
         self.vertices, self.faces = validate_mesh(vertices, faces)
 
     @classmethod
-    def load(cls, path: str | Path) -> "TriMesh":
+    def load(cls, path: str | Path) -> TriMesh:
         """Load any format trimesh reads (OBJ, PLY, GLB, ...), scene flattened into one mesh."""
         import trimesh as _trimesh
 
@@ -90,8 +91,10 @@ class TriMesh:
             m: Any = _trimesh.load(str(path), force="mesh", process=False)  # a Trimesh (force="mesh")
         except Exception as exc:  # noqa: BLE001 - reported as one clear message
             raise MeshsplatError(f"cannot read mesh {path}: {exc}") from None
-        return cls(torch.as_tensor(np.asarray(m.vertices), dtype=torch.float32),
-                   torch.as_tensor(np.asarray(m.faces), dtype=torch.long))
+        return cls(
+            torch.as_tensor(np.asarray(m.vertices), dtype=torch.float32),
+            torch.as_tensor(np.asarray(m.faces), dtype=torch.long),
+        )
 
     @property
     def num_vertices(self) -> int:
@@ -127,8 +130,11 @@ class TriMesh:
         """Inspect the mesh without raising; see :class:`MeshReport`."""
         topo = self.topology
         return MeshReport(
-            num_vertices=self.num_vertices, num_faces=self.num_faces, num_edges=topo.num_edges,
-            boundary_edges=len(topo.boundary_edges), nonmanifold_edges=len(topo.nonmanifold_edges),
+            num_vertices=self.num_vertices,
+            num_faces=self.num_faces,
+            num_edges=topo.num_edges,
+            boundary_edges=len(topo.boundary_edges),
+            nonmanifold_edges=len(topo.nonmanifold_edges),
             inconsistent_edges=len(topo.inconsistent_edges),
             degenerate_faces=torch.nonzero(self.degenerate_faces()).squeeze(1).tolist(),
             unreferenced_vertices=len(topo.unreferenced_vertices()),
@@ -148,6 +154,6 @@ def _count_components(topo: MeshTopology) -> int:
     nf = f.shape[0]
     rows = np.repeat(np.arange(nf), 3)
     g = coo_matrix((np.ones(nf * 3), (rows, f.reshape(-1) + nf)), shape=(nf + topo.num_vertices,) * 2)
-    n, labels = connected_components(g, directed=False)
+    _n, labels = connected_components(g, directed=False)
     used = np.unique(labels[:nf])
-    return int(len(used))
+    return len(used)

@@ -1,4 +1,5 @@
 """Image metrics: PSNR, SSIM, LPIPS (images [H,W,3] or [B,H,W,3] in [0, 1])."""
+
 from __future__ import annotations
 
 import torch

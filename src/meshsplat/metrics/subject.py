@@ -8,9 +8,10 @@ Full-image metrics flatter an avatar that fills a tenth of the frame over an eas
 - ``*_crop``: the plain metrics on the mask's bounding box, padded by ``pad`` of its size (and to at
   least 32 pixels a side where the image allows; LPIPS is None on smaller crops).
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -34,13 +35,17 @@ def subject_box(mask: torch.Tensor, pad: float = 0.08, min_size: int = _LPIPS_MI
     ys = torch.nonzero(m.any(1)).flatten()
     xs = torch.nonzero(m.any(0)).flatten()
     y0, y1, x0, x1 = int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
-    py = max(int(round(pad * (y1 - y0))), (min_size - (y1 - y0) + 1) // 2, 0)
-    px = max(int(round(pad * (x1 - x0))), (min_size - (x1 - x0) + 1) // 2, 0)
+    py = max(round(pad * (y1 - y0)), (min_size - (y1 - y0) + 1) // 2, 0)
+    px = max(round(pad * (x1 - x0)), (min_size - (x1 - x0) + 1) // 2, 0)
     return max(0, y0 - py), min(h, y1 + py), max(0, x0 - px), min(w, x1 + px)
 
 
-def subject_metrics(img: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor,
-                    lpips_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> dict:
+def subject_metrics(
+    img: torch.Tensor,
+    gt: torch.Tensor,
+    mask: torch.Tensor,
+    lpips_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+) -> dict:
     """Subject metrics of ``img [H,W,3]`` vs ``gt [H,W,3]`` (both in [0,1]) with ``mask [H,W,1]``.
 
     Returns a dict with :data:`SUBJECT_KEYS` (LPIPS entries None without ``lpips_fn``) and

@@ -1,4 +1,5 @@
 """Thresholds shared by every rasterizer backend (the gsplat 1.5.3 values)."""
+
 from __future__ import annotations
 
 import math

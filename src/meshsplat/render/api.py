@@ -1,4 +1,5 @@
 """Public entry point: validated, backend-dispatching Gaussian rasterization."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -19,10 +20,22 @@ BACKENDS = ("auto", "torch", "gsplat")
 TORCH_OPTIONS = ("pair_budget", "saved_pair_limit", "grad_mode")
 
 
-def _validate(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-              colors: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-              near_plane: float, far_plane: float, backgrounds: torch.Tensor | None, render_mode: str,
-              backend: str) -> None:
+def _validate(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    backgrounds: torch.Tensor | None,
+    render_mode: str,
+    backend: str,
+) -> None:
     dims: dict[str, int] = {}
     check_tensor("means", means, "N,3", dims, dtype="float", finite=True)
     check_tensor("quats", quats, "N,4", dims, dtype="float", finite=True)
@@ -36,10 +49,25 @@ def _validate(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         check_tensor("colors", colors, "N,D", dims, dtype="float", finite=True)
     if backgrounds is not None:
         check_tensor("backgrounds", backgrounds, "C,D", dims, dtype="float", finite=True)
-    check_same_device(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                      viewmats=viewmats, Ks=Ks, backgrounds=backgrounds)
-    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-               "colors": colors, "viewmats": viewmats, "Ks": Ks}
+    check_same_device(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmats=viewmats,
+        Ks=Ks,
+        backgrounds=backgrounds,
+    )
+    tensors = {
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "colors": colors,
+        "viewmats": viewmats,
+        "Ks": Ks,
+    }
     if backgrounds is not None:
         tensors["backgrounds"] = backgrounds
     dtypes = {k: v.dtype for k, v in tensors.items()}
@@ -101,16 +129,55 @@ def rasterize(
     [C,N,2] retaining its gradient, meta["radii"] [C,N,2] int32, meta["depths"] [C,N],
     meta["visible"] [C,N] bool, width, height, n_cameras.
     """
-    _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-              near_plane, far_plane, backgrounds, render_mode, backend)
+    _validate(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane,
+        far_plane,
+        backgrounds,
+        render_mode,
+        backend,
+    )
     chosen = _pick_backend(backend, means.device)
     if chosen == "gsplat":  # backend_options tune the torch backend only
-        return rasterize_gsplat(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                                viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
-                                far_plane=far_plane, backgrounds=backgrounds, render_mode=render_mode)
+        return rasterize_gsplat(
+            means=means,
+            quats=quats,
+            scales=scales,
+            opacities=opacities,
+            colors=colors,
+            viewmats=viewmats,
+            Ks=Ks,
+            width=width,
+            height=height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            backgrounds=backgrounds,
+            render_mode=render_mode,
+        )
     unknown = set(backend_options) - set(TORCH_OPTIONS)
     if unknown:
         raise MeshsplatError(f"unknown backend option(s) {sorted(unknown)}; known: {', '.join(TORCH_OPTIONS)}")
-    return rasterize_torch(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                           viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
-                           far_plane=far_plane, backgrounds=backgrounds, render_mode=render_mode, **backend_options)
+    return rasterize_torch(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmats=viewmats,
+        Ks=Ks,
+        width=width,
+        height=height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        backgrounds=backgrounds,
+        render_mode=render_mode,
+        **backend_options,
+    )

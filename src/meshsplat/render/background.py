@@ -4,9 +4,10 @@ Training and evaluation render the avatar on a background colour and compare it 
 truth composited over the same colour through its mask, so the loss and the metrics score the
 subject, not the recorded background.
 """
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 

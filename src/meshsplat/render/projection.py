@@ -4,6 +4,7 @@ Differentiable with autograd (cost is O(C*N), small next to compositing). Culled
 Gaussians get zero means2d/conics/depths and zero radii, as in gsplat; their
 arithmetic is sanitised first so that no NaN leaks into gradients.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -44,8 +45,9 @@ def project_gaussians(
     eps2d: float = EPS2D,
 ) -> Projection:
     """Project means [N,3] etc. into C pinhole cameras (viewmats [C,4,4] world->camera)."""
-    z, in_depth, cov2d, mean2d = _screen_covariance(means, quats, scales, viewmats, Ks, width, height,
-                                                   near_plane, far_plane)
+    z, in_depth, cov2d, mean2d = _screen_covariance(
+        means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane
+    )
     one = torch.ones((), dtype=z.dtype, device=z.device)
     a = cov2d[..., 0, 0] + eps2d
     b = 0.5 * (cov2d[..., 0, 1] + cov2d[..., 1, 0])
@@ -80,9 +82,17 @@ def project_gaussians(
     )
 
 
-def _screen_covariance(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
-                       Ks: torch.Tensor, width: int, height: int, near_plane: float,
-                       far_plane: float) -> tuple[torch.Tensor, ...]:
+def _screen_covariance(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+) -> tuple[torch.Tensor, ...]:
     """Camera-space z ``[C,N]``, depth mask, screen covariance ``[C,N,2,2]`` (no dilation), 2D means."""
     rot = viewmats[:, :3, :3]
     trans = viewmats[:, :3, 3]
@@ -106,21 +116,29 @@ def _screen_covariance(means: torch.Tensor, quats: torch.Tensor, scales: torch.T
     ty = zs * torch.minimum(lim_yp, torch.maximum(-lim_yn, y / zs))
     rz = 1.0 / zs
     zero = torch.zeros_like(zs)
-    jac = torch.stack(
-        [fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1
-    ).reshape(zs.shape + (2, 3))
+    jac = torch.stack([fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(
+        zs.shape + (2, 3)
+    )
     cov2d = jac @ cov_c @ jac.transpose(-1, -2)  # [C,N,2,2]
     mean2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
 
     return z, in_depth, cov2d, mean2d
 
 
-def antialias_compensation(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
-                           Ks: torch.Tensor, width: int, height: int, eps2d: float = EPS2D) -> torch.Tensor:
+def antialias_compensation(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    eps2d: float = EPS2D,
+) -> torch.Tensor:
     """Opacity factor ``[C,N]`` of gsplat's "antialiased" mode: ``sqrt(det(S) / det(S + eps2d I))`` for the
     screen covariance ``S``, so the low-pass dilation spreads a small Gaussian's energy instead of adding
     to it (Mip-Splatting's 2D filter). About 1 for large Gaussians; differentiable."""
-    z, in_depth, cov2d, _ = _screen_covariance(means, quats, scales, viewmats, Ks, width, height, 0.01, 1e10)
+    _z, in_depth, cov2d, _ = _screen_covariance(means, quats, scales, viewmats, Ks, width, height, 0.01, 1e10)
     a, c = cov2d[..., 0, 0], cov2d[..., 1, 1]
     b = 0.5 * (cov2d[..., 0, 1] + cov2d[..., 1, 0])
     det = (a * c - b * b).clamp_min(0.0)

@@ -1,4 +1,5 @@
 """Return type of :func:`meshsplat.render.rasterize`."""
+
 from __future__ import annotations
 
 from typing import Any, NamedTuple

@@ -1,4 +1,5 @@
 """Ground-truth generator: animated textured meshes rendered into native-format datasets."""
+
 from meshsplat.synth.contact import contact_sheet
 from meshsplat.synth.generate import RIGS, generate, render_view
 from meshsplat.synth.raster import Fragments, rasterize_triangles

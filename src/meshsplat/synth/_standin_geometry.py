@@ -1,5 +1,6 @@
 """Mesh helpers for the stand-in body/head models: exact-count refinement, surface subsampling,
 joint regressors, bone distances."""
+
 from __future__ import annotations
 
 import heapq
@@ -9,8 +10,16 @@ from scipy import sparse
 from scipy.optimize import nnls
 from scipy.sparse.csgraph import dijkstra
 
-__all__ = ["split_to_count", "subsample_surface", "joint_regressor", "weld", "bone_closest", "smoothstep",
-           "farthest_points", "vertex_normals"]
+__all__ = [
+    "split_to_count",
+    "subsample_surface",
+    "joint_regressor",
+    "weld",
+    "bone_closest",
+    "smoothstep",
+    "farthest_points",
+    "vertex_normals",
+]
 
 
 def smoothstep(x):

@@ -1,4 +1,5 @@
 """Stand-in FLAME head built from the ICT FaceKit head (see :mod:`meshsplat.synth.standin_models`)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,15 +19,32 @@ FLAME_PARENTS = [-1, 0, 1, 1, 1]  # root (neck base), neck, jaw, left eye, right
 NUM_VERTICES = 5023
 _SKIN = ("M_Face", "M_BackHead")
 _EYES = {"left": ("M_ScleraLeft", "M_IrisLeft"), "right": ("M_ScleraRight", "M_IrisRight")}
-_FIRST_EXPRESSIONS = ("jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink_R", "browInnerUp_L",
-                      "browInnerUp_R", "mouthPucker", "mouthFunnel", "jawLeft", "jawRight")
+_FIRST_EXPRESSIONS = (
+    "jawOpen",
+    "mouthSmile_L",
+    "mouthSmile_R",
+    "eyeBlink_L",
+    "eyeBlink_R",
+    "browInnerUp_L",
+    "browInnerUp_R",
+    "mouthPucker",
+    "mouthFunnel",
+    "jawLeft",
+    "jawRight",
+)
 
 
 def _ict():
     with np.load(asset("ict_facekit/ict_face_arkit53.npz")) as z:
         mats = [str(s) for s in z["material_names"]]
-        return (z["neutral"].astype(np.float64) * 0.01, z["faces"].astype(np.int64), z["face_material"].astype(np.int64),
-                mats, [str(s) for s in z["expr_names"]], z["expr_deltas"].astype(np.float64) * 0.01)
+        return (
+            z["neutral"].astype(np.float64) * 0.01,
+            z["faces"].astype(np.int64),
+            z["face_material"].astype(np.int64),
+            mats,
+            [str(s) for s in z["expr_names"]],
+            z["expr_deltas"].astype(np.float64) * 0.01,
+        )
 
 
 def _head_mesh():
@@ -49,8 +67,9 @@ def _head_mesh():
     sub_v = v[used]
     seeds, faces = subsample_surface(sub_v, sub_f, int(NUM_VERTICES * 0.97), groups=vmat)
     src = used[seeds]
-    attrs = np.concatenate([vpart[seeds, None].astype(np.float64),
-                            deltas[:, src].transpose(1, 0, 2).reshape(len(src), -1)], 1)
+    attrs = np.concatenate(
+        [vpart[seeds, None].astype(np.float64), deltas[:, src].transpose(1, 0, 2).reshape(len(src), -1)], 1
+    )
     verts, faces, attrs = split_to_count(v[src], faces, NUM_VERTICES, attrs)
     part = np.rint(attrs[:, 0]).astype(np.int64)
     return verts, faces, part, attrs[:, 1:].reshape(NUM_VERTICES, len(names), 3).transpose(1, 0, 2), names
@@ -87,7 +106,7 @@ def _shape_fields(v, part, J, n=300) -> np.ndarray:
     Eyeballs only translate (the mean of the field over each eye)."""
     c = v[part == 0].mean(0)
     r = v - c
-    g = lambda x, s: np.exp(-0.5 * np.sum(x ** 2, -1) / s ** 2)  # noqa: E731
+    g = lambda x, s: np.exp(-0.5 * np.sum(x**2, -1) / s**2)  # noqa: E731
     nose = v[np.argmax(v[:, 2] * (part == 0))]
     chin_y = J[2, 1] - 0.06
     S = np.zeros((len(v), 3, n))
@@ -98,8 +117,9 @@ def _shape_fields(v, part, J, n=300) -> np.ndarray:
     S[:, 0, 4] = 0.08 * r[:, 0] * smoothstep((J[2, 1] - v[:, 1]) / 0.04)  # jaw width
     S[:, 1, 5] = -0.008 * smoothstep((chin_y + 0.03 - v[:, 1]) / 0.04) * (v[:, 2] > J[2, 2])  # chin length
     S[:, 0, 6] = 0.004 * np.sign(r[:, 0]) * g(v - np.array([0, J[3, 1], J[3, 2]]), 0.03) / 1.0  # eye distance
-    S[:, 2, 7] = 0.006 * g(v - np.array([0.045, J[2, 1] - 0.01, c[2] + 0.05]), 0.02) + \
-        0.006 * g(v - np.array([-0.045, J[2, 1] - 0.01, c[2] + 0.05]), 0.02)  # cheeks
+    S[:, 2, 7] = 0.006 * g(v - np.array([0.045, J[2, 1] - 0.01, c[2] + 0.05]), 0.02) + 0.006 * g(
+        v - np.array([-0.045, J[2, 1] - 0.01, c[2] + 0.05]), 0.02
+    )  # cheeks
     S[:, 2, 8] = -0.006 * smoothstep((v[:, 1] - J[3, 1] - 0.03) / 0.04) * (r[:, 2] > 0)  # forehead slope
     S[:, 1, 9] = 0.005 * np.tanh(r[:, 0] / 0.05)  # asymmetry
     rng = np.random.default_rng(9)
@@ -122,15 +142,23 @@ def flame_model_dict() -> tuple[dict, dict, np.ndarray, np.ndarray]:
     cands = [np.nonzero(part == 0)[0]] * 3 + [np.nonzero(part == 1)[0], np.nonzero(part == 2)[0]]
     jreg = joint_regressor(v, J[:3], cands[:3], k=32)
     jreg = np.concatenate([jreg[:3], np.stack([(part == p) / (part == p).sum() for p in (1, 2)])])
-    order = [names.index(n) for n in _FIRST_EXPRESSIONS] + [i for i, n in enumerate(names)
-                                                            if n not in _FIRST_EXPRESSIONS]
+    order = [names.index(n) for n in _FIRST_EXPRESSIONS] + [
+        i for i, n in enumerate(names) if n not in _FIRST_EXPRESSIONS
+    ]
     expr = np.zeros((len(v), 3, 100))
-    expr[:, :, :len(order)] = deltas[order].transpose(1, 2, 0)
+    expr[:, :, : len(order)] = deltas[order].transpose(1, 2, 0)
     shapedirs = np.concatenate([_shape_fields(v, part, J), expr], 2)
     kintree = np.stack([np.array(FLAME_PARENTS, np.int64), np.arange(5)])
     kintree[0, 0] = 4294967295
-    d = {"v_template": v, "f": f.astype(np.uint32), "shapedirs": shapedirs, "posedirs": np.zeros((len(v), 3, 36)),
-         "J_regressor": jreg, "weights": w, "kintree_table": kintree}
+    d = {
+        "v_template": v,
+        "f": f.astype(np.uint32),
+        "shapedirs": shapedirs,
+        "posedirs": np.zeros((len(v), 3, 36)),
+        "J_regressor": jreg,
+        "weights": w,
+        "kintree_table": kintree,
+    }
     c = v[f].mean(1)
     front = np.nonzero((part[f] == 0).all(1) & (c[:, 2] > J[3, 2] - 0.01) & (c[:, 1] < J[3, 1] + 0.04))[0]
     lmk = front[farthest_points(c[front], 51)]

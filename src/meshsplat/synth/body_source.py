@@ -15,6 +15,7 @@ A time picks the nearest motion frame (no interpolation), so stored parameters a
 Colours: ``appearance.npz`` (``vertex_colors [V,3]``) beside the model file when present, else a
 procedural colouring from the skin weights (one hue per joint) with a fine surface pattern.
 """
+
 from __future__ import annotations
 
 import math
@@ -59,8 +60,16 @@ def rotate_params(params: dict, R: np.ndarray, pivot: np.ndarray, root_joint: np
 class ModelSource:
     """A :class:`BodyModel` posed by named clips of per-frame parameters (``[T,k]`` arrays)."""
 
-    def __init__(self, model: BodyModel, clips: dict[str, dict[str, np.ndarray]], shared: dict[str, np.ndarray],
-                 fps: float, vertex_colors: torch.Tensor, attribution: str = "", test_clips: Sequence[str] = ()) -> None:
+    def __init__(
+        self,
+        model: BodyModel,
+        clips: dict[str, dict[str, np.ndarray]],
+        shared: dict[str, np.ndarray],
+        fps: float,
+        vertex_colors: torch.Tensor,
+        attribution: str = "",
+        test_clips: Sequence[str] = (),
+    ) -> None:
         self.model = model
         self.shared = {k: np.asarray(v, np.float32) for k, v in shared.items()}
         self.motions = {c: {k: np.asarray(v, np.float32) for k, v in p.items()} for c, p in clips.items()}
@@ -132,8 +141,10 @@ class ModelSource:
         return driver_record(self.model)
 
     def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> NoReturn:
-        raise MeshsplatError("driver smoothing/decimation is not available for body/head model sources: the "
-                             "stored mesh must stay the model's so its parameters reproduce it")
+        raise MeshsplatError(
+            "driver smoothing/decimation is not available for body/head model sources: the "
+            "stored mesh must stay the model's so its parameters reproduce it"
+        )
 
 
 # ---------------------------------------------------------------- colours
@@ -172,7 +183,9 @@ def _aist_motion(model: BodyModel, root_joint: np.ndarray) -> dict[str, np.ndarr
     with np.load(path, allow_pickle=False) as z:
         poses, trans = np.asarray(z["poses"], np.float64), np.asarray(z["trans"], np.float64)
     if poses.ndim != 2 or poses.shape[1] < 72 or trans.shape != (len(poses), 3):
-        raise MeshsplatError(f"{path}: expected poses [S,72] and trans [S,3], got {list(poses.shape)}, {list(trans.shape)}")
+        raise MeshsplatError(
+            f"{path}: expected poses [S,72] and trans [S,3], got {list(poses.shape)}, {list(trans.shape)}"
+        )
     params = {"global_orient": poses[:, :3], "body_pose": poses[:, 3:72], "transl": trans}
     up = Rotation.from_rotvec(poses[:, :3]).apply([0.0, 1.0, 0.0]).mean(0)
     if up[1] < 0:  # stored y-down: stand the subject up along +y
@@ -203,8 +216,14 @@ def _head_motion(model: BodyModel, clip: str) -> dict[str, np.ndarray]:
         for k in range(min(E, 4)):
             expr[:, k] = (1.5 / (1 + k)) * np.sin(2 * math.pi * 0.25 * t + 0.8 * k) * env
     zeros = np.zeros((n, 3))
-    out = {"global_orient": zeros, "neck_pose": neck, "jaw_pose": jaw, "leye_pose": zeros, "reye_pose": zeros,
-           "transl": zeros}
+    out = {
+        "global_orient": zeros,
+        "neck_pose": neck,
+        "jaw_pose": jaw,
+        "leye_pose": zeros,
+        "reye_pose": zeros,
+        "transl": zeros,
+    }
     if E:
         out["expression"] = expr
     return {k: np.asarray(v, np.float32) for k, v in out.items()}
@@ -234,8 +253,10 @@ def load_model_source(kind: str, model_dir: Path | str | None = None, gender: st
     else:
         clips = {"dance": _aist_motion(model, root)}
         fps, tests = BODY_FPS, ()
-        attribution = (f"{kind.upper()} model from the user's files; motion: AIST++ (CC-BY 4.0, Google / AIST Dance "
-                       "Video Database), aist_demo.npz as distributed with InstantAvatar")
+        attribution = (
+            f"{kind.upper()} model from the user's files; motion: AIST++ (CC-BY 4.0, Google / AIST Dance "
+            "Video Database), aist_demo.npz as distributed with InstantAvatar"
+        )
     colors = _appearance(model)
     if colors is None:
         colors = procedural_colors(model, rest_out.vertices[0].float())

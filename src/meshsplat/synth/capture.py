@@ -1,4 +1,5 @@
 """Synthetic captures in other layouts: generate a native dataset, then write it with a format's ``write``."""
+
 from __future__ import annotations
 
 import inspect
@@ -15,8 +16,15 @@ from meshsplat.synth.generate import generate
 __all__ = ["synth_capture"]
 
 
-def synth_capture(asset: Path | str, out: Path | str, format: str = "native", native_dir: Path | str | None = None,
-                  overwrite: bool = False, write_options: dict | None = None, **generate_options: Any) -> Path:
+def synth_capture(
+    asset: Path | str,
+    out: Path | str,
+    format: str = "native",
+    native_dir: Path | str | None = None,
+    overwrite: bool = False,
+    write_options: dict | None = None,
+    **generate_options: Any,
+) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.generate`) and write it at ``out`` in ``format``.
 
     For a format other than ``native`` the native dataset goes to ``native_dir`` (kept) or a temporary

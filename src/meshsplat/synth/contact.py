@@ -1,4 +1,5 @@
 """Contact sheet: a grid of sample frames (image row over mask row) from a dataset."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -11,11 +12,15 @@ from meshsplat.data import AvatarDataset, open_dataset
 __all__ = ["contact_sheet"]
 
 
-def contact_sheet(dataset: AvatarDataset | Path | str, out_png: Path | str, indices: Sequence[int] | None = None,
-                  count: int = 8, tile: int = 128) -> Path:
+def contact_sheet(
+    dataset: AvatarDataset | Path | str,
+    out_png: Path | str,
+    indices: Sequence[int] | None = None,
+    count: int = 8,
+    tile: int = 128,
+) -> Path:
     """Save a PNG grid: for each chosen frame its image (top) and mask (bottom), ``tile`` px each."""
     from PIL import Image
-
 
     ds = open_dataset(dataset, check_masks=False) if isinstance(dataset, (str, Path)) else dataset
     if indices is None:
@@ -23,8 +28,9 @@ def contact_sheet(dataset: AvatarDataset | Path | str, out_png: Path | str, indi
     cols = []
     for i in indices:
         fr = ds[int(i)]
-        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize((tile, tile),
-                                                                                      Image.Resampling.BILINEAR)
+        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize(
+            (tile, tile), Image.Resampling.BILINEAR
+        )
         m = fr.mask if fr.mask is not None else fr.image.mean(-1, keepdim=True) * 0
         msk = Image.fromarray((m[..., 0].numpy() * 255).round().astype(np.uint8)).convert("RGB").resize((tile, tile))
         col = Image.new("RGB", (tile, 2 * tile))

@@ -1,5 +1,6 @@
 """Driving meshes derived from the rendered surface: welding seam duplicates, Taubin smoothing
 and vertex-clustering decimation (all on the rest pose; the result is re-skinned by the source)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,8 +40,9 @@ def _uniform_laplacian(n: int, faces: np.ndarray) -> sp.csr_matrix:
     return sp.diags(1.0 / np.maximum(deg, 1)) @ a
 
 
-def taubin_smooth(verts: np.ndarray, faces: np.ndarray, iterations: int, lam: float = 0.5, mu: float = -0.53
-                  ) -> np.ndarray:
+def taubin_smooth(
+    verts: np.ndarray, faces: np.ndarray, iterations: int, lam: float = 0.5, mu: float = -0.53
+) -> np.ndarray:
     """Taubin lambda|mu smoothing (uniform weights): removes detail without shrinking the mesh."""
     if iterations < 0:
         raise MeshsplatError(f"iterations: expected >= 0, got {iterations}")
@@ -67,7 +69,7 @@ def cluster_decimate(verts: np.ndarray, faces: np.ndarray, ratio: float) -> tupl
     if not 0 < ratio <= 1:
         raise MeshsplatError(f"decimate ratio: expected in (0, 1], got {ratio}")
     n = len(verts)
-    target = max(4, int(round(n * ratio)))
+    target = max(4, round(n * ratio))
     diag = float(np.linalg.norm(verts.max(0) - verts.min(0)))
     lo, hi = diag * 1e-5, diag
     for _ in range(30):  # bisection on the cell size

@@ -5,6 +5,7 @@ animates, like PeopleSnapshot), ``orbit`` (camera circles a non-turning subject)
 (fixed ring of cameras). Splits: ``train``; ``test_frames`` (the last ``1 - train_fraction`` of the
 clip); ``test_views`` (cameras never used for training); ``test_clip`` (other clips, novel poses).
 """
+
 from __future__ import annotations
 
 import math
@@ -43,10 +44,19 @@ class Shot:
     split: str
 
 
-def render_view(source: Any, verts: torch.Tensor, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                weld_group: torch.Tensor | None = None, background: Sequence[float] = (0.0, 0.0, 0.0),
-                supersample: int = 2, light_dir: ArrayLike = _LIGHT,
-                ambient: float = 0.4) -> tuple[torch.Tensor, torch.Tensor]:
+def render_view(
+    source: Any,
+    verts: torch.Tensor,
+    viewmat: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    weld_group: torch.Tensor | None = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    supersample: int = 2,
+    light_dir: ArrayLike = _LIGHT,
+    ambient: float = 0.4,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Render ``verts [V,3]`` (world) of ``source``: returns ``(rgb [H,W,3], alpha [H,W,1])`` in [0,1]."""
     s = int(supersample)
     R = torch.from_numpy(viewmat[:3, :3]).float()
@@ -92,30 +102,45 @@ def render_view(source: Any, verts: torch.Tensor, viewmat: np.ndarray, K: np.nda
     return rgb, alpha
 
 
-def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames: int, views: int, n_test_views: int,
-          turns: float) -> tuple[list[Shot], dict]:
+def _plan(
+    rig: str,
+    clips: dict,
+    frames: int,
+    test_frames: int,
+    test_view_frames: int,
+    views: int,
+    n_test_views: int,
+    turns: float,
+) -> tuple[list[Shot], dict]:
     """Shots and camera placements (azimuth, elevation) per camera id."""
     train_clip, (t0, t1), t_split = clips["train"]
     tests = clips["tests"]
     shots: list[Shot] = []
     cams: dict[str, tuple[float, float]] = {}
     train_times = [t0 + (t_split - t0) * i / frames for i in range(frames)]
-    test_times = [t_split + (t1 - t_split) * (j + 0.5) / test_frames for j in range(test_frames)] if t1 > t_split else []
+    test_times = (
+        [t_split + (t1 - t_split) * (j + 0.5) / test_frames for j in range(test_frames)] if t1 > t_split else []
+    )
     view_elev = [math.radians(35), math.radians(-12), math.radians(60), math.radians(20)]
-    pick: np.ndarray | list[int] = (np.linspace(0, frames - 1, test_view_frames).round().astype(int)
-                                    if test_view_frames else [])
+    pick: np.ndarray | list[int] = (
+        np.linspace(0, frames - 1, test_view_frames).round().astype(int) if test_view_frames else []
+    )
     if rig == "monocular-turn":
         cams["0"] = (0.0, math.radians(5))
         yaw = lambda k, n: 2 * math.pi * turns * k / n  # noqa: E731
         shots += [Shot(train_clip, tt, yaw(i, frames), "0", "train") for i, tt in enumerate(train_times)]
-        shots += [Shot(train_clip, tt, yaw(j + 0.5, len(test_times)), "0", "test_frames") for j, tt in enumerate(test_times)]
+        shots += [
+            Shot(train_clip, tt, yaw(j + 0.5, len(test_times)), "0", "test_frames") for j, tt in enumerate(test_times)
+        ]
         for v in range(n_test_views):
             cid = f"view{v + 1}"
             cams[cid] = (math.radians(25) * (v + 1), view_elev[v % len(view_elev)])
             shots += [Shot(train_clip, train_times[i], yaw(i, frames), cid, "test_views") for i in pick]
         for c, (a, b) in tests:
-            shots += [Shot(c, a + (b - a) * (j + 0.5) / test_frames, yaw(j + 0.25, test_frames), "0", "test_clip")
-                      for j in range(test_frames)]
+            shots += [
+                Shot(c, a + (b - a) * (j + 0.5) / test_frames, yaw(j + 0.25, test_frames), "0", "test_clip")
+                for j in range(test_frames)
+            ]
     elif rig == "orbit":
         for i, tt in enumerate(train_times):
             cams[f"orbit{i:03d}"] = (2 * math.pi * i / frames, math.radians(8))
@@ -136,7 +161,11 @@ def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames
     elif rig == "multiview":
         if views < 2 or n_test_views >= views:
             raise MeshsplatError(f"views: multiview needs views >= 2 and more views than test views, got {views}")
-        held = set(np.linspace(0, views - 1, n_test_views + 2).round().astype(int)[1:-1].tolist()) if n_test_views else set()
+        held = (
+            set(np.linspace(0, views - 1, n_test_views + 2).round().astype(int)[1:-1].tolist())
+            if n_test_views
+            else set()
+        )
         for c in range(views):
             cams[f"cam{c:02d}"] = (2 * math.pi * c / views, math.radians(5 if c % 2 == 0 else 25))
         for c in range(views):
@@ -146,8 +175,11 @@ def _plan(rig: str, clips: dict, frames: int, test_frames: int, test_view_frames
                 continue
             shots += [Shot(train_clip, tt, 0.0, cid, "train") for tt in train_times]
             shots += [Shot(train_clip, tt, 0.0, cid, "test_frames") for tt in test_times]
-            shots += [Shot(c_, a + (b - a) * (j + 0.5) / test_frames, 0.0, cid, "test_clip")
-                      for c_, (a, b) in tests for j in range(test_frames)]
+            shots += [
+                Shot(c_, a + (b - a) * (j + 0.5) / test_frames, 0.0, cid, "test_clip")
+                for c_, (a, b) in tests
+                for j in range(test_frames)
+            ]
     else:
         raise MeshsplatError(f"rig: expected one of {RIGS}, got {rig!r}")
     return shots, cams
@@ -229,8 +261,11 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
             test_clips = [c for c in preset_tests if c in names and c != clip]
         else:
             best = max((scores[c][0] for c in names), default=0.0)
-            moving = sorted((c for c in names if c != clip and scores[c][0] > 1e-6 * max(best, 1e-30)),
-                            key=lambda c: scores[c], reverse=True)
+            moving = sorted(
+                (c for c in names if c != clip and scores[c][0] > 1e-6 * max(best, 1e-30)),
+                key=lambda c: scores[c],
+                reverse=True,
+            )
             test_clips = moving[:2]
         if say:
             chosen = ", ".join(test_clips) if test_clips else "none (the asset has no other moving clip)"
@@ -238,19 +273,39 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
     t0, t1 = source.time_range(clip)
     if not 0 < train_fraction <= 1:
         raise MeshsplatError(f"train_fraction: expected in (0, 1], got {train_fraction}")
-    return {"train": (clip, (t0, t1), t0 + (t1 - t0) * train_fraction),
-            "tests": [(c, source.time_range(c)) for c in test_clips]}
+    return {
+        "train": (clip, (t0, t1), t0 + (t1 - t0) * train_fraction),
+        "tests": [(c, source.time_range(c)) for c in test_clips],
+    }
 
 
-def generate(asset: Path | str, out_dir: Path | str, rig: str = "monocular-turn", frames: int = 60,
-             resolution: int = 256,
-             clip: str | None = None, test_clips: list[str] | None = None, train_fraction: float = 0.7,
-             test_frames: int | None = None, test_views: int = 2, test_view_frames: int | None = None,
-             views: int = 8, turns: float = 1.0, driver_smooth: int = 0, driver_decimate: float | None = None,
-             supersample: int | None = None, background: Sequence[float] = (0.0, 0.0, 0.0), fov_deg: float = 30.0,
-             overwrite: bool = False, progress: bool = False, threads: int | None = 1,
-             model_dir: Path | str | None = None,
-             gender: str = "neutral", up: str | None = None, say: Callable[[str], object] | None = None) -> Path:
+def generate(
+    asset: Path | str,
+    out_dir: Path | str,
+    rig: str = "monocular-turn",
+    frames: int = 60,
+    resolution: int = 256,
+    clip: str | None = None,
+    test_clips: list[str] | None = None,
+    train_fraction: float = 0.7,
+    test_frames: int | None = None,
+    test_views: int = 2,
+    test_view_frames: int | None = None,
+    views: int = 8,
+    turns: float = 1.0,
+    driver_smooth: int = 0,
+    driver_decimate: float | None = None,
+    supersample: int | None = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    fov_deg: float = 30.0,
+    overwrite: bool = False,
+    progress: bool = False,
+    threads: int | None = 1,
+    model_dir: Path | str | None = None,
+    gender: str = "neutral",
+    up: str | None = None,
+    say: Callable[[str], object] | None = None,
+) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
     ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
@@ -271,18 +326,62 @@ def generate(asset: Path | str, out_dir: Path | str, rig: str = "monocular-turn"
     if threads:
         torch.set_num_threads(int(threads))
     try:
-        return _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames,
-                         test_views, test_view_frames, views, turns, driver_smooth, driver_decimate,
-                         supersample if supersample else (2 if resolution <= 384 else 1), background, fov_deg,
-                         overwrite, progress, model_dir, gender, up,
-                         say if say is not None else (print if progress else None))
+        return _generate(
+            asset,
+            out_dir,
+            rig,
+            frames,
+            resolution,
+            clip,
+            test_clips,
+            train_fraction,
+            test_frames,
+            test_views,
+            test_view_frames,
+            views,
+            turns,
+            driver_smooth,
+            driver_decimate,
+            supersample if supersample else (2 if resolution <= 384 else 1),
+            background,
+            fov_deg,
+            overwrite,
+            progress,
+            model_dir,
+            gender,
+            up,
+            say if say is not None else (print if progress else None),
+        )
     finally:
         torch.set_num_threads(old_threads)
 
 
-def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_fraction, test_frames, test_views,
-              test_view_frames, views, turns, driver_smooth, driver_decimate, supersample, background, fov_deg,
-              overwrite, progress, model_dir=None, gender="neutral", up=None, say=None) -> Path:
+def _generate(
+    asset,
+    out_dir,
+    rig,
+    frames,
+    resolution,
+    clip,
+    test_clips,
+    train_fraction,
+    test_frames,
+    test_views,
+    test_view_frames,
+    views,
+    turns,
+    driver_smooth,
+    driver_decimate,
+    supersample,
+    background,
+    fov_deg,
+    overwrite,
+    progress,
+    model_dir=None,
+    gender="neutral",
+    up=None,
+    say=None,
+) -> Path:
     if frames < 1 or resolution < 8:
         raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
     t_start = _time.perf_counter()
@@ -329,16 +428,36 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
         return (v - p) @ Ry.T + p
 
     out = Path(out_dir)
-    meta = {"generator": "meshsplat.synth", "asset": str(asset), "rig": rig, "resolution": resolution,
-            "train_clip": clips["train"][0], "train_time_range": [clips["train"][1][0], clips["train"][2]],
-            "test_clips": [c for c, _ in clips["tests"]], "driver_smooth": int(driver_smooth),
-            "driver_decimate": driver_decimate, "render_vertices": int(source.rest().shape[0]),
-            "driver_vertices": int(drive.rest().shape[0]), "light_dir": _LIGHT.tolist(), "fov_deg": fov_deg,
-            "background": list(background), "up": [0, 1, 0], "asset_up": up_used, "mesh_size": size,
-            "attribution": getattr(source, "attribution", "")}
+    meta = {
+        "generator": "meshsplat.synth",
+        "asset": str(asset),
+        "rig": rig,
+        "resolution": resolution,
+        "train_clip": clips["train"][0],
+        "train_time_range": [clips["train"][1][0], clips["train"][2]],
+        "test_clips": [c for c, _ in clips["tests"]],
+        "driver_smooth": int(driver_smooth),
+        "driver_decimate": driver_decimate,
+        "render_vertices": int(source.rest().shape[0]),
+        "driver_vertices": int(drive.rest().shape[0]),
+        "light_dir": _LIGHT.tolist(),
+        "fov_deg": fov_deg,
+        "background": list(background),
+        "up": [0, 1, 0],
+        "asset_up": up_used,
+        "mesh_size": size,
+        "attribution": getattr(source, "attribution", ""),
+    }
     writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta)
-    writer.set_source_map(smap["source_index"], rest0, source.faces, R_up, exact=smap["exact"],
-                          smooth=int(driver_smooth), decimate=driver_decimate)
+    writer.set_source_map(
+        smap["source_index"],
+        rest0,
+        source.faces,
+        R_up,
+        exact=smap["exact"],
+        smooth=int(driver_smooth),
+        decimate=driver_decimate,
+    )
     for cid in cams:
         writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
     splits: dict[str, list[int]] = {}
@@ -351,12 +470,20 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
             mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
             if is_model:
                 mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
-        rgb, alpha = render_view(source, place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution,
-                                 weld_group, background, supersample)
+        rgb, alpha = render_view(
+            source, place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution, weld_group, background, supersample
+        )
         if float(alpha.max()) == 0.0:
             raise MeshsplatError(f"shot {k} ({s.split}, camera {s.camera}): subject not visible")
-        idx = writer.add_frame(rgb, s.camera, mesh=mesh_ids[mkey], mask=alpha, clip=s.clip, time=s.time,
-                               extra={"yaw": s.yaw, "split": s.split})
+        idx = writer.add_frame(
+            rgb,
+            s.camera,
+            mesh=mesh_ids[mkey],
+            mask=alpha,
+            clip=s.clip,
+            time=s.time,
+            extra={"yaw": s.yaw, "split": s.split},
+        )
         splits.setdefault(s.split, []).append(idx)
         if progress and (k + 1) % 20 == 0:
             print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
@@ -364,8 +491,7 @@ def _generate(asset, out_dir, rig, frames, resolution, clip, test_clips, train_f
         writer.set_split(name, indices)
     if is_model:
         per_frame = {k: np.stack([p[k] for p in mesh_params]) for k in mesh_params[0]}
-        writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)},
-                          {**source.shared, **per_frame})
+        writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)}, {**source.shared, **per_frame})
         writer.meta["model"] = {"type": source.kind, "gender": source.model.gender, "fps": source.fps}
     writer.meta["seconds"] = round(_time.perf_counter() - t_start, 2)
     return writer.close()

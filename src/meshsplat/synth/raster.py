@@ -6,6 +6,7 @@ chunks; the nearest surface per pixel is chosen with ``scatter_reduce(amin)`` on
 centres sit at ``+0.5`` (OpenCV pinhole ``K``, camera looks along +z). Triangles with a vertex
 closer than ``near`` are dropped (no clipping); both faces of a triangle are drawn.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -32,8 +33,15 @@ class Fragments:
         return self.face >= 0
 
 
-def rasterize_triangles(verts_cam: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, width: int, height: int,
-                        near: float = 1e-3, chunk: int = 1 << 21) -> Fragments:
+def rasterize_triangles(
+    verts_cam: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 1e-3,
+    chunk: int = 1 << 21,
+) -> Fragments:
     """Rasterize ``verts_cam [V,3]`` (camera space, OpenCV axes) with ``faces [F,3]`` through ``K [3,3]``."""
     dims: dict[str, int] = {}
     check_tensor("verts_cam", verts_cam, "V,3", dims, dtype="float")
@@ -49,8 +57,9 @@ def rasterize_triangles(verts_cam: torch.Tensor, faces: torch.Tensor, K: torch.T
     f = faces.long()
     keep = (z[f] > near).all(1)
     tri = xy[f]  # [F, 3, 2]
-    area = ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
-            - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0]))
+    area = (tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1]) - (tri[:, 1, 1] - tri[:, 0, 1]) * (
+        tri[:, 2, 0] - tri[:, 0, 0]
+    )
     lo = torch.ceil(tri.amin(1) - 0.5)
     hi = torch.floor(tri.amax(1) - 0.5)
     lo = torch.maximum(lo, torch.zeros(2, device=dev))
@@ -130,8 +139,7 @@ def sample_texture(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     x0, y0 = x0.long(), y0.long()
     xa, xb = x0 % wt, (x0 + 1) % wt
     ya, yb = y0 % ht, (y0 + 1) % ht
-    return ((1 - fy) * ((1 - fx) * tex[ya, xa] + fx * tex[ya, xb])
-            + fy * ((1 - fx) * tex[yb, xa] + fx * tex[yb, xb]))
+    return (1 - fy) * ((1 - fx) * tex[ya, xa] + fx * tex[ya, xb]) + fy * ((1 - fx) * tex[yb, xa] + fx * tex[yb, xb])
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, weld: torch.Tensor | None = None) -> torch.Tensor:
@@ -148,8 +156,14 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, weld: torch.Tensor 
     return n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
-def lambert(albedo: torch.Tensor, normal: torch.Tensor, view_pos: torch.Tensor, light_dir: torch.Tensor,
-            ambient: float = 0.4, diffuse: float = 0.6) -> torch.Tensor:
+def lambert(
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    view_pos: torch.Tensor,
+    light_dir: torch.Tensor,
+    ambient: float = 0.4,
+    diffuse: float = 0.6,
+) -> torch.Tensor:
     """Lambert shading ``[P,3]``: normals are flipped to face the viewer (points ``view_pos [P,3]`` in
     camera space); ``light_dir [3]`` points from the surface towards the light, in camera space."""
     n = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-12)

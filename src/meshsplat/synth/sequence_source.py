@@ -6,6 +6,7 @@ follows source vertex ``src[i]``; a rest offset from that vertex (smoothing, dec
 the vertex's rotation between rest and pose. ``UpAxisSource`` turns a z-up source into the
 project's y-up world.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -77,7 +78,7 @@ class SequenceSource:
         """Stored frame ``i`` (on the derived mesh when derived)."""
         return self._drive(self._frames[int(i)])
 
-    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "SequenceSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> SequenceSource:
         out = object.__new__(SequenceSource)
         out.__dict__.update(self.__dict__)
         s = torch.as_tensor(np.asarray(src), dtype=torch.long)
@@ -116,7 +117,7 @@ class UpAxisSource:
     def rest(self) -> torch.Tensor:
         return self.inner.rest() @ self.R.T
 
-    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "UpAxisSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> UpAxisSource:
         r = None if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32) @ self.R
         return UpAxisSource(self.inner.derive(src, faces, r), self.R.numpy())
 

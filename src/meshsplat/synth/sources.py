@@ -5,10 +5,11 @@ A source exposes ``faces [F,3]``, ``clips``, ``time_range(clip)``, ``pose(clip, 
 ``materials`` as (base rgb [3], texture [Ht,Wt,3] float or None)) and ``derive(src, faces, rest)``
 giving a re-skinned driving mesh with the same ``pose``/``rest``.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
-from typing import cast
+from typing import ClassVar, cast
 
 import numpy as np
 import torch
@@ -53,9 +54,13 @@ class GltfSource:
         self.uvs = driver.uvs
         self.vertex_colors = driver.vertex_colors[:, :3]
         self.face_material = driver.face_material
-        self.materials = [(torch.from_numpy(m.base_color[:3].astype(np.float32)),
-                           None if m.texture is None else torch.from_numpy(m.texture[..., :3]).float() / 255.0)
-                          for m in driver.materials]
+        self.materials = [
+            (
+                torch.from_numpy(m.base_color[:3].astype(np.float32)),
+                None if m.texture is None else torch.from_numpy(m.texture[..., :3]).float() / 255.0,
+            )
+            for m in driver.materials
+        ]
         self.clips = cast("list[str | None]", driver.clips or [None])
 
     def time_range(self, clip: str | None) -> tuple[float, float]:
@@ -67,7 +72,7 @@ class GltfSource:
     def rest(self) -> torch.Tensor:
         return self.driver.rest_vertices()
 
-    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "GltfSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> GltfSource:
         return GltfSource(self.driver.derive(src, faces, rest))
 
 
@@ -76,9 +81,15 @@ class BlendshapeSource:
 
     attribution = "ICT FaceKit head (MIT, (c) 2020 USC Institute for Creative Technologies)"
     _HIDDEN = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")  # transparent shells in ICT
-    _COLORS = {"M_EyeLashes": (0.08, 0.06, 0.05), "M_GumsTongue": (0.75, 0.35, 0.35), "M_IrisLeft": (0.25, 0.35, 0.55),
-               "M_IrisRight": (0.25, 0.35, 0.55), "M_ScleraLeft": (0.92, 0.9, 0.88), "M_ScleraRight": (0.92, 0.9, 0.88),
-               "M_Teeth": (0.93, 0.9, 0.82)}
+    _COLORS: ClassVar[dict[str, tuple[float, float, float]]] = {
+        "M_EyeLashes": (0.08, 0.06, 0.05),
+        "M_GumsTongue": (0.75, 0.35, 0.35),
+        "M_IrisLeft": (0.25, 0.35, 0.55),
+        "M_IrisRight": (0.25, 0.35, 0.55),
+        "M_ScleraLeft": (0.92, 0.9, 0.88),
+        "M_ScleraRight": (0.92, 0.9, 0.88),
+        "M_Teeth": (0.93, 0.9, 0.82),
+    }
 
     def __init__(self, driver: BlendshapeDriver, duration: float = 8.0, keep: torch.Tensor | None = None) -> None:
         self.driver = driver
@@ -117,7 +128,7 @@ class BlendshapeSource:
     def rest(self) -> torch.Tensor:
         return self.driver.neutral.clone()
 
-    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> "BlendshapeSource":
+    def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> BlendshapeSource:
         src_t = torch.as_tensor(np.asarray(src), dtype=torch.long)
         d = self.driver
         neutral = d.neutral[src_t] if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32)
@@ -138,8 +149,9 @@ _ATTRIBUTION = {
 }
 
 
-def load_source(asset: Path | str, model_dir: Path | str | None = None,
-                gender: str = "neutral") -> GltfSource | BlendshapeSource | SequenceSource | ModelSource:
+def load_source(
+    asset: Path | str, model_dir: Path | str | None = None, gender: str = "neutral"
+) -> GltfSource | BlendshapeSource | SequenceSource | ModelSource:
     """Load ``asset``: a .glb/.gltf path, a mesh sequence (.npz with faces + vertices, or a folder of
     OBJ/PLY frames, :mod:`meshsplat.drivers.mesh_sequence`), an .npz blendshape file, a bundled asset's name
     (``CesiumMan``, ``RobotExpressive``, ``RiggedSimple``, ``ict``) or a body/head model
@@ -149,8 +161,10 @@ def load_source(asset: Path | str, model_dir: Path | str | None = None,
         return load_model_source(str(asset).lower(), model_dir, gender)
     p = resolve_input(asset)
     if not p.exists():
-        raise MeshsplatError(f"asset not found: {asset} (a .glb/.gltf/.npz path, a folder of OBJ/PLY frames, or one of "
-                             f"{', '.join(BUNDLED)}, {', '.join(MODEL_SOURCES)})")
+        raise MeshsplatError(
+            f"asset not found: {asset} (a .glb/.gltf/.npz path, a folder of OBJ/PLY frames, or one of "
+            f"{', '.join(BUNDLED)}, {', '.join(MODEL_SOURCES)})"
+        )
     if p.is_dir() or p.suffix.lower() in (".npz", ".npy"):
         if is_mesh_sequence(p) or p.is_dir() or p.suffix.lower() == ".npy":
             return SequenceSource(read_mesh_sequence(p), name=str(p))
@@ -160,8 +174,10 @@ def load_source(asset: Path | str, model_dir: Path | str | None = None,
             raise MeshsplatError(f"{p}: keys {keys} fit no npz layout: the {NPZ_LAYOUT} or the {ICT_LAYOUT}")
         return BlendshapeSource(BlendshapeDriver.from_npz(p))
     if p.suffix.lower() not in (".glb", ".gltf"):
-        raise MeshsplatError(f"asset: {p} is none of: a .glb/.gltf (morph or skin animation), the {NPZ_LAYOUT}, "
-                             f"a {FRAMES_LAYOUT}, the {ICT_LAYOUT}")
+        raise MeshsplatError(
+            f"asset: {p} is none of: a .glb/.gltf (morph or skin animation), the {NPZ_LAYOUT}, "
+            f"a {FRAMES_LAYOUT}, the {ICT_LAYOUT}"
+        )
     src = GltfSource(GltfDriver(p))
     src.attribution = gltf_attribution(src.driver.file.doc) or _ATTRIBUTION.get(p.stem.lower(), "")
     if p.stem.lower() == "robotexpressive":  # the demo's clip choice for the shared robot

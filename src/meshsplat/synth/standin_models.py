@@ -36,6 +36,7 @@ Beside each model an ``appearance.npz`` holds ``vertex_colors [V,3]`` (float32, 
 shirt with soft stripes, trousers and shoes for bodies (by dominant joint); skin, lips, brows, hair,
 sclera, iris and pupil for the head.
 """
+
 from __future__ import annotations
 
 import os
@@ -55,11 +56,17 @@ __all__ = ["write_standin_models", "STANDIN_FILES"]
 STANDIN_FILES = {
     "smpl": ["smpl/SMPL_NEUTRAL.pkl", "smpl/SMPL_MALE.pkl", "smpl/SMPL_FEMALE.pkl"],
     "smplx": ["smplx/SMPLX_NEUTRAL.npz", "smplx/SMPLX_MALE.npz", "smplx/SMPLX_FEMALE.npz"],
-    "flame": ["flame/FLAME_NEUTRAL.pkl", "flame/flame2023.pkl", "flame/flame_static_embedding.pkl",
-              "flame/flame_dynamic_embedding.npy"],
+    "flame": [
+        "flame/FLAME_NEUTRAL.pkl",
+        "flame/flame2023.pkl",
+        "flame/flame_static_embedding.pkl",
+        "flame/flame_dynamic_embedding.npy",
+    ],
 }
-_GENDER_BETAS = {"MALE": [0.6, 0.4, 0.3, 1.0, 0.3, 0.2, 0.3, 0.3, -0.8, 0.5],
-                 "FEMALE": [-1.2, -0.4, 0.0, -1.0, -0.3, -0.2, -0.4, -0.2, 1.2, 0.4]}
+_GENDER_BETAS = {
+    "MALE": [0.6, 0.4, 0.3, 1.0, 0.3, 0.2, 0.3, 0.3, -0.8, 0.5],
+    "FEMALE": [-1.2, -0.4, 0.0, -1.0, -0.3, -0.2, -0.4, -0.2, 1.2, 0.4],
+}
 
 
 def _pickle(path: Path, data: dict) -> None:
@@ -109,7 +116,7 @@ def _head_colors(v, part, features, joints) -> np.ndarray:
     c[s & (brows > 0.5)] = [0.3, 0.2, 0.12]
     top = s & ((v[:, 1] > joints[3, 1] + 0.06) | ((v[:, 2] < joints[2, 2] - 0.02) & (v[:, 1] > joints[0, 1] + 0.1)))
     c[top] = hair
-    for p, j in ((1, 3), (2, 4)):
+    for p, _j in ((1, 3), (2, 4)):
         eye = part == p
         tip = v[eye][np.argmax(v[eye, 2])]
         d = np.linalg.norm(v - tip, axis=1)
@@ -142,8 +149,10 @@ def _write_head(out: Path) -> None:
     _pickle(folder / "FLAME_NEUTRAL.pkl", d)
     _link_or_copy(folder / "FLAME_NEUTRAL.pkl", folder / "flame2023.pkl")
     _pickle(folder / "flame_static_embedding.pkl", emb)
-    contour = {"lmk_face_idx": np.tile(emb["lmk_face_idx"][:17], (79, 1)),  # smplx use_face_contour=True
-               "lmk_b_coords": np.full((79, 17, 3), 1 / 3)}
+    contour = {
+        "lmk_face_idx": np.tile(emb["lmk_face_idx"][:17], (79, 1)),  # smplx use_face_contour=True
+        "lmk_b_coords": np.full((79, 17, 3), 1 / 3),
+    }
     np.save(folder / "flame_dynamic_embedding.npy", np.array(contour, dtype=object), allow_pickle=True)
     joints = d["J_regressor"] @ d["v_template"]
     np.savez(folder / "appearance.npz", vertex_colors=_head_colors(d["v_template"], part, features, joints))

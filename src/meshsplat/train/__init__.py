@@ -6,6 +6,7 @@ Losses live in ``meshsplat.train.losses``. ``TrainConfig()`` is the ``quality`` 
     from meshsplat.train import TrainConfig, train
     run_dir = train(TrainConfig(data="path/to/dataset", out="runs/x", iterations=2000))
 """
+
 from meshsplat.train.config import (
     LossConfig,
     ModelConfig,
@@ -22,8 +23,26 @@ from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
 from meshsplat.train.trainer import LOG_COLUMNS, Trainer, mesh_extent, train
 
 __all__ = [
-    "TrainConfig", "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig",
-    "apply_overrides", "load_config", "expon_lr", "base_learning_rates", "build_optimizers", "LrSchedule",
-    "DensifyStrategy", "walk_embeddings", "Trainer", "train", "mesh_extent", "LOG_COLUMNS",
-    "PRESETS", "DEFAULT_PRESET", "preset_config", "preset_overrides",
+    "TrainConfig",
+    "ModelConfig",
+    "OptimConfig",
+    "LossConfig",
+    "StrategyConfig",
+    "WalkConfig",
+    "apply_overrides",
+    "load_config",
+    "expon_lr",
+    "base_learning_rates",
+    "build_optimizers",
+    "LrSchedule",
+    "DensifyStrategy",
+    "walk_embeddings",
+    "Trainer",
+    "train",
+    "mesh_extent",
+    "LOG_COLUMNS",
+    "PRESETS",
+    "DEFAULT_PRESET",
+    "preset_config",
+    "preset_overrides",
 ]

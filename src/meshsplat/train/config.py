@@ -15,6 +15,7 @@ paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``re
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
 fraction of the image size): ``upgrade_config_dict`` reads it as it was written (see there).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -33,9 +34,24 @@ from meshsplat.render import BACKENDS, BACKGROUNDS
 from meshsplat.train.strategy.default import DensifyStrategy
 
 __all__ = [
-    "ModelConfig", "OptimConfig", "LossConfig", "StrategyConfig", "WalkConfig", "PoseRefineConfig", "TrainConfig",
-    "apply_overrides", "load_config", "upgrade_config_dict", "is_legacy_config", "RENAMED_KEYS",
-    "INIT_COLORS", "UV_LR_UNITS", "TRAIN_BACKGROUNDS", "CONFIG_FORMAT", "CONFIG_VERSION", "VERSION_1_DEFAULTS",
+    "ModelConfig",
+    "OptimConfig",
+    "LossConfig",
+    "StrategyConfig",
+    "WalkConfig",
+    "PoseRefineConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "load_config",
+    "upgrade_config_dict",
+    "is_legacy_config",
+    "RENAMED_KEYS",
+    "INIT_COLORS",
+    "UV_LR_UNITS",
+    "TRAIN_BACKGROUNDS",
+    "CONFIG_FORMAT",
+    "CONFIG_VERSION",
+    "VERSION_1_DEFAULTS",
     "config_version",
 ]
 
@@ -43,8 +59,10 @@ INIT_COLORS = ("image", "grey")  # model.init_color
 UV_LR_UNITS = ("world", "barycentric")  # optim.uv_lr_units
 TRAIN_BACKGROUNDS = ("random", *BACKGROUNDS)  # background behind the Gaussians while training
 # keys renamed to gsplat's DefaultStrategy names (old name -> new name)
-RENAMED_KEYS = {"strategy.refine_start": "strategy.refine_start_iter",
-                "strategy.refine_stop": "strategy.refine_stop_iter"}
+RENAMED_KEYS = {
+    "strategy.refine_start": "strategy.refine_start_iter",
+    "strategy.refine_stop": "strategy.refine_stop_iter",
+}
 CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 1: no "format"/"version" fields (older meshsplat; defaults were the paper's). 2: the quality defaults.
 CONFIG_VERSION = 2
@@ -169,8 +187,12 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], image_size: int | typing.Callable[[], int] | None = None,
-                  base: "TrainConfig | None" = None) -> "TrainConfig":
+    def from_dict(
+        cls,
+        d: dict[str, Any],
+        image_size: int | typing.Callable[[], int] | None = None,
+        base: TrainConfig | None = None,
+    ) -> TrainConfig:
         """From a (full or partial) dict, upgraded first (``upgrade_config_dict``: a dict without a
         "version" is read as version 1, where unset keys meant the paper's values); keys it does not
         set come from ``base`` (default ``TrainConfig()``, the quality preset)."""
@@ -184,7 +206,7 @@ class TrainConfig:
         doc = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, **self.to_dict()}
         Path(path).write_text(json.dumps(doc, indent=2) + "\n")
 
-    def validate(self) -> "TrainConfig":
+    def validate(self) -> TrainConfig:
         checks = [
             (self.iterations >= 1, "iterations must be >= 1"),
             (self.model.n_init >= 1, "model.n_init must be >= 1"),
@@ -213,11 +235,16 @@ class TrainConfig:
             (self.strategy.max_gaussians >= 1, "strategy.max_gaussians must be >= 1"),
             (0 <= self.strategy.reset_opa < 1, "strategy.reset_opa must be in [0, 1)"),
             (0 <= self.strategy.prune_opa < 1, "strategy.prune_opa must be in [0, 1)"),
-            (self.strategy.prune_scale2d <= 1, "strategy.prune_scale2d is a fraction of the image size (max(width, "
-             f"height), as gsplat), got {self.strategy.prune_scale2d}: a pixel value? divide it by the image size"),
+            (
+                self.strategy.prune_scale2d <= 1,
+                "strategy.prune_scale2d is a fraction of the image size (max(width, "
+                f"height), as gsplat), got {self.strategy.prune_scale2d}: a pixel value? divide it by the image size",
+            ),
             (self.iterations <= MAX_ITERATIONS, f"iterations must be <= {MAX_ITERATIONS:,}"),
-            (self.model.n_init <= MAX_GAUSSIANS and self.strategy.max_gaussians <= MAX_GAUSSIANS,
-             f"model.n_init and strategy.max_gaussians must be <= {MAX_GAUSSIANS:,}"),
+            (
+                self.model.n_init <= MAX_GAUSSIANS and self.strategy.max_gaussians <= MAX_GAUSSIANS,
+                f"model.n_init and strategy.max_gaussians must be <= {MAX_GAUSSIANS:,}",
+            ),
         ]
         for ok, msg in checks:
             if not ok:
@@ -225,8 +252,12 @@ class TrainConfig:
         for key, value in _flat_items(self.to_dict()):
             if isinstance(value, float) and not math.isfinite(value):
                 raise MeshsplatError(f"config: {key} is {value}; expected a finite number")
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0 \
-                    and key.rsplit(".", 1)[-1].startswith(_NON_NEGATIVE):
+            if (
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and value < 0
+                and key.rsplit(".", 1)[-1].startswith(_NON_NEGATIVE)
+            ):
                 raise MeshsplatError(f"config: {key} must be >= 0, got {value}")
         return self
 
@@ -234,8 +265,21 @@ class TrainConfig:
 MAX_ITERATIONS = 10_000_000
 MAX_GAUSSIANS = 20_000_000
 # fields whose name starts with one of these are rates, weights, thresholds or sizes: never negative
-_NON_NEGATIVE = ("lr_", "lambda_", "scale_", "grow_", "prune_", "reset_", "refine_", "init_", "eps",
-                 "keep_", "max_", "n_init", "split_")
+_NON_NEGATIVE = (
+    "lr_",
+    "lambda_",
+    "scale_",
+    "grow_",
+    "prune_",
+    "reset_",
+    "refine_",
+    "init_",
+    "eps",
+    "keep_",
+    "max_",
+    "n_init",
+    "split_",
+)
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -323,8 +367,9 @@ def apply_overrides(cfg: TrainConfig, overrides: list[str] | None) -> TrainConfi
     return TrainConfig.from_dict(d)
 
 
-def load_config(path: str | Path, image_size: int | typing.Callable[[], int] | None = None,
-                base: TrainConfig | None = None) -> TrainConfig:
+def load_config(
+    path: str | Path, image_size: int | typing.Callable[[], int] | None = None, base: TrainConfig | None = None
+) -> TrainConfig:
     """Read a JSON config file (a full or partial ``TrainConfig`` dict) as it was written: keys a
     versioned file does not set come from ``base`` (default ``TrainConfig()``); a file without a
     version is an older meshsplat's (see ``upgrade_config_dict``). ``image_size``: see there (needed
@@ -367,8 +412,10 @@ def config_version(d: dict) -> int:
     if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise MeshsplatError(f"config: version must be a positive integer, got {version!r}")
     if version > CONFIG_VERSION:
-        raise MeshsplatError(f"config: format version {version} is newer than this meshsplat reads "
-                             f"({CONFIG_VERSION}); update meshsplat to use this config")
+        raise MeshsplatError(
+            f"config: format version {version} is newer than this meshsplat reads "
+            f"({CONFIG_VERSION}); update meshsplat to use this config"
+        )
     return version
 
 
@@ -407,9 +454,11 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         if _legacy_prune_can_act(dict(d["strategy"])):
             size = image_size() if callable(image_size) else image_size
             if size is None:
-                raise MeshsplatError(f"config: strategy.prune_scale2d={pixels!r} is in pixels in this config from an "
-                                     "older meshsplat; today it is a fraction of the image size: set it to "
-                                     "pixels / max(width, height) (e.g. 20/256 = 0.078), or pass image_size")
+                raise MeshsplatError(
+                    f"config: strategy.prune_scale2d={pixels!r} is in pixels in this config from an "
+                    "older meshsplat; today it is a fraction of the image size: set it to "
+                    "pixels / max(width, height) (e.g. 20/256 = 0.078), or pass image_size"
+                )
             st["prune_scale2d"] = _coerce(pixels, float, "strategy.prune_scale2d") / float(size)
     return {**d, "strategy": st}
 

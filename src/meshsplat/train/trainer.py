@@ -23,6 +23,7 @@ With ``model.shading`` on, the learned illumination (``Shading.coeffs``) has its
 (``lr_shading``), stored in checkpoints under ``shading_optimizer``; the avatar state carries the
 illumination itself.
 """
+
 from __future__ import annotations
 
 import csv
@@ -63,8 +64,22 @@ from meshsplat.train.strategy import walk_embeddings
 
 __all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "training_image_size", "LOG_COLUMNS"]
 
-LOG_COLUMNS = ("iteration", "loss", "l1", "lpips", "scale", "mse", "dssim", "psnr", "n_gaussians",
-               "walked", "lr_duv", "lr_d", "time_s", "mask")
+LOG_COLUMNS = (
+    "iteration",
+    "loss",
+    "l1",
+    "lpips",
+    "scale",
+    "mse",
+    "dssim",
+    "psnr",
+    "n_gaussians",
+    "walked",
+    "lr_duv",
+    "lr_d",
+    "time_s",
+    "mask",
+)
 
 
 def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = None) -> int:
@@ -105,8 +120,9 @@ class Trainer:
         self.folder = RunFolder(self.cfg.out)
         self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)
-        self.dataset = open_capture(self.cfg.data, format=self.cfg.data_format or None,
-                                    model_dir=self.cfg.model_dir or None)
+        self.dataset = open_capture(
+            self.cfg.data, format=self.cfg.data_format or None, model_dir=self.cfg.model_dir or None
+        )
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
             raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")
@@ -120,8 +136,9 @@ class Trainer:
         self.refiner = None
         if self.cfg.pose_refine.enabled:
             pr = self.cfg.pose_refine
-            self.refiner = PoseRefiner(self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None,
-                                       self.device)
+            self.refiner = PoseRefiner(
+                self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None, self.device
+            )
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
             # built now: nothing may draw random numbers after seeding or restoring the generators
@@ -142,15 +159,19 @@ class Trainer:
         else:
             refuse_existing_run(self.folder)
         if loaded is not None:
-            old = upgrade_config_dict(loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids))
+            old = upgrade_config_dict(
+                loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids)
+            )
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
             try:
                 self._restore(loaded[1])
             except MeshsplatError:
                 raise
             except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as exc:
-                raise MeshsplatError(f"cannot resume from {loaded[0]}: the checkpoint is incomplete or "
-                                     f"inconsistent ({type(exc).__name__}: {str(exc)[:160]})") from None
+                raise MeshsplatError(
+                    f"cannot resume from {loaded[0]}: the checkpoint is incomplete or "
+                    f"inconsistent ({type(exc).__name__}: {str(exc)[:160]})"
+                ) from None
             self.resumed_from: Path | None = loaded[0]
         else:
             self.resumed_from = None
@@ -168,10 +189,16 @@ class Trainer:
         colors_fn = None
         if cfg.model.init_color == "image":
             colors_fn = self._first_image_colors if cfg.model.init_color_frames == 1 else self._multi_image_colors
-        self.params = init_params(self.mesh, cfg.model.n_init, sh_degree=cfg.model.sh_degree,
-                                  init_opacity=cfg.model.init_opacity, knn=cfg.model.init_knn,
-                                  colors_fn=colors_fn, generator=gen,
-                                  trainable_embedding=not cfg.model.freeze_embedding)
+        self.params = init_params(
+            self.mesh,
+            cfg.model.n_init,
+            sh_degree=cfg.model.sh_degree,
+            init_opacity=cfg.model.init_opacity,
+            knn=cfg.model.init_knn,
+            colors_fn=colors_fn,
+            generator=gen,
+            trainable_embedding=not cfg.model.freeze_embedding,
+        )
         self.optimizers = build_optimizers(self.params, self.lrs, cfg.optim.eps)
         if cfg.model.shading != "none":
             self._set_shading(Shading(normal=cfg.model.shading_normal, device=self.device))
@@ -212,7 +239,7 @@ class Trainer:
         the sequence, counting a frame where the point is inside the image and the mask and its Phong
         normal faces the camera (grey where never seen)."""
         k = min(self.cfg.model.init_color_frames, len(self.train_ids))
-        picks = sorted({self.train_ids[int(round(x))] for x in np.linspace(0, len(self.train_ids) - 1, k)})
+        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
         acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
         cnt = torch.zeros(face.shape[0], 1, dtype=uv.dtype, device=uv.device)
         for idx in picks:
@@ -242,8 +269,12 @@ class Trainer:
             return hit
         fr = self.dataset[idx]
         dev = self.device
-        item = (fr.image.to(dev, torch.float32), None if fr.mask is None else fr.mask.to(dev, torch.float32),
-                fr.camera.to(dev, torch.float32), fr.vertices.to(dev, torch.float32))
+        item = (
+            fr.image.to(dev, torch.float32),
+            None if fr.mask is None else fr.mask.to(dev, torch.float32),
+            fr.camera.to(dev, torch.float32),
+            fr.vertices.to(dev, torch.float32),
+        )
         size = sum(t.numel() * 4 for t in item if isinstance(t, torch.Tensor)) + 4 * (16 + 9)
         if self._cache_bytes + size <= 2 * 1024**3:  # keep up to 2 GiB of decoded frames
             self._frame_cache[idx] = item
@@ -296,10 +327,18 @@ class Trainer:
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
         L = cfg.loss
         loss, parts = avatar_loss(
-            render, gt, self.params["log_scale"].exp(),
-            thresh_scale=L.scale_max * self.extent, thresh_ratio=L.scale_ratio,
-            lambda_l1=L.lambda_l1, lambda_lpips=L.lambda_lpips, lambda_scale=L.lambda_scale / self.extent,
-            lambda_mse=L.lambda_mse, lambda_dssim=L.lambda_ssim, perceptual=self.perceptual)
+            render,
+            gt,
+            self.params["log_scale"].exp(),
+            thresh_scale=L.scale_max * self.extent,
+            thresh_ratio=L.scale_ratio,
+            lambda_l1=L.lambda_l1,
+            lambda_lpips=L.lambda_lpips,
+            lambda_scale=L.lambda_scale / self.extent,
+            lambda_mse=L.lambda_mse,
+            lambda_dssim=L.lambda_ssim,
+            perceptual=self.perceptual,
+        )
         if L.lambda_mask and mask is not None:
             mask_l1 = (out.alpha - mask).abs().mean()
             loss = loss + L.lambda_mask * mask_l1
@@ -315,19 +354,32 @@ class Trainer:
             self.shading_opt.zero_grad(set_to_none=True)
         if self.refiner is not None:
             self.refiner.step()
-        self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, it, meta,
-                                         mesh=self.mesh, scale_mode=cfg.model.scale_mode)
+        self.strategy.step_post_backward(
+            self.params, self.optimizers, self.strategy_state, it, meta, mesh=self.mesh, scale_mode=cfg.model.scale_mode
+        )
         walked = 0
         if it % cfg.walk.every == 0 and not cfg.model.freeze_embedding:
-            changed = walk_embeddings(self.params, self.optimizers, self.mesh, walk=cfg.walk.enabled,
-                                      mode=cfg.walk.mode, max_crossings=cfg.walk.max_crossings)
+            changed = walk_embeddings(
+                self.params,
+                self.optimizers,
+                self.mesh,
+                walk=cfg.walk.enabled,
+                mode=cfg.walk.mode,
+                max_crossings=cfg.walk.max_crossings,
+            )
             walked = int(changed.sum())
             self.walked_total += walked
         with torch.no_grad():
             p = float(psnr(render.detach().clamp(0, 1), gt))
-        row = {"iteration": it, "loss": float(loss.detach()), "psnr": p, "n_gaussians": num_gaussians(self.params),
-               "walked": walked,
-               "lr_duv": lrs.get("duv", 0.0), "lr_d": lrs.get("d", 0.0)}
+        row = {
+            "iteration": it,
+            "loss": float(loss.detach()),
+            "psnr": p,
+            "n_gaussians": num_gaussians(self.params),
+            "walked": walked,
+            "lr_duv": lrs.get("duv", 0.0),
+            "lr_d": lrs.get("d", 0.0),
+        }
         for k in ("l1", "lpips", "scale", "mse", "dssim", "mask"):
             row[k] = float(parts[k]) if k in parts else 0.0
         row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
@@ -368,8 +420,12 @@ class Trainer:
                         ckpt = self.save_checkpoint()
                         last_ckpt = time.perf_counter()
                     if stop.signum is not None:
-                        raise TrainingInterrupted(f"stopped by {signal_name(stop.signum)} at iteration {it}; checkpoint "
-                                                  f"{ckpt} written: continue with --resume", stop.signum, ckpt)
+                        raise TrainingInterrupted(
+                            f"stopped by {signal_name(stop.signum)} at iteration {it}; checkpoint "
+                            f"{ckpt} written: continue with --resume",
+                            stop.signum,
+                            ckpt,
+                        )
                     if bar is not None:
                         bar.update(1)
                         bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=row["n_gaussians"])
@@ -388,8 +444,11 @@ class Trainer:
         rows = []
         if path.exists():  # keep the rows up to the resumed iteration
             with open(path, newline="") as fh:
-                rows = [r for r in csv.DictReader(fh) if r.get("iteration", "").isdigit()
-                        and int(r["iteration"]) <= self.iteration]
+                rows = [
+                    r
+                    for r in csv.DictReader(fh)
+                    if r.get("iteration", "").isdigit() and int(r["iteration"]) <= self.iteration
+                ]
         with open(path, "w", newline="") as fh:
             wr = csv.DictWriter(fh, fieldnames=LOG_COLUMNS)
             wr.writeheader()
@@ -400,7 +459,8 @@ class Trainer:
         self.history.append(row)
         with open(self.folder.log_path, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow(
-                {k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in LOG_COLUMNS})
+                {k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in LOG_COLUMNS}
+            )
 
     @torch.no_grad()
     def save_preview(self, idx: int | None = None) -> Path:
@@ -418,16 +478,27 @@ class Trainer:
 
     def avatar(self) -> Avatar:
         """The current model as an ``Avatar`` (shares the parameter tensors)."""
-        return Avatar(self.mesh, self.params, self.cfg.model.scale_mode, clamp_to_face=self.clamp_to_face,
-                      shading=self.shading, sh_frame=self.cfg.model.sh_frame,
-                      antialiased=self.cfg.model.antialiased)
+        return Avatar(
+            self.mesh,
+            self.params,
+            self.cfg.model.scale_mode,
+            clamp_to_face=self.clamp_to_face,
+            shading=self.shading,
+            sh_frame=self.cfg.model.sh_frame,
+            antialiased=self.cfg.model.antialiased,
+        )
 
     def state_dict(self) -> dict[str, Any]:
         np_state: Any = np.random.get_state()  # the legacy tuple
         rng = {
             "torch": torch.get_rng_state(),
-            "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
-                      int(np_state[3]), float(np_state[4])],
+            "numpy": [
+                np_state[0],
+                torch.from_numpy(np_state[1].astype(np.int64)),
+                int(np_state[2]),
+                int(np_state[3]),
+                float(np_state[4]),
+            ],
             "python": random.getstate(),
             "order": self.order_gen.get_state(),
             "background": self.bg_gen.get_state(),
@@ -453,8 +524,9 @@ class Trainer:
         if self.refiner is not None:  # the refined parameters, readable without torch
             arrays: dict[str, Any] = self.refiner.refined_params()
             np.savez(self.folder.refined_params_path, **arrays)
-        return save_checkpoint(self.folder.checkpoint_path(self.iteration), self.state_dict(),
-                               keep_last=self.cfg.keep_checkpoints)
+        return save_checkpoint(
+            self.folder.checkpoint_path(self.iteration), self.state_dict(), keep_last=self.cfg.keep_checkpoints
+        )
 
     def _restore(self, st: dict[str, Any]) -> None:
         dev = self.device
@@ -466,15 +538,20 @@ class Trainer:
             self.params[k] = torch.nn.Parameter(v, requires_grad=k in trainable) if k not in ("face", "uv") else v
         self.optimizers = build_optimizers(self.params, self.lrs, self.cfg.optim.eps)
         if set(self.optimizers) != set(st["optimizers"]):
-            raise MeshsplatError("checkpoint: optimizer keys do not match the configuration "
-                                 f"({sorted(st['optimizers'])} vs {sorted(self.optimizers)})")
+            raise MeshsplatError(
+                "checkpoint: optimizer keys do not match the configuration "
+                f"({sorted(st['optimizers'])} vs {sorted(self.optimizers)})"
+            )
         for k, opt in self.optimizers.items():
             opt.load_state_dict(st["optimizers"][k])
-        self.strategy_state = {k: (v.to(dev) if isinstance(v, torch.Tensor) else v)
-                               for k, v in st["strategy_state"].items()}
+        self.strategy_state = {
+            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in st["strategy_state"].items()
+        }
         if is_legacy_config(st.get("config")) and isinstance(self.strategy_state.get("radii"), torch.Tensor):
             # older versions kept the screen radii in pixels; today a fraction of the image size
-            self.strategy_state["radii"] = self.strategy_state["radii"] / training_image_size(self.dataset, self.train_ids)
+            self.strategy_state["radii"] = self.strategy_state["radii"] / training_image_size(
+                self.dataset, self.train_ids
+            )
         rng = st["rng"]
         torch.set_rng_state(rng["torch"])
         n = rng["numpy"]
@@ -488,13 +565,17 @@ class Trainer:
         self.bg_gen.set_state(rng["background"])
         if self.refiner is not None:
             if not st.get("pose_refine"):
-                raise MeshsplatError("checkpoint: it was trained without pose refinement; resume without "
-                                     "pose_refine.enabled or start a new run")
+                raise MeshsplatError(
+                    "checkpoint: it was trained without pose refinement; resume without "
+                    "pose_refine.enabled or start a new run"
+                )
             self.refiner.load_state_dict(st["pose_refine"])
         sh_state = av.get("shading")
         if (sh_state is None) != (self.cfg.model.shading == "none"):
-            raise MeshsplatError("checkpoint: its shading does not match model.shading in the configuration; "
-                                 "resume with the run's own config.json or start a new run")
+            raise MeshsplatError(
+                "checkpoint: its shading does not match model.shading in the configuration; "
+                "resume with the run's own config.json or start a new run"
+            )
         if sh_state is not None:
             shading = Shading.from_state_dict(sh_state, dev)
             assert shading is not None  # sh_state is not None

@@ -1,4 +1,5 @@
 """Self-contained WebGL2 viewer bundle: ``write_viewer_bundle(avatar, frames, out_dir)`` (see docs/viewer.md)."""
+
 from meshsplat.viewer.bundle import (
     BUNDLE_VERSION,
     VERTEX_ENCODINGS,
@@ -9,5 +10,12 @@ from meshsplat.viewer.bundle import (
     write_viewer_bundle,
 )
 
-__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_gaussians", "unpack_gaussians",
-           "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
+__all__ = [
+    "write_viewer_bundle",
+    "read_viewer_bundle",
+    "default_camera",
+    "pack_gaussians",
+    "unpack_gaussians",
+    "BUNDLE_VERSION",
+    "VERTEX_ENCODINGS",
+]

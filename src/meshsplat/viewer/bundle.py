@@ -11,6 +11,7 @@ plus half floats, :func:`pack_gaussians`). The browser poses the Gaussians from 
 frame on the GPU exactly as :func:`meshsplat.gaussians.compose` does (DC colour only). See
 docs/viewer.md.
 """
+
 from __future__ import annotations
 
 import base64
@@ -30,19 +31,30 @@ from meshsplat._typing import ArrayLike
 from meshsplat.camera import Camera, intrinsics, look_at, orbit_cameras, orbit_position
 from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
 from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
 
-__all__ = ["write_viewer_bundle", "read_viewer_bundle", "default_camera", "pack_gaussians", "unpack_gaussians",
-           "BUNDLE_VERSION", "VERTEX_ENCODINGS"]
+__all__ = [
+    "write_viewer_bundle",
+    "read_viewer_bundle",
+    "default_camera",
+    "pack_gaussians",
+    "unpack_gaussians",
+    "BUNDLE_VERSION",
+    "VERTEX_ENCODINGS",
+]
 
 BUNDLE_VERSION = 2
 VERTEX_ENCODINGS = ("int16", "float32")
 _STATIC = Path(__file__).parent / "static"
-_DTYPES: dict[str, np.dtype] = {"float32": np.dtype("<f4"), "uint32": np.dtype("<u4"), "int16": np.dtype("<i2"), "int32": np.dtype("<i4")}
+_DTYPES: dict[str, np.dtype] = {
+    "float32": np.dtype("<f4"),
+    "uint32": np.dtype("<u4"),
+    "int16": np.dtype("<i2"),
+    "int32": np.dtype("<i4"),
+}
 
 
 def _as_frames(frames, num_vertices: int) -> np.ndarray:
@@ -65,25 +77,44 @@ def _as_frames(frames, num_vertices: int) -> np.ndarray:
     return np.stack(out)
 
 
-def default_camera(frames: np.ndarray, width: int = 800, height: int = 800, azimuth_deg: float = 0.0,
-                   elevation_deg: float = 10.0, fov_deg: float = 30.0) -> dict[str, Any]:
+def default_camera(
+    frames: np.ndarray,
+    width: int = 800,
+    height: int = 800,
+    azimuth_deg: float = 0.0,
+    elevation_deg: float = 10.0,
+    fov_deg: float = 30.0,
+) -> dict[str, Any]:
     """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.camera.orbit_cameras``)."""
     lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
-    cam = orbit_cameras([torch.from_numpy(np.stack([lo, hi]))], width, height, azimuth_deg=azimuth_deg,
-                        elevation_deg=elevation_deg, fov_deg=fov_deg)[0]
+    cam = orbit_cameras(
+        [torch.from_numpy(np.stack([lo, hi]))],
+        width,
+        height,
+        azimuth_deg=azimuth_deg,
+        elevation_deg=elevation_deg,
+        fov_deg=fov_deg,
+    )[0]
     center = (lo + hi) / 2
     eye = -cam.viewmat[:3, :3].double().T @ cam.viewmat[:3, 3].double()
-    return _camera_dict(center, float(np.linalg.norm(eye.numpy() - center)), azimuth_deg, elevation_deg, fov_deg,
-                        width, height)
+    return _camera_dict(
+        center, float(np.linalg.norm(eye.numpy() - center)), azimuth_deg, elevation_deg, fov_deg, width, height
+    )
 
 
 def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, height) -> dict[str, Any]:
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     vm = look_at(orbit_position(center, distance, az, el), center)
     return {
-        "center": [float(x) for x in center], "distance": float(distance), "azimuth_deg": float(azimuth_deg),
-        "elevation_deg": float(elevation_deg), "fov_deg": float(fov_deg), "width": int(width), "height": int(height),
-        "viewmat": vm.tolist(), "K": intrinsics(width, height, fov_deg).tolist(),
+        "center": [float(x) for x in center],
+        "distance": float(distance),
+        "azimuth_deg": float(azimuth_deg),
+        "elevation_deg": float(elevation_deg),
+        "fov_deg": float(fov_deg),
+        "width": int(width),
+        "height": int(height),
+        "viewmat": vm.tolist(),
+        "K": intrinsics(width, height, fov_deg).tolist(),
     }
 
 
@@ -96,12 +127,24 @@ def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
         unknown = set(camera) - allowed
         if unknown:
             raise MeshsplatError(f"camera: unknown key(s) {sorted(unknown)} (allowed: {sorted(allowed)})")
-        base = default_camera(frames, camera.get("width", 800), camera.get("height", 800),
-                              camera.get("azimuth_deg", 0.0), camera.get("elevation_deg", 10.0),
-                              camera.get("fov_deg", 30.0))
+        base = default_camera(
+            frames,
+            camera.get("width", 800),
+            camera.get("height", 800),
+            camera.get("azimuth_deg", 0.0),
+            camera.get("elevation_deg", 10.0),
+            camera.get("fov_deg", 30.0),
+        )
         center = np.asarray(camera.get("center", base["center"]), np.float64)
-        return _camera_dict(center, float(camera.get("distance", base["distance"])), base["azimuth_deg"],
-                            base["elevation_deg"], base["fov_deg"], base["width"], base["height"])
+        return _camera_dict(
+            center,
+            float(camera.get("distance", base["distance"])),
+            base["azimuth_deg"],
+            base["elevation_deg"],
+            base["fov_deg"],
+            base["width"],
+            base["height"],
+        )
     if isinstance(camera, Camera):
         # world->camera (OpenCV, no roll) -> orbit about the point of the view axis nearest the animation centre
         vm = camera.viewmat.detach().cpu().double().numpy()
@@ -140,17 +183,35 @@ def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
             "gaussian_scale": p["log_scale"].detach().double().exp().cpu().numpy(),
             "gaussian_opacity": torch.sigmoid(p["opacity_logit"].detach().double()).cpu().numpy(),
             # shaded avatars (model.shading): the canonical pose's shading is baked in (the player does not shade)
-            "gaussian_rgb": (avatar.base_rgb().double() if getattr(avatar, "shading", None) is not None else
-                             (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0)).cpu().numpy(),
+            "gaussian_rgb": (
+                avatar.base_rgb().double()
+                if getattr(avatar, "shading", None) is not None
+                else (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0)
+            )
+            .cpu()
+            .numpy(),
         }
 
 
 # Packed Gaussian: 8 little-endian uint32 words; "a|b" = two IEEE half floats, a in the low 16 bits
 # (GLSL unpackHalf2x16 order): face, u|v, d|opacity, r|g, qw|qx, qy|qz, s0|s1, s2|b.
-_HALF_PAIRS = (("uv", 0, "uv", 1), ("d", None, "opacity", None), ("rgb", 0, "rgb", 1), ("rot", 0, "rot", 1),
-               ("rot", 2, "rot", 3), ("scale", 0, "scale", 1), ("scale", 2, "rgb", 2))
-_PACK_KEYS = {"uv": "gaussian_uv", "d": "gaussian_d", "opacity": "gaussian_opacity", "rgb": "gaussian_rgb",
-              "rot": "gaussian_rotation", "scale": "gaussian_scale"}
+_HALF_PAIRS = (
+    ("uv", 0, "uv", 1),
+    ("d", None, "opacity", None),
+    ("rgb", 0, "rgb", 1),
+    ("rot", 0, "rot", 1),
+    ("rot", 2, "rot", 3),
+    ("scale", 0, "scale", 1),
+    ("scale", 2, "rgb", 2),
+)
+_PACK_KEYS = {
+    "uv": "gaussian_uv",
+    "d": "gaussian_d",
+    "opacity": "gaussian_opacity",
+    "rgb": "gaussian_rgb",
+    "rot": "gaussian_rotation",
+    "scale": "gaussian_scale",
+}
 
 
 def _half_bits(x: np.ndarray) -> np.ndarray:
@@ -172,10 +233,14 @@ def pack_gaussians(arrays: dict[str, np.ndarray]) -> np.ndarray:
     for w, (ka, ia, kb, ib) in enumerate(_HALF_PAIRS, start=1):
         a, b = arrays[_PACK_KEYS[ka]], arrays[_PACK_KEYS[kb]]
         a, b = (a if ia is None else a[:, ia]), (b if ib is None else b[:, ib])
-        if not (np.isfinite(a).all() and np.isfinite(b).all()) or max(np.abs(a).max(initial=0),
-                                                                      np.abs(b).max(initial=0)) > 65504:
-            raise MeshsplatError(f"avatar: {ka}/{kb} values beyond the half-float range of the viewer "
-                                 "(|x| > 65504 or not finite); rescale the mesh units")
+        if (
+            not (np.isfinite(a).all() and np.isfinite(b).all())
+            or max(np.abs(a).max(initial=0), np.abs(b).max(initial=0)) > 65504
+        ):
+            raise MeshsplatError(
+                f"avatar: {ka}/{kb} values beyond the half-float range of the viewer "
+                "(|x| > 65504 or not finite); rescale the mesh units"
+            )
         out[:, w] = _half_bits(a) | (_half_bits(b) << 16)
     return out
 
@@ -184,8 +249,14 @@ def unpack_gaussians(packed: np.ndarray) -> dict[str, np.ndarray]:
     """Inverse of :func:`pack_gaussians` (float32 arrays holding the half-float values)."""
     packed = np.asarray(packed, "<u4")
     n = packed.shape[0]
-    cols: dict[str, np.ndarray] = {"uv": np.empty((n, 2)), "rgb": np.empty((n, 3)), "rot": np.empty((n, 4)),
-                                   "scale": np.empty((n, 3)), "d": np.empty(n), "opacity": np.empty(n)}
+    cols: dict[str, np.ndarray] = {
+        "uv": np.empty((n, 2)),
+        "rgb": np.empty((n, 3)),
+        "rot": np.empty((n, 4)),
+        "scale": np.empty((n, 3)),
+        "d": np.empty(n),
+        "opacity": np.empty(n),
+    }
     for w, (ka, ia, kb, ib) in enumerate(_HALF_PAIRS, start=1):
         lo = (packed[:, w] & 0xFFFF).astype(np.uint16).view(np.float16).astype(np.float64)
         hi = (packed[:, w] >> 16).astype(np.uint16).view(np.float16).astype(np.float64)
@@ -212,10 +283,17 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
     return b"".join(chunks), layout
 
 
-def write_viewer_bundle(avatar: Avatar, frames: ArrayLike | None, out_dir: str | Path, fps: float = 25.0,
-                        camera: Camera | dict[str, Any] | None = None, title: str = "meshsplat avatar",
-                        vertex_encoding: str = "int16", background: str = "white",
-                        rig: GltfDriver | BlendshapeDriver | None = None) -> Path:
+def write_viewer_bundle(
+    avatar: Avatar,
+    frames: ArrayLike | None,
+    out_dir: str | Path,
+    fps: float = 25.0,
+    camera: Camera | dict[str, Any] | None = None,
+    title: str = "meshsplat avatar",
+    vertex_encoding: str = "int16",
+    background: str = "white",
+    rig: GltfDriver | BlendshapeDriver | None = None,
+) -> Path:
     """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
     or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
     :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
@@ -245,8 +323,10 @@ def write_viewer_bundle(avatar: Avatar, frames: ArrayLike | None, out_dir: str |
     if rig is not None:
         rig_sections, driver, rig_vertices = bundle_rig(rig, fps)
         if rig_vertices != mesh.num_vertices:
-            raise MeshsplatError(f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
-                                 "(for glTF build it with meshsplat.viewer.rig.avatar_driver)")
+            raise MeshsplatError(
+                f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
+                "(for glTF build it with meshsplat.viewer.rig.avatar_driver)"
+            )
         sections.update(rig_sections)
         if frames is None:  # frame the camera on samples of the default clip
             frames = rig_preview_frames(rig)
@@ -261,11 +341,21 @@ def write_viewer_bundle(avatar: Avatar, frames: ArrayLike | None, out_dir: str |
     sections["gaussians"] = pack_gaussians(_gaussian_arrays(avatar))
     blob, layout = _pack(sections)
     header = {
-        "format": "meshsplat-viewer", "version": BUNDLE_VERSION, "title": str(title),
-        "num_vertices": mesh.num_vertices, "num_faces": mesh.num_faces, "num_gaussians": avatar.num_gaussians,
-        "num_frames": num_frames, "fps": float(fps), "scale_mode": avatar.scale_mode,
-        "vertex_encoding": vertex_encoding, **quant, "background": background,
-        "camera": _camera_from(camera, verts), "driver": driver, "sections": layout,
+        "format": "meshsplat-viewer",
+        "version": BUNDLE_VERSION,
+        "title": str(title),
+        "num_vertices": mesh.num_vertices,
+        "num_faces": mesh.num_faces,
+        "num_gaussians": avatar.num_gaussians,
+        "num_frames": num_frames,
+        "fps": float(fps),
+        "scale_mode": avatar.scale_mode,
+        "vertex_encoding": vertex_encoding,
+        **quant,
+        "background": background,
+        "camera": _camera_from(camera, verts),
+        "driver": driver,
+        "sections": layout,
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -273,12 +363,15 @@ def write_viewer_bundle(avatar: Avatar, frames: ArrayLike | None, out_dir: str |
     if "</script" in viewer_js.lower():
         raise MeshsplatError("viewer.js must not contain '</script' (it is inlined into index.html)")
     header_json = json.dumps(header, indent=1)
-    page = _fill_template((_STATIC / "index.html").read_text(encoding="utf-8"), {
-        "TITLE": html.escape(str(title)),
-        "AVATAR_HEADER": header_json.replace("<", "\\u003c"),  # no "</script" or "<!--" inside the JSON
-        "AVATAR_DATA": base64.b64encode(blob).decode("ascii"),
-        "VIEWER_JS": viewer_js,
-    })
+    page = _fill_template(
+        (_STATIC / "index.html").read_text(encoding="utf-8"),
+        {
+            "TITLE": html.escape(str(title)),
+            "AVATAR_HEADER": header_json.replace("<", "\\u003c"),  # no "</script" or "<!--" inside the JSON
+            "AVATAR_DATA": base64.b64encode(blob).decode("ascii"),
+            "VIEWER_JS": viewer_js,
+        },
+    )
     (out / "avatar.bin").write_bytes(blob)
     (out / "avatar.json").write_text(header_json + "\n", encoding="utf-8")
     (out / "viewer.js").write_text(viewer_js, encoding="utf-8")
@@ -311,8 +404,10 @@ def read_viewer_bundle(out_dir: str | Path) -> tuple[dict[str, Any], dict[str, n
             raise MeshsplatError(f"{root / 'avatar.bin'}: section {name!r} runs past the end of the file")
         arrays[name] = np.frombuffer(blob, dt, count, s["offset"]).reshape(s["shape"])
     if header.get("version") != BUNDLE_VERSION or "gaussians" not in arrays:
-        raise MeshsplatError(f"{root}: viewer bundle version {header.get('version')} (expected {BUNDLE_VERSION}); "
-                             "write it again with this meshsplat")
+        raise MeshsplatError(
+            f"{root}: viewer bundle version {header.get('version')} (expected {BUNDLE_VERSION}); "
+            "write it again with this meshsplat"
+        )
     arrays.update(unpack_gaussians(arrays["gaussians"]))
     if "frames" in arrays:
         frames = arrays["frames"].astype(np.float64)

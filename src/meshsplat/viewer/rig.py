@@ -8,6 +8,7 @@ The arrays mirror :class:`meshsplat.drivers.GltfDriver`: vertex ``v`` is posed a
 with ``p = pair_index[v,k]``; node world matrices come from the rest local matrices with animated
 translation / rotation / scale channels (LINEAR with slerp for rotations, STEP, CUBICSPLINE).
 """
+
 from __future__ import annotations
 
 import math
@@ -28,15 +29,18 @@ __all__ = ["gltf_rig", "blendshape_rig", "bundle_rig", "avatar_driver", "rig_pre
 _PATHS = ("translation", "rotation", "scale", "weights")
 
 
-def avatar_driver(avatar: Avatar, path: str | Path, clip: str | None = None,
-                  source_map: SourceMap | None = None) -> GltfDriver:
+def avatar_driver(
+    avatar: Avatar, path: str | Path, clip: str | None = None, source_map: SourceMap | None = None
+) -> GltfDriver:
     """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices, derived as
     :func:`meshsplat.animate.avatar_gltf_driver` does (matched rest positions, or re-derived from the
     asset the avatar was synthesized from)."""
     drv, to_world = avatar_gltf_driver(avatar, path, clip=clip, source_map=source_map)
     if to_world is not None:
-        raise MeshsplatError(f"{path}: the avatar was synthesized from this asset turned to +y up; the live page "
-                             "plays the asset in its own axes: use --bake (vertex frames) instead")
+        raise MeshsplatError(
+            f"{path}: the avatar was synthesized from this asset turned to +y up; the live page "
+            "plays the asset in its own axes: use --bake (vertex frames) instead"
+        )
     return drv
 
 
@@ -80,8 +84,15 @@ def gltf_rig(drv: GltfDriver) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         default_w.append(g.default_weights)
         names = mesh_names.get(g.node, [])
         names = names if len(names) == m else [f"target {i}" for i in range(m)]
-        groups.append({"node": int(g.node), "count": int(m), "weight_base": wbase, "names": [str(s) for s in names],
-                       "node_name": doc.nodes[g.node].name or f"node {g.node}"})
+        groups.append(
+            {
+                "node": int(g.node),
+                "count": int(m),
+                "weight_base": wbase,
+                "names": [str(s) for s in names],
+                "node_name": doc.nodes[g.node].name or f"node {g.node}",
+            }
+        )
         texel += m * n
         wbase += m
     times: list[np.ndarray] = []
@@ -96,8 +107,17 @@ def gltf_rig(drv: GltfDriver) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             t = np.asarray(ch.times, "<f4")
             v = np.asarray(ch.values, "<f4").reshape(-1)
             width = int(ch.values.shape[-1])
-            chans.append({"node": int(ch.node), "path": ch.path, "interp": ch.interpolation, "t_off": t_off,
-                          "count": len(t), "v_off": v_off, "width": width})
+            chans.append(
+                {
+                    "node": int(ch.node),
+                    "path": ch.path,
+                    "interp": ch.interpolation,
+                    "t_off": t_off,
+                    "count": len(t),
+                    "v_off": v_off,
+                    "width": width,
+                }
+            )
             times.append(t)
             values.append(v)
             t_off += len(t)
@@ -105,11 +125,15 @@ def gltf_rig(drv: GltfDriver) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         t0, _ = drv.time_range(name)
         clips.append({"name": name, "start": float(t0), "duration": float(drv.duration(name)), "channels": chans})
     sections = {
-        "rig_base": np.asarray(rig.base, "<f4"), "rig_pair_index": pair_index, "rig_pair_weight": pair_weight,
+        "rig_base": np.asarray(rig.base, "<f4"),
+        "rig_pair_index": pair_index,
+        "rig_pair_weight": pair_weight,
         "pair_node": np.asarray(drv._pair_node, "<u4"),
         "pair_ibm": np.asarray(drv._pair_ibm, "<f4").reshape(-1, 16),
-        "node_parent": np.asarray(drv._parent, "<i4"), "node_order": np.asarray(drv._order, "<u4"),
-        "node_rest": np.asarray(drv._rest_local, "<f4").reshape(-1, 16), "node_trs": trs,
+        "node_parent": np.asarray(drv._parent, "<i4"),
+        "node_order": np.asarray(drv._order, "<u4"),
+        "node_rest": np.asarray(drv._rest_local, "<f4").reshape(-1, 16),
+        "node_trs": trs,
         "morph_info": info,
         "morph_deltas": np.concatenate(deltas).astype("<f4") if deltas else np.zeros((0, 3), "<f4"),
         "morph_default_weights": np.concatenate(default_w).astype("<f4") if default_w else np.zeros(0, "<f4"),
@@ -117,10 +141,19 @@ def gltf_rig(drv: GltfDriver) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "anim_values": np.concatenate(values) if values else np.zeros(0, "<f4"),
     }
     clip = drv.clip if drv.clip is not None else (drv.clips[0] if drv.clips else None)
-    header = {"kind": "gltf", "source": drv.path.name, "influences": kk, "morph_encoding": "float32",
-              "num_pairs": int(len(drv._pair_node)),
-              "num_nodes": n_nodes, "matrix_nodes": matrix_nodes, "morph_groups": groups,
-              "num_morph_weights": wbase, "clips": clips, "clip": clip}
+    header = {
+        "kind": "gltf",
+        "source": drv.path.name,
+        "influences": kk,
+        "morph_encoding": "float32",
+        "num_pairs": len(drv._pair_node),
+        "num_nodes": n_nodes,
+        "matrix_nodes": matrix_nodes,
+        "morph_groups": groups,
+        "num_morph_weights": wbase,
+        "clips": clips,
+        "clip": clip,
+    }
     if not all(math.isfinite(c["duration"]) for c in clips):
         raise MeshsplatError(f"{drv.path}: a clip has a non-finite duration")
     return sections, header
@@ -132,7 +165,9 @@ def _axis_angle_to_xyzw(aa: np.ndarray) -> np.ndarray:
     return np.concatenate([axis * np.sin(theta / 2), np.cos(theta / 2)], -1)
 
 
-def blendshape_rig(drv: BlendshapeDriver, fps: float = 25.0, clip_name: str = "sequence") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def blendshape_rig(
+    drv: BlendshapeDriver, fps: float = 25.0, clip_name: str = "sequence"
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """``(sections, header)`` of a :class:`meshsplat.drivers.BlendshapeDriver` as a morph rig.
 
     ``posed = R (neutral + sum w_e delta_e - pivot) + pivot + t`` is one node (rotation R,
@@ -167,32 +202,56 @@ def blendshape_rig(drv: BlendshapeDriver, fps: float = 25.0, clip_name: str = "s
     vals: list[np.ndarray] = []
     off = 0
     for path, arr in (("weights", w), ("rotation", rot), ("translation", tra)):
-        chans.append({"node": 0, "path": path, "interp": "LINEAR", "t_off": len(chans) * t, "count": t,
-                      "v_off": off, "width": int(arr.shape[1])})
+        chans.append(
+            {
+                "node": 0,
+                "path": path,
+                "interp": "LINEAR",
+                "t_off": len(chans) * t,
+                "count": t,
+                "v_off": off,
+                "width": int(arr.shape[1]),
+            }
+        )
         vals.append(arr.reshape(-1))
         off += arr.size
     sections = {
-        "rig_base": neutral.astype("<f4"), "rig_pair_index": np.zeros((v, 4), "<u4"),
+        "rig_base": neutral.astype("<f4"),
+        "rig_pair_index": np.zeros((v, 4), "<u4"),
         "rig_pair_weight": np.tile(np.array([1, 0, 0, 0], "<f4"), (v, 1)),
-        "pair_node": np.zeros(1, "<u4"), "pair_ibm": ibm.reshape(1, 16).astype("<f4"),
-        "node_parent": np.full(1, -1, "<i4"), "node_order": np.zeros(1, "<u4"),
+        "pair_node": np.zeros(1, "<u4"),
+        "pair_ibm": ibm.reshape(1, 16).astype("<f4"),
+        "node_parent": np.full(1, -1, "<i4"),
+        "node_order": np.zeros(1, "<u4"),
         "node_rest": rest.reshape(1, 16).astype("<f4"),
         "node_trs": np.concatenate([pivot, [0, 0, 0, 1], [1, 1, 1]])[None].astype("<f4"),
-        "morph_info": info, "morph_deltas": packed, "morph_default_weights": np.zeros(e, "<f4"),
-        "anim_times": np.tile(times, 3), "anim_values": np.concatenate(vals).astype("<f4"),
+        "morph_info": info,
+        "morph_deltas": packed,
+        "morph_default_weights": np.zeros(e, "<f4"),
+        "anim_times": np.tile(times, 3),
+        "anim_values": np.concatenate(vals).astype("<f4"),
     }
-    header = {"kind": "gltf", "source": "blendshapes", "influences": 4, "num_pairs": 1, "num_nodes": 1,
-              "matrix_nodes": [], "morph_encoding": "float16",
-              "morph_groups": [{"node": 0, "count": e, "weight_base": 0, "names": [str(n) for n in drv.names],
-                                "node_name": "face"}],
-              "num_morph_weights": e,
-              "clips": [{"name": clip_name, "start": 0.0, "duration": float((t - 1) / fps), "channels": chans}],
-              "clip": clip_name}
+    header = {
+        "kind": "gltf",
+        "source": "blendshapes",
+        "influences": 4,
+        "num_pairs": 1,
+        "num_nodes": 1,
+        "matrix_nodes": [],
+        "morph_encoding": "float16",
+        "morph_groups": [
+            {"node": 0, "count": e, "weight_base": 0, "names": [str(n) for n in drv.names], "node_name": "face"}
+        ],
+        "num_morph_weights": e,
+        "clips": [{"name": clip_name, "start": 0.0, "duration": float((t - 1) / fps), "channels": chans}],
+        "clip": clip_name,
+    }
     return sections, header
 
 
-def bundle_rig(drv: GltfDriver | BlendshapeDriver,
-               fps: float = 25.0) -> tuple[dict[str, np.ndarray], dict[str, Any], int]:
+def bundle_rig(
+    drv: GltfDriver | BlendshapeDriver, fps: float = 25.0
+) -> tuple[dict[str, np.ndarray], dict[str, Any], int]:
     """``(sections, header, num_vertices)`` of a GltfDriver or a BlendshapeDriver."""
     if isinstance(drv, BlendshapeDriver):
         return (*blendshape_rig(drv, fps), int(drv.neutral.shape[0]))

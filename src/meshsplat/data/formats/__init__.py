@@ -5,6 +5,7 @@ Each format module has ``NAME``, ``DESCRIPTION``, ``detect(root) -> bool``,
 folder in one error) and ``write(dataset, out, **options) -> Path`` (that layout from a native dataset
 with driver parameters; used by ``meshsplat synth --format``). Pages: ``docs/formats/``.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -42,8 +43,9 @@ def detect_format(root: Path | str) -> str:
     raise MeshsplatError(f"{root}: not a capture layout meshsplat reads (looked for {looked})")
 
 
-def open_capture(root: Path | str, format: str | None = None, model_dir: Path | str | None = None,
-                 **options: Any) -> AvatarDataset:
+def open_capture(
+    root: Path | str, format: str | None = None, model_dir: Path | str | None = None, **options: Any
+) -> AvatarDataset:
     """Open a capture folder of any supported layout as an :class:`AvatarDataset` (``format`` auto-detected)."""
     name = format or detect_format(root)
     if name == "native":

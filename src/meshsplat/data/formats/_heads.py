@@ -4,6 +4,7 @@ Reading: JSON with one-line errors, image/mask lookup, a fast vertices-only OBJ 
 the "mesh in front of its camera" sanity check and the tail test split. Writing: the FLAME parameters
 of a native dataset per mesh row and the frames' pixels as uint8.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,9 +20,27 @@ from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["merge_transform_frames", "read_json", "prepare_out", "tail_split", "has_alpha", "find_file", "obj_vertices",
-           "flame_model", "fit_coeffs", "pose_model", "flame_driver_record", "check_in_front",
-           "mask_choice", "flame_rows", "frame_pixels", "write_json", "save_png", "MASK_MODES", "IMAGE_EXTS"]
+__all__ = [
+    "merge_transform_frames",
+    "read_json",
+    "prepare_out",
+    "tail_split",
+    "has_alpha",
+    "find_file",
+    "obj_vertices",
+    "flame_model",
+    "fit_coeffs",
+    "pose_model",
+    "flame_driver_record",
+    "check_in_front",
+    "mask_choice",
+    "flame_rows",
+    "frame_pixels",
+    "write_json",
+    "save_png",
+    "MASK_MODES",
+    "IMAGE_EXTS",
+]
 
 MASK_MODES = ("auto", "alpha", "folder", "none")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
@@ -29,7 +48,9 @@ DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test
 SMALL_TEST_FRACTION = 0.2  # captures with <= 350 frames: the last 20% are test frames
 
 
-def merge_transform_frames(files, problems: Problems) -> tuple[list[tuple[dict, dict, str]], dict[str, list[int]], list[dict]]:
+def merge_transform_frames(
+    files, problems: Problems
+) -> tuple[list[tuple[dict, dict, str]], dict[str, list[int]], list[dict]]:
     """Frames of instant-ngp style ``transforms*.json`` files ``[(split | None, path)]``, each frame once.
 
     Returns ``(frames, splits, tops)``: ``frames`` as ``(record, its file's top level, file name)`` in
@@ -182,8 +203,11 @@ def fit_coeffs(name: str, a: np.ndarray, width: int, problems: Problems) -> np.n
     k = a.shape[-1]
     if k > width:
         if np.any(a[..., width:] != 0):
-            problems.add(name, f"{k} coefficients, but the FLAME model file has {width}; "
-                         f"non-zero coefficients beyond {width} cannot be used (use a full FLAME model file)")
+            problems.add(
+                name,
+                f"{k} coefficients, but the FLAME model file has {width}; "
+                f"non-zero coefficients beyond {width} cannot be used (use a full FLAME model file)",
+            )
         return a[..., :width]
     if k < width:
         pad = np.zeros(a.shape[:-1] + (width - k,), a.dtype)
@@ -198,8 +222,10 @@ def pose_model(model: BodyModel, params: dict, chunk: int = 128) -> np.ndarray:
     with torch.no_grad():
         for s in range(0, T, chunk):
             e = min(T, s + chunk)
-            p = {k: (v[s:e] if k != "static_offset" and np.ndim(v) == 2 and len(v) == T else v)
-                 for k, v in params.items()}
+            p = {
+                k: (v[s:e] if k != "static_offset" and np.ndim(v) == 2 and len(v) == T else v)
+                for k, v in params.items()
+            }
             out[s:e] = model.forward(p).vertices.cpu().numpy()
     return out
 
@@ -211,8 +237,7 @@ def flame_driver_record(model: BodyModel, source: str, per_frame: list[str]) -> 
     return rec
 
 
-def check_in_front(cameras: dict, frames: list[dict], verts: np.ndarray | None, problems: Problems,
-                   hint: str) -> None:
+def check_in_front(cameras: dict, frames: list[dict], verts: np.ndarray | None, problems: Problems, hint: str) -> None:
     """Every frame's mesh centre must lie in front of its camera (catches a flipped camera convention)."""
     if verts is None:
         return
@@ -236,8 +261,10 @@ def flame_rows(dataset: AvatarDataset, fmt: str) -> tuple[dict, dict[str, np.nda
     info, params = dataset.driver_info, dataset.driver_params
     if info is None or params is None or info.get("type") != "flame":
         kind = info.get("type") if info else "no body/head model"
-        raise MeshsplatError(f"{fmt} writer: {dataset.root} must carry FLAME parameters (driver type 'flame'), "
-                             f"it has {kind}; generate it from a FLAME source")
+        raise MeshsplatError(
+            f"{fmt} writer: {dataset.root} must carry FLAME parameters (driver type 'flame'), "
+            f"it has {kind}; generate it from a FLAME source"
+        )
     return info, {k: np.asarray(v, np.float64) for k, v in params.items()}, set(info.get("per_frame", []))
 
 

@@ -5,6 +5,7 @@ OpenGL-style world->camera ``world_mat [3,4]``, ``expression [50]``, ``pose [15]
 (RGBA: the alpha is the matte) or RGB images with a ``mask/`` folder. The head is DECA's FLAME scaled
 x4, without translation. Page: docs/formats/imavatar.md.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -36,8 +37,18 @@ from meshsplat.data.png import image_size
 from meshsplat.drivers.body_models import join_flame_pose15, split_flame_pose15
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "viewmat_from_world_mat",
-           "world_mat_from_viewmat", "K_from_intrinsics", "DECA_SCALE"]
+__all__ = [
+    "NAME",
+    "DESCRIPTION",
+    "SIGNATURE",
+    "detect",
+    "read",
+    "write",
+    "viewmat_from_world_mat",
+    "world_mat_from_viewmat",
+    "K_from_intrinsics",
+    "DECA_SCALE",
+]
 
 NAME = "imavatar"
 DESCRIPTION = "IMavatar/DECA head capture: flame_params.json + image/ (FLAME x4, OpenGL world_mat)"
@@ -47,8 +58,10 @@ NUM_SHAPE, NUM_EXPRESSION = 100, 50
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes <-> OpenCV camera axes
 _PER_FRAME = ["global_orient", "neck_pose", "jaw_pose", "leye_pose", "reye_pose", "expression"]
 _PLACEHOLDER_K = lambda w, h: K_from_focal(w, h, w / 2, h / 2)  # noqa: E731  (bad intrinsics: reported once)
-_HINT = ("world_mat must be an OpenGL-style world->camera matrix (camera looks down -z, as DECA writes it); "
-         "check the capture's camera convention")
+_HINT = (
+    "world_mat must be an OpenGL-style world->camera matrix (camera looks down -z, as DECA writes it); "
+    "check the capture's camera convention"
+)
 
 
 def detect(root: Path | str) -> bool:
@@ -77,8 +90,10 @@ def K_from_intrinsics(intr: ArrayLike | None, width: int, height: int) -> np.nda
     units on a 512-pixel base, as IMavatar's own reader treats them)."""
     a = np.asarray(intr, np.float64).reshape(-1)
     if a.shape != (4,) or not np.isfinite(a).all():
-        raise MeshsplatError("intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], "
-                             f"got {list(np.shape(cast(ArrayLike, intr)))}")
+        raise MeshsplatError(
+            "intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], "
+            f"got {list(np.shape(cast(ArrayLike, intr)))}"
+        )
     if abs(a[3]) > 1:
         a = a / 512.0
     return K_from_normalized(a, width, height)
@@ -91,7 +106,7 @@ def _image_candidates(file_path: str) -> list[str]:
     out = [p]
     for a, b in (("image/", "images/"), ("images/", "image/")):
         if p.startswith(a):
-            out.append(b + p[len(a):])
+            out.append(b + p[len(a) :])
         elif f"/{a}" in p:
             out.append(p.replace(f"/{a}", f"/{b}"))
     return out
@@ -112,9 +127,15 @@ def _vector(fr: dict, key: str, where: str, problems: Problems, length: int | No
     return a
 
 
-def read(root: Path | str, model_dir: Path | str | None = None, test_frames: int | None = None, mask: str = "auto",
-         flame_version: str | None = None,
-         check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+def read(
+    root: Path | str,
+    model_dir: Path | str | None = None,
+    test_frames: int | None = None,
+    mask: str = "auto",
+    flame_version: str | None = None,
+    check_masks: bool = True,
+    cache_size: int = 8,
+) -> AvatarDataset:
     """Open an IMavatar folder. ``test_frames``: how many final frames are test frames (default: 350, or
     the last 20% of captures with <= 350 frames); ``mask``: auto | alpha | folder | none;
     ``flame_version``: default the file's ``flame_version`` key, else "2020" (DECA's FLAME)."""
@@ -167,9 +188,13 @@ def read(root: Path | str, model_dir: Path | str | None = None, test_frames: int
 
     kind = _mask_kind(root, mask, first)
     cameras, frames = {}, []
-    for j, (name, rel, vm) in enumerate(zip(names, images, viewmats)):
-        cameras[name] = {"K": (K if K is not None else _PLACEHOLDER_K(width, height)).tolist(),
-                         "viewmat": (vm if vm is not None else np.eye(4)).tolist(), "width": width, "height": height}
+    for j, (name, rel, vm) in enumerate(zip(names, images, viewmats, strict=True)):
+        cameras[name] = {
+            "K": (K if K is not None else _PLACEHOLDER_K(width, height)).tolist(),
+            "viewmat": (vm if vm is not None else np.eye(4)).tolist(),
+            "width": width,
+            "height": height,
+        }
         rec = {"name": name, "image": rel, "camera": name, "mesh": j}
         if kind == "alpha":
             rec["mask_kind"] = "alpha"
@@ -184,15 +209,23 @@ def read(root: Path | str, model_dir: Path | str | None = None, test_frames: int
     version = str(flame_version or data.get("flame_version", "2020"))
     model = flame_model(model_dir, version, DECA_SCALE, problems)
     verts = canonical = faces = params = None
-    parsed = all(p is not None for p in poses) and all(e is not None for e in exprs) and shape is not None \
-        and len(lengths) <= 1 and len(poses) == len(items)
+    parsed = (
+        all(p is not None for p in poses)
+        and all(e is not None for e in exprs)
+        and shape is not None
+        and len(lengths) <= 1
+        and len(poses) == len(items)
+    )
     if model is not None and parsed:
         assert shape is not None  # part of parsed
         pose = np.stack(cast("list[np.ndarray]", poses))
-        params = {"betas": fit_coeffs("shape_params", shape, model.num_betas, problems),
-                  **split_flame_pose15(pose),
-                  "expression": fit_coeffs("expression", np.stack(cast("list[np.ndarray]", exprs)),
-                                            model.num_expression, problems)}
+        params = {
+            "betas": fit_coeffs("shape_params", shape, model.num_betas, problems),
+            **split_flame_pose15(pose),
+            "expression": fit_coeffs(
+                "expression", np.stack(cast("list[np.ndarray]", exprs)), model.num_expression, problems
+            ),
+        }
         params = {k: np.ascontiguousarray(v, np.float32) for k, v in params.items()}
         verts = pose_model(model, params)
         canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
@@ -200,16 +233,34 @@ def read(root: Path | str, model_dir: Path | str | None = None, test_frames: int
         check_in_front(cameras, frames, verts, problems, _HINT)
     train, test = tail_split(len(frames), test_frames)
     manifest = {
-        "cameras": cameras, "frames": frames, "vertices": "flame_params.json (posed FLAME x4)",
+        "cameras": cameras,
+        "frames": frames,
+        "vertices": "flame_params.json (posed FLAME x4)",
         "splits": {"train": train, "test_frames": test},
-        "meta": {"source_format": NAME, "source": str(root), "flame_version": version, "mask": kind,
-                 "test_frames_rule": "last 350 frames (last 20% when <= 350 frames)" if test_frames is None
-                 else f"last {test_frames} frames"},
+        "meta": {
+            "source_format": NAME,
+            "source": str(root),
+            "flame_version": version,
+            "mask": kind,
+            "test_frames_rule": "last 350 frames (last 20% when <= 350 frames)"
+            if test_frames is None
+            else f"last {test_frames} frames",
+        },
     }
     if model is not None:
         manifest["driver"] = flame_driver_record(model, "flame_params.json", _PER_FRAME)
-    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, driver_params=params, format_name=NAME)
+    return build_dataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        driver_params=params,
+        format_name=NAME,
+    )
 
 
 def _mask_kind(root: Path, mode: str, first: Path) -> str:
@@ -227,8 +278,9 @@ def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
     a = np.asarray(a, np.float64).reshape(-1)
     if a.size > width:
         if np.any(a[width:] != 0):
-            raise MeshsplatError(f"imavatar writer: {name} has {a.size} non-zero coefficients, "
-                                 f"the layout keeps {width}")
+            raise MeshsplatError(
+                f"imavatar writer: {name} has {a.size} non-zero coefficients, the layout keeps {width}"
+            )
         return a[:width]
     return np.concatenate([a, np.zeros(width - a.size)])
 
@@ -242,8 +294,10 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     takes the final frames as test frames)."""
     info, params, per_frame = flame_rows(dataset, NAME)
     if "static_offset" in params and np.any(params["static_offset"] != 0):
-        raise MeshsplatError("imavatar writer: the dataset's FLAME has a static_offset, which IMavatar's layout cannot "
-                             "store; write the vhap layout instead")
+        raise MeshsplatError(
+            "imavatar writer: the dataset's FLAME has a static_offset, which IMavatar's layout cannot "
+            "store; write the vhap layout instead"
+        )
     s = DECA_SCALE / float(info.get("scale", 1.0))
 
     def value(key: str, row: int, width: int) -> np.ndarray:
@@ -266,9 +320,11 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         if intr is None:
             intr, size = this, (w, h)
         elif size != (w, h) or not np.allclose(this, intr, rtol=1e-9, atol=1e-12):
-            raise MeshsplatError("imavatar writer: the layout stores one camera intrinsics and image size for all "
-                                 "frames; "
-                                 f"frame {i} differs ({w}x{h}, {this} vs {size[0]}x{size[1]}, {intr})")
+            raise MeshsplatError(
+                "imavatar writer: the layout stores one camera intrinsics and image size for all "
+                "frames; "
+                f"frame {i} differs ({w}x{h}, {this} vs {size[0]}x{size[1]}, {intr})"
+            )
         R, t = vm[:3, :3], vm[:3, 3]
         new = np.eye(4)
         new[:3, :3] = R
@@ -277,13 +333,21 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         k = i + 1
         rgb, m = frame_pixels(dataset, i)
         save_png(out / "image" / f"{k}.png", rgb if m is None else np.dstack([rgb, m]))
-        frames.append({"file_path": f"./image/{k}", "world_mat": world_mat_from_viewmat(new).tolist(),
-                       "expression": _fit_out("expression", value("expression", row, NUM_EXPRESSION),
-                                              NUM_EXPRESSION).tolist(),
-                       "pose": pose.tolist()})
-    write_json(out / "flame_params.json", {
-        "intrinsics": intr, "shape_params": _fit_out("betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE).tolist(),
-        "frames": frames, "flame_version": str(info.get("flame_version", "2020")),
-    })
+        frames.append(
+            {
+                "file_path": f"./image/{k}",
+                "world_mat": world_mat_from_viewmat(new).tolist(),
+                "expression": _fit_out("expression", value("expression", row, NUM_EXPRESSION), NUM_EXPRESSION).tolist(),
+                "pose": pose.tolist(),
+            }
+        )
+    write_json(
+        out / "flame_params.json",
+        {
+            "intrinsics": intr,
+            "shape_params": _fit_out("betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE).tolist(),
+            "frames": frames,
+            "flame_version": str(info.get("flame_version", "2020")),
+        },
+    )
     return out
-

@@ -7,6 +7,7 @@ INSTA's ``transform_matrix`` is the inverse of metrical-tracker's OpenCV world->
 in OpenCV axes; VHAP's mesh export writes the same layout with OpenGL axes (``camera_convention``).
 Page: docs/formats/insta.md.
 """
+
 from __future__ import annotations
 
 import re
@@ -83,9 +84,15 @@ def _camera(fr: dict, top: dict, convention: str):
     return K, vm, w, h
 
 
-def read(root: Path | str, model_dir: Path | str | None = None, camera_convention: str = "auto", mask: str = "auto",
-         test_frames: int | None = None,
-         check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+def read(
+    root: Path | str,
+    model_dir: Path | str | None = None,
+    camera_convention: str = "auto",
+    mask: str = "auto",
+    test_frames: int | None = None,
+    check_masks: bool = True,
+    cache_size: int = 8,
+) -> AvatarDataset:
     """Open an INSTA folder. ``camera_convention``: auto (OpenGL when the frames carry VHAP's
     ``timestep_index``, else INSTA's OpenCV) | opencv | opengl; ``mask``: auto (per-frame ``mask_path`` /
     ``fg_mask_path``, else RGBA alpha, else a masks/, mask/ or fg_masks/ folder) | alpha | folder | none;
@@ -103,14 +110,18 @@ def read(root: Path | str, model_dir: Path | str | None = None, camera_conventio
     items = [(fr, top) for fr, top, _ in merged]
     has_splits = any(s is not None for s, _ in files)
     # capture order (INSTA lists frames as its worker pool finishes them): natural order of the image path
-    order = sorted(range(len(items)), key=lambda j: _natural(str(items[j][0].get("file_path", ""))
-                                                             if isinstance(items[j][0], dict) else ""))
+    order = sorted(
+        range(len(items)),
+        key=lambda j: _natural(str(items[j][0].get("file_path", "")) if isinstance(items[j][0], dict) else ""),
+    )
     new = {old: n for n, old in enumerate(order)}
     items = [items[j] for j in order]
     splits = {k: sorted(new[j] for j in v) for k, v in splits.items()}
     if has_splits and test_frames is not None:
-        raise MeshsplatError(f"{root}: test_frames applies to a folder with only transforms.json; this one has "
-                             "split files (transforms_train.json ...), which set the test frames")
+        raise MeshsplatError(
+            f"{root}: test_frames applies to a folder with only transforms.json; this one has "
+            "split files (transforms_train.json ...), which set the test frames"
+        )
     if not has_splits:
         train, test = tail_split(len(items), test_frames)
         splits = {"train": train, "test_frames": test}
@@ -154,17 +165,36 @@ def read(root: Path | str, model_dir: Path | str | None = None, camera_conventio
 
     kind = _assign_masks(root, mask, frames, problems)
     canonical, faces, verts = _meshes(root, mesh_paths, problems)
-    hint = ("INSTA's transform_matrix is camera->world in OpenCV axes, VHAP's in OpenGL axes; pass "
-            f"camera_convention='{'opengl' if convention == 'opencv' else 'opencv'}' if this capture uses the other")
+    hint = (
+        "INSTA's transform_matrix is camera->world in OpenCV axes, VHAP's in OpenGL axes; pass "
+        f"camera_convention='{'opengl' if convention == 'opencv' else 'opencv'}' if this capture uses the other"
+    )
     if verts is not None and len(verts) == len(mesh_paths):
         check_in_front(cameras, frames, verts, problems, hint)
     manifest = {
-        "cameras": cameras, "frames": frames, "vertices": "meshes/*.obj", "splits": splits,
-        "meta": {"source_format": NAME, "source": str(root), "camera_convention": convention, "mask": kind,
-                 "canonical": "canonical.obj" if (root / "canonical.obj").is_file() else "first frame's mesh"},
+        "cameras": cameras,
+        "frames": frames,
+        "vertices": "meshes/*.obj",
+        "splits": splits,
+        "meta": {
+            "source_format": NAME,
+            "source": str(root),
+            "camera_convention": convention,
+            "mask": kind,
+            "canonical": "canonical.obj" if (root / "canonical.obj").is_file() else "first frame's mesh",
+        },
     }
-    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, format_name=NAME)
+    return build_dataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        format_name=NAME,
+    )
 
 
 def _derived_mesh_path(file_path: str) -> str:
@@ -237,8 +267,11 @@ def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems):
             ok = False
             continue
         if v.shape[0] != V or nf not in (0, F):
-            problems.add(where, f"mesh {rel} has {v.shape[0]} vertices / {nf} faces, {ref.name} has {V} / {F} "
-                         "(every frame needs the same topology)")
+            problems.add(
+                where,
+                f"mesh {rel} has {v.shape[0]} vertices / {nf} faces, {ref.name} has {V} / {F} "
+                "(every frame needs the same topology)",
+            )
             ok = False
             continue
         verts[r] = v
@@ -268,15 +301,27 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False, came
         info = dataset.frame_info(i)
         cam = cams[str(info["camera"])]
         K, vm = np.asarray(cam["K"], np.float64), np.asarray(cam["viewmat"], np.float64)
-        intr = {"w": int(cam["width"]), "h": int(cam["height"]), "cx": K[0, 2], "cy": K[1, 2], "fl_x": K[0, 0],
-                "fl_y": K[1, 1]}
+        intr = {
+            "w": int(cam["width"]),
+            "h": int(cam["height"]),
+            "cx": K[0, 2],
+            "cy": K[1, 2],
+            "fl_x": K[0, 0],
+            "fl_y": K[1, 1],
+        }
         if top is None:
-            top = {**intr, "camera_angle_x": 2 * np.arctan(intr["w"] / (2 * K[0, 0])),
-                   "camera_angle_y": 2 * np.arctan(intr["h"] / (2 * K[1, 1]))}
+            top = {
+                **intr,
+                "camera_angle_x": 2 * np.arctan(intr["w"] / (2 * K[0, 0])),
+                "camera_angle_y": 2 * np.arctan(intr["h"] / (2 * K[1, 1])),
+            }
         c2w = opengl_c2w_from_viewmat(vm) if camera_convention == "opengl" else np.linalg.inv(vm)
         fid = f"{i:05d}"
-        rec = {"transform_matrix": c2w.tolist(), "file_path": f"images/{fid}.png",
-               "mesh_path": f"meshes/{int(info['mesh']):05d}.obj"}
+        rec = {
+            "transform_matrix": c2w.tolist(),
+            "file_path": f"images/{fid}.png",
+            "mesh_path": f"meshes/{int(info['mesh']):05d}.obj",
+        }
         rec.update({k: v for k, v in intr.items() if top[k] != v})
         rgb, m = frame_pixels(dataset, i)
         save_png(out / "images" / f"{fid}.png", rgb)

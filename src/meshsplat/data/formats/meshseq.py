@@ -16,6 +16,7 @@ Without ``frames``, the images in name order are the frames, all seen by the one
 posed by mesh frame ``i``. Cameras and meshes share one world; the mesh is used in its own vertex
 order (the first frame, or the npz's ``rest``, is the canonical mesh).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -63,8 +64,12 @@ def _camera(cid: str, cam, problems: Problems):
         else:
             problems.add(f"cameras.json camera {cid!r}", "needs 'viewmat' (world->camera, OpenCV) or 'c2w_opengl'")
             return None
-        return {"K": np.asarray(cam["K"], np.float64).tolist(), "viewmat": np.asarray(vm).tolist(),
-                "width": int(cam["width"]), "height": int(cam["height"])}
+        return {
+            "K": np.asarray(cam["K"], np.float64).tolist(),
+            "viewmat": np.asarray(vm).tolist(),
+            "width": int(cam["width"]),
+            "height": int(cam["height"]),
+        }
     except (ValueError, TypeError, MeshsplatError) as exc:
         problems.add(f"cameras.json camera {cid!r}", f"malformed ({exc})")
         return None
@@ -72,12 +77,18 @@ def _camera(cid: str, cam, problems: Problems):
 
 def _default_frames(root: Path, cameras: dict, problems: Problems) -> list[dict]:
     if len(cameras) != 1:
-        problems.add("cameras.json", f"no 'frames' list and {len(cameras)} cameras: list the frames "
-                     "(image, camera, mesh) when there is more than one camera")
+        problems.add(
+            "cameras.json",
+            f"no 'frames' list and {len(cameras)} cameras: list the frames "
+            "(image, camera, mesh) when there is more than one camera",
+        )
         return []
     cid = next(iter(cameras))
-    imgs = sorted(p for p in (root / "images").glob("*") if p.suffix.lower() in IMAGE_EXTS) \
-        if (root / "images").is_dir() else []
+    imgs = (
+        sorted(p for p in (root / "images").glob("*") if p.suffix.lower() in IMAGE_EXTS)
+        if (root / "images").is_dir()
+        else []
+    )
     if not imgs:
         problems.add("images/", "no images found")
     frames = []
@@ -108,8 +119,9 @@ def _gltf_meshes(path: Path, frames: list[dict], problems: Problems):
     return drv.rest_vertices().numpy(), drv.faces.numpy(), verts
 
 
-def read(root: Path | str, model_dir: Path | str | None = None, check_masks: bool = True, cache_size: int = 8,
-         **options: Any) -> AvatarDataset:
+def read(
+    root: Path | str, model_dir: Path | str | None = None, check_masks: bool = True, cache_size: int = 8, **options: Any
+) -> AvatarDataset:
     """Open the folder (see the module docstring); every problem in one error naming the layout."""
     root = Path(root)
     if options:
@@ -121,8 +133,9 @@ def read(root: Path | str, model_dir: Path | str | None = None, check_masks: boo
     problems = Problems(root)
     cams_in = doc.get("cameras")
     if not isinstance(cams_in, dict) or not cams_in:
-        raise MeshsplatError(f"{root / 'cameras.json'}: needs a 'cameras' object (id -> K, viewmat, width, "
-                             f"height); {_L}")
+        raise MeshsplatError(
+            f"{root / 'cameras.json'}: needs a 'cameras' object (id -> K, viewmat, width, height); {_L}"
+        )
     cameras = {str(k): c for k, c in ((str(k), _camera(str(k), v, problems)) for k, v in cams_in.items()) if c}
     frames = doc.get("frames")
     if frames is None:
@@ -130,7 +143,7 @@ def read(root: Path | str, model_dir: Path | str | None = None, check_masks: boo
     elif not isinstance(frames, list):
         raise MeshsplatError(f"{root / 'cameras.json'}: 'frames' must be a list of records; {_L}")
     frames = [dict(f) if isinstance(f, dict) else f for f in frames]
-    for i, rec in enumerate(frames):
+    for rec in frames:
         if isinstance(rec, dict) and "image" in rec:
             rec["image"] = find_file(root, str(rec["image"])) or str(rec["image"])
             rec.setdefault("name", Path(rec["image"]).stem)
@@ -146,12 +159,29 @@ def read(root: Path | str, model_dir: Path | str | None = None, check_masks: boo
     except MeshsplatError as exc:
         raise MeshsplatError(f"{exc} [{_L}]") from None
     splits = doc.get("splits") or {"train": list(range(len(frames)))}
-    manifest = {"cameras": cameras, "frames": frames, "vertices": mpath.name, "splits": splits,
-                "meta": {"source_format": NAME, "source": str(root), "mesh": what,
-                         "attribution": str(doc.get("attribution", ""))}}
-    return build_dataset(root, manifest, np.asarray(canonical, np.float32), np.asarray(faces, np.int64),
-                         np.asarray(verts, np.float32), problems, check_masks=check_masks, cache_size=cache_size,
-                         format_name=NAME)
+    manifest = {
+        "cameras": cameras,
+        "frames": frames,
+        "vertices": mpath.name,
+        "splits": splits,
+        "meta": {
+            "source_format": NAME,
+            "source": str(root),
+            "mesh": what,
+            "attribution": str(doc.get("attribution", "")),
+        },
+    }
+    return build_dataset(
+        root,
+        manifest,
+        np.asarray(canonical, np.float32),
+        np.asarray(faces, np.int64),
+        np.asarray(verts, np.float32),
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        format_name=NAME,
+    )
 
 
 def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
@@ -166,8 +196,12 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     cams = {}
     for cid in dataset.camera_ids:
         cam = dataset.camera(cid)
-        cams[cid] = {"K": np.asarray(cam.K, np.float64).tolist(), "viewmat": np.asarray(cam.viewmat, np.float64).tolist(),
-                     "width": cam.width, "height": cam.height}
+        cams[cid] = {
+            "K": np.asarray(cam.K, np.float64).tolist(),
+            "viewmat": np.asarray(cam.viewmat, np.float64).tolist(),
+            "width": cam.width,
+            "height": cam.height,
+        }
     frames = []
     for i in range(len(dataset)):
         info = dataset.frame_info(i)
@@ -181,9 +215,17 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         frames.append(rec)
     drv = dataset.driver()
     verts = np.stack([drv.vertices(r).numpy() for r in range(drv.num_frames)])
-    np.savez(out / "mesh.npz", faces=dataset.faces.numpy().astype(np.int32), vertices=verts,
-             rest=dataset.canonical_vertices.numpy())
-    doc = {"cameras": cams, "frames": frames, "splits": {s: dataset.split(s) for s in dataset.split_names},
-           "attribution": str(dataset.meta.get("attribution", ""))}
+    np.savez(
+        out / "mesh.npz",
+        faces=dataset.faces.numpy().astype(np.int32),
+        vertices=verts,
+        rest=dataset.canonical_vertices.numpy(),
+    )
+    doc = {
+        "cameras": cams,
+        "frames": frames,
+        "splits": {s: dataset.split(s) for s in dataset.split_names},
+        "attribution": str(dataset.meta.get("attribution", "")),
+    }
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return out

@@ -1,4 +1,5 @@
 """meshsplat's own layout (docs/dataset-format.md): ``manifest.json`` + meshes + images."""
+
 from __future__ import annotations
 
 import shutil

@@ -12,6 +12,7 @@ Meshes are SMPL (``BodyModel("smpl", model_dir, gender)``) posed with those para
 mesh is the rest pose with the subject's betas. Splits: train -> "train", val -> "val",
 test -> "test_frames".
 """
+
 from __future__ import annotations
 
 import json
@@ -47,9 +48,14 @@ def detect(root: Path | str) -> bool:
 
 
 # ---------------------------------------------------------------- reading
-def read(root: Path | str, model_dir: Path | str | None = None, gender: str | None = None, check_masks: bool = True,
-         cache_size: int = 8,
-         device: str | torch.device = "cpu") -> AvatarDataset:
+def read(
+    root: Path | str,
+    model_dir: Path | str | None = None,
+    gender: str | None = None,
+    check_masks: bool = True,
+    cache_size: int = 8,
+    device: str | torch.device = "cpu",
+) -> AvatarDataset:
     """Open a PeopleSnapshot folder lazily (images decode on access); every problem in one error.
 
     ``gender`` overrides config.json's; ``model_dir`` holds ``smpl/SMPL_<GENDER>.pkl``.
@@ -67,11 +73,16 @@ def read(root: Path | str, model_dir: Path | str | None = None, gender: str | No
     if ranges is None:
         ranges = _default_ranges(root)
     splits_in_use = [s for s in SPLIT_NAMES if s in ranges]
-    refined = {s: _read_refined(root / "poses" / f"anim_nerf_{s}.npz", len(ranges[s]), problems)
-               for s in splits_in_use if has_config and (root / "poses" / f"anim_nerf_{s}.npz").is_file()}
+    refined = {
+        s: _read_refined(root / "poses" / f"anim_nerf_{s}.npz", len(ranges[s]), problems)
+        for s in splits_in_use
+        if has_config and (root / "poses" / f"anim_nerf_{s}.npz").is_file()
+    }
     if not has_config and any((root / "poses").glob("anim_nerf_*.npz")):
-        warnings.warn(f"{root}: no config.json, so the split-relative poses/anim_nerf_*.npz cannot be placed; "
-                      "using poses.npz", stacklevel=2)
+        warnings.warn(
+            f"{root}: no config.json, so the split-relative poses/anim_nerf_*.npz cannot be placed; using poses.npz",
+            stacklevel=2,
+        )
     needs_poses = any(s not in refined for s in splits_in_use) or not refined
     poses = _read_poses(root, problems) if needs_poses or (root / "poses.npz").is_file() else None
 
@@ -90,8 +101,14 @@ def read(root: Path | str, model_dir: Path | str | None = None, gender: str | No
     masks_dir = (root / "masks").is_dir()
     frames, missing_masks = [], []
     for k, idx in enumerate(order):
-        rec = {"name": f"image_{idx:04d}", "image": f"images/image_{idx:04d}.png", "camera": "0", "mesh": k,
-               "frame_index": idx, "split": SPLIT_NAMES[rows[idx][0]]}
+        rec = {
+            "name": f"image_{idx:04d}",
+            "image": f"images/image_{idx:04d}.png",
+            "camera": "0",
+            "mesh": k,
+            "frame_index": idx,
+            "split": SPLIT_NAMES[rows[idx][0]],
+        }
         if masks_dir:
             png, npy = root / "masks" / f"mask_{idx:04d}.png", root / "masks" / f"mask_{idx:04d}.npy"
             if png.is_file():
@@ -132,15 +149,32 @@ def read(root: Path | str, model_dir: Path | str | None = None, gender: str | No
         problems.add("SMPL", "could not pose the model")
     record = {**driver_record(model, "poses.npz"), "per_frame": list(PER_FRAME)} if model is not None else None
     manifest = {
-        "cameras": {"0": camera}, "frames": frames, "splits": splits, "vertices": "SMPL vertices (posed)",
-        "meta": {"source_format": NAME, "gender": gender, "frame_ranges": {s: _range_dict(ranges[s])
-                                                                          for s in splits_in_use},
-                 "params_source": {SPLIT_NAMES[s]: (f"poses/anim_nerf_{s}.npz" if s in refined else "poses.npz")
-                                   for s in splits_in_use}},
+        "cameras": {"0": camera},
+        "frames": frames,
+        "splits": splits,
+        "vertices": "SMPL vertices (posed)",
+        "meta": {
+            "source_format": NAME,
+            "gender": gender,
+            "frame_ranges": {s: _range_dict(ranges[s]) for s in splits_in_use},
+            "params_source": {
+                SPLIT_NAMES[s]: (f"poses/anim_nerf_{s}.npz" if s in refined else "poses.npz") for s in splits_in_use
+            },
+        },
         "driver": record,
     }
-    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, driver_params=params, format_name=NAME)
+    return build_dataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        driver_params=params,
+        format_name=NAME,
+    )
 
 
 def _ids(xs: list[int], k: int = 8) -> str:
@@ -202,7 +236,7 @@ def _default_ranges(root: Path) -> dict[str, range]:
         n += 1
     if n < 2:
         return {"train": range(0, n)}
-    n_test = max(1, int(round(DEFAULT_TEST_FRACTION * n)))
+    n_test = max(1, round(DEFAULT_TEST_FRACTION * n))
     return {"train": range(0, n - n_test), "test": range(n - n_test, n)}
 
 
@@ -235,8 +269,12 @@ def _read_camera(root: Path, problems: Problems) -> dict | None:
         return None
     if E.shape == (3, 4):
         E = np.vstack([E, [0.0, 0.0, 0.0, 1.0]])
-    return {"K": np.asarray(K, np.float64).tolist(), "viewmat": np.asarray(E, np.float64).tolist(),
-            "width": w, "height": h}
+    return {
+        "K": np.asarray(K, np.float64).tolist(),
+        "viewmat": np.asarray(E, np.float64).tolist(),
+        "width": w,
+        "height": h,
+    }
 
 
 def _betas(a: np.ndarray, where: str, problems: Problems) -> np.ndarray | None:
@@ -296,14 +334,17 @@ def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
         problems.add(where, f"missing keys {missing} (has {sorted(z)})")
         return None
     out: dict[str, np.ndarray | None] = {"betas": _betas(z["betas"], where, problems)}
-    for k, w in zip(PER_FRAME, (3, 69, 3)):
+    for k, w in zip(PER_FRAME, (3, 69, 3), strict=True):
         out[k] = _rows(z, k, w, where, problems)
     if any(v is None for v in out.values()):
         return None
     counts = {k: len(cast(np.ndarray, out[k])) for k in PER_FRAME}
     if len(set(counts.values())) > 1 or counts["transl"] != n:
-        problems.add(where, f"rows {counts} do not match the {n} frames of its split in config.json "
-                     "(rows are split-relative positions)")
+        problems.add(
+            where,
+            f"rows {counts} do not match the {n} frames of its split in config.json "
+            "(rows are split-relative positions)",
+        )
         return None
     return out
 
@@ -319,8 +360,11 @@ def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | 
     for other in betas_from[1:]:
         b = other["betas"]
         if b.shape != betas.shape or not np.allclose(b, betas, atol=1e-4):
-            warnings.warn("PeopleSnapshot: betas differ between pose files; using the first one "
-                          "(train refinement, else poses.npz)", stacklevel=3)
+            warnings.warn(
+                "PeopleSnapshot: betas differ between pose files; using the first one "
+                "(train refinement, else poses.npz)",
+                stacklevel=3,
+            )
             break
     usable = bool(np.isfinite(betas).all())
     if not usable:
@@ -352,8 +396,8 @@ def _pose(model: BodyModel, params: dict) -> tuple[np.ndarray, np.ndarray]:
     with torch.no_grad():
         canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
         for s in range(0, T, _CHUNK):
-            chunk = {k: (v[s:s + _CHUNK] if k in PER_FRAME else v) for k, v in params.items()}
-            out[s:s + _CHUNK] = model.forward(chunk).vertices.cpu().numpy()
+            chunk = {k: (v[s : s + _CHUNK] if k in PER_FRAME else v) for k, v in params.items()}
+            out[s : s + _CHUNK] = model.forward(chunk).vertices.cpu().numpy()
     return canonical, out
 
 
@@ -376,8 +420,10 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
     info, params = dataset.driver_info, dataset.driver_params
     if info is None or params is None or info.get("type") != "smpl":
         kind = info.get("type") if info else "no model"
-        raise MeshsplatError(f"{dataset.root}: PeopleSnapshot needs SMPL driver parameters, this dataset has {kind} "
-                             "(synthesize it with `meshsplat synth smpl`)")
+        raise MeshsplatError(
+            f"{dataset.root}: PeopleSnapshot needs SMPL driver parameters, this dataset has {kind} "
+            "(synthesize it with `meshsplat synth smpl`)"
+        )
     offset = params.get("static_offset")
     if offset is not None and np.abs(offset).max() > 0:
         raise MeshsplatError(f"{dataset.root}: SMPL static_offset cannot be stored in PeopleSnapshot poses.npz")
@@ -399,8 +445,10 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
             if has_mask is None:
                 has_mask = fr.mask is not None
             if (fr.mask is not None) != has_mask:
-                raise MeshsplatError(f"{dataset.root}: frame {fr.name!r} {'lacks' if has_mask else 'has'} a mask "
-                                     "unlike the others; PeopleSnapshot needs masks for all frames or none")
+                raise MeshsplatError(
+                    f"{dataset.root}: frame {fr.name!r} {'lacks' if has_mask else 'has'} a mask "
+                    "unlike the others; PeopleSnapshot needs masks for all frames or none"
+                )
             if fr.mask is not None:
                 (out / "masks").mkdir(exist_ok=True)
                 if masks == "png":
@@ -410,16 +458,22 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
             fp = dataset.frame_params(i)
             assert fp is not None  # the dataset has driver parameters (checked above)
             for key in PER_FRAME:
-                rows[key].append(np.asarray(fp.get(key, np.zeros((1, 69 if key == "body_pose" else 3))),
-                                            np.float32).reshape(-1))
+                rows[key].append(
+                    np.asarray(fp.get(key, np.zeros((1, 69 if key == "body_pose" else 3))), np.float32).reshape(-1)
+                )
             k += 1
     go, bp, tr = (np.stack(rows[key]) for key in PER_FRAME)
     betas = np.asarray(params.get("betas", np.zeros(10)), np.float32).reshape(-1)
     np.savez(out / "poses.npz", betas=betas, thetas=join_smpl_thetas(go, bp).astype(np.float32), transl=tr)
     cam_id = dataset.frame_info(next(iter(plan.values()))[0])["camera"]
     cam = dataset.camera(cam_id)
-    np.savez(out / "cameras.npz", intrinsic=cam.K.double().numpy(), extrinsic=cam.viewmat.double().numpy(),
-             height=np.array(cam.height), width=np.array(cam.width))
+    np.savez(
+        out / "cameras.npz",
+        intrinsic=cam.K.double().numpy(),
+        extrinsic=cam.viewmat.double().numpy(),
+        height=np.array(cam.height),
+        width=np.array(cam.width),
+    )
     (out / "config.json").write_text(json.dumps(config, indent=1))
     return out
 
@@ -432,8 +486,10 @@ def plan_frames(dataset: AvatarDataset) -> dict[str, list[int]]:
     cam = dataset.frame_info(train[0])["camera"]
     others = sorted({dataset.frame_info(i)["camera"] for i in train} - {cam})
     if others:
-        raise MeshsplatError(f"{dataset.root}: training frames use {len(others) + 1} cameras; PeopleSnapshot holds one "
-                             "fixed camera (synthesize with --rig monocular-turn)")
+        raise MeshsplatError(
+            f"{dataset.root}: training frames use {len(others) + 1} cameras; PeopleSnapshot holds one "
+            "fixed camera (synthesize with --rig monocular-turn)"
+        )
     plan = {}
     for ps_split, name in (("train", "train"), ("val", "val"), ("test", "test_frames")):
         if name in dataset.split_names:
@@ -445,4 +501,3 @@ def plan_frames(dataset: AvatarDataset) -> dict[str, list[int]]:
 
 def _u8(x: torch.Tensor) -> np.ndarray:
     return np.clip(np.rint(x.numpy() * 255.0), 0, 255).astype(np.uint8)
-

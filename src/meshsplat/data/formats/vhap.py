@@ -6,6 +6,7 @@
 ``neck_pose``, ``jaw_pose``, ``eyes_pose``, ``shape``, ``expr``, optional ``static_offset``). One mesh row per
 timestep, shared by that timestep's cameras. Page: docs/formats/vhap.md.
 """
+
 from __future__ import annotations
 
 import re
@@ -107,8 +108,9 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
         if k in d:
             a = d[k].reshape(-1, 3) if d[k].size % 3 == 0 else d[k]
             if num_vertices is not None and (a.ndim != 2 or a.shape[0] < num_vertices):
-                problems.add(where, f"{path.name}: {k} has shape {list(d[k].shape)}, "
-                             f"expected [1, >= {num_vertices}, 3]")
+                problems.add(
+                    where, f"{path.name}: {k} has shape {list(d[k].shape)}, expected [1, >= {num_vertices}, 3]"
+                )
                 return None
             out[k] = a[:num_vertices] if num_vertices is not None else a
     bad = [k for k, a in out.items() if not np.isfinite(a).all()]
@@ -118,8 +120,15 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
     return out
 
 
-def read(root: Path | str, model_dir: Path | str | None = None, flame_version: str | None = None, mask: str = "auto",
-         ignore_dynamic_offset: bool = False, check_masks: bool = True, cache_size: int = 8) -> AvatarDataset:
+def read(
+    root: Path | str,
+    model_dir: Path | str | None = None,
+    flame_version: str | None = None,
+    mask: str = "auto",
+    ignore_dynamic_offset: bool = False,
+    check_masks: bool = True,
+    cache_size: int = 8,
+) -> AvatarDataset:
     """Open a GaussianAvatars/VHAP folder. ``flame_version``: default the transforms' ``flame_version`` key,
     else "2023" (VHAP's default); ``mask``: auto (``fg_mask_path``, else RGBA alpha, else ``fg_masks/``) |
     alpha | folder | none; ``ignore_dynamic_offset``: pose without VHAP's per-frame offsets."""
@@ -201,14 +210,32 @@ def read(root: Path | str, model_dir: Path | str | None = None, flame_version: s
             faces = model.faces.cpu().numpy()
             check_in_front(cameras, frames, verts, problems, _HINT)
     manifest = {
-        "cameras": cameras, "frames": frames, "vertices": "flame_param/ (posed FLAME)", "splits": splits,
-        "meta": {"source_format": NAME, "source": str(root), "flame_version": version, "mask": kind,
-                 "num_timesteps": len(timesteps)},
+        "cameras": cameras,
+        "frames": frames,
+        "vertices": "flame_param/ (posed FLAME)",
+        "splits": splits,
+        "meta": {
+            "source_format": NAME,
+            "source": str(root),
+            "flame_version": version,
+            "mask": kind,
+            "num_timesteps": len(timesteps),
+        },
     }
     if model is not None:
         manifest["driver"] = flame_driver_record(model, "flame_param/", _PER_FRAME)
-    return build_dataset(root, manifest, canonical, faces, verts, problems, check_masks=check_masks,
-                         cache_size=cache_size, driver_params=params, format_name=NAME)
+    return build_dataset(
+        root,
+        manifest,
+        canonical,
+        faces,
+        verts,
+        problems,
+        check_masks=check_masks,
+        cache_size=cache_size,
+        driver_params=params,
+        format_name=NAME,
+    )
 
 
 def _mask_kind(root: Path, mode: str, frames: list[dict], first_image: Path | None) -> str:
@@ -234,16 +261,24 @@ def _params(loaded: list[dict], model, problems: Problems, ignore_dynamic_offset
         return None
     dyn = max((float(np.abs(p["dynamic_offset"]).max()) for p in loaded if "dynamic_offset" in p), default=0.0)
     if dyn > 0 and not ignore_dynamic_offset:
-        problems.add("flame_param/", f"per-timestep dynamic_offset (up to {dyn:.3g}) is not supported; "
-                     "pass ignore_dynamic_offset=True to pose without it")
+        problems.add(
+            "flame_param/",
+            f"per-timestep dynamic_offset (up to {dyn:.3g}) is not supported; "
+            "pass ignore_dynamic_offset=True to pose without it",
+        )
         return None
     stack = lambda k: np.stack([p[k] for p in loaded])  # noqa: E731
     eyes = stack("eyes_pose")
-    params = {"betas": fit_coeffs("shape", shape0, model.num_betas, problems),
-              "global_orient": stack("rotation"), "neck_pose": stack("neck_pose"), "jaw_pose": stack("jaw_pose"),
-              "leye_pose": eyes[:, :3], "reye_pose": eyes[:, 3:],
-              "expression": fit_coeffs("expr", stack("expr"), model.num_expression, problems),
-              "transl": stack("translation")}
+    params = {
+        "betas": fit_coeffs("shape", shape0, model.num_betas, problems),
+        "global_orient": stack("rotation"),
+        "neck_pose": stack("neck_pose"),
+        "jaw_pose": stack("jaw_pose"),
+        "leye_pose": eyes[:, :3],
+        "reye_pose": eyes[:, 3:],
+        "expression": fit_coeffs("expr", stack("expr"), model.num_expression, problems),
+        "transl": stack("translation"),
+    }
     if stat[0] is not None:
         params["static_offset"] = stat[0]
     return {k: np.ascontiguousarray(v, np.float32) for k, v in params.items()}
@@ -289,15 +324,21 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         static = np.concatenate([so, np.zeros((TEETH_VERTICES, 3))])[None]
     (out / "flame_param").mkdir(exist_ok=True)
     for r, t in step.items():
-        npz = {"translation": value("transl", r, 3)[None] / s, "rotation": value("global_orient", r, 3)[None],
-               "neck_pose": value("neck_pose", r, 3)[None], "jaw_pose": value("jaw_pose", r, 3)[None],
-               "eyes_pose": np.concatenate([value("leye_pose", r, 3), value("reye_pose", r, 3)])[None],
-               "shape": shape,
-               "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None]}
+        npz = {
+            "translation": value("transl", r, 3)[None] / s,
+            "rotation": value("global_orient", r, 3)[None],
+            "neck_pose": value("neck_pose", r, 3)[None],
+            "jaw_pose": value("jaw_pose", r, 3)[None],
+            "eyes_pose": np.concatenate([value("leye_pose", r, 3), value("reye_pose", r, 3)])[None],
+            "shape": shape,
+            "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None],
+        }
         if static is not None:
             npz["static_offset"] = static
-        np.savez(out / "flame_param" / f"{t:05d}.npz",
-                 **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in npz.items()}))
+        np.savez(
+            out / "flame_param" / f"{t:05d}.npz",
+            **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in npz.items()}),
+        )
 
     records, used = [], set()
     for i in range(len(dataset)):
@@ -314,12 +355,24 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         rgb, m = frame_pixels(dataset, i)
         save_png(out / "images" / f"{stem}.png", rgb)
         w, h = int(cam["width"]), int(cam["height"])
-        rec = {"timestep_index": t, "timestep_index_original": t, "timestep_id": f"frame_{t:05d}",
-               "camera_index": c, "camera_id": cid, "cx": K[0, 2], "cy": K[1, 2], "fl_x": K[0, 0], "fl_y": K[1, 1],
-               "h": h, "w": w, "camera_angle_x": 2 * np.arctan(w / (2 * K[0, 0])),
-               "camera_angle_y": 2 * np.arctan(h / (2 * K[1, 1])),
-               "transform_matrix": opengl_c2w_from_viewmat(vm).tolist(), "file_path": f"images/{stem}.png",
-               "flame_param_path": f"flame_param/{t:05d}.npz"}
+        rec = {
+            "timestep_index": t,
+            "timestep_index_original": t,
+            "timestep_id": f"frame_{t:05d}",
+            "camera_index": c,
+            "camera_id": cid,
+            "cx": K[0, 2],
+            "cy": K[1, 2],
+            "fl_x": K[0, 0],
+            "fl_y": K[1, 1],
+            "h": h,
+            "w": w,
+            "camera_angle_x": 2 * np.arctan(w / (2 * K[0, 0])),
+            "camera_angle_y": 2 * np.arctan(h / (2 * K[1, 1])),
+            "transform_matrix": opengl_c2w_from_viewmat(vm).tolist(),
+            "file_path": f"images/{stem}.png",
+            "flame_param_path": f"flame_param/{t:05d}.npz",
+        }
         if m is not None:
             save_png(out / "fg_masks" / f"{stem}.png", m)
             rec["fg_mask_path"] = f"fg_masks/{stem}.png"
@@ -327,8 +380,13 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
 
     first = records[0]
     top = {k: first[k] for k in ("cx", "cy", "fl_x", "fl_y", "h", "w", "camera_angle_x", "camera_angle_y")}
-    top.update({"timestep_indices": sorted(step.values()), "camera_indices": sorted(cam_index.values()),
-                "flame_version": str(info.get("flame_version", "2020"))})
+    top.update(
+        {
+            "timestep_indices": sorted(step.values()),
+            "camera_indices": sorted(cam_index.values()),
+            "flame_version": str(info.get("flame_version", "2020")),
+        }
+    )
     write_json(out / "transforms.json", {**top, "frames": records})
     inverse = {v: k for k, v in SPLIT_FILES.items()}
     for name in dataset.split_names:
@@ -337,11 +395,19 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     for fname in SPLIT_FILES:
         if not (out / f"transforms_{fname}.json").exists():
             write_json(out / f"transforms_{fname}.json", {**top, "frames": []})
-    canon = {"translation": np.zeros((1, 3)), "rotation": np.zeros((1, 3)), "neck_pose": np.zeros((1, 3)),
-             "jaw_pose": np.array([[0.3, 0.0, 0.0]]), "eyes_pose": np.zeros((1, 6)), "shape": shape,
-             "expr": np.zeros((1, NUM_EXPRESSION))}
+    canon = {
+        "translation": np.zeros((1, 3)),
+        "rotation": np.zeros((1, 3)),
+        "neck_pose": np.zeros((1, 3)),
+        "jaw_pose": np.array([[0.3, 0.0, 0.0]]),
+        "eyes_pose": np.zeros((1, 6)),
+        "shape": shape,
+        "expr": np.zeros((1, NUM_EXPRESSION)),
+    }
     if static is not None:
         canon["static_offset"] = static
-    np.savez(out / "canonical_flame_param.npz",
-             **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in canon.items()}))
+    np.savez(
+        out / "canonical_flame_param.npz",
+        **cast("dict[str, Any]", {k: np.asarray(v, np.float32) for k, v in canon.items()}),
+    )
     return out

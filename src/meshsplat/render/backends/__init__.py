@@ -3,6 +3,7 @@
 gsplat is only looked up here (``find_spec``, no import): importing it is deferred to
 ``gsplat_cuda`` and happens only for CUDA tensors, since gsplat JIT-compiles CUDA code.
 """
+
 from __future__ import annotations
 
 import importlib.util

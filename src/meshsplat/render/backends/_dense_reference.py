@@ -5,6 +5,7 @@ visited in depth order and composited front to back with a multiplicative
 transmittance, applying only the near/far cull and the same alpha/transmittance
 rules. Differentiable by autograd. O(C * N * H * W) time: tiny scenes only.
 """
+
 from __future__ import annotations
 
 import torch
@@ -24,11 +25,13 @@ __all__ = ["rasterize_dense"]
 
 def _rotation(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = (q / q.norm()).unbind()
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
-    ])
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
+        ]
+    )
 
 
 def _splat(mean, quat, scale, viewmat, K, width, height):
@@ -39,27 +42,46 @@ def _splat(mean, quat, scale, viewmat, K, width, height):
     cov_cam = R @ (M @ M.T) @ R.T
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     x, y, z = p
-    tx_lim = (-(cx / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx),
-              (width - cx) / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx)
-    ty_lim = (-(cy / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy),
-              (height - cy) / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy)
+    tx_lim = (-(cx / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx), (width - cx) / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx)
+    ty_lim = (
+        -(cy / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy),
+        (height - cy) / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy,
+    )
     u = torch.clamp(x / z, min=tx_lim[0], max=tx_lim[1])
     v = torch.clamp(y / z, min=ty_lim[0], max=ty_lim[1])
     zero = torch.zeros_like(z)
-    J = torch.stack([
-        torch.stack([fx / z, zero, -fx * u / z]),
-        torch.stack([zero, fy / z, -fy * v / z]),
-    ])
+    J = torch.stack(
+        [
+            torch.stack([fx / z, zero, -fx * u / z]),
+            torch.stack([zero, fy / z, -fy * v / z]),
+        ]
+    )
     cov2d = J @ cov_cam @ J.T + EPS2D * torch.eye(2, dtype=z.dtype, device=z.device)
     return p, torch.stack([fx * x / z + cx, fy * y / z + cy]), cov2d
 
 
-def rasterize_dense(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                    near_plane=0.01, far_plane=1e10, backgrounds=None, render_mode="RGB"):
+def rasterize_dense(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    near_plane=0.01,
+    far_plane=1e10,
+    backgrounds=None,
+    render_mode="RGB",
+):
     """Same arguments as ``rasterize`` (colors [N,D]); returns (colors [C,H,W,D'], alphas [C,H,W,1])."""
     dtype, dev = means.dtype, means.device
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=dev) + PIXEL_CENTER,
-                            torch.arange(width, dtype=dtype, device=dev) + PIXEL_CENTER, indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=dev) + PIXEL_CENTER,
+        torch.arange(width, dtype=dtype, device=dev) + PIXEL_CENTER,
+        indexing="ij",
+    )
     images, alphas = [], []
     for c in range(viewmats.shape[0]):
         splats = []

@@ -3,6 +3,7 @@
 gsplat is imported lazily inside :func:`rasterize_gsplat`, which :func:`meshsplat.render.rasterize`
 only calls for CUDA tensors.
 """
+
 from __future__ import annotations
 
 import torch
@@ -16,7 +17,7 @@ __all__ = ["rasterize_gsplat"]
 
 def _import_gsplat():
     try:
-        import gsplat  # noqa: PLC0415 (lazy on purpose)
+        import gsplat
     except Exception as exc:  # ImportError, or a failed JIT build
         raise MeshsplatError(f"gsplat could not be imported ({exc}); use backend='torch'") from exc
     return gsplat
@@ -43,10 +44,27 @@ def rasterize_gsplat(
         raise MeshsplatError(f"the gsplat backend needs CUDA tensors, got {means.device}")
     gsplat = _import_gsplat()
     img, alphas, info = gsplat.rasterization(
-        means, quats, scales, opacities, colors, viewmats, Ks, int(width), int(height),
-        near_plane=near_plane, far_plane=far_plane, radius_clip=0.0, eps2d=EPS2D,
-        sh_degree=None, packed=False, tile_size=16, backgrounds=backgrounds,
-        render_mode=render_mode, rasterize_mode="classic", absgrad=False, sparse_grad=False,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        int(width),
+        int(height),
+        near_plane=near_plane,
+        far_plane=far_plane,
+        radius_clip=0.0,
+        eps2d=EPS2D,
+        sh_degree=None,
+        packed=False,
+        tile_size=16,
+        backgrounds=backgrounds,
+        render_mode=render_mode,
+        rasterize_mode="classic",
+        absgrad=False,
+        sparse_grad=False,
     )
     means2d = info["means2d"]
     if means2d.requires_grad:

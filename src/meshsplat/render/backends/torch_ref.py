@@ -20,6 +20,7 @@ Pipeline:
    backward walks ~30 P-sized nodes (gathers, where, cumsum, index_add).
    Where alpha is clamped at 0.999 the pair passes no gradient (as gsplat's kernel).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -76,8 +77,7 @@ def _row_spans(m2: torch.Tensor, con: torch.Tensor, op: torch.Tensor, cam: torch
     entry = torch.repeat_interleave(torch.arange(m2.shape[0], device=dev), nrows, output_size=total)
     first = (torch.cumsum(nrows, 0) - nrows).double()
     per = torch.stack([mx, my, a, b, 2.0 * a * tau, det, y0 - first, cam.double() * H], 1)
-    mx, my, a, b, two_a_tau, det, y_off, row0 = torch.repeat_interleave(
-        per, nrows, dim=0, output_size=total).unbind(1)
+    mx, my, a, b, two_a_tau, det, y_off, row0 = torch.repeat_interleave(per, nrows, dim=0, output_size=total).unbind(1)
     y = y_off + torch.arange(total, device=dev, dtype=torch.float64)  # y0 + (i - first)
     dy = my - (y + PIXEL_CENTER)
     # 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= tau  ->  dx in [lo, hi]
@@ -285,8 +285,18 @@ class _Composite(torch.autograd.Function):
             saved = ctx.saved_all[b]
             if saved is None:
                 saved = _band_forward(plan, b, params, colors_t, bg)[2]
-            _band_backward(plan, b, saved, params, colors_t, bg,
-                           g_out[r0 * W : r1 * W], g_alpha[r0 * W : r1 * W], grad_acc, grad_bg)
+            _band_backward(
+                plan,
+                b,
+                saved,
+                params,
+                colors_t,
+                bg,
+                g_out[r0 * W : r1 * W],
+                g_alpha[r0 * W : r1 * W],
+                grad_acc,
+                grad_bg,
+            )
         return (grad_acc[0:2].t(), grad_acc[2:5].t(), grad_acc[5], grad_acc[6:].t(), grad_bg, None)
 
 

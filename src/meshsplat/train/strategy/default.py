@@ -33,6 +33,7 @@ from each parent Gaussian (mean + R(q) diag(scale) z, z ~ N(0, I)), and RE-EMBED
 them onto the canonical Phong surface (``project_to_surface`` -> face, uv, d); children keep the
 parent's rotation, opacity and colour, with canonical scale / (0.8 * split_n).
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -81,16 +82,30 @@ class DensifyStrategy:
                 raise MeshsplatError(f"optimizers[{key!r}] must hold exactly params[{key!r}]")
 
     # ---- hooks -----------------------------------------------------------------------
-    def step_pre_backward(self, params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], step: int,
-                          info: dict) -> None:
+    def step_pre_backward(
+        self,
+        params: dict[str, torch.Tensor],
+        optimizers: Mapping[str, torch.optim.Optimizer],
+        state: dict[str, Any],
+        step: int,
+        info: dict,
+    ) -> None:
         m2d = info[self.key_for_gradient]
         if m2d.requires_grad:
             m2d.retain_grad()
 
     @torch.no_grad()
-    def step_post_backward(self, params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], step: int, info: dict, *,
-                           mesh: TriMesh | None = None,
-                           scale_mode: str = "sqrt_area") -> dict[str, int]:
+    def step_post_backward(
+        self,
+        params: dict[str, torch.Tensor],
+        optimizers: Mapping[str, torch.optim.Optimizer],
+        state: dict[str, Any],
+        step: int,
+        info: dict,
+        *,
+        mesh: TriMesh | None = None,
+        scale_mode: str = "sqrt_area",
+    ) -> dict[str, int]:
         """Update statistics, then refine / reset on schedule. Returns counts of what changed."""
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
         if not self.enabled or step > self.refine_stop_iter:
@@ -183,9 +198,10 @@ class DensifyStrategy:
             "face": face.long(),
             "uv": uv,
             "d": d,
-            "log_scale": (sub["log_scale"] - torch.log(torch.tensor(0.8 * k, dtype=sub["log_scale"].dtype,
-                                                                       device=sub["log_scale"].device))
-                          ).repeat(k, 1),
+            "log_scale": (
+                sub["log_scale"]
+                - torch.log(torch.tensor(0.8 * k, dtype=sub["log_scale"].dtype, device=sub["log_scale"].device))
+            ).repeat(k, 1),
         }
         split_append(params, optimizers, state, mask, new, k)
 

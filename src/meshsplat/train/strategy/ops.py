@@ -6,10 +6,11 @@ Each op rewrites every entry of ``params`` (trainable Parameters AND embedding s
 the strategy ``state``. Resized tensors are new ``Parameter`` objects swapped into the optimizer;
 in-place edits (opacity reset) keep the same objects.
 """
+
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any, Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import torch
 
@@ -19,9 +20,12 @@ _MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
 
 
 @torch.no_grad()
-def update_all(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer],
-               param_fn: Callable[[str, torch.Tensor], torch.Tensor],
-               optstate_fn: Callable[[str, torch.Tensor], torch.Tensor]) -> None:
+def update_all(
+    params: dict[str, torch.Tensor],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    param_fn: Callable[[str, torch.Tensor], torch.Tensor],
+    optstate_fn: Callable[[str, torch.Tensor], torch.Tensor],
+) -> None:
     """Replace ``params[key]`` by ``param_fn(key, p)`` and each moment by ``optstate_fn(key, m)``."""
     for key in list(params):
         old = params[key]
@@ -53,18 +57,28 @@ def _update_state(state: dict, fn: Callable[[torch.Tensor], torch.Tensor], n: in
 
 
 @torch.no_grad()
-def duplicate(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor) -> None:
+def duplicate(
+    params: dict[str, torch.Tensor],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    mask: torch.Tensor,
+) -> None:
     """Append a copy of every Gaussian where ``mask [N]`` (embedding copied too; new moments 0)."""
     n = mask.shape[0]
     sel = torch.nonzero(mask).squeeze(1)
-    update_all(params, optimizers,
-               lambda k, p: torch.cat([p, p[sel]]),
-               lambda k, m: torch.cat([m, torch.zeros_like(m[sel])]))
+    update_all(
+        params, optimizers, lambda k, p: torch.cat([p, p[sel]]), lambda k, m: torch.cat([m, torch.zeros_like(m[sel])])
+    )
     _update_state(state, lambda v: torch.cat([v, torch.zeros_like(v[sel])]), n)
 
 
 @torch.no_grad()
-def remove(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor) -> None:
+def remove(
+    params: dict[str, torch.Tensor],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    mask: torch.Tensor,
+) -> None:
     """Delete every Gaussian where ``mask [N]``."""
     n = mask.shape[0]
     keep = torch.nonzero(~mask).squeeze(1)
@@ -73,8 +87,14 @@ def remove(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim
 
 
 @torch.no_grad()
-def split_append(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor, new_values: dict[str, torch.Tensor],
-                 repeats: int) -> None:
+def split_append(
+    params: dict[str, torch.Tensor],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    mask: torch.Tensor,
+    new_values: dict[str, torch.Tensor],
+    repeats: int,
+) -> None:
     """Replace the Gaussians where ``mask [N]`` by ``repeats`` children each (appended at the end).
 
     Children take ``new_values[key]`` ([repeats*M, ...], ordered repeat-major) where given and
@@ -92,12 +112,16 @@ def split_append(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch
         return p[sel].repeat((repeats,) + (1,) * (p.ndim - 1))
 
     def opt_fn(k: str, m: torch.Tensor) -> torch.Tensor:
-        return torch.cat([m[keep], torch.zeros((repeats * sel.numel(),) + m.shape[1:], dtype=m.dtype,
-                                               device=m.device)])
+        return torch.cat([m[keep], torch.zeros((repeats * sel.numel(),) + m.shape[1:], dtype=m.dtype, device=m.device)])
 
     update_all(params, optimizers, lambda k, p: torch.cat([p[keep], child(k, p)]), opt_fn)
-    _update_state(state, lambda v: torch.cat([v[keep], torch.zeros((repeats * sel.numel(),) + v.shape[1:],
-                                                                   dtype=v.dtype, device=v.device)]), n)
+    _update_state(
+        state,
+        lambda v: torch.cat(
+            [v[keep], torch.zeros((repeats * sel.numel(),) + v.shape[1:], dtype=v.dtype, device=v.device)]
+        ),
+        n,
+    )
 
 
 @torch.no_grad()
@@ -119,7 +143,9 @@ def zero_moments(optimizers: Mapping[str, torch.optim.Optimizer], key: str, rows
 
 
 @torch.no_grad()
-def reset_opacity(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], value: float) -> None:
+def reset_opacity(
+    params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], value: float
+) -> None:
     """opacity <- min(opacity, value), in place; opacity moments zeroed."""
     logit = torch.logit(torch.tensor(value, dtype=params["opacity_logit"].dtype)).item()
     params["opacity_logit"].clamp_(max=logit)

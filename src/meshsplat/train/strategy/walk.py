@@ -9,6 +9,7 @@ tensor and thereby freezes ``d``).
 With ``walk=False`` (ablation "no walking") ``uv + duv`` is instead projected back onto the
 current triangle: no face ever changes.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -23,8 +24,15 @@ __all__ = ["walk_embeddings"]
 
 
 @torch.no_grad()
-def walk_embeddings(params: dict[str, torch.Tensor], optimizers: Mapping[str, torch.optim.Optimizer], mesh: TriMesh, *,
-                    walk: bool = True, mode: str = "paper", max_crossings: int = 64) -> torch.Tensor:
+def walk_embeddings(
+    params: dict[str, torch.Tensor],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+    mesh: TriMesh,
+    *,
+    walk: bool = True,
+    mode: str = "paper",
+    max_crossings: int = 64,
+) -> torch.Tensor:
     """Fold ``duv`` into (face, uv); returns ``changed [N] bool`` (faces that changed)."""
     face, uv, duv = params["face"], params["uv"], params["duv"]
     if walk:
