@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 
 import pytest
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from meshsplat.errors import MeshsplatError
 from meshsplat.render import RenderOutput, rasterize
 from meshsplat.render import api as render_api
-from meshsplat.render.backends import torch_ref
+from meshsplat.render.backends import NO_NUMBA_ENV, numba_available, torch_ref
 
 
 def simple_scene(n=5, dtype=torch.float32, C=2):
@@ -143,9 +144,44 @@ def test_auto_never_touches_gsplat_for_cpu(monkeypatch):
     monkeypatch.setattr(render_api, "gsplat_available", lambda: True)  # even if it were installed
     monkeypatch.setattr(render_api, "rasterize_gsplat", boom)
     out = rasterize(**simple_scene(), backend="auto")
-    assert out.meta["backend"] == "torch"
-    assert render_api._pick_backend("auto", torch.device("cpu")) == "torch"
+    cpu_backend = "numba" if numba_available() else "torch"
+    assert out.meta["backend"] == cpu_backend
+    assert render_api._pick_backend("auto", torch.device("cpu")) == cpu_backend
     assert "gsplat" not in sys.modules or torch.cuda.is_available()
+
+
+def test_auto_falls_back_to_torch_without_numba(monkeypatch):
+    """MESHSPLAT_NO_NUMBA=1 is what numba_available() checks first: auto then renders with torch on CPU,
+    and asking for numba explicitly is a clear error (the same path as numba not being installed)."""
+    monkeypatch.setenv(NO_NUMBA_ENV, "1")
+    assert not numba_available()
+    s = simple_scene()
+    s["means"].requires_grad_(True)
+    out = rasterize(**s, backend="auto")
+    assert out.meta["backend"] == "torch"
+    out.colors.sum().backward()
+    assert s["means"].grad is not None and float(s["means"].grad.abs().sum()) > 0
+    assert render_api._pick_backend("auto", torch.device("cpu")) == "torch"
+    with pytest.raises(MeshsplatError, match="needs numba"):
+        rasterize(**simple_scene(), backend="numba")
+    monkeypatch.setenv(NO_NUMBA_ENV, "0")
+    assert numba_available() == (importlib.util.find_spec("numba") is not None)
+
+
+def test_auto_with_torch_options_uses_torch():
+    out = rasterize(**simple_scene(), backend="auto", pair_budget=100)
+    assert out.meta["backend"] == "torch"
+
+
+def test_numba_backend_refuses_non_cpu_and_options():
+    with pytest.raises(MeshsplatError, match="CPU tensors"):
+        render_api._pick_backend("numba", torch.device("cuda"))
+    with pytest.raises(MeshsplatError, match="float32 or float64"):
+        render_api._pick_backend("numba", torch.device("cpu"), torch.float16)
+    assert render_api._pick_backend("auto", torch.device("cpu"), torch.float16) == "torch"
+    if numba_available():
+        with pytest.raises(MeshsplatError, match="no backend options"):
+            rasterize(**simple_scene(), backend="numba", pair_budget=100)
 
 
 def test_per_camera_colors():

@@ -64,7 +64,7 @@ def add_render_options(
         parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1 or auto (default auto)")
     if backend:
         parser.add_argument(
-            "--backend", default="auto", help="rasterizer backend: auto, torch or gsplat (default auto)"
+            "--backend", default="auto", help="rasterizer backend: auto, torch, numba or gsplat (default auto)"
         )
     if progress:
         parser.add_argument("--no-progress", action="store_true", help="no progress bar")

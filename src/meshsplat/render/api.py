@@ -8,15 +8,16 @@ import torch
 
 from meshsplat._checks import check_same_device, check_tensor
 from meshsplat.errors import MeshsplatError
-from meshsplat.render.backends import gsplat_available
+from meshsplat.render.backends import gsplat_available, numba_available
 from meshsplat.render.backends.gsplat_cuda import rasterize_gsplat
+from meshsplat.render.backends.numba_cpu import rasterize_numba
 from meshsplat.render.backends.torch_ref import rasterize_torch
 from meshsplat.render.types import RenderOutput
 
 __all__ = ["rasterize", "RENDER_MODES", "BACKENDS"]
 
 RENDER_MODES = ("RGB", "RGB+ED")
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "numba", "gsplat")
 TORCH_OPTIONS = ("pair_budget", "saved_pair_limit", "grad_mode")
 
 
@@ -85,9 +86,19 @@ def _validate(
         raise MeshsplatError(f"backend: expected one of {BACKENDS}, got {backend!r}")
 
 
-def _pick_backend(backend: str, device: torch.device) -> str:
+def _pick_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
     if backend == "torch":
         return "torch"
+    if backend == "numba":
+        if device.type != "cpu":
+            raise MeshsplatError(
+                f"backend='numba' needs CPU tensors, got tensors on {device}; use backend='torch' or 'auto'"
+            )
+        if dtype not in (torch.float32, torch.float64):
+            raise MeshsplatError(f"backend='numba' needs float32 or float64 tensors, got {dtype}")
+        if not numba_available():
+            raise MeshsplatError("backend='numba' needs numba: pip install 'meshsplat[fast]' (or backend='torch')")
+        return "numba"
     if backend == "gsplat":
         if device.type != "cuda":
             raise MeshsplatError(
@@ -96,7 +107,11 @@ def _pick_backend(backend: str, device: torch.device) -> str:
         if not gsplat_available():
             raise MeshsplatError("backend='gsplat' needs gsplat==1.5.3: pip install 'meshsplat[cuda]'")
         return "gsplat"
-    return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+    if device.type == "cuda" and gsplat_available():
+        return "gsplat"
+    if device.type == "cpu" and dtype in (torch.float32, torch.float64) and numba_available():
+        return "numba"
+    return "torch"
 
 
 def rasterize(
@@ -122,8 +137,9 @@ def rasterize(
     colors [N,D] (or [C,N,D]), viewmats [C,4,4] world->camera (OpenCV axes), Ks [C,3,3],
     backgrounds [C,D] or None. render_mode "RGB" or "RGB+ED" (one extra channel: expected
     depth sum(w_i z_i) / max(alpha, 1e-10)). backend "auto" (gsplat for CUDA tensors when
-    importable, else torch), "torch" or "gsplat". ``backend_options`` go to the torch backend
-    (``pair_budget``, ``saved_pair_limit``, ``grad_mode``; see ``rasterize_torch``).
+    importable, numba for CPU tensors when importable, else torch), "torch", "numba" or "gsplat".
+    ``backend_options`` go to the torch backend (``pair_budget``, ``saved_pair_limit``,
+    ``grad_mode``; see ``rasterize_torch``); with ``backend="auto"`` they select the torch backend.
 
     Returns RenderOutput(colors [C,H,W,D'], alphas [C,H,W,1], meta) with meta["means2d"]
     [C,N,2] retaining its gradient, meta["radii"] [C,N,2] int32, meta["depths"] [C,N],
@@ -145,9 +161,29 @@ def rasterize(
         render_mode,
         backend,
     )
-    chosen = _pick_backend(backend, means.device)
+    if backend == "auto" and backend_options:
+        backend = "torch"  # the options tune the torch backend: the caller asked for it
+    chosen = _pick_backend(backend, means.device, means.dtype)
     if chosen == "gsplat":  # backend_options tune the torch backend only
         return rasterize_gsplat(
+            means=means,
+            quats=quats,
+            scales=scales,
+            opacities=opacities,
+            colors=colors,
+            viewmats=viewmats,
+            Ks=Ks,
+            width=width,
+            height=height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            backgrounds=backgrounds,
+            render_mode=render_mode,
+        )
+    if chosen == "numba":
+        if backend_options:
+            raise MeshsplatError(f"backend='numba' takes no backend options, got {sorted(backend_options)}")
+        return rasterize_numba(
             means=means,
             quats=quats,
             scales=scales,

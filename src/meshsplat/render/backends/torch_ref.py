@@ -36,10 +36,17 @@ from meshsplat.render._constants import (
     MAX_EXTEND,
     PIXEL_CENTER,
 )
-from meshsplat.render.projection import project_gaussians
+from meshsplat.render.projection import Projection, project_gaussians
 from meshsplat.render.types import RenderOutput
 
-__all__ = ["rasterize_torch", "DEFAULT_PAIR_BUDGET", "DEFAULT_SAVED_PAIR_LIMIT"]
+__all__ = [
+    "rasterize_torch",
+    "sorted_entries",
+    "finish_render",
+    "SortedEntries",
+    "DEFAULT_PAIR_BUDGET",
+    "DEFAULT_SAVED_PAIR_LIMIT",
+]
 
 DEFAULT_PAIR_BUDGET = 2_000_000  # (pixel, Gaussian) candidate pairs per band
 DEFAULT_SAVED_PAIR_LIMIT = 16_000_000  # pairs kept for backward (~61 B each); later bands recompute
@@ -333,6 +340,90 @@ def _composite_autograd(means2d, conics, opacities, colors, bg, plan: _Plan):
     return torch.cat(outs).reshape(C, H, W, D), torch.cat(alphas).reshape(C, H, W, 1)
 
 
+@dataclass
+class SortedEntries:
+    """Visible (camera, Gaussian) entries in compositing order, shared by the CPU backends.
+
+    Entries are sorted by camera, then by camera ``z`` with ties kept in Gaussian index order
+    (stable sort): every backend composites in exactly this order. ``m2 [M,2]``, ``con [M,3]``,
+    ``op [M]``, ``col [M,D]`` are differentiable gathers of the projection; ``cam [M]`` int64.
+    ``bg`` is ``backgrounds`` with a zero depth channel appended in ``RGB+ED`` mode.
+    """
+
+    proj: Projection
+    means2d: torch.Tensor
+    m2: torch.Tensor
+    con: torch.Tensor
+    op: torch.Tensor
+    col: torch.Tensor
+    cam: torch.Tensor
+    bg: torch.Tensor | None
+    n_cams: int
+    width: int
+    height: int
+
+
+def sorted_entries(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    backgrounds: torch.Tensor | None,
+    render_mode: str,
+) -> SortedEntries:
+    """Project (autograd) and gather the visible entries in compositing order (see :class:`SortedEntries`)."""
+    C, N = viewmats.shape[0], means.shape[0]
+    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    cols = colors if colors.dim() == 3 else colors[None].expand(C, N, colors.shape[-1])
+    bg = backgrounds
+    if render_mode == "RGB+ED":
+        cols = torch.cat([cols, proj.depths[..., None]], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
+    D = cols.shape[-1]
+
+    with torch.no_grad():
+        key = torch.where(proj.visible, proj.depths.detach(), torch.full_like(proj.depths, float("inf")))
+        order = torch.argsort(key, dim=1, stable=True)
+        flat = (order + torch.arange(C, device=order.device)[:, None] * N)[proj.visible.gather(1, order)]
+        cam = torch.div(flat, N, rounding_mode="floor")
+    m2 = means2d.reshape(C * N, 2).index_select(0, flat)
+    con = proj.conics.reshape(C * N, 3).index_select(0, flat)
+    op = opacities.index_select(0, flat - cam * N)
+    col = cols.reshape(C * N, D).index_select(0, flat)
+    return SortedEntries(proj, means2d, m2, con, op, col, cam, bg, C, int(width), int(height))
+
+
+def finish_render(
+    ent: SortedEntries, img: torch.Tensor, alpha: torch.Tensor, render_mode: str, backend: str
+) -> RenderOutput:
+    """Expected depth for ``RGB+ED`` and the ``meta`` dict (the contract of :func:`meshsplat.render.rasterize`)."""
+    if render_mode == "RGB+ED":
+        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(DEPTH_ALPHA_MIN)], dim=-1)
+    meta = {
+        "means2d": ent.means2d,
+        "radii": ent.proj.radii,
+        "depths": ent.proj.depths,
+        "conics": ent.proj.conics,
+        "visible": ent.proj.visible,
+        "width": ent.width,
+        "height": ent.height,
+        "n_cameras": ent.n_cams,
+        "backend": backend,
+    }
+    return RenderOutput(img, alpha, meta)
+
+
 def rasterize_torch(
     *,
     means: torch.Tensor,
@@ -360,51 +451,29 @@ def rasterize_torch(
     ~61 B each; bands beyond it are recomputed in backward); ``grad_mode`` "custom"
     (default) or "autograd".
     """
-    C, N = viewmats.shape[0], means.shape[0]
     W, H = int(width), int(height)
-    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, W, H, near_plane, far_plane)
-    means2d = proj.means2d
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    cols = colors if colors.dim() == 3 else colors[None].expand(C, N, colors.shape[-1])
-    bg = backgrounds
-    if render_mode == "RGB+ED":
-        cols = torch.cat([cols, proj.depths[..., None]], dim=-1)
-        if bg is not None:
-            bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
-    D = cols.shape[-1]
-
-    with torch.no_grad():
-        key = torch.where(proj.visible, proj.depths.detach(), torch.full_like(proj.depths, float("inf")))
-        order = torch.argsort(key, dim=1, stable=True)
-        flat = (order + torch.arange(C, device=order.device)[:, None] * N)[proj.visible.gather(1, order)]
-        cam = torch.div(flat, N, rounding_mode="floor")
-    m2 = means2d.reshape(C * N, 2).index_select(0, flat)
-    con = proj.conics.reshape(C * N, 3).index_select(0, flat)
-    op = opacities.index_select(0, flat - cam * N)
-    col = cols.reshape(C * N, D).index_select(0, flat)
-    plan = _make_plan(m2.detach(), con.detach(), op.detach(), cam, W, H, C, int(pair_budget or DEFAULT_PAIR_BUDGET))
+    ent = sorted_entries(
+        means, quats, scales, opacities, colors, viewmats, Ks, W, H, near_plane, far_plane, backgrounds, render_mode
+    )
+    plan = _make_plan(
+        ent.m2.detach(),
+        ent.con.detach(),
+        ent.op.detach(),
+        ent.cam,
+        W,
+        H,
+        ent.n_cams,
+        int(pair_budget or DEFAULT_PAIR_BUDGET),
+    )
     if saved_pair_limit is not None:
         plan.saved_pair_limit = int(saved_pair_limit)
 
     if grad_mode == "custom":
-        img, alpha = _Composite.apply(m2, con, op, col, bg, plan)
+        img, alpha = _Composite.apply(ent.m2, ent.con, ent.op, ent.col, ent.bg, plan)
     elif grad_mode == "autograd":
-        img, alpha = _composite_autograd(m2, con, op, col, bg, plan)
+        img, alpha = _composite_autograd(ent.m2, ent.con, ent.op, ent.col, ent.bg, plan)
     else:
         raise MeshsplatError(f"grad_mode must be 'custom' or 'autograd', got {grad_mode!r}")
-    if render_mode == "RGB+ED":
-        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(DEPTH_ALPHA_MIN)], dim=-1)
-    meta = {
-        "means2d": means2d,
-        "radii": proj.radii,
-        "depths": proj.depths,
-        "conics": proj.conics,
-        "visible": proj.visible,
-        "width": W,
-        "height": H,
-        "n_cameras": C,
-        "backend": "torch",
-        "n_pairs": int(plan.span_w.sum()),  # candidate (pixel, Gaussian) pairs in footprints
-    }
-    return RenderOutput(img, alpha, meta)
+    out = finish_render(ent, img, alpha, render_mode, "torch")
+    out.meta["n_pairs"] = int(plan.span_w.sum())  # candidate (pixel, Gaussian) pairs in footprints
+    return out

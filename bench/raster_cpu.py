@@ -1,0 +1,185 @@
+"""CPU rasterizer benchmark: the compiled numba backend vs the torch backend, forward + backward.
+
+Cases (one camera, avatar-like upper-body framing): 10k Gaussians @ 256x256, 50k @ 512x512,
+200k @ 1080x1080 (``--quick``: the first only).
+
+Time: median over repeats of forward, backward and forward + backward (after one warm-up run).
+Memory: each (case, backend) runs in a fresh subprocess; peak = resource.getrusage ru_maxrss after the
+runs minus the RSS just before the first render (scene built, numba kernels already loaded from the
+on-disk cache, so compilation memory is not counted), i.e. the extra resident memory the renderer needed.
+Compile time: a child with an empty NUMBA_CACHE_DIR times ``warm_up()`` (float32 + float64 kernels,
+cold compile), a second child with the same directory times it again (kernels loaded from the cache).
+
+    python bench/raster_cpu.py [--quick] [--threads N] [--repeats R] [--no-compile] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+CASES = [(10_000, 256), (50_000, 512), (200_000, 1080)]
+BACKENDS = ("numba", "torch")
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _maxrss_mib() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_case(n: int, size: int, repeats: int, backend: str, threads: int) -> dict:
+    """Runs in the child process."""
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+    sys.path.insert(0, str(HERE))
+    from _raster_scenes import avatar_scene
+    from meshsplat.render import rasterize
+    from meshsplat.render.backends.numba_cpu import warm_up
+
+    if backend == "numba":
+        warm_up()  # from the on-disk cache (the parent compiled it); not part of the measurement
+    scene = avatar_scene(n, size)
+    names = ("means", "quats", "scales", "opacities", "colors", "backgrounds")
+    params = {k: (v.clone().requires_grad_(True) if k in names else v) for k, v in scene.items()}
+    base_rss = _rss_mib()
+    fwd, bwd, total = [], [], []
+    for i in range(repeats + 1):
+        for p in params.values():
+            if isinstance(p, torch.Tensor):
+                p.grad = None
+        t0 = time.perf_counter()
+        out = rasterize(**params, backend=backend)
+        loss = (out.colors - 0.5).abs().mean() + out.alphas.mean()
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        if i > 0:  # the first run is a warm-up
+            fwd.append(t1 - t0)
+            bwd.append(t2 - t1)
+            total.append(t2 - t0)
+    return {
+        "gaussians": n,
+        "size": size,
+        "backend": backend,
+        "fwd_s": statistics.median(fwd),
+        "bwd_s": statistics.median(bwd),
+        "fwd_bwd_s": statistics.median(total),
+        "peak_extra_mib": max(0.0, _maxrss_mib() - base_rss),
+        "visible": int(out.meta["visible"].sum()),
+        "coverage": float((out.alphas.detach() > 0.5).float().mean()),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def compile_child() -> dict:
+    """Runs in the child process: time of warm_up() (cold compile or cache load, per NUMBA_CACHE_DIR)."""
+    t0 = time.perf_counter()
+    import numba  # noqa: F401
+
+    t1 = time.perf_counter()
+    from meshsplat.render.backends.numba_cpu import warm_up
+
+    warm_up()
+    return {"import_numba_s": t1 - t0, "warm_up_s": time.perf_counter() - t1}
+
+
+def _child(args: list[str], env_extra: dict | None = None) -> dict:
+    env = dict(os.environ, **(env_extra or {}))
+    res = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env, check=False)
+    if res.returncode != 0:
+        raise SystemExit(f"child {args} failed:\n{res.stderr}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def measure_compile() -> dict:
+    with tempfile.TemporaryDirectory() as cache:
+        env = {"NUMBA_CACHE_DIR": cache}
+        cold = _child(["--compile-child"], env)
+        warm = _child(["--compile-child"], env)
+    return {
+        "cold_s": cold["warm_up_s"],
+        "cached_s": warm["warm_up_s"],
+        "import_numba_s": warm["import_numba_s"],
+        "what": "warm_up(): float32 + float64 forward and backward kernels",
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="only the smallest case")
+    ap.add_argument("--threads", type=int, default=0, help="torch (and so numba) threads (0: torch default)")
+    ap.add_argument("--repeats", type=int, default=0, help="timed runs per case (default 7, --quick 3)")
+    ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--compile-child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.compile_child:
+        print(json.dumps(compile_child()))
+        return 0
+    if args.child:
+        n, size, repeats, backend, threads = args.child.split(",")
+        print(json.dumps(run_case(int(n), int(size), int(repeats), backend, int(threads))))
+        return 0
+
+    repeats = args.repeats or (3 if args.quick else 7)
+    cases = CASES[:1] if args.quick else CASES
+    compile_info = None if args.no_compile else measure_compile()
+    _child(["--compile-child"])  # fill the default on-disk cache the cases load from
+    rows = [_child(["--child", f"{n},{s},{repeats},{b},{args.threads}"]) for n, s in cases for b in BACKENDS]
+
+    print(f"{'case':>14} {'backend':>7} {'fwd s':>8} {'bwd s':>8} {'fwd+bwd s':>10} {'peak MiB':>9} {'speed-up':>9}")
+    for r in rows:
+        ref = next(x for x in rows if x["backend"] == "torch" and x["size"] == r["size"])
+        speed = ref["fwd_bwd_s"] / r["fwd_bwd_s"]
+        print(
+            f"{r['gaussians']:>7}@{r['size']:<6} {r['backend']:>7} {r['fwd_s']:>8.3f} {r['bwd_s']:>8.3f} "
+            f"{r['fwd_bwd_s']:>10.3f} {r['peak_extra_mib']:>9.0f} {speed:>8.2f}x"
+        )
+    if compile_info:
+        print(
+            f"numba compile (float32+float64, fwd+bwd): cold {compile_info['cold_s']:.1f} s, "
+            f"from cache {compile_info['cached_s']:.2f} s (+ import numba {compile_info['import_numba_s']:.2f} s)"
+        )
+
+    sys.path.insert(0, str(HERE))
+    from _machine import machine_info  # shared by the bench scripts
+
+    info = machine_info()
+    out = args.out or HERE / "results" / f"raster_cpu-{info['hostname']}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(
+        json.dumps(
+            {
+                "machine": info,
+                "quick": args.quick,
+                "repeats": repeats,
+                "compile": compile_info,
+                "memory_method": "ru_maxrss delta in a fresh subprocess per (case, backend), kernels preloaded",
+                "results": rows,
+            },
+            indent=2,
+        )
+    )
+    print(f"saved {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

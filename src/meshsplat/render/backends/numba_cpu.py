@@ -1,0 +1,486 @@
+"""Compiled CPU rasterizer (numba), forward and backward, with the torch backend's conventions.
+
+Geometry is shared with ``torch_ref``: projection (autograd) and the entry order (camera, then
+camera ``z``, ties by Gaussian index) come from :func:`sorted_entries`. Only the per-pixel work,
+where the time goes, is compiled:
+
+1. Binning: each entry's footprint box (the same closed-form ``alpha >= 1/255`` ellipse and
+   0.05 px slack as the torch backend's row spans, float64) is cut into 16x16 tiles; tile lists
+   are filled in entry order, so each tile's list is depth-ordered exactly as the torch backend.
+2. Forward, parallel over tiles (``prange``): every pixel walks its tile's list front to back
+   (alpha evaluated in the input dtype with the torch backend's operation order and thresholds;
+   transmittance in float64), stops before the splat that would take T to ``<= 1e-4``, and keeps
+   its final T (float64) and the list position after its last contributing splat.
+3. Backward, parallel over tiles: the standard reverse walk from that position (T recovered by
+   division in float64, "later splats" sums carried along). Each (tile, entry) intersection owns
+   a gradient row that only its tile writes; rows are summed per entry in intersection order
+   afterwards. No atomics, no per-thread buffers: the result is bit-identical for any thread
+   count and scheduling.
+
+numba is imported lazily (first call); kernels are compiled with ``cache=True`` (on-disk cache next
+to this file, or numba's user cache directory when that is read-only). The thread count follows
+``torch.get_num_threads()`` (capped by numba's pool size), so one setting drives both libraries.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.render._constants import ALPHA_MAX, ALPHA_THRESHOLD, MAX_EXTEND, PIXEL_CENTER, TRANSMITTANCE_MIN
+from meshsplat.render.backends import numba_available
+from meshsplat.render.backends.torch_ref import SortedEntries, finish_render, sorted_entries
+from meshsplat.render.types import RenderOutput
+
+__all__ = ["rasterize_numba", "TILE_SIZE", "warm_up"]
+
+TILE_SIZE = 16
+_SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint, as torch_ref (the alpha test is exact)
+
+# The kernels below are plain Python until _kernels() wraps them with numba.njit; these globals are
+# then rebound to numba's prange and the jitted helper, which the kernels resolve when compiled.
+_prange: Any = range
+
+
+def _bin_kernel(m2, con, op, cam, n_cams, width, height, tile, tiles_x, tiles_y):  # pragma: no cover - compiled
+    """Footprints and tile lists.
+
+    Returns ``foot [M,6]`` float64 (mx, my, a, b, 2 a tau, det: the torch backend's row-span terms),
+    ``rows [M,2]`` int64 (first, last pixel row; last < first: empty), ``tile_ptr [T+1]`` int64 and
+    ``isect [I]`` int32 entry ids, in entry (= depth) order within each tile.
+    """
+    m = op.shape[0]
+    foot = np.empty((m, 6), np.float64)
+    rows = np.empty((m, 2), np.int64)
+    rect = np.empty((m, 4), np.int64)
+    tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
+    for e in range(m):  # serial: cheap next to compositing, and a serial kernel compiles much faster
+        mx, my = np.float64(m2[e, 0]), np.float64(m2[e, 1])
+        a, b, c = np.float64(con[e, 0]), np.float64(con[e, 1]), np.float64(con[e, 2])
+        tau = min(max(math.log(np.float64(op[e]) / ALPHA_THRESHOLD), 0.0), tau_max)
+        det = max(a * c - b * b, 1e-300)
+        ry = math.sqrt(2.0 * tau * a / det)
+        rx = math.sqrt(2.0 * tau * c / det)
+        foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3] = mx, my, a, b
+        foot[e, 4], foot[e, 5] = 2.0 * a * tau, det
+        y0 = max(np.ceil(my - ry - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
+        y1 = min(np.floor(my + ry - PIXEL_CENTER + _SPAN_MARGIN), height - 1.0)
+        x0 = max(np.ceil(mx - rx - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
+        x1 = min(np.floor(mx + rx - PIXEL_CENTER + _SPAN_MARGIN), width - 1.0)
+        if not (y0 <= y1 and x0 <= x1):  # also false for NaN
+            rows[e, 0], rows[e, 1] = 0, -1
+            rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
+        else:
+            rows[e, 0], rows[e, 1] = int(y0), int(y1)
+            rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
+            rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
+    per_cam = tiles_x * tiles_y
+    counts = np.zeros(n_cams * per_cam + 1, np.int64)
+    for e in range(m):
+        base = cam[e] * per_cam
+        for ty in range(rect[e, 2], rect[e, 3] + 1):
+            for tx in range(rect[e, 0], rect[e, 1] + 1):
+                counts[base + ty * tiles_x + tx + 1] += 1
+    tile_ptr = np.cumsum(counts)
+    cursor = tile_ptr[:-1].copy()
+    isect = np.empty(tile_ptr[-1], np.int32)
+    for e in range(m):  # entry order = depth order within each camera, hence within each tile
+        base = cam[e] * per_cam
+        for ty in range(rect[e, 2], rect[e, 3] + 1):
+            for tx in range(rect[e, 0], rect[e, 1] + 1):
+                t = base + ty * tiles_x + tx
+                isect[cursor[t]] = e
+                cursor[t] += 1
+    return foot, rows, tile_ptr, isect
+
+
+def _row_span_py(foot, e, y, lo, hi):  # pragma: no cover - compiled
+    """Columns [x0, x1] of row y inside entry e's ``alpha >= 1/255`` ellipse, clipped to [lo, hi]
+    (the torch backend's ``_row_spans`` arithmetic, float64)."""
+    mx, my, a, b, two_a_tau, det = foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3], foot[e, 4], foot[e, 5]
+    dy = my - (y + PIXEL_CENTER)
+    disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
+    dx_lo = (-b * dy - disc) / a
+    dx_hi = (-b * dy + disc) / a
+    x0 = np.ceil(mx - dx_hi - PIXEL_CENTER - _SPAN_MARGIN)
+    x1 = np.floor(mx - dx_lo - PIXEL_CENTER + _SPAN_MARGIN)
+    if not (x0 <= x1):  # also NaN
+        return 0, -1
+    return int(min(max(x0, lo), hi + 1.0)), int(max(min(x1, hi), lo - 1.0))
+
+
+_row_span: Any = _row_span_py
+
+
+def _forward_kernel(
+    tile_ptr, isect, foot, rows, m2, con, op, col, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y
+):  # pragma: no cover - compiled
+    """Composite every pixel: colors [P,D] (dtype), final T [P] float64, list position after the last splat [P].
+
+    Per tile, entries are walked front to back and each one visits only the pixels of its exact
+    footprint rows; per-pixel state (T, colour sums, done) lives in tile buffers.
+    """
+    half, a_max, a_thr = consts[0], consts[1], consts[2]
+    d_out = col.shape[1]
+    n_pix_cam = width * height
+    n_cams = bg.shape[0]
+    out = np.zeros((n_cams * n_pix_cam, d_out), col.dtype)
+    t_final = np.ones(n_cams * n_pix_cam, np.float64)
+    n_contrib = np.zeros(n_cams * n_pix_cam, np.int32)
+    per_cam = tiles_x * tiles_y
+    for t in _prange(n_cams * per_cam):
+        c = t // per_cam
+        tx0 = (t % tiles_x) * tile
+        ty0 = ((t % per_cam) // tiles_x) * tile
+        tw = min(width, tx0 + tile) - tx0
+        th = min(height, ty0 + tile) - ty0
+        trans = np.ones(tw * th, np.float64)
+        acc = np.zeros((tw * th, d_out), np.float64)
+        done = np.zeros(tw * th, np.bool_)
+        last = np.zeros(tw * th, np.int32)
+        n_done = 0
+        s0 = tile_ptr[t]
+        for k in range(s0, tile_ptr[t + 1]):
+            if n_done == tw * th:
+                break
+            e = isect[k]
+            mxe, mye = m2[e, 0], m2[e, 1]
+            ca, cb, cc, ope = con[e, 0], con[e, 1], con[e, 2], op[e]
+            for y in range(max(rows[e, 0], ty0), min(rows[e, 1], ty0 + th - 1) + 1):
+                x0, x1 = _row_span(foot, e, y, tx0, tx0 + tw - 1)
+                dy = mye - ys[y]
+                for x in range(x0, x1 + 1):
+                    q = (y - ty0) * tw + (x - tx0)
+                    if done[q]:
+                        continue
+                    dx = mxe - xs[x]
+                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0:
+                        continue
+                    alpha = min(ope * math.exp(-sigma), a_max)
+                    if alpha < a_thr:
+                        continue
+                    a64 = np.float64(alpha)
+                    t_next = trans[q] * (1.0 - a64)
+                    if t_next <= TRANSMITTANCE_MIN:
+                        done[q] = True
+                        n_done += 1
+                        continue
+                    w = a64 * trans[q]
+                    for d in range(d_out):
+                        acc[q, d] += w * col[e, d]
+                    trans[q] = t_next
+                    last[q] = k - s0 + 1
+        for q in range(tw * th):
+            p = c * n_pix_cam + (ty0 + q // tw) * width + tx0 + q % tw
+            for d in range(d_out):
+                out[p, d] = acc[q, d] + trans[q] * bg[c, d]
+            t_final[p] = trans[q]
+            n_contrib[p] = last[q]
+    return out, t_final, n_contrib
+
+
+def _backward_kernel(
+    tile_ptr,
+    isect,
+    foot,
+    rows,
+    m2,
+    con,
+    op,
+    col,
+    bg,
+    xs,
+    ys,
+    consts,
+    width,
+    height,
+    tile,
+    tiles_x,
+    tiles_y,
+    g_col,
+    g_alpha,
+    t_final,
+    n_contrib,
+):  # pragma: no cover - compiled
+    """Per-intersection gradient rows [I, 6+D] float64: (mx, my, a, b, c, opacity, colors...).
+
+    Per tile, entries are walked back to front over the same footprint pixels; each pixel carries
+    T (recovered by division, float64) and the sum of later splats' ``w_j <g, c_j>``.
+    """
+    half, a_max, a_thr = consts[0], consts[1], consts[2]
+    d_out = col.shape[1]
+    n_pix_cam = width * height
+    n_cams = bg.shape[0]
+    per_cam = tiles_x * tiles_y
+    grad = np.zeros((isect.shape[0], 6 + d_out), np.float64)
+    for t in _prange(n_cams * per_cam):
+        c = t // per_cam
+        tx0 = (t % tiles_x) * tile
+        ty0 = ((t % per_cam) // tiles_x) * tile
+        tw = min(width, tx0 + tile) - tx0
+        th = min(height, ty0 + tile) - ty0
+        trans = np.empty(tw * th, np.float64)
+        later = np.empty(tw * th, np.float64)  # extra terms + sum over later splats of w_j <g, c_j>
+        gp = np.empty((tw * th, d_out), np.float64)
+        last = np.empty(tw * th, np.int32)
+        max_last = 0
+        for q in range(tw * th):
+            p = c * n_pix_cam + (ty0 + q // tw) * width + tx0 + q % tw
+            tf = t_final[p]
+            trans[q] = tf
+            ex = -np.float64(g_alpha[p]) * tf
+            for d in range(d_out):
+                gp[q, d] = g_col[p, d]
+                ex += tf * np.float64(bg[c, d]) * gp[q, d]
+            later[q] = ex
+            last[q] = n_contrib[p]
+            max_last = max(max_last, n_contrib[p])
+        s0 = tile_ptr[t]
+        g = np.zeros(6 + d_out, np.float64)
+        for k in range(s0 + max_last - 1, s0 - 1, -1):
+            e = isect[k]
+            mxe, mye = m2[e, 0], m2[e, 1]
+            ca, cb, cc, ope = con[e, 0], con[e, 1], con[e, 2], op[e]
+            ca64, cb64, cc64 = np.float64(ca), np.float64(cb), np.float64(cc)
+            g[:] = 0.0
+            for y in range(max(rows[e, 0], ty0), min(rows[e, 1], ty0 + th - 1) + 1):
+                x0, x1 = _row_span(foot, e, y, tx0, tx0 + tw - 1)
+                dy = mye - ys[y]
+                for x in range(x0, x1 + 1):
+                    q = (y - ty0) * tw + (x - tx0)
+                    if k - s0 >= last[q]:
+                        continue
+                    dx = mxe - xs[x]
+                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0:
+                        continue
+                    vis = math.exp(-sigma)
+                    raw = ope * vis
+                    alpha = min(raw, a_max)
+                    if alpha < a_thr:
+                        continue
+                    a64 = np.float64(alpha)
+                    one_m = 1.0 - a64
+                    tr = trans[q] / one_m  # T before this splat
+                    trans[q] = tr
+                    w = a64 * tr
+                    cg = 0.0
+                    for d in range(d_out):
+                        cg += gp[q, d] * np.float64(col[e, d])
+                        g[6 + d] += gp[q, d] * w
+                    if raw <= a_max:  # through the 0.999 clamp no gradient passes (as gsplat)
+                        v_alpha = tr * cg - later[q] / one_m
+                        v_sigma = -a64 * v_alpha
+                        fdx, fdy = np.float64(dx), np.float64(dy)
+                        g[0] += v_sigma * (ca64 * fdx + cb64 * fdy)
+                        g[1] += v_sigma * (cb64 * fdx + cc64 * fdy)
+                        g[2] += 0.5 * v_sigma * fdx * fdx
+                        g[3] += v_sigma * fdx * fdy
+                        g[4] += 0.5 * v_sigma * fdy * fdy
+                        g[5] += np.float64(vis) * v_alpha
+                    later[q] += w * cg
+            for j in range(6 + d_out):
+                grad[k, j] = g[j]
+    return grad
+
+
+def _reduce_kernel(isect, grad, m):  # pragma: no cover - compiled
+    """Sum intersection rows per entry, in intersection order (serial: deterministic)."""
+    out = np.zeros((m, grad.shape[1]), np.float64)
+    for k in range(isect.shape[0]):
+        e = isect[k]
+        for j in range(grad.shape[1]):
+            out[e, j] += grad[k, j]
+    return out
+
+
+@lru_cache(maxsize=1)
+def _kernels() -> tuple[Any, Any, Any, Any]:
+    """Import numba and wrap the kernels (compilation itself happens per dtype on first call)."""
+    global _prange, _row_span
+    try:
+        import numba
+    except Exception as exc:  # ImportError, or a broken llvmlite/numpy combination
+        raise MeshsplatError(f"numba could not be imported ({exc}); use backend='torch'") from exc
+    _prange = numba.prange
+    ser = numba.njit(cache=True, fastmath=False, nogil=True)
+    _row_span = numba.njit(cache=True, fastmath=False, nogil=True)(_row_span_py)
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    return ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_reduce_kernel)
+
+
+def _set_threads() -> None:
+    import numba
+
+    pool = int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), pool)))
+
+
+class _Geometry:
+    """No-grad per-call state shared by forward and backward (numpy views of detached tensors)."""
+
+    def __init__(self, ent: SortedEntries, tile: int) -> None:
+        dt = ent.m2.dtype
+        np_dt: type[np.floating[Any]] = np.float32 if dt == torch.float32 else np.float64
+        self.width, self.height, self.n_cams, self.tile = ent.width, ent.height, ent.n_cams, tile
+        self.tiles_x = -(-ent.width // tile)
+        self.tiles_y = -(-ent.height // tile)
+        self.m2 = ent.m2.detach().contiguous().numpy()
+        self.con = ent.con.detach().contiguous().numpy()
+        self.op = ent.op.detach().contiguous().numpy()
+        self.cam = ent.cam.contiguous().numpy()
+        # pixel centres in the input dtype, as torch_ref's ``arange(W, dtype) + 0.5``
+        self.xs = torch.arange(ent.width, dtype=dt).add_(PIXEL_CENTER).numpy()
+        self.ys = torch.arange(ent.height, dtype=dt).add_(PIXEL_CENTER).numpy()
+        self.consts = np.array([0.5, ALPHA_MAX, ALPHA_THRESHOLD], dtype=np_dt)
+        bin_k = _kernels()[0]
+        self.foot, self.rows, self.tile_ptr, self.isect = bin_k(
+            self.m2, self.con, self.op, self.cam, self.n_cams, self.width, self.height, tile, self.tiles_x, self.tiles_y
+        )
+        self.t_final: np.ndarray | None = None
+        self.n_contrib: np.ndarray | None = None
+
+    def args(self, col: np.ndarray, bg: np.ndarray) -> tuple[Any, ...]:
+        return (
+            self.tile_ptr,
+            self.isect,
+            self.foot,
+            self.rows,
+            self.m2,
+            self.con,
+            self.op,
+            col,
+            bg,
+            self.xs,
+            self.ys,
+            self.consts,
+            self.width,
+            self.height,
+            self.tile,
+            self.tiles_x,
+            self.tiles_y,
+        )
+
+
+def _bg_array(bg: torch.Tensor | None, n_cams: int, d: int, dtype: torch.dtype) -> np.ndarray:
+    if bg is None:
+        return np.zeros((n_cams, d), np.float32 if dtype == torch.float32 else np.float64)
+    return bg.detach().contiguous().numpy()
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, m2, con, op, col, bg, geo):
+        _set_threads()
+        C, H, W, D = geo.n_cams, geo.height, geo.width, col.shape[1]
+        colv = col.detach().contiguous().numpy()
+        bgv = _bg_array(bg, C, D, col.dtype)
+        out, t_final, n_contrib = _kernels()[1](*geo.args(colv, bgv))
+        geo.t_final, geo.n_contrib = t_final, n_contrib
+        ctx.geo, ctx.has_bg = geo, bg is not None
+        ctx.save_for_backward(col, bg if bg is not None else torch.empty(0))
+        img = torch.from_numpy(out).reshape(C, H, W, D)
+        alpha = torch.from_numpy((1.0 - t_final).astype(colv.dtype)).reshape(C, H, W, 1)
+        return img, alpha
+
+    @staticmethod
+    def backward(ctx, g_out, g_alpha):
+        col, bg = ctx.saved_tensors
+        bg = bg if ctx.has_bg else None
+        geo = ctx.geo
+        C, H, W, D = geo.n_cams, geo.height, geo.width, col.shape[1]
+        n_pix = C * H * W
+        dtype = col.dtype
+        g_out = torch.zeros(n_pix, D, dtype=dtype) if g_out is None else g_out.reshape(n_pix, D)
+        g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
+        _set_threads()
+        colv = col.detach().contiguous().numpy()
+        bgv = _bg_array(bg, C, D, dtype)
+        k = _kernels()
+        rows = k[2](
+            *geo.args(colv, bgv),
+            g_out.detach().contiguous().numpy(),
+            g_alpha.detach().contiguous().numpy(),
+            geo.t_final,
+            geo.n_contrib,
+        )
+        per_entry = torch.from_numpy(k[3](geo.isect, rows, geo.m2.shape[0])).to(dtype)
+        grad_bg = None
+        if bg is not None and ctx.needs_input_grad[4]:
+            t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
+            grad_bg = (t_final * g_out.reshape(C, H * W, D).double()).sum(1).to(dtype)
+        return per_entry[:, 0:2], per_entry[:, 2:5], per_entry[:, 5], per_entry[:, 6:], grad_bg, None
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels for float32 and float64 now."""
+    for dt in (torch.float32, torch.float64):
+        means = torch.tensor([[0.0, 0.0, 2.0]], dtype=dt, requires_grad=True)
+        out = rasterize_numba(
+            means=means,
+            quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=dt),
+            scales=torch.full((1, 3), 0.1, dtype=dt),
+            opacities=torch.tensor([0.5], dtype=dt),
+            colors=torch.ones(1, 3, dtype=dt),
+            viewmats=torch.eye(4, dtype=dt)[None],
+            Ks=torch.tensor([[[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]]], dtype=dt),
+            width=8,
+            height=8,
+            backgrounds=torch.zeros(1, 3, dtype=dt),
+        )
+        out.colors.sum().backward()
+
+
+def rasterize_numba(
+    *,
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    backgrounds: torch.Tensor | None = None,
+    render_mode: str = "RGB",
+) -> RenderOutput:
+    """Render C cameras on CPU with the compiled kernels; arguments as :func:`meshsplat.render.rasterize`.
+
+    CPU float32/float64 tensors only. The first call in a process compiles the kernels (or loads them
+    from numba's on-disk cache); :func:`warm_up` does that ahead of time.
+    """
+    if means.device.type != "cpu":
+        raise MeshsplatError(f"backend='numba' needs CPU tensors, got tensors on {means.device}")
+    if means.dtype not in (torch.float32, torch.float64):
+        raise MeshsplatError(f"backend='numba' needs float32 or float64 tensors, got {means.dtype}")
+    if not numba_available():
+        raise MeshsplatError("backend='numba' needs numba: pip install 'meshsplat[fast]' (or use backend='torch')")
+    ent = sorted_entries(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        int(width),
+        int(height),
+        near_plane,
+        far_plane,
+        backgrounds,
+        render_mode,
+    )
+    geo = _Geometry(ent, TILE_SIZE)
+    img, alpha = _Composite.apply(ent.m2, ent.con, ent.op, ent.col, ent.bg, geo)
+    out = finish_render(ent, img, alpha, render_mode, "numba")
+    out.meta["n_isects"] = int(geo.isect.shape[0])  # (tile, Gaussian) intersections
+    return out
