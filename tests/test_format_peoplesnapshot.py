@@ -177,8 +177,8 @@ def test_masks_png_and_npy(tmp_path, standin_model_dir, kind):
     root = make_capture(tmp_path / "cap", n=3, masks=kind)
     if kind == "png":  # soft edge values survive
         m = np.zeros((H, W), np.uint8)
-        m[10:30, 5:25] = 255
-        m[10:30, 25] = 128
+        m[10:, 5:] = 255  # the stand-in body covers the middle of the frame
+        m[10:, 25] = 128
         Image.fromarray(m).save(root / "masks" / "mask_0000.png")
     ds = ps.read(root, model_dir=standin_model_dir)
     assert ds.frame_info(0)["mask_kind"] == kind
@@ -199,7 +199,7 @@ def test_anim_nerf_precedence(tmp_path, standin_model_dir):
     """Refined files win for their split and are indexed by position inside the split."""
     n = 10
     transl = np.zeros((n, 3))
-    transl[:, 0] = np.arange(n)  # poses.npz: x = absolute index
+    transl[:, 0] = 0.01 * np.arange(n)  # poses.npz: x = absolute index / 100
     cfg = {
         "gender": "neutral",
         "train": {"start": 0, "end": 6, "skip": 2},
@@ -208,9 +208,9 @@ def test_anim_nerf_precedence(tmp_path, standin_model_dir):
     }
     root = make_capture(tmp_path / "cap", n=n, transl=transl, config=cfg)
     (root / "poses").mkdir()
-    for split, base, rows in (("train", 100.0, 4), ("test", 200.0, 2)):
+    for split, base, rows in (("train", 0.1, 4), ("test", 0.2, 2)):
         t = np.zeros((rows, 3), np.float32)
-        t[:, 0] = base + np.arange(rows)  # x = base + position in split
+        t[:, 0] = base + 0.01 * np.arange(rows)  # x = base + position in split / 100 (the body stays in view)
         np.savez(
             root / "poses" / f"anim_nerf_{split}.npz",
             betas=np.zeros((1, 10), np.float32),
@@ -220,10 +220,10 @@ def test_anim_nerf_precedence(tmp_path, standin_model_dir):
         )
     ds = ps.read(root, model_dir=standin_model_dir)
     x = {ds.frame_info(i)["frame_index"]: float(ds.frame_params(i)["transl"][0, 0]) for i in range(len(ds))}
-    assert x == {0: 100.0, 2: 101.0, 4: 102.0, 6: 103.0, 7: 200.0, 8: 201.0}
+    assert x == pytest.approx({0: 0.1, 2: 0.11, 4: 0.12, 6: 0.13, 7: 0.2, 8: 0.21})
     i4 = next(i for i in range(len(ds)) if ds.frame_info(i)["frame_index"] == 4)
     rest = ds.canonical_vertices
-    assert torch.allclose(ds.vertices(i4) - rest, torch.tensor([102.0, 0, 0]).expand_as(rest), atol=1e-4)
+    assert torch.allclose(ds.vertices(i4) - rest, torch.tensor([0.12, 0, 0]).expand_as(rest), atol=1e-4)
     assert ds.split("val") == ds.split("test_frames")
     assert ds.meta["params_source"] == {
         "train": "poses/anim_nerf_train.npz",
@@ -234,7 +234,8 @@ def test_anim_nerf_precedence(tmp_path, standin_model_dir):
     for f in (root / "poses").iterdir():
         f.unlink()
     ds = ps.read(root, model_dir=standin_model_dir)
-    assert [float(ds.frame_params(i)["transl"][0, 0]) for i in range(len(ds))] == [0, 2, 4, 6, 7, 8]
+    x = [float(ds.frame_params(i)["transl"][0, 0]) for i in range(len(ds))]
+    assert x == pytest.approx([0, 0.02, 0.04, 0.06, 0.07, 0.08])
 
 
 def test_default_split_without_config(tmp_path, standin_model_dir):
@@ -264,7 +265,7 @@ def _tiny_native(root: Path, cameras=("0",)) -> Path:
         w.add_camera(c, K, EXTRINSIC, W, H)
     img = np.zeros((H, W, 3), np.uint8)
     for k, c in enumerate(cameras):
-        w.add_frame(img, c, vertices=v + k)
+        w.add_frame(img, c, vertices=v + 0.1 * k)
     return w.close()
 
 

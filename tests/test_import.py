@@ -84,7 +84,7 @@ def test_import_native_round_trip_and_alpha_masks(tmp_path):
         w.add_frame(
             rng.integers(0, 255, (H, W, 3), dtype=np.uint8),
             "cam/0",
-            vertices=v + k,
+            vertices=v + 0.1 * k,
             mask=m,
             name=f"f:{k}",
             clip="c",

@@ -33,6 +33,9 @@ __all__ = [
     "look_at",
     "intrinsics",
     "orbit_position",
+    "orbit_basis",
+    "capture_up",
+    "capture_front",
     "yaw_matrix",
     "orbit_cameras",
     "dataset_camera",
@@ -125,12 +128,68 @@ def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     return np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float64)
 
 
-def orbit_position(center: ArrayLike, distance: float, azimuth: float, elevation: float) -> np.ndarray:
-    """Point at ``distance`` from ``center``; azimuth 0 is +z (the glTF front), angles in radians."""
+def orbit_basis(up: ArrayLike = (0.0, 1.0, 0.0), front: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Rows ``[side, up, front] [3,3]``, orthonormal and right-handed: ``up`` normalised, ``front`` made
+    perpendicular to it (another axis when it is parallel), ``side = up x front``. The defaults give the
+    identity's rows in the order x, y, z (glTF: +y up, +z the front)."""
+    u = np.asarray(up, np.float64).reshape(3)
+    if not np.isfinite(u).all() or np.linalg.norm(u) < 1e-12:
+        raise MeshsplatError(f"up: expected a finite non-zero 3-vector, got {np.asarray(up).tolist()}")
+    u = u / np.linalg.norm(u)
+    f = np.asarray(front, np.float64).reshape(3)
+    f = f - np.dot(f, u) * u
+    if not np.isfinite(f).all() or np.linalg.norm(f) < 1e-6:
+        for axis in np.eye(3)[[2, 0, 1]]:
+            f = axis - np.dot(axis, u) * u
+            if np.linalg.norm(f) > 1e-3:
+                break
+    f = f / np.linalg.norm(f)
+    return np.stack([np.cross(u, f), u, f])
+
+
+def orbit_position(
+    center: ArrayLike,
+    distance: float,
+    azimuth: float,
+    elevation: float,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    front: ArrayLike = (0.0, 0.0, 1.0),
+) -> np.ndarray:
+    """Point at ``distance`` from ``center``; azimuth 0 is ``front`` (default +z, the glTF front), elevation
+    towards ``up`` (default +y), angles in radians (:func:`orbit_basis`)."""
     c = np.asarray(center, np.float64)
-    return c + distance * np.array(
-        [math.cos(elevation) * math.sin(azimuth), math.sin(elevation), math.cos(elevation) * math.cos(azimuth)]
-    )
+    side, u, f = orbit_basis(up, front)
+    ce = math.cos(elevation)
+    return c + distance * (ce * math.sin(azimuth) * side + math.sin(elevation) * u + ce * math.cos(azimuth) * f)
+
+
+def capture_up(viewmats: Sequence[ArrayLike], snap_deg: float = 30.0) -> np.ndarray:
+    """The world's up direction ``[3]`` as a capture's cameras see it: the mean of their up vectors (each
+    OpenCV camera's -y axis in world coordinates), snapped to the nearest world axis (+-x, +-y, +-z) when
+    within ``snap_deg`` of it (cameras looking down at a subject tilt the mean). +y without cameras."""
+    ups = [-np.asarray(vm, np.float64)[1, :3] for vm in viewmats]
+    if not ups:
+        return np.array([0.0, 1.0, 0.0])
+    m = np.mean(ups, axis=0)
+    if not np.isfinite(m).all() or np.linalg.norm(m) < 1e-6:  # cameras disagree completely
+        return np.array([0.0, 1.0, 0.0])
+    m = m / np.linalg.norm(m)
+    k = int(np.argmax(np.abs(m)))
+    if abs(m[k]) >= math.cos(math.radians(snap_deg)):
+        m = np.zeros(3)
+        m[k] = 1.0 if np.mean(ups, axis=0)[k] > 0 else -1.0
+    return m
+
+
+def capture_front(viewmat: ArrayLike, center: ArrayLike, up: ArrayLike) -> np.ndarray:
+    """Front ``[3]`` for orbit cameras (azimuth 0): +z in a +y-up world (the glTF front, as synthesized
+    captures use it), else the direction from ``center`` (the subject) to the camera ``viewmat``, level
+    with ``up`` (a monocular capture's subject faces its camera)."""
+    u = np.asarray(up, np.float64).reshape(3)
+    if np.allclose(u, [0.0, 1.0, 0.0]):
+        return np.array([0.0, 0.0, 1.0])
+    d = camera_center(viewmat) - np.asarray(center, np.float64).reshape(3)
+    return orbit_basis(u, d)[2]
 
 
 def yaw_matrix(angle: float) -> np.ndarray:
@@ -150,12 +209,15 @@ def orbit_cameras(
     distance: float | None = None,
     fov_deg: float = 30.0,
     margin: float = 1.05,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    front: ArrayLike = (0.0, 0.0, 1.0),
 ) -> list[Camera]:
-    """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), +y up.
+    """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), ``up`` up (default +y).
 
-    The camera turns ``orbit_deg`` in total about the vertical axis through the box centre over
-    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from +z, the glTF
-    front). ``distance`` defaults to fitting the box's bounding sphere (times ``margin``) in the view.
+    The camera turns ``orbit_deg`` in total about the ``up`` axis through the box centre over
+    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from ``front``,
+    default +z, the glTF front). ``distance`` defaults to fitting the box's bounding sphere (times
+    ``margin``) in the view. A capture's own up and front: ``dataset.up``, ``dataset.front``.
     """
     if width < 1 or height < 1:
         raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
@@ -179,10 +241,12 @@ def orbit_cameras(
     if not dist > 0:
         raise MeshsplatError(f"distance: expected > 0, got {distance}")
     el = math.radians(elevation_deg)
+    basis = orbit_basis(up, front)
     cams = []
     for i in range(n):
         az = math.radians(azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0))
-        cams.append(Camera.from_numpy(look_at(orbit_position(center, dist, az, el), center), K, width, height))
+        eye = orbit_position(center, dist, az, el, up, front)
+        cams.append(Camera.from_numpy(look_at(eye, center, basis[1]), K, width, height))
     return cams
 
 

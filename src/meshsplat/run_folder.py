@@ -195,16 +195,22 @@ class LoadedRun:
         return p
 
     def open_dataset(
-        self, dataset: str | Path | None = None, model_dir: str | Path | None = None, check_masks: bool = True
+        self,
+        dataset: str | Path | None = None,
+        model_dir: str | Path | None = None,
+        check_masks: bool = True,
+        drop_bad_frames: bool | None = None,
     ) -> AvatarDataset:
         """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
 
-        ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``.
+        ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``;
+        ``drop_bad_frames`` to the run's (frames failing the camera check left out, as in training).
         """
         path = self.dataset_path(dataset)
         fmt = self.config.get("data_format") or None if dataset is None else None
         mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
-        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks)
+        drop = bool(self.config.get("drop_bad_frames", False)) if drop_bad_frames is None else drop_bad_frames
+        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop)
 
     def source_map(self, dataset: str | Path | None = None) -> SourceMap | None:
         """The run's source map (``RUN/source_map.npz``), else its dataset folder's, else None."""

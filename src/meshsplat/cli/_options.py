@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from typing import Any
 
 from meshsplat.cli._guards import LIMITS
+from meshsplat.data.dataset import DROP_FLAG, AvatarDataset
 from meshsplat.errors import MeshsplatError
+from meshsplat.run_folder import LoadedRun
 
 __all__ = [
     "add_run_argument",
     "add_dataset_option",
+    "add_drop_bad_frames_option",
+    "capture_up_front",
     "add_render_options",
     "render_options",
     "RenderOptions",
@@ -32,6 +37,28 @@ def add_run_argument(parser: argparse.ArgumentParser, dataset: bool = True) -> N
 
 def add_dataset_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default=None, help="dataset folder (default: the one in RUN/config.json)")
+
+
+def capture_up_front(run: LoadedRun, dataset: str | None, ds: AvatarDataset | None = None) -> tuple[Any, Any]:
+    """The capture's up and front (``dataset.up``, ``dataset.front``: what default and orbit cameras turn
+    about and start from) for a run; +y up, +z front (the glTF convention) when no dataset is at hand."""
+    if ds is None:
+        try:
+            run.dataset_path(dataset)
+        except MeshsplatError:
+            return (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+        ds = run.open_dataset(dataset, check_masks=False)
+    return ds.up, ds.front
+
+
+def add_drop_bad_frames_option(parser: argparse.ArgumentParser) -> None:
+    """``--drop-bad-frames``: leave out the few frames failing the camera check (else they are refused)."""
+    parser.add_argument(
+        DROP_FLAG,
+        action="store_true",
+        help="leave out the few frames whose camera does not see the subject (mesh behind the camera, "
+        "outside the image or off the mask); without it they are listed and refused",
+    )
 
 
 def add_render_options(

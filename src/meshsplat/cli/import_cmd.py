@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.cli._options import add_drop_bad_frames_option
 from meshsplat.data.convert import write_native
 from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture
 
@@ -24,12 +25,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="folder with the smpl/, smplx/, flame/ model files (default $MESHSPLAT_MODEL_DIR)",
     )
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    add_drop_bad_frames_option(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     fmt = args.format or detect_format(args.capture)
     print(f"format: {fmt}{'' if args.format else ' (detected)'}")
-    ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir)
+    ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir, drop_bad_frames=args.drop_bad_frames)
     print(
         f"{len(ds)} frames, {len(ds.camera_ids)} camera(s), splits: "
         + ", ".join(f"{s} {len(ds.split(s))}" for s in ds.split_names)

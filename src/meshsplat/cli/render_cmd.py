@@ -11,7 +11,9 @@ Drivers (pick one):
                                                    VHAP flame_param/ folder (avatars of SMPL/FLAME captures)
 Cameras: --camera dataset:<camera_id>, or an orbit auto-framed on the animation
 (--orbit DEG total turn, --elevation DEG, --azimuth DEG, --distance D, --fov DEG); with
---dataset-split and no camera option each frame uses its own dataset camera.
+--dataset-split and no camera option each frame uses its own dataset camera. The orbit turns about
+the capture's up (its cameras' mean up vector, snapped to a world axis) and starts at its front
+(azimuth 0: +z in a +y-up world, else the side of the subject its first camera looks from).
 
 Examples:
   meshsplat render runs/cesium --gltf CesiumMan.glb --orbit 360 --size 512x512 --out out/orbit
@@ -26,7 +28,13 @@ from pathlib import Path
 from meshsplat import animate, camera
 from meshsplat.camera import Camera
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range, render_bytes
-from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
+from meshsplat.cli._options import (
+    add_dataset_option,
+    add_render_options,
+    add_run_argument,
+    capture_up_front,
+    render_options,
+)
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
@@ -67,7 +75,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--orbit", type=float, default=None, help="orbit camera: total turn in degrees (default 0)")
     parser.add_argument("--distance", type=float, default=None, help="orbit camera distance (default auto-framed)")
     parser.add_argument("--elevation", type=float, default=None, help="orbit camera elevation in degrees (default 10)")
-    parser.add_argument("--azimuth", type=float, default=0.0, help="orbit start azimuth in degrees (0 = from +z)")
+    parser.add_argument(
+        "--azimuth",
+        type=float,
+        default=0.0,
+        help="orbit start azimuth in degrees (0 = from the capture's front: +z in a +y-up world)",
+    )
     parser.add_argument("--fov", type=float, default=30.0, help="orbit camera vertical field of view (degrees)")
     add_render_options(parser, size=True)
     parser.add_argument("--name", default="animation", help="video file name (without .mp4)")
@@ -131,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         cameras = [c.resized(*size) for c in frame_cams] if size else frame_cams
     else:
         w, h = size or (512, 512)
+        up, front = capture_up_front(r, args.dataset, ds)
         cameras = camera.orbit_cameras(
             frames,
             w,
@@ -140,6 +154,8 @@ def run(args: argparse.Namespace) -> int:
             elevation_deg=10.0 if args.elevation is None else args.elevation,
             distance=args.distance,
             fov_deg=args.fov,
+            up=up,
+            front=front,
         )
     check_range("frames to render", len(frames), "render frames")
     sizes = [(c.width, c.height) for c in (cameras if isinstance(cameras, list) else [cameras])]

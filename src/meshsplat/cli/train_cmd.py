@@ -18,7 +18,7 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
-from meshsplat.cli._options import add_render_options, render_options
+from meshsplat.cli._options import add_drop_bad_frames_option, add_render_options, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.data.formats import detect_format, format_module, open_capture
 from meshsplat.data.source_map import copy_source_map
@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)",
     )
+    add_drop_bad_frames_option(parser)
     parser.add_argument(
         "--refine-pose",
         action="store_true",
@@ -107,7 +108,11 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     opts = render_options(args)
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
-        return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir))
+        return training_image_size(
+            open_capture(
+                args.dataset, format=args.format, model_dir=args.model_dir, drop_bad_frames=args.drop_bad_frames
+            )
+        )
 
     preset = args.preset or DEFAULT_PRESET
     cfg = preset_config(preset)
@@ -126,6 +131,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         cfg.model_dir = str(args.model_dir)
     if args.refine_pose:
         cfg.pose_refine.enabled = True
+    if args.drop_bad_frames:
+        cfg.drop_bad_frames = True
     cfg.out = str(out)
     if args.iters is not None:
         cfg.iterations = args.iters

@@ -32,7 +32,13 @@ import torch
 
 from meshsplat import animate
 from meshsplat.cli._guards import check_output_dir, check_range
-from meshsplat.cli._options import add_dataset_option, add_render_options, add_run_argument, render_options
+from meshsplat.cli._options import (
+    add_dataset_option,
+    add_render_options,
+    add_run_argument,
+    capture_up_front,
+    render_options,
+)
 from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
@@ -170,6 +176,8 @@ def run(args: argparse.Namespace) -> int:
     opts = render_options(args)
     r = load_run(args.run, device="cpu")
     title = args.title or r.run_dir.resolve().name
+    up, front = capture_up_front(r, args.dataset)
+    camera = {"up": up, "front": front}  # the orbit turns about the capture's up, from its front
     kind, *rest = args.animation
     if kind == "gltf" and not args.bake:
         if len(rest) != 1:
@@ -186,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
             title=title,
             vertex_encoding=args.vertex_encoding,
             background=opts.background or "white",
+            camera=camera,
             rig=rig,
         )
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
@@ -199,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
             title=title,
             vertex_encoding=args.vertex_encoding,
             background=opts.background or "white",
+            camera=camera,
             rig=rig,
         )
         what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
@@ -212,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
             title=title,
             vertex_encoding=args.vertex_encoding,
             background=opts.background or "white",
+            camera=camera,
         )
         what = f"{len(frames)} frames"
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -13,13 +14,16 @@ from typing import cast
 import numpy as np
 import torch
 
-from meshsplat.camera import Camera
+from meshsplat.camera import Camera, capture_front, capture_up
+from meshsplat.data.camera_check import check_cameras, group_ids
 from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems", "MASK_KINDS"]
+__all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems", "MASK_KINDS", "DROP_FLAG"]
+
+DROP_FLAG = "--drop-bad-frames"  # the command-line flag (reader option drop_bad_frames=True) named by refusals
 
 MASK_KINDS = ("png", "npy", "alpha")  # a mask file (any image), a numpy array, the image's 4th channel
 
@@ -212,6 +216,25 @@ class AvatarDataset:
         return {k: (v[row : row + 1] if k in per_frame else v) for k, v in self.driver_params.items()}
 
     @property
+    def up(self) -> torch.Tensor:
+        """The world's up direction ``[3]`` as the cameras see it (``camera.capture_up``): the mean of the
+        cameras' up vectors, snapped to a world axis; what default and orbit cameras turn about."""
+        return torch.from_numpy(capture_up([vm for _, vm, _, _ in self._cameras.values()])).float()
+
+    @property
+    def front(self) -> torch.Tensor:
+        """Where orbit cameras start (azimuth 0) ``[3]``: +z in a +y-up world, else the first frame's
+        camera side of the subject (``camera.capture_front``)."""
+        rec = self._frames[0]
+        center = np.asarray(self._verts[rec["mesh"]], np.float64).mean(0)
+        return torch.from_numpy(capture_front(self._cameras[str(rec["camera"])][1], center, self.up.double())).float()
+
+    @property
+    def dropped_frames(self) -> list[str]:
+        """Names of the frames left out by ``drop_bad_frames`` (their cameras do not see the subject)."""
+        return list((self.manifest.get("meta") or {}).get("dropped_frames", []))
+
+    @property
     def num_vertices(self) -> int:
         return int(self.canonical_vertices.shape[0])
 
@@ -358,7 +381,11 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
 
 
 def open_dataset(
-    path: Path | str, check_masks: bool = True, cache_size: int = 8, allow_outside: bool | None = None
+    path: Path | str,
+    check_masks: bool = True,
+    cache_size: int = 8,
+    allow_outside: bool | None = None,
+    drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
@@ -367,7 +394,8 @@ def open_dataset(
     a non-degenerate integer-faced canonical mesh, split indices and (when ``check_masks``) that no
     mask is empty. Paths must stay inside the folder unless ``allow_outside`` (default: the
     ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1`` environment variable). All problems are reported in one
-    MeshsplatError.
+    MeshsplatError. The cameras are checked against the meshes and masks (``build_dataset``;
+    ``drop_bad_frames`` leaves out the few frames that fail).
     """
     if allow_outside is None:
         allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1"
@@ -439,6 +467,7 @@ def open_dataset(
         cache_size=cache_size,
         driver_params=driver_params,
         allow_outside=allow_outside,
+        drop_bad_frames=drop_bad_frames,
     )
 
 
@@ -469,6 +498,7 @@ def build_dataset(
     driver_params: dict | None = None,
     format_name: str = "native",
     allow_outside: bool = True,
+    drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
 
@@ -478,6 +508,11 @@ def build_dataset(
     None when they failed to load, with the reason already in ``problems``). Readers of other layouts
     resolve their own paths (``allow_outside`` True); the native manifest keeps paths inside its folder.
     All problems end in one MeshsplatError.
+
+    Then the cameras are checked at the door (``data.camera_check``; the masks only with ``check_masks``): a camera that does not see the
+    subject on nearly all its frames is refused in one line naming the likely convention mix-up; a few
+    failing frames are refused in one line listing them, or left out with ``drop_bad_frames`` (their
+    names in ``meta["dropped_frames"]``, splits renumbered).
     """
     problems = problems or Problems(root)
     frames = manifest["frames"]
@@ -566,7 +601,7 @@ def build_dataset(
     problems.raise_if_any()
     assert canonical is not None and faces is not None and verts is not None, "a None array comes with a problem"
     manifest["splits"] = splits
-    return AvatarDataset(
+    ds = AvatarDataset(
         root,
         manifest,
         canonical,
@@ -576,6 +611,64 @@ def build_dataset(
         cache_size=cache_size,
         driver_params=driver_params,
         format_name=format_name,
+    )
+    return _check_at_the_door(ds, drop_bad_frames, check_masks)
+
+
+def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: bool) -> AvatarDataset:
+    """Cameras against meshes (and, ``with_masks``, masks; ``camera_check``): refuse wrong cameras, refuse
+    or drop bad frames."""
+    frames = ds._frames
+
+    def load_mask(i: int) -> np.ndarray | None:
+        m = ds._load_mask(frames[i]) if with_masks else None
+        return None if m is None else m.numpy()
+
+    found = check_cameras(ds._cameras, [(str(r["camera"]), int(r["mesh"])) for r in frames], ds._verts, load_mask)
+    if found.wrong:
+        raise MeshsplatError(
+            f"{ds.root}: wrong camera{'s' if len(found.wrong) > 1 else ''}: " + "; ".join(found.wrong.values())
+        )
+    if not found.bad_frames:
+        return ds
+    bad = sorted(found.bad_frames)
+    reasons: dict[str, list[int]] = {}
+    for i in bad:
+        reasons.setdefault(found.bad_frames[i], []).append(i)
+    listed = "; ".join(f"{why}: frames {group_ids(ids)}" for why, ids in reasons.items())
+    if not drop_bad_frames:
+        raise MeshsplatError(
+            f"{ds.root}: {len(bad)} of {len(frames)} frames do not show the subject where their camera "
+            f"puts the mesh ({listed}); fix them, or leave them out with {DROP_FLAG}"
+        )
+    if len(bad) == len(frames):
+        raise MeshsplatError(f"{ds.root}: every frame fails the camera check ({listed}); nothing left to use")
+    warnings.warn(f"{ds.root}: left out {len(bad)} of {len(frames)} frames ({listed})", stacklevel=3)
+    drop = set(bad)
+    new_index: dict[int, int] = {}
+    kept: list[dict] = []
+    for i, rec in enumerate(frames):
+        if i not in drop:
+            new_index[i] = len(kept)
+            kept.append(rec)
+    manifest = dict(ds.manifest)
+    manifest["frames"] = kept
+    manifest["splits"] = {k: [new_index[i] for i in v if i in new_index] for k, v in ds._splits.items()}
+    manifest["meta"] = {
+        **(manifest.get("meta") or {}),
+        "dropped_frames": [str(frames[i]["name"]) for i in bad],
+        "dropped_reason": listed,
+    }
+    return AvatarDataset(
+        ds.root,
+        manifest,
+        ds.canonical_vertices.numpy(),
+        ds.faces.numpy(),
+        ds._verts,
+        ds._cameras,
+        cache_size=ds._cache_size,
+        driver_params=ds.driver_params,
+        format_name=ds.format_name,
     )
 
 

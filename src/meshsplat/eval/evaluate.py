@@ -186,16 +186,18 @@ def evaluate_run(
     samples_per_split: int = 3,
     backend: str = "auto",
     progress: bool = False,
+    drop_bad_frames: bool | None = None,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
+    ``drop_bad_frames`` (default: as the run was trained) leaves out the frames failing the camera check.
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
     run = load_run(run_dir, device)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run.dataset_path(dataset)
-        ds = run.open_dataset(dataset)
+        ds = run.open_dataset(dataset, drop_bad_frames=drop_bad_frames)
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(

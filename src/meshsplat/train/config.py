@@ -164,6 +164,7 @@ class TrainConfig:
     data: str = ""
     data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
     model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
+    drop_bad_frames: bool = False  # leave out the few frames failing the camera check (docs/real-captures.md)
     out: str = "runs/train"
     iterations: int = 30_000
     seed: int = 0

@@ -28,7 +28,7 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
-from meshsplat.camera import Camera, intrinsics, look_at, orbit_cameras, orbit_position
+from meshsplat.camera import Camera, intrinsics, look_at, orbit_basis, orbit_cameras, orbit_position
 from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
@@ -84,8 +84,11 @@ def default_camera(
     azimuth_deg: float = 0.0,
     elevation_deg: float = 10.0,
     fov_deg: float = 30.0,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    front: ArrayLike = (0.0, 0.0, 1.0),
 ) -> dict[str, Any]:
-    """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.camera.orbit_cameras``)."""
+    """Orbit camera framing all ``frames [T,V,3]`` (as ``meshsplat.camera.orbit_cameras``), turning about
+    ``up`` from ``front`` (a capture's: ``dataset.up``, ``dataset.front``)."""
     lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
     cam = orbit_cameras(
         [torch.from_numpy(np.stack([lo, hi]))],
@@ -94,18 +97,33 @@ def default_camera(
         azimuth_deg=azimuth_deg,
         elevation_deg=elevation_deg,
         fov_deg=fov_deg,
+        up=up,
+        front=front,
     )[0]
     center = (lo + hi) / 2
     eye = -cam.viewmat[:3, :3].double().T @ cam.viewmat[:3, 3].double()
     return _camera_dict(
-        center, float(np.linalg.norm(eye.numpy() - center)), azimuth_deg, elevation_deg, fov_deg, width, height
+        center,
+        float(np.linalg.norm(eye.numpy() - center)),
+        azimuth_deg,
+        elevation_deg,
+        fov_deg,
+        width,
+        height,
+        up,
+        front,
     )
 
 
-def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, height) -> dict[str, Any]:
+def _camera_dict(
+    center, distance, azimuth_deg, elevation_deg, fov_deg, width, height, up=(0.0, 1.0, 0.0), front=(0.0, 0.0, 1.0)
+) -> dict[str, Any]:
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
-    vm = look_at(orbit_position(center, distance, az, el), center)
+    _, u, f = orbit_basis(up, front)
+    vm = look_at(orbit_position(center, distance, az, el, u, f), center, u)
     return {
+        "up": [float(x) for x in u],
+        "front": [float(x) for x in f],
         "center": [float(x) for x in center],
         "distance": float(distance),
         "azimuth_deg": float(azimuth_deg),
@@ -118,12 +136,16 @@ def _camera_dict(center, distance, azimuth_deg, elevation_deg, fov_deg, width, h
     }
 
 
+def _vec(x) -> np.ndarray:
+    return np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, np.float64).reshape(3)
+
+
 def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
     """Orbit description of ``camera``: None (auto), a dict of overrides, or a ``camera.Camera``."""
     if camera is None:
         return default_camera(frames)
     if isinstance(camera, dict):
-        allowed = {"width", "height", "azimuth_deg", "elevation_deg", "fov_deg", "distance", "center"}
+        allowed = {"width", "height", "azimuth_deg", "elevation_deg", "fov_deg", "distance", "center", "up", "front"}
         unknown = set(camera) - allowed
         if unknown:
             raise MeshsplatError(f"camera: unknown key(s) {sorted(unknown)} (allowed: {sorted(allowed)})")
@@ -134,6 +156,8 @@ def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
             camera.get("azimuth_deg", 0.0),
             camera.get("elevation_deg", 10.0),
             camera.get("fov_deg", 30.0),
+            _vec(camera.get("up", (0.0, 1.0, 0.0))),
+            _vec(camera.get("front", (0.0, 0.0, 1.0))),
         )
         center = np.asarray(camera.get("center", base["center"]), np.float64)
         return _camera_dict(
@@ -144,6 +168,8 @@ def _camera_from(camera, frames: np.ndarray) -> dict[str, Any]:
             base["fov_deg"],
             base["width"],
             base["height"],
+            base["up"],
+            base["front"],
         )
     if isinstance(camera, Camera):
         # world->camera (OpenCV, no roll) -> orbit about the point of the view axis nearest the animation centre
@@ -301,7 +327,8 @@ def write_viewer_bundle(
     the page evaluates them, and ``frames`` is then None or only used to frame the camera.
 
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
-    ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center``, or an
+    ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center, up, front`` (the orbit turns
+    about ``up``, default +y, from ``front``, default +z; a capture's: ``dataset.up``, ``dataset.front``), or an
     ``camera.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
     (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
     ``frames`` (with a glTF rig unused; with a blendshape rig the rate of its sequence). Returns ``index.html``.

@@ -135,6 +135,7 @@ def read(
     flame_version: str | None = None,
     check_masks: bool = True,
     cache_size: int = 8,
+    drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Open an IMavatar folder. ``test_frames``: how many final frames are test frames (default: 350, or
     the last 20% of captures with <= 350 frames); ``mask``: auto | alpha | folder | none;
@@ -258,6 +259,7 @@ def read(
         problems,
         check_masks=check_masks,
         cache_size=cache_size,
+        drop_bad_frames=drop_bad_frames,
         driver_params=params,
         format_name=NAME,
     )

@@ -92,6 +92,7 @@ def read(
     test_frames: int | None = None,
     check_masks: bool = True,
     cache_size: int = 8,
+    drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Open an INSTA folder. ``camera_convention``: auto (OpenGL when the frames carry VHAP's
     ``timestep_index``, else INSTA's OpenCV) | opencv | opengl; ``mask``: auto (per-frame ``mask_path`` /
@@ -193,6 +194,7 @@ def read(
         problems,
         check_masks=check_masks,
         cache_size=cache_size,
+        drop_bad_frames=drop_bad_frames,
         format_name=NAME,
     )
 

@@ -120,7 +120,12 @@ def _gltf_meshes(path: Path, frames: list[dict], problems: Problems):
 
 
 def read(
-    root: Path | str, model_dir: Path | str | None = None, check_masks: bool = True, cache_size: int = 8, **options: Any
+    root: Path | str,
+    model_dir: Path | str | None = None,
+    check_masks: bool = True,
+    cache_size: int = 8,
+    drop_bad_frames: bool = False,
+    **options: Any,
 ) -> AvatarDataset:
     """Open the folder (see the module docstring); every problem in one error naming the layout."""
     root = Path(root)
@@ -180,6 +185,7 @@ def read(
         problems,
         check_masks=check_masks,
         cache_size=cache_size,
+        drop_bad_frames=drop_bad_frames,
         format_name=NAME,
     )
 

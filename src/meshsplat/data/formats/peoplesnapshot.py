@@ -54,6 +54,7 @@ def read(
     gender: str | None = None,
     check_masks: bool = True,
     cache_size: int = 8,
+    drop_bad_frames: bool = False,
     device: str | torch.device = "cpu",
 ) -> AvatarDataset:
     """Open a PeopleSnapshot folder lazily (images decode on access); every problem in one error.
@@ -172,6 +173,7 @@ def read(
         problems,
         check_masks=check_masks,
         cache_size=cache_size,
+        drop_bad_frames=drop_bad_frames,
         driver_params=params,
         format_name=NAME,
     )

@@ -128,6 +128,7 @@ def read(
     ignore_dynamic_offset: bool = False,
     check_masks: bool = True,
     cache_size: int = 8,
+    drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Open a GaussianAvatars/VHAP folder. ``flame_version``: default the transforms' ``flame_version`` key,
     else "2023" (VHAP's default); ``mask``: auto (``fg_mask_path``, else RGBA alpha, else ``fg_masks/``) |
@@ -233,6 +234,7 @@ def read(
         problems,
         check_masks=check_masks,
         cache_size=cache_size,
+        drop_bad_frames=drop_bad_frames,
         driver_params=params,
         format_name=NAME,
     )

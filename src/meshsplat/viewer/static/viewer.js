@@ -430,15 +430,19 @@ export function poseGaussians(b, t, verts, out) {
 }
 
 // ------------------------------------------------------------------ cameras (as meshsplat.synth.rigs)
-/** World->camera [16] row-major (OpenCV axes, +y up) of a camera orbiting `center` (angles in degrees). */
-export function orbitViewmat(center, distance, azimuthDeg, elevationDeg) {
+/**
+ * World->camera [16] row-major (OpenCV axes) of a camera orbiting `center` (angles in degrees) about
+ * `up` (default +y), azimuth 0 at `front` (default +z; both orthonormal, as the bundle's camera stores them).
+ */
+export function orbitViewmat(center, distance, azimuthDeg, elevationDeg, up = [0, 1, 0], front = [0, 0, 1]) {
   const az = azimuthDeg * Math.PI / 180, el = elevationDeg * Math.PI / 180;
-  const eye = [center[0] + distance * Math.cos(el) * Math.sin(az), center[1] + distance * Math.sin(el),
-               center[2] + distance * Math.cos(el) * Math.cos(az)];
   const norm = (a) => { const l = Math.hypot(a[0], a[1], a[2]); return [a[0] / l, a[1] / l, a[2] / l]; };
   const cross = (a, c) => [a[1] * c[2] - a[2] * c[1], a[2] * c[0] - a[0] * c[2], a[0] * c[1] - a[1] * c[0]];
+  const side = cross(up, front);
+  const a = Math.cos(el) * Math.sin(az), b = Math.sin(el), c = Math.cos(el) * Math.cos(az);
+  const eye = [0, 1, 2].map((k) => center[k] + distance * (a * side[k] + b * up[k] + c * front[k]));
   const fwd = norm([center[0] - eye[0], center[1] - eye[1], center[2] - eye[2]]);
-  let right = cross(fwd, [0, 1, 0]);
+  let right = cross(fwd, up);
   if (Math.hypot(right[0], right[1], right[2]) < 1e-8) right = cross(fwd, [0, 0, 1]);
   right = norm(right);
   const down = cross(fwd, right);
@@ -1286,7 +1290,7 @@ export function startViewer(doc) {
     const dpr = window.devicePixelRatio || 1;
     const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-    const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el);
+    const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
     const K = intrinsics(w, h, cam0.fov_deg);
     const poseKey = live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
                          : String(state.frame);
