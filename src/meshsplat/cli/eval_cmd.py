@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_output_dir, check_range
-from meshsplat.cli._options import add_render_options, add_run_argument, render_options
+from meshsplat.cli._options import add_downscale_option, add_render_options, add_run_argument, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.eval import evaluate_run
 from meshsplat.run_folder import RunFolder
@@ -27,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (default: all but train)")
     parser.add_argument("--out", default=None, help="output folder (default RUN/eval)")
     parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
+    add_downscale_option(parser, "the run's (data_downscale in RUN/config.json)")
     add_render_options(parser)
     add_threads_argument(parser)
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
@@ -52,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         report=not args.no_report,
         backend=opts.backend,
         progress=opts.progress,
+        downscale=args.downscale,
     )
     print(
         f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "

@@ -186,16 +186,19 @@ def evaluate_run(
     samples_per_split: int = 3,
     backend: str = "auto",
     progress: bool = False,
+    downscale: float | None = None,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
+    ``downscale``: read a dataset path at ``1 / downscale`` of its size (default: the run's
+    ``data_downscale``, the size it was trained at).
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
     run = load_run(run_dir, device)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run.dataset_path(dataset)
-        ds = run.open_dataset(dataset)
+        ds = run.open_dataset(dataset, downscale=downscale)
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(
@@ -216,6 +219,7 @@ def evaluate_run(
         "checkpoint": str(run.checkpoint),
         "iteration": run.iteration,
         "dataset": str(ds_path),
+        "downscale": ds.downscale,
         **results,
     }
     if ds.meta.get("attribution"):

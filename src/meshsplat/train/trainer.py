@@ -121,7 +121,10 @@ class Trainer:
         self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)
         self.dataset = open_capture(
-            self.cfg.data, format=self.cfg.data_format or None, model_dir=self.cfg.model_dir or None
+            self.cfg.data,
+            format=self.cfg.data_format or None,
+            model_dir=self.cfg.model_dir or None,
+            downscale=self.cfg.data_downscale,
         )
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
