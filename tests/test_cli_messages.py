@@ -1,5 +1,5 @@
 """What the commands say: meshsplat's warnings as one plain `note:` line once per command (no file:line,
-no 'UserWarning')."""
+no 'UserWarning'), and the training progress PSNR labelled for what it is (not eval's metric)."""
 
 from __future__ import annotations
 
@@ -75,3 +75,21 @@ def test_a_real_process_prints_the_note_as_one_line(tmp_path, standin_model_dir)
     assert res.returncode == 0, res.stderr
     assert _note_lines(res.stderr) == [f"note: {root}: {NOTE}; using poses.npz"], res.stderr
     assert "UserWarning" not in res.stderr and "peoplesnapshot.py" not in res.stderr
+
+
+def test_progress_and_done_line_say_what_their_psnr_is(tmp_path, capsys):
+    from test_downscale import _capture
+
+    root = _capture(tmp_path / "cap")
+    run = tmp_path / "run"
+    args = ["train", str(root), "--out", str(run), "--iters", "3", "--device", "cpu"]
+    assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
+    cap = capsys.readouterr()
+    label = "train PSNR (random bg, mean of last 10 iters)"
+    assert label in cap.err  # the progress bar
+    done = next(line for line in cap.out.splitlines() if line.startswith("done:"))
+    assert label in done and done.endswith(" dB")
+    assert f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run}" in cap.out
+    white = ["train", str(root), "--out", str(tmp_path / "w"), "--iters", "2", "--device", "cpu", "--no-progress"]
+    assert main([*white, "--set", "model.n_init=100", "loss.lambda_lpips=0", "background=white"]) == 0
+    assert "train PSNR (white bg, mean of last 10 iters)" in capsys.readouterr().out

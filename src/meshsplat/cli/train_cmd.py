@@ -175,9 +175,9 @@ def run(args: argparse.Namespace) -> int:
         cam = trainer.dataset.frame_camera(trainer.train_ids[0])
         print(f"downscale {cfg.data_downscale:g}: training images {cam.width}x{cam.height}, K scaled to match")
     run_dir = trainer.train()
-    last = trainer.history[-1] if trainer.history else {}
-    summary = f"done: {run_dir} (iteration {trainer.iteration}, {trainer.num_gaussians} Gaussians"
-    if last:
-        summary += f", last PSNR {last['psnr']:.2f} dB"
-    print(summary + ")")
+    summary = f"done: {run_dir} (iteration {trainer.iteration}, {trainer.num_gaussians} Gaussians)"
+    if trainer.recent:
+        summary += f"; {trainer.train_psnr_label} {trainer.recent_train_psnr:.2f} dB"
+    print(summary)
+    print(f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run_dir}")
     return 0
