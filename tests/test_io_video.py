@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io import write_png_frames, write_video
 from meshsplat.io.video import to_uint8
 
@@ -62,7 +62,7 @@ def test_mp4_written_with_odd_size(tmp_path):
 
 def test_mp4_failure_falls_back_to_png(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails as if not installed
-    with pytest.warns(RuntimeWarning, match="imageio-ffmpeg"):
+    with pytest.warns(MeshsplatWarning, match="imageio-ffmpeg"):
         res = write_video(_frames(), tmp_path / "out.mp4")
     assert res.mp4 is None and "imageio-ffmpeg" in res.error
     assert len(res.pngs) == 4 and res.pngs[0].parent == tmp_path / "out_frames"

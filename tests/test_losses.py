@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import meshsplat.train.losses as losses
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.metrics.lpips_net import lpips_available
 from meshsplat.train.losses import (
     avatar_loss,
@@ -87,7 +87,7 @@ def test_gradcheck_d_ssim_and_scale_regularizer():
 
 def test_perceptual_fallback_when_no_weights(monkeypatch):
     monkeypatch.setattr(losses, "lpips_available", lambda net="alex": False)
-    with pytest.warns(RuntimeWarning, match="D-SSIM"):
+    with pytest.warns(MeshsplatWarning, match="D-SSIM"):
         loss = make_perceptual_loss("alex")
     assert loss.kind == "l1+dssim"
     a = torch.rand(16, 16, 3)

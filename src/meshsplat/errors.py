@@ -1,14 +1,20 @@
-"""User-facing error type: the CLI prints its message without a traceback."""
+"""User-facing error and warning types: the CLI prints their messages without a traceback."""
 
 from __future__ import annotations
 
 import errno
 
-__all__ = ["MeshsplatError", "os_error_text"]
+__all__ = ["MeshsplatError", "MeshsplatWarning", "os_error_text"]
 
 
 class MeshsplatError(ValueError):
     """Bad input or state that the user can fix; the message names the problem."""
+
+
+class MeshsplatWarning(UserWarning):
+    """Something the user should know that does not stop the work (a fallback taken, a choice made for
+    them). Every ``warnings.warn`` of meshsplat uses it; the command line prints each distinct one once
+    per command as one ``note:`` line, without the file and line it came from."""
 
 
 _OS_HINTS = {

@@ -200,17 +200,31 @@ class LoadedRun:
         model_dir: str | Path | None = None,
         check_masks: bool = True,
         drop_bad_frames: bool | None = None,
+        downscale: float | None = None,
     ) -> AvatarDataset:
         """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
 
         ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``;
         ``drop_bad_frames`` to the run's (frames failing the camera check left out, as in training).
+        ``downscale`` defaults to the run's ``data_downscale`` (also for another ``dataset``: the size the
+        avatar was trained at); pass 1 to read a capture as recorded.
         """
         path = self.dataset_path(dataset)
         fmt = self.config.get("data_format") or None if dataset is None else None
         mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
         drop = bool(self.config.get("drop_bad_frames", False)) if drop_bad_frames is None else drop_bad_frames
-        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop)
+        factor = self.training_downscale if downscale is None else downscale
+        return open_capture(
+            path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop, downscale=factor
+        )
+
+    @property
+    def training_downscale(self) -> float:
+        """The run's ``data_downscale`` (1 for runs written before the key existed)."""
+        value = self.config.get("data_downscale", 1)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise MeshsplatError(f"{self.folder.config_path}: data_downscale must be a number, got {value!r}")
+        return float(value)
 
     def source_map(self, dataset: str | Path | None = None) -> SourceMap | None:
         """The run's source map (``RUN/source_map.npz``), else its dataset folder's, else None."""

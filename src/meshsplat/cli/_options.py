@@ -22,6 +22,7 @@ __all__ = [
     "add_drop_bad_frames_option",
     "capture_up_front",
     "add_render_options",
+    "add_downscale_option",
     "render_options",
     "RenderOptions",
     "parse_size",
@@ -95,6 +96,18 @@ def add_render_options(
         )
     if progress:
         parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_downscale_option(parser: argparse.ArgumentParser, default_text: str) -> None:
+    """``--downscale N``: read the capture at 1/N of its recorded size (default None: ``default_text``)."""
+    parser.add_argument(
+        "--downscale",
+        type=float,
+        default=None,
+        metavar="N",
+        help="read the images at 1/N of their size, K scaled to match (2: 1080x1080 -> 540x540; "
+        f"sizes round(W/N)); default {default_text}",
+    )
 
 
 @dataclass(frozen=True)

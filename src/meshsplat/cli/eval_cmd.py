@@ -14,7 +14,13 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_output_dir, check_range
-from meshsplat.cli._options import add_drop_bad_frames_option, add_render_options, add_run_argument, render_options
+from meshsplat.cli._options import (
+    add_downscale_option,
+    add_drop_bad_frames_option,
+    add_render_options,
+    add_run_argument,
+    render_options,
+)
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.eval import evaluate_run
 from meshsplat.run_folder import RunFolder
@@ -27,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (default: all but train)")
     parser.add_argument("--out", default=None, help="output folder (default RUN/eval)")
     parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames per split")
+    add_downscale_option(parser, "the run's (data_downscale in RUN/config.json)")
     add_render_options(parser)
     add_drop_bad_frames_option(parser)
     add_threads_argument(parser)
@@ -54,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
         backend=opts.backend,
         progress=opts.progress,
         drop_bad_frames=True if args.drop_bad_frames else None,
+        downscale=args.downscale,
     )
     print(
         f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "

@@ -2,7 +2,9 @@
 
 Each subcommand module defines ``add_arguments(parser)`` and ``run(args) -> int``
 and a one-line docstring used as its help. User errors (MeshsplatError,
-missing files) print one clear line and exit 2, never a traceback.
+missing files) print one clear line and exit 2, never a traceback. meshsplat's own warnings
+(``MeshsplatWarning``) print as one ``note:`` line each, once per command, without the file and line
+they were raised at; other packages' warnings print as Python prints them.
 """
 
 from __future__ import annotations
@@ -11,8 +13,12 @@ import argparse
 import importlib
 import signal
 import sys
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TextIO
 
-from meshsplat.errors import MeshsplatError, os_error_text
+from meshsplat.errors import MeshsplatError, MeshsplatWarning, os_error_text
 
 # name -> module under meshsplat.cli (imported only when that command runs, or for --help)
 COMMANDS = {
@@ -67,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 1
     try:
-        return int(_load(args.command).run(args) or 0)
+        with _notes():
+            return int(_load(args.command).run(args) or 0)
     except (MeshsplatError, OSError, MemoryError) as exc:
         if args.debug:
             raise
@@ -76,6 +83,35 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         print(f"meshsplat {args.command}: interrupted" + (f": {exc}" if str(exc) else ""), file=sys.stderr)
         return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
+@contextmanager
+def _notes() -> Iterator[None]:
+    """While a command runs: each distinct ``MeshsplatWarning`` prints once to stderr as ``note: TEXT``
+    (whitespace folded to one line, no file:line); other warnings go to Python's usual display."""
+    seen: set[str] = set()
+    with warnings.catch_warnings():
+        shown = warnings.showwarning  # the display in force (Python's, or a test harness's)
+
+        def show(
+            message: Warning | str,
+            category: type[Warning],
+            filename: str,
+            lineno: int,
+            file: TextIO | None = None,
+            line: str | None = None,
+        ) -> None:
+            if not issubclass(category, MeshsplatWarning):
+                shown(message, category, filename, lineno, file, line)
+                return
+            text = " ".join(str(message).split())
+            if text not in seen:
+                seen.add(text)
+                print(f"note: {text}", file=sys.stderr, flush=True)
+
+        warnings.showwarning = show
+        warnings.simplefilter("always", MeshsplatWarning)  # the set above keeps each one once
+        yield
 
 
 def _one_line(exc: BaseException) -> str:

@@ -18,7 +18,7 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
-from meshsplat.cli._options import add_drop_bad_frames_option, add_render_options, render_options
+from meshsplat.cli._options import add_downscale_option, add_drop_bad_frames_option, add_render_options, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.data.formats import detect_format, format_module, open_capture
 from meshsplat.data.source_map import copy_source_map
@@ -55,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="optimise the tracker's per-frame pose/expression parameters of the training frames",
     )
     parser.add_argument("--out", required=True, help="run directory")
+    add_downscale_option(parser, "1, or data_downscale of --config (stored in RUN/config.json; eval reads it)")
     parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     parser.add_argument(
@@ -133,6 +134,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         cfg.pose_refine.enabled = True
     if args.drop_bad_frames:
         cfg.drop_bad_frames = True
+    if args.downscale is not None:
+        cfg.data_downscale = args.downscale
     cfg.out = str(out)
     if args.iters is not None:
         cfg.iterations = args.iters
@@ -175,10 +178,13 @@ def run(args: argparse.Namespace) -> int:
     if trainer.iteration >= cfg.iterations:
         print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
         return 0
+    if cfg.data_downscale != 1:
+        cam = trainer.dataset.frame_camera(trainer.train_ids[0])
+        print(f"downscale {cfg.data_downscale:g}: training images {cam.width}x{cam.height}, K scaled to match")
     run_dir = trainer.train()
-    last = trainer.history[-1] if trainer.history else {}
-    summary = f"done: {run_dir} (iteration {trainer.iteration}, {trainer.num_gaussians} Gaussians"
-    if last:
-        summary += f", last PSNR {last['psnr']:.2f} dB"
-    print(summary + ")")
+    summary = f"done: {run_dir} (iteration {trainer.iteration}, {trainer.num_gaussians} Gaussians)"
+    if trainer.recent:
+        summary += f"; {trainer.train_psnr_label} {trainer.recent_train_psnr:.2f} dB"
+    print(summary)
+    print(f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run_dir}")
     return 0

@@ -31,7 +31,8 @@ def write_native(
     progress: Callable[[int, int], object] | None = None,
 ) -> Path:
     """Write ``dataset`` as a native dataset at ``out``: PNG images, PNG masks (npy / alpha masks are
-    converted), the same cameras, meshes (row for row), frames, splits and driver parameters.
+    converted), the same cameras, meshes (row for row), frames, splits and driver parameters. A
+    dataset opened with ``downscale`` is written at that size (meta ``downscale`` records the factor).
 
     ``progress``: optional callable ``(done, total)``. Returns the folder.
     """
@@ -41,6 +42,8 @@ def write_native(
     if out.resolve() == Path(dataset.root).resolve():
         raise MeshsplatError(f"{out}: is the capture folder itself; choose another output folder")
     meta = {**dataset.meta, "imported_from": str(dataset.root), "source_format": dataset.format_name}
+    if dataset.downscale != 1:
+        meta["downscale"] = dataset.downscale  # images, masks and K at 1/downscale of the capture's
     w = DatasetWriter(out, dataset.canonical_vertices, dataset.faces, overwrite=True, meta=meta)
     for cid in dataset.camera_ids:
         cam = dataset.camera(cid)

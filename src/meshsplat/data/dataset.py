@@ -16,6 +16,7 @@ import torch
 
 from meshsplat.camera import Camera, capture_front, capture_up
 from meshsplat.data.camera_check import check_cameras, group_ids
+from meshsplat.data.downscale import check_downscale, downscale_frame, downscaled_size, scale_intrinsics
 from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
@@ -174,6 +175,16 @@ class AvatarDataset:
         self._splits = {k: [int(i) for i in v] for k, v in manifest.get("splits", {}).items()}
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
+        self.downscale = 1.0  # set_downscale: cameras and frames at 1/downscale of the recorded size
+
+    def set_downscale(self, factor: float) -> AvatarDataset:
+        """Hand out cameras and frames at ``1 / factor`` of the recorded size (``meshsplat.data.downscale``:
+        size ``round(W / factor)``, K scaled per axis, area-averaged images and soft masks); 1 = as
+        recorded. A factor below 1 or above any camera's smaller side is one MeshsplatError. Returns self."""
+        sizes = {cid: (w, h) for cid, (_, _, w, h) in self._cameras.items()}
+        self.downscale = check_downscale(factor, sizes)
+        self._cache.clear()
+        return self
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -258,6 +269,9 @@ class AvatarDataset:
             shown = ", ".join(ids[:20]) + (" ..." if len(ids) > 20 else "")
             raise MeshsplatError(f"camera: {camera_id!r} is not a camera of {self.root} (cameras: {shown})")
         K, vm, w, h = self._cameras[str(camera_id)]
+        if self.downscale != 1:
+            w2, h2 = downscaled_size(w, h, self.downscale)
+            K, w, h = scale_intrinsics(K, w, h, w2, h2), w2, h2
         return Camera(torch.from_numpy(vm.astype(np.float32)), torch.from_numpy(K.astype(np.float32)), w, h)
 
     def frame_camera(self, i: int) -> Camera:
@@ -288,10 +302,13 @@ class AvatarDataset:
         arr = read_image(self.root / rec["image"], 3)
         img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = self._load_mask(rec)
+        camera = self.camera(rec["camera"])
+        if self.downscale != 1:
+            img, mask = downscale_frame(img, mask, camera.width, camera.height)
         fr = Frame(
             img,
             mask,
-            self.camera(rec["camera"]),
+            camera,
             self.vertices(i),
             i,
             rec["name"],
@@ -386,6 +403,7 @@ def open_dataset(
     cache_size: int = 8,
     allow_outside: bool | None = None,
     drop_bad_frames: bool = False,
+    downscale: float = 1,
 ) -> AvatarDataset:
     """Open and validate a dataset folder (or its ``manifest.json``).
 
@@ -395,7 +413,8 @@ def open_dataset(
     mask is empty. Paths must stay inside the folder unless ``allow_outside`` (default: the
     ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1`` environment variable). All problems are reported in one
     MeshsplatError. The cameras are checked against the meshes and masks (``build_dataset``;
-    ``drop_bad_frames`` leaves out the few frames that fail).
+    ``drop_bad_frames`` leaves out the few frames that fail). ``downscale``: read at ``1 / downscale`` of the recorded size
+    (:meth:`AvatarDataset.set_downscale`).
     """
     if allow_outside is None:
         allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1"
@@ -468,7 +487,7 @@ def open_dataset(
         driver_params=driver_params,
         allow_outside=allow_outside,
         drop_bad_frames=drop_bad_frames,
-    )
+    ).set_downscale(downscale)
 
 
 def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: bool) -> dict[str, np.ndarray] | None:

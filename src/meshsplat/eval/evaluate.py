@@ -187,17 +187,20 @@ def evaluate_run(
     backend: str = "auto",
     progress: bool = False,
     drop_bad_frames: bool | None = None,
+    downscale: float | None = None,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
     ``drop_bad_frames`` (default: as the run was trained) leaves out the frames failing the camera check.
+    ``downscale``: read a dataset path at ``1 / downscale`` of its size (default: the run's
+    ``data_downscale``, the size it was trained at).
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
     run = load_run(run_dir, device)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run.dataset_path(dataset)
-        ds = run.open_dataset(dataset, drop_bad_frames=drop_bad_frames)
+        ds = run.open_dataset(dataset, drop_bad_frames=drop_bad_frames, downscale=downscale)
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(
@@ -218,6 +221,7 @@ def evaluate_run(
         "checkpoint": str(run.checkpoint),
         "iteration": run.iteration,
         "dataset": str(ds_path),
+        "downscale": ds.downscale,
         **results,
     }
     if ds.meta.get("attribution"):

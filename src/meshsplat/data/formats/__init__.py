@@ -44,10 +44,19 @@ def detect_format(root: Path | str) -> str:
 
 
 def open_capture(
-    root: Path | str, format: str | None = None, model_dir: Path | str | None = None, **options: Any
+    root: Path | str,
+    format: str | None = None,
+    model_dir: Path | str | None = None,
+    downscale: float = 1,
+    **options: Any,
 ) -> AvatarDataset:
-    """Open a capture folder of any supported layout as an :class:`AvatarDataset` (``format`` auto-detected)."""
+    """Open a capture folder of any supported layout as an :class:`AvatarDataset` (``format`` auto-detected).
+
+    ``downscale``: cameras and frames at ``1 / downscale`` of the recorded size, the same rule for every
+    layout (``meshsplat.data.downscale``: ``round(W / N)``, K scaled per axis, area-averaged images)."""
     name = format or detect_format(root)
     if name == "native":
-        return open_dataset(root, **options)
-    return format_module(name).read(Path(root), model_dir=model_dir, **options)
+        ds = open_dataset(root, **options)
+    else:
+        ds = format_module(name).read(Path(root), model_dir=model_dir, **options)
+    return ds.set_downscale(downscale)

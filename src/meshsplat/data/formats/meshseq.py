@@ -196,6 +196,8 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     import shutil
 
     out = Path(out)
+    if dataset.downscale != 1:  # the files are copied as recorded
+        raise MeshsplatError(f"{NAME}: cannot copy a downscaled dataset; write it with meshsplat import --downscale")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
     (out / "images").mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ import torch
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_NAMES", "DEFAULT_TEST_FRACTION"]
 
@@ -82,6 +82,7 @@ def read(
     if not has_config and any((root / "poses").glob("anim_nerf_*.npz")):
         warnings.warn(
             f"{root}: no config.json, so the split-relative poses/anim_nerf_*.npz cannot be placed; using poses.npz",
+            MeshsplatWarning,
             stacklevel=2,
         )
     needs_poses = any(s not in refined for s in splits_in_use) or not refined
@@ -365,6 +366,7 @@ def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | 
             warnings.warn(
                 "PeopleSnapshot: betas differ between pose files; using the first one "
                 "(train refinement, else poses.npz)",
+                MeshsplatWarning,
                 stacklevel=3,
             )
             break
