@@ -27,7 +27,7 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import open_capture
+from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
 from meshsplat.data.source_map import SourceMap, read_source_map
 from meshsplat.errors import MeshsplatError
@@ -204,7 +204,8 @@ class LoadedRun:
         path = self.dataset_path(dataset)
         fmt = self.config.get("data_format") or None if dataset is None else None
         mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
-        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks)
+        opts = reader_options(self.config.get("data_gender"), self.config.get("data_shape"))  # as trained
+        return open_capture(path, format=fmt, model_dir=mdir, check_masks=check_masks, **opts)
 
     def source_map(self, dataset: str | Path | None = None) -> SourceMap | None:
         """The run's source map (``RUN/source_map.npz``), else its dataset folder's, else None."""

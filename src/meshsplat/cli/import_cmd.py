@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import argparse
 
+from meshsplat.cli._options import add_reader_arguments
 from meshsplat.data.convert import write_native
-from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture
+from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture, reader_options
 
 __all__ = ["add_arguments", "run"]
 
@@ -23,13 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="folder with the smpl/, smplx/, flame/ model files (default $MESHSPLAT_MODEL_DIR)",
     )
+    add_reader_arguments(parser)
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
 
 
 def run(args: argparse.Namespace) -> int:
     fmt = args.format or detect_format(args.capture)
     print(f"format: {fmt}{'' if args.format else ' (detected)'}")
-    ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir)
+    ds = open_capture(args.capture, format=fmt, model_dir=args.model_dir, **reader_options(args.gender, args.shape))
+    if ds.meta.get("split_rule"):
+        print(f"splits from {ds.meta['split_rule']}")
     print(
         f"{len(ds)} frames, {len(ds.camera_ids)} camera(s), splits: "
         + ", ".join(f"{s} {len(ds.split(s))}" for s in ds.split_names)

@@ -18,9 +18,9 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
-from meshsplat.cli._options import add_render_options, render_options
+from meshsplat.cli._options import add_reader_arguments, add_render_options, render_options
 from meshsplat.cli.threads import add_threads_argument, apply_threads
-from meshsplat.data.formats import detect_format, format_module, open_capture
+from meshsplat.data.formats import detect_format, format_module, open_capture, reader_options
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder
@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)",
     )
+    add_reader_arguments(parser)
     parser.add_argument(
         "--refine-pose",
         action="store_true",
@@ -107,7 +108,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     opts = render_options(args)
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
-        return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir))
+        opts = reader_options(args.gender, args.shape)
+        return training_image_size(open_capture(args.dataset, format=args.format, model_dir=args.model_dir, **opts))
 
     preset = args.preset or DEFAULT_PRESET
     cfg = preset_config(preset)
@@ -124,6 +126,10 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         cfg.data_format = args.format
     if args.model_dir is not None:
         cfg.model_dir = str(args.model_dir)
+    if args.gender is not None:
+        cfg.data_gender = args.gender
+    if args.shape is not None:
+        cfg.data_shape = args.shape
     if args.refine_pose:
         cfg.pose_refine.enabled = True
     cfg.out = str(out)

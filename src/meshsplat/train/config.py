@@ -164,6 +164,8 @@ class TrainConfig:
     data: str = ""
     data_format: str = ""  # "" = detect; else a name from meshsplat.data.formats.FORMAT_NAMES
     model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
+    data_gender: str = ""  # reader option: body model gender; "" = the capture's (PeopleSnapshot)
+    data_shape: str = ""  # reader option: "per_split" | "train" betas for the test splits; "" = the layout's default
     out: str = "runs/train"
     iterations: int = 30_000
     seed: int = 0

@@ -37,7 +37,7 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import open_capture
+from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
@@ -121,8 +121,14 @@ class Trainer:
         self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)
         self.dataset = open_capture(
-            self.cfg.data, format=self.cfg.data_format or None, model_dir=self.cfg.model_dir or None
+            self.cfg.data,
+            format=self.cfg.data_format or None,
+            model_dir=self.cfg.model_dir or None,
+            **reader_options(self.cfg.data_gender, self.cfg.data_shape),
         )
+        rule = self.dataset.meta.get("split_rule")
+        if rule and self.cfg.progress:
+            print(f"{self.cfg.data}: splits from {rule}")
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
             raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")
