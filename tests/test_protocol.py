@@ -14,11 +14,15 @@ import pytest
 import torch
 
 from _peoplesnapshot import H, K, W, make_capture
+from meshsplat.animate import motion_animation
 from meshsplat.camera import Camera
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data.formats import open_capture
 from meshsplat.data.formats import peoplesnapshot as ps
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import Avatar
+from meshsplat.gaussians.params import init_params
+from meshsplat.mesh import TriMesh
 
 
 def _project(cam: Camera, X) -> np.ndarray:
@@ -196,3 +200,16 @@ def test_golden_pixel_centre_peoplesnapshot(tmp_path, standin_model_dir):
     cam = ps.read(root, model_dir=standin_model_dir).camera("0")
     assert np.allclose(_project(cam, X_CAM), [30.5, 25.5], atol=1e-9)
     assert K[0, 2] == 32  # the shared fixture's K is InstantAvatar's too
+
+
+def test_motion_keeps_the_train_shape_with_per_split_betas(tmp_path, standin_model_dir):
+    """An avatar of a capture whose splits carry their own betas is driven with its train shape."""
+    root, _, _ = _split_capture(tmp_path)
+    ds = ps.read(root, model_dir=standin_model_dir)
+    mesh = TriMesh(ds.canonical_vertices, ds.faces)
+    avatar = Avatar(mesh, init_params(mesh, 8))
+    motion = tmp_path / "motion.npz"
+    np.savez(motion, poses=np.zeros((2, 72), np.float32), trans=np.zeros((2, 3), np.float32))
+    frames = motion_animation(avatar, ds, motion, standin_model_dir, align="none")
+    assert len(frames) == 2
+    assert torch.allclose(frames[0], ds.canonical_vertices, atol=1e-5)  # rest pose with the train betas
