@@ -84,15 +84,18 @@ def test_camera_golden_in_imavatars_own_convention(tmp_path, model_dir):
     cam0 = ds.frame_camera(0)
     K, vm = cam0.K.double().numpy(), cam0.viewmat.double().numpy()
     assert (cam0.width, cam0.height) == (W, H)
-    np.testing.assert_allclose(K, [[24, 0, 8], [0, 24, 6], [0, 0, 1]], atol=1e-6)
+    # IMavatar casts rays through integer pixel coordinates (real_dataset.py: uv = np.mgrid[...]): its
+    # principal point (8, 6) is the centre of pixel (8, 6), (8.5, 6.5) in meshsplat's convention
+    np.testing.assert_allclose(K, [[24, 0, 8.5], [0, 24, 6.5], [0, 0, 1]], atol=1e-6)
     # hand-computed: (0.5, 0.25, 0) -> camera (0.5, 0.25, -4); u = W(i0 X/Z + i2) = 11, v = H(i1 Y/Z + i3) = 4.5
-    np.testing.assert_allclose(project(K, vm, [0.5, 0.25, 0.0]), [11.0, 4.5], atol=1e-4)
+    # in IMavatar's terms, so the centre of pixel (11, 4.5) + 0.5 in meshsplat's
+    np.testing.assert_allclose(project(K, vm, [0.5, 0.25, 0.0]), [11.5, 5.0], atol=1e-4)
     assert vm[2, 3] == pytest.approx(4.0)  # the origin is 4 units in front (+z in OpenCV)
     # a rotated world_mat: the reader's camera equals IMavatar's own projection with the signed intrinsics
     cam = ds.manifest["cameras"][ds.frame_info(1)["camera"]]
     for p in ([0.1, 0.2, 0.05], [-0.3, 0.1, 0.2], [0.0, -0.25, -0.1]):
         X = R2 @ np.asarray(p) + t2
-        expect = [W * (INTR[0] * X[0] / X[2] + INTR[2]), H * (INTR[1] * X[1] / X[2] + INTR[3])]
+        expect = [W * (INTR[0] * X[0] / X[2] + INTR[2]) + 0.5, H * (INTR[1] * X[1] / X[2] + INTR[3]) + 0.5]
         np.testing.assert_allclose(project(cam["K"], cam["viewmat"], p), expect, atol=1e-6)
     # the head (FLAME x4 near the origin) lies in the image
     uv = np.array([project(cam["K"], cam["viewmat"], v) for v in ds.vertices(1).numpy()])

@@ -355,6 +355,10 @@ def motion_animation(
         with torch.no_grad():
             template = model.rest_vertices({}).cpu() / model.scale
         subject = {"static_offset": (dataset.canonical_vertices / model.scale - template).numpy()}
+    betas = subject.get("betas")
+    if betas is not None and np.ndim(betas) == 2:  # per frame (each split its own): the avatar's is the train one
+        train = dataset.split("train") if "train" in dataset.split_names else [0]
+        subject = {**subject, "betas": betas[int(dataset.frame_info(train[0])["mesh"])]}
     params = load_motion(motion, model)
     if max_frames is not None:
         params = {

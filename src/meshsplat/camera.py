@@ -2,7 +2,16 @@
 
 Inside meshsplat a camera is a world->camera ``viewmat [4,4]`` in OpenCV axes (x right, y down,
 z forward) and a pinhole ``K [3,3]`` with pixel centres at +0.5. Captures arrive in other
-conventions; convert them here, once:
+conventions; convert them here, once.
+
+Pixel centres (``PIXEL_CENTER``): meshsplat's ``K`` maps the centre of the pixel in column ``i``, row
+``j`` to ``(i + 0.5, j + 0.5)``; the image spans ``[0, W] x [0, H]``. This is what the rasterizer
+samples (``meshsplat.render`` and gsplat evaluate pixel ``(i, j)`` at ``(i + 0.5, j + 0.5)``), what
+instant-ngp / torch-ngp cast their rays through and what an OpenGL/nvdiffrast projection built from
+``K`` as ``2 u / W - 1`` gives. OpenCV, and the tools that cast rays through integer pixel coordinates
+(InstantAvatar, IMavatar), put pixel centres at integers: their ``cx, cy`` are 0.5 smaller for the same
+camera. :func:`K_from_integer_centers` / :func:`K_to_integer_centers` convert; each capture reader
+applies the convention of the tool that produced its fits (docs/formats/).
 
 - OpenGL / Blender / NeRF / instant-ngp / VHAP ``transform_matrix``: camera->world with the camera
   looking down -z and y up -> :func:`viewmat_from_opengl_c2w`.
@@ -46,7 +55,12 @@ __all__ = [
     "rodrigues",
     "viewmat_from_rodrigues",
     "camera_center",
+    "PIXEL_CENTER",
+    "K_from_integer_centers",
+    "K_to_integer_centers",
 ]
+
+PIXEL_CENTER = 0.5  # the centre of pixel (i, j) is at (i + 0.5, j + 0.5) under meshsplat's K
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
 
@@ -294,6 +308,23 @@ def K_from_normalized(intr: ArrayLike, width: int, height: int) -> np.ndarray:
             f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {list(np.shape(intr))}"
         )
     return K_from_focal(a[0] * width, a[1] * height, a[2] * width, a[3] * height)
+
+
+def K_from_integer_centers(K: ArrayLike) -> np.ndarray:
+    """meshsplat's ``K`` from one whose pixel centres sit at integer coordinates (OpenCV, InstantAvatar,
+    IMavatar): the principal point moves by ``+PIXEL_CENTER`` on both axes, focal lengths unchanged."""
+    out = _mat("K", K, (3, 3)).copy()
+    out[0, 2] += PIXEL_CENTER
+    out[1, 2] += PIXEL_CENTER
+    return out
+
+
+def K_to_integer_centers(K: ArrayLike) -> np.ndarray:
+    """Inverse of :func:`K_from_integer_centers` (for writers of integer-centre layouts)."""
+    out = _mat("K", K, (3, 3)).copy()
+    out[0, 2] -= PIXEL_CENTER
+    out[1, 2] -= PIXEL_CENTER
+    return out
 
 
 def rodrigues(rvec: ArrayLike) -> np.ndarray:

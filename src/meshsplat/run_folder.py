@@ -27,7 +27,7 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import open_capture
+from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
 from meshsplat.data.source_map import SourceMap, read_source_map
 from meshsplat.errors import MeshsplatError
@@ -214,8 +214,9 @@ class LoadedRun:
         mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
         drop = bool(self.config.get("drop_bad_frames", False)) if drop_bad_frames is None else drop_bad_frames
         factor = self.training_downscale if downscale is None else downscale
+        opts = reader_options(self.config.get("data_gender"), self.config.get("data_shape"))  # as trained
         return open_capture(
-            path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop, downscale=factor
+            path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop, downscale=factor, **opts
         )
 
     @property

@@ -21,6 +21,7 @@ __all__ = [
     "add_dataset_option",
     "add_drop_bad_frames_option",
     "capture_up_front",
+    "add_reader_arguments",
     "add_render_options",
     "add_downscale_option",
     "render_options",
@@ -34,6 +35,23 @@ def add_run_argument(parser: argparse.ArgumentParser, dataset: bool = True) -> N
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
     if dataset:
         add_dataset_option(parser)
+
+
+def add_reader_arguments(parser: argparse.ArgumentParser) -> None:
+    """Capture reader options (``meshsplat.data.formats.reader_options``); a layout without one refuses it."""
+    parser.add_argument(
+        "--gender",
+        choices=("neutral", "male", "female"),
+        default=None,
+        help="body model gender (PeopleSnapshot; default: the capture's config.json or its known subject)",
+    )
+    parser.add_argument(
+        "--shape",
+        choices=("per_split", "train"),
+        default=None,
+        help="PeopleSnapshot betas: per_split (default; each split posed with its own parameter file, the "
+        "published protocol) or train (every frame with the train betas)",
+    )
 
 
 def add_dataset_option(parser: argparse.ArgumentParser) -> None:

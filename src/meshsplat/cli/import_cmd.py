@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import argparse
 
-from meshsplat.cli._options import add_downscale_option, add_drop_bad_frames_option
+from meshsplat.cli._options import add_downscale_option, add_drop_bad_frames_option, add_reader_arguments
 from meshsplat.data.convert import write_native
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture
+from meshsplat.data.formats import FORMAT_NAMES, detect_format, open_capture, reader_options
 
 __all__ = ["add_arguments", "run"]
 
@@ -27,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="folder with the smpl/, smplx/, flame/ model files (default $MESHSPLAT_MODEL_DIR)",
     )
+    add_reader_arguments(parser)
     add_downscale_option(parser, "1 (as recorded)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     add_drop_bad_frames_option(parser)
@@ -41,7 +42,10 @@ def run(args: argparse.Namespace) -> int:
         model_dir=args.model_dir,
         drop_bad_frames=args.drop_bad_frames,
         downscale=1 if args.downscale is None else args.downscale,
+        **reader_options(args.gender, args.shape),
     )
+    if ds.meta.get("split_rule"):
+        print(f"splits from {ds.meta['split_rule']}")
     print(
         f"{len(ds)} frames, {len(ds.camera_ids)} camera(s), splits: "
         + ", ".join(f"{s} {len(ds.split(s))}" for s in ds.split_names)

@@ -18,9 +18,15 @@ import argparse
 from pathlib import Path
 
 from meshsplat.cli._guards import check_memory, check_output_dir, check_range
-from meshsplat.cli._options import add_downscale_option, add_drop_bad_frames_option, add_render_options, render_options
+from meshsplat.cli._options import (
+    add_downscale_option,
+    add_drop_bad_frames_option,
+    add_reader_arguments,
+    add_render_options,
+    render_options,
+)
 from meshsplat.cli.threads import add_threads_argument, apply_threads
-from meshsplat.data.formats import detect_format, format_module, open_capture
+from meshsplat.data.formats import detect_format, format_module, open_capture, reader_options
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder
@@ -48,6 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="folder with your SMPL/SMPL-X/FLAME model files (default $MESHSPLAT_MODEL_DIR)",
     )
+    add_reader_arguments(parser)
     add_drop_bad_frames_option(parser)
     parser.add_argument(
         "--refine-pose",
@@ -109,9 +116,14 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     opts = render_options(args)
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
+        opts = reader_options(args.gender, args.shape)
         return training_image_size(
             open_capture(
-                args.dataset, format=args.format, model_dir=args.model_dir, drop_bad_frames=args.drop_bad_frames
+                args.dataset,
+                format=args.format,
+                model_dir=args.model_dir,
+                drop_bad_frames=args.drop_bad_frames,
+                **opts,
             )
         )
 
@@ -130,6 +142,10 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         cfg.data_format = args.format
     if args.model_dir is not None:
         cfg.model_dir = str(args.model_dir)
+    if args.gender is not None:
+        cfg.data_gender = args.gender
+    if args.shape is not None:
+        cfg.data_shape = args.shape
     if args.refine_pose:
         cfg.pose_refine.enabled = True
     if args.drop_bad_frames:

@@ -20,7 +20,7 @@ from meshsplat.data.downscale import check_downscale, downscale_frame, downscale
 from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
 __all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems", "MASK_KINDS", "DROP_FLAG"]
 
@@ -662,7 +662,7 @@ def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: boo
         )
     if len(bad) == len(frames):
         raise MeshsplatError(f"{ds.root}: every frame fails the camera check ({listed}); nothing left to use")
-    warnings.warn(f"{ds.root}: left out {len(bad)} of {len(frames)} frames ({listed})", stacklevel=3)
+    warnings.warn(f"{ds.root}: left out {len(bad)} of {len(frames)} frames ({listed})", MeshsplatWarning, stacklevel=3)
     drop = set(bad)
     new_index: dict[int, int] = {}
     kept: list[dict] = []

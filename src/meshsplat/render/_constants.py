@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from meshsplat.camera import PIXEL_CENTER  # the camera convention's one home: K maps pixel (i, j) to (i+0.5, j+0.5)
+
 __all__ = [
     "ALPHA_THRESHOLD",
     "ALPHA_MAX",
@@ -24,4 +26,3 @@ EPS2D = 0.3  # low-pass dilation added to the diagonal of every 2D covariance (p
 MAX_EXTEND = 3.33  # footprint half-size in sigmas (opacity-aware: min(3.33, sqrt(2 ln(255 o))))
 FOV_CLAMP_MARGIN = 0.3  # Jacobian clamps x/z, y/z to the frustum widened by 0.3 * tan(fov/2) per side
 DEPTH_ALPHA_MIN = 1e-10  # expected depth = accumulated depth / max(alpha, this)
-PIXEL_CENTER = 0.5  # pixel (i, j) is sampled at (i + 0.5, j + 0.5)

@@ -166,6 +166,8 @@ class TrainConfig:
     model_dir: str = ""  # body/head model files (SMPL/FLAME); "" = $MESHSPLAT_MODEL_DIR
     drop_bad_frames: bool = False  # leave out the few frames failing the camera check (docs/real-captures.md)
     data_downscale: float = 1.0  # read the capture at 1/N of its size (meshsplat.data.downscale); eval reads it too
+    data_gender: str = ""  # reader option: body model gender; "" = the capture's (PeopleSnapshot)
+    data_shape: str = ""  # reader option: "per_split" | "train" betas for the test splits; "" = the layout's default
     out: str = "runs/train"
     iterations: int = 30_000
     seed: int = 0

@@ -38,7 +38,7 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import open_capture
+from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
@@ -137,7 +137,11 @@ class Trainer:
             model_dir=self.cfg.model_dir or None,
             drop_bad_frames=self.cfg.drop_bad_frames,
             downscale=self.cfg.data_downscale,
+            **reader_options(self.cfg.data_gender, self.cfg.data_shape),
         )
+        rule = self.dataset.meta.get("split_rule")
+        if rule and self.cfg.progress:
+            print(f"{self.cfg.data}: splits from {rule}")
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
             raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")

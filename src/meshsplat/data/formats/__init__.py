@@ -9,6 +9,7 @@ with driver parameters; used by ``meshsplat synth --format``). Pages: ``docs/for
 from __future__ import annotations
 
 import importlib
+import inspect
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -16,7 +17,7 @@ from typing import Any
 from meshsplat.data.dataset import AvatarDataset, open_dataset
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture"]
+__all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture", "reader_options"]
 
 # detection order: the most specific layouts first
 FORMAT_NAMES = ("native", "meshseq", "vhap", "insta", "imavatar", "peoplesnapshot")
@@ -55,8 +56,22 @@ def open_capture(
     ``downscale``: cameras and frames at ``1 / downscale`` of the recorded size, the same rule for every
     layout (``meshsplat.data.downscale``: ``round(W / N)``, K scaled per axis, area-averaged images)."""
     name = format or detect_format(root)
+    reader = open_dataset if name == "native" else format_module(name).read
+    accepted = inspect.signature(reader).parameters
+    unknown = [k for k in options if k not in accepted]
+    if unknown:
+        raise MeshsplatError(
+            f"{root}: the {name} layout has no reader option {', '.join(map(repr, unknown))} "
+            f"(--{unknown[0].replace('_', '-')} applies to other layouts; docs/formats/)"
+        )
     if name == "native":
         ds = open_dataset(root, **options)
     else:
         ds = format_module(name).read(Path(root), model_dir=model_dir, **options)
     return ds.set_downscale(downscale)
+
+
+def reader_options(gender: str | None = None, shape: str | None = None) -> dict[str, str]:
+    """The reader options a command was given (``--gender``, ``--shape``; empty ones left out), for
+    :func:`open_capture`; a layout whose reader lacks one refuses it in one line."""
+    return {k: v for k, v in (("gender", gender), ("shape", shape)) if v}

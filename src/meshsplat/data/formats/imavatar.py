@@ -14,7 +14,7 @@ from typing import cast
 import numpy as np
 from numpy.typing import ArrayLike
 
-from meshsplat.camera import K_from_focal, K_from_normalized
+from meshsplat.camera import K_from_focal, K_from_integer_centers, K_from_normalized, K_to_integer_centers
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.formats._heads import (
     check_in_front,
@@ -87,7 +87,9 @@ def world_mat_from_viewmat(viewmat: ArrayLike) -> np.ndarray:
 
 def K_from_intrinsics(intr: ArrayLike | None, width: int, height: int) -> np.ndarray:
     """``K`` from IMavatar's ``[fx/W, fy/H, cx/W, cy/H]`` (signs dropped; values > 1 are the older pixel
-    units on a 512-pixel base, as IMavatar's own reader treats them)."""
+    units on a 512-pixel base, as IMavatar's own reader treats them), in meshsplat's pixel-centre
+    convention: IMavatar casts its rays through integer pixel coordinates (``code/datasets/real_dataset.py``
+    ``uv = np.mgrid[...]``), so its principal point moves by +0.5 pixel (``meshsplat.camera``)."""
     a = np.asarray(intr, np.float64).reshape(-1)
     if a.shape != (4,) or not np.isfinite(a).all():
         raise MeshsplatError(
@@ -96,7 +98,7 @@ def K_from_intrinsics(intr: ArrayLike | None, width: int, height: int) -> np.nda
         )
     if abs(a[3]) > 1:
         a = a / 512.0
-    return K_from_normalized(a, width, height)
+    return K_from_integer_centers(K_from_normalized(a, width, height))
 
 
 def _image_candidates(file_path: str) -> list[str]:
@@ -318,6 +320,7 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         row, cam = int(rec["mesh"]), cams[str(rec["camera"])]
         K, vm = np.asarray(cam["K"], np.float64), np.asarray(cam["viewmat"], np.float64)
         w, h = int(cam["width"]), int(cam["height"])
+        K = K_to_integer_centers(K)  # IMavatar's pixel centres sit at integers
         this = [-K[0, 0] / w, K[1, 1] / h, K[0, 2] / w, K[1, 2] / h]
         if intr is None:
             intr, size = this, (w, h)

@@ -9,8 +9,11 @@
     config.json                 gender, train/val/test: {start, end (inclusive), skip}
 
 Meshes are SMPL (``BodyModel("smpl", model_dir, gender)``) posed with those parameters; the canonical
-mesh is the rest pose with the subject's betas. Splits: train -> "train", val -> "val",
-test -> "test_frames".
+mesh is the rest pose with the train file's betas. Each split is posed with its own file, betas
+included (``shape="per_split"``, as InstantAvatar and SplattingAvatar do); ``shape="train"`` poses every
+frame with the train betas. Splits: train -> "train", val -> "val", test -> "test_frames".
+``cameras.npz``'s ``intrinsic`` puts pixel centres at integers (InstantAvatar casts its rays through
+``np.arange(W)``): cx, cy move by +0.5 when read and -0.5 when written (``meshsplat.camera``).
 """
 
 from __future__ import annotations
@@ -23,12 +26,24 @@ from typing import cast
 import numpy as np
 import torch
 
+from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
-__all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_NAMES", "DEFAULT_TEST_FRACTION"]
+__all__ = [
+    "NAME",
+    "DESCRIPTION",
+    "SIGNATURE",
+    "detect",
+    "read",
+    "write",
+    "SPLIT_NAMES",
+    "DEFAULT_TEST_FRACTION",
+    "SHAPE_MODES",
+    "KNOWN_SUBJECTS",
+]
 
 NAME = "peoplesnapshot"
 DESCRIPTION = "PeopleSnapshot, InstantAvatar / Anim-NeRF layout (SMPL, one fixed camera)"
@@ -39,6 +54,20 @@ SPLIT_NAMES = {"train": "train", "test": "test_frames", "val": "val"}
 DEFAULT_TEST_FRACTION = 0.2  # without config.json: the last 20% of the frames are test frames
 PER_FRAME = ("global_orient", "body_pose", "transl")
 _CHUNK = 64
+# "per_split": each split posed with its own parameter file, betas included (InstantAvatar's
+# PeopleSnapshotDataset and SplattingAvatar's instant_avatar reader: the published protocol);
+# "train": every frame posed with the train file's betas (one shape for the whole capture)
+SHAPE_MODES = ("per_split", "train")
+_BETAS_ATOL = 1e-6
+# The published PeopleSnapshot subjects as InstantAvatar trains and tests them: gender and inclusive
+# frame ranges (start, end, skip) per split. Source: InstantAvatar, github.com/tijiang13/InstantAvatar,
+# confs/dataset/peoplesnapshot/<subject>.yaml (commit 82a6c09); its preprocessing writes no config.json.
+KNOWN_SUBJECTS: dict[str, dict] = {
+    "male-3-casual": {"gender": "male", "train": (0, 455, 4), "val": (456, 456, 4), "test": (456, 675, 4)},
+    "male-4-casual": {"gender": "male", "train": (0, 659, 6), "val": (660, 660, 6), "test": (660, 872, 6)},
+    "female-3-casual": {"gender": "female", "train": (0, 445, 4), "val": (446, 446, 4), "test": (446, 647, 4)},
+    "female-4-casual": {"gender": "female", "train": (0, 335, 4), "val": (335, 335, 4), "test": (335, 523, 4)},
+}
 
 
 def detect(root: Path | str) -> bool:
@@ -52,6 +81,7 @@ def read(
     root: Path | str,
     model_dir: Path | str | None = None,
     gender: str | None = None,
+    shape: str = "per_split",
     check_masks: bool = True,
     cache_size: int = 8,
     drop_bad_frames: bool = False,
@@ -59,29 +89,39 @@ def read(
 ) -> AvatarDataset:
     """Open a PeopleSnapshot folder lazily (images decode on access); every problem in one error.
 
-    ``gender`` overrides config.json's; ``model_dir`` holds ``smpl/SMPL_<GENDER>.pkl``.
+    ``gender`` overrides config.json's; ``model_dir`` holds ``smpl/SMPL_<GENDER>.pkl``. ``shape``:
+    ``"per_split"`` (default, the published protocol) poses each split with its own file's betas,
+    ``"train"`` every frame with the train betas. Without config.json the ranges and gender of a
+    published subject come from ``KNOWN_SUBJECTS`` (by folder name); any other folder needs ``gender``.
+    ``ds.meta["split_rule"]`` says which rule chose the splits.
     """
     root = Path(root)
     if not root.is_dir():
         raise MeshsplatError(f"capture folder not found: {root}")
+    if shape not in SHAPE_MODES:
+        raise MeshsplatError(f"shape: expected one of {list(SHAPE_MODES)}, got {shape!r}")
     problems = Problems(root)
     cfg_gender, ranges = _read_config(root, problems)
+    split_rule = "config.json"
+    if ranges is None and not (root / "config.json").is_file():
+        cfg_gender, ranges, split_rule = _ranges_without_config(root, gender)
     gender = (gender or cfg_gender or "neutral").lower()
     if gender not in GENDERS:
         problems.add("gender", f"unknown gender {gender!r} (expected one of {list(GENDERS)})")
     camera = _read_camera(root, problems)
-    has_config = ranges is not None
+    placeable = ranges is not None and split_rule != _DEFAULT_RULE
     if ranges is None:
         ranges = _default_ranges(root)
     splits_in_use = [s for s in SPLIT_NAMES if s in ranges]
     refined = {
         s: _read_refined(root / "poses" / f"anim_nerf_{s}.npz", len(ranges[s]), problems)
         for s in splits_in_use
-        if has_config and (root / "poses" / f"anim_nerf_{s}.npz").is_file()
+        if placeable and (root / "poses" / f"anim_nerf_{s}.npz").is_file()
     }
-    if not has_config and any((root / "poses").glob("anim_nerf_*.npz")):
+    if not placeable and any((root / "poses").glob("anim_nerf_*.npz")):
         warnings.warn(
-            f"{root}: no config.json, so the split-relative poses/anim_nerf_*.npz cannot be placed; using poses.npz",
+            f"{root}: no config.json and no known subject name, so the split-relative poses/anim_nerf_*.npz "
+            "cannot be placed; using poses.npz",
             MeshsplatWarning,
             stacklevel=2,
         )
@@ -125,7 +165,7 @@ def read(
     pos_of = {idx: k for k, idx in enumerate(order)}
     splits = {SPLIT_NAMES[s]: [pos_of[i] for i in ranges[s]] for s in splits_in_use}
 
-    params = _assemble_params(order, rows, refined, poses, problems)
+    params, frame_betas = _assemble_params(order, rows, refined, poses, problems)
     model = None
     if gender in GENDERS:
         try:
@@ -133,14 +173,22 @@ def read(
         except MeshsplatError as exc:
             problems.add("SMPL model", str(exc))
     canonical = faces = verts = None
-    if model is not None and params is not None:
+    betas_note: dict = {"mode": shape}
+    if model is not None and params is not None and frame_betas is not None:
+        train_betas = params["betas"]
+        differs = bool((np.abs(frame_betas - train_betas) > _BETAS_ATOL).any())
+        if shape == "per_split" and differs:
+            params = {**params, "betas": frame_betas}  # per-frame rows: each frame its own file's shape
         try:
             model.check_params(params, num_frames=len(order))
         except MeshsplatError as exc:
             problems.add("SMPL parameters", str(exc))
         else:
-            canonical, verts = _pose(model, params)
+            canonical, verts = _pose(model, params, train_betas)
             faces = model.faces.cpu().numpy()
+            if differs:
+                split_of = [SPLIT_NAMES[rows[i][0]] for i in order]
+                betas_note.update(_betas_difference(model, params, train_betas, frame_betas, split_of))
 
     if camera is None or not frames:  # nothing to check images against: report what we have
         if not frames:
@@ -149,7 +197,8 @@ def read(
         problems.raise_if_any()
     if verts is None and not problems.items:
         problems.add("SMPL", "could not pose the model")
-    record = {**driver_record(model, "poses.npz"), "per_frame": list(PER_FRAME)} if model is not None else None
+    per_frame = list(PER_FRAME) + (["betas"] if params is not None and np.ndim(params["betas"]) == 2 else [])
+    record = {**driver_record(model, "poses.npz"), "per_frame": per_frame} if model is not None else None
     manifest = {
         "cameras": {"0": camera},
         "frames": frames,
@@ -162,9 +211,13 @@ def read(
             "params_source": {
                 SPLIT_NAMES[s]: (f"poses/anim_nerf_{s}.npz" if s in refined else "poses.npz") for s in splits_in_use
             },
+            "split_rule": split_rule,
+            "betas": betas_note,
         },
         "driver": record,
     }
+    if shape == "train" and "max_abs_diff" in betas_note:
+        warnings.warn(_betas_warning(betas_note), MeshsplatWarning, stacklevel=2)
     return build_dataset(
         root,
         manifest,
@@ -232,6 +285,27 @@ def _read_config(root: Path, problems: Problems) -> tuple[str | None, dict[str, 
     return gender, ranges
 
 
+_DEFAULT_RULE = f"no config.json: the last {round(DEFAULT_TEST_FRACTION * 100)}% of the images are test frames"
+
+
+def _ranges_without_config(root: Path, gender: str | None) -> tuple[str | None, dict[str, range] | None, str]:
+    """InstantAvatar's own output has no config.json: a published subject (folder name) gets its ranges
+    and gender from ``KNOWN_SUBJECTS``; any other folder the default split, and only with a gender."""
+    name = root.resolve().name
+    known = KNOWN_SUBJECTS.get(name)
+    if known is not None:
+        ranges = {s: range(a, b + 1, k) for s, (a, b, k) in ((s, known[s]) for s in SPLIT_NAMES)}
+        return known["gender"], ranges, f"InstantAvatar's {name} ranges (confs/dataset/peoplesnapshot/{name}.yaml)"
+    if gender is None:
+        raise MeshsplatError(
+            f"{root}: no config.json and {name!r} is not a published PeopleSnapshot subject "
+            f"({', '.join(KNOWN_SUBJECTS)}), so the subject's gender is unknown: pass --gender male|female|neutral "
+            f"(the splits then follow the default rule: the last {round(DEFAULT_TEST_FRACTION * 100)}% of the "
+            "images are test frames), or add a config.json with gender and train/val/test ranges"
+        )
+    return None, None, _DEFAULT_RULE
+
+
 def _default_ranges(root: Path) -> dict[str, range]:
     """Without config.json: images 0..N-1, the last ``DEFAULT_TEST_FRACTION`` of them test frames."""
     n = 0
@@ -273,7 +347,7 @@ def _read_camera(root: Path, problems: Problems) -> dict | None:
     if E.shape == (3, 4):
         E = np.vstack([E, [0.0, 0.0, 0.0, 1.0]])
     return {
-        "K": np.asarray(K, np.float64).tolist(),
+        "K": K_from_integer_centers(K).tolist() if np.isfinite(K).all() else np.asarray(K, np.float64).tolist(),
         "viewmat": np.asarray(E, np.float64).tolist(),
         "width": w,
         "height": h,
@@ -352,28 +426,20 @@ def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
     return out
 
 
-def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | None:
-    """Per-frame SMPL parameters in frame order (None when some are unusable; the reasons go to
-    ``problems``, except missing pose rows, which the caller reports). Betas: the first refined file
-    (train, test, val), else poses.npz."""
-    betas_from = [refined[s] for s in SPLIT_NAMES if refined.get(s) is not None] + ([poses] if poses else [])
-    if not order or not betas_from:
-        return None
-    betas = betas_from[0]["betas"]
-    for other in betas_from[1:]:
-        b = other["betas"]
-        if b.shape != betas.shape or not np.allclose(b, betas, atol=1e-4):
-            warnings.warn(
-                "PeopleSnapshot: betas differ between pose files; using the first one "
-                "(train refinement, else poses.npz)",
-                MeshsplatWarning,
-                stacklevel=3,
-            )
-            break
-    usable = bool(np.isfinite(betas).all())
-    if not usable:
-        problems.add("betas", "contain NaN/Inf")
+def _assemble_params(order, rows, refined, poses, problems: Problems) -> tuple[dict | None, np.ndarray | None]:
+    """Per-frame SMPL parameters in frame order with the train file's ``betas [B]``, and each frame's own
+    betas ``[T,B]`` (those of the file that poses it: its split's anim_nerf file, else poses.npz).
+    ``(None, None)`` when some are unusable; the reasons go to ``problems``, except missing pose rows,
+    which the caller reports."""
+    if not order:
+        return None, None
+    train_src = refined.get("train") if "train" in refined else poses
+    if train_src is None:
+        return None, None
+    betas = train_src["betas"]
+    usable = True
     out: dict[str, list] = {k: [] for k in PER_FRAME}
+    own_betas: list[np.ndarray] = []
     n_poses = len(poses["transl"]) if poses is not None else 0
     nonfinite: dict[str, list[int]] = {}
     for idx in order:
@@ -384,23 +450,66 @@ def _assemble_params(order, rows, refined, poses, problems: Problems) -> dict | 
             continue
         for k in PER_FRAME:
             out[k].append(src[k][r])
+        if src["betas"].shape != betas.shape:
+            problems.add(name, f"betas have {src['betas'].size} values but the train file's have {betas.size}")
+            usable = False
+        own_betas.append(src["betas"])
         if not all(np.isfinite(src[k][r]).all() for k in PER_FRAME):
             nonfinite.setdefault(name, []).append(r)
+        if not np.isfinite(src["betas"]).all():
+            nonfinite.setdefault(name, [])
     for name, bad in nonfinite.items():
-        problems.add(name, f"NaN/Inf parameters in rows {_ids(bad)}")
+        problems.add(name, f"NaN/Inf parameters in rows {_ids(bad)}" if bad else "betas contain NaN/Inf")
     if nonfinite or not usable:
-        return None
-    return {"betas": betas, **{k: np.stack(v).astype(np.float32) for k, v in out.items()}}
+        return None, None
+    params = {"betas": betas, **{k: np.stack(v).astype(np.float32) for k, v in out.items()}}
+    return params, np.stack(own_betas).astype(np.float32)
 
 
-def _pose(model: BodyModel, params: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Canonical ``[V,3]`` and posed vertices ``[T,V,3]`` (batched)."""
+def _betas_difference(
+    model: BodyModel, params: dict, train_betas: np.ndarray, frame_betas: np.ndarray, splits: list[str]
+) -> dict:
+    """How far the frames whose own betas are not the train file's lie from it: max |delta betas|, and the
+    mean vertex displacement (mm; SMPL is in metres) between posing them with either shape."""
+    idx = np.flatnonzero(np.abs(frame_betas - train_betas).max(1) > _BETAS_ATOL)
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for s in range(0, len(idx), _CHUNK):
+            sel = idx[s : s + _CHUNK]
+            pose = {k: params[k][sel] for k in PER_FRAME}
+            own = model.forward({**pose, "betas": frame_betas[sel]}).vertices
+            shared = model.forward({**pose, "betas": train_betas}).vertices
+            total += float((own - shared).norm(dim=-1).sum())
+            count += own.shape[0] * own.shape[1]
+    return {
+        "max_abs_diff": round(float(np.abs(frame_betas[idx] - train_betas).max()), 6),
+        "mean_vertex_shift_mm": round(1000.0 * total / max(count, 1), 3),
+        "splits": sorted({splits[i] for i in idx}),
+        "frames": len(idx),
+    }
+
+
+def _betas_warning(note: dict) -> str:
+    splits = " and ".join(note["splits"])
+    return (
+        f"PeopleSnapshot: the {splits} parameter files carry their own betas (max |delta betas| "
+        f"{note['max_abs_diff']:.3g} from the train file; posed with the train betas their meshes move "
+        f"{note['mean_vertex_shift_mm']:.2f} mm on average); shape='train' poses them with the train betas, so "
+        "their metrics are not on the published protocol (InstantAvatar and SplattingAvatar pose each split "
+        "with its own file: shape='per_split', the default) and do not compare with the papers' tables"
+    )
+
+
+def _pose(model: BodyModel, params: dict, train_betas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical ``[V,3]`` (rest pose, train betas) and posed vertices ``[T,V,3]`` (batched; ``betas`` may
+    be per frame ``[T,B]``)."""
     T = len(params["transl"])
     out = np.empty((T, model.num_vertices, 3), np.float32)
+    per_frame = (*PER_FRAME, "betas") if np.ndim(params["betas"]) == 2 else PER_FRAME
     with torch.no_grad():
-        canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
+        canonical = model.rest_vertices({"betas": train_betas}).cpu().numpy()
         for s in range(0, T, _CHUNK):
-            chunk = {k: (v[s : s + _CHUNK] if k in PER_FRAME else v) for k, v in params.items()}
+            chunk = {k: (v[s : s + _CHUNK] if k in per_frame else v) for k, v in params.items()}
             out[s : s + _CHUNK] = model.forward(chunk).vertices.cpu().numpy()
     return canonical, out
 
@@ -438,11 +547,14 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
 
     (out / "images").mkdir(parents=True, exist_ok=True)
     rows: dict[str, list[np.ndarray]] = {k: [] for k in PER_FRAME}
+    split_rows: dict[str, list[int]] = {}  # PeopleSnapshot split -> written rows
+    frame_betas: list[np.ndarray] = []
     config: dict = {"gender": info.get("gender", "neutral")}
     k = 0
     has_mask = None
     for ps_split, idx in plan.items():
         config[ps_split] = {"start": k, "end": k + len(idx) - 1, "skip": 1}
+        split_rows[ps_split] = list(range(k, k + len(idx)))
         for i in idx:
             fr = dataset[i]
             write_png(out / "images" / f"image_{k:04d}.png", _u8(fr.image))
@@ -465,15 +577,34 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
                 rows[key].append(
                     np.asarray(fp.get(key, np.zeros((1, 69 if key == "body_pose" else 3))), np.float32).reshape(-1)
                 )
+            frame_betas.append(np.asarray(fp.get("betas", np.zeros(10)), np.float32).reshape(-1))
             k += 1
     go, bp, tr = (np.stack(rows[key]) for key in PER_FRAME)
-    betas = np.asarray(params.get("betas", np.zeros(10)), np.float32).reshape(-1)
+    betas = frame_betas[split_rows["train"][0]] if "train" in split_rows else frame_betas[0]
     np.savez(out / "poses.npz", betas=betas, thetas=join_smpl_thetas(go, bp).astype(np.float32), transl=tr)
+    # per-frame betas (each split posed with its own shape): a split whose shape is not the train one
+    # gets its own poses/anim_nerf_<split>.npz, as InstantAvatar's refined files carry their own betas
+    for ps_split, rws in split_rows.items():
+        own = np.stack([frame_betas[r] for r in rws])
+        if np.abs(own - betas).max() <= _BETAS_ATOL:
+            continue
+        if np.abs(own - own[0]).max() > _BETAS_ATOL:
+            raise MeshsplatError(
+                f"{dataset.root}: the {ps_split} frames have differing betas; PeopleSnapshot stores one shape per split"
+            )
+        (out / "poses").mkdir(exist_ok=True)
+        np.savez(
+            out / "poses" / f"anim_nerf_{ps_split}.npz",
+            betas=own[:1],
+            global_orient=go[rws],
+            body_pose=bp[rws],
+            transl=tr[rws],
+        )
     cam_id = dataset.frame_info(next(iter(plan.values()))[0])["camera"]
     cam = dataset.camera(cam_id)
     np.savez(
         out / "cameras.npz",
-        intrinsic=cam.K.double().numpy(),
+        intrinsic=K_to_integer_centers(cam.K.double().numpy()),
         extrinsic=cam.viewmat.double().numpy(),
         height=np.array(cam.height),
         width=np.array(cam.width),
