@@ -17,11 +17,12 @@ from meshsplat.cli.main import main
 from meshsplat.data.formats import peoplesnapshot
 from meshsplat.errors import MeshsplatWarning
 
-NOTE = "no config.json, so the split-relative poses/anim_nerf_*.npz cannot be placed"
+NOTE = "so the split-relative poses/anim_nerf_*.npz cannot be placed"
 
 
 def _capture_that_warns(root: Path) -> Path:
-    """A PeopleSnapshot folder without config.json but with a split-relative refinement (one warning)."""
+    """A PeopleSnapshot folder without config.json (read with a gender) but with a split-relative
+    refinement (one warning)."""
     root = make_capture(root, n=6)
     (root / "config.json").unlink()
     (root / "poses").mkdir()
@@ -43,7 +44,7 @@ def test_library_warnings_are_meshsplat_warnings(tmp_path, standin_model_dir):
     root = _capture_that_warns(tmp_path / "ps")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        peoplesnapshot.read(root, model_dir=standin_model_dir)
+        peoplesnapshot.read(root, model_dir=standin_model_dir, gender="neutral")
     assert [w.category for w in caught if NOTE in str(w.message)] == [MeshsplatWarning]
 
 
@@ -54,7 +55,7 @@ def test_a_warning_raised_twice_in_one_command_prints_once_as_one_plain_line(tmp
     old = tmp_path / "old.json"
     old.write_text(json.dumps({"strategy": {"refine_stop": 15000, "reset_every": 3000, "prune_scale2d": 20}}))
     args = ["train", str(root), "--out", str(tmp_path / "run"), "--config", str(old), "--iters", "1"]
-    args += ["--model-dir", str(standin_model_dir), "--device", "cpu", "--no-progress"]
+    args += ["--model-dir", str(standin_model_dir), "--gender", "neutral", "--device", "cpu", "--no-progress"]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
@@ -70,10 +71,16 @@ def test_a_real_process_prints_the_note_as_one_line(tmp_path, standin_model_dir)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     cmd = [sys.executable, "-m", "meshsplat.cli.main", "import", str(root), "--out", str(tmp_path / "nat")]
     res = subprocess.run(
-        [*cmd, "--model-dir", str(standin_model_dir)], capture_output=True, text=True, env=env, timeout=300
+        [*cmd, "--model-dir", str(standin_model_dir), "--gender", "neutral"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
     )
     assert res.returncode == 0, res.stderr
-    assert _note_lines(res.stderr) == [f"note: {root}: {NOTE}; using poses.npz"], res.stderr
+    assert _note_lines(res.stderr) == [
+        f"note: {root}: no config.json and no known subject name, {NOTE}; using poses.npz"
+    ], res.stderr
     assert "UserWarning" not in res.stderr and "peoplesnapshot.py" not in res.stderr
 
 

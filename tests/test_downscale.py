@@ -142,7 +142,8 @@ def test_every_layout_reads_downscaled(tmp_path, standin_model_dir, capsys):
     assert ds.format_name == "peoplesnapshot"
     cam = ds.frame_camera(0)
     assert (cam.width, cam.height) == (32, 24)
-    assert cam.K[:2].tolist() == [[50.0, 0.0, 16.0], [0.0, 50.0, 12.0]]
+    # the file's integer-centre cx, cy = 32, 24 read as 32.5, 24.5 (meshsplat's half-pixel centres), then halved
+    assert cam.K[:2].tolist() == [[50.0, 0.0, 16.25], [0.0, 50.0, 12.25]]
     fr = ds[0]
     assert fr.image.shape == (24, 32, 3) and fr.mask.shape == (24, 32, 1)
     full = open_capture(root, model_dir=standin_model_dir)[0]

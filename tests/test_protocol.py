@@ -190,15 +190,18 @@ def test_golden_pixel_centre_peoplesnapshot(tmp_path, standin_model_dir):
     """InstantAvatar casts rays through integer pixel coordinates: its K with cx = 20 sends the point to
     x = 30, the centre of column 30, which meshsplat calls 30.5."""
     root = make_capture(tmp_path / "cap", n=3)
+    with np.load(root / "cameras.npz") as z:
+        extrinsic = z["extrinsic"].astype(np.float64)  # the fixture's, which sees the subject (camera check)
     np.savez(
         root / "cameras.npz",
         intrinsic=np.array([[F_PX, 0, 20.0], [0, F_PX, 30.0], [0, 0, 1]]),
-        extrinsic=np.eye(4),
+        extrinsic=extrinsic,
         height=np.array(H),
         width=np.array(W),
     )
     cam = ps.read(root, model_dir=standin_model_dir).camera("0")
-    assert np.allclose(_project(cam, X_CAM), [30.5, 25.5], atol=1e-9)
+    x_world = (np.linalg.inv(extrinsic) @ np.append(X_CAM, 1.0))[:3]
+    assert np.allclose(_project(cam, x_world), [30.5, 25.5], atol=1e-9)
     assert K[0, 2] == 32  # the shared fixture's K is InstantAvatar's too
 
 

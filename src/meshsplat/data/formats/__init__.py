@@ -71,7 +71,7 @@ def open_capture(
     return ds.set_downscale(downscale)
 
 
-def reader_options(gender: str | None = None, shape: str | None = None) -> dict[str, str]:
+def reader_options(gender: str | None = None, shape: str | None = None) -> dict[str, Any]:
     """The reader options a command was given (``--gender``, ``--shape``; empty ones left out), for
     :func:`open_capture`; a layout whose reader lacks one refuses it in one line."""
     return {k: v for k, v in (("gender", gender), ("shape", shape)) if v}
