@@ -179,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
     up, front = capture_up_front(r, args.dataset)
     camera = {"up": up, "front": front}  # the orbit turns about the capture's up, from its front
     kind, *rest = args.animation
+    rig = frames = None
     if kind == "gltf" and not args.bake:
         if len(rest) != 1:
             raise MeshsplatError("--animation gltf needs exactly one FILE")
@@ -186,45 +187,24 @@ def run(args: argparse.Namespace) -> int:
         if not glb.is_file():
             raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
         rig = avatar_driver(r.avatar, glb, clip=args.clip, source_map=r.source_map(args.dataset))
-        index = write_viewer_bundle(
-            r.avatar,
-            None,
-            Path(args.out),
-            fps=args.fps,
-            title=title,
-            vertex_encoding=args.vertex_encoding,
-            background=opts.background or "white",
-            camera=camera,
-            rig=rig,
-        )
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
     elif kind == "blendshapes" and not args.bake:
         rig = _blendshape_driver(r.avatar, rest, args)
-        index = write_viewer_bundle(
-            r.avatar,
-            None,
-            Path(args.out),
-            fps=args.fps,
-            title=title,
-            vertex_encoding=args.vertex_encoding,
-            background=opts.background or "white",
-            camera=camera,
-            rig=rig,
-        )
         what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
     else:
         frames = load_frames(r.avatar, args, r)
-        index = write_viewer_bundle(
-            r.avatar,
-            frames,
-            Path(args.out),
-            fps=args.fps,
-            title=title,
-            vertex_encoding=args.vertex_encoding,
-            background=opts.background or "white",
-            camera=camera,
-        )
         what = f"{len(frames)} frames"
+    index = write_viewer_bundle(
+        r.avatar,
+        frames,
+        Path(args.out),
+        fps=args.fps,
+        title=title,
+        vertex_encoding=args.vertex_encoding,
+        background=opts.background or "white",
+        camera=camera,
+        rig=rig,
+    )
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
     print(
         f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "

@@ -164,56 +164,28 @@ def rasterize(
     if backend == "auto" and backend_options:
         backend = "torch"  # the options tune the torch backend: the caller asked for it
     chosen = _pick_backend(backend, means.device, means.dtype)
+    scene: dict[str, Any] = {  # one keyword set for every backend (all keyword-only)
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "colors": colors,
+        "viewmats": viewmats,
+        "Ks": Ks,
+        "width": width,
+        "height": height,
+        "near_plane": near_plane,
+        "far_plane": far_plane,
+        "backgrounds": backgrounds,
+        "render_mode": render_mode,
+    }
     if chosen == "gsplat":  # backend_options tune the torch backend only
-        return rasterize_gsplat(
-            means=means,
-            quats=quats,
-            scales=scales,
-            opacities=opacities,
-            colors=colors,
-            viewmats=viewmats,
-            Ks=Ks,
-            width=width,
-            height=height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            backgrounds=backgrounds,
-            render_mode=render_mode,
-        )
+        return rasterize_gsplat(**scene)
     if chosen == "numba":
         if backend_options:
             raise MeshsplatError(f"backend='numba' takes no backend options, got {sorted(backend_options)}")
-        return rasterize_numba(
-            means=means,
-            quats=quats,
-            scales=scales,
-            opacities=opacities,
-            colors=colors,
-            viewmats=viewmats,
-            Ks=Ks,
-            width=width,
-            height=height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            backgrounds=backgrounds,
-            render_mode=render_mode,
-        )
+        return rasterize_numba(**scene)
     unknown = set(backend_options) - set(TORCH_OPTIONS)
     if unknown:
         raise MeshsplatError(f"unknown backend option(s) {sorted(unknown)}; known: {', '.join(TORCH_OPTIONS)}")
-    return rasterize_torch(
-        means=means,
-        quats=quats,
-        scales=scales,
-        opacities=opacities,
-        colors=colors,
-        viewmats=viewmats,
-        Ks=Ks,
-        width=width,
-        height=height,
-        near_plane=near_plane,
-        far_plane=far_plane,
-        backgrounds=backgrounds,
-        render_mode=render_mode,
-        **backend_options,
-    )
+    return rasterize_torch(**scene, **backend_options)
