@@ -231,9 +231,10 @@ def test_truncated_corrupt_object_and_empty_npz_are_one_line(tmp_path):
     assert "'faces' holds Python objects" in _one_line(err) and "never unpickles" in str(err.value)
     npy = tmp_path / "objects.npy"
     np.save(npy, np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(MeshsplatError) as err:
-        read_npy(npy)
-    assert "Python objects" in _one_line(err)
+    for mmap in (False, True):
+        with pytest.raises(MeshsplatError) as err:
+            read_npy(npy, mmap=mmap)
+        assert "holds Python objects" in _one_line(err)
     assert read_npz(good)["vertices"].shape == (2, 3, 3)
     assert isinstance(zipfile.ZipFile(good).namelist(), list)  # the good one is a real archive
 

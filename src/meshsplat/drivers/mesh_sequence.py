@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.arrays import read_npz
+from meshsplat.io.arrays import npz_keys, read_npz
 from meshsplat.io.obj import read_obj
 from meshsplat.io.ply_mesh import read_ply_mesh
 
@@ -66,10 +66,10 @@ def is_mesh_sequence(path: Path | str) -> bool:
         return any(q.suffix.lower() in (".obj", ".ply") for q in p.iterdir())
     if p.suffix.lower() == ".npz" and p.is_file():
         try:
-            z = read_npz(p)
+            keys = npz_keys(p)
         except MeshsplatError:
             return False
-        return "faces" in z and "vertices" in z
+        return "faces" in keys and "vertices" in keys
     return False
 
 

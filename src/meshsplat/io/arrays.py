@@ -17,7 +17,7 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError, os_error_text
 
-__all__ = ["read_npz", "read_npy", "array_error_text", "OBJECT_ARRAY_TEXT"]
+__all__ = ["read_npz", "npz_keys", "read_npy", "array_error_text", "OBJECT_ARRAY_TEXT"]
 
 OBJECT_ARRAY_TEXT = (
     "holds Python objects (an object array); meshsplat reads numbers only and never unpickles a file: "
@@ -31,7 +31,7 @@ def array_error_text(exc: BaseException, kind: str = "npz archive") -> str:
     text = str(exc)
     if isinstance(exc, OSError) and not isinstance(exc, zipfile.BadZipFile) and exc.errno is not None:
         return os_error_text(exc)
-    if "allow_pickle" in text or "pickle" in text.lower():
+    if "pickle" in text.lower() or "Python objects" in text:
         return OBJECT_ARRAY_TEXT
     if isinstance(exc, EOFError) or "No data left" in text:
         return f"the file is empty or cut short (not a complete {kind})"
@@ -63,6 +63,22 @@ def read_npz(path: str | os.PathLike, what: str = "") -> dict[str, np.ndarray]:
             except Exception as exc:  # noqa: BLE001
                 raise MeshsplatError(f"{label}: array {k!r} {array_error_text(exc)}") from None
     return out
+
+
+def npz_keys(path: str | os.PathLike, what: str = "") -> list[str]:
+    """The names of the arrays in the ``.npz`` at ``path``, without reading them (errors as :func:`read_npz`)."""
+    p = Path(path)
+    label = f"{p}" + (f" ({what})" if what else "")
+    if not p.is_file():
+        raise MeshsplatError(f"{label}: file not found")
+    try:
+        z = np.load(p, allow_pickle=False)
+    except Exception as exc:  # noqa: BLE001
+        raise MeshsplatError(f"{label}: {array_error_text(exc)}") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise MeshsplatError(f"{label}: a single .npy array, not an .npz archive of named arrays")
+    with z:
+        return list(z.files)
 
 
 def read_npy(path: str | os.PathLike, what: str = "", mmap: bool = False) -> np.ndarray:
