@@ -101,7 +101,7 @@ def _escapes(root: Path, rel: str):
         link.symlink_to(other, target_is_directory=True)
     return {
         "dotdot": f"../other/{rel}",
-        "nested": f"{rel.split('/')[0]}/../../other/{rel}",
+        "nested": "/".join([rel.split("/")[0], "..", "..", "other", rel]),
         "absolute": str(other / rel),
         "symlink": f"linked/{rel}",
     }
