@@ -363,3 +363,14 @@ def test_relative_model_dir_of_older_runs(tmp_path, monkeypatch):
         loaded("gone").model_dir()
     msg = _one_line(err)
     assert "config key model_dir" in msg and "--model-dir" in msg
+
+
+def test_insta_without_canonical_obj_refuses_a_first_mesh_from_outside(captures, model_dir, tmp_path, monkeypatch):
+    monkeypatch.delenv("MESHSPLAT_ALLOW_OUTSIDE_FILES", raising=False)
+    root = _copy_with(
+        captures, "insta", tmp_path, "transforms.json", "mesh_path", lambda r, v: _escapes(r, v)["dotdot"]
+    )
+    (root / "canonical.obj").unlink()
+    with pytest.raises(MeshsplatError, match=f"mesh '../other/meshes/00000.obj' lies {OUTSIDE}"):
+        _open(root, "insta", model_dir)
+    assert len(_open(root, "insta", model_dir, allow_outside=True)) == 4

@@ -252,9 +252,9 @@ def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems, a
     if (
         first is not None
         and not canon_path.is_file()
-        and inside_capture(root, first, "mesh", "frame 0", Problems(root), allow_outside) is None
+        and inside_capture(root, first, "mesh", mesh_paths[0][1], problems, allow_outside) is None
     ):
-        first = None  # reported with the frame's mesh below
+        return None, None, None
     ref = canon_path if canon_path.is_file() else (root / first if first is not None else None)
     if ref is None or not ref.is_file():
         problems.add("canonical.obj", "missing (and no frame mesh to take the topology from)")
