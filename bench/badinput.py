@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meshsplat.data import open_dataset
+from meshsplat.data.formats import format_module
 from meshsplat.paths import asset
 
 torch.set_num_threads(1)
@@ -251,6 +253,66 @@ manifest_case(
     lambda m: m["frames"][0].__setitem__("mask", str(_DS[0] / m["frames"][0]["mask"])),
 )
 manifest_case("vertices outside the dataset", lambda m: m.__setitem__("vertices", "/dev/zero"))
+
+
+# -- every reader as strict as the native one (run them alone with --only "strict:")
+def _meshseq(ctx, name: str) -> Path:
+    """The fixture dataset in the meshseq layout (cameras.json + images/ + masks/ + mesh.npz), twice:
+    ``name`` and a second subject ``name_other`` beside it."""
+    out = ctx["tmp"] / name
+    for d in (out, ctx["tmp"] / f"{name}_other"):
+        if d.exists():
+            shutil.rmtree(d)
+        format_module("meshseq").write(open_dataset(ctx["ds"]), d)
+    return out
+
+
+def _edit_cameras(d: Path, fn) -> Path:
+    doc = json.loads((d / "cameras.json").read_text())
+    fn(doc)
+    (d / "cameras.json").write_text(json.dumps(doc))
+    return d
+
+
+@case("strict readers", "strict: meshseq image of another subject (../)")
+def _strict_outside(ctx):
+    d = _edit_cameras(
+        _meshseq(ctx, "sq_out"), lambda doc: doc["frames"][0].__setitem__("image", "../sq_out_other/images/000000.png")
+    )
+    return cli("train", d, "--out", ctx["tmp"] / "sq_out_run", *TRAIN), {}, None
+
+
+@case("strict readers", "strict: meshseq image through a symlink out of the capture")
+def _strict_symlink(ctx):
+    d = _meshseq(ctx, "sq_link")
+    (d / "linked").symlink_to(ctx["tmp"] / "sq_link_other", target_is_directory=True)
+    d = _edit_cameras(d, lambda doc: doc["frames"][0].__setitem__("image", "linked/images/000000.png"))
+    return cli("train", d, "--out", ctx["tmp"] / "sq_link_run", *TRAIN), {}, None
+
+
+@case("strict readers", "strict: mesh.npz with an object array")
+def _strict_object(ctx):
+    d = _meshseq(ctx, "sq_obj")
+    with np.load(d / "mesh.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["faces"] = arrays["faces"].astype(object)
+    np.savez(d / "mesh.npz", **arrays)
+    return cli("train", d, "--out", ctx["tmp"] / "sq_obj_run", *TRAIN), {}, None
+
+
+@case("strict readers", "strict: truncated mesh.npz")
+def _strict_truncated(ctx):
+    d = _meshseq(ctx, "sq_cut")
+    data = (d / "mesh.npz").read_bytes()
+    (d / "mesh.npz").write_bytes(data[: len(data) // 2])
+    return cli("train", d, "--out", ctx["tmp"] / "sq_cut_run", *TRAIN), {}, None
+
+
+@case("strict readers", "strict: every frame's mask missing (one grouped line)")
+def _strict_masks(ctx):
+    d = _meshseq(ctx, "sq_masks")
+    shutil.rmtree(d / "masks")
+    return cli("train", d, "--out", ctx["tmp"] / "sq_masks_run", *TRAIN), {}, None
 
 
 # -- work lost or silently wrong

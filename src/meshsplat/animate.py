@@ -37,6 +37,7 @@ from meshsplat.drivers.mesh_sequence import read_mesh_sequence
 from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
+from meshsplat.io.arrays import read_npy
 from meshsplat.io.video import to_uint8, write_png_frames, write_video
 from meshsplat.paths import resolve_input
 from meshsplat.render.background import background_color
@@ -237,10 +238,7 @@ def _read_sequence(vertices: Any) -> tuple[Any, str]:
         return read_mesh_sequence(p, with_uvs=False).vertices, f"mesh sequence {p}"
     if not p.is_file():
         raise MeshsplatError(f"vertex sequence file not found: {p}")
-    try:
-        return np.load(p, mmap_mode="r", allow_pickle=False), f"vertex sequence {p}"
-    except Exception as exc:  # noqa: BLE001 - one clear message
-        raise MeshsplatError(f"cannot read {p} as a .npy array [T,V,3]: {exc}") from None
+    return read_npy(p, "vertex sequence [T,V,3]", mmap=True), f"vertex sequence {p}"
 
 
 def sequence_animation(
@@ -400,10 +398,10 @@ def _read_weights(weights, names: list[str]) -> np.ndarray:
             else:
                 w = np.asarray(doc, np.float32)
         else:
-            try:
-                w = np.load(p).astype(np.float32)
-            except Exception as exc:  # noqa: BLE001
-                raise MeshsplatError(f"cannot read {p} as a .npy array [T,K]: {exc}") from None
+            a = read_npy(p, "blend-shape weights [T,K]")
+            if a.dtype.kind not in "fiub":
+                raise MeshsplatError(f"{p}: blend-shape weights must be numbers, got {a.dtype}")
+            w = a.astype(np.float32)
     else:
         w = np.asarray(weights.detach().cpu() if isinstance(weights, torch.Tensor) else weights, np.float32)
     if w.ndim == 1:

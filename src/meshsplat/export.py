@@ -9,8 +9,9 @@ and ``clamp_to_face = False`` and composes bit-identical Gaussians in every pose
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from meshsplat.gaussians.compose import ComposedGaussians, effective_uv
 from meshsplat.gaussians.params import make_params, rgb_to_sh0
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io import read_embedding_json, read_obj, write_embedding_json, write_gaussian_ply, write_obj
+from meshsplat.io.atomic import write_text_atomic, write_with
 from meshsplat.io.splat_formats import write_gltf_splats, write_splat, write_spz
 from meshsplat.mesh import TriMesh
 
@@ -115,6 +117,10 @@ _FORMAT_NOTES = {
 }
 
 
+def _write_splats(writer: Callable[[Path, dict[str, Any]], Path], tmp: Path, arrays: dict[str, Any]) -> Path:
+    return writer(tmp, arrays)
+
+
 def export_avatar(
     avatar: Avatar,
     out_dir: str | Path,
@@ -139,16 +145,19 @@ def export_avatar(
         ply_sh0 = rgb_to_sh0(avatar.base_rgb())
     splats: dict[str, Path] = {}
     if "ply" in formats:
-        splats["ply"] = write_gaussian_ply(
+        splats["ply"] = write_with(
             out / PLY_NAME,
-            g.means,
-            g.quats,
-            g.scales.log(),
-            p["opacity_logit"],
-            ply_sh0,
-            p.get("shN"),
-            sh_degree_pad=3,
-            normals=normals,
+            lambda tmp: write_gaussian_ply(
+                tmp,
+                g.means,
+                g.quats,
+                g.scales.log(),
+                p["opacity_logit"],
+                ply_sh0,
+                p.get("shN"),
+                sh_degree_pad=3,
+                normals=normals,
+            ),
         )
     arrays: dict[str, Any] = {
         "means": g.means,
@@ -162,7 +171,7 @@ def export_avatar(
     writers = {"splat": write_splat, "spz": write_spz, "gltf": write_gltf_splats}
     for fmt in formats:
         if fmt != "ply":
-            splats[fmt] = writers[fmt](out / SPLAT_FORMATS[fmt], arrays)
+            splats[fmt] = write_with(out / SPLAT_FORMATS[fmt], partial(_write_splats, writers[fmt], arrays=arrays))
     with torch.no_grad():
         uv = effective_uv(avatar.params, avatar.clamp_to_face).detach()
     emb_params = {
@@ -201,15 +210,17 @@ def export_avatar(
             "order": sd["order"],
             "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)",
         }
-    emb = write_embedding_json(out / EMBEDDING_NAME, emb_params, meta)
-    mesh = write_obj(out / MESH_NAME, avatar.mesh.vertices.detach(), avatar.mesh.faces)
+    # every file goes to a temporary name and is renamed into place: a full disk leaves no truncated file
+    emb = write_with(out / EMBEDDING_NAME, lambda tmp: write_embedding_json(tmp, emb_params, meta))
+    mesh = write_with(out / MESH_NAME, lambda tmp: write_obj(tmp, avatar.mesh.vertices.detach(), avatar.mesh.faces))
     readme = out / "README.txt"
     others = "".join(
         f"\n\n{SPLAT_FORMATS[f]}  {_FORMAT_NOTES[f]} Same Gaussians as {PLY_NAME} (same axes)."
         for f in formats
         if f != "ply"
     )
-    readme.write_text(
+    write_text_atomic(
+        readme,
         _README.format(
             source=source or "(in-memory avatar)",
             n=avatar.num_gaussians,
@@ -223,7 +234,7 @@ def export_avatar(
             splat_files="" if "ply" in formats else f"({PLY_NAME} was not written: --format {','.join(formats)})\n",
             other_formats=others,
             shading=_SHADING_README.format(emb=EMBEDDING_NAME, ply=PLY_NAME) if avatar.shading is not None else "",
-        )
+        ),
     )
     return ExportResult(out, splats.get("ply"), emb, mesh, readme, splats)
 

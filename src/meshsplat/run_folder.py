@@ -194,6 +194,29 @@ class LoadedRun:
             )
         return p
 
+    def model_dir(self, model_dir: str | Path | None = None) -> Path | None:
+        """``model_dir`` if given, else the run's ``model_dir`` (SMPL/FLAME files; None when the run has
+        none: ``$MESHSPLAT_MODEL_DIR`` then applies). Runs store it absolute; a relative one (older runs,
+        whose working folder is not recorded) is tried as given, then from the run folder's parent, then
+        from the run folder; not found there is one line naming the config key."""
+        if model_dir is not None:
+            return Path(model_dir)
+        value = self.config.get("model_dir")
+        if not value:
+            return None
+        if not isinstance(value, str):
+            raise MeshsplatError(f"{self.folder.config_path}: model_dir must be a folder path, got {value!r}")
+        p = Path(value).expanduser()
+        if p.is_absolute() or p.is_dir():
+            return p.resolve() if p.is_dir() else p
+        for base in (self.run_dir.resolve().parent, self.run_dir.resolve()):
+            if (base / p).is_dir():
+                return base / p
+        raise MeshsplatError(
+            f"the run's model_dir {value!r} (config key model_dir in {self.folder.config_path}) is a relative "
+            f"path found neither from here nor from {self.run_dir.resolve().parent}; pass --model-dir DIR"
+        )
+
     def open_dataset(
         self,
         dataset: str | Path | None = None,
@@ -211,7 +234,7 @@ class LoadedRun:
         """
         path = self.dataset_path(dataset)
         fmt = self.config.get("data_format") or None if dataset is None else None
-        mdir = model_dir if model_dir is not None else (self.config.get("model_dir") or None)
+        mdir = self.model_dir(model_dir)
         drop = bool(self.config.get("drop_bad_frames", False)) if drop_bad_frames is None else drop_bad_frames
         factor = self.training_downscale if downscale is None else downscale
         opts = reader_options(self.config.get("data_gender"), self.config.get("data_shape"))  # as trained

@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         if args.frames is not None and args.frames < 1:
             raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
         frames = animate.motion_animation(
-            avatar, dataset(), args.motion, args.model_dir or r.config.get("model_dir") or None, max_frames=args.frames
+            avatar, dataset(), args.motion, r.model_dir(args.model_dir or None), max_frames=args.frames
         )
     else:
         frames, frame_cams = animate.dataset_animation(avatar, dataset(), args.dataset_split)

@@ -121,7 +121,7 @@ def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -
             )
         elif kind == "motion":
             ds = run_info.open_dataset(args.dataset, check_masks=False)
-            mdir = args.model_dir or run_info.config.get("model_dir") or None
+            mdir = run_info.model_dir(args.model_dir or None)
             frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
         else:
             frames = animate.sequence_animation(avatar, rest[0], source_map=run_info.source_map(args.dataset))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import warnings
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -21,14 +22,25 @@ from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
+from meshsplat.io.arrays import array_error_text, read_npy, read_npz
 
-__all__ = ["Frame", "AvatarDataset", "open_dataset", "build_dataset", "Problems", "MASK_KINDS", "DROP_FLAG"]
+__all__ = [
+    "Frame",
+    "AvatarDataset",
+    "open_dataset",
+    "build_dataset",
+    "Problems",
+    "inside_capture",
+    "outside_allowed",
+    "MASK_KINDS",
+    "DROP_FLAG",
+    "ALLOW_OUTSIDE_ENV",
+]
 
 DROP_FLAG = "--drop-bad-frames"  # the command-line flag (reader option drop_bad_frames=True) named by refusals
 
 MASK_KINDS = ("png", "npy", "alpha")  # a mask file (any image), a numpy array, the image's 4th channel
 
-_MAX_LISTED = 25
 ALLOW_OUTSIDE_ENV = "MESHSPLAT_ALLOW_OUTSIDE_FILES"  # "1": manifest paths may leave the dataset folder
 
 
@@ -52,13 +64,32 @@ def _type_name(x) -> str:
     }.get(type(x), type(x).__name__)
 
 
-def _relative_path(value, what: str, where: str, problems: Problems, allow_outside: bool) -> str | None:
-    """A manifest path: a string naming a file inside the dataset folder (unless allowed)."""
+def outside_allowed(allow_outside: bool | None = None) -> bool:
+    """``allow_outside`` if given, else whether ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1`` is set."""
+    return os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1" if allow_outside is None else bool(allow_outside)
+
+
+def inside_capture(
+    root: Path, value: object, what: str, where: str, problems: Problems, allow_outside: bool | None = None
+) -> str | None:
+    """The one containment rule of every reader: ``value`` (a path from the capture's own files, relative
+    to ``root``) must name a file inside the capture folder, symlinks resolved (a link inside the folder
+    that points out of it is outside). Returns the path as given, or None with the reason in
+    ``problems``. ``allow_outside`` (default: ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``) lifts the rule."""
     if not isinstance(value, str) or not value:
         problems.add(where, f"{what} must be a file path (a string), got {_type_name(value)}")
         return None
-    norm = os.path.normpath(value)
-    if not allow_outside and (os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep)):
+    if outside_allowed(allow_outside):
+        return value
+    norm = os.path.normpath(value.replace("\\", "/"))
+    outside = os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep)
+    if not outside:
+        try:
+            base = Path(root).resolve()
+            outside = not (base / norm).resolve().is_relative_to(base)
+        except (OSError, RuntimeError):  # a symlink loop: not a file inside the folder either
+            outside = True
+    if outside:
         problems.add(
             where,
             f"{what} {value!r} lies outside the dataset folder; copy it into the folder, "
@@ -85,22 +116,76 @@ class Frame:
     time: float | None = None
 
 
+_NUMBERED = re.compile(r"^(frame|timestep|camera|mesh) (\d+)\b")
+_DIGITS = re.compile(r"\d+")
+
+
+def _key(where: str, what: str) -> tuple[str, str]:
+    """Problems alike: on the same kind of item (frame, timestep, ...), equal but for their numbers."""
+    m = _NUMBERED.match(where)
+    return (m.group(1) if m else where, _DIGITS.sub("#", what))
+
+
 class Problems:
-    """Collects every problem of a folder; ``raise_if_any`` ends them in one MeshsplatError."""
+    """Collects every problem of a folder; ``raise_if_any`` ends them in one MeshsplatError.
+
+    The one way readers report problems. The message is grouped: the same problem on many frames (or
+    timesteps, cameras, meshes), differing only in numbers such as the frame's own file name, is one line
+    (``frames 3-17: mask file masks/0003.png is missing (shown for frame 3; alike for the other 14)``); the first line
+    names the folder, the count and the first problem, so it reads on its own; at most
+    ``MAX_LISTED`` lines follow, then how many more."""
+
+    MAX_LISTED = 8  # lines after the first
+    GROUP_FROM = 4  # the same problem on this many frames (or more) is one line; fewer are listed
 
     def __init__(self, root: Path) -> None:
         self.root = root
         self.items: list[str] = []
+        self._parts: list[tuple[str, str]] = []
 
     def add(self, where: str, what: str) -> None:
-        self.items.append(f"{where}: {what}")
+        self.items.append(f"{where}: {what}" if where else what)
+        self._parts.append((where, what))
+
+    def lines(self) -> list[str]:
+        """The problems grouped: one line per distinct problem, with the frames (etc.) it concerns."""
+        groups: dict[tuple[str, str], tuple[str, str, list[int]]] = {}
+        order: list[tuple[str, str]] = []
+        for where, what in self._parts:
+            m = _NUMBERED.match(where)
+            if m is None:
+                key = (where, what)
+                if key not in groups:
+                    groups[key] = (where, what, [])
+                    order.append(key)
+                continue
+            key = _key(where, what)
+            if key not in groups:
+                groups[key] = (where, what, [])
+                order.append(key)
+            groups[key][2].append(int(m.group(2)))
+        out = []
+        for key in order:
+            where, what, ids = groups[key]
+            if len(set(ids)) < self.GROUP_FROM:  # a few: each as it is
+                out += [f"{w}: {x}" for w, x in self._parts if _NUMBERED.match(w) and _key(w, x) == key] or [
+                    f"{where}: {what}" if where else what
+                ]
+                continue
+            alike = (
+                "" if _DIGITS.search(what) is None else f" (shown for {where}; alike for the other {len(set(ids)) - 1})"
+            )
+            out.append(f"{key[0]}s {group_ids(ids)}: {what}{alike}")
+        return out
 
     def raise_if_any(self) -> None:
         if self.items:
-            lines = self.items[:_MAX_LISTED]
-            more = len(self.items) - len(lines)
-            msg = f"invalid dataset {self.root} ({len(self.items)} problem{'s' if len(self.items) > 1 else ''}):\n  - "
-            msg += "\n  - ".join(lines) + (f"\n  - ... and {more} more" if more else "")
+            lines = self.lines()
+            n = len(self.items)
+            head = f"invalid dataset {self.root} ({n} problem{'s' if n > 1 else ''}): {lines[0]}"
+            rest = lines[1 : 1 + self.MAX_LISTED]
+            more = len(lines) - 1 - len(rest)
+            msg = head + "".join(f"\n  - {ln}" for ln in rest) + (f"\n  - ... and {more} more" if more else "")
             raise MeshsplatError(msg)
 
 
@@ -340,11 +425,7 @@ class AvatarDataset:
 
 def _read_npy_mask(path: Path) -> np.ndarray:
     """Mask ``[H,W,1]`` float32 in [0,1] from an ``.npy`` of 0/1, bool or 0-255 values."""
-    try:
-        a = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise MeshsplatError(f"{path}: cannot read mask array ({exc})") from None
-    a = np.squeeze(np.asarray(a))
+    a = np.squeeze(np.asarray(read_npy(path, "mask array")))
     if a.ndim != 2 or (not np.issubdtype(a.dtype, np.number) and a.dtype != bool):
         raise MeshsplatError(f"{path}: expected a numeric [H,W] mask array, got {a.dtype} {list(a.shape)}")
     a = a.astype(np.float32)
@@ -367,10 +448,17 @@ def _load_canonical(root: Path, rel: str | None, problems: Problems):
             m = cast("trimesh.Trimesh", trimesh.load(p, process=False, force="mesh"))
             v, f = np.asarray(m.vertices), np.asarray(m.faces)
         else:
-            with np.load(p, allow_pickle=False) as z:
-                v, f = z["vertices"], z["faces"]
+            z = read_npz(p, "canonical mesh")
+            missing = [k for k in ("vertices", "faces") if k not in z]
+            if missing:
+                problems.add(rel, f"canonical mesh lacks {missing} (found {sorted(z)})")
+                return None, None
+            v, f = z["vertices"], z["faces"]
+    except MeshsplatError as exc:
+        problems.add(rel, str(exc))
+        return None, None
     except Exception as exc:  # noqa: BLE001 - any unreadable file is one reported problem
-        problems.add(rel, f"cannot read canonical mesh ({exc})")
+        problems.add(rel, f"cannot read canonical mesh ({array_error_text(exc, 'mesh file')})")
         return None, None
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         problems.add(rel, f"expected vertices [V,3] and faces [F,3], got {list(v.shape)} and {list(f.shape)}")
@@ -416,8 +504,7 @@ def open_dataset(
     ``drop_bad_frames`` leaves out the few frames that fail). ``downscale``: read at ``1 / downscale`` of the recorded size
     (:meth:`AvatarDataset.set_downscale`).
     """
-    if allow_outside is None:
-        allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "") == "1"
+    allow_outside = outside_allowed(allow_outside)
     root = Path(path)
     if root.is_file() and root.name == "manifest.json":
         root = root.parent
@@ -446,8 +533,8 @@ def open_dataset(
         raise MeshsplatError(f"{mpath}: 'frames' must be a non-empty list, got {_type_name(frames)}")
 
     problems = Problems(root)
-    rel_canonical = _relative_path(manifest["canonical"], "canonical", "manifest", problems, allow_outside)
-    rel_vertices = _relative_path(manifest["vertices"], "vertices", "manifest", problems, allow_outside)
+    rel_canonical = inside_capture(root, manifest["canonical"], "canonical", "manifest", problems, allow_outside)
+    rel_vertices = inside_capture(root, manifest["vertices"], "vertices", "manifest", problems, allow_outside)
     canonical, faces = _load_canonical(root, rel_canonical, problems)
     verts = None
     vpath = root / rel_vertices if rel_vertices is not None else None
@@ -457,9 +544,9 @@ def open_dataset(
         problems.add(rel_vertices, "posed vertices file is missing")
     else:
         try:
-            verts = np.load(vpath, mmap_mode="r", allow_pickle=False)
-        except Exception as exc:  # noqa: BLE001 - any unreadable file is one reported problem
-            problems.add(rel_vertices, f"cannot read ({exc})")
+            verts = read_npy(vpath, "posed vertices", mmap=True)
+        except MeshsplatError as exc:
+            problems.add(rel_vertices, str(exc))
         if verts is not None and not isinstance(verts, np.ndarray):
             problems.add(rel_vertices, "expected one .npy array [T,V,3]")
             verts = None
@@ -494,14 +581,13 @@ def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: b
     if not isinstance(driver, dict) or not isinstance(driver.get("type"), str):
         problems.add("manifest 'driver'", "must be an object with 'type' and 'params' (file name)")
         return None
-    rel = _relative_path(driver.get("params"), "driver params", "manifest 'driver'", problems, allow_outside)
+    rel = inside_capture(root, driver.get("params"), "driver params", "manifest 'driver'", problems, allow_outside)
     if rel is None:
         return None
     try:
-        with np.load(root / rel, allow_pickle=False) as z:
-            return {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as exc:
-        problems.add(rel, f"cannot read driver parameters ({exc})")
+        return read_npz(root / rel, "driver parameters")
+    except MeshsplatError as exc:
+        problems.add(rel, str(exc))
         return None
 
 
@@ -516,7 +602,7 @@ def build_dataset(
     cache_size: int = 8,
     driver_params: dict | None = None,
     format_name: str = "native",
-    allow_outside: bool = True,
+    allow_outside: bool | None = None,
     drop_bad_frames: bool = False,
 ) -> AvatarDataset:
     """Validate a manifest-shaped description (files relative to ``root``) and open it lazily.
@@ -524,8 +610,9 @@ def build_dataset(
     The one validation path of every reader: ``manifest`` has ``cameras`` (id -> K, viewmat, width,
     height), ``frames`` (records with ``image``, ``camera``, ``mesh``, optional ``mask``/``mask_kind``),
     ``splits`` and ``meta``; ``canonical [V,3]``, ``faces [F,3]``, ``verts [T,V,3]`` are arrays (or
-    None when they failed to load, with the reason already in ``problems``). Readers of other layouts
-    resolve their own paths (``allow_outside`` True); the native manifest keeps paths inside its folder.
+    None when they failed to load, with the reason already in ``problems``). Every path must stay inside
+    ``root`` (:func:`inside_capture`, symlinks resolved) unless ``allow_outside`` (default:
+    ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``), whatever the layout.
     All problems end in one MeshsplatError.
 
     Then the cameras are checked at the door (``data.camera_check``; the masks only with ``check_masks``): a camera that does not see the
@@ -534,6 +621,7 @@ def build_dataset(
     names in ``meta["dropped_frames"]``, splits renumbered).
     """
     problems = problems or Problems(root)
+    allow_outside = outside_allowed(allow_outside)
     frames = manifest["frames"]
     vname = str(manifest.get("vertices", "vertices"))
     if verts is not None and (verts.ndim != 3 or verts.shape[2] != 3):
@@ -692,7 +780,7 @@ def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: boo
 
 
 def _check_frame_files(
-    root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems, allow_outside: bool = True
+    root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems, allow_outside: bool
 ) -> None:
     """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
     kind = rec.get("mask_kind", "png")
@@ -703,7 +791,7 @@ def _check_frame_files(
     if rec.get("mask") is not None and kind != "alpha":
         checks.append(("mask", rec["mask"]))
     for what, value in checks:
-        rel = _relative_path(value, f"{what} path", where, problems, allow_outside)
+        rel = inside_capture(root, value, f"{what} path", where, problems, allow_outside)
         if rel is None:
             return
         p = root / rel
@@ -712,7 +800,7 @@ def _check_frame_files(
             return
         try:
             if what == "mask" and kind == "npy":
-                arr = np.load(p, mmap_mode="r", allow_pickle=False)
+                arr = read_npy(p, "mask array", mmap=True)
                 shape = tuple(int(x) for x in np.squeeze(np.empty(arr.shape, np.uint8)).shape)
                 wh = (shape[1], shape[0]) if len(shape) == 2 else None
                 if wh is None:

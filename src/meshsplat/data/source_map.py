@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 from meshsplat.mesh.geometry import vertex_quaternions
 from meshsplat.mesh.quaternion import quat_to_matrix
 
@@ -66,10 +67,9 @@ def read_source_map(folder: Path | str) -> SourceMap | None:
     if not p.is_file():
         return None
     try:
-        with np.load(p, allow_pickle=False) as z:
-            d = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise MeshsplatError(f"{p}: cannot read the source map ({exc}); delete it to go without") from None
+        d = read_npz(p, "source map")
+    except MeshsplatError as exc:
+        raise MeshsplatError(f"{exc}; delete it to go without") from None
     need = ("source_index", "source_rest", "source_faces", "rotation", "exact")
     if any(k not in d for k in need):
         raise MeshsplatError(f"{p}: source map lacks {[k for k in need if k not in d]}; delete it to go without")

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 from meshsplat._checks import check_tensor
 from meshsplat.drivers.base import as_faces, as_vertices
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 from meshsplat.paths import resolve_input
 
 __all__ = ["BlendshapeDriver", "axis_angle_to_matrix"]
@@ -75,16 +76,10 @@ class BlendshapeDriver:
         p = resolve_input("ict" if path is None else path)
         if not p.is_file():
             raise MeshsplatError(f"blendshape file not found: {p}")
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                missing = [k for k in ("neutral", "faces", "expr_deltas") if k not in z]
-                if missing:
-                    raise MeshsplatError(f"{p}: missing keys {missing}")
-                arrays = {k: z[k] for k in z.files}
-        except MeshsplatError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - not an npz, object arrays (refused, never unpickled), ...
-            raise MeshsplatError(f"{p}: cannot read as a blend-shape .npz ({exc})") from None
+        arrays = read_npz(p, "blend-shape .npz")  # not an npz, object arrays (refused, never unpickled), ...
+        missing = [k for k in ("neutral", "faces", "expr_deltas") if k not in arrays]
+        if missing:
+            raise MeshsplatError(f"{p}: missing keys {missing}")
         if arrays["expr_deltas"].dtype.kind not in "fiu":
             raise MeshsplatError(f"{p}: expr_deltas must be numbers, got {arrays['expr_deltas'].dtype}")
         return cls(

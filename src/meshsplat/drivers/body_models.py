@@ -26,6 +26,7 @@ import torch
 from meshsplat.drivers.base import as_faces
 from meshsplat.drivers.model_files import read_model_file
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 
 __all__ = [
     "MODEL_KINDS",
@@ -532,11 +533,7 @@ def load_driver_params(path: Path | str) -> dict:
     path = Path(path)
     if not path.is_file():
         raise MeshsplatError(f"driver params file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            out = {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001
-        raise MeshsplatError(f"{path}: cannot read driver params ({type(e).__name__}: {e})") from None
+    out = read_npz(path, "driver params")
     bad = [k for k in out if k not in _KNOWN_PARAM_KEYS or out[k].dtype.kind not in "fiu"]
     if bad:
         raise MeshsplatError(f"{path}: unexpected or non-numeric keys {bad} (expected {sorted(_KNOWN_PARAM_KEYS)})")

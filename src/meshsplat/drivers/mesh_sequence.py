@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import npz_keys, read_npz
 from meshsplat.io.obj import read_obj
 from meshsplat.io.ply_mesh import read_ply_mesh
 
@@ -65,10 +66,10 @@ def is_mesh_sequence(path: Path | str) -> bool:
         return any(q.suffix.lower() in (".obj", ".ply") for q in p.iterdir())
     if p.suffix.lower() == ".npz" and p.is_file():
         try:
-            with np.load(p, allow_pickle=False) as z:
-                return "faces" in z.files and "vertices" in z.files
-        except (OSError, ValueError):
+            keys = npz_keys(p)
+        except MeshsplatError:
             return False
+        return "faces" in keys and "vertices" in keys
     return False
 
 
@@ -77,7 +78,7 @@ def _natural(name: str):
 
 
 def _text(z, key: str) -> str | None:
-    if key not in z.files:
+    if key not in z:
         return None
     a = np.asarray(z[key])
     return str(a.reshape(-1)[0]) if a.size else ""
@@ -124,46 +125,47 @@ def _check_up(up, layout: str, where) -> str | None:
 def _read_npz(p: Path) -> MeshSequence:
     L = NPZ_LAYOUT
     try:
-        z = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise MeshsplatError(f"{p}: cannot read as an {L}: {exc}") from None
-    with z:
-        missing = [k for k in ("faces", "vertices") if k not in z.files]
-        if missing:
-            raise MeshsplatError(f"{p}: missing keys {missing} for the {L}; found {sorted(z.files)}")
-        faces, verts = np.asarray(z["faces"]), np.asarray(z["vertices"])
-        if verts.ndim == 2:
-            verts = verts[None]
-        if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
-            raise MeshsplatError(f"{p}: vertices must be [T,V,3] ({L}), got {list(verts.shape)}")
-        v = verts.shape[1]
-        if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer) or len(faces) == 0:
-            raise MeshsplatError(f"{p}: faces must be integer [F,3] ({L}), got {faces.dtype} {list(faces.shape)}")
-        if faces.min() < 0 or faces.max() >= v:
-            raise MeshsplatError(f"{p}: face indices must lie in [0, {v}) ({L}), got [{faces.min()}, {faces.max()}]")
-        if not np.isfinite(verts).all():
-            raise MeshsplatError(f"{p}: vertices contain NaN/Inf ({L})")
-        seq = MeshSequence(faces.astype(np.int64), verts.astype(np.float32), "npz")
-        if "rest" in z.files:
-            rest = np.asarray(z["rest"], np.float32)
-            if rest.shape != (v, 3) or not np.isfinite(rest).all():
-                raise MeshsplatError(f"{p}: rest must be finite [V,3] with V={v} ({L}), got {list(rest.shape)}")
-            seq.rest = rest
-        if "uvs" in z.files:
-            uvs = np.asarray(z["uvs"], np.float32)
-            if uvs.shape != (v, 2):
-                raise MeshsplatError(f"{p}: uvs must be [V,2] with V={v} ({L}), got {list(uvs.shape)}")
-            seq.uvs = uvs
-        if "colors" in z.files:
-            seq.colors = _colors(z["colors"], v, L, p)
-        if "texture" in z.files:
-            seq.texture = _texture(z["texture"], L, p)
-        if "fps" in z.files:
-            seq.fps = float(np.asarray(z["fps"]).reshape(-1)[0])
-        seq.up = _check_up(_text(z, "up"), L, p)
-        seq.attribution = _text(z, "attribution") or ""
-        names = [str(s) for s in np.asarray(z["clip_names"]).reshape(-1)] if "clip_names" in z.files else None
-        seq.clips = _clips(names, z["clip_ranges"] if "clip_ranges" in z.files else [], seq.num_frames, L, p)
+        z = read_npz(p)
+    except MeshsplatError as exc:
+        raise MeshsplatError(f"{exc} (expected an {L})") from None
+    missing = [k for k in ("faces", "vertices") if k not in z]
+    if missing:
+        raise MeshsplatError(f"{p}: missing keys {missing} for the {L}; found {sorted(z)}")
+    faces, verts = np.asarray(z["faces"]), np.asarray(z["vertices"])
+    if verts.ndim == 2:
+        verts = verts[None]
+    if verts.dtype.kind not in "fiu" or faces.dtype.kind not in "iu":
+        raise MeshsplatError(f"{p}: vertices and faces must be numbers ({L}), got {verts.dtype} and {faces.dtype}")
+    if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
+        raise MeshsplatError(f"{p}: vertices must be [T,V,3] ({L}), got {list(verts.shape)}")
+    v = verts.shape[1]
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer) or len(faces) == 0:
+        raise MeshsplatError(f"{p}: faces must be integer [F,3] ({L}), got {faces.dtype} {list(faces.shape)}")
+    if faces.min() < 0 or faces.max() >= v:
+        raise MeshsplatError(f"{p}: face indices must lie in [0, {v}) ({L}), got [{faces.min()}, {faces.max()}]")
+    if not np.isfinite(verts).all():
+        raise MeshsplatError(f"{p}: vertices contain NaN/Inf ({L})")
+    seq = MeshSequence(faces.astype(np.int64), verts.astype(np.float32), "npz")
+    if "rest" in z:
+        rest = np.asarray(z["rest"], np.float32)
+        if rest.shape != (v, 3) or not np.isfinite(rest).all():
+            raise MeshsplatError(f"{p}: rest must be finite [V,3] with V={v} ({L}), got {list(rest.shape)}")
+        seq.rest = rest
+    if "uvs" in z:
+        uvs = np.asarray(z["uvs"], np.float32)
+        if uvs.shape != (v, 2):
+            raise MeshsplatError(f"{p}: uvs must be [V,2] with V={v} ({L}), got {list(uvs.shape)}")
+        seq.uvs = uvs
+    if "colors" in z:
+        seq.colors = _colors(z["colors"], v, L, p)
+    if "texture" in z:
+        seq.texture = _texture(z["texture"], L, p)
+    if "fps" in z:
+        seq.fps = float(np.asarray(z["fps"]).reshape(-1)[0])
+    seq.up = _check_up(_text(z, "up"), L, p)
+    seq.attribution = _text(z, "attribution") or ""
+    names = [str(s) for s in np.asarray(z["clip_names"]).reshape(-1)] if "clip_names" in z else None
+    seq.clips = _clips(names, z.get("clip_ranges", []), seq.num_frames, L, p)
     if seq.fps <= 0 or not np.isfinite(seq.fps):
         raise MeshsplatError(f"{p}: fps must be > 0 ({L}), got {seq.fps}")
     return seq

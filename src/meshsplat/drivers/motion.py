@@ -32,6 +32,7 @@ from meshsplat.drivers.body_models import (
     split_smpl_thetas,
 )
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 from meshsplat.paths import resolve_input
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
@@ -99,6 +100,8 @@ def _body_parts(z: dict, where: str) -> dict:
     else:
         raise MeshsplatError(f"{where}: no body poses found (keys {sorted(z)}); expected {_BODY_LAYOUTS}")
     S = len(out["global_orient"])
+    if S == 0:
+        raise MeshsplatError(f"{where}: the motion has no frames (empty pose arrays); nothing to play")
     for key in ("trans", "transl"):
         if key in z:
             out["transl"] = _f32(z[key], key, where, 3)
@@ -162,6 +165,8 @@ def _flame_from_vhap(z: dict, where: str) -> dict:
         raise MeshsplatError(f"{where}: missing {missing}; expected {_FLAME_LAYOUTS}")
     rot = _f32(z["rotation"], "rotation", where, 3)
     S = len(rot)
+    if S == 0:
+        raise MeshsplatError(f"{where}: the motion has no frames (rotation is empty); nothing to play")
     eyes = _f32(z["eyes_pose"], "eyes_pose", where, 6)
     out = {
         "global_orient": rot,
@@ -188,11 +193,10 @@ def _frame_number(p: Path):
 
 
 def _read_npz(path: Path) -> dict:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001
-        raise MeshsplatError(f"{path}: cannot read the npz ({type(e).__name__}: {e})") from None
+    z = read_npz(path, "motion")
+    if not z:
+        raise MeshsplatError(f"{path}: the motion file holds no arrays (an empty npz)")
+    return z
 
 
 def _flame_folder(folder: Path) -> dict:
@@ -200,6 +204,21 @@ def _flame_folder(folder: Path) -> dict:
     if not files:
         raise MeshsplatError(f"{folder}: no .npz files; expected {_FLAME_LAYOUTS}")
     frames = [_flame_from_vhap(_read_npz(f), str(f)) for f in files]
+    for k in frames[0]:
+        if k == "betas":
+            continue
+        widths: dict[tuple, list[int]] = {}
+        for j, f in enumerate(frames):
+            widths.setdefault(f[k].shape[1:] if k in f else (), []).append(j)
+        if len(widths) > 1:
+            common = max(widths, key=lambda w: len(widths[w]))
+            odd = sorted(j for w, js in widths.items() if w != common for j in js)
+            shown = ", ".join(files[j].name for j in odd[:3]) + (f" and {len(odd) - 3} more" if len(odd) > 3 else "")
+            raise MeshsplatError(
+                f"{folder}: {k} has another shape in {len(odd)} of {len(files)} files ({shown}: "
+                f"{[list(frames[odd[0]][k].shape[1:]) if k in frames[odd[0]] else 'missing']} vs "
+                f"{list(common)} in the others); every file of a sequence needs the same shapes"
+            )
     out = {k: np.concatenate([f[k] for f in frames]) for k in frames[0] if k != "betas"}
     if "betas" in frames[0]:
         out["betas"] = frames[0]["betas"]
@@ -258,6 +277,9 @@ def load_motion(path: Path | str, model: BodyModel) -> dict:
         else:
             params = _body_params(_body_parts(z, where), model.kind)
     params = _fit_width({k: np.asarray(v, np.float32) for k, v in params.items()}, model, where)
+    frames = {k: len(v) for k, v in params.items() if k not in _SHARED and np.ndim(v) >= 1}
+    if not frames or min(frames.values()) == 0:
+        raise MeshsplatError(f"{where}: the motion has no frames (empty arrays {sorted(frames)}); nothing to play")
     try:
         model.check_params(params)
     except MeshsplatError as e:
@@ -274,7 +296,7 @@ def motion_frame_rate(path: Path | str) -> float | None:
     p = Path(path)
     if p.suffix != ".npz" or not p.is_file():
         return None
-    z = _read_npz(p)
+    z = read_npz(p, "motion")
     for k in ("mocap_framerate", "mocap_frame_rate", "fps"):
         if k in z and np.asarray(z[k]).size == 1:
             return float(np.asarray(z[k]).reshape(()))

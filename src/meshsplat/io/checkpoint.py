@@ -12,17 +12,16 @@ that folder and which checkpoint a run is read from is ``meshsplat.run_folder``'
 
 from __future__ import annotations
 
-import contextlib
 import io
 import os
 import pickle
 import re
-import tempfile
 from pathlib import Path
 
 import torch
 
 from meshsplat.errors import MeshsplatError, os_error_text
+from meshsplat.io.atomic import atomic_write
 
 __all__ = [
     "FORMAT_TAG",
@@ -59,19 +58,6 @@ def _check_state(obj, where: str = "state") -> None:
     raise MeshsplatError(f"{where}: type {type(obj).__name__} cannot be stored in a checkpoint{hint}")
 
 
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # e.g. platforms without directory fds
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(path: str | os.PathLike, state: dict, keep_last: int | None = None) -> Path:
     """Write ``state`` atomically to ``path``; with ``keep_last`` prune older ``ckpt_*.pt`` siblings."""
     if not isinstance(state, dict):
@@ -80,25 +66,13 @@ def save_checkpoint(path: str | os.PathLike, state: dict, keep_last: int | None 
     path = Path(path)
     buf = io.BytesIO()  # serialise first: write errors then come from our own write() as OSError
     torch.save({"format": FORMAT_TAG, "version": FORMAT_VERSION, "state": state}, buf)
-    tmp = None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as fh:
+        with atomic_write(path) as fh:
             fh.write(buf.getbuffer())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        if tmp is not None:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise MeshsplatError(
-                f"cannot write checkpoint {path}: {os_error_text(exc)}; earlier checkpoints are untouched"
-            ) from None
-        raise
-    _fsync_dir(path.parent)
+    except OSError as exc:
+        raise MeshsplatError(
+            f"cannot write checkpoint {path}: {os_error_text(exc)}; earlier checkpoints are untouched"
+        ) from None
     remove_stray_tmp(path.parent)
     if keep_last is not None:
         prune_checkpoints(path.parent, keep_last)

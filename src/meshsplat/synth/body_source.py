@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 from meshsplat.paths import asset
 
 __all__ = ["ModelSource", "load_model_source", "rotate_params", "MODEL_SOURCES", "BODY_FPS", "HEAD_FPS"]
@@ -152,11 +153,10 @@ def _appearance(model: BodyModel) -> torch.Tensor | None:
     p = model.path.parent / "appearance.npz"
     if not p.is_file():
         return None
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            c = np.asarray(z["vertex_colors"])
-    except (OSError, ValueError, KeyError) as exc:
-        raise MeshsplatError(f"{p}: cannot read vertex_colors ({exc})") from None
+    z = read_npz(p, "vertex colours")
+    if "vertex_colors" not in z:
+        raise MeshsplatError(f"{p}: cannot read vertex_colors (no such array; found {sorted(z)})")
+    c = z["vertex_colors"]
     if c.ndim != 2 or c.shape[0] != model.num_vertices or c.shape[1] < 3:
         raise MeshsplatError(f"{p}: vertex_colors must be [{model.num_vertices},3], got {list(c.shape)}")
     c = c[:, :3].astype(np.float32)

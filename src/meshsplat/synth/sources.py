@@ -19,6 +19,7 @@ from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, is_mesh_sequence, read_mesh_sequence
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import npz_keys
 from meshsplat.paths import BUNDLED, resolve_input
 from meshsplat.synth.body_source import MODEL_SOURCES, ModelSource, load_model_source
 from meshsplat.synth.sequence_source import SequenceSource
@@ -168,8 +169,7 @@ def load_source(
     if p.is_dir() or p.suffix.lower() in (".npz", ".npy"):
         if is_mesh_sequence(p) or p.is_dir() or p.suffix.lower() == ".npy":
             return SequenceSource(read_mesh_sequence(p), name=str(p))
-        with np.load(p, allow_pickle=False) as z:
-            keys = sorted(z.files)
+        keys = sorted(npz_keys(p))
         if not {"neutral", "faces", "expr_deltas"} <= set(keys):
             raise MeshsplatError(f"{p}: keys {keys} fit no npz layout: the {NPZ_LAYOUT} or the {ICT_LAYOUT}")
         return BlendshapeSource(BlendshapeDriver.from_npz(p))

@@ -128,6 +128,8 @@ class Trainer:
             raise MeshsplatError("config: data (the dataset folder) is not set")
         self.cfg.data = str(Path(self.cfg.data).expanduser().resolve())
         self.cfg.out = str(Path(self.cfg.out).expanduser().resolve())
+        if self.cfg.model_dir:  # absolute, as data: render --motion from another folder finds it
+            self.cfg.model_dir = str(Path(self.cfg.model_dir).expanduser().resolve())
         self.folder = RunFolder(self.cfg.out)
         self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)

@@ -34,6 +34,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
+from meshsplat.io.atomic import write_bytes_atomic, write_text_atomic
 from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
 
 __all__ = [
@@ -399,11 +400,12 @@ def write_viewer_bundle(
             "VIEWER_JS": viewer_js,
         },
     )
-    (out / "avatar.bin").write_bytes(blob)
-    (out / "avatar.json").write_text(header_json + "\n", encoding="utf-8")
-    (out / "viewer.js").write_text(viewer_js, encoding="utf-8")
+    # each file to a temporary name, then renamed: a full disk leaves no truncated page or data
+    write_bytes_atomic(out / "avatar.bin", blob)
+    write_text_atomic(out / "avatar.json", header_json + "\n")
+    write_text_atomic(out / "viewer.js", viewer_js)
     index = out / "index.html"
-    index.write_text(page, encoding="utf-8")
+    write_text_atomic(index, page)
     return index
 
 

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.dataset import AvatarDataset, Problems
+from meshsplat.data.camera_check import group_ids
+from meshsplat.data.dataset import AvatarDataset, Problems, inside_capture
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
@@ -26,6 +27,7 @@ __all__ = [
     "prepare_out",
     "tail_split",
     "has_alpha",
+    "alpha_frames",
     "find_file",
     "obj_vertices",
     "flame_model",
@@ -144,6 +146,41 @@ def has_alpha(path: Path) -> bool:
             return im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
     except (OSError, ValueError):
         return False
+
+
+def _probe_alpha(root: Path, rel: str) -> bool | None:
+    """Whether the image ``rel`` has an alpha channel; None when it is missing, unreadable or outside
+    the capture (those are reported by the dataset's own checks)."""
+    p = root / rel
+    scratch = Problems(root)
+    if inside_capture(root, rel, "image", "", scratch) is None or not p.is_file():
+        return None
+    if p.suffix.lower() in (".jpg", ".jpeg"):
+        return False
+    try:
+        return has_alpha(p)
+    except OSError:
+        return None
+
+
+def alpha_frames(root: Path, images: list[str], problems: Problems, required: bool = False) -> bool:
+    """Whether the frames' images carry the masks in their alpha channel, decided per file: every
+    image RGBA -> True, none -> False. Frames that disagree (some RGB among RGBA images) are one
+    problem naming both groups, never a choice made from the first image; with ``required`` (mask mode
+    'alpha') every image must have an alpha channel."""
+    found = [_probe_alpha(root, rel) for rel in images]
+    with_a = [i for i, a in enumerate(found) if a is True]
+    without = [i for i, a in enumerate(found) if a is False]
+    if (with_a and without) or (required and without):
+        n = len(without)
+        problems.add(
+            "images",
+            f"frame{'s' if n > 1 else ''} {group_ids(without)} {'are' if n > 1 else 'is'} RGB"
+            + (f" but frames {group_ids(with_a)} are RGBA (alpha = mask)" if with_a else " (mask='alpha')")
+            + "; the frames must agree: give every image an alpha channel, or none (masks from a mask "
+            "folder), or choose mask='folder' or 'none'",
+        )
+    return bool(with_a) and (not without or required)
 
 
 def find_file(root: Path, rel: str, exts=IMAGE_EXTS) -> str | None:

@@ -15,8 +15,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from meshsplat.camera import K_from_focal, K_from_integer_centers, K_from_normalized, K_to_integer_centers
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
 from meshsplat.data.formats._heads import (
+    alpha_frames,
     check_in_front,
     find_file,
     fit_coeffs,
@@ -24,7 +25,6 @@ from meshsplat.data.formats._heads import (
     flame_model,
     flame_rows,
     frame_pixels,
-    has_alpha,
     mask_choice,
     pose_model,
     prepare_out,
@@ -138,10 +138,12 @@ def read(
     check_masks: bool = True,
     cache_size: int = 8,
     drop_bad_frames: bool = False,
+    allow_outside: bool | None = None,
 ) -> AvatarDataset:
     """Open an IMavatar folder. ``test_frames``: how many final frames are test frames (default: 350, or
     the last 20% of captures with <= 350 frames); ``mask``: auto | alpha | folder | none;
-    ``flame_version``: default the file's ``flame_version`` key, else "2020" (DECA's FLAME)."""
+    ``flame_version``: default the file's ``flame_version`` key, else "2020" (DECA's FLAME); ``allow_outside``:
+    let ``file_path`` name images outside the folder (default: ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``)."""
     root = Path(root)
     mask = mask_choice(mask)
     data = read_json(root / "flame_params.json")
@@ -177,7 +179,15 @@ def read(
     if len(lengths) > 1:
         problems.add("flame_params.json", f"expression vectors differ in length between frames ({sorted(lengths)})")
 
-    first = next((root / r for r in images if (root / r).is_file()), None)
+    scratch = Problems(root)  # outside images are reported by build_dataset, with every other frame file
+    first = next(
+        (
+            root / r
+            for r in images
+            if inside_capture(root, r, "image", "", scratch, allow_outside) and (root / r).is_file()
+        ),
+        None,
+    )
     if first is None:
         problems.add("image/", "no frame image found (looked for image/<k>.png and images/<k>.png)")
         problems.raise_if_any()
@@ -189,7 +199,7 @@ def read(
     except MeshsplatError as exc:
         problems.add("flame_params.json", str(exc))
 
-    kind = _mask_kind(root, mask, first)
+    kind = _mask_kind(root, mask, images, problems)
     cameras, frames = {}, []
     for j, (name, rel, vm) in enumerate(zip(names, images, viewmats, strict=True)):
         cameras[name] = {
@@ -264,14 +274,17 @@ def read(
         drop_bad_frames=drop_bad_frames,
         driver_params=params,
         format_name=NAME,
+        allow_outside=allow_outside,
     )
 
 
-def _mask_kind(root: Path, mode: str, first: Path) -> str:
-    """``alpha`` (images are RGBA), ``folder`` (mask/ next to image/) or ``none``."""
+def _mask_kind(root: Path, mode: str, images: list[str], problems: Problems) -> str:
+    """``alpha`` (images are RGBA, every one: decided per file), ``folder`` (mask/ next to image/) or ``none``."""
     folder = (root / "mask").is_dir() or (root / "masks").is_dir()
+    if mode == "alpha":
+        alpha_frames(root, images, problems, required=True)
     if mode == "auto":
-        return "alpha" if has_alpha(first) else ("folder" if folder else "none")
+        return "alpha" if alpha_frames(root, images, problems) else ("folder" if folder else "none")
     if mode == "folder" and not folder:
         raise MeshsplatError(f"{root}: mask='folder' but there is no mask/ folder")
     return mode

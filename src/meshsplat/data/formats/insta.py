@@ -17,12 +17,12 @@ from typing import Any, cast
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
 from meshsplat.data.formats._heads import (
+    alpha_frames,
     check_in_front,
     find_file,
     frame_pixels,
-    has_alpha,
     mask_choice,
     merge_transform_frames,
     obj_vertices,
@@ -93,12 +93,14 @@ def read(
     check_masks: bool = True,
     cache_size: int = 8,
     drop_bad_frames: bool = False,
+    allow_outside: bool | None = None,
 ) -> AvatarDataset:
     """Open an INSTA folder. ``camera_convention``: auto (OpenGL when the frames carry VHAP's
     ``timestep_index``, else INSTA's OpenCV) | opencv | opengl; ``mask``: auto (per-frame ``mask_path`` /
     ``fg_mask_path``, else RGBA alpha, else a masks/, mask/ or fg_masks/ folder) | alpha | folder | none;
     ``test_frames``: only for a folder without split files (default: last 350, or 20% when <= 350 frames).
-    ``model_dir`` is not needed (the meshes are stored)."""
+    ``model_dir`` is not needed (the meshes are stored); ``allow_outside``: let the JSON name files outside the
+    folder (default: ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``)."""
     root = Path(root)
     mask = mask_choice(mask)
     if camera_convention not in CONVENTIONS:
@@ -165,7 +167,7 @@ def read(
         frames.append(rec)
 
     kind = _assign_masks(root, mask, frames, problems)
-    canonical, faces, verts = _meshes(root, mesh_paths, problems)
+    canonical, faces, verts = _meshes(root, mesh_paths, problems, allow_outside)
     hint = (
         "INSTA's transform_matrix is camera->world in OpenCV axes, VHAP's in OpenGL axes; pass "
         f"camera_convention='{'opengl' if convention == 'opencv' else 'opencv'}' if this capture uses the other"
@@ -196,6 +198,7 @@ def read(
         cache_size=cache_size,
         drop_bad_frames=drop_bad_frames,
         format_name=NAME,
+        allow_outside=allow_outside,
     )
 
 
@@ -212,8 +215,10 @@ def _assign_masks(root: Path, mode: str, frames: list[dict], problems: Problems)
             r.pop("mask", None)
         return "none"
     explicit = all("mask" in r for r in frames)
-    first = root / frames[0]["image"]
-    if mode == "alpha" or (mode == "auto" and not explicit and first.is_file() and has_alpha(first)):
+    images = [r["image"] for r in frames]
+    if mode == "alpha":
+        alpha_frames(root, images, problems, required=True)
+    if mode == "alpha" or (mode == "auto" and not explicit and alpha_frames(root, images, problems)):
         for r in frames:
             r.pop("mask", None)
             r["mask_kind"] = "alpha"
@@ -240,10 +245,17 @@ def _assign_masks(root: Path, mode: str, frames: list[dict], problems: Problems)
     return "folder"
 
 
-def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems):
+def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems, allow_outside: bool | None):
     """Canonical ``[V,3]``, faces ``[F,3]`` and every frame's vertices ``[T,V,3]`` (None on failure)."""
     canon_path = root / "canonical.obj"
-    ref = canon_path if canon_path.is_file() else (root / mesh_paths[0][0] if mesh_paths else None)
+    first = mesh_paths[0][0] if mesh_paths else None
+    if (
+        first is not None
+        and not canon_path.is_file()
+        and inside_capture(root, first, "mesh", mesh_paths[0][1], problems, allow_outside) is None
+    ):
+        return None, None, None
+    ref = canon_path if canon_path.is_file() else (root / first if first is not None else None)
     if ref is None or not ref.is_file():
         problems.add("canonical.obj", "missing (and no frame mesh to take the topology from)")
         return None, None, None
@@ -257,6 +269,9 @@ def _meshes(root: Path, mesh_paths: list[tuple[str, str]], problems: Problems):
     verts = np.empty((len(mesh_paths), V, 3), np.float32)
     ok = True
     for r, (rel, where) in enumerate(mesh_paths):
+        if inside_capture(root, rel, "mesh", where, problems, allow_outside) is None:
+            ok = False
+            continue
         p = root / rel
         if not p.is_file():
             problems.add(where, f"mesh {rel} is missing")

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from meshsplat.camera import viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
 from meshsplat.data.formats._heads import IMAGE_EXTS, find_file, read_json
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, read_mesh_sequence
@@ -125,9 +125,12 @@ def read(
     check_masks: bool = True,
     cache_size: int = 8,
     drop_bad_frames: bool = False,
+    allow_outside: bool | None = None,
     **options: Any,
 ) -> AvatarDataset:
-    """Open the folder (see the module docstring); every problem in one error naming the layout."""
+    """Open the folder (see the module docstring); every problem in one error naming the layout.
+    ``allow_outside``: let cameras.json name files outside the folder, and the mesh sequence be a link out
+    of it (default: ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``)."""
     root = Path(root)
     if options:
         raise MeshsplatError(f"{NAME}: unknown options {sorted(options)}")
@@ -136,6 +139,8 @@ def read(
     if mpath is None:
         raise MeshsplatError(f"{root}: no mesh sequence ({', '.join(MESH_NAMES)}) for the {_L}")
     problems = Problems(root)
+    if inside_capture(root, mpath.name, "mesh sequence", mpath.name, problems, allow_outside) is None:
+        problems.raise_if_any()
     cams_in = doc.get("cameras")
     if not isinstance(cams_in, dict) or not cams_in:
         raise MeshsplatError(
@@ -187,6 +192,7 @@ def read(
         cache_size=cache_size,
         drop_bad_frames=drop_bad_frames,
         format_name=NAME,
+        allow_outside=allow_outside,
     )
 
 

@@ -31,6 +31,7 @@ from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
+from meshsplat.io.arrays import read_npz
 
 __all__ = [
     "NAME",
@@ -243,10 +244,9 @@ def _range_dict(r: range) -> dict:
 
 def _npz(path: Path, problems: Problems) -> dict | None:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, EOFError) as exc:
-        problems.add(path.name, f"cannot read ({exc})")
+        return read_npz(path)
+    except MeshsplatError as exc:
+        problems.add(path.name, str(exc))
         return None
 
 

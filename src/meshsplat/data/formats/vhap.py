@@ -16,8 +16,10 @@ from typing import Any, cast
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.camera_check import group_ids
+from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
 from meshsplat.data.formats._heads import (
+    alpha_frames,
     check_in_front,
     find_file,
     fit_coeffs,
@@ -25,7 +27,6 @@ from meshsplat.data.formats._heads import (
     flame_model,
     flame_rows,
     frame_pixels,
-    has_alpha,
     mask_choice,
     merge_transform_frames,
     pose_model,
@@ -34,6 +35,7 @@ from meshsplat.data.formats._heads import (
     write_json,
 )
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]
 
@@ -87,11 +89,15 @@ def _load_frames(root: Path, problems: Problems):
 
 def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
     try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: np.asarray(z[k], np.float64) for k in z.files}
-    except (OSError, ValueError) as exc:
-        problems.add(where, f"cannot read {path.name} ({exc})")
+        raw = read_npz(path, "FLAME parameters")
+    except MeshsplatError as exc:
+        problems.add(where, str(exc))
         return None
+    bad_kind = [k for k, a in raw.items() if a.dtype.kind not in "fiub"]
+    if bad_kind:
+        problems.add(where, f"{path.name}: {bad_kind} are not numbers")
+        return None
+    d = {k: a.astype(np.float64) for k, a in raw.items()}
     missing = [k for k in (*_KEYS, "shape") if k not in d]
     if missing:
         problems.add(where, f"{path.name} lacks {missing}")
@@ -129,10 +135,12 @@ def read(
     check_masks: bool = True,
     cache_size: int = 8,
     drop_bad_frames: bool = False,
+    allow_outside: bool | None = None,
 ) -> AvatarDataset:
     """Open a GaussianAvatars/VHAP folder. ``flame_version``: default the transforms' ``flame_version`` key,
     else "2023" (VHAP's default); ``mask``: auto (``fg_mask_path``, else RGBA alpha, else ``fg_masks/``) |
-    alpha | folder | none; ``ignore_dynamic_offset``: pose without VHAP's per-frame offsets."""
+    alpha | folder | none; ``ignore_dynamic_offset``: pose without VHAP's per-frame offsets; ``allow_outside``:
+    let the JSON name files outside the folder (default: ``MESHSPLAT_ALLOW_OUTSIDE_FILES=1``)."""
     root = Path(root)
     mask = mask_choice(mask)
     problems = Problems(root)
@@ -148,7 +156,6 @@ def read(
     cam_key: dict[tuple, str] = {}
     frames: list[dict] = []
     steps: dict[int, str] = {}
-    first_image = None
     for i, (fr, top, fname) in enumerate(items):
         where = f"frame {i} ({fname})"
         if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
@@ -172,14 +179,12 @@ def read(
         if steps.setdefault(t, fp) != fp:
             problems.add(where, f"timestep {t} has two FLAME files ({steps[t]} and {fp})")
         image = find_file(root, fr["file_path"]) or fr["file_path"]
-        if first_image is None and (root / image).is_file():
-            first_image = root / image
         rec = {"name": Path(image).stem, "image": image, "camera": cam_key[key], "mesh": t}
         if fr.get("fg_mask_path"):
             rec["mask"] = find_file(root, fr["fg_mask_path"]) or fr["fg_mask_path"]
         frames.append(rec)
 
-    kind = _mask_kind(root, mask, frames, first_image)
+    kind = _mask_kind(root, mask, frames, problems)
     for rec in frames:
         if kind == "alpha":
             rec.pop("mask", None)
@@ -195,6 +200,9 @@ def read(
         rec["mesh"] = row_of[rec["mesh"]]
     loaded: list[dict | None] = []
     for t in timesteps:
+        if inside_capture(root, steps[t], "FLAME parameter file", f"timestep {t}", problems, allow_outside) is None:
+            loaded.append(None)
+            continue
         path = root / steps[t]
         if not path.is_file():
             problems.add(f"timestep {t}", f"FLAME parameter file {steps[t]} is missing")
@@ -203,7 +211,7 @@ def read(
         loaded.append(_npz(path, f"timestep {t}", problems, V))
     verts = canonical = faces = params = None
     if model is not None and loaded and all(p is not None for p in loaded):
-        params = _params(cast("list[dict]", loaded), model, problems, ignore_dynamic_offset)
+        params = _params(cast("list[dict]", loaded), timesteps, model, problems, ignore_dynamic_offset)
         if params is not None:
             verts = pose_model(model, params)
             shared = {k: params[k] for k in ("betas", "static_offset") if k in params}
@@ -237,14 +245,18 @@ def read(
         drop_bad_frames=drop_bad_frames,
         driver_params=params,
         format_name=NAME,
+        allow_outside=allow_outside,
     )
 
 
-def _mask_kind(root: Path, mode: str, frames: list[dict], first_image: Path | None) -> str:
+def _mask_kind(root: Path, mode: str, frames: list[dict], problems: Problems) -> str:
+    images = [r["image"] for r in frames]
+    if mode == "alpha":
+        alpha_frames(root, images, problems, required=True)
     if mode == "auto":
         if frames and all("mask" in r for r in frames):
             return "file"
-        if first_image is not None and has_alpha(first_image):
+        if alpha_frames(root, images, problems):
             return "alpha"
         return "folder" if (root / "fg_masks").is_dir() else "none"
     if mode == "folder":
@@ -252,7 +264,9 @@ def _mask_kind(root: Path, mode: str, frames: list[dict], first_image: Path | No
     return mode
 
 
-def _params(loaded: list[dict], model, problems: Problems, ignore_dynamic_offset: bool) -> dict | None:
+def _params(
+    loaded: list[dict], timesteps: list[int], model, problems: Problems, ignore_dynamic_offset: bool
+) -> dict | None:
     shape0 = loaded[0]["shape"]
     if any(p["shape"].shape != shape0.shape or not np.allclose(p["shape"], shape0) for p in loaded):
         problems.add("flame_param/", "'shape' differs between timesteps; meshsplat needs one subject shape")
@@ -269,6 +283,21 @@ def _params(loaded: list[dict], model, problems: Problems, ignore_dynamic_offset
             "pass ignore_dynamic_offset=True to pose without it",
         )
         return None
+    for k in _KEYS:  # one file with another shape among many: name the timesteps, never a numpy traceback
+        by_shape: dict[tuple, list[int]] = {}
+        for t, p in zip(timesteps, loaded, strict=True):
+            by_shape.setdefault(p[k].shape, []).append(t)
+        if len(by_shape) > 1:
+            common = max(by_shape, key=lambda sh: len(by_shape[sh]))
+            odd = [t for sh, ts in by_shape.items() if sh != common for t in ts]
+            other = next(sh for sh in by_shape if sh != common)
+            problems.add(
+                "flame_param/",
+                f"{k} has shape {list(other)} in timestep{'s' if len(odd) > 1 else ''} {group_ids(odd)} "
+                f"but {list(common)} in the other "
+                f"{len(by_shape[common])}; every timestep needs the same shape",
+            )
+            return None
     stack = lambda k: np.stack([p[k] for p in loaded])  # noqa: E731
     eyes = stack("eyes_pose")
     params = {
