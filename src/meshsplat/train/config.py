@@ -125,6 +125,10 @@ class LossConfig:
     lambda_mse: float = 0.0
     lambda_ssim: float = 0.0
     lambda_mask: float = 0.0  # L1 between the rendered alpha and the ground-truth mask (frames with masks)
+    # LPIPS and D-SSIM on the box around the subject (mask bbox union rendered-alpha bbox, plus crop_margin,
+    # sides rounded up to multiples of 32 px), times its area share; L1/MSE stay full-frame. The paper: false.
+    crop_to_subject: bool = False
+    crop_margin: float = 0.05  # crop_to_subject: margin on every side, a fraction of the image's larger side
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -224,6 +228,7 @@ class TrainConfig:
             (self.model.sh_frame in SH_FRAMES, f"model.sh_frame: {'|'.join(SH_FRAMES)}"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
+            (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
             (self.optim.uv_lr_units in UV_LR_UNITS, f"optim.uv_lr_units: {'|'.join(UV_LR_UNITS)}"),
             (self.background in TRAIN_BACKGROUNDS, f"background: {'|'.join(TRAIN_BACKGROUNDS)}"),
