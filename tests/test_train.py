@@ -135,7 +135,7 @@ def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
     box = subject_crop(mask, None, full.cfg.loss.crop_margin)
     assert box is not None and box.area_fraction < 0.5  # the crop really is a crop here
     full.train()
-    off = Trainer(small_config(ds, tmp_path / "off", 10, ["checkpoint_every=5"]))
+    off = Trainer(small_config(ds, tmp_path / "off", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]))
     off.train()
     assert full.history[0]["l1"] == off.history[0]["l1"]  # same first render: L1 stays full-frame
     assert full.history[0]["lpips"] != off.history[0]["lpips"]  # the perceptual term is on the crop
@@ -148,7 +148,10 @@ def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
     assert [r["loss"] for r in full.history[5:]] == [r["loss"] for r in res.history]
     with pytest.raises(MeshsplatError, match=r"loss\.crop_to_subject"):  # not a change a resume may make
-        Trainer(small_config(ds, tmp_path / "resumed", 10, ["checkpoint_every=5"]), resume=True)
+        Trainer(
+            small_config(ds, tmp_path / "resumed", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]),
+            resume=True,
+        )
 
 
 def test_older_run_folder_resumes_bit_exact(tiny_dataset, tmp_path):
