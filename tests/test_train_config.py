@@ -103,6 +103,9 @@ def test_old_run_config_is_upgraded(tmp_path):
 def test_validate_and_bad_files(tmp_path):
     with pytest.raises(MeshsplatError, match="scale_mode"):
         apply_overrides(TrainConfig(), ["model.scale_mode=cube"]).validate()
+    for margin in ("-0.1", "1.5"):
+        with pytest.raises(MeshsplatError, match=r"loss\.crop_margin must be in"):
+            apply_overrides(TrainConfig(), [f"loss.crop_margin={margin}"]).validate()
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(MeshsplatError, match="not valid JSON"):
         load_config(tmp_path / "bad.json")

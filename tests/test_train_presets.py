@@ -11,7 +11,13 @@ from meshsplat.demo import PRESETS as DEMO_SIZES
 from meshsplat.demo import demo_train_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.train import DEFAULT_PRESET, PRESETS, TrainConfig, apply_overrides, load_config, preset_config
-from meshsplat.train.config import CONFIG_FORMAT, CONFIG_VERSION, VERSION_1_DEFAULTS, upgrade_config_dict
+from meshsplat.train.config import (
+    CONFIG_FORMAT,
+    CONFIG_VERSION,
+    VERSION_1_DEFAULTS,
+    VERSION_2_DEFAULTS,
+    upgrade_config_dict,
+)
 from meshsplat.train.presets import preset_differences, preset_overrides
 
 
@@ -20,6 +26,7 @@ def test_quality_is_the_default_preset():
     assert preset_config() == preset_config("quality") == TrainConfig()
     q = TrainConfig()
     assert (q.model.shading, q.model.init_color_frames, q.optim.lr_color) == ("sh2", 8, 1e-2)
+    assert q.loss.crop_to_subject
 
 
 def test_paper_preset_is_the_published_method():
@@ -46,6 +53,7 @@ def test_paper_preset_is_the_published_method():
         10.0,
     )
     assert (los.lambda_mse, los.lambda_ssim, los.lambda_mask) == (0.0, 0.0, 0.0)
+    assert not los.crop_to_subject  # LPIPS on the full frame
     # the 30k-iteration schedule: densify 600..15000 every 100, opacity reset every 3000
     s = c.strategy
     assert c.iterations == 30_000 and s.enabled
@@ -74,6 +82,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "model.shading='none' (the quality preset's: 'sh2')",
         "model.init_color_frames=1 (the quality preset's: 8)",
         "optim.lr_color=0.0025 (the quality preset's: 0.01)",
+        "loss.crop_to_subject=False (the quality preset's: True)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -82,13 +91,20 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in VERSION_1_DEFAULTS} == VERSION_1_DEFAULTS
+    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS):
+        assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
 
 
 # The demo's TrainConfig before training presets existed (hand-coded from demo.py of that time): the defaults
 # were the paper's, then the sizes' schedule, then QUALITY_OVERRIDES unless quality=False.
-_OLD_DEFAULTS = ["model.shading=none", "model.init_color_frames=1", "optim.lr_color=2.5e-3"]
-_OLD_QUALITY = ["model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2"]
+_OLD_DEFAULTS = [
+    "model.shading=none",
+    "model.init_color_frames=1",
+    "optim.lr_color=2.5e-3",
+    "loss.crop_to_subject=false",
+]
+# plus the LPIPS crop, on in the quality preset since config version 3
+_OLD_QUALITY = ["model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2", "loss.crop_to_subject=true"]
 _OLD_SCHEDULES = {
     "default": [
         "strategy.refine_start_iter=300",
@@ -133,11 +149,11 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 2)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 3)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 2, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 3, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
         preset_config("paper"), ["seed=5"]
@@ -164,10 +180,27 @@ def test_config_without_version_is_read_as_older_meshsplat_wrote_it(tmp_path):
     assert "version" not in upgrade_config_dict({"version": 2, "seed": 1})
 
 
+def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
+    # written before loss.crop_to_subject was on by default (a run folder, or a partial file of version 2)
+    old = preset_config("quality").to_dict()
+    del old["loss"]["crop_to_subject"]
+    (tmp_path / "config.json").write_text(json.dumps({"version": 2, **old}))
+    got = load_config(tmp_path / "config.json")
+    assert not got.loss.crop_to_subject
+    assert got == apply_overrides(preset_config("quality"), ["loss.crop_to_subject=false"])
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 2, "seed": 5}))
+    assert not load_config(tmp_path / "partial.json").loss.crop_to_subject
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 3, "seed": 5}))
+    assert load_config(tmp_path / "partial.json").loss.crop_to_subject
+    # a version-2 dict that sets it keeps its value; an unversioned one (version 1) gets the paper's
+    assert TrainConfig.from_dict({"version": 2, "loss": {"crop_to_subject": True}}).loss.crop_to_subject
+    assert not TrainConfig.from_dict({"seed": 1}).loss.crop_to_subject
+
+
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 3}, r"^config: format version 3 is newer than this meshsplat reads \(2\); update meshsplat"),
+        ({"version": 4}, r"^config: format version 4 is newer than this meshsplat reads \(3\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

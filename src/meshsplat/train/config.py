@@ -10,6 +10,7 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 ``quality`` preset; ``meshsplat.train.presets`` also has ``paper``, the published method.
 
 ``config.json`` carries ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION}`` beside the keys.
+A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -52,6 +53,7 @@ __all__ = [
     "CONFIG_FORMAT",
     "CONFIG_VERSION",
     "VERSION_1_DEFAULTS",
+    "VERSION_2_DEFAULTS",
     "config_version",
 ]
 
@@ -65,10 +67,13 @@ RENAMED_KEYS = {
 }
 CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 1: no "format"/"version" fields (older meshsplat; defaults were the paper's). 2: the quality defaults.
-CONFIG_VERSION = 2
+# 3: loss.crop_to_subject on by default (docs/quality.md, "Losses where the subject is").
+CONFIG_VERSION = 3
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
+# Keys whose default changed since version 2, with their version-2 value (a version-1 dict gets them too).
+VERSION_2_DEFAULTS = {"loss.crop_to_subject": False}
 
 
 @dataclass
@@ -125,6 +130,10 @@ class LossConfig:
     lambda_mse: float = 0.0
     lambda_ssim: float = 0.0
     lambda_mask: float = 0.0  # L1 between the rendered alpha and the ground-truth mask (frames with masks)
+    # LPIPS and D-SSIM on the box around the subject (mask bbox union rendered-alpha bbox, plus crop_margin,
+    # sides rounded up to multiples of 32 px), times its area share; L1/MSE stay full-frame. The paper (preset): false.
+    crop_to_subject: bool = True
+    crop_margin: float = 0.05  # crop_to_subject: margin on every side, a fraction of the image's larger side
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -224,6 +233,7 @@ class TrainConfig:
             (self.model.sh_frame in SH_FRAMES, f"model.sh_frame: {'|'.join(SH_FRAMES)}"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
+            (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
             (self.optim.uv_lr_units in UV_LR_UNITS, f"optim.uv_lr_units: {'|'.join(UV_LR_UNITS)}"),
             (self.background in TRAIN_BACKGROUNDS, f"background: {'|'.join(TRAIN_BACKGROUNDS)}"),
@@ -430,7 +440,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
 
     Version 1 (no "version" field; older meshsplat, whose defaults were the paper's): each key of
     ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
-    version (or an older partial file) keeps its meaning under today's defaults.
+    version (or an older partial file) keeps its meaning under today's defaults. Versions 1 and 2
+    likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -444,7 +455,9 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     version = config_version(d)
     d = {k: v for k, v in d.items() if k not in ("format", "version")}
     if version == 1:
-        d = _with_version_1_defaults(d)
+        d = _with_defaults(d, VERSION_1_DEFAULTS)
+    if version <= 2:
+        d = _with_defaults(d, VERSION_2_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])
@@ -468,10 +481,10 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     return {**d, "strategy": st}
 
 
-def _with_version_1_defaults(d: dict) -> dict:
-    """``d`` with each ``VERSION_1_DEFAULTS`` key it does not set (and whose section is a dict or absent) set."""
+def _with_defaults(d: dict, defaults: dict[str, Any]) -> dict:
+    """``d`` with each key of ``defaults`` it does not set (and whose section is a dict or absent) set."""
     out = dict(d)
-    for key, value in VERSION_1_DEFAULTS.items():
+    for key, value in defaults.items():
         section, name = key.split(".")
         sec = out.get(section, {})
         if isinstance(sec, dict) and name not in sec:

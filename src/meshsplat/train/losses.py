@@ -10,12 +10,21 @@ bodies about 1.7 m tall. In A-pose such a body has a bounding-box diagonal of ab
 2.0 m (height 1.7, arm span about 1.0, depth about 0.3), so we express the threshold as
 ``0.008 / 2.0 = 0.004`` of the mesh bounding-box diagonal
 (:data:`SCALE_THRESH_FRACTION`); :func:`scale_threshold` turns that into scene units.
+
+Losses where the subject is. :func:`subject_crop` gives the box around the subject (the union of
+the ground-truth mask's bounding box and the rendered alpha's, plus a margin, each side rounded up
+to a multiple of :data:`CROP_BUCKET` pixels and placed inside the image); with ``crop=`` given,
+:func:`avatar_loss` computes the perceptual term (LPIPS) and D-SSIM on that box only, times the
+box's share of the image area, so the term keeps the scale of its full-frame value (outside the
+subject render and ground truth are the same background and add about nothing to the spatial mean).
+L1, MSE and the scale regulariser stay on the whole frame.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -39,6 +48,10 @@ __all__ = [
     "SCALE_RATIO_THRESH",
     "SUBSTITUTE_L1_WEIGHT",
     "SUBSTITUTE_DSSIM_WEIGHT",
+    "CropBox",
+    "subject_crop",
+    "CROP_BUCKET",
+    "CROP_ALPHA_MIN",
 ]
 
 
@@ -48,6 +61,87 @@ SCALE_RATIO_THRESH = 10.0
 SUBSTITUTE_L1_WEIGHT = 0.8
 SUBSTITUTE_DSSIM_WEIGHT = 0.2
 LPIPS_MIN_SIDE = 32
+CROP_BUCKET = 32  # crop sides are multiples of this (few LPIPS input shapes), or the image side
+CROP_ALPHA_MIN = 1.0 / 255.0  # a rendered pixel counts as covered above this alpha
+
+
+class CropBox(NamedTuple):
+    """Pixel box ``[y0, y0 + h) x [x0, x0 + w)`` inside an image of ``height x width``."""
+
+    y0: int
+    x0: int
+    h: int
+    w: int
+    height: int
+    width: int
+
+    @property
+    def area_fraction(self) -> float:
+        """The box's share of the image area (1.0 for the full frame)."""
+        return (self.h * self.w) / float(self.height * self.width)
+
+    @property
+    def full(self) -> bool:
+        return self.h == self.height and self.w == self.width
+
+    def __call__(self, image: torch.Tensor) -> torch.Tensor:
+        """``image [..., H, W, C]`` cut to the box."""
+        return image[..., self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w, :]
+
+
+def _bbox(cover: torch.Tensor) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1) inclusive bounds of the true pixels of ``cover [H,W]``; None when none."""
+    rows = torch.nonzero(cover.any(dim=1)).flatten()
+    if rows.numel() == 0:
+        return None
+    cols = torch.nonzero(cover.any(dim=0)).flatten()
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
+def _bucketed(lo: int, hi: int, margin: int, size: int, bucket: int) -> tuple[int, int]:
+    """(start, length) of the span ``[lo - margin, hi + margin]`` grown to a multiple of ``bucket``
+    (at most ``size``) around its centre, shifted inside ``[0, size)``."""
+    need = hi - lo + 1 + 2 * margin
+    side = min(size, -(-need // bucket) * bucket)
+    start = (lo + hi + 1 - side) // 2
+    return min(max(start, 0), size - side), side
+
+
+def subject_crop(
+    mask: torch.Tensor | None,
+    alpha: torch.Tensor | None = None,
+    margin: float = 0.05,
+    bucket: int = CROP_BUCKET,
+    alpha_min: float = CROP_ALPHA_MIN,
+) -> CropBox | None:
+    """The box the image losses look at: where the subject is, or None (the full frame).
+
+    mask: ground-truth ``[H,W]`` / ``[H,W,1]`` (subject where > 0.5); alpha: the render's ``[H,W]`` /
+    ``[H,W,1]`` (covered where > ``alpha_min``), so Gaussians outside the mask are inside the box
+    too. The union of both bounding boxes grows by ``margin`` x the larger image side on every side;
+    each side is then rounded up to a multiple of ``bucket`` pixels (clamped to the image side),
+    centred on the union and shifted inside the image. None when there is no mask or nothing is
+    covered: the caller uses the full frame.
+    """
+    if mask is None:
+        return None
+    m = mask.detach().reshape(mask.shape[0], mask.shape[1], -1)[..., 0] > 0.5
+    height, width = m.shape
+    boxes = [_bbox(m)]
+    if alpha is not None:
+        a = alpha.detach().reshape(alpha.shape[0], alpha.shape[1], -1)[..., 0]
+        if a.shape != m.shape:
+            raise MeshsplatError(f"alpha: expected {height}x{width} like the mask, got {list(alpha.shape)}")
+        boxes.append(_bbox(a > alpha_min))
+    found = [b for b in boxes if b is not None]
+    if not found:
+        return None
+    y_lo, y_hi = min(b[0] for b in found), max(b[1] for b in found)
+    x_lo, x_hi = min(b[2] for b in found), max(b[3] for b in found)
+    pad = max(0, round(float(margin) * max(height, width)))
+    y0, h = _bucketed(y_lo, y_hi, pad, height, bucket)
+    x0, w = _bucketed(x_lo, x_hi, pad, width, bucket)
+    return CropBox(y0, x0, h, w, height, width)
 
 
 def _pair(render: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -179,6 +273,7 @@ def avatar_loss(
     lambda_mse: float = 0.0,
     lambda_dssim: float = 0.0,
     perceptual: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    crop: CropBox | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """``L1 + λ_lpips·LPIPS + λ_scale·L_scale (+ λ_mse·MSE + λ_dssim·D-SSIM)``.
 
@@ -187,6 +282,9 @@ def avatar_loss(
     :func:`make_perceptual_loss` ("alex", falling back to L1+D-SSIM). Returns the total and
     a dict of the weighted-free parts (detached): ``l1``, ``lpips``, ``scale``, ``mse``,
     ``dssim`` (only those with a non-zero weight) and ``total``.
+
+    ``crop`` (:func:`subject_crop`): LPIPS and D-SSIM on that box only, each times the box's
+    ``area_fraction`` (the reported parts are these scaled values); None: the full frame.
     """
     global _DEFAULT_PERCEPTUAL
     a, b = _pair(render, gt)
@@ -202,13 +300,18 @@ def avatar_loss(
 
     add("l1", lambda_l1, lambda: (a - b).abs().mean())
     add("mse", lambda_mse, lambda: (a - b).pow(2).mean())
-    add("dssim", lambda_dssim, lambda: d_ssim(a, b))
+    ca, cb, share = a, b, 1.0
+    if crop is not None and not crop.full:
+        if (crop.height, crop.width) != tuple(a.shape[1:3]):
+            raise MeshsplatError(f"crop: made for {crop.height}x{crop.width} images, got {list(a.shape[1:3])}")
+        ca, cb, share = crop(a), crop(b), crop.area_fraction
+    add("dssim", lambda_dssim, lambda: share * d_ssim(ca, cb))
     if lambda_lpips:
         if perceptual is None:
             if _DEFAULT_PERCEPTUAL is None:
                 _DEFAULT_PERCEPTUAL = make_perceptual_loss("alex")
             perceptual = _DEFAULT_PERCEPTUAL
-        add("lpips", lambda_lpips, lambda: perceptual(a, b))
+        add("lpips", lambda_lpips, lambda: share * perceptual(ca, cb))
     if lambda_scale:
         if scales is None or thresh_scale is None:
             raise MeshsplatError(

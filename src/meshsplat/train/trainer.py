@@ -16,7 +16,8 @@ random background (also blended into the ground truth through the mask); loss
 ``L1 + λ_lpips LPIPS + λ_scale L_scale (+ λ_mse MSE + λ_ssim D-SSIM)``, L_scale on the canonical
 (pose-independent) scales with T_s = ``loss.scale_max * extent``, measured in mesh extents (so an
 asset in centimetres and the same in metres train and log alike; extent ≈ 1 on the paper's bodies)
-(+ λ_mask |alpha - mask|); backward; Adam steps; densification strategy; every ``walk.every``
+(+ λ_mask |alpha - mask|); with ``loss.crop_to_subject`` LPIPS and D-SSIM on the box around the subject
+(``losses.subject_crop``: mask and rendered alpha), times its area share; backward; Adam steps; densification strategy; every ``walk.every``
 iterations walking on triangles.
 
 With ``model.shading`` on, the learned illumination (``Shading.coeffs``) has its own Adam
@@ -50,7 +51,7 @@ from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
-from meshsplat.train.losses import avatar_loss, make_perceptual_loss
+from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_crop
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
@@ -348,6 +349,7 @@ class Trainer:
         render, meta = out.image, out.meta
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
         L = cfg.loss
+        crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject else None
         loss, parts = avatar_loss(
             render,
             gt,
@@ -360,6 +362,7 @@ class Trainer:
             lambda_mse=L.lambda_mse,
             lambda_dssim=L.lambda_ssim,
             perceptual=self.perceptual,
+            crop=crop,
         )
         if L.lambda_mask and mask is not None:
             mask_l1 = (out.alpha - mask).abs().mean()
