@@ -140,3 +140,16 @@ def test_auto_picks_numba_for_cpu_tensors(monkeypatch):
     scene = random_scene(seed=0, dtype=torch.float32)
     assert rasterize(**scene).meta["backend"] == "numba"
     assert render_api._pick_backend("auto", torch.device("cpu"), torch.float64) == "numba"
+
+
+def test_torch_keeps_its_thread_count():
+    """numba's OpenMP layer shares the runtime with torch: a render must not change torch's thread count."""
+    scene = random_scene(n=50, seed=3, dtype=torch.float32, width=32, height=24)
+    before = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            _run(scene, "numba")
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(before)

@@ -24,7 +24,9 @@ to this file, or numba's user cache directory when that is read-only). The threa
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from functools import lru_cache
 from typing import Any
 
@@ -315,11 +317,20 @@ def _kernels() -> tuple[Any, Any, Any, Any]:
     return ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_reduce_kernel)
 
 
-def _set_threads() -> None:
+@contextlib.contextmanager
+def _threads() -> Iterator[None]:
+    """Run numba's parallel kernels on ``torch.get_num_threads()`` threads (capped by numba's pool), and
+    give torch its count back afterwards: numba's OpenMP layer shares the runtime and would raise it."""
     import numba
 
+    n = torch.get_num_threads()
     pool = int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), pool)))
+    numba.set_num_threads(max(1, min(n, pool)))
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
 
 
 class _Geometry:
@@ -377,11 +388,11 @@ def _bg_array(bg: torch.Tensor | None, n_cams: int, d: int, dtype: torch.dtype) 
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, m2, con, op, col, bg, geo):
-        _set_threads()
         C, H, W, D = geo.n_cams, geo.height, geo.width, col.shape[1]
         colv = col.detach().contiguous().numpy()
         bgv = _bg_array(bg, C, D, col.dtype)
-        out, t_final, n_contrib = _kernels()[1](*geo.args(colv, bgv))
+        with _threads():
+            out, t_final, n_contrib = _kernels()[1](*geo.args(colv, bgv))
         geo.t_final, geo.n_contrib = t_final, n_contrib
         ctx.geo, ctx.has_bg = geo, bg is not None
         ctx.save_for_backward(col, bg if bg is not None else torch.empty(0))
@@ -399,18 +410,18 @@ class _Composite(torch.autograd.Function):
         dtype = col.dtype
         g_out = torch.zeros(n_pix, D, dtype=dtype) if g_out is None else g_out.reshape(n_pix, D)
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
-        _set_threads()
         colv = col.detach().contiguous().numpy()
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
-        rows = k[2](
-            *geo.args(colv, bgv),
-            g_out.detach().contiguous().numpy(),
-            g_alpha.detach().contiguous().numpy(),
-            geo.t_final,
-            geo.n_contrib,
-        )
-        per_entry = torch.from_numpy(k[3](geo.isect, rows, geo.m2.shape[0])).to(dtype)
+        with _threads():
+            rows = k[2](
+                *geo.args(colv, bgv),
+                g_out.detach().contiguous().numpy(),
+                g_alpha.detach().contiguous().numpy(),
+                geo.t_final,
+                geo.n_contrib,
+            )
+            per_entry = torch.from_numpy(k[3](geo.isect, rows, geo.m2.shape[0])).to(dtype)
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
             t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
