@@ -51,21 +51,24 @@ ARGS = [
     "walk.every=3",
 ]
 
-# Runs the CLI; with KILL_AT_FSYNC=k the process SIGKILLs itself at the k-th fsync of a checkpoint
-# file: the temporary file is fully written but not yet moved into place.
+# Runs the CLI; with KILL_AT_FSYNC=k the process SIGKILLs itself at the k-th fsync of a file written
+# atomically (during training: the checkpoints; fsyncs of the folder after the rename do not count):
+# the temporary file is fully written but not yet moved into place.
 DRIVER = """
-import os, signal, sys
-import meshsplat.io.checkpoint as ck
+import os, signal, stat, sys
+import meshsplat.io.atomic as atomic
 k = int(os.environ.get("KILL_AT_FSYNC", "0"))
 if k:
     real, n = os.fsync, [0]
     def fsync(fd):
         real(fd)
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            return
         n[0] += 1
         if n[0] == k:
             os.kill(os.getpid(), signal.SIGKILL)
-    ck.os = type("os_with_kill", (), {"__getattr__": lambda self, a: getattr(os, a)})()
-    ck.os.fsync = fsync
+    atomic.os = type("os_with_kill", (), {"__getattr__": lambda self, a: getattr(os, a)})()
+    atomic.os.fsync = fsync
 from meshsplat.cli.main import main
 sys.exit(main(sys.argv[1:]))
 """
