@@ -25,7 +25,7 @@ import torch
 from meshsplat.embedding.walk import WALK_MODES, WalkResult
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import degenerate_faces
-from meshsplat.mesh.trimesh import TriMesh
+from meshsplat.mesh.tri_mesh import TriMesh
 
 __all__ = ["walk_on_triangles_reference"]
 

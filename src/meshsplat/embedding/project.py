@@ -18,7 +18,7 @@ from meshsplat.embedding.barycentric import barycentric_weights
 from meshsplat.embedding.walk import walk_on_triangles
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import face_corners, safe_normalize, vertex_normals
-from meshsplat.mesh.trimesh import TriMesh
+from meshsplat.mesh.tri_mesh import TriMesh
 
 __all__ = ["project_to_surface", "closest_point_on_triangles"]
 

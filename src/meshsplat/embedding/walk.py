@@ -28,7 +28,7 @@ import torch
 from meshsplat._checks import check_same_device, check_tensor
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import degenerate_faces, face_corners, safe_normalize
-from meshsplat.mesh.trimesh import TriMesh
+from meshsplat.mesh.tri_mesh import TriMesh
 
 __all__ = ["WalkResult", "walk_on_triangles", "WALK_MODES"]
 

@@ -13,7 +13,7 @@ from meshsplat.mesh.geometry import (
 from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_normalize, quat_to_matrix
 from meshsplat.mesh.topology import MeshTopology
-from meshsplat.mesh.trimesh import MeshReport, TriMesh, validate_mesh
+from meshsplat.mesh.tri_mesh import MeshReport, TriMesh, validate_mesh
 
 __all__ = [
     "TriMesh",

@@ -9,7 +9,7 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import face_area_ratio, vertex_normals, vertex_quaternions
-from meshsplat.mesh.trimesh import TriMesh
+from meshsplat.mesh.tri_mesh import TriMesh
 
 __all__ = ["MeshPose"]
 
