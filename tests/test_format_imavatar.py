@@ -24,8 +24,8 @@ from _head_captures import (
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, imavatar, open_capture
 from meshsplat.data.formats._heads import tail_split
-from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import write_png
 
 W, H = 16, 12
 INTR = [-1.5, 2.0, 0.5, 0.5]  # fx = 24 (stored negative), fy = 24, cx = 8, cy = 6

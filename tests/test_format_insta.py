@@ -11,8 +11,8 @@ from _head_captures import assert_vertices_close, native_flame_dataset, project,
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, insta, open_capture
 from meshsplat.data.formats._heads import obj_vertices
-from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import write_png
 
 W, H, F = 16, 12, 24.0
 # OpenCV camera->world: camera at (0,0,1), x right, y down (-y world), looking down -z (as metrical-tracker's)

@@ -23,8 +23,8 @@ from _head_captures import (
 )
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, open_capture, vhap
-from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import write_png
 
 W, H, F = 16, 12, 24.0
 C2W_FRONT = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.0], [0, 0, 0, 1]]  # VHAP's monocular camera at (0,0,1)

@@ -19,13 +19,13 @@ from _head_captures import native_flame_dataset, write_tiny_flame
 from meshsplat.data import open_dataset
 from meshsplat.data.dataset import Problems
 from meshsplat.data.formats import format_module, open_capture
-from meshsplat.data.png import read_image, write_png
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
 from meshsplat.drivers.motion import load_motion
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy, read_npz
 from meshsplat.io.atomic import atomic_write, write_text_atomic, write_with
+from meshsplat.io.images import read_image, write_png
 from meshsplat.run_folder import LoadedRun, RunFolder
 
 LAYOUTS = ("imavatar", "insta", "vhap", "meshseq")

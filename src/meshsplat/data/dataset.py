@@ -18,11 +18,11 @@ import torch
 from meshsplat.camera import Camera, capture_front, capture_up
 from meshsplat.data.camera_check import check_cameras, group_ids
 from meshsplat.data.downscale import check_downscale, downscale_frame, downscaled_size, scale_intrinsics
-from meshsplat.data.png import image_size, png_max, read_image
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import array_error_text, read_npy, read_npz
+from meshsplat.io.images import image_size, png_max, read_image
 
 __all__ = [
     "Frame",

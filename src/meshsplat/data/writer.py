@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
-from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import write_png
 
 __all__ = ["DatasetWriter", "write_dataset", "FORMAT_NAME", "FORMAT_VERSION"]
 

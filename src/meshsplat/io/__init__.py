@@ -1,4 +1,4 @@
-"""File formats: atomic checkpoints, 3DGS .ply (+ .splat, .spz, glTF splats), embedding JSON, OBJ meshes, video."""
+"""File formats: atomic checkpoints, 3DGS .ply (+ .splat, .spz, glTF splats), embedding JSON, OBJ meshes, images, video."""
 
 from __future__ import annotations
 

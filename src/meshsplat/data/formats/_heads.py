@@ -17,9 +17,9 @@ import torch
 
 from meshsplat.data.camera_check import group_ids
 from meshsplat.data.dataset import AvatarDataset, Problems, inside_capture
-from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import write_png
 
 __all__ = [
     "merge_transform_frames",

@@ -33,9 +33,9 @@ from meshsplat.data.formats._heads import (
     tail_split,
     write_json,
 )
-from meshsplat.data.png import image_size
 from meshsplat.drivers.body_models import join_flame_pose15, split_flame_pose15
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import image_size
 
 __all__ = [
     "NAME",

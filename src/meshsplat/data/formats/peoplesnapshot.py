@@ -28,10 +28,10 @@ import torch
 
 from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
-from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npz
+from meshsplat.io.images import write_png
 
 __all__ = [
     "NAME",

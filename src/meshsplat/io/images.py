@@ -1,4 +1,4 @@
-"""PNG reading/writing helpers: header-only size query, lazy decode, fast encode."""
+"""Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding."""
 
 from __future__ import annotations
 
