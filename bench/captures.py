@@ -44,7 +44,7 @@ def main() -> None:
     from meshsplat.data.formats import detect_format, format_module
     from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
-    from meshsplat.synth import generate
+    from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
 
@@ -61,7 +61,7 @@ def main() -> None:
         native = work / cap / "native"
         if not (native / "manifest.json").is_file():
             t0 = time.perf_counter()
-            generate(
+            synthesize(
                 kind,
                 native,
                 rig=rig,

@@ -81,7 +81,7 @@ def main() -> None:
     from meshsplat.data import open_dataset
     from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
-    from meshsplat.synth import generate
+    from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
 
@@ -94,7 +94,7 @@ def main() -> None:
         write_standin_models(models, kinds=("smpl",))
     native = work / "true"
     if not (native / "manifest.json").is_file():
-        generate(
+        synthesize(
             "smpl",
             native,
             rig="monocular-turn",

@@ -25,7 +25,7 @@ from meshsplat.data import open_dataset
 from meshsplat.data.formats import peoplesnapshot as ps
 from meshsplat.demo import PRESETS, demo_train_config
 from meshsplat.eval import evaluate_run
-from meshsplat.synth import generate
+from meshsplat.synth import synthesize
 from meshsplat.synth.standin_models import write_standin_models
 from meshsplat.train import Trainer
 
@@ -64,7 +64,7 @@ def main() -> None:
         write_standin_models(models)
     native, data = work / "native", work / "peoplesnapshot"
     if not (native / "manifest.json").is_file():
-        generate("smpl", native, frames=args.frames, resolution=args.resolution, test_views=0, model_dir=models)
+        synthesize("smpl", native, frames=args.frames, resolution=args.resolution, test_views=0, model_dir=models)
     if not data.is_dir():
         ps.write(open_dataset(native), data)
         _split_files(data)

@@ -66,11 +66,11 @@ def _dataset(args, preset, work: Path) -> Path:
     if args.asset == "CesiumMan" and args.resolution is None and args.frames is None:
         return _generate(work / "data", preset, progress=False)
     from meshsplat.paths import asset
-    from meshsplat.synth import generate
+    from meshsplat.synth import synthesize
 
     data = work / "data"
     if not (data / "manifest.json").exists():
-        generate(
+        synthesize(
             asset(f"gltf/{args.asset}.glb"),
             data,
             rig="monocular-turn",

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from _machine import machine_info, results_path
 from meshsplat.data import open_dataset
-from meshsplat.synth import generate
+from meshsplat.synth import synthesize
 
 
 def main() -> int:
@@ -27,7 +27,7 @@ def main() -> int:
     res = args.resolution or (128 if args.quick else 512)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        out = generate("CesiumMan", Path(tmp) / "ds", frames=frames, resolution=res, test_frames=0, test_views=0)
+        out = synthesize("CesiumMan", Path(tmp) / "ds", frames=frames, resolution=res, test_frames=0, test_views=0)
         secs = time.perf_counter() - t0
         n = len(open_dataset(out, check_masks=False))
     result = {

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import pkgutil
 import subprocess
 import sys
 import types
@@ -44,7 +45,7 @@ def _public_modules() -> set[str]:
 def test_the_front_door_is_the_curated_list():
     assert sorted(ms.__all__) == sorted(CURATED) == sorted([*ms._FRONT_DOOR, "MeshsplatError", "__version__"])
     defining = {
-        "synthesize": "meshsplat.synth.generate.generate",
+        "synthesize": "meshsplat.synth.generate.synthesize",
         "evaluate": "meshsplat.eval.evaluate.evaluate_run",
         "write_viewer": "meshsplat.viewer.bundle.write_viewer_bundle",
         "open_capture": "meshsplat.data.formats.open_capture",
@@ -133,3 +134,16 @@ def test_train_avatar_refuses_bad_input_in_one_line(tmp_path, kwargs, message):
     with pytest.raises(MeshsplatError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
         ms.train_avatar(args.pop("dataset"), args.pop("out"), **args)
     assert "\n" not in str(info.value)
+
+
+def test_no_package_attribute_shadows_its_submodule():
+    # e.g. a function ``synth.generate`` hid the module ``synth/generate.py``. Known, left for a later rename
+    # (modules others were changing): the function named like its one-function module.
+    known = {"meshsplat.gaussians.compose", "meshsplat.metrics.psnr", "meshsplat.metrics.ssim"}
+    shadowed = []
+    for info in pkgutil.walk_packages(ms.__path__, "meshsplat."):
+        parent_name, _, leaf = info.name.rpartition(".")
+        parent = importlib.import_module(parent_name)
+        if leaf in vars(parent) and not isinstance(vars(parent)[leaf], types.ModuleType):
+            shadowed.append(info.name)
+    assert set(shadowed) <= known, f"rename these attributes or modules: {sorted(set(shadowed) - known)}"

@@ -18,7 +18,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params
 from meshsplat.mesh import TriMesh
-from meshsplat.synth import generate
+from meshsplat.synth import synthesize
 from meshsplat.synth.sources import load_source
 from test_eval_kit import make_dataset, make_run
 
@@ -35,7 +35,7 @@ def _avatar(ds, n: int = 60) -> Avatar:
 def creature(tmp_path_factory):
     root = tmp_path_factory.mktemp("creature")
     npz = write_creature_npz(root / "creature.npz", frames_per_clip=12)
-    ds = open_dataset(generate(npz, root / "ds", rig="orbit", **TINY))
+    ds = open_dataset(synthesize(npz, root / "ds", rig="orbit", **TINY))
     return npz, ds
 
 
@@ -230,7 +230,7 @@ def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
 def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, decimate):
     path = assets / "gltf" / "CesiumMan.glb"
     ds = open_dataset(
-        generate(path, tmp_path / "ds", rig="orbit", driver_smooth=smooth, driver_decimate=decimate, **TINY)
+        synthesize(path, tmp_path / "ds", rig="orbit", driver_smooth=smooth, driver_decimate=decimate, **TINY)
     )
     av = _avatar(ds)
     smap = read_source_map(ds.root)
@@ -307,7 +307,7 @@ def test_training_copies_the_source_map_into_the_run(creature, tmp_path):
 # ---------------------------------------------------------------- axes and units
 def test_up_axis_choice_and_message(creature, tmp_path, capsys):
     npz = write_creature_npz(tmp_path / "c.npz", frames_per_clip=4)
-    out = generate(npz, tmp_path / "y", rig="orbit", up="y", progress=True, clip="crawl", test_clips=[], **TINY)
+    out = synthesize(npz, tmp_path / "y", rig="orbit", up="y", progress=True, clip="crawl", test_clips=[], **TINY)
     said = capsys.readouterr().out
     assert "up axis: y (--up)" in said and "mesh size" in said
     as_y = open_dataset(out).canonical_vertices
@@ -316,7 +316,7 @@ def test_up_axis_choice_and_message(creature, tmp_path, capsys):
     for a, b in ((turned.min(0).values, want.min(0).values), (turned.max(0).values, want.max(0).values)):
         assert torch.allclose(a, b, atol=1e-4)
     with pytest.raises(MeshsplatError, match="up: expected 'y' or 'z'"):
-        generate(npz, tmp_path / "x", up="x", **TINY)
+        synthesize(npz, tmp_path / "x", up="x", **TINY)
 
 
 def test_scale_log_is_relative_to_mesh_size(tmp_path):
@@ -356,7 +356,7 @@ def test_default_clips_from_motion(tmp_path, capsys):
     d["vertices"] = np.concatenate([np.repeat(v[4:5], 4, 0), v], 0)
     d["clip_ranges"] = np.array([[0, 3], [4, 7], [8, 11]])
     np.savez(tmp_path / "three.npz", **d)
-    out = generate(tmp_path / "three.npz", tmp_path / "ds", rig="orbit", progress=True, **TINY)
+    out = synthesize(tmp_path / "three.npz", tmp_path / "ds", rig="orbit", progress=True, **TINY)
     said = capsys.readouterr().out
     meta = open_dataset(out).meta
     assert meta["train_clip"] == "crawl" and meta["test_clips"] == ["idle"]  # the still clip is no test
@@ -374,7 +374,7 @@ def test_gltf_copyright_reaches_dataset_and_report(assets, tmp_path):
         extras={"license": "CC-BY 4.0", "source": "https://example.org/model"},
     )
     doc.save_binary(str(tmp_path / "credited.glb"))
-    ds = open_dataset(generate(tmp_path / "credited.glb", tmp_path / "ds", rig="orbit", **TINY))
+    ds = open_dataset(synthesize(tmp_path / "credited.glb", tmp_path / "ds", rig="orbit", **TINY))
     assert ds.meta["attribution"] == "(c) 2026 Test Author; license: CC-BY 4.0; source: https://example.org/model"
     from meshsplat.eval import evaluate_run
 

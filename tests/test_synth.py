@@ -9,7 +9,7 @@ import torch
 from meshsplat.camera import look_at
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data import open_dataset
-from meshsplat.synth import generate, rasterize_triangles
+from meshsplat.synth import rasterize_triangles, synthesize
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import sample_texture
 
@@ -85,7 +85,7 @@ def test_driving_mesh_helpers():
 
 @pytest.mark.slow
 def test_small_synth_round_trip(assets, tmp_path):
-    out = generate(
+    out = synthesize(
         assets / "gltf" / "CesiumMan.glb",
         tmp_path / "cm",
         frames=4,

@@ -16,7 +16,7 @@ from meshsplat.drivers.body_models import BodyModel
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth.body_source import load_model_source, rotate_params
 from meshsplat.synth.capture import synth_capture
-from meshsplat.synth.generate import generate
+from meshsplat.synth.generate import synthesize
 
 TINY = dict(frames=3, resolution=48, test_frames=2, test_views=1)
 
@@ -50,7 +50,7 @@ def test_rotate_params_rotates_the_posed_mesh(standin_model_dir):
 
 
 def test_smpl_dance_stands_up_and_stores_its_parameters(tmp_path, standin_model_dir):
-    out = generate("smpl", tmp_path / "d", model_dir=standin_model_dir, **TINY)
+    out = synthesize("smpl", tmp_path / "d", model_dir=standin_model_dir, **TINY)
     ds = open_dataset(out)
     assert ds.driver_info["type"] == "smpl" and sorted(ds.driver_info["per_frame"]) == [
         "body_pose",
@@ -68,7 +68,7 @@ def test_smpl_dance_stands_up_and_stores_its_parameters(tmp_path, standin_model_
 
 
 def test_flame_talks_and_nods(tmp_path, standin_model_dir):
-    out = generate("flame", tmp_path / "f", model_dir=standin_model_dir, **TINY)
+    out = synthesize("flame", tmp_path / "f", model_dir=standin_model_dir, **TINY)
     ds = open_dataset(out)
     assert {"train", "test_frames", "test_views", "test_clip"} <= set(ds.split_names)
     assert {ds.frame_info(i)["clip"] for i in ds.split("test_clip")} == {"nod"}
@@ -82,7 +82,7 @@ def test_flame_talks_and_nods(tmp_path, standin_model_dir):
 def test_smplx_source(tmp_path, standin_model_dir):
     src = load_model_source("smplx", standin_model_dir)
     assert src.motions["dance"]["body_pose"].shape[1] == 63
-    out = generate(
+    out = synthesize(
         "smplx", tmp_path / "x", model_dir=standin_model_dir, frames=2, resolution=32, test_frames=1, test_views=0
     )
     _params_reproduce_meshes(open_dataset(out), standin_model_dir)
@@ -103,10 +103,10 @@ def test_colours_from_appearance_else_skin_weights(tmp_path, standin_model_dir):
 
 def test_model_source_errors(tmp_path, standin_model_dir):
     with pytest.raises(MeshsplatError, match="driver smoothing/decimation is not available"):
-        generate("smpl", tmp_path / "a", model_dir=standin_model_dir, driver_smooth=2, **TINY)
+        synthesize("smpl", tmp_path / "a", model_dir=standin_model_dir, driver_smooth=2, **TINY)
     (tmp_path / "empty").mkdir()
     with pytest.raises(MeshsplatError, match="SMPL model file not found"):
-        generate("smpl", tmp_path / "b", model_dir=tmp_path / "empty", **TINY)
+        synthesize("smpl", tmp_path / "b", model_dir=tmp_path / "empty", **TINY)
     with pytest.raises(MeshsplatError, match="format: 'obj' is not one of"):
         synth_capture("smpl", tmp_path / "c", format="obj", model_dir=standin_model_dir, **TINY)
 

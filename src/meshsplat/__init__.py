@@ -31,7 +31,7 @@ __version__ = "0.1.0"
 
 # front-door name -> (defining module, attribute)
 _FRONT_DOOR: dict[str, tuple[str, str]] = {
-    "synthesize": ("meshsplat.synth.generate", "generate"),
+    "synthesize": ("meshsplat.synth.generate", "synthesize"),
     "open_capture": ("meshsplat.data.formats", "open_capture"),
     "TrainConfig": ("meshsplat.train.config", "TrainConfig"),
     "train_avatar": ("meshsplat.pipeline", "train_avatar"),
@@ -100,7 +100,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from meshsplat.gaussians.avatar import Avatar
     from meshsplat.pipeline import train_avatar
     from meshsplat.run_folder import load_avatar, load_run
-    from meshsplat.synth.generate import generate as synthesize
+    from meshsplat.synth.generate import synthesize
     from meshsplat.train.config import TrainConfig
     from meshsplat.viewer.bundle import write_viewer_bundle as write_viewer
 

@@ -34,7 +34,7 @@ from meshsplat.eval import evaluate_run
 from meshsplat.export import export_avatar
 from meshsplat.paths import asset
 from meshsplat.run_folder import RunFolder, load_avatar
-from meshsplat.synth import contact_sheet, generate
+from meshsplat.synth import contact_sheet, synthesize
 from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_overrides, preset_config
 
 __all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames"]
@@ -136,7 +136,7 @@ def continuous_frames(ds: AvatarDataset, n: int, split: str = "test_frames") -> 
 def _generate(data_dir: Path, preset: DemoPreset, progress: bool) -> Path:
     if (data_dir / "manifest.json").exists():
         return data_dir  # reuse a dataset from an earlier (interrupted) demo run
-    generate(
+    synthesize(
         asset("gltf/CesiumMan.glb"),
         data_dir,
         rig="monocular-turn",

@@ -11,7 +11,7 @@ from typing import Any
 from meshsplat.data.dataset import open_dataset
 from meshsplat.data.formats import FORMAT_NAMES, format_module
 from meshsplat.errors import MeshsplatError
-from meshsplat.synth.generate import generate
+from meshsplat.synth.generate import synthesize
 
 __all__ = ["synth_capture"]
 
@@ -25,7 +25,7 @@ def synth_capture(
     write_options: dict | None = None,
     **generate_options: Any,
 ) -> Path:
-    """Render ``asset`` (see :func:`meshsplat.synth.generate`) and write it at ``out`` in ``format``.
+    """Render ``asset`` (see :func:`meshsplat.synth.synthesize`) and write it at ``out`` in ``format``.
 
     For a format other than ``native`` the native dataset goes to ``native_dir`` (kept) or a temporary
     folder (removed), and ``format_module(format).write(dataset, out, **write_options)`` converts it.
@@ -33,7 +33,7 @@ def synth_capture(
     if format not in FORMAT_NAMES:
         raise MeshsplatError(f"format: {format!r} is not one of {', '.join(FORMAT_NAMES)}")
     if format == "native":
-        return generate(asset, out, overwrite=overwrite, **generate_options)
+        return synthesize(asset, out, overwrite=overwrite, **generate_options)
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
@@ -46,7 +46,7 @@ def synth_capture(
         tmp = tempfile.mkdtemp(prefix="meshsplat-synth-")
         native_dir = Path(tmp) / "native"
     try:
-        native = generate(asset, native_dir, overwrite=overwrite, **generate_options)
+        native = synthesize(asset, native_dir, overwrite=overwrite, **generate_options)
         opts = dict(write_options or {})
         params = inspect.signature(writer).parameters
         if "overwrite" in params or any(p.kind == p.VAR_KEYWORD for p in params.values()):

@@ -27,7 +27,7 @@ from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture,
 from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.sources import load_source
 
-__all__ = ["generate", "render_view", "clip_motion", "RIGS", "Shot"]
+__all__ = ["synthesize", "render_view", "clip_motion", "RIGS", "Shot"]
 
 RIGS = ("monocular-turn", "orbit", "multiview")
 _LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
@@ -279,7 +279,7 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
     }
 
 
-def generate(
+def synthesize(
     asset: Path | str,
     out_dir: Path | str,
     rig: str = "monocular-turn",
