@@ -9,6 +9,7 @@ from pathlib import Path
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.out_folder import empty_or_new_folder
 
 __all__ = ["write_native"]
 
@@ -36,9 +37,7 @@ def write_native(
 
     ``progress``: optional callable ``(done, total)``. Returns the folder.
     """
-    out = Path(out)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     if out.resolve() == Path(dataset.root).resolve():
         raise MeshsplatError(f"{out}: is the capture folder itself; choose another output folder")
     meta = {**dataset.meta, "imported_from": str(dataset.root), "source_format": dataset.format_name}

@@ -14,7 +14,7 @@ import torch
 from numpy.typing import ArrayLike
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.images import write_png
+from meshsplat.io.images import float_to_uint8, write_png
 
 __all__ = ["DatasetWriter", "write_dataset", "FORMAT_NAME", "FORMAT_VERSION"]
 
@@ -26,13 +26,6 @@ def _np(x, dtype=np.float32) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=dtype)
-
-
-def _to_uint8(img) -> np.ndarray:
-    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
-    if a.dtype != np.uint8:
-        a = np.clip(np.rint(a.astype(np.float32) * 255.0), 0, 255).astype(np.uint8)
-    return a
 
 
 class DatasetWriter:
@@ -161,7 +154,7 @@ class DatasetWriter:
             raise MeshsplatError(f"mesh: index {mesh} out of range (have {len(self.meshes)})")
         index = len(self.frames)
         name = name or f"{index:06d}"
-        img = _to_uint8(image)
+        img = float_to_uint8(image)
         cam = self.cameras[cid]
         if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != (cam["height"], cam["width"]):
             raise MeshsplatError(f"image: expected [{cam['height']},{cam['width']},3], got {list(img.shape)}")
@@ -169,7 +162,7 @@ class DatasetWriter:
         write_png(self.root / rec["image"], img)
         if mask is not None:
             (self.root / "masks").mkdir(exist_ok=True)
-            m = _to_uint8(mask)
+            m = float_to_uint8(mask)
             rec["mask"] = f"masks/{name}.png"
             write_png(self.root / rec["mask"], m.reshape(cam["height"], cam["width"]))
         if clip is not None:

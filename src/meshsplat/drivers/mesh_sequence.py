@@ -16,7 +16,6 @@ Every error names the layout and what it expects.
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +26,7 @@ import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import npz_keys, read_npz
+from meshsplat.io.json_file import read_json_object
 from meshsplat.io.obj import read_obj
 from meshsplat.io.ply_mesh import read_ply_mesh
 
@@ -227,12 +227,7 @@ def _read_folder(p: Path, with_uvs: bool = True) -> MeshSequence:
     meta_path = p / "sequence.json"
     names, ranges = None, []
     if meta_path.is_file():
-        try:
-            meta = json.loads(meta_path.read_text())
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise MeshsplatError(f"{meta_path}: invalid JSON ({exc}) ({L})") from None
-        if not isinstance(meta, dict):
-            raise MeshsplatError(f"{meta_path}: expected an object with fps, up, attribution, clips ({L})")
+        meta = read_json_object(meta_path, f"an object with fps, up, attribution, clips ({L})")
         seq.fps = float(meta.get("fps", seq.fps))
         seq.up = _check_up(meta.get("up"), L, meta_path)
         seq.attribution = str(meta.get("attribution", ""))

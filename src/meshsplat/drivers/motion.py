@@ -18,7 +18,6 @@ Layouts read (all numbers float, one row per frame ``S``):
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from meshsplat.drivers.body_models import (
 )
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz
+from meshsplat.io.json_file import read_json_object
 from meshsplat.paths import resolve_input
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
@@ -136,16 +136,14 @@ def _body_params(parts: dict, kind: str) -> dict:
 
 # ---------------------------------------------------------------- heads
 def _flame_from_imavatar(path: Path) -> dict:
+    what = "an IMavatar flame_params.json (frames[].pose [15], frames[].expression)"
+    data = read_json_object(path, what)
     try:
-        data = json.loads(path.read_text())
         frames = data["frames"]
         pose = np.array([f["pose"] for f in frames], np.float32)
         expr = np.array([f["expression"] for f in frames], np.float32)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise MeshsplatError(
-            f"{path}: not an IMavatar flame_params.json (frames[].pose [15], "
-            f"frames[].expression) ({type(e).__name__}: {e})"
-        ) from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise MeshsplatError(f"{path}: not {what} ({type(e).__name__}: {e})") from None
     if pose.ndim != 2 or pose.shape[1] != 15 or expr.ndim != 2 or len(expr) != len(pose) or not len(pose):
         raise MeshsplatError(
             f"{path}: frames[].pose must be 15 numbers and frames[].expression one row per frame, "

@@ -30,6 +30,7 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.json_file import read_json_object
 
 __all__ = ["write_embedding_json", "read_embedding_json", "EMBEDDING_FORMAT", "EMBEDDING_VERSION"]
 
@@ -134,13 +135,8 @@ def read_embedding_json(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
     opacity_logit [N], sh0 [N,1,3], shN [N,K,3]`` (K = 0 when absent), float32.
     """
     path = Path(path)
-    if not path.is_file():
-        raise MeshsplatError(f"embedding file {str(path)!r} not found")
-    try:
-        doc = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise MeshsplatError(f"{str(path)!r}: not valid JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != EMBEDDING_FORMAT:
+    doc = read_json_object(path, "a meshsplat embedding file (a JSON object)")
+    if doc.get("format") != EMBEDDING_FORMAT:
         raise MeshsplatError(f"{str(path)!r}: not a meshsplat embedding file")
     if doc.get("version") != EMBEDDING_VERSION:
         raise MeshsplatError(f"{str(path)!r}: format version {doc.get('version')!r}, expected {EMBEDDING_VERSION}")

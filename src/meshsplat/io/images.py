@@ -1,4 +1,4 @@
-"""Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding."""
+"""Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding, float images to uint8."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ import struct
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
+import torch
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["png_size", "read_png", "png_max", "write_png", "image_size", "read_image"]
+__all__ = ["png_size", "read_png", "png_max", "write_png", "image_size", "read_image", "float_to_uint8"]
 
 _SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -90,3 +92,20 @@ def write_png(path: Path, img: np.ndarray, compress_level: int = 3) -> None:
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
     Image.fromarray(np.ascontiguousarray(img)).save(path, compress_level=compress_level)
+
+
+def float_to_uint8(img: torch.Tensor | npt.ArrayLike) -> np.ndarray:
+    """Float image in [0, 1] (any shape, tensor or array) -> uint8 of the same shape; uint8 passes through.
+
+    The one rounding rule for written images: ``rint(clamp(x, 0, 1) * 255)`` in float32, ties to even
+    (numpy's rounding), so an image read back from an 8-bit file and written again is unchanged.
+    """
+    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype != np.bool_ and not np.issubdtype(a.dtype, np.floating):
+        raise MeshsplatError(f"image: expected float in [0, 1] or uint8, got {a.dtype}")
+    a = a.astype(np.float32)
+    if not np.isfinite(a).all():
+        raise MeshsplatError("image: contains NaN/Inf values")
+    return np.rint(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -20,6 +20,7 @@ import torch
 from PIL import Image
 
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
+from meshsplat.io.images import float_to_uint8
 
 __all__ = ["to_uint8", "write_png_frames", "write_mp4", "write_video", "VideoResult"]
 
@@ -38,7 +39,7 @@ def to_uint8(frame: torch.Tensor | np.ndarray) -> np.ndarray:
             raise MeshsplatError(f"frame: expected float in [0,1] or uint8, got {a.dtype}")
         if not np.isfinite(a).all():
             raise MeshsplatError("frame: contains NaN/Inf values")
-        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+        a = float_to_uint8(a)
     if a.shape[2] == 1:
         a = np.repeat(a, 3, axis=2)
     return a

@@ -1,6 +1,7 @@
 """Triangle mesh: topology, differentiable geometry, posed quantities, quaternions."""
 
 from meshsplat.mesh.geometry import (
+    bbox_diagonal,
     degenerate_faces,
     face_area_ratio,
     face_areas,
@@ -21,6 +22,7 @@ __all__ = [
     "validate_mesh",
     "MeshTopology",
     "MeshPose",
+    "bbox_diagonal",
     "face_normals",
     "face_areas",
     "vertex_normals",

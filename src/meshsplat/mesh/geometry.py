@@ -7,12 +7,14 @@ finite values and finite gradients, never NaN.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import matrix_to_quat, quat_normalize
 
 __all__ = [
+    "bbox_diagonal",
     "safe_normalize",
     "face_corners",
     "face_normals",
@@ -26,6 +28,17 @@ __all__ = [
 ]
 
 _EPS = 1e-12
+
+
+def bbox_diagonal(points: torch.Tensor | np.ndarray) -> float:
+    """Length of the axis-aligned bounding box's diagonal of ``points [N, 3]`` (a mesh's size).
+
+    Computed in the input's own type and precision (torch or numpy), so callers keep their numbers.
+    """
+    if isinstance(points, torch.Tensor):
+        return float((points.amax(0) - points.amin(0)).norm())
+    p = np.asarray(points)
+    return float(np.linalg.norm(p.max(0) - p.min(0)))
 
 
 def safe_normalize(x: torch.Tensor, eps: float = _EPS) -> torch.Tensor:

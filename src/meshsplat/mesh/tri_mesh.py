@@ -12,7 +12,7 @@ import torch
 
 from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
-from meshsplat.mesh.geometry import degenerate_faces, face_areas
+from meshsplat.mesh.geometry import bbox_diagonal, degenerate_faces, face_areas
 from meshsplat.mesh.topology import MeshTopology, as_face_tensor
 
 __all__ = ["TriMesh", "MeshReport", "validate_mesh"]
@@ -124,7 +124,7 @@ class TriMesh:
         return face_areas(self.vertices, self.faces)
 
     def bbox_diagonal(self) -> float:
-        return float((self.vertices.max(0).values - self.vertices.min(0).values).norm())
+        return bbox_diagonal(self.vertices)
 
     def check(self) -> MeshReport:
         """Inspect the mesh without raising; see :class:`MeshReport`."""

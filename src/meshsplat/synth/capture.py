@@ -11,6 +11,7 @@ from typing import Any
 from meshsplat.data.dataset import open_dataset
 from meshsplat.data.formats import FORMAT_NAMES, format_module
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.out_folder import empty_or_new_folder
 from meshsplat.synth.generate import synthesize
 
 __all__ = ["synth_capture"]
@@ -34,9 +35,7 @@ def synth_capture(
         raise MeshsplatError(f"format: {format!r} is not one of {', '.join(FORMAT_NAMES)}")
     if format == "native":
         return synthesize(asset, out, overwrite=overwrite, **generate_options)
-    out = Path(out)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     try:
         writer = format_module(format).write
     except (ImportError, AttributeError):

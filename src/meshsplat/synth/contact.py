@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from meshsplat.data import AvatarDataset, open_dataset
+from meshsplat.io.images import float_to_uint8
 
 __all__ = ["contact_sheet"]
 
@@ -28,11 +29,9 @@ def contact_sheet(
     cols = []
     for i in indices:
         fr = ds[int(i)]
-        img = Image.fromarray((fr.image.numpy() * 255).round().astype(np.uint8)).resize(
-            (tile, tile), Image.Resampling.BILINEAR
-        )
+        img = Image.fromarray(float_to_uint8(fr.image)).resize((tile, tile), Image.Resampling.BILINEAR)
         m = fr.mask if fr.mask is not None else fr.image.mean(-1, keepdim=True) * 0
-        msk = Image.fromarray((m[..., 0].numpy() * 255).round().astype(np.uint8)).convert("RGB").resize((tile, tile))
+        msk = Image.fromarray(float_to_uint8(m[..., 0])).convert("RGB").resize((tile, tile))
         col = Image.new("RGB", (tile, 2 * tile))
         col.paste(img, (0, 0))
         col.paste(msk, (0, tile))

@@ -7,6 +7,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.mesh.geometry import bbox_diagonal
 
 __all__ = ["weld", "taubin_smooth", "cluster_decimate"]
 
@@ -70,7 +71,7 @@ def cluster_decimate(verts: np.ndarray, faces: np.ndarray, ratio: float) -> tupl
         raise MeshsplatError(f"decimate ratio: expected in (0, 1], got {ratio}")
     n = len(verts)
     target = max(4, round(n * ratio))
-    diag = float(np.linalg.norm(verts.max(0) - verts.min(0)))
+    diag = bbox_diagonal(verts)
     lo, hi = diag * 1e-5, diag
     for _ in range(30):  # bisection on the cell size
         mid = np.sqrt(lo * hi)

@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike
 from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
+from meshsplat.mesh.geometry import bbox_diagonal
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
 from meshsplat.synth.sequence_source import up_rotation, with_up
@@ -194,7 +195,7 @@ def _driving_mesh(source, smooth: int, decimate: float | None):
     clip = source.clips[0]
     a, b = source.time_range(clip)
     probes = [rest] + [source.pose(clip, a + (b - a) * f).numpy().astype(np.float64) for f in (0.3, 0.7)]
-    tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    tol = 1e-6 * bbox_diagonal(rest)
     group, rep, wfaces = weld(probes, faces, tol)
     wrest = rest[rep]
     if decimate is not None and decimate < 1.0:
@@ -214,7 +215,7 @@ def _model_mesh(source, driver_smooth: int, driver_decimate: float | None):
     if driver_smooth or (driver_decimate is not None and driver_decimate < 1.0):
         source.derive(None, None)  # raises: not available for model sources
     rest = source.rest().numpy().astype(np.float64)
-    tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    tol = 1e-6 * bbox_diagonal(rest)
     group, _, _ = weld([rest], source.faces.numpy(), tol)
     weld_group = torch.from_numpy(np.where(group >= 0, group, np.arange(len(group)) + group.max() + 1))
     smap = {"source_index": np.arange(rest.shape[0], dtype=np.int64), "exact": True}
@@ -392,7 +393,7 @@ def _generate(
     source, up_used, up_how = with_up(source, up)
     R_up = up_rotation(up_used)
     rest0 = source.rest().numpy().astype(np.float64)
-    size = float(np.linalg.norm(rest0.max(0) - rest0.min(0)))
+    size = bbox_diagonal(rest0)
     if say:
         say(f"up axis: {up_used} ({up_how}); mesh size {size:.4g} asset units (bounding-box diagonal)")
     clips = _default_clips(source, clip, test_clips, train_fraction, say)

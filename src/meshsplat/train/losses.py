@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
+from meshsplat.mesh.geometry import bbox_diagonal
 from meshsplat.metrics.lpips_net import get_lpips, lpips_available
 from meshsplat.metrics.psnr import as_batch_hwc
 from meshsplat.metrics.ssim import ssim
@@ -175,7 +176,7 @@ def scale_threshold(vertices: torch.Tensor, fraction: float = SCALE_THRESH_FRACT
     check_tensor("vertices", vertices, "V,3", dtype="float", finite=True)
     if vertices.shape[0] == 0:
         raise MeshsplatError("vertices: expected at least one vertex, got 0")
-    diag = (vertices.amax(0) - vertices.amin(0)).norm().item()
+    diag = bbox_diagonal(vertices)
     if diag <= 0:
         raise MeshsplatError("vertices: bounding box is a single point; cannot derive a scale threshold")
     return float(fraction) * diag
