@@ -18,7 +18,6 @@ asked for, a checkpoint file inside it (``RUN/checkpoints/ckpt_*.pt``) may be gi
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ from meshsplat.data.source_map import SourceMap, read_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.io.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+from meshsplat.io.json_file import read_json_object
 
 __all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar"]
 
@@ -131,13 +131,7 @@ class RunFolder:
         path = self.config_path
         if not path.is_file():
             return None
-        try:
-            config = json.loads(path.read_text())
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise MeshsplatError(f"{path}: not valid JSON ({exc})") from None
-        if not isinstance(config, dict):
-            raise MeshsplatError(f"{path}: expected a JSON object, got {type(config).__name__}")
-        return config
+        return read_json_object(path)
 
 
 def _checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[RunFolder, Path, dict]:

@@ -31,6 +31,7 @@ from meshsplat.embedding import SCALE_MODES, WALK_MODES
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES
 from meshsplat.gaussians.shading import SHADING_MODES, SHADING_NORMALS
+from meshsplat.io.json_file import read_json_object
 from meshsplat.render import BACKENDS, BACKGROUNDS
 from meshsplat.train.strategy.default import DensifyStrategy
 
@@ -389,13 +390,7 @@ def load_config(
     versioned file does not set come from ``base`` (default ``TrainConfig()``); a file without a
     version is an older meshsplat's (see ``upgrade_config_dict``). ``image_size``: see there (needed
     only for some configs written by older versions)."""
-    path = Path(path)
-    if not path.is_file():
-        raise MeshsplatError(f"config file not found: {path}")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise MeshsplatError(f"config file {path} is not valid JSON: {exc}") from None
+    d = read_json_object(path, "a training config (a JSON object)")
     return TrainConfig.from_dict(d, image_size, base)
 
 

@@ -46,7 +46,8 @@ from meshsplat.gaussians.avatar import Avatar, AvatarRender
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
-from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.io.images import float_to_uint8
+from meshsplat.mesh import MeshPose, TriMesh, bbox_diagonal
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
@@ -104,7 +105,7 @@ def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = No
 
 def mesh_extent(vertices: torch.Tensor) -> float:
     """Half the bounding-box diagonal: the 'scene extent' of an avatar (≈1 for a 1.7 m body)."""
-    return 0.5 * float((vertices.amax(0) - vertices.amin(0)).norm())
+    return 0.5 * bbox_diagonal(vertices)
 
 
 def mean_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
@@ -512,7 +513,7 @@ class Trainer:
         bg = torch.ones(3, device=self.device)
         out, gt = self.render_frame(idx, bg)
         pair = torch.cat([out.image.clamp(0, 1), gt], dim=1)
-        img = (pair.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        img = float_to_uint8(pair)
         path = self.folder.preview_path(self.iteration)
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(img).save(path)

@@ -35,6 +35,7 @@ from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
 from meshsplat.io.atomic import write_bytes_atomic, write_text_atomic
+from meshsplat.io.json_file import read_json_object
 from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
 
 __all__ = [
@@ -420,11 +421,11 @@ def read_viewer_bundle(out_dir: str | Path) -> tuple[dict[str, Any], dict[str, n
     (vertex-frame bundles) and ``gaussian_*`` the unpacked per-Gaussian arrays (the half-float values
     the page uses)."""
     root = Path(out_dir)
-    try:
-        header = json.loads((root / "avatar.json").read_text(encoding="utf-8"))
-        blob = (root / "avatar.bin").read_bytes()
-    except FileNotFoundError as exc:
-        raise MeshsplatError(f"{root}: not a viewer bundle ({exc.filename} missing)") from None
+    for name in ("avatar.json", "avatar.bin"):
+        if not (root / name).is_file():
+            raise MeshsplatError(f"{root}: not a viewer bundle ({root / name} missing)")
+    header = read_json_object(root / "avatar.json", "a viewer bundle header (a JSON object)")
+    blob = (root / "avatar.bin").read_bytes()
     arrays = {}
     for name, s in header["sections"].items():
         dt = _DTYPES[s["dtype"]]

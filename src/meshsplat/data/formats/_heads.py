@@ -19,7 +19,9 @@ from meshsplat.data.camera_check import group_ids
 from meshsplat.data.dataset import AvatarDataset, Problems, inside_capture
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.images import write_png
+from meshsplat.io.images import float_to_uint8, write_png
+from meshsplat.io.json_file import read_json_object
+from meshsplat.io.out_folder import empty_or_new_folder
 
 __all__ = [
     "merge_transform_frames",
@@ -84,15 +86,7 @@ def merge_transform_frames(
 
 def read_json(path: Path) -> dict:
     """A JSON object from ``path`` (one-line MeshsplatError if missing or malformed)."""
-    if not path.is_file():
-        raise MeshsplatError(f"{path}: file not found")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise MeshsplatError(f"{path}: invalid JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise MeshsplatError(f"{path}: expected a JSON object, got {type(data).__name__}")
-    return data
+    return read_json_object(path)
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -104,9 +98,7 @@ def write_json(path: Path, data: dict) -> None:
 def prepare_out(out: Path | str, overwrite: bool, stale: tuple[str, ...] = ()) -> Path:
     """Create the output folder; with ``overwrite`` an existing one is reused after removing files
     matching ``stale`` (globs whose leftovers a reader would pick up, e.g. old split files)."""
-    out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass overwrite=True / --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     for pattern in stale:
         for p in out.glob(pattern):
@@ -308,10 +300,10 @@ def flame_rows(dataset: AvatarDataset, fmt: str) -> tuple[dict, dict[str, np.nda
 def frame_pixels(dataset: AvatarDataset, i: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Frame ``i``'s image ``[H,W,3]`` and mask ``[H,W]`` (or None) as uint8, exactly as stored."""
     fr = dataset[i]
-    rgb = np.clip(np.rint(fr.image.numpy() * 255.0), 0, 255).astype(np.uint8)
+    rgb = float_to_uint8(fr.image)
     mask = None
     if fr.mask is not None:
-        mask = np.clip(np.rint(fr.mask.numpy()[..., 0] * 255.0), 0, 255).astype(np.uint8)
+        mask = float_to_uint8(fr.mask[..., 0])
     return rgb, mask
 
 

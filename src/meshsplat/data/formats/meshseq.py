@@ -30,6 +30,7 @@ from meshsplat.data.formats._heads import IMAGE_EXTS, find_file, read_json
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, read_mesh_sequence
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.out_folder import empty_or_new_folder
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "MESH_NAMES"]
 
@@ -201,11 +202,9 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
     import json
     import shutil
 
-    out = Path(out)
     if dataset.downscale != 1:  # the files are copied as recorded
         raise MeshsplatError(f"{NAME}: cannot copy a downscaled dataset; write it with meshsplat import --downscale")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     (out / "images").mkdir(parents=True, exist_ok=True)
     cams = {}
     for cid in dataset.camera_ids:

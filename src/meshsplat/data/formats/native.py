@@ -8,6 +8,7 @@ from typing import Any
 
 from meshsplat.data.dataset import AvatarDataset, open_dataset
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.out_folder import empty_or_new_folder
 
 NAME = "native"
 DESCRIPTION = "meshsplat native dataset"
@@ -24,10 +25,8 @@ def read(root: Path | str, model_dir: Path | str | None = None, **options: Any) 
 
 def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Copy a native dataset folder (as written; nothing is re-encoded)."""
-    out = Path(out)
     if dataset.downscale != 1:  # the files are copied as recorded
         raise MeshsplatError(f"{NAME}: cannot copy a downscaled dataset; write it with meshsplat import --downscale")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     shutil.copytree(dataset.root, out, dirs_exist_ok=True)
     return out

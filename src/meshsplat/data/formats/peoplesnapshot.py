@@ -31,7 +31,8 @@ from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npz
-from meshsplat.io.images import write_png
+from meshsplat.io.images import float_to_uint8, write_png
+from meshsplat.io.out_folder import empty_or_new_folder
 
 __all__ = [
     "NAME",
@@ -540,9 +541,7 @@ def write(dataset: AvatarDataset, out: Path | str, masks: str = "png", overwrite
     offset = params.get("static_offset")
     if offset is not None and np.abs(offset).max() > 0:
         raise MeshsplatError(f"{dataset.root}: SMPL static_offset cannot be stored in PeopleSnapshot poses.npz")
-    out = Path(out)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise MeshsplatError(f"{out}: exists and is not empty (pass --overwrite)")
+    out = empty_or_new_folder(out, overwrite)
     plan = plan_frames(dataset)
 
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -635,4 +634,4 @@ def plan_frames(dataset: AvatarDataset) -> dict[str, list[int]]:
 
 
 def _u8(x: torch.Tensor) -> np.ndarray:
-    return np.clip(np.rint(x.numpy() * 255.0), 0, 255).astype(np.uint8)
+    return float_to_uint8(x)
