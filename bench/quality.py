@@ -9,7 +9,7 @@
 Variants (a training preset plus TrainConfig overrides, on top of the demo preset's short schedule;
 all but ``default`` start from the ``paper`` preset):
   paper         the paper-faithful baseline: one colour per Gaussian, colours from the first frame
-                (what the demo trained with before issue 13; ``full`` is an alias)
+                (what the demo trained with before the quality preset; ``full`` is an alias)
   no_walk       walking disabled: (u+du, v+dv) clipped to the embedding triangle (paper, Table A2)
   frozen        embedding frozen: no du, dv, d (paper, Fig. 7 "w/o trainable embedding")
   scale_area    the paper's pose scale (times the area ratio) instead of our sqrt_area default

@@ -1,4 +1,4 @@
-"""Your own mesh, your own animation (issue 12): mesh sequences as inputs, vertex order, re-derived
+"""Your own mesh, your own animation (docs/bring-your-own-mesh.md): mesh sequences as inputs, vertex order, re-derived
 driving meshes, axes and units, clip defaults, credits, threads, the demo's continuous animation."""
 
 from __future__ import annotations

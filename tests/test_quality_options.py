@@ -1,4 +1,4 @@
-"""Issue 13's options: pose-dependent shading, SH in the triangle frame, multi-frame colour init, mask loss."""
+"""The fidelity options (docs/quality.md): pose-dependent shading, SH in the triangle frame, multi-frame colour init, mask loss."""
 
 from __future__ import annotations
 

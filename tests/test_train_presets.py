@@ -161,7 +161,7 @@ def test_config_json_carries_its_format_version(tmp_path):
 
 
 def test_config_without_version_is_read_as_older_meshsplat_wrote_it(tmp_path):
-    # an older run's config.json: no version, and (before issue 13) no shading / init_color_frames keys
+    # an older run's config.json: no version, and (before pose-dependent shading) no shading / init_color_frames keys
     old = preset_config("paper").to_dict()
     del old["model"]["shading"], old["model"]["init_color_frames"]
     (tmp_path / "config.json").write_text(json.dumps(old))
