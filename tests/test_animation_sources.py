@@ -174,6 +174,19 @@ def test_render_reproduces_the_page_camera(kit, tmp_path):
         _args("render", [*flags, "--size", "800x800"]), frames, None, None, up_front, no_dataset
     )
     np.testing.assert_allclose(same[0].viewmat.numpy(), got[0].viewmat.numpy(), atol=1e-6)
+    rc = main(
+        [
+            "render",
+            str(run),
+            "--animation",
+            "vertices",
+            str(kit[2] / "seq.npy"),
+            "--camera",
+            f"page:{tmp_path / 'page'}",
+        ]
+        + ["--size", "20x16", "--no-mp4", "--no-progress", "--out", str(tmp_path / "r")]
+    )
+    assert rc == 0 and len(list((tmp_path / "r" / "frames").glob("*.png"))) == 3
     # a flag refines the page's camera; a bad one is named
     turned = orbit_request(_args("render", ["--camera", f"page:{tmp_path / 'page'}", "--azimuth", "50"]), None, None)
     assert turned["azimuth_deg"] == 50 and turned["distance"] == 3.5
