@@ -99,7 +99,8 @@ def main() -> int:
         [
             "render",
             str(work / "run_cm"),
-            "--vertices",
+            "--animation",
+            "vertices",
             str(cm),
             "--size",
             f"{res}x{res}",

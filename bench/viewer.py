@@ -87,8 +87,7 @@ def random_avatar(mesh: TriMesh, n: int, seed: int = 0) -> Avatar:
 
 
 def cesium(frames: int):
-    from meshsplat import animate
-    from meshsplat.drivers import GltfDriver
+    from meshsplat.drivers import AnimationSource, GltfDriver, load_animation
 
     glb = assets_dir() / "gltf" / "CesiumMan.glb"
     drv = GltfDriver(glb, fps=25)
@@ -103,7 +102,7 @@ def cesium(frames: int):
             sh0=torch.zeros(1, 1, 3),
         ),
     )
-    seq = animate.gltf_animation(probe, glb, fps=25)
+    seq = load_animation(AnimationSource("gltf", glb, fps=25), probe).vertex_frames()
     return mesh, [seq[i % len(seq)] for i in range(frames)]
 
 

@@ -186,7 +186,7 @@ def test_render_motion_default_and_orbit_cameras_are_upright_from_the_front(capt
     cfg.update(data_format="peoplesnapshot", model_dir=str(standin_model_dir))
     (run / "config.json").write_text(json.dumps(cfg))
     motion = str(assets_dir() / "motion" / "aist_demo.npz")
-    base = ["render", str(run), "--motion", motion, "--size", "64x64", "--no-progress", "--no-mp4"]
+    base = ["render", str(run), "--animation", "motion", motion, "--size", "64x64", "--no-progress", "--no-mp4"]
     assert main([*base, "--frames", "1", "--out", str(tmp_path / "default")]) == 0
     _upright_and_front(tmp_path / "default" / "frames" / "frame_00000.png")
     assert main([*base, "--frames", "4", "--orbit", "360", "--out", str(tmp_path / "orbit")]) == 0
@@ -219,7 +219,10 @@ def test_view_default_camera_is_upright_from_the_front(capture, standin_model_di
     cfg.update(data_format="peoplesnapshot", model_dir=str(standin_model_dir))
     (run / "config.json").write_text(json.dumps(cfg))
     motion = str(assets_dir() / "motion" / "aist_demo.npz")
-    assert main(["view", str(run), "--motion", motion, "--frames", "2", "--out", str(tmp_path / "viewer")]) == 0
+    assert (
+        main(["view", str(run), "--animation", "motion", motion, "--frames", "2", "--out", str(tmp_path / "viewer")])
+        == 0
+    )
     header, _ = read_viewer_bundle(tmp_path / "viewer")
     cam = header["camera"]
     assert np.allclose(cam["up"], [0, -1, 0]) and np.allclose(cam["front"], ds.front.numpy(), atol=1e-6)

@@ -116,7 +116,8 @@ def test_layout_trains_evaluates_and_animates(tmp_path, standin_model_dir, asset
             [
                 "render",
                 str(tmp_path / f"run_{layout}"),
-                "--motion",
+                "--animation",
+                "motion",
                 str(motion),
                 "--frames",
                 "3",

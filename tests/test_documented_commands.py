@@ -22,8 +22,9 @@ from pathlib import Path
 
 import pytest
 
+from meshsplat.cli._options import LEGACY_ANIMATION_FLAGS
 from meshsplat.cli.main import COMMANDS, build_parser, main
-from meshsplat.cli.view_cmd import _KINDS as VIEW_ANIMATION_KINDS
+from meshsplat.drivers import ANIMATION_KINDS
 from meshsplat.train import DEFAULT_PRESET, apply_overrides, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,8 +197,11 @@ def check_command(cmd: DocCommand) -> list[str]:
                     apply_overrides(preset_config(ns.preset or DEFAULT_PRESET), ns.set).validate()
                 except ValueError as exc:
                     problems.append(f"train --set {ns.set}: {exc}")
-            if name == "view" and ns.animation[0] not in VIEW_ANIMATION_KINDS:
-                problems.append(f"view --animation: unknown kind {ns.animation[0]!r}")
+            if name in ("render", "view") and ns.animation and ns.animation[0] not in ANIMATION_KINDS:
+                problems.append(f"{name} --animation: unknown kind {ns.animation[0]!r}")
+            old = [f for f in LEGACY_ANIMATION_FLAGS if getattr(ns, f[2:].replace("-", "_"), None) is not None]
+            if name in ("render", "view") and old:
+                problems.append(f"{name} {old[0]}: the old spelling; document --animation KIND FILE")
     return problems
 
 
@@ -205,7 +209,9 @@ def test_extraction_finds_the_documented_commands():
     texts = {c.text for c in COMMANDS_IN_DOCS}
     assert len(COMMANDS_IN_DOCS) >= 50, len(COMMANDS_IN_DOCS)
     assert "meshsplat eval runs/cesium" in texts  # README block, comment dropped
-    assert any(c.inline and c.text.startswith("meshsplat render RUN --motion") for c in COMMANDS_IN_DOCS)  # 2 lines
+    assert any(
+        c.inline and c.text.startswith("meshsplat render RUN --animation motion") for c in COMMANDS_IN_DOCS
+    )  # 2 lines
     md = "x `meshsplat eval A\nB` y\n```bash\n$ meshsplat train D \\\n  --out R   # note\n# meshsplat no\n```\n"
     assert [c.text for c in fenced_commands(md, "m")] == ["meshsplat train D --out R"]
     assert [(c.where, c.text) for c in inline_commands(md, "m")] == [("m:1", "meshsplat eval A B")]

@@ -11,9 +11,10 @@ import pytest
 import torch
 
 from _creature import creature_frames, write_creature_frames, write_creature_npz
-from meshsplat import animate
 from meshsplat.data import open_dataset
 from meshsplat.data.source_map import read_source_map
+from meshsplat.drivers import AnimationSource, load_animation
+from meshsplat.drivers.avatar_match import sequence_for_mesh
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params
@@ -185,21 +186,21 @@ def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
     assert smap is not None and smap.exact and len(smap.source_index) == ds.num_vertices
     av = _avatar(ds)
     raw = np.load(npz)["vertices"]  # the asset's own order, z-up, centimetres
-    frames = animate.sequence_animation(av, raw[:12], source_map=smap)
+    frames = sequence_for_mesh(av.mesh, raw[:12], source_map=smap)
     i0 = next(i for i in ds.split("train") if ds.frame_info(i)["time"] == 0.0)
     assert torch.allclose(frames[0], ds.vertices(i0), atol=1e-4)
     canon = torch.stack([ds.vertices(i) for i in ds.split("train")])  # canonical order is accepted too
-    assert len(animate.sequence_animation(av, canon, source_map=smap)) == len(canon)
+    assert len(sequence_for_mesh(av.mesh, canon, source_map=smap)) == len(canon)
     # same count, wrong order: refused (this rendered noise before)
     perm = np.random.default_rng(0).permutation(ds.num_vertices)
     with pytest.raises(MeshsplatError, match="does not match the avatar's canonical mesh at rest"):
-        animate.sequence_animation(av, canon.numpy()[:, perm], source_map=smap)
+        sequence_for_mesh(av.mesh, canon.numpy()[:, perm], source_map=smap)
     with pytest.raises(MeshsplatError, match="does not match"):
-        animate.sequence_animation(av, raw[:2, np.random.default_rng(1).permutation(raw.shape[1])], source_map=smap)
+        sequence_for_mesh(av.mesh, raw[:2, np.random.default_rng(1).permutation(raw.shape[1])], source_map=smap)
     with pytest.raises(MeshsplatError, match="other units"):
-        animate.sequence_animation(av, canon.numpy() * 0.01, source_map=smap)
+        sequence_for_mesh(av.mesh, canon.numpy() * 0.01, source_map=smap)
     with pytest.raises(MeshsplatError, match=r"\[T,\d+,3\] \(the source asset"):
-        animate.sequence_animation(av, raw[:2, :-1], source_map=smap)
+        sequence_for_mesh(av.mesh, raw[:2, :-1], source_map=smap)
     run = make_run(av, tmp_path / "run", ds.root)
     from meshsplat.cli.main import main
 
@@ -208,7 +209,8 @@ def test_source_order_sequence_drives_the_avatar(creature, tmp_path):
             [
                 "render",
                 str(run),
-                "--vertices",
+                "--animation",
+                "vertices",
                 str(npz),
                 "--size",
                 "24x24",
@@ -240,12 +242,16 @@ def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, deci
     from meshsplat.drivers import GltfDriver
 
     t0 = GltfDriver(path).time_range()[0]  # render times count from the clip's start
-    frames = animate.gltf_animation(av, path, fps=1000.0, seconds=0.0, start=t - t0, source_map=smap)
+    frames = load_animation(
+        AnimationSource("gltf", path, fps=1000.0, seconds=0.0, start=t - t0), av, source_map=smap
+    ).frames
     assert torch.allclose(frames[0], ds.vertices(i), atol=1e-4 * float(ds.canonical_vertices.abs().max()))
     with pytest.raises(MeshsplatError, match=r"no source_map.npz"):
-        animate.gltf_animation(av, path, fps=5, seconds=0.2)
+        load_animation(AnimationSource("gltf", path, fps=5, seconds=0.2), av)
     with pytest.raises(MeshsplatError, match="not the asset this avatar was synthesized from"):
-        animate.gltf_animation(av, assets / "gltf" / "RiggedSimple.glb", fps=5, seconds=0.2, source_map=smap)
+        load_animation(
+            AnimationSource("gltf", assets / "gltf" / "RiggedSimple.glb", fps=5, seconds=0.2), av, source_map=smap
+        )
     run = make_run(av, tmp_path / "run", ds.root)  # the CLI finds the map through the run's dataset
     from meshsplat.cli.main import main
 
@@ -254,7 +260,8 @@ def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, deci
             [
                 "render",
                 str(run),
-                "--gltf",
+                "--animation",
+                "gltf",
                 str(path),
                 "--seconds",
                 "0.2",
@@ -274,7 +281,7 @@ def test_gltf_drives_smoothed_or_decimated_avatar(assets, tmp_path, smooth, deci
     )
     if smooth:  # a sequence of the asset's own vertices also drives the smoothed mesh (rotation-aware offsets)
         seq = torch.stack([load_source(path).pose(ds.frame_info(i)["clip"], t)])
-        got = animate.sequence_animation(av, seq, source_map=smap)[0]
+        got = sequence_for_mesh(av.mesh, seq, source_map=smap)[0]
         assert float((got - ds.vertices(i)).norm(dim=1).max()) < 0.02 * float(ds.canonical_vertices.norm(dim=1).max())
 
 

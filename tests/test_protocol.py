@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from _peoplesnapshot import H, K, W, make_capture
-from meshsplat.animate import motion_animation
 from meshsplat.camera import Camera
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data.formats import open_capture
 from meshsplat.data.formats import peoplesnapshot as ps
+from meshsplat.drivers import AnimationSource, load_animation
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params
@@ -213,6 +213,8 @@ def test_motion_keeps_the_train_shape_with_per_split_betas(tmp_path, standin_mod
     avatar = Avatar(mesh, init_params(mesh, 8))
     motion = tmp_path / "motion.npz"
     np.savez(motion, poses=np.zeros((2, 72), np.float32), trans=np.zeros((2, 3), np.float32))
-    frames = motion_animation(avatar, ds, motion, standin_model_dir, align="none")
+    frames = load_animation(
+        AnimationSource("motion", motion, model_dir=standin_model_dir, align="none"), avatar, dataset=ds
+    ).frames
     assert len(frames) == 2
     assert torch.allclose(frames[0], ds.canonical_vertices, atol=1e-5)  # rest pose with the train betas

@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from meshsplat import animate, camera
+from meshsplat.drivers import AnimationSource, load_animation
+from meshsplat.drivers.avatar_match import sequence_for_mesh
 from meshsplat.errors import MeshsplatError
 from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
@@ -68,10 +70,10 @@ def test_sequence_and_blendshape_drivers(avatar, tmp_path):
 
     seq = torch.stack([deform(avatar.mesh.vertices, t) for t in (0.1, 0.2)])
     np.save(tmp_path / "seq.npy", seq.numpy())
-    frames = animate.sequence_animation(avatar, tmp_path / "seq.npy")
+    frames = sequence_for_mesh(avatar.mesh, tmp_path / "seq.npy")
     assert len(frames) == 2 and torch.equal(frames[1], seq[1])
     with pytest.raises(MeshsplatError, match=r"\[T,42,3\]"):
-        animate.sequence_animation(avatar, np.zeros((2, 41, 3), np.float32))
+        sequence_for_mesh(avatar.mesh, np.zeros((2, 41, 3), np.float32))
 
     # a blend-shape model on a superset of the avatar's vertices, shuffled: matched by rest position
     v = avatar.mesh.vertices
@@ -83,12 +85,12 @@ def test_sequence_and_blendshape_drivers(avatar, tmp_path):
     inv = torch.argsort(perm)
     model = BlendshapeDriver(neutral, inv[faces], deltas, names=["jaw", "smile"])
     (tmp_path / "w.json").write_text(json.dumps({"names": ["smile"], "weights": [[0.0], [0.5]]}))
-    frames = animate.blendshape_animation(avatar, model, tmp_path / "w.json")
+    frames = load_animation(AnimationSource("blendshapes", model, weights=tmp_path / "w.json"), avatar).frames
     assert len(frames) == 2
     assert torch.allclose(frames[0], v)
     assert torch.allclose(frames[1], v + 0.5 * deltas[1][inv[:42]], atol=1e-6)
     with pytest.raises(MeshsplatError, match=r"\[T,2\]"):
-        animate.blendshape_animation(avatar, model, np.zeros((3, 5)))
+        load_animation(AnimationSource("blendshapes", model, weights=np.zeros((3, 5))), avatar)
 
 
 def test_gltf_driver_vertex_count_and_matching(avatar, assets):
@@ -100,7 +102,7 @@ def test_gltf_driver_vertex_count_and_matching(avatar, assets):
 
     path = assets / "gltf" / "RiggedSimple.glb"
     with pytest.raises(MeshsplatError, match="does not drive the avatar's mesh"):
-        animate.gltf_animation(avatar, path, fps=5, seconds=0.2)
+        load_animation(AnimationSource("gltf", path, fps=5, seconds=0.2), avatar)
     drv = GltfDriver(path)
     rest = drv.rest_vertices().numpy().astype(np.float64)
     tol = 1e-6 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
@@ -112,13 +114,15 @@ def test_gltf_driver_vertex_count_and_matching(avatar, assets):
     assert (torch.cdist(rest_pos, rest_pos) + 1e3 * torch.eye(len(rep))).min() < 1e-6  # coincident vertices exist
     mesh = TriMesh(rest_pos, torch.from_numpy(wfaces).long())
     welded = Avatar(mesh, init_params(mesh, 50))
-    frames = animate.gltf_animation(welded, path, clip=drv.clips[0], fps=10, seconds=1.0, start=0.5)
+    frames = load_animation(
+        AnimationSource("gltf", path, clip=drv.clips[0], fps=10, seconds=1.0, start=0.5), welded
+    ).frames
     assert len(frames) == 10
     for i in (0, 9):
         want = drv.vertices_at(drv.time_range()[0] + 0.5 + i / 10)[torch.from_numpy(rep)]
         assert torch.allclose(frames[i], want, atol=1e-5)
     assert not torch.allclose(frames[0], frames[9], atol=1e-3)  # it animates
-    full = animate.gltf_animation(welded, path, fps=4)  # whole clip, end included
+    full = load_animation(AnimationSource("gltf", path, fps=4), welded).frames  # whole clip, end included
     assert len(full) == math.floor(drv.duration() * 4 + 1e-6) + 1
 
 
@@ -134,7 +138,8 @@ def test_cli_render(tmp_path, capsys):
         [
             "render",
             str(run),
-            "--vertices",
+            "--animation",
+            "vertices",
             str(tmp_path / "seq.npy"),
             "--orbit",
             "90",
@@ -158,7 +163,9 @@ def test_cli_render(tmp_path, capsys):
             [
                 "render",
                 str(run),
-                "--dataset-split",
+                "--animation",
+                "dataset",
+                "--split",
                 "test_frames",
                 "--out",
                 str(out2),
@@ -182,7 +189,8 @@ def test_cli_render(tmp_path, capsys):
             [
                 "render",
                 str(run),
-                "--vertices",
+                "--animation",
+                "vertices",
                 str(tmp_path / "seq.npy"),
                 "--camera",
                 "dataset:side",
@@ -201,7 +209,8 @@ def test_cli_render(tmp_path, capsys):
             [
                 "render",
                 str(run),
-                "--vertices",
+                "--animation",
+                "vertices",
                 str(tmp_path / "seq.npy"),
                 "--camera",
                 "dataset:nope",
@@ -212,5 +221,8 @@ def test_cli_render(tmp_path, capsys):
         == 2
     )
     assert "not a camera" in capsys.readouterr().err
-    assert main(["render", str(tmp_path / "missing"), "--vertices", "x.npy", "--out", str(tmp_path / "m")]) == 2
+    assert (
+        main(["render", str(tmp_path / "missing"), "--animation", "vertices", "x.npy", "--out", str(tmp_path / "m")])
+        == 2
+    )
     assert "run not found" in capsys.readouterr().err

@@ -328,13 +328,38 @@ def test_bad_canonical_mesh_is_refused(ds, tmp_path, what):
 def test_absurd_sizes_are_refused_before_work(run, tmp_path, capsys):
     cases = [
         (
-            ["render", str(run), "--out", str(tmp_path / "r"), "--dataset-split", "train", "--size", "16384x16384"],
+            [
+                "render",
+                str(run),
+                "--out",
+                str(tmp_path / "r"),
+                "--animation",
+                "dataset",
+                "--split",
+                "train",
+                "--size",
+                "16384x16384",
+            ],
             "8192",
         ),
         (["synth", "CesiumMan", "--out", str(tmp_path / "s"), "--resolution", "100000"], "16..4096"),
         (["synth", "CesiumMan", "--out", str(tmp_path / "s"), "--frames", "0"], "--frames"),
         (["view", str(run), "--out", str(tmp_path / "v"), "--frames", "0"], "--frames"),
-        (["render", str(run), "--out", str(tmp_path / "r"), "--dataset-split", "train", "--fps", "1e9"], "--fps"),
+        (
+            [
+                "render",
+                str(run),
+                "--out",
+                str(tmp_path / "r"),
+                "--animation",
+                "dataset",
+                "--split",
+                "train",
+                "--fps",
+                "1e9",
+            ],
+            "--fps",
+        ),
         (["eval", str(run), "--max-frames", "0"], "--max-frames"),
     ]
     for argv, needle in cases:
@@ -391,7 +416,8 @@ def test_degenerate_vertex_sequences_are_refused(run, tmp_path, capsys):
                     str(run),
                     "--out",
                     str(tmp_path / "r"),
-                    "--vertices",
+                    "--animation",
+                    "vertices",
                     str(tmp_path / f"{name}.npy"),
                     "--no-progress",
                     "--no-mp4",

@@ -476,7 +476,7 @@ def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     assert main(["view", str(run), "--out", str(tmp_path / "v4"), "--animation", "bvh", "x"]) == 2
     assert main(["view", str(tmp_path / "nope"), "--out", str(tmp_path / "v4")]) == 2
     err = capsys.readouterr().err
-    assert "needs exactly one FILE" in err and "expected one of" in err and "run not found" in err
+    assert "--animation gltf needs a FILE" in err and "expected one of" in err and "run not found" in err
 
 
 def test_view_cli_gltf(tmp_path, assets):
@@ -679,4 +679,4 @@ def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
     assert "live blendshapes" in capsys.readouterr().out
     small = make_run(make_avatar(n=20), tmp_path / "small", None)
     assert main(["view", str(small), "--out", str(tmp_path / "x"), "--animation", "blendshapes"]) == 2
-    assert "the model has 26719 vertices" in capsys.readouterr().err
+    assert "driver mesh has 26719 vertices" in capsys.readouterr().err

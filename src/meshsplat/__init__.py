@@ -7,7 +7,9 @@ The front door, ``import meshsplat as ms``, covers the whole pipeline::
     ms.TrainConfig, ms.train_avatar(dataset, out)   configure / train an avatar; returns the run folder
     ms.load_run(run), ms.load_avatar(run)           a trained run (avatar, config, dataset) / its avatar
     ms.Avatar, ms.Camera, ms.orbit_cameras          avatar.render(vertices, camera) -> image [H,W,3]
-    ms.render_animation(avatar, frames, cams, out)  PNG frames + MP4
+    ms.AnimationSource(kind, file, clip=...)        what drives the avatar (as --animation KIND FILE)
+    ms.load_animation(source, avatar)               its frames (or live driver) on the avatar's mesh
+    ms.render_animation(avatar, frames, cams, out)  PNG frames + MP4 (frames: also a loaded animation)
     ms.evaluate(run)                                metrics.json + report.html (eval.evaluate_run)
     ms.export_avatar(avatar, out)                   3DGS .ply + embedding JSON + canonical OBJ
     ms.write_viewer(avatar, frames, out)            one self-contained HTML page (viewer.write_viewer_bundle)
@@ -40,6 +42,8 @@ _FRONT_DOOR: dict[str, tuple[str, str]] = {
     "Avatar": ("meshsplat.gaussians.avatar", "Avatar"),
     "Camera": ("meshsplat.camera", "Camera"),
     "orbit_cameras": ("meshsplat.camera", "orbit_cameras"),
+    "AnimationSource": ("meshsplat.drivers.animation", "AnimationSource"),
+    "load_animation": ("meshsplat.drivers.animation", "load_animation"),
     "render_animation": ("meshsplat.animate", "render_animation"),
     "evaluate": ("meshsplat.eval.evaluate", "evaluate_run"),
     "export_avatar": ("meshsplat.export", "export_avatar"),
@@ -81,6 +85,8 @@ __all__ = [
     "Avatar",
     "Camera",
     "orbit_cameras",
+    "AnimationSource",
+    "load_animation",
     "render_animation",
     "evaluate",
     "export_avatar",
@@ -95,6 +101,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from meshsplat.animate import render_animation
     from meshsplat.camera import Camera, orbit_cameras
     from meshsplat.data.formats import open_capture
+    from meshsplat.drivers.animation import AnimationSource, load_animation
     from meshsplat.eval.evaluate import evaluate_run as evaluate
     from meshsplat.export import export_avatar
     from meshsplat.gaussians.avatar import Avatar

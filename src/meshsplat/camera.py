@@ -47,6 +47,9 @@ __all__ = [
     "capture_front",
     "yaw_matrix",
     "orbit_cameras",
+    "orbit_camera",
+    "orbit_viewmat",
+    "ORBIT_KEYS",
     "dataset_camera",
     "viewmat_from_opengl_c2w",
     "opengl_c2w_from_viewmat",
@@ -60,6 +63,7 @@ __all__ = [
     "K_to_integer_centers",
 ]
 
+ORBIT_KEYS = ("center", "distance", "azimuth_deg", "elevation_deg", "fov_deg", "width", "height", "up", "front")
 PIXEL_CENTER = 0.5  # the centre of pixel (i, j) is at (i + 0.5, j + 0.5) under meshsplat's K
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
@@ -225,13 +229,15 @@ def orbit_cameras(
     margin: float = 1.05,
     up: ArrayLike = (0.0, 1.0, 0.0),
     front: ArrayLike = (0.0, 0.0, 1.0),
+    center: ArrayLike | None = None,
 ) -> list[Camera]:
     """Cameras looking at the bounding box of all ``vertices`` (frames of ``[V,3]``), ``up`` up (default +y).
 
-    The camera turns ``orbit_deg`` in total about the ``up`` axis through the box centre over
-    ``num_frames`` (default ``len(vertices)``), starting at ``azimuth_deg`` (0 = looking from ``front``,
-    default +z, the glTF front). ``distance`` defaults to fitting the box's bounding sphere (times
-    ``margin``) in the view. A capture's own up and front: ``dataset.up``, ``dataset.front``.
+    The camera turns ``orbit_deg`` in total about the ``up`` axis through ``center`` (default the box
+    centre; the player page's orbit centre) over ``num_frames`` (default ``len(vertices)``), starting at
+    ``azimuth_deg`` (0 = looking from ``front``, default +z, the glTF front). ``distance`` defaults to
+    fitting the box's bounding sphere (times ``margin``) in the view. A capture's own up and front:
+    ``dataset.up``, ``dataset.front``. Each camera is :func:`orbit_camera`'s, as the page's is.
     """
     if width < 1 or height < 1:
         raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
@@ -247,21 +253,75 @@ def orbit_cameras(
     if count == 0 or lo is None or hi is None:
         raise MeshsplatError("vertices: no frames to frame the camera on")
     n = count if num_frames is None else int(num_frames)
-    center = ((lo + hi) / 2).double().numpy()
-    radius = max(float((hi - lo).norm()) / 2, 1e-6)
+    box_center = ((lo + hi) / 2).double().numpy()
+    c = box_center if center is None else _point("center", center)
+    radius = max(float((hi - lo).norm()) / 2, 1e-6) + float(np.linalg.norm(c - box_center))
     K = intrinsics(width, height, fov_deg)
     half = min(math.atan(0.5 * height / K[1, 1]), math.atan(0.5 * width / K[0, 0]))
     dist = margin * radius / math.sin(half) if distance is None else float(distance)
     if not dist > 0:
         raise MeshsplatError(f"distance: expected > 0, got {distance}")
-    el = math.radians(elevation_deg)
-    basis = orbit_basis(up, front)
-    cams = []
-    for i in range(n):
-        az = math.radians(azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0))
-        eye = orbit_position(center, dist, az, el, up, front)
-        cams.append(Camera.from_numpy(look_at(eye, center, basis[1]), K, width, height))
-    return cams
+    return [
+        orbit_camera(
+            c,
+            dist,
+            azimuth_deg + (orbit_deg * i / n if n > 1 else 0.0),
+            elevation_deg,
+            fov_deg,
+            width,
+            height,
+            up,
+            front,
+        )
+        for i in range(n)
+    ]
+
+
+def orbit_camera(
+    center: ArrayLike,
+    distance: float,
+    azimuth_deg: float = 0.0,
+    elevation_deg: float = 10.0,
+    fov_deg: float = 30.0,
+    width: int = 800,
+    height: int = 800,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    front: ArrayLike = (0.0, 0.0, 1.0),
+) -> Camera:
+    """The camera of an orbit description, the player page's camera language (its ``avatar.json``
+    ``camera``: ``center``, ``distance``, ``azimuth_deg``, ``elevation_deg``, ``fov_deg``, ``width``,
+    ``height``, ``up``, ``front``): at ``distance`` from ``center`` (:func:`orbit_position`), looking at
+    it with ``up`` up, vertical field of view ``fov_deg`` (:func:`intrinsics`)."""
+    if width < 1 or height < 1:
+        raise MeshsplatError(f"size: expected a positive width and height, got {width}x{height}")
+    if not 1.0 <= fov_deg < 179.0:
+        raise MeshsplatError(f"fov_deg: expected in [1, 179), got {fov_deg}")
+    if not (math.isfinite(distance) and distance > 0):
+        raise MeshsplatError(f"distance: expected > 0, got {distance}")
+    vm = orbit_viewmat(center, distance, azimuth_deg, elevation_deg, up, front)
+    return Camera.from_numpy(vm, intrinsics(width, height, fov_deg), width, height)
+
+
+def orbit_viewmat(
+    center: ArrayLike,
+    distance: float,
+    azimuth_deg: float,
+    elevation_deg: float,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    front: ArrayLike = (0.0, 0.0, 1.0),
+) -> np.ndarray:
+    """World->camera ``[4,4]`` (float64) of an orbit: the page's ``orbitViewmat`` (viewer.js), angles in degrees."""
+    c = _point("center", center)
+    _, u, f = orbit_basis(up, front)
+    eye = orbit_position(c, distance, math.radians(azimuth_deg), math.radians(elevation_deg), u, f)
+    return look_at(eye, c, u)
+
+
+def _point(name: str, p: ArrayLike) -> np.ndarray:
+    a = np.asarray(p.detach().cpu() if isinstance(p, torch.Tensor) else p, np.float64)
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise MeshsplatError(f"{name}: expected a finite point X,Y,Z, got {a.tolist()}")
+    return a
 
 
 def dataset_camera(dataset: AvatarDataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:

@@ -2,19 +2,25 @@
 
 ``add_run_argument`` gives ``RUN`` (and ``--dataset``); ``add_render_options`` gives the rendering
 flags (``--device --backend --background --size --no-progress``, each only where the command takes
-it); ``render_options(args)`` turns them into the values the library takes.
+it); ``render_options(args)`` turns them into the values the library takes. ``render`` and ``view`` say
+an animation and a camera the same way: ``add_animation_options`` / ``animation_source`` (``--animation
+KIND [FILE]`` and its options, an ``AnimationSource``) and ``add_camera_options`` / ``orbit_request``
+(``--camera``, ``--center``, ``--azimuth``, ... : the player page's orbit description).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass
 from typing import Any
 
-from meshsplat.cli._guards import LIMITS
+from meshsplat.cli._guards import LIMITS, check_range
 from meshsplat.data.dataset import DROP_FLAG, AvatarDataset
+from meshsplat.drivers import ANIMATION_KINDS, AnimationSource
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import LoadedRun
+from meshsplat.viewer.bundle import page_camera
 
 __all__ = [
     "add_run_argument",
@@ -27,6 +33,11 @@ __all__ = [
     "render_options",
     "RenderOptions",
     "parse_size",
+    "add_animation_options",
+    "animation_source",
+    "LEGACY_ANIMATION_FLAGS",
+    "add_camera_options",
+    "orbit_request",
 ]
 
 
@@ -162,3 +173,174 @@ def render_options(args: argparse.Namespace) -> RenderOptions:
         size=parse_size(size) if size else None,
         progress=not getattr(args, "no_progress", False),
     )
+
+
+# ---------------------------------------------------------------- one way to say an animation
+# the flags render took before --animation: flag -> kind (they keep working for one release, with a note)
+LEGACY_ANIMATION_FLAGS = {
+    "--gltf": "gltf",
+    "--vertices": "vertices",
+    "--blendshapes": "blendshapes",
+    "--motion": "motion",
+    "--dataset-split": "dataset",
+}
+
+
+def add_animation_options(parser: argparse.ArgumentParser, legacy: tuple[str, ...] = ()) -> None:
+    """``--animation KIND [FILE]`` and its options (``meshsplat.drivers.AnimationSource``'s fields), and the
+    ``legacy`` flags of ``LEGACY_ANIMATION_FLAGS`` the command took before."""
+    parser.add_argument(
+        "--animation",
+        nargs="+",
+        default=None,
+        metavar=("KIND", "FILE"),
+        help="what drives the avatar: dataset (default; --split NAME for one split with its cameras), "
+        "gltf FILE (--clip), vertices FILE (.npy [T,V,3], mesh-sequence .npz, OBJ/PLY folder), "
+        "blendshapes [FILE.npz|ict] (--weights, else a talking sequence) or motion FILE "
+        "(SMPL/SMPL-X .npz, flame_params.json, flame_param/)",
+    )
+    parser.add_argument("--clip", default=None, help="gltf: clip name (default the first)")
+    parser.add_argument("--split", default=None, help="dataset: only this split's frames, each with its camera")
+    parser.add_argument("--weights", default=None, help="blendshapes: weights [T,K] (.npy or .json)")
+    parser.add_argument("--fps", type=float, default=25.0, help="frame rate (and glTF sampling rate; default 25)")
+    parser.add_argument("--seconds", type=float, default=None, help="gltf: seconds to sample (default the clip)")
+    parser.add_argument("--start", type=float, default=0.0, help="gltf: start time within the clip (s)")
+    parser.add_argument(
+        "--frames", type=int, default=None, help="keep at most N frames (blendshapes talking sequence: its length)"
+    )
+    parser.add_argument(
+        "--model-dir",
+        default=None,
+        help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)",
+    )
+    for flag in legacy:
+        kind = LEGACY_ANIMATION_FLAGS[flag]
+        new = "--animation dataset --split NAME" if kind == "dataset" else f"--animation {kind} FILE"
+        parser.add_argument(
+            flag, default=None, metavar="NAME" if kind == "dataset" else "FILE", help=f"old spelling of {new}"
+        )
+
+
+def animation_source(args: argparse.Namespace, run: LoadedRun, command: str) -> AnimationSource:
+    """The ``AnimationSource`` the flags describe (an old flag is translated, with a one-line note)."""
+    check_range("--fps", args.fps, f"{command} --fps")
+    if args.frames is not None:
+        check_range("--frames", args.frames, "render frames")
+    if args.seconds is not None:
+        check_range("--seconds", args.seconds, "render --seconds")
+        check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
+    words = list(args.animation) if args.animation else None
+    split = args.split
+    old = [(f, getattr(args, f[2:].replace("-", "_"), None)) for f in LEGACY_ANIMATION_FLAGS]
+    old = [(f, v) for f, v in old if v is not None]
+    if len(old) > 1 or (old and words):
+        given = [f for f, _ in old] + (["--animation"] if words else [])
+        raise MeshsplatError(
+            f"{' and '.join(given)} exclude each other: say the animation once, --animation KIND [FILE]"
+        )
+    if old:
+        flag, value = old[0]
+        kind = LEGACY_ANIMATION_FLAGS[flag]
+        if kind == "dataset":
+            words, split = ["dataset"], value
+            new = f"--animation dataset --split {value}"
+        else:
+            words = [kind, value]
+            new = f"--animation {kind} {value}"
+        print(f"note: {flag} is now spelled {new}; the old flag goes in the next release", file=sys.stderr)
+    kind, *rest = words or ["dataset"]
+    if kind not in ANIMATION_KINDS:
+        raise MeshsplatError(f"--animation: expected one of {', '.join(ANIMATION_KINDS)}, got {kind!r}")
+    if len(rest) > 1:
+        raise MeshsplatError(f"--animation {kind}: expected at most one FILE, got {len(rest)} ({' '.join(rest)})")
+    model_dir = run.model_dir(args.model_dir or None) if kind == "motion" else args.model_dir
+    return AnimationSource(
+        kind,
+        rest[0] if rest else None,
+        clip=args.clip,
+        split=split,
+        weights=args.weights,
+        fps=args.fps,
+        seconds=args.seconds,
+        start=args.start,
+        frames=args.frames,
+        model_dir=model_dir,
+    )
+
+
+# ---------------------------------------------------------------- one camera language
+def _vector(flag: str, text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        x, y, z = (float(t) for t in text.split(","))
+    except ValueError:
+        raise MeshsplatError(f"{flag}: expected X,Y,Z such as 0,1,0, got {text!r}") from None
+    return x, y, z
+
+
+def add_camera_options(parser: argparse.ArgumentParser, orbit_turn: bool = False) -> None:
+    """The camera flags of ``render`` and ``view``: the player page's orbit description (``avatar.json``'s
+    ``camera``), a page's camera (``--camera page:FOLDER``) or a dataset camera; ``orbit_turn`` adds
+    ``--orbit DEG`` (a turn over the frames, render only)."""
+    parser.add_argument(
+        "--camera",
+        default=None,
+        help="dataset:<camera_id> (a capture camera) or page:FOLDER (the initial camera of a viewer page: "
+        "its folder or avatar.json); the flags below override a page's values",
+    )
+    parser.add_argument(
+        "--center", default=None, metavar="X,Y,Z", help="orbit centre (default the animation's box centre)"
+    )
+    parser.add_argument("--distance", type=float, default=None, help="orbit distance (default auto-framed)")
+    parser.add_argument("--elevation", type=float, default=None, help="orbit elevation in degrees (default 10)")
+    parser.add_argument(
+        "--azimuth",
+        type=float,
+        default=None,
+        help="orbit azimuth in degrees (default 0 = from the capture's front: +z in a +y-up world)",
+    )
+    parser.add_argument("--fov", type=float, default=None, help="vertical field of view in degrees (default 30)")
+    parser.add_argument("--up", default=None, metavar="X,Y,Z", help="orbit axis (default the capture's up)")
+    parser.add_argument(
+        "--front", default=None, metavar="X,Y,Z", help="azimuth 0 direction (default the capture's front)"
+    )
+    if orbit_turn:
+        parser.add_argument(
+            "--orbit", type=float, default=None, help="total turn over the frames in degrees (default 0)"
+        )
+
+
+def orbit_request(args: argparse.Namespace, up: Any, front: Any) -> dict[str, Any] | None:
+    """The orbit the camera flags describe, as ``meshsplat.camera.ORBIT_KEYS`` entries (a page's camera,
+    then the flags; ``up``/``front`` the capture's where neither says), or None for a dataset camera."""
+    spec = args.camera
+    if spec is not None and not spec.startswith(("dataset:", "page:")):
+        raise MeshsplatError(f"--camera: expected dataset:<camera_id> or page:FOLDER, got {spec!r}")
+    flags = {
+        "center": _vector("--center", args.center),
+        "distance": args.distance,
+        "azimuth_deg": args.azimuth,
+        "elevation_deg": args.elevation,
+        "fov_deg": args.fov,
+        "up": _vector("--up", args.up),
+        "front": _vector("--front", args.front),
+    }
+    given = {k: v for k, v in flags.items() if v is not None}
+    if spec is not None and spec.startswith("dataset:"):
+        if given or getattr(args, "orbit", None) is not None:
+            raise MeshsplatError(
+                "--camera dataset:<id> and the orbit flags (--center, --azimuth, ...) exclude each other"
+            )
+        return None
+    if args.fov is not None:
+        check_range("--fov", args.fov, "render --fov")
+    if args.elevation is not None:
+        check_range("--elevation", args.elevation, "render --elevation")
+    if args.distance is not None and not args.distance > 0:
+        raise MeshsplatError(f"--distance: expected > 0, got {args.distance:g}")
+    out: dict[str, Any] = {"azimuth_deg": 0.0, "elevation_deg": 10.0, "fov_deg": 30.0, "up": up, "front": front}
+    if spec is not None:
+        out.update(page_camera(spec.split(":", 1)[1]))
+    out.update(given)
+    return out

@@ -1,19 +1,21 @@
 """Write a self-contained WebGL viewer (open index.html in a browser) animating a trained avatar.
 
-Animation (default: the run's dataset meshes, all stored frames in order):
-  --animation dataset [--split NAME]     the dataset's meshes (or those of one split)
-  --animation gltf FILE [--clip NAME]    a glTF/GLB rig driving the avatar's mesh, LIVE: its skin,
-                                         morph targets and clips ship in the page (clip picker,
-                                         scrubbing, speed, morph sliders); --bake ships vertex
-                                         frames sampled at --fps instead
-  --animation vertices FILE              a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
-  --animation motion FILE                SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
-                                         flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
-  --animation blendshapes [FILE.npz]     a blendshape face (default the bundled ICT FaceKit ARKit
-                                         model) LIVE: one slider per expression, and a procedural
-                                         talking sequence (--frames, default 125, at --fps) as a clip
---frames N keeps the first N frames. The page works from file://; --serve also serves the
-folder on http://127.0.0.1:PORT until Ctrl-C.
+Animation (the same words as `meshsplat render` and ``meshsplat.drivers.AnimationSource``):
+  --animation dataset [--split NAME]      the capture's meshes (default: all stored frames in order)
+  --animation gltf FILE [--clip NAME]     a glTF/GLB rig driving the avatar's mesh, LIVE: its skin, morph
+                                          targets and clips ship in the page (clip picker, scrubbing, speed,
+                                          morph sliders); --bake ships vertex frames sampled at --fps instead
+  --animation vertices FILE               a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
+  --animation motion FILE                 SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
+                                          flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
+  --animation blendshapes [FILE.npz|ict]  a blend-shape face (default the bundled ICT FaceKit ARKit model,
+                                          also an ICT head trained from `meshsplat synth ict`) LIVE: one
+                                          slider per expression, and --weights [T,K] or a procedural
+                                          talking sequence (--frames, default 125, at --fps) as a clip
+--frames N keeps the first N frames. --motion FILE (the old spelling) still works for this release.
+Camera (the same words as `meshsplat render`): --camera page:FOLDER (another page's camera) or
+dataset:<camera_id>, and --center X,Y,Z --azimuth --elevation --distance --fov --up --front.
+The page works from file://; --serve also serves the folder on http://127.0.0.1:PORT until Ctrl-C.
 
 Examples:
   meshsplat view runs/demo --out out/viewer
@@ -28,57 +30,33 @@ import functools
 import http.server
 from pathlib import Path
 
-import torch
-
-from meshsplat import animate
+from meshsplat import camera
 from meshsplat.cli._guards import check_output_dir, check_range
 from meshsplat.cli._options import (
+    add_animation_options,
+    add_camera_options,
     add_dataset_option,
     add_render_options,
     add_run_argument,
+    animation_source,
     capture_up_front,
+    orbit_request,
     render_options,
 )
-from meshsplat.drivers import BlendshapeDriver
+from meshsplat.drivers import BlendshapeDriver, GltfDriver, load_animation
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians import Avatar
-from meshsplat.paths import resolve_input
-from meshsplat.run_folder import LoadedRun, load_run
+from meshsplat.run_folder import load_run
 from meshsplat.viewer import write_viewer_bundle
-from meshsplat.viewer.rig import avatar_driver
 
-__all__ = ["add_arguments", "run", "load_frames"]
-
-_KINDS = ("dataset", "gltf", "vertices", "blendshapes", "motion")
+__all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
-    parser.add_argument(
-        "--animation",
-        nargs="+",
-        default=["dataset"],
-        metavar=("KIND", "FILE"),
-        help="dataset (default), gltf FILE, vertices FILE (.npy, mesh-sequence .npz, OBJ/PLY "
-        "folder), blendshapes [FILE.npz] or motion FILE",
-    )
-    parser.add_argument(
-        "--motion",
-        default=None,
-        metavar="FILE",
-        help="same as --animation motion FILE (SMPL/SMPL-X .npz, flame_params.json, flame_param/)",
-    )
-    parser.add_argument(
-        "--model-dir",
-        default=None,
-        help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)",
-    )
-    parser.add_argument("--clip", default=None, help="glTF clip name (default the first)")
-    parser.add_argument("--split", default=None, help="dataset: only the frames of this split")
+    add_animation_options(parser, legacy=("--motion",))
     add_dataset_option(parser)
-    parser.add_argument("--frames", type=int, default=None, help="keep at most N frames")
-    parser.add_argument("--fps", type=float, default=25.0, help="playback (and glTF sampling) rate (default 25)")
+    add_camera_options(parser)
     parser.add_argument("--title", default=None, help="page title (default: the run folder's name)")
     add_render_options(parser, device=False, backend=False, background=("white", "black"), progress=False)
     parser.add_argument(
@@ -92,62 +70,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
-
-
-def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -> list:
-    """Vertex frames [V,3] chosen by ``--animation`` (via meshsplat.animate helpers)."""
-    kind, *rest = args.animation
-    if kind not in _KINDS:
-        raise MeshsplatError(f"--animation: expected one of {', '.join(_KINDS)}, got {kind!r}")
-    if kind == "dataset":
-        if rest:
-            raise MeshsplatError("--animation dataset takes no file (use --dataset PATH)")
-        ds = run_info.open_dataset(args.dataset, check_masks=False)
-        if args.split:
-            frames, _ = animate.dataset_animation(avatar, ds, args.split)
-        else:
-            drv = ds.driver()
-            n = drv.num_frames if args.frames is None else min(drv.num_frames, args.frames)
-            frames = animate.sequence_animation(avatar, torch.stack([drv.vertices(i) for i in range(n)]).numpy())
-    elif kind == "blendshapes":
-        drv = _blendshape_driver(avatar, rest, args)
-        frames = [drv.vertices(i) for i in range(drv.num_frames)]
-    else:
-        if len(rest) != 1:
-            raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
-        if kind == "gltf":
-            frames = animate.gltf_animation(
-                avatar, rest[0], clip=args.clip, fps=args.fps, source_map=run_info.source_map(args.dataset)
-            )
-        elif kind == "motion":
-            ds = run_info.open_dataset(args.dataset, check_masks=False)
-            mdir = run_info.model_dir(args.model_dir or None)
-            frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
-        else:
-            frames = animate.sequence_animation(avatar, rest[0], source_map=run_info.source_map(args.dataset))
-    if args.frames is not None:
-        if args.frames < 1:
-            raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
-        frames = frames[: args.frames]
-    return frames
-
-
-def _blendshape_driver(avatar, rest: list, args: argparse.Namespace):
-    """BlendshapeDriver of FILE (default the bundled ICT FaceKit head) with a talking sequence."""
-    if len(rest) > 1:
-        raise MeshsplatError("--animation blendshapes takes at most one FILE.npz")
-    drv = BlendshapeDriver.from_npz(rest[0] if rest else None)
-    v = int(drv.neutral.shape[0])
-    if v != avatar.mesh.num_vertices:
-        raise MeshsplatError(
-            f"--animation blendshapes: the model has {v} vertices, the avatar's mesh "
-            f"{avatar.mesh.num_vertices}; use the blendshape model the avatar was trained on"
-        )
-    n = 125 if args.frames is None else args.frames
-    if n < 1:
-        raise MeshsplatError(f"--frames: expected >= 1, got {n}")
-    drv.talking_sequence(n, args.fps)
-    return drv
 
 
 def _serve(folder: Path, port: int) -> None:
@@ -164,50 +86,43 @@ def _serve(folder: Path, port: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_range("--fps", args.fps, "view --fps")
-    check_range("--frames", args.frames, "view --frames")
     if args.serve:
         check_range("--port", args.port, "view --port")
     check_output_dir(args.out)
-    if args.motion is not None:
-        if args.animation != ["dataset"]:
-            raise MeshsplatError("--motion and --animation exclude each other")
-        args.animation = ["motion", args.motion]
     opts = render_options(args)
     r = load_run(args.run, device="cpu")
+    source = animation_source(args, r, "view")
     title = args.title or r.run_dir.resolve().name
-    up, front = capture_up_front(r, args.dataset)
-    camera = {"up": up, "front": front}  # the orbit turns about the capture's up, from its front
-    kind, *rest = args.animation
-    rig = frames = None
-    if kind == "gltf" and not args.bake:
-        if len(rest) != 1:
-            raise MeshsplatError("--animation gltf needs exactly one FILE")
-        glb = resolve_input(rest[0])
-        if not glb.is_file():
-            raise MeshsplatError(f"glTF file not found: {rest[0]} (check --animation gltf FILE)")
-        rig = avatar_driver(r.avatar, glb, clip=args.clip, source_map=r.source_map(args.dataset))
-        what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
-    elif kind == "blendshapes" and not args.bake:
-        rig = _blendshape_driver(r.avatar, rest, args)
-        what = f"live blendshapes, {len(rig.names)} expressions, {rig.num_frames}-frame sequence"
+    needs_ds = source.kind in ("dataset", "motion") or (args.camera or "").startswith("dataset:")
+    ds = r.open_dataset(args.dataset, check_masks=False) if needs_ds else None
+    up, front = capture_up_front(r, args.dataset, ds)
+    req = orbit_request(args, up, front)  # the orbit turns about the capture's up, from its front
+    if req is None:
+        assert ds is not None  # opened above for a dataset camera
+        cam: camera.Camera | dict = camera.dataset_camera(ds, args.camera.split(":", 1)[1])
     else:
-        frames = load_frames(r.avatar, args, r)
-        what = f"{len(frames)} frames"
+        cam = req
+    live = source.kind in ("gltf", "blendshapes") and not args.bake
+    anim = load_animation(source, r.avatar, dataset=ds, source_map=r.source_map(args.dataset), live=live)
+    if isinstance(anim.driver, GltfDriver):
+        rig = anim.driver
+        what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"
+    elif isinstance(anim.driver, BlendshapeDriver):
+        what = f"live blendshapes, {len(anim.driver.names)} expressions, {anim.driver.num_frames}-frame sequence"
+    else:
+        what = f"{len(anim.vertex_frames())} frames"
     index = write_viewer_bundle(
         r.avatar,
-        frames,
+        anim,
         Path(args.out),
-        fps=args.fps,
         title=title,
         vertex_encoding=args.vertex_encoding,
         background=opts.background or "white",
-        camera=camera,
-        rig=rig,
+        camera=cam,
     )
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
     print(
-        f"viewer: {index} ({what}, {r.avatar.num_gaussians} Gaussians, "
+        f"viewer: {index} ({source.describe()}: {what}, {r.avatar.num_gaussians} Gaussians, "
         f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)"
     )
     print(f"  open file://{index.resolve()}")

@@ -6,7 +6,7 @@ motion: seams welded and vertices reordered, or the nearest vertex of a smoothed
 ``source_rest [Vs,3]`` and ``source_faces [Fs,3]`` (the asset's rest mesh in the dataset's y-up
 world), ``rotation [3,3]`` (asset axes -> world), ``exact`` (canonical rest equals the asset rest at
 ``source_index``), ``smooth`` and ``decimate``. With it, vertex sequences in the asset's own order
-and every clip of the asset drive the avatar (:mod:`meshsplat.animate`).
+and every clip of the asset drive the avatar (:mod:`meshsplat.drivers.avatar_match`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from meshsplat.io.arrays import read_npz
 from meshsplat.mesh.geometry import vertex_quaternions
 from meshsplat.mesh.quaternion import quat_to_matrix
 
-__all__ = ["SourceMap", "read_source_map", "copy_source_map", "rest_mismatch", "FILE_NAME"]
+__all__ = ["SourceMap", "read_source_map", "copy_source_map", "FILE_NAME"]
 
 FILE_NAME = "source_map.npz"
 
@@ -92,21 +92,3 @@ def copy_source_map(dataset_root: Path | str, run_dir: Path | str) -> Path | Non
         return None
     Path(run_dir).mkdir(parents=True, exist_ok=True)
     return Path(shutil.copyfile(src, Path(run_dir) / FILE_NAME))
-
-
-def rest_mismatch(frame: torch.Tensor, rest: torch.Tensor, faces: torch.Tensor) -> tuple[float, float]:
-    """How badly ``frame [V,3]`` fails to be a deformation of ``rest [V,3]`` on ``faces [F,3]``:
-    ``(fraction of edges stretched or shrunk beyond 3x, median edge-length ratio frame/rest)``.
-    A posed mesh in the same vertex order keeps most edge lengths; a reordered one does not."""
-    f = faces.long()
-    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    lr = (rest[e[:, 0]] - rest[e[:, 1]]).double().norm(dim=1)
-    lf = (frame[e[:, 0]] - frame[e[:, 1]]).double().norm(dim=1)
-    ok = lr > 1e-12 * float(lr.max().clamp_min(1e-30))
-    ratio = lf[ok] / lr[ok]
-    if ratio.numel() == 0:
-        return 0.0, 1.0
-    med = float(ratio.median())
-    rel = ratio / max(med, 1e-30)  # a uniform scale (units) is reported by the median, not counted here
-    bad = float(((rel > 3.0) | (rel < 1.0 / 3.0)).double().mean())
-    return bad, med

@@ -6,6 +6,7 @@ bounding-box centre. Loads the ICT FaceKit ARKit npz (keys: neutral, faces, expr
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,10 +19,10 @@ from numpy.typing import ArrayLike
 from meshsplat._checks import check_tensor
 from meshsplat.drivers.base import as_faces, as_vertices
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.arrays import read_npz
+from meshsplat.io.arrays import read_npy, read_npz
 from meshsplat.paths import resolve_input
 
-__all__ = ["BlendshapeDriver", "axis_angle_to_matrix"]
+__all__ = ["BlendshapeDriver", "axis_angle_to_matrix", "read_weights"]
 
 
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
@@ -116,6 +117,22 @@ class BlendshapeDriver:
             else torch.zeros(t, 3)
         )
 
+    def derive(
+        self, source_index: ArrayLike, faces: torch.Tensor | ArrayLike, rest: torch.Tensor | ArrayLike | None = None
+    ) -> BlendshapeDriver:
+        """The model on another mesh: vertex ``i`` takes the expression deltas of vertex ``source_index[i]``
+        and rest position ``rest[i]`` (default that vertex's); the pivot (head-pose centre) stays, so a
+        pose turns the derived mesh as it turns the model's. Used for welded or decimated driving meshes."""
+        src = torch.as_tensor(np.asarray(source_index, np.int64)).reshape(-1)
+        v = self.neutral.shape[0]
+        if src.numel() == 0 or int(src.min()) < 0 or int(src.max()) >= v:
+            raise MeshsplatError(f"source_index: expected indices in [0, {v})")
+        neutral = self.neutral[src] if rest is None else as_vertices("rest", rest)
+        out = BlendshapeDriver(neutral, faces, self.deltas[:, src], names=self.names)
+        out.pivot = self.pivot.clone()
+        out.set_sequence(self.weights, self.rotations, self.translations)
+        return out
+
     @property
     def num_frames(self) -> int:
         return int(self.weights.shape[0])
@@ -176,3 +193,55 @@ class BlendshapeDriver:
         """Set ``num_frames`` frames of :meth:`talking_params` sampled at ``fps``."""
         w, rot = self.talking_params(np.arange(num_frames) / fps)
         self.set_sequence(w, rot, torch.zeros(num_frames, 3))
+
+
+def read_weights(weights: _Rows | str | Path, names: Sequence[str]) -> np.ndarray:
+    """Blend-shape weights ``[T,K]`` (K = ``len(names)``) from an array, a ``.npy``, or a ``.json`` holding
+    ``[[...], ...]`` or ``{"names": [...], "weights": [[...], ...]}`` (columns matched to ``names``,
+    the others 0)."""
+    names = list(names)
+    if isinstance(weights, (str, Path)):
+        p = resolve_input(weights)
+        if not p.is_file():
+            raise MeshsplatError(f"weights file not found: {p}")
+        if p.suffix.lower() == ".json":
+            w = _weights_json(p, names)
+        else:
+            a = read_npy(p, "blend-shape weights [T,K]")
+            if a.dtype.kind not in "fiub":
+                raise MeshsplatError(f"{p}: blend-shape weights must be numbers, got {a.dtype}")
+            w = a.astype(np.float32)
+    else:
+        w = np.asarray(weights.detach().cpu() if isinstance(weights, torch.Tensor) else weights, np.float32)
+    if w.ndim == 1:
+        w = w[None]
+    if w.ndim != 2 or w.shape[1] != len(names) or w.shape[0] < 1:
+        raise MeshsplatError(
+            f"weights: expected shape [T,{len(names)}] (one column per blend shape), got {list(w.shape)}"
+        )
+    if not np.isfinite(w).all():
+        raise MeshsplatError("weights: contain NaN/Inf values")
+    return w
+
+
+def _weights_json(p: Path, names: list[str]) -> np.ndarray:
+    try:
+        doc = json.loads(p.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise MeshsplatError(f"{p}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        return np.asarray(doc, np.float32)
+    if "weights" not in doc:
+        raise MeshsplatError(f"{p}: expected a list [T][K] or an object with 'weights' (and 'names')")
+    w = np.asarray(doc["weights"], np.float32)
+    if "names" not in doc:
+        return w
+    cols = [str(s) for s in doc["names"]]
+    unknown = [c for c in cols if c not in names]
+    if unknown:
+        raise MeshsplatError(f"{p}: unknown blend-shape names {unknown[:5]}")
+    if w.ndim != 2 or w.shape[1] != len(cols):
+        raise MeshsplatError(f"{p}: 'weights' must be [T,{len(cols)}] to match 'names'")
+    full = np.zeros((w.shape[0], len(names)), np.float32)
+    full[:, [names.index(c) for c in cols]] = w
+    return full

@@ -32,6 +32,8 @@ __all__ = [
     "MODEL_KINDS",
     "REGISTER_SITES",
     "GENDERS",
+    "TOPOLOGY_KINDS",
+    "model_kind_for",
     "BodyModel",
     "BodyOutput",
     "ParametricDriver",
@@ -56,6 +58,14 @@ REGISTER_SITES = {
     "flame": "https://flame.is.tue.mpg.de",
 }
 _TITLE = {"smpl": "SMPL", "smplx": "SMPL-X", "flame": "FLAME"}
+TOPOLOGY_KINDS = {6890: "smpl", 10475: "smplx", 5023: "flame"}  # vertex counts of the released models
+
+
+def model_kind_for(num_vertices: int) -> str | None:
+    """The body/head model ("smpl", "smplx", "flame") whose released mesh has ``num_vertices``, else None."""
+    return TOPOLOGY_KINDS.get(int(num_vertices))
+
+
 _NUM_JOINTS = {"smpl": 24, "smplx": 55, "flame": 5}
 # pose parameters in the order of the full pose vector (joint order of the kinematic tree)
 POSE_KEYS = {

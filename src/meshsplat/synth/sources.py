@@ -131,10 +131,8 @@ class BlendshapeSource:
 
     def derive(self, src: ArrayLike, faces: ArrayLike, rest: ArrayLike | None = None) -> BlendshapeSource:
         src_t = torch.as_tensor(np.asarray(src), dtype=torch.long)
-        d = self.driver
-        neutral = d.neutral[src_t] if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32)
-        new = BlendshapeDriver(neutral, np.asarray(faces), d.deltas[:, src_t], names=d.names)
-        new.pivot = d.pivot.clone()
+        rest_t = None if rest is None else torch.as_tensor(np.asarray(rest), dtype=torch.float32)
+        new = self.driver.derive(src_t, np.asarray(faces), rest_t)  # keeps the head-pose pivot
         out = BlendshapeSource.__new__(BlendshapeSource)
         out.driver, out.duration, out.clips = new, self.duration, self.clips
         out.faces = new.faces

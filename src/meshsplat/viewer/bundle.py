@@ -28,8 +28,8 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
-from meshsplat.camera import Camera, intrinsics, look_at, orbit_basis, orbit_cameras, orbit_position
-from meshsplat.drivers import BlendshapeDriver, GltfDriver
+from meshsplat.camera import Camera, intrinsics, orbit_basis, orbit_cameras, orbit_viewmat
+from meshsplat.drivers import Animation, BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
@@ -42,6 +42,7 @@ __all__ = [
     "write_viewer_bundle",
     "read_viewer_bundle",
     "default_camera",
+    "page_camera",
     "pack_gaussians",
     "unpack_gaussians",
     "BUNDLE_VERSION",
@@ -120,9 +121,8 @@ def default_camera(
 def _camera_dict(
     center, distance, azimuth_deg, elevation_deg, fov_deg, width, height, up=(0.0, 1.0, 0.0), front=(0.0, 0.0, 1.0)
 ) -> dict[str, Any]:
-    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     _, u, f = orbit_basis(up, front)
-    vm = look_at(orbit_position(center, distance, az, el, u, f), center, u)
+    vm = orbit_viewmat(center, distance, azimuth_deg, elevation_deg, u, f)
     return {
         "up": [float(x) for x in u],
         "front": [float(x) for x in f],
@@ -313,17 +313,18 @@ def _pack(sections: dict[str, np.ndarray]) -> tuple[bytes, dict[str, Any]]:
 
 def write_viewer_bundle(
     avatar: Avatar,
-    frames: ArrayLike | None,
+    frames: ArrayLike | Animation | None,
     out_dir: str | Path,
-    fps: float = 25.0,
+    fps: float | None = None,
     camera: Camera | dict[str, Any] | None = None,
     title: str = "meshsplat avatar",
     vertex_encoding: str = "int16",
     background: str = "white",
     rig: GltfDriver | BlendshapeDriver | None = None,
 ) -> Path:
-    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array or a list of ``[V,3]``)
-    or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
+    """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array, a list of ``[V,3]``,
+    or an :class:`~meshsplat.drivers.animation.Animation` from ``load_animation``: its frames, or its driver
+    live when loaded with ``live=True``) or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
     :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
     or a ``BlendshapeDriver`` on them (expressions as morph targets, its sequence a clip at ``fps``);
     the page evaluates them, and ``frames`` is then None or only used to frame the camera.
@@ -333,8 +334,18 @@ def write_viewer_bundle(
     about ``up``, default +y, from ``front``, default +z; a capture's: ``dataset.up``, ``dataset.front``), or an
     ``camera.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
     (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
-    ``frames`` (with a glTF rig unused; with a blendshape rig the rate of its sequence). Returns ``index.html``.
+    ``frames`` (default the Animation's, else 25; with a glTF rig unused; with a blendshape rig the rate of
+    its sequence). Returns ``index.html``.
     """
+    if isinstance(frames, Animation):
+        fps = frames.fps if fps is None else fps
+        if frames.driver is not None:
+            if rig is not None:
+                raise MeshsplatError("rig: given twice (the Animation is live already)")
+            rig, frames = frames.driver, None
+        else:
+            frames = frames.frames
+    fps = 25.0 if fps is None else fps
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
@@ -354,7 +365,7 @@ def write_viewer_bundle(
         if rig_vertices != mesh.num_vertices:
             raise MeshsplatError(
                 f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
-                "(for glTF build it with meshsplat.viewer.rig.avatar_driver)"
+                "(load it with meshsplat.drivers.load_animation(source, avatar, live=True))"
             )
         sections.update(rig_sections)
         if frames is None:  # frame the camera on samples of the default clip
@@ -414,6 +425,34 @@ def _fill_template(template: str, values: dict[str, str]) -> str:
     """Replace each ``__NAME__`` of the template in ONE pass, so that inserted text (a title such as
     ``__VIEWER_JS__``, the viewer source, the data) is never scanned for placeholders again."""
     return re.sub(r"__(TITLE|AVATAR_HEADER|AVATAR_DATA|VIEWER_JS)__", lambda m: values[m.group(1)], template)
+
+
+def page_camera(path: str | Path) -> dict[str, Any]:
+    """The player page's initial camera as an orbit description (``meshsplat.camera.ORBIT_KEYS``:
+    ``center, distance, azimuth_deg, elevation_deg, fov_deg, width, height, up, front``) from a viewer
+    bundle folder or its ``avatar.json``; ``meshsplat.camera.orbit_camera(**it)`` is the page's camera."""
+    p = Path(path)
+    p = p / "avatar.json" if p.is_dir() else p
+    try:
+        cam = json.loads(p.read_text(encoding="utf-8")).get("camera")
+    except FileNotFoundError:
+        raise MeshsplatError(f"{p}: not found (expected a viewer folder or its avatar.json)") from None
+    except (ValueError, UnicodeDecodeError, AttributeError) as exc:
+        raise MeshsplatError(f"{p}: not a viewer bundle header ({exc})") from None
+    need = ("center", "distance", "azimuth_deg", "elevation_deg", "fov_deg", "width", "height")
+    if not isinstance(cam, dict) or any(k not in cam for k in need):
+        raise MeshsplatError(f"{p}: has no page camera ({', '.join(need)}); write the viewer again with this meshsplat")
+    try:
+        out: dict[str, Any] = {k: float(cam[k]) for k in ("distance", "azimuth_deg", "elevation_deg", "fov_deg")}
+        out["width"], out["height"] = int(cam["width"]), int(cam["height"])
+        for k, default in (("center", None), ("up", (0.0, 1.0, 0.0)), ("front", (0.0, 0.0, 1.0))):
+            v = np.asarray(cam.get(k, default), np.float64)
+            if v.shape != (3,) or not np.isfinite(v).all():
+                raise ValueError(f"{k} is not a finite 3-vector")
+            out[k] = tuple(float(x) for x in v)
+    except (TypeError, ValueError) as exc:
+        raise MeshsplatError(f"{p}: page camera: {exc}") from None
+    return out
 
 
 def read_viewer_bundle(out_dir: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

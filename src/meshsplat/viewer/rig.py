@@ -17,9 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from meshsplat.animate import avatar_gltf_driver
 from meshsplat.data.source_map import SourceMap
-from meshsplat.drivers import GltfDriver
+from meshsplat.drivers import AnimationSource, GltfDriver, load_animation
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
@@ -32,15 +31,10 @@ _PATHS = ("translation", "rotation", "scale", "weights")
 def avatar_driver(
     avatar: Avatar, path: str | Path, clip: str | None = None, source_map: SourceMap | None = None
 ) -> GltfDriver:
-    """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices, derived as
-    :func:`meshsplat.animate.avatar_gltf_driver` does (matched rest positions, or re-derived from the
-    asset the avatar was synthesized from)."""
-    drv, to_world = avatar_gltf_driver(avatar, path, clip=clip, source_map=source_map)
-    if to_world is not None:
-        raise MeshsplatError(
-            f"{path}: the avatar was synthesized from this asset turned to +y up; the live page "
-            "plays the asset in its own axes: use --bake (vertex frames) instead"
-        )
+    """``GltfDriver`` of ``path`` whose vertices are the avatar's canonical mesh vertices: the live driver of
+    ``load_animation(AnimationSource("gltf", path, clip=clip), avatar, source_map=..., live=True)``."""
+    drv = load_animation(AnimationSource("gltf", path, clip=clip), avatar, source_map=source_map, live=True).driver
+    assert isinstance(drv, GltfDriver)  # a live gltf source loads its driver
     return drv
 
 
