@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--block", type=int, default=20)
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
+    ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/train_speed-<host>.json)")
     ap.add_argument("--quick", action="store_true", help="20 timed iterations after 10 warm-up ones, blocks of 10")
     args = ap.parse_args()
     if args.quick:
@@ -81,7 +82,7 @@ def main() -> None:
         )
     out = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}, "variants": VARIANTS}
     out["rows"] = rows
-    path = results_path("train_speed")
+    path = args.out or results_path("train_speed")
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"saved {path}")
 
