@@ -10,7 +10,7 @@ on-disk cache, so compilation memory is not counted), i.e. the extra resident me
 Compile time: a child with an empty NUMBA_CACHE_DIR times ``warm_up()`` (float32 + float64 kernels,
 cold compile), a second child with the same directory times it again (kernels loaded from the cache).
 
-    python bench/raster_cpu.py [--quick] [--threads N] [--repeats R] [--no-compile] [--out PATH]
+    python bench/raster_cpu.py [--quick] [--cases 0,1] [--threads N] [--repeats R] [--no-compile] [--out PATH]
 """
 
 from __future__ import annotations
@@ -123,6 +123,7 @@ def measure_compile() -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="only the smallest case")
+    ap.add_argument("--cases", default="", help="comma-separated indices into the cases (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch (and so numba) threads (0: torch default)")
     ap.add_argument("--repeats", type=int, default=0, help="timed runs per case (default 7, --quick 3)")
     ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
@@ -140,6 +141,8 @@ def main(argv=None) -> int:
 
     repeats = args.repeats or (3 if args.quick else 7)
     cases = CASES[:1] if args.quick else CASES
+    if args.cases:
+        cases = [CASES[int(i)] for i in args.cases.split(",")]
     compile_info = None if args.no_compile else measure_compile()
     _child(["--compile-child"])  # fill the default on-disk cache the cases load from
     rows = [_child(["--child", f"{n},{s},{repeats},{b},{args.threads}"]) for n, s in cases for b in BACKENDS]

@@ -1,7 +1,7 @@
 """Training time per iteration on the demo capture: today's default vs the code path before the
 compiled rasterizer and the subject-crop losses, in the same run, at 1 and 2 threads.
 
-    python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20]
+    python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20] [--threads 1,2] [--quick]
 
 Variants (both the quality preset on the demo's schedule, ``demo_train_config`` with the ``default``
 demo sizes, same seed): ``before`` = ``backend=torch`` and ``loss.crop_to_subject=false`` (the path of
@@ -35,11 +35,16 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=60)
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--block", type=int, default=20)
+    ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
+    ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/train_speed-<host>.json)")
+    ap.add_argument("--quick", action="store_true", help="20 timed iterations after 10 warm-up ones, blocks of 10")
     args = ap.parse_args()
+    if args.quick:
+        args.iters, args.warmup, args.block = 20, 10, 10
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_"))
     data = args.data if args.data is not None else _generate(tmp / "data", PRESETS["default"], progress=False)
     rows = []
-    for threads in (1, 2):
+    for threads in [int(t) for t in args.threads.split(",")]:
         torch.set_num_threads(threads)
         trainers = {}
         for name, extra in VARIANTS.items():
@@ -77,7 +82,7 @@ def main() -> None:
         )
     out = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}, "variants": VARIANTS}
     out["rows"] = rows
-    path = results_path("train_speed")
+    path = args.out or results_path("train_speed")
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"saved {path}")
 

@@ -168,6 +168,23 @@ def test_differentiable_and_metric_wrapper():
 
 
 @needs_weights
+def test_reference_features_without_graph_give_the_same_value_and_gradient():
+    """Training passes a render that needs grad and a reference that does not: the reference's features are
+    then computed without autograd (one network pass each) instead of in one batch; same value and gradient."""
+    model = get_lpips("alex")
+    x = structured_image(64, 64, seed=1).requires_grad_(True)
+    y = structured_image(64, 64, seed=2)
+    split = model(x, y).sum()
+    (g_split,) = torch.autograd.grad(split, x)
+    y_graph = y.clone().requires_grad_(True)  # both need grad: the batched pass
+    batched = model(x, y_graph).sum()
+    (g_batched,) = torch.autograd.grad(batched, x)
+    assert split.item() == pytest.approx(batched.item(), rel=1e-6)
+    torch.testing.assert_close(g_split, g_batched, atol=1e-5 * float(g_batched.abs().max()), rtol=0)  # conv blocking
+    assert float(g_split.abs().max()) > 0
+
+
+@needs_weights
 def test_vgg_variant_loads_and_behaves():
     model = get_lpips("vgg")
     x = structured_image(48, 48)

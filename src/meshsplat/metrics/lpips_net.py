@@ -246,14 +246,28 @@ class LPIPS(nn.Module):
             )
         dtype = self.shift.dtype
         b = img0.shape[0]
-        x = torch.cat([img0, img1], 0).to(dtype)
-        x = ((x * 2.0 - 1.0) - self.shift) / self.scale
-        total = x.new_zeros(b)
-        for feat, lin in zip(self.features(x), self.lins, strict=True):
-            f = feat / (feat.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            d = (f[:b] - f[b:]).pow(2)
+        if torch.is_grad_enabled() and img0.requires_grad and not img1.requires_grad:
+            # training: the reference's features need no graph, so its half of the backward is skipped
+            feats0 = self.features(self._scaled(img0.to(dtype)))
+            with torch.no_grad():
+                feats1 = self.features(self._scaled(img1.to(dtype)))
+            pairs = list(zip(feats0, feats1, strict=True))
+        else:
+            both = self.features(self._scaled(torch.cat([img0, img1], 0).to(dtype)))
+            pairs = [(f[:b], f[b:]) for f in both]
+        total = img0.new_zeros(b, dtype=dtype)
+        for (f0, f1), lin in zip(pairs, self.lins, strict=True):
+            d = (_unit(f0) - _unit(f1)).pow(2)
             total = total + lin(d).mean(dim=(1, 2, 3))
         return total
+
+    def _scaled(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x * 2.0 - 1.0) - self.shift) / self.scale
+
+
+def _unit(feat: torch.Tensor) -> torch.Tensor:
+    """Feature maps ``[B,C,H,W]`` normalised to unit length over channels."""
+    return feat / (feat.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
 
 
 def load_lpips(

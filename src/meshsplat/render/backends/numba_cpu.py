@@ -1,8 +1,10 @@
 """Compiled CPU rasterizer (numba), forward and backward, with the torch backend's conventions.
 
-Geometry is shared with ``torch_ref``: projection (autograd) and the entry order (camera, then
-camera ``z``, ties by Gaussian index) come from :func:`sorted_entries`. Only the per-pixel work,
-where the time goes, is compiled:
+Projection is compiled too (``numba_projection``, float64 inside; torch's autograd projection is
+used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by camera, then camera
+``z``, ties by Gaussian index (one stable ``argsort``), and gathered inside the compositing
+``autograd.Function``, whose backward scatters straight into the projection's outputs: no
+``index_select`` nodes or pair tensors.
 
 1. Binning: each entry's footprint box (the same closed-form ``alpha >= 1/255`` ellipse and
    0.05 px slack as the torch backend's row spans, float64) is cut into 16x16 tiles; tile lists
@@ -13,8 +15,8 @@ where the time goes, is compiled:
    its final T (float64) and the list position after its last contributing splat.
 3. Backward, parallel over tiles: the standard reverse walk from that position (T recovered by
    division in float64, "later splats" sums carried along). Each (tile, entry) intersection owns
-   a gradient row that only its tile writes; rows are summed per entry in intersection order
-   afterwards. No atomics, no per-thread buffers: the result is bit-identical for any thread
+   a gradient row that only its tile writes; rows are summed into ``means2d``/``conics [C,N]``,
+   opacities and colours in intersection order afterwards (serial). No atomics, no per-thread buffers: the result is bit-identical for any thread
    count and scheduling.
 
 numba is imported lazily (first call); kernels are compiled with ``cache=True`` (on-disk cache next
@@ -28,15 +30,17 @@ import contextlib
 import math
 from collections.abc import Iterator
 from functools import lru_cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import ALPHA_MAX, ALPHA_THRESHOLD, MAX_EXTEND, PIXEL_CENTER, TRANSMITTANCE_MIN
-from meshsplat.render.backends import numba_available
-from meshsplat.render.backends.torch_ref import SortedEntries, finish_render, sorted_entries
+from meshsplat.render.backends import numba_available, numba_projection
+from meshsplat.render.backends.numba_projection import project_numba
+from meshsplat.render.backends.torch_ref import render_output
+from meshsplat.render.projection import Projection, project_gaussians
 from meshsplat.render.types import RenderOutput
 
 __all__ = ["rasterize_numba", "TILE_SIZE", "warm_up"]
@@ -292,18 +296,41 @@ def _backward_kernel(
     return grad
 
 
-def _reduce_kernel(isect, grad, m):  # pragma: no cover - compiled
-    """Sum intersection rows per entry, in intersection order (serial: deterministic)."""
-    out = np.zeros((m, grad.shape[1]), np.float64)
+def _scatter_kernel(isect, grad, flat, col_row, n_flat, n_gauss, n_col_rows):  # pragma: no cover - compiled
+    """Sum intersection rows into the gradients of the projection's outputs, in intersection order (serial:
+    deterministic): means2d and conics [C*N, 2|3] (row ``flat[e]``), opacities [N] and colours [rows, D]
+    (row ``col_row[e]``), float64."""
+    d_out = grad.shape[1] - 6
+    g_m2 = np.zeros((n_flat, 2), np.float64)
+    g_con = np.zeros((n_flat, 3), np.float64)
+    g_op = np.zeros(n_gauss, np.float64)
+    g_col = np.zeros((n_col_rows, d_out), np.float64)
     for k in range(isect.shape[0]):
         e = isect[k]
-        for j in range(grad.shape[1]):
-            out[e, j] += grad[k, j]
-    return out
+        f = flat[e]
+        g_m2[f, 0] += grad[k, 0]
+        g_m2[f, 1] += grad[k, 1]
+        g_con[f, 0] += grad[k, 2]
+        g_con[f, 1] += grad[k, 3]
+        g_con[f, 2] += grad[k, 4]
+        g_op[f % n_gauss] += grad[k, 5]
+        r = col_row[e]
+        for d in range(d_out):
+            g_col[r, d] += grad[k, 6 + d]
+    return g_m2, g_con, g_op, g_col
+
+
+class _Kernels(NamedTuple):
+    bin: Any
+    forward: Any
+    backward: Any
+    scatter: Any
+    project: Any
+    project_backward: Any
 
 
 @lru_cache(maxsize=1)
-def _kernels() -> tuple[Any, Any, Any, Any]:
+def _kernels() -> _Kernels:
     """Import numba and wrap the kernels (compilation itself happens per dtype on first call)."""
     global _prange, _row_span
     try:
@@ -314,7 +341,8 @@ def _kernels() -> tuple[Any, Any, Any, Any]:
     ser = numba.njit(cache=True, fastmath=False, nogil=True)
     _row_span = numba.njit(cache=True, fastmath=False, nogil=True)(_row_span_py)
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_reduce_kernel)
+    proj, proj_bwd = numba_projection.compile_kernels(numba)
+    return _Kernels(ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd)
 
 
 @contextlib.contextmanager
@@ -334,28 +362,39 @@ def _threads() -> Iterator[None]:
 
 
 class _Geometry:
-    """No-grad per-call state shared by forward and backward (numpy views of detached tensors)."""
+    """No-grad per-call state shared by forward and backward: the visible entries in compositing order
+    (camera, then depth, ties by Gaussian index), their footprints and tile lists (numpy arrays)."""
 
-    def __init__(self, ent: SortedEntries, tile: int) -> None:
-        dt = ent.m2.dtype
+    def __init__(self, proj: Projection, n_gauss: int, shared_colors: bool, width: int, height: int, tile: int) -> None:
+        dt = proj.means2d.dtype
         np_dt: type[np.floating[Any]] = np.float32 if dt == torch.float32 else np.float64
-        self.width, self.height, self.n_cams, self.tile = ent.width, ent.height, ent.n_cams, tile
-        self.tiles_x = -(-ent.width // tile)
-        self.tiles_y = -(-ent.height // tile)
-        self.m2 = ent.m2.detach().contiguous().numpy()
-        self.con = ent.con.detach().contiguous().numpy()
-        self.op = ent.op.detach().contiguous().numpy()
-        self.cam = ent.cam.contiguous().numpy()
+        n_cams = proj.visible.shape[0]
+        self.width, self.height, self.n_cams, self.tile, self.n_gauss = width, height, n_cams, tile, n_gauss
+        self.tiles_x = -(-width // tile)
+        self.tiles_y = -(-height // tile)
+        with torch.no_grad():
+            key = torch.where(proj.visible, proj.depths.detach(), torch.full_like(proj.depths, float("inf")))
+            order = torch.argsort(key, dim=1, stable=True)
+            flat = (order + torch.arange(n_cams)[:, None] * n_gauss)[proj.visible.gather(1, order)]
+        self.flat = flat.numpy()  # [M] entry -> camera * N + Gaussian
+        self.cam = self.flat // max(n_gauss, 1)
+        self.col_row = self.flat - self.cam * n_gauss if shared_colors else self.flat
+        self.m2 = proj.means2d.detach().reshape(-1, 2).numpy()[self.flat]
+        self.con = proj.conics.detach().reshape(-1, 3).numpy()[self.flat]
         # pixel centres in the input dtype, as torch_ref's ``arange(W, dtype) + 0.5``
-        self.xs = torch.arange(ent.width, dtype=dt).add_(PIXEL_CENTER).numpy()
-        self.ys = torch.arange(ent.height, dtype=dt).add_(PIXEL_CENTER).numpy()
+        self.xs = torch.arange(width, dtype=dt).add_(PIXEL_CENTER).numpy()
+        self.ys = torch.arange(height, dtype=dt).add_(PIXEL_CENTER).numpy()
         self.consts = np.array([0.5, ALPHA_MAX, ALPHA_THRESHOLD], dtype=np_dt)
-        bin_k = _kernels()[0]
-        self.foot, self.rows, self.tile_ptr, self.isect = bin_k(
-            self.m2, self.con, self.op, self.cam, self.n_cams, self.width, self.height, tile, self.tiles_x, self.tiles_y
-        )
+        self.op: np.ndarray | None = None
         self.t_final: np.ndarray | None = None
         self.n_contrib: np.ndarray | None = None
+
+    def bin(self, opacities: torch.Tensor) -> None:
+        self.op = np.ascontiguousarray(opacities.detach().numpy()[self.flat - self.cam * self.n_gauss])
+        self.foot, self.rows, self.tile_ptr, self.isect = _kernels().bin(
+            self.m2, self.con, self.op, self.cam, self.n_cams, self.width, self.height, self.tile, self.tiles_x,
+            self.tiles_y,
+        )  # fmt: skip
 
     def args(self, col: np.ndarray, bg: np.ndarray) -> tuple[Any, ...]:
         return (
@@ -386,47 +425,62 @@ def _bg_array(bg: torch.Tensor | None, n_cams: int, d: int, dtype: torch.dtype) 
 
 
 class _Composite(torch.autograd.Function):
+    """(means2d [C,N,2], conics [C,N,3], opacities [N], colors [N,D] or [C,N,D], bg [C,D]) -> image, alpha.
+
+    Gathers the visible entries itself and scatters their gradients straight back to these inputs."""
+
     @staticmethod
-    def forward(ctx, m2, con, op, col, bg, geo):
-        C, H, W, D = geo.n_cams, geo.height, geo.width, col.shape[1]
-        colv = col.detach().contiguous().numpy()
-        bgv = _bg_array(bg, C, D, col.dtype)
+    def forward(ctx, means2d, conics, opacities, colors, bg, geo):
+        C, H, W, D = geo.n_cams, geo.height, geo.width, colors.shape[-1]
+        geo.bin(opacities)
+        colv = np.ascontiguousarray(colors.detach().reshape(-1, D).numpy()[geo.col_row])
+        bgv = _bg_array(bg, C, D, colors.dtype)
         with _threads():
-            out, t_final, n_contrib = _kernels()[1](*geo.args(colv, bgv))
-        geo.t_final, geo.n_contrib = t_final, n_contrib
-        ctx.geo, ctx.has_bg = geo, bg is not None
-        ctx.save_for_backward(col, bg if bg is not None else torch.empty(0))
+            out, t_final, n_contrib = _kernels().forward(*geo.args(colv, bgv))
+        geo.t_final, geo.n_contrib, geo.col = t_final, n_contrib, colv
+        ctx.geo, ctx.has_bg, ctx.col_shape = geo, bg is not None, tuple(colors.shape)
+        ctx.save_for_backward(bg if bg is not None else torch.empty(0))
         img = torch.from_numpy(out).reshape(C, H, W, D)
         alpha = torch.from_numpy((1.0 - t_final).astype(colv.dtype)).reshape(C, H, W, 1)
         return img, alpha
 
     @staticmethod
     def backward(ctx, g_out, g_alpha):
-        col, bg = ctx.saved_tensors
+        (bg,) = ctx.saved_tensors
         bg = bg if ctx.has_bg else None
         geo = ctx.geo
-        C, H, W, D = geo.n_cams, geo.height, geo.width, col.shape[1]
+        C, H, W, D = geo.n_cams, geo.height, geo.width, geo.col.shape[1]
         n_pix = C * H * W
-        dtype = col.dtype
+        dtype = torch.float32 if geo.col.dtype == np.float32 else torch.float64
         g_out = torch.zeros(n_pix, D, dtype=dtype) if g_out is None else g_out.reshape(n_pix, D)
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
-        colv = col.detach().contiguous().numpy()
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
+        n_col_rows = ctx.col_shape[0] if len(ctx.col_shape) == 2 else C * geo.n_gauss
         with _threads():
-            rows = k[2](
-                *geo.args(colv, bgv),
+            rows = k.backward(
+                *geo.args(geo.col, bgv),
                 g_out.detach().contiguous().numpy(),
                 g_alpha.detach().contiguous().numpy(),
                 geo.t_final,
                 geo.n_contrib,
             )
-            per_entry = torch.from_numpy(k[3](geo.isect, rows, geo.m2.shape[0])).to(dtype)
+            g_m2, g_con, g_op, g_col = k.scatter(
+                geo.isect, rows, geo.flat, geo.col_row, C * geo.n_gauss, geo.n_gauss, n_col_rows
+            )
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
             t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
             grad_bg = (t_final * g_out.reshape(C, H * W, D).double()).sum(1).to(dtype)
-        return per_entry[:, 0:2], per_entry[:, 2:5], per_entry[:, 5], per_entry[:, 6:], grad_bg, None
+        n = geo.n_gauss
+        return (
+            torch.from_numpy(g_m2).to(dtype).reshape(C, n, 2),
+            torch.from_numpy(g_con).to(dtype).reshape(C, n, 3),
+            torch.from_numpy(g_op).to(dtype),
+            torch.from_numpy(g_col).to(dtype).reshape(ctx.col_shape),
+            grad_bg,
+            None,
+        )
 
 
 def warm_up() -> None:
@@ -475,23 +529,24 @@ def rasterize_numba(
         raise MeshsplatError(f"backend='numba' needs float32 or float64 tensors, got {means.dtype}")
     if not numba_available():
         raise MeshsplatError("backend='numba' needs numba: pip install 'meshsplat[fast]' (or use backend='torch')")
-    ent = sorted_entries(
-        means,
-        quats,
-        scales,
-        opacities,
-        colors,
-        viewmats,
-        Ks,
-        int(width),
-        int(height),
-        near_plane,
-        far_plane,
-        backgrounds,
-        render_mode,
-    )
-    geo = _Geometry(ent, TILE_SIZE)
-    img, alpha = _Composite.apply(ent.m2, ent.con, ent.op, ent.col, ent.bg, geo)
-    out = finish_render(ent, img, alpha, render_mode, "numba")
+    W, H, C, N = int(width), int(height), viewmats.shape[0], means.shape[0]
+    if viewmats.requires_grad or Ks.requires_grad:  # camera gradients: torch's projection (autograd)
+        proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, W, H, near_plane, far_plane)
+    else:
+        k = _kernels()
+        proj = project_numba((k.project, k.project_backward), _threads, means, quats, scales, opacities, viewmats, Ks, W, H,
+                             near_plane, far_plane)  # fmt: skip
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    cols, bg = colors, backgrounds
+    if render_mode == "RGB+ED":
+        per_cam = colors if colors.dim() == 3 else colors[None].expand(C, N, colors.shape[-1])
+        cols = torch.cat([per_cam, proj.depths[..., None]], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
+    geo = _Geometry(proj, N, cols.dim() == 2, W, H, TILE_SIZE)
+    img, alpha = _Composite.apply(means2d, proj.conics, opacities, cols, bg, geo)
+    out = render_output(proj, means2d, C, W, H, img, alpha, render_mode, "numba")
     out.meta["n_isects"] = int(geo.isect.shape[0])  # (tile, Gaussian) intersections
     return out

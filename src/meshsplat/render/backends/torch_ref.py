@@ -43,6 +43,7 @@ __all__ = [
     "rasterize_torch",
     "sorted_entries",
     "finish_render",
+    "render_output",
     "SortedEntries",
     "DEFAULT_PAIR_BUDGET",
     "DEFAULT_SAVED_PAIR_LIMIT",
@@ -408,17 +409,32 @@ def finish_render(
     ent: SortedEntries, img: torch.Tensor, alpha: torch.Tensor, render_mode: str, backend: str
 ) -> RenderOutput:
     """Expected depth for ``RGB+ED`` and the ``meta`` dict (the contract of :func:`meshsplat.render.rasterize`)."""
+    return render_output(ent.proj, ent.means2d, ent.n_cams, ent.width, ent.height, img, alpha, render_mode, backend)
+
+
+def render_output(
+    proj: Projection,
+    means2d: torch.Tensor,
+    n_cams: int,
+    width: int,
+    height: int,
+    img: torch.Tensor,
+    alpha: torch.Tensor,
+    render_mode: str,
+    backend: str,
+) -> RenderOutput:
+    """:func:`finish_render` from the projection itself (backends that do not build :class:`SortedEntries`)."""
     if render_mode == "RGB+ED":
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(DEPTH_ALPHA_MIN)], dim=-1)
     meta = {
-        "means2d": ent.means2d,
-        "radii": ent.proj.radii,
-        "depths": ent.proj.depths,
-        "conics": ent.proj.conics,
-        "visible": ent.proj.visible,
-        "width": ent.width,
-        "height": ent.height,
-        "n_cameras": ent.n_cams,
+        "means2d": means2d,
+        "radii": proj.radii,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "visible": proj.visible,
+        "width": width,
+        "height": height,
+        "n_cameras": n_cams,
         "backend": backend,
     }
     return RenderOutput(img, alpha, meta)

@@ -1,0 +1,334 @@
+"""Compiled EWA projection (numba), forward and backward, with ``render.projection``'s conventions.
+
+The same arithmetic as :func:`meshsplat.render.projection.project_gaussians` (quaternion -> rotation,
+``R S S^T R^T``, world -> camera, Jacobian at the field-of-view-clamped ``x/z, y/z``, 0.3 px² dilation,
+conic, opacity-aware radii, culling), evaluated per (camera, Gaussian) in float64 and rounded to the
+input dtype, so float32 outputs agree with the torch version to rounding. Backward is the hand-derived
+chain rule of the same steps; camera matrices get no gradient here (the numba backend hands projection
+to torch when ``viewmats`` or ``Ks`` require grad). Both kernels run in parallel over Gaussians, each
+Gaussian summing its cameras in camera order: bit-identical for any thread count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from typing import Any
+
+import numpy as np
+import torch
+
+from meshsplat.render._constants import ALPHA_THRESHOLD, EPS2D, FOV_CLAMP_MARGIN, MAX_EXTEND
+from meshsplat.render.projection import Projection
+
+__all__ = ["project_numba"]
+
+_prange: Any = range  # rebound to numba.prange when the kernels are compiled
+
+
+def _project_kernel(means, quats, scales, opac, viewmats, ks, width, height, near, far):  # pragma: no cover
+    """means2d [C,N,2], conics [C,N,3], depths [C,N] (float64), radii [C,N,2] int32, visible [C,N] bool."""
+    n_cams, n = viewmats.shape[0], means.shape[0]
+    m2 = np.zeros((n_cams, n, 2), np.float64)
+    con = np.zeros((n_cams, n, 3), np.float64)
+    depth = np.zeros((n_cams, n), np.float64)
+    radii = np.zeros((n_cams, n, 2), np.int32)
+    vis = np.zeros((n_cams, n), np.bool_)
+    for i in _prange(n):
+        rot = _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+        sig = np.empty((3, 3), np.float64)  # R S S^T R^T
+        for r in range(3):
+            for c in range(3):
+                acc = 0.0
+                for k in range(3):
+                    sk = np.float64(scales[i, k])
+                    acc += rot[r, k] * sk * sk * rot[c, k]
+                sig[r, c] = acc
+        op = np.float64(opac[i])
+        ext = min(math.sqrt(2.0 * math.log(max(op, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), MAX_EXTEND)
+        for cam in range(n_cams):
+            w = viewmats[cam]
+            x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
+            y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
+            z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
+            if not (near <= z <= far):
+                continue
+            fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
+            tx, ty, _, _ = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+            rz = 1.0 / z
+            j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+            a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+            a += EPS2D
+            c += EPS2D
+            det = a * c - b * b
+            if not (det > 0.0) or op < ALPHA_THRESHOLD:
+                continue
+            rx = math.ceil(ext * math.sqrt(max(a, 0.0)))
+            ry = math.ceil(ext * math.sqrt(max(c, 0.0)))
+            mx = fx * x * rz + cx
+            my = fy * y * rz + cy
+            if not (rx > 0 or ry > 0) or mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
+                continue
+            vis[cam, i] = True
+            radii[cam, i, 0], radii[cam, i, 1] = int(rx), int(ry)
+            m2[cam, i, 0], m2[cam, i, 1] = mx, my
+            con[cam, i, 0], con[cam, i, 1], con[cam, i, 2] = c / det, -b / det, a / det
+            depth[cam, i] = z
+    return m2, con, depth, radii, vis
+
+
+def _quat_rotation_py(qw, qx, qy, qz):  # pragma: no cover - compiled
+    """Rotation matrix [3,3] float64 of a quaternion (wxyz, normalised with norm clamped at 1e-12)."""
+    w, x, y, z = np.float64(qw), np.float64(qx), np.float64(qy), np.float64(qz)
+    nrm = max(math.sqrt(w * w + x * x + y * y + z * z), 1e-12)
+    w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+    r = np.empty((3, 3), np.float64)
+    r[0, 0], r[0, 1], r[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
+    r[1, 0], r[1, 1], r[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
+    r[2, 0], r[2, 1], r[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+    return r
+
+
+def _clamped_xy_py(x, y, z, fx, fy, cx, cy, width, height):  # pragma: no cover - compiled
+    """``z * clamp(x/z)``, ``z * clamp(y/z)`` (field of view widened by the margin) and whether each is clamped."""
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim_xp = (width - cx) / fx + FOV_CLAMP_MARGIN * tan_x
+    lim_xn = cx / fx + FOV_CLAMP_MARGIN * tan_x
+    lim_yp = (height - cy) / fy + FOV_CLAMP_MARGIN * tan_y
+    lim_yn = cy / fy + FOV_CLAMP_MARGIN * tan_y
+    ux = min(lim_xp, max(-lim_xn, x / z))
+    uy = min(lim_yp, max(-lim_yn, y / z))
+    return z * ux, z * uy, ux != x / z, uy != y / z
+
+
+def _screen_cov_py(w, sig, j00, j02, j11, j12):  # pragma: no cover - compiled
+    """(a, b, c) of ``J W Σ W^T J^T`` for J = [[j00, 0, j02], [0, j11, j12]] (no dilation)."""
+    # rows of J W: u = j00 * W0 + j02 * W2, v = j11 * W1 + j12 * W2
+    u0 = j00 * w[0, 0] + j02 * w[2, 0]
+    u1 = j00 * w[0, 1] + j02 * w[2, 1]
+    u2 = j00 * w[0, 2] + j02 * w[2, 2]
+    v0 = j11 * w[1, 0] + j12 * w[2, 0]
+    v1 = j11 * w[1, 1] + j12 * w[2, 1]
+    v2 = j11 * w[1, 2] + j12 * w[2, 2]
+    su0 = sig[0, 0] * u0 + sig[0, 1] * u1 + sig[0, 2] * u2
+    su1 = sig[1, 0] * u0 + sig[1, 1] * u1 + sig[1, 2] * u2
+    su2 = sig[2, 0] * u0 + sig[2, 1] * u1 + sig[2, 2] * u2
+    sv0 = sig[0, 0] * v0 + sig[0, 1] * v1 + sig[0, 2] * v2
+    sv1 = sig[1, 0] * v0 + sig[1, 1] * v1 + sig[1, 2] * v2
+    sv2 = sig[2, 0] * v0 + sig[2, 1] * v1 + sig[2, 2] * v2
+    return u0 * su0 + u1 * su1 + u2 * su2, u0 * sv0 + u1 * sv1 + u2 * sv2, v0 * sv0 + v1 * sv1 + v2 * sv2
+
+
+_quat_rotation: Any = _quat_rotation_py
+_clamped_xy: Any = _clamped_xy_py
+_screen_cov: Any = _screen_cov_py
+
+
+def _project_backward_kernel(
+    means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth
+):  # pragma: no cover - compiled
+    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64 from the gradients of the visible outputs."""
+    n_cams, n = viewmats.shape[0], means.shape[0]
+    g_means = np.zeros((n, 3), np.float64)
+    g_quats = np.zeros((n, 4), np.float64)
+    g_scales = np.zeros((n, 3), np.float64)
+    for i in _prange(n):
+        rot = _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+        s = np.empty(3, np.float64)
+        for k in range(3):
+            s[k] = np.float64(scales[i, k])
+        sig = np.empty((3, 3), np.float64)
+        for r in range(3):
+            for c in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += rot[r, k] * s[k] * s[k] * rot[c, k]
+                sig[r, c] = acc
+        g_sig = np.zeros((3, 3), np.float64)  # summed over cameras
+        gm = np.zeros(3, np.float64)
+        for cam in range(n_cams):
+            if not vis[cam, i]:
+                continue
+            w = viewmats[cam]
+            x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
+            y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
+            z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
+            fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
+            tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+            rz = 1.0 / z
+            j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+            a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+            a += EPS2D
+            c += EPS2D
+            det = a * c - b * b
+            # conic (c, -b, a) / det -> (a, b, c)
+            va_c, vb_c, vc_c = np.float64(v_con[cam, i, 0]), np.float64(v_con[cam, i, 1]), np.float64(v_con[cam, i, 2])
+            d2 = det * det
+            ga = (-c * c * va_c + b * c * vb_c - b * b * vc_c) / d2
+            gb = (2.0 * b * c * va_c - (a * c + b * b) * vb_c + 2.0 * a * b * vc_c) / d2
+            gc = (-b * b * va_c + a * b * vb_c - a * a * vc_c) / d2
+            # screen covariance G (symmetric) = [[ga, gb/2], [gb/2, gc]]; with T = J W: g_sig += T^T G T
+            t = np.empty((2, 3), np.float64)
+            for k in range(3):
+                t[0, k] = j00 * w[0, k] + j02 * w[2, k]
+                t[1, k] = j11 * w[1, k] + j12 * w[2, k]
+            g01 = 0.5 * gb
+            for r in range(3):
+                for q in range(3):
+                    g_sig[r, q] += t[0, r] * (ga * t[0, q] + g01 * t[1, q]) + t[1, r] * (g01 * t[0, q] + gc * t[1, q])
+            # d/dJ of J S J^T with S = W Σ W^T: 2 G J S; only J00, J02, J11, J12 are variables
+            s_c = np.empty((3, 3), np.float64)
+            for r in range(3):
+                for q in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        for m in range(3):
+                            acc += w[r, k] * sig[k, m] * w[q, m]
+                    s_c[r, q] = acc
+            js0 = np.empty(3, np.float64)  # row 0 of J S
+            js1 = np.empty(3, np.float64)
+            for k in range(3):
+                js0[k] = j00 * s_c[0, k] + j02 * s_c[2, k]
+                js1[k] = j11 * s_c[1, k] + j12 * s_c[2, k]
+            # (G J S)[r, k] = G[r,0] js0[k] + G[r,1] js1[k]
+            v_j00 = 2.0 * (ga * js0[0] + g01 * js1[0])
+            v_j02 = 2.0 * (ga * js0[2] + g01 * js1[2])
+            v_j11 = 2.0 * (g01 * js0[1] + gc * js1[1])
+            v_j12 = 2.0 * (g01 * js0[2] + gc * js1[2])
+            vmx, vmy = np.float64(v_m2[cam, i, 0]), np.float64(v_m2[cam, i, 1])
+            v_rz = fx * v_j00 + fy * v_j11 - 2.0 * fx * tx * rz * v_j02 - 2.0 * fy * ty * rz * v_j12
+            v_rz += fx * x * vmx + fy * y * vmy
+            v_tx = -fx * rz * rz * v_j02
+            v_ty = -fy * rz * rz * v_j12
+            vx = fx * rz * vmx
+            vy = fy * rz * vmy
+            vz = -rz * rz * v_rz + np.float64(v_depth[cam, i])
+            if clamp_x:
+                vz += (tx / z) * v_tx
+            else:
+                vx += v_tx
+            if clamp_y:
+                vz += (ty / z) * v_ty
+            else:
+                vy += v_ty
+            for k in range(3):
+                gm[k] += w[0, k] * vx + w[1, k] * vy + w[2, k] * vz
+        for k in range(3):
+            g_means[i, k] = gm[k]
+        # Σ = M M^T, M = R diag(s): dM = 2 g_sig M (g_sig symmetric)
+        g_rot = np.empty((3, 3), np.float64)
+        for r in range(3):
+            for k in range(3):
+                gmk = 0.0
+                for q in range(3):
+                    gmk += (g_sig[r, q] + g_sig[q, r]) * rot[q, k] * s[k]
+                g_rot[r, k] = gmk * s[k]
+                g_scales[i, k] += gmk * rot[r, k]
+        _quat_backward(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], g_rot, g_quats[i])
+    return g_means, g_quats, g_scales
+
+
+def _quat_backward_py(qw, qx, qy, qz, g, out):  # pragma: no cover - compiled
+    """Writes d/dq (wxyz, before normalisation) given d/dR ``g [3,3]`` into ``out [4]``."""
+    w, x, y, z = np.float64(qw), np.float64(qx), np.float64(qy), np.float64(qz)
+    raw = math.sqrt(w * w + x * x + y * y + z * z)
+    nrm = max(raw, 1e-12)
+    w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+    gw = 2.0 * (-z * g[0, 1] + y * g[0, 2] + z * g[1, 0] - x * g[1, 2] - y * g[2, 0] + x * g[2, 1])
+    gx = 2.0 * (y * g[0, 1] + z * g[0, 2] + y * g[1, 0] - 2.0 * x * g[1, 1] - w * g[1, 2])
+    gx += 2.0 * (z * g[2, 0] + w * g[2, 1] - 2.0 * x * g[2, 2])
+    gy = 2.0 * (-2.0 * y * g[0, 0] + x * g[0, 1] + w * g[0, 2] + x * g[1, 0] + z * g[1, 2])
+    gy += 2.0 * (-w * g[2, 0] + z * g[2, 1] - 2.0 * y * g[2, 2])
+    gz = 2.0 * (-2.0 * z * g[0, 0] - w * g[0, 1] + x * g[0, 2] + w * g[1, 0] - 2.0 * z * g[1, 1])
+    gz += 2.0 * (y * g[1, 2] + x * g[2, 0] + y * g[2, 1])
+    if raw < 1e-12:  # below the clamp the normalisation is a fixed scale
+        out[0], out[1], out[2], out[3] = gw / nrm, gx / nrm, gy / nrm, gz / nrm
+        return
+    dot = w * gw + x * gx + y * gy + z * gz
+    out[0] = (gw - w * dot) / nrm
+    out[1] = (gx - x * dot) / nrm
+    out[2] = (gy - y * dot) / nrm
+    out[3] = (gz - z * dot) / nrm
+
+
+_quat_backward: Any = _quat_backward_py
+
+
+def compile_kernels(numba: Any) -> tuple[Any, Any]:
+    """Wrap the kernels with ``numba`` (called once by the numba backend's kernel loader)."""
+    global _prange, _quat_rotation, _clamped_xy, _screen_cov, _quat_backward
+    _prange = numba.prange
+    helper = numba.njit(cache=True, fastmath=False, nogil=True)
+    _quat_rotation = helper(_quat_rotation_py)
+    _clamped_xy = helper(_clamped_xy_py)
+    _screen_cov = helper(_screen_cov_py)
+    _quat_backward = helper(_quat_backward_py)
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    return par(_project_kernel), par(_project_backward_kernel)
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, ks, width, height, near, far, kernels, threads):
+        dt = means.dtype
+        arrs = [t.detach().contiguous().numpy() for t in (means, quats, scales, opacities)]
+        cams = [t.detach().double().contiguous().numpy() for t in (viewmats, ks)]
+        with threads():
+            m2, con, depth, radii, vis = kernels[0](*arrs, *cams, float(width), float(height), float(near), float(far))
+        ctx.kernels, ctx.size, ctx.cams, ctx.threads = kernels, (float(width), float(height)), cams, threads
+        ctx.save_for_backward(means, quats, scales)
+        ctx.vis = vis
+        radii_t, vis_t = torch.from_numpy(radii), torch.from_numpy(vis)
+        ctx.mark_non_differentiable(radii_t, vis_t)
+        return (
+            torch.from_numpy(m2).to(dt),
+            torch.from_numpy(con).to(dt),
+            torch.from_numpy(depth).to(dt),
+            radii_t,
+            vis_t,
+        )
+
+    @staticmethod
+    def backward(ctx, v_m2, v_con, v_depth, _r, _v):
+        means, quats, scales = ctx.saved_tensors
+        c, n = ctx.vis.shape
+        dt = means.dtype
+
+        def arr(g: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+            return np.zeros(shape, np.float64) if g is None else g.detach().contiguous().numpy()
+
+        with ctx.threads():
+            gm, gq, gs = ctx.kernels[1](
+                *(t.detach().contiguous().numpy() for t in (means, quats, scales)),
+                *ctx.cams,
+                *ctx.size,
+                ctx.vis,
+                arr(v_m2, (c, n, 2)),
+                arr(v_con, (c, n, 3)),
+                arr(v_depth, (c, n)),
+            )
+        out = [torch.from_numpy(g).to(dt) for g in (gm, gq, gs)]
+        return out[0], out[1], out[2], None, None, None, None, None, None, None, None, None
+
+
+def project_numba(
+    kernels: tuple[Any, Any],
+    threads: Callable[[], AbstractContextManager[None]],
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+) -> Projection:
+    """:func:`meshsplat.render.projection.project_gaussians` compiled (CPU; no gradient for viewmats/Ks);
+    ``kernels`` from :func:`compile_kernels`, ``threads()`` sets numba's thread count around each call."""
+    m2, con, depth, radii, vis = _Project.apply(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, kernels, threads
+    )
+    return Projection(means2d=m2, conics=con, depths=depth, radii=radii, visible=vis)
