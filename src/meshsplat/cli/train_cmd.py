@@ -32,7 +32,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, apply_overrides, load_config
 from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
-from meshsplat.train.trainer import Trainer, training_image_size
+from meshsplat.train.trainer import Trainer
 
 __all__ = ["add_arguments", "run", "build_config"]
 
@@ -117,15 +117,13 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
         opts = reader_options(args.gender, args.shape)
-        return training_image_size(
-            open_capture(
-                args.dataset,
-                format=args.format,
-                model_dir=args.model_dir,
-                drop_bad_frames=args.drop_bad_frames,
-                **opts,
-            )
-        )
+        return open_capture(
+            args.dataset,
+            format=args.format,
+            model_dir=args.model_dir,
+            drop_bad_frames=args.drop_bad_frames,
+            **opts,
+        ).largest_image_side()
 
     preset = args.preset or DEFAULT_PRESET
     cfg = preset_config(preset)

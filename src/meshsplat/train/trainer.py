@@ -38,15 +38,14 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
-from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats import open_capture, reader_options
-from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
-from meshsplat.gaussians.params import init_params, num_gaussians
+from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
+from meshsplat.gaussians.params import EMBEDDING_STATE_KEYS, init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
-from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.mesh import TriMesh
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
@@ -57,9 +56,11 @@ from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
     StopOnSignal,
     TrainingInterrupted,
+    capture_rng,
     check_resume_config,
     load_resume_checkpoint,
     refuse_existing_run,
+    restore_rng,
     signal_name,
 )
 from meshsplat.train.strategy import walk_embeddings
@@ -69,7 +70,6 @@ __all__ = [
     "train",
     "mesh_extent",
     "mean_edge_length",
-    "training_image_size",
     "LOG_COLUMNS",
     "PROGRESS_WINDOW",
 ]
@@ -92,14 +92,6 @@ LOG_COLUMNS = (
     "time_s",
     "mask",
 )
-
-
-def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = None) -> int:
-    """The largest image side (pixels) among the cameras of the training frames: what the screen radii
-    of the densification strategy are divided by (it converts older configs' pixel thresholds)."""
-    ids = dataset.split("train") if train_ids is None else train_ids
-    cams = {dataset.frame_info(i)["camera"] for i in ids} or set(dataset.camera_ids)
-    return max(max(dataset.camera(c).width, dataset.camera(c).height) for c in cams)
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -132,7 +124,6 @@ class Trainer:
         if self.cfg.model_dir:  # absolute, as data: render --motion from another folder finds it
             self.cfg.model_dir = str(Path(self.cfg.model_dir).expanduser().resolve())
         self.folder = RunFolder(self.cfg.out)
-        self.run_dir = self.folder.root
         self.device = resolve_device(self.cfg.device)
         self.dataset = open_capture(
             self.cfg.data,
@@ -182,9 +173,7 @@ class Trainer:
         else:
             refuse_existing_run(self.folder)
         if loaded is not None:
-            old = upgrade_config_dict(
-                loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids)
-            )
+            old = upgrade_config_dict(loaded[1].get("config"), lambda: self.dataset.largest_image_side(self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
             try:
                 self._restore(loaded[1])
@@ -209,9 +198,7 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.manual_seed_all(cfg.seed)
         gen = torch.Generator().manual_seed(cfg.seed)
-        colors_fn = None
-        if cfg.model.init_color == "image":
-            colors_fn = self._first_image_colors if cfg.model.init_color_frames == 1 else self._multi_image_colors
+        colors_fn = self._image_colors if cfg.model.init_color == "image" else None
         self.params = init_params(
             self.mesh,
             cfg.model.n_init,
@@ -231,58 +218,19 @@ class Trainer:
         self.order = torch.randperm(len(self.train_ids), generator=self.order_gen)
         self.order_pos = 0
 
-    def _first_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Colour of each embedded point seen in the first training frame (grey where unseen)."""
-        image, mask, camera, verts = self._frame(self.train_ids[0])
-        K, viewmat = camera.K, camera.viewmat
-        pts = surface_points(verts, self.mesh.faces, face, uv)
-        cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = cam[:, 2]
-        pix = cam @ K.T
-        px = pix[:, 0] / z.clamp_min(1e-9)
-        py = pix[:, 1] / z.clamp_min(1e-9)
-        h, wd = image.shape[:2]
-        ix, iy = px.floor().long(), py.floor().long()
-        ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h)
-        rgb = torch.full((face.shape[0], 3), 0.5, dtype=uv.dtype, device=uv.device)
-        ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
-        if mask is not None:
-            ok &= mask[iyc, ixc, 0] > 0.5
-        rgb[ok] = image[iyc[ok], ixc[ok]].to(rgb)
-        return rgb
+    def _image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """Initial colour [N,3] of the embedded points: the first training frame's pixel
+        (``model.init_color_frames`` = 1) or the mean over that many frames spread over the sequence."""
+        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
+        if self.cfg.model.init_color_frames == 1:
+            return first_view_colors(self.mesh, self._frame(self.train_ids[0]), face, uv)
+        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
+        return mean_view_colors(self.mesh, (self._frame(i) for i in picks), face, uv)
 
     def _set_shading(self, shading: Shading) -> None:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
         self.shading = shading
         self.shading_opt = torch.optim.Adam([shading.coeffs], lr=self.cfg.optim.lr_shading, eps=self.cfg.optim.eps)
-
-    @torch.no_grad()
-    def _multi_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Mean colour of each embedded point over ``model.init_color_frames`` training frames spread over
-        the sequence, counting a frame where the point is inside the image and the mask and its Phong
-        normal faces the camera (grey where never seen)."""
-        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
-        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
-        acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
-        cnt = torch.zeros(face.shape[0], 1, dtype=uv.dtype, device=uv.device)
-        for idx in picks:
-            image, mask, camera, verts = self._frame(idx)
-            K, viewmat = camera.K, camera.viewmat
-            pts, nrm = embed(MeshPose.from_vertices(self.mesh, verts), face, uv, torch.zeros_like(uv[:, 0]))
-            campos = torch.linalg.inv(viewmat)[:3, 3]
-            cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
-            z = cam[:, 2]
-            pix = cam @ K.T
-            ix = (pix[:, 0] / z.clamp_min(1e-9)).floor().long()
-            iy = (pix[:, 1] / z.clamp_min(1e-9)).floor().long()
-            h, wd = image.shape[:2]
-            ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h) & (((campos - pts) * nrm).sum(-1) > 0)
-            ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
-            if mask is not None:
-                ok &= mask[iyc, ixc, 0] > 0.5
-            acc[ok] += image[iyc[ok], ixc[ok]].to(acc)
-            cnt[ok] += 1
-        return torch.where(cnt > 0, acc / cnt.clamp_min(1), torch.full_like(acc, 0.5))
 
     # ---- data ------------------------------------------------------------------------
     def _frame(self, idx: int) -> tuple:
@@ -415,7 +363,7 @@ class Trainer:
         """Train up to iteration ``until`` (default ``config.iterations``); returns the run dir."""
         cfg = self.cfg
         end = cfg.iterations if until is None else min(int(until), cfg.iterations)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.folder.root.mkdir(parents=True, exist_ok=True)
         cfg.to_json(self.folder.config_path)
         self._open_log()
         remove_stray_tmp(self.folder.checkpoint_dir)
@@ -459,7 +407,7 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
-        return self.run_dir
+        return self.folder.root
 
     @property
     def num_gaussians(self) -> int:
@@ -531,22 +479,7 @@ class Trainer:
         )
 
     def state_dict(self) -> dict[str, Any]:
-        np_state: Any = np.random.get_state()  # the legacy tuple
-        rng = {
-            "torch": torch.get_rng_state(),
-            "numpy": [
-                np_state[0],
-                torch.from_numpy(np_state[1].astype(np.int64)),
-                int(np_state[2]),
-                int(np_state[3]),
-                float(np_state[4]),
-            ],
-            "python": random.getstate(),
-            "order": self.order_gen.get_state(),
-            "background": self.bg_gen.get_state(),
-        }
-        if self.device.type == "cuda":
-            rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        rng = capture_rng({"order": self.order_gen, "background": self.bg_gen}, self.device)
         strat = {k: (v.detach().cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.strategy_state.items()}
         return {
             "iteration": self.iteration,
@@ -577,7 +510,7 @@ class Trainer:
         self.params = {}
         for k, v in av["params"].items():
             v = v.to(dev)
-            self.params[k] = torch.nn.Parameter(v, requires_grad=k in trainable) if k not in ("face", "uv") else v
+            self.params[k] = v if k in EMBEDDING_STATE_KEYS else torch.nn.Parameter(v, requires_grad=k in trainable)
         self.optimizers = build_optimizers(self.params, self.lrs, self.cfg.optim.eps)
         if set(self.optimizers) != set(st["optimizers"]):
             raise MeshsplatError(
@@ -591,20 +524,11 @@ class Trainer:
         }
         if is_legacy_config(st.get("config")) and isinstance(self.strategy_state.get("radii"), torch.Tensor):
             # older versions kept the screen radii in pixels; today a fraction of the image size
-            self.strategy_state["radii"] = self.strategy_state["radii"] / training_image_size(
-                self.dataset, self.train_ids
+            self.strategy_state["radii"] = self.strategy_state["radii"] / self.dataset.largest_image_side(
+                self.train_ids
             )
-        rng = st["rng"]
-        torch.set_rng_state(rng["torch"])
-        n = rng["numpy"]
-        np.random.set_state((n[0], n[1].numpy().astype(np.uint32), n[2], n[3], n[4]))
-        random.setstate(_tuplify(rng["python"]))
-        if dev.type == "cuda" and "cuda" in rng:
-            torch.cuda.set_rng_state(rng["cuda"], dev)
-        self.order_gen = torch.Generator()
-        self.order_gen.set_state(rng["order"])
-        self.bg_gen = torch.Generator()
-        self.bg_gen.set_state(rng["background"])
+        gens = restore_rng(st["rng"], ("order", "background"), dev)
+        self.order_gen, self.bg_gen = gens["order"], gens["background"]
         if self.refiner is not None:
             if not st.get("pose_refine"):
                 raise MeshsplatError(
@@ -629,10 +553,6 @@ class Trainer:
         self.order_pos = int(st["data_order"]["pos"])
         self.iteration = int(st["iteration"])
         self.elapsed = float(st.get("elapsed_s", 0.0))
-
-
-def _tuplify(x):
-    return tuple(_tuplify(v) for v in x) if isinstance(x, (list, tuple)) else x
 
 
 def train(config: TrainConfig, resume: bool = False) -> Path:
