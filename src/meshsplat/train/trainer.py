@@ -28,7 +28,9 @@ illumination itself.
 from __future__ import annotations
 
 import csv
+import math
 import random
+import signal
 import time
 from collections import deque
 from pathlib import Path
@@ -50,6 +52,7 @@ from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
+from meshsplat.train.distributed import DataParallel
 from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_crop
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
@@ -74,6 +77,7 @@ __all__ = [
     "PROGRESS_WINDOW",
 ]
 
+_LOGGED_PARTS = ("l1", "lpips", "scale", "mse", "dssim", "mask")  # loss parts in log.csv
 PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
 LOG_COLUMNS = (
@@ -124,7 +128,10 @@ class Trainer:
         if self.cfg.model_dir:  # absolute, as data: render --motion from another folder finds it
             self.cfg.model_dir = str(Path(self.cfg.model_dir).expanduser().resolve())
         self.folder = RunFolder(self.cfg.out)
-        self.device = resolve_device(self.cfg.device)
+        self.dp, self.device = DataParallel.from_env(resolve_device(self.cfg.device))
+        self.dp.check_batch(self.cfg.batch_size)
+        if not self.dp.is_main:
+            self.cfg.progress = False
         self.dataset = open_capture(
             self.cfg.data,
             format=self.cfg.data_format or None,
@@ -144,13 +151,16 @@ class Trainer:
         self.extent = mesh_extent(self.mesh.vertices)
         self.mean_edge = mean_edge_length(self.mesh.vertices, self.mesh.faces)
         self.strategy = self.cfg.strategy
+        self.lr_factor = math.sqrt(self.cfg.batch_size)  # gsplat's rule for batches: lr times sqrt(batch size)
         self.lrs = base_learning_rates(self.cfg.optim, self.extent, self.mean_edge)
+        if self.cfg.batch_size > 1:
+            self.lrs = {k: v * self.lr_factor for k, v in self.lrs.items()}
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
         self.refiner = None
         if self.cfg.pose_refine.enabled:
             pr = self.cfg.pose_refine
             self.refiner = PoseRefiner(
-                self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None, self.device
+                self.dataset, self.train_ids, pr.params, pr.lr * self.lr_factor, self.cfg.model_dir or None, self.device
             )
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
@@ -230,7 +240,9 @@ class Trainer:
     def _set_shading(self, shading: Shading) -> None:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
         self.shading = shading
-        self.shading_opt = torch.optim.Adam([shading.coeffs], lr=self.cfg.optim.lr_shading, eps=self.cfg.optim.eps)
+        self.shading_opt = torch.optim.Adam(
+            [shading.coeffs], lr=self.cfg.optim.lr_shading * self.lr_factor, eps=self.cfg.optim.eps
+        )
 
     # ---- data ------------------------------------------------------------------------
     def _frame(self, idx: int) -> tuple:
@@ -284,22 +296,14 @@ class Trainer:
         out = self.avatar().render(verts, camera, background, backend=self.cfg.backend)
         return out, composite(image, mask, background)
 
-    def step(self) -> dict[str, float]:
-        """Run one training iteration; returns its logged values."""
-        cfg = self.cfg
-        self.iteration += 1
-        it = self.iteration
-        lrs = self.schedule.apply(self.optimizers, it)
-        idx = self._next_index()
-        _, mask, _, _ = self._frame(idx)
-        bg = self._background() if mask is not None else torch.zeros(3, device=self.device)
-        out, gt = self.render_frame(idx, bg)
-        render, meta = out.image, out.meta
-        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
-        L = cfg.loss
+    def _image_loss(
+        self, out: AvatarRender, gt: torch.Tensor, mask: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The training loss of one rendered image and its parts."""
+        L = self.cfg.loss
         crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject else None
         loss, parts = avatar_loss(
-            render,
+            out.image,
             gt,
             self.params["log_scale"].exp(),
             thresh_scale=L.scale_max * self.extent,
@@ -316,9 +320,49 @@ class Trainer:
             mask_l1 = (out.alpha - mask).abs().mean()
             loss = loss + L.lambda_mask * mask_l1
             parts["mask"] = mask_l1.detach()
-        if not torch.isfinite(loss):
-            raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
-        loss.backward()
+        return loss, parts
+
+    def _trained_tensors(self) -> list[torch.Tensor]:
+        """Every tensor an optimizer steps (the gradients data-parallel training all-reduces)."""
+        out = [p for opt in self.optimizers.values() for g in opt.param_groups for p in g["params"]]
+        if self.shading is not None:
+            out.append(self.shading.coeffs)
+        if self.refiner is not None:
+            out.extend(self.refiner.offsets.values())
+        return out
+
+    def step(self) -> dict[str, float]:
+        """Run one training iteration (``batch_size`` images; this process renders its share); returns
+        its logged values (means over the batch)."""
+        cfg = self.cfg
+        self.iteration += 1
+        it = self.iteration
+        lrs = self.schedule.apply(self.optimizers, it)
+        batch, backgrounds = [], []
+        for _ in range(cfg.batch_size):  # every process draws the whole batch: generators stay in step
+            idx = self._next_index()
+            _, mask, _, _ = self._frame(idx)
+            batch.append(idx)
+            backgrounds.append(self._background() if mask is not None else torch.zeros(3, device=self.device))
+        B = cfg.batch_size
+        metas = []
+        logged = torch.zeros(len(_LOGGED_PARTS) + 2, dtype=torch.float64)  # loss, psnr, parts: sums
+        for j in self.dp.share(B):
+            idx = batch[j]
+            out, gt = self.render_frame(idx, backgrounds[j])
+            self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, out.meta)
+            loss, parts = self._image_loss(out, gt, self._frame(idx)[1])
+            if not torch.isfinite(loss):
+                raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
+            (loss if B == 1 else loss / B).backward()
+            metas.append(out.meta)
+            with torch.no_grad():
+                logged[0] += float(loss.detach())
+                logged[1] += float(psnr(out.image.detach().clamp(0, 1), gt))
+            for k, name in enumerate(_LOGGED_PARTS):
+                logged[k + 2] += float(parts[name]) if name in parts else 0.0
+        self.dp.all_reduce_grads(self._trained_tensors())
+        logged = self.dp.sum(logged) / B
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -328,7 +372,15 @@ class Trainer:
         if self.refiner is not None:
             self.refiner.step()
         self.strategy.step_post_backward(
-            self.params, self.optimizers, self.strategy_state, it, meta, mesh=self.mesh, scale_mode=cfg.model.scale_mode
+            self.params,
+            self.optimizers,
+            self.strategy_state,
+            it,
+            metas,
+            mesh=self.mesh,
+            scale_mode=cfg.model.scale_mode,
+            batch_size=B,
+            reduce=self.dp.reduce_statistics if self.dp.active else None,
         )
         walked = 0
         if it % cfg.walk.every == 0 and not cfg.model.freeze_embedding:
@@ -342,19 +394,18 @@ class Trainer:
             )
             walked = int(changed.sum())
             self.walked_total += walked
-        with torch.no_grad():
-            p = float(psnr(render.detach().clamp(0, 1), gt))
+        self.dp.check_same("the number of Gaussians", num_gaussians(self.params))
         row = {
             "iteration": it,
-            "loss": float(loss.detach()),
-            "psnr": p,
+            "loss": float(logged[0]),
+            "psnr": float(logged[1]),
             "n_gaussians": num_gaussians(self.params),
             "walked": walked,
             "lr_duv": lrs.get("duv", 0.0),
             "lr_d": lrs.get("d", 0.0),
         }
-        for k in ("l1", "lpips", "scale", "mse", "dssim", "mask"):
-            row[k] = float(parts[k]) if k in parts else 0.0
+        for k, name in enumerate(_LOGGED_PARTS):
+            row[name] = float(logged[k + 2])
         row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
         return row
 
@@ -363,10 +414,12 @@ class Trainer:
         """Train up to iteration ``until`` (default ``config.iterations``); returns the run dir."""
         cfg = self.cfg
         end = cfg.iterations if until is None else min(int(until), cfg.iterations)
-        self.folder.root.mkdir(parents=True, exist_ok=True)
-        cfg.to_json(self.folder.config_path)
-        self._open_log()
-        remove_stray_tmp(self.folder.checkpoint_dir)
+        main = self.dp.is_main  # the one process that writes the run folder
+        if main:
+            self.folder.root.mkdir(parents=True, exist_ok=True)
+            cfg.to_json(self.folder.config_path)
+            self._open_log()
+            remove_stray_tmp(self.folder.checkpoint_dir)
         bar = None
         if cfg.progress:
             from tqdm import tqdm
@@ -374,6 +427,7 @@ class Trainer:
             bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
+        ckpt: Path | None = None
         try:
             with StopOnSignal() as stop:
                 while self.iteration < end:
@@ -382,19 +436,23 @@ class Trainer:
                     self.elapsed = time.perf_counter() - t0
                     row["time_s"] = self.elapsed
                     self.recent.append((row["loss"], row["psnr"]))
-                    if it % cfg.log_every == 0 or it == end:
+                    stopping = stop.signum is not None
+                    if self.dp.active:  # a signal seen by any process stops all at the same iteration
+                        stopping = bool(self.dp.sum(torch.tensor([float(stopping)])) > 0)
+                    if main and (it % cfg.log_every == 0 or it == end):
                         self._log(row)
-                    if it % cfg.preview_every == 0 or it == cfg.iterations:
+                    if main and (it % cfg.preview_every == 0 or it == cfg.iterations):
                         self.save_preview()
-                    due = time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s or stop.signum is not None
-                    if it % cfg.checkpoint_every == 0 or it == cfg.iterations or due:
+                    due = time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s or stopping
+                    if main and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or due):
                         ckpt = self.save_checkpoint()
                         last_ckpt = time.perf_counter()
-                    if stop.signum is not None:
+                    if stopping:
+                        signum = stop.signum or signal.SIGTERM
                         raise TrainingInterrupted(
-                            f"stopped by {signal_name(stop.signum)} at iteration {it}; checkpoint "
+                            f"stopped by {signal_name(signum)} at iteration {it}; checkpoint "
                             f"{ckpt} written: continue with --resume",
-                            stop.signum,
+                            signum,
                             ckpt,
                         )
                     if bar is not None:
