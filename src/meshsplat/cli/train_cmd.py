@@ -196,6 +196,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run_dir}")
         return 0
     trainer = Trainer(cfg, resume=args.resume)
+    if not trainer.dp.is_main:  # under torchrun: rank 0 writes and reports
+        trainer.train()
+        return 0
     copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")
