@@ -68,6 +68,7 @@ _SUBMODULES = (
     "demo",
     "viewer",
     "pipeline",
+    "fleet",
     "cli",
 )
 

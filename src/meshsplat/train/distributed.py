@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import timedelta
 
 import torch
@@ -37,10 +37,12 @@ def env_world_size() -> int:
 
 @dataclass
 class DataParallel:
-    """This process's place in the job: ``rank`` of ``world`` processes."""
+    """This process's place in the job: ``rank`` of ``world`` processes; collectives run on ``device``
+    (NCCL reduces CUDA tensors only)."""
 
     rank: int = 0
     world: int = 1
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
 
     @classmethod
     def single(cls) -> DataParallel:
@@ -64,7 +66,7 @@ class DataParallel:
                     )
             backend = "nccl" if device.type == "cuda" else "gloo"
             dist.init_process_group(backend, timeout=timedelta(minutes=30))
-        return cls(dist.get_rank(), dist.get_world_size()), device
+        return cls(dist.get_rank(), dist.get_world_size(), device), device
 
     @property
     def is_main(self) -> bool:
@@ -108,9 +110,9 @@ class DataParallel:
         """``values`` summed over ranks (a new tensor; unchanged in one process)."""
         if not self.active:
             return values
-        out = values.clone()
+        out = values.to(self.device, copy=True)
         dist.all_reduce(out)
-        return out
+        return out.to(values.device)
 
     def reduce_statistics(self, grad2d: torch.Tensor, count: torch.Tensor, radii: torch.Tensor) -> None:
         """In place: densification statistics of one batch summed (gradient norms, counts) and maxed
@@ -125,9 +127,7 @@ class DataParallel:
         """Every rank must hold the same ``value`` (e.g. the number of Gaussians); one clear error if not."""
         if not self.active:
             return
-        t = torch.tensor([value, -value], dtype=torch.float64)
-        if dist.get_backend() == "nccl":
-            t = t.cuda()
+        t = torch.tensor([value, -value], dtype=torch.float64, device=self.device)
         dist.all_reduce(t, op=dist.ReduceOp.MAX)
         if int(t[0]) != value or int(-t[1]) != value:
             raise MeshsplatError(f"rank {self.rank}: {what} differs between processes ({value} here); please report")
