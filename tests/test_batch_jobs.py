@@ -10,7 +10,8 @@ import pytest
 from meshsplat.errors import MeshsplatError
 from meshsplat.fleet.jobs import job_config, read_jobs
 from meshsplat.fleet.report import write_results
-from meshsplat.fleet.runner import RESULT_KEYS, failed_result
+from meshsplat.fleet.runner import RESULT_KEYS, failed_result, run_job
+from test_train import make_tiny_dataset
 
 
 def test_yaml_json_and_text_say_the_same(tmp_path):
@@ -81,3 +82,17 @@ def test_results_table_in_three_forms(tmp_path):
 def _one(tmp_path):
     (tmp_path / "one.json").write_text(json.dumps(["cap"]))
     return tmp_path / "one.json"
+
+
+def test_one_job_without_ray_and_a_capture_without_test_split(tmp_path):
+    data = make_tiny_dataset(tmp_path / "cap")  # a 'train' split only
+    (tmp_path / "jobs.json").write_text(
+        json.dumps([{"data": "cap", "iterations": 3, "device": "cpu", "set": ["model.n_init=100", "backend=torch"]}])
+    )
+    (job,) = read_jobs(tmp_path / "jobs.json")
+    assert job.data == str(data)
+    row = run_job(job, tmp_path / "out")
+    assert row["status"] == "ok" and row["iterations"] == 3 and row["psnr"] is None, row
+    assert row["reason"] == "not evaluated: the capture has no test split"
+    assert (tmp_path / "out" / "cap" / "export" / "avatar.ply").is_file()
+    assert run_job(job, tmp_path / "out") == json.loads((tmp_path / "out" / "cap" / "result.json").read_text())

@@ -111,7 +111,9 @@ def run_job(job: Job, out: str | Path) -> dict[str, Any]:
         row: dict[str, Any] = {k: None for k in RESULT_KEYS}
         row.update(name=job.name, status="ok", reason="", run=str(trainer.folder.root))
         row.update(n_gaussians=trainer.num_gaussians, iterations=trainer.iteration, train_s=round(t_train, 3))
-        if job.eval:
+        if job.eval and not [s for s in trainer.dataset.split_names if s != "train"]:
+            row["reason"] = "not evaluated: the capture has no test split"
+        elif job.eval:
             t1 = time.perf_counter()
             metrics = evaluate_run(trainer.folder.root, device=cfg.device, report=False, backend=cfg.backend)
             row.update(_split_metrics(metrics))
