@@ -6,8 +6,10 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from meshsplat.camera import (
+    Camera,
     K_from_normalized,
     camera_center,
     look_at,
@@ -75,3 +77,14 @@ def test_rodrigues_golden():
     np.testing.assert_allclose(pixel(K, vm, [0.2, -0.4, 0]), [60, 20], atol=1e-9)  # 2 ahead, y down
     with pytest.raises(MeshsplatError):
         viewmat_from_rodrigues([0, 0], [0, 0, 1])
+
+
+def test_project_golden_pixel_and_depth():
+    """A point on the optical axis lands on the principal point; one unit right at depth 2 moves fx / 2."""
+    viewmat = torch.eye(4)
+    viewmat[2, 3] = 2.0  # the camera 2 units in front of the origin, looking down +z
+    K = torch.tensor([[100.0, 0, 32.0], [0, 80.0, 24.0], [0, 0, 1]])
+    cam = Camera(viewmat, K, 64, 48)
+    pix, z = cam.project(torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [0.0, 1.0, 0], [0.0, 0, -3.0]]))
+    assert torch.allclose(pix[:3], torch.tensor([[32.0, 24.0], [82.0, 24.0], [32.0, 64.0]]))
+    assert torch.allclose(z, torch.tensor([2.0, 2.0, 2.0, -1.0]))

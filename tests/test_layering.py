@@ -22,7 +22,7 @@ LAYERS = [
     ("train",),
     ("synth", "eval", "export", "animate"),
     ("demo", "viewer"),
-    ("pipeline",),
+    ("pipeline", "fleet"),
     ("cli",),
 ]
 RANK = {unit: i for i, units in enumerate(LAYERS) for unit in units}

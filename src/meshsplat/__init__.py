@@ -72,6 +72,7 @@ _SUBMODULES = (
     "demo",
     "viewer",
     "pipeline",
+    "fleet",
     "cli",
 )
 

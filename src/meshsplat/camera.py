@@ -113,6 +113,15 @@ class Camera:
         R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
         return -R.T @ t
 
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pinhole projection of world ``points [N,3]``: ``(pixels [N,2], depth [N])``. Pixel coordinates
+        follow ``PIXEL_CENTER`` (pixel ``(i, j)`` spans ``[i, i+1) x [j, j+1)``, so ``floor`` gives its
+        index); depth is the camera-space z (points behind the camera have depth <= 0)."""
+        cam = points @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
+        z = cam[:, 2]
+        pix = cam @ self.K.T
+        return torch.stack([pix[:, 0] / z.clamp_min(1e-9), pix[:, 1] / z.clamp_min(1e-9)], -1), z
+
     def resized(self, width: int, height: int) -> Camera:
         """Same view at another resolution (intrinsics scaled per axis)."""
         K = self.K.clone()

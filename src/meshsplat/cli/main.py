@@ -30,6 +30,7 @@ COMMANDS = {
     "export": "export_cmd",
     "demo": "demo_cmd",
     "view": "view_cmd",
+    "batch": "batch_cmd",
 }
 
 

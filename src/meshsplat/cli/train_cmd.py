@@ -10,6 +10,9 @@ A preset named with --resume must be the run's (the resume check refuses another
 checkpoints and config changes other than paths, device/backend, logging/checkpoint cadence and
 --iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
 checkpoint_every_s seconds (default 900).
+--nproc N trains with N processes (torch.distributed: gloo on CPU, NCCL on CUDA), each rendering its
+share of every batch (needs --set batch_size=N or more); the same command also runs under torchrun.
+docs/scale-out.md.
 """
 
 from __future__ import annotations
@@ -31,8 +34,9 @@ from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, apply_overrides, load_config
+from meshsplat.train.launch import launch
 from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
-from meshsplat.train.trainer import Trainer, training_image_size
+from meshsplat.train.trainer import Trainer
 
 __all__ = ["add_arguments", "run", "build_config"]
 
@@ -83,6 +87,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_render_options(parser, device=None, backend=False, background=False)
     parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument(
+        "--nproc",
+        type=int,
+        default=1,
+        help="train with N local processes (data-parallel over each batch; set batch_size >= N); docs/scale-out.md",
+    )
     add_threads_argument(parser)
 
 
@@ -117,15 +127,13 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 
     def image_size() -> int:  # asked only to convert an older config's pixel threshold
         opts = reader_options(args.gender, args.shape)
-        return training_image_size(
-            open_capture(
-                args.dataset,
-                format=args.format,
-                model_dir=args.model_dir,
-                drop_bad_frames=args.drop_bad_frames,
-                **opts,
-            )
-        )
+        return open_capture(
+            args.dataset,
+            format=args.format,
+            model_dir=args.model_dir,
+            drop_bad_frames=args.drop_bad_frames,
+            **opts,
+        ).largest_image_side()
 
     preset = args.preset or DEFAULT_PRESET
     cfg = preset_config(preset)
@@ -180,7 +188,17 @@ def run(args: argparse.Namespace) -> int:
         2e8 + 1200.0 * n,
         "lower model.n_init / strategy.max_gaussians",
     )
+    if args.nproc != 1:
+        copy_source_map(cfg.data, cfg.out)
+        print(f"training with {args.nproc} processes, batch_size {cfg.batch_size}")
+        run_dir = launch(cfg, args.nproc, resume=args.resume)
+        print(f"done: {run_dir}")
+        print(f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run_dir}")
+        return 0
     trainer = Trainer(cfg, resume=args.resume)
+    if not trainer.dp.is_main:  # under torchrun: rank 0 writes and reports
+        trainer.train()
+        return 0
     copy_source_map(cfg.data, cfg.out)  # the run alone can then be animated by the source asset
     if trainer.resumed_from is not None:
         print(f"resuming from {trainer.resumed_from} (iteration {trainer.iteration})")

@@ -274,6 +274,13 @@ class AvatarDataset:
     def __len__(self) -> int:
         return len(self._frames)
 
+    def largest_image_side(self, ids: list[int] | None = None) -> int:
+        """The largest image side (pixels) among the cameras of frames ``ids`` (default: the 'train' split;
+        all cameras when it names none): what screen radii in fractions of the image size are relative to."""
+        ids = self.split("train") if ids is None else ids
+        cams = {self.frame_info(i)["camera"] for i in ids} or set(self.camera_ids)
+        return max(max(self.camera(c).width, self.camera(c).height) for c in cams)
+
     @property
     def split_names(self) -> list[str]:
         return list(self._splits)

@@ -180,6 +180,8 @@ class TrainConfig:
     data_shape: str = ""  # reader option: "per_split" | "train" betas for the test splits; "" = the layout's default
     out: str = "runs/train"
     iterations: int = 30_000
+    # images per iteration (loss averaged over them, lrs times sqrt(batch_size)); docs/config.md "Batches"
+    batch_size: int = 1
     seed: int = 0
     device: str = "auto"  # "auto" = cuda when available
     backend: str = "auto"  # rasterizer backend, one of meshsplat.render.BACKENDS
@@ -223,6 +225,7 @@ class TrainConfig:
     def validate(self) -> TrainConfig:
         checks = [
             (self.iterations >= 1, "iterations must be >= 1"),
+            (1 <= self.batch_size <= 4096, "batch_size (images per iteration) must be in 1..4096"),
             (self.data_downscale >= 1, "data_downscale must be >= 1 (2 halves width and height)"),
             (self.model.n_init >= 1, "model.n_init must be >= 1"),
             (0 <= self.model.sh_degree <= 3, "model.sh_degree must be in 0..3"),

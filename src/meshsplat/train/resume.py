@@ -11,11 +11,13 @@ Rules (nothing is lost or silently wrong):
 
 from __future__ import annotations
 
+import random
 import signal
 import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from meshsplat.errors import MeshsplatError
@@ -31,6 +33,8 @@ __all__ = [
     "StopOnSignal",
     "check_resume_config",
     "signal_name",
+    "capture_rng",
+    "restore_rng",
 ]
 
 # Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs.
@@ -168,3 +172,43 @@ class StopOnSignal:
     def __exit__(self, *exc) -> None:
         for s, h in self._old.items():
             signal.signal(s, h)
+
+
+def capture_rng(generators: dict[str, torch.Generator], device: torch.device) -> dict[str, Any]:
+    """Every random state a run draws from, for a checkpoint: torch CPU (and CUDA on ``device``), numpy's
+    legacy global state, python's ``random``, and the run's own ``generators`` (by name)."""
+    np_state: Any = np.random.get_state()  # the legacy tuple
+    rng = {
+        "torch": torch.get_rng_state(),
+        "numpy": [
+            np_state[0],
+            torch.from_numpy(np_state[1].astype(np.int64)),
+            int(np_state[2]),
+            int(np_state[3]),
+            float(np_state[4]),
+        ],
+        "python": random.getstate(),
+        **{name: gen.get_state() for name, gen in generators.items()},
+    }
+    if device.type == "cuda":
+        rng["cuda"] = torch.cuda.get_rng_state(device)
+    return rng
+
+
+def restore_rng(rng: dict[str, Any], names: tuple[str, ...], device: torch.device) -> dict[str, torch.Generator]:
+    """Set the global generators from ``capture_rng``'s dict; returns the run's own generators ``names``."""
+    torch.set_rng_state(rng["torch"])
+    n = rng["numpy"]
+    np.random.set_state((n[0], n[1].numpy().astype(np.uint32), n[2], n[3], n[4]))
+    random.setstate(_tuplify(rng["python"]))
+    if device.type == "cuda" and "cuda" in rng:
+        torch.cuda.set_rng_state(rng["cuda"], device)
+    gens = {}
+    for name in names:
+        gens[name] = torch.Generator()
+        gens[name].set_state(rng[name])
+    return gens
+
+
+def _tuplify(x):
+    return tuple(_tuplify(v) for v in x) if isinstance(x, (list, tuple)) else x

@@ -28,7 +28,9 @@ illumination itself.
 from __future__ import annotations
 
 import csv
+import math
 import random
+import signal
 import time
 from collections import deque
 from pathlib import Path
@@ -38,29 +40,31 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
-from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats import open_capture, reader_options
-from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
-from meshsplat.gaussians.params import init_params, num_gaussians
+from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
+from meshsplat.gaussians.params import EMBEDDING_STATE_KEYS, init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
 from meshsplat.io.images import float_to_uint8
-from meshsplat.mesh import MeshPose, TriMesh, bbox_diagonal
+from meshsplat.mesh import TriMesh, bbox_diagonal
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
+from meshsplat.train.distributed import DataParallel
 from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_crop
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
     StopOnSignal,
     TrainingInterrupted,
+    capture_rng,
     check_resume_config,
     load_resume_checkpoint,
     refuse_existing_run,
+    restore_rng,
     signal_name,
 )
 from meshsplat.train.strategy import walk_embeddings
@@ -70,11 +74,11 @@ __all__ = [
     "train",
     "mesh_extent",
     "mean_edge_length",
-    "training_image_size",
     "LOG_COLUMNS",
     "PROGRESS_WINDOW",
 ]
 
+_LOGGED_PARTS = ("l1", "lpips", "scale", "mse", "dssim", "mask")  # loss parts in log.csv
 PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
 LOG_COLUMNS = (
@@ -93,14 +97,6 @@ LOG_COLUMNS = (
     "time_s",
     "mask",
 )
-
-
-def training_image_size(dataset: AvatarDataset, train_ids: list[int] | None = None) -> int:
-    """The largest image side (pixels) among the cameras of the training frames: what the screen radii
-    of the densification strategy are divided by (it converts older configs' pixel thresholds)."""
-    ids = dataset.split("train") if train_ids is None else train_ids
-    cams = {dataset.frame_info(i)["camera"] for i in ids} or set(dataset.camera_ids)
-    return max(max(dataset.camera(c).width, dataset.camera(c).height) for c in cams)
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -133,8 +129,10 @@ class Trainer:
         if self.cfg.model_dir:  # absolute, as data: render --motion from another folder finds it
             self.cfg.model_dir = str(Path(self.cfg.model_dir).expanduser().resolve())
         self.folder = RunFolder(self.cfg.out)
-        self.run_dir = self.folder.root
-        self.device = resolve_device(self.cfg.device)
+        self.dp, self.device = DataParallel.from_env(resolve_device(self.cfg.device))
+        self.dp.check_batch(self.cfg.batch_size)
+        if not self.dp.is_main:
+            self.cfg.progress = False
         self.dataset = open_capture(
             self.cfg.data,
             format=self.cfg.data_format or None,
@@ -154,13 +152,16 @@ class Trainer:
         self.extent = mesh_extent(self.mesh.vertices)
         self.mean_edge = mean_edge_length(self.mesh.vertices, self.mesh.faces)
         self.strategy = self.cfg.strategy
+        self.lr_factor = math.sqrt(self.cfg.batch_size)  # gsplat's rule for batches: lr times sqrt(batch size)
         self.lrs = base_learning_rates(self.cfg.optim, self.extent, self.mean_edge)
+        if self.cfg.batch_size > 1:
+            self.lrs = {k: v * self.lr_factor for k, v in self.lrs.items()}
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
         self.refiner = None
         if self.cfg.pose_refine.enabled:
             pr = self.cfg.pose_refine
             self.refiner = PoseRefiner(
-                self.dataset, self.train_ids, pr.params, pr.lr, self.cfg.model_dir or None, self.device
+                self.dataset, self.train_ids, pr.params, pr.lr * self.lr_factor, self.cfg.model_dir or None, self.device
             )
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
@@ -183,9 +184,7 @@ class Trainer:
         else:
             refuse_existing_run(self.folder)
         if loaded is not None:
-            old = upgrade_config_dict(
-                loaded[1].get("config"), lambda: training_image_size(self.dataset, self.train_ids)
-            )
+            old = upgrade_config_dict(loaded[1].get("config"), lambda: self.dataset.largest_image_side(self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
             try:
                 self._restore(loaded[1])
@@ -210,9 +209,7 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.manual_seed_all(cfg.seed)
         gen = torch.Generator().manual_seed(cfg.seed)
-        colors_fn = None
-        if cfg.model.init_color == "image":
-            colors_fn = self._first_image_colors if cfg.model.init_color_frames == 1 else self._multi_image_colors
+        colors_fn = self._image_colors if cfg.model.init_color == "image" else None
         self.params = init_params(
             self.mesh,
             cfg.model.n_init,
@@ -232,58 +229,21 @@ class Trainer:
         self.order = torch.randperm(len(self.train_ids), generator=self.order_gen)
         self.order_pos = 0
 
-    def _first_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Colour of each embedded point seen in the first training frame (grey where unseen)."""
-        image, mask, camera, verts = self._frame(self.train_ids[0])
-        K, viewmat = camera.K, camera.viewmat
-        pts = surface_points(verts, self.mesh.faces, face, uv)
-        cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = cam[:, 2]
-        pix = cam @ K.T
-        px = pix[:, 0] / z.clamp_min(1e-9)
-        py = pix[:, 1] / z.clamp_min(1e-9)
-        h, wd = image.shape[:2]
-        ix, iy = px.floor().long(), py.floor().long()
-        ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h)
-        rgb = torch.full((face.shape[0], 3), 0.5, dtype=uv.dtype, device=uv.device)
-        ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
-        if mask is not None:
-            ok &= mask[iyc, ixc, 0] > 0.5
-        rgb[ok] = image[iyc[ok], ixc[ok]].to(rgb)
-        return rgb
+    def _image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """Initial colour [N,3] of the embedded points: the first training frame's pixel
+        (``model.init_color_frames`` = 1) or the mean over that many frames spread over the sequence."""
+        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
+        if self.cfg.model.init_color_frames == 1:
+            return first_view_colors(self.mesh, self._frame(self.train_ids[0]), face, uv)
+        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
+        return mean_view_colors(self.mesh, (self._frame(i) for i in picks), face, uv)
 
     def _set_shading(self, shading: Shading) -> None:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
         self.shading = shading
-        self.shading_opt = torch.optim.Adam([shading.coeffs], lr=self.cfg.optim.lr_shading, eps=self.cfg.optim.eps)
-
-    @torch.no_grad()
-    def _multi_image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Mean colour of each embedded point over ``model.init_color_frames`` training frames spread over
-        the sequence, counting a frame where the point is inside the image and the mask and its Phong
-        normal faces the camera (grey where never seen)."""
-        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
-        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
-        acc = torch.zeros(face.shape[0], 3, dtype=uv.dtype, device=uv.device)
-        cnt = torch.zeros(face.shape[0], 1, dtype=uv.dtype, device=uv.device)
-        for idx in picks:
-            image, mask, camera, verts = self._frame(idx)
-            K, viewmat = camera.K, camera.viewmat
-            pts, nrm = embed(MeshPose.from_vertices(self.mesh, verts), face, uv, torch.zeros_like(uv[:, 0]))
-            campos = torch.linalg.inv(viewmat)[:3, 3]
-            cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
-            z = cam[:, 2]
-            pix = cam @ K.T
-            ix = (pix[:, 0] / z.clamp_min(1e-9)).floor().long()
-            iy = (pix[:, 1] / z.clamp_min(1e-9)).floor().long()
-            h, wd = image.shape[:2]
-            ok = (z > 0) & (ix >= 0) & (ix < wd) & (iy >= 0) & (iy < h) & (((campos - pts) * nrm).sum(-1) > 0)
-            ixc, iyc = ix.clamp(0, wd - 1), iy.clamp(0, h - 1)
-            if mask is not None:
-                ok &= mask[iyc, ixc, 0] > 0.5
-            acc[ok] += image[iyc[ok], ixc[ok]].to(acc)
-            cnt[ok] += 1
-        return torch.where(cnt > 0, acc / cnt.clamp_min(1), torch.full_like(acc, 0.5))
+        self.shading_opt = torch.optim.Adam(
+            [shading.coeffs], lr=self.cfg.optim.lr_shading * self.lr_factor, eps=self.cfg.optim.eps
+        )
 
     # ---- data ------------------------------------------------------------------------
     def _frame(self, idx: int) -> tuple:
@@ -337,22 +297,14 @@ class Trainer:
         out = self.avatar().render(verts, camera, background, backend=self.cfg.backend)
         return out, composite(image, mask, background)
 
-    def step(self) -> dict[str, float]:
-        """Run one training iteration; returns its logged values."""
-        cfg = self.cfg
-        self.iteration += 1
-        it = self.iteration
-        lrs = self.schedule.apply(self.optimizers, it)
-        idx = self._next_index()
-        _, mask, _, _ = self._frame(idx)
-        bg = self._background() if mask is not None else torch.zeros(3, device=self.device)
-        out, gt = self.render_frame(idx, bg)
-        render, meta = out.image, out.meta
-        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, meta)
-        L = cfg.loss
+    def _image_loss(
+        self, out: AvatarRender, gt: torch.Tensor, mask: torch.Tensor | None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The training loss of one rendered image and its parts."""
+        L = self.cfg.loss
         crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject else None
         loss, parts = avatar_loss(
-            render,
+            out.image,
             gt,
             self.params["log_scale"].exp(),
             thresh_scale=L.scale_max * self.extent,
@@ -369,9 +321,49 @@ class Trainer:
             mask_l1 = (out.alpha - mask).abs().mean()
             loss = loss + L.lambda_mask * mask_l1
             parts["mask"] = mask_l1.detach()
-        if not torch.isfinite(loss):
-            raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
-        loss.backward()
+        return loss, parts
+
+    def _trained_tensors(self) -> list[torch.Tensor]:
+        """Every tensor an optimizer steps (the gradients data-parallel training all-reduces)."""
+        out = [p for opt in self.optimizers.values() for g in opt.param_groups for p in g["params"]]
+        if self.shading is not None:
+            out.append(self.shading.coeffs)
+        if self.refiner is not None:
+            out.extend(self.refiner.offsets.values())
+        return out
+
+    def step(self) -> dict[str, float]:
+        """Run one training iteration (``batch_size`` images; this process renders its share); returns
+        its logged values (means over the batch)."""
+        cfg = self.cfg
+        self.iteration += 1
+        it = self.iteration
+        lrs = self.schedule.apply(self.optimizers, it)
+        batch, backgrounds = [], []
+        for _ in range(cfg.batch_size):  # every process draws the whole batch: generators stay in step
+            idx = self._next_index()
+            _, mask, _, _ = self._frame(idx)
+            batch.append(idx)
+            backgrounds.append(self._background() if mask is not None else torch.zeros(3, device=self.device))
+        B = cfg.batch_size
+        metas = []
+        logged = torch.zeros(len(_LOGGED_PARTS) + 2, dtype=torch.float64)  # loss, psnr, parts: sums
+        for j in self.dp.share(B):
+            idx = batch[j]
+            out, gt = self.render_frame(idx, backgrounds[j])
+            self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, it, out.meta)
+            loss, parts = self._image_loss(out, gt, self._frame(idx)[1])
+            if not torch.isfinite(loss):
+                raise MeshsplatError(f"iteration {it}: loss is {float(loss)} (diverged); try lower learning rates")
+            (loss if B == 1 else loss / B).backward()
+            metas.append(out.meta)
+            with torch.no_grad():
+                logged[0] += float(loss.detach())
+                logged[1] += float(psnr(out.image.detach().clamp(0, 1), gt))
+            for k, name in enumerate(_LOGGED_PARTS):
+                logged[k + 2] += float(parts[name]) if name in parts else 0.0
+        self.dp.all_reduce_grads(self._trained_tensors())
+        logged = self.dp.sum(logged) / B
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -381,7 +373,15 @@ class Trainer:
         if self.refiner is not None:
             self.refiner.step()
         self.strategy.step_post_backward(
-            self.params, self.optimizers, self.strategy_state, it, meta, mesh=self.mesh, scale_mode=cfg.model.scale_mode
+            self.params,
+            self.optimizers,
+            self.strategy_state,
+            it,
+            metas,
+            mesh=self.mesh,
+            scale_mode=cfg.model.scale_mode,
+            batch_size=B,
+            reduce=self.dp.reduce_statistics if self.dp.active else None,
         )
         walked = 0
         if it % cfg.walk.every == 0 and not cfg.model.freeze_embedding:
@@ -395,19 +395,18 @@ class Trainer:
             )
             walked = int(changed.sum())
             self.walked_total += walked
-        with torch.no_grad():
-            p = float(psnr(render.detach().clamp(0, 1), gt))
+        self.dp.check_same("the number of Gaussians", num_gaussians(self.params))
         row = {
             "iteration": it,
-            "loss": float(loss.detach()),
-            "psnr": p,
+            "loss": float(logged[0]),
+            "psnr": float(logged[1]),
             "n_gaussians": num_gaussians(self.params),
             "walked": walked,
             "lr_duv": lrs.get("duv", 0.0),
             "lr_d": lrs.get("d", 0.0),
         }
-        for k in ("l1", "lpips", "scale", "mse", "dssim", "mask"):
-            row[k] = float(parts[k]) if k in parts else 0.0
+        for k, name in enumerate(_LOGGED_PARTS):
+            row[name] = float(logged[k + 2])
         row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
         return row
 
@@ -416,10 +415,12 @@ class Trainer:
         """Train up to iteration ``until`` (default ``config.iterations``); returns the run dir."""
         cfg = self.cfg
         end = cfg.iterations if until is None else min(int(until), cfg.iterations)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        cfg.to_json(self.folder.config_path)
-        self._open_log()
-        remove_stray_tmp(self.folder.checkpoint_dir)
+        main = self.dp.is_main  # the one process that writes the run folder
+        if main:
+            self.folder.root.mkdir(parents=True, exist_ok=True)
+            cfg.to_json(self.folder.config_path)
+            self._open_log()
+            remove_stray_tmp(self.folder.checkpoint_dir)
         bar = None
         if cfg.progress:
             from tqdm import tqdm
@@ -427,6 +428,7 @@ class Trainer:
             bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
+        ckpt: Path | None = None
         try:
             with StopOnSignal() as stop:
                 while self.iteration < end:
@@ -435,19 +437,23 @@ class Trainer:
                     self.elapsed = time.perf_counter() - t0
                     row["time_s"] = self.elapsed
                     self.recent.append((row["loss"], row["psnr"]))
-                    if it % cfg.log_every == 0 or it == end:
+                    stopping = stop.signum is not None
+                    if self.dp.active:  # a signal seen by any process stops all at the same iteration
+                        stopping = bool(self.dp.sum(torch.tensor([float(stopping)])) > 0)
+                    if main and (it % cfg.log_every == 0 or it == end):
                         self._log(row)
-                    if it % cfg.preview_every == 0 or it == cfg.iterations:
+                    if main and (it % cfg.preview_every == 0 or it == cfg.iterations):
                         self.save_preview()
-                    due = time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s or stop.signum is not None
-                    if it % cfg.checkpoint_every == 0 or it == cfg.iterations or due:
+                    due = time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s or stopping
+                    if main and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or due):
                         ckpt = self.save_checkpoint()
                         last_ckpt = time.perf_counter()
-                    if stop.signum is not None:
+                    if stopping:
+                        signum = stop.signum or signal.SIGTERM
                         raise TrainingInterrupted(
-                            f"stopped by {signal_name(stop.signum)} at iteration {it}; checkpoint "
+                            f"stopped by {signal_name(signum)} at iteration {it}; checkpoint "
                             f"{ckpt} written: continue with --resume",
-                            stop.signum,
+                            signum,
                             ckpt,
                         )
                     if bar is not None:
@@ -460,7 +466,7 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
-        return self.run_dir
+        return self.folder.root
 
     @property
     def num_gaussians(self) -> int:
@@ -532,22 +538,7 @@ class Trainer:
         )
 
     def state_dict(self) -> dict[str, Any]:
-        np_state: Any = np.random.get_state()  # the legacy tuple
-        rng = {
-            "torch": torch.get_rng_state(),
-            "numpy": [
-                np_state[0],
-                torch.from_numpy(np_state[1].astype(np.int64)),
-                int(np_state[2]),
-                int(np_state[3]),
-                float(np_state[4]),
-            ],
-            "python": random.getstate(),
-            "order": self.order_gen.get_state(),
-            "background": self.bg_gen.get_state(),
-        }
-        if self.device.type == "cuda":
-            rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        rng = capture_rng({"order": self.order_gen, "background": self.bg_gen}, self.device)
         strat = {k: (v.detach().cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.strategy_state.items()}
         return {
             "iteration": self.iteration,
@@ -578,7 +569,7 @@ class Trainer:
         self.params = {}
         for k, v in av["params"].items():
             v = v.to(dev)
-            self.params[k] = torch.nn.Parameter(v, requires_grad=k in trainable) if k not in ("face", "uv") else v
+            self.params[k] = v if k in EMBEDDING_STATE_KEYS else torch.nn.Parameter(v, requires_grad=k in trainable)
         self.optimizers = build_optimizers(self.params, self.lrs, self.cfg.optim.eps)
         if set(self.optimizers) != set(st["optimizers"]):
             raise MeshsplatError(
@@ -592,20 +583,11 @@ class Trainer:
         }
         if is_legacy_config(st.get("config")) and isinstance(self.strategy_state.get("radii"), torch.Tensor):
             # older versions kept the screen radii in pixels; today a fraction of the image size
-            self.strategy_state["radii"] = self.strategy_state["radii"] / training_image_size(
-                self.dataset, self.train_ids
+            self.strategy_state["radii"] = self.strategy_state["radii"] / self.dataset.largest_image_side(
+                self.train_ids
             )
-        rng = st["rng"]
-        torch.set_rng_state(rng["torch"])
-        n = rng["numpy"]
-        np.random.set_state((n[0], n[1].numpy().astype(np.uint32), n[2], n[3], n[4]))
-        random.setstate(_tuplify(rng["python"]))
-        if dev.type == "cuda" and "cuda" in rng:
-            torch.cuda.set_rng_state(rng["cuda"], dev)
-        self.order_gen = torch.Generator()
-        self.order_gen.set_state(rng["order"])
-        self.bg_gen = torch.Generator()
-        self.bg_gen.set_state(rng["background"])
+        gens = restore_rng(st["rng"], ("order", "background"), dev)
+        self.order_gen, self.bg_gen = gens["order"], gens["background"]
         if self.refiner is not None:
             if not st.get("pose_refine"):
                 raise MeshsplatError(
@@ -630,10 +612,6 @@ class Trainer:
         self.order_pos = int(st["data_order"]["pos"])
         self.iteration = int(st["iteration"])
         self.elapsed = float(st.get("elapsed_s", 0.0))
-
-
-def _tuplify(x):
-    return tuple(_tuplify(v) for v in x) if isinstance(x, (list, tuple)) else x
 
 
 def train(config: TrainConfig, resume: bool = False) -> Path:

@@ -20,6 +20,12 @@ Statistics: for every Gaussian visible in a view, the norm of the screen-space m
 3DGS) is summed with a count, and the largest screen radius is kept as a fraction of the image
 size (pixels / ``max(width, height)``, as gsplat).
 
+Batches: ``info`` may be a list, one meta per image of the batch (each a one-camera render). The loss
+is the batch mean, so each image's screen gradient is scaled back by ``batch_size`` (as gsplat's
+``n_cameras`` factor) and counted as one view: statistics accumulate per image. A batch's statistics
+are gathered first, passed through ``reduce(grad2d, count, radii)`` (data-parallel training sums them
+over processes in place; the radii by max), then added.
+
 Every ``refine_every`` steps in ``[refine_start_iter, refine_stop_iter]``: Gaussians whose mean
 gradient exceeds ``grow_grad2d`` are cloned when their largest canonical scale is at most
 ``grow_scale3d * extent`` and split otherwise (within the ``max_gaussians`` budget, highest
@@ -36,7 +42,7 @@ parent's rotation, opacity and colour, with canonical scale / (0.8 * split_n).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -101,16 +107,21 @@ class DensifyStrategy:
         optimizers: Mapping[str, torch.optim.Optimizer],
         state: dict[str, Any],
         step: int,
-        info: dict,
+        info: dict | Sequence[dict],
         *,
         mesh: TriMesh | None = None,
         scale_mode: str = "sqrt_area",
+        batch_size: int | None = None,
+        reduce: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
     ) -> dict[str, int]:
-        """Update statistics, then refine / reset on schedule. Returns counts of what changed."""
+        """Update statistics (``info``: one meta or a list, one per image of this process's share of a
+        batch of ``batch_size`` images, default the list's length), then refine / reset on schedule.
+        Returns counts of what changed."""
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
         if not self.enabled or step > self.refine_stop_iter:
             return out
-        self._update_state(params, state, info)
+        infos = [info] if isinstance(info, dict) else list(info)
+        self._update_state(params, state, infos, batch_size or len(infos), reduce)
         if step >= self.refine_start_iter and step % self.refine_every == 0:
             if mesh is None:
                 raise MeshsplatError("step_post_backward: mesh (the canonical TriMesh) is needed to split")
@@ -127,32 +138,53 @@ class DensifyStrategy:
         return out
 
     # ---- internals -------------------------------------------------------------------
-    def _update_state(self, params, state, info: dict) -> None:
-        m2d = info[self.key_for_gradient]
-        if m2d.grad is None:
+    def _update_state(
+        self,
+        params,
+        state,
+        infos: Sequence[dict],
+        batch_size: int,
+        reduce: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], None] | None,
+    ) -> None:
+        grads_seen = [i[self.key_for_gradient].grad is not None for i in infos]
+        if not any(grads_seen) and reduce is None:
             return
         n = params["face"].shape[0]
-        dev = m2d.device
+        dev = params["face"].device
         if state["grad2d"] is None or state["grad2d"].shape[0] != n:
             state["grad2d"] = torch.zeros(n, device=dev)
             state["count"] = torch.zeros(n, device=dev)
             state["radii"] = torch.zeros(n, device=dev)
-        grads = m2d.grad.detach().clone()  # [C,N,2]
-        n_cams = int(info.get("n_cameras", grads.shape[0]))
+        grad2d, count, radii = torch.zeros(n, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
+        for info, seen in zip(infos, grads_seen, strict=True):
+            if seen:
+                self._add_view(info, batch_size, grad2d, count, radii)
+        if reduce is not None:
+            reduce(grad2d, count, radii)
+        state["grad2d"] += grad2d
+        state["count"] += count
+        state["radii"] = torch.maximum(state["radii"], radii)
+
+    def _add_view(
+        self, info: dict, batch_size: int, grad2d: torch.Tensor, count: torch.Tensor, radii: torch.Tensor
+    ) -> None:
+        """Add one render's screen-gradient norms, view counts and largest radii to the batch's sums."""
+        grads = info[self.key_for_gradient].grad.detach().clone()  # [C,N,2]
+        n_cams = int(info.get("n_cameras", grads.shape[0])) * batch_size
         grads[..., 0] *= 0.5 * info["width"] * n_cams
         grads[..., 1] *= 0.5 * info["height"] * n_cams
-        radii = info["radii"]
-        if radii.ndim == 3:  # [C,N,2]
-            sel = (radii > 0).all(-1)
-            rmax = radii.amax(-1)
+        r = info["radii"]
+        if r.ndim == 3:  # [C,N,2]
+            sel = (r > 0).all(-1)
+            rmax = r.amax(-1)
         else:
-            sel = radii > 0
-            rmax = radii
+            sel = r > 0
+            rmax = r
         cam_ids, gs_ids = torch.nonzero(sel, as_tuple=True)
-        state["grad2d"].index_add_(0, gs_ids, grads[cam_ids, gs_ids].norm(dim=-1).float())
-        state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
+        grad2d.index_add_(0, gs_ids, grads[cam_ids, gs_ids].norm(dim=-1).float())
+        count.index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
         rmax = rmax[cam_ids, gs_ids].float() / float(max(info["width"], info["height"]))
-        state["radii"][gs_ids] = torch.maximum(state["radii"][gs_ids], rmax)
+        radii[gs_ids] = torch.maximum(radii[gs_ids], rmax)
 
     def _grow(self, params, optimizers, state, mesh, scale_mode) -> tuple[int, int]:
         if state["grad2d"] is None:
