@@ -15,7 +15,10 @@ Variants: those of bench/quality.py (``paper``, ``default``, ...) plus candidate
 default (``quality``) preset listed in EXTRA. Metrics per test split, mean over frames: full-image and
 subject PSNR on white, subject PSNR on black, subject LPIPS (white), and the error budget on black:
 the share of squared error in the silhouette band (2 px either side of the mask's edge), the interior
-and the outside (``meshsplat.metrics.budget``). Saves bench/results/<name>-<host>.json after every run.
+and the outside (``meshsplat.metrics.budget``); in the band, the mean |rendered alpha - mask| and its
+sign (``a-m`` > 0: the avatar spills over the edge) and the driving mesh's own coverage error
+(``|mesh-m|``: what a smoothed or mis-posed tracked mesh alone costs at the edge). A rerun with the same
+arguments reuses the captures and finished runs and scores them again. Saves bench/results/<name>-<host>.json after every run.
 """
 
 from __future__ import annotations
@@ -92,13 +95,24 @@ def _capture(name: str, args, work: Path) -> Path:
     return data
 
 
+def _mesh_coverage(verts, faces, cam, s: int = 2):
+    """Pixel coverage ``[H,W,1]`` of the driving mesh (``s`` x ``s`` supersampled): the silhouette the
+    tracked mesh itself would give."""
+    from meshsplat.synth.raster import rasterize_triangles
+
+    vm, K = cam.viewmat.float(), cam.K.float().clone()
+    K[:2] *= s
+    frags = rasterize_triangles(verts.float() @ vm[:3, :3].T + vm[:3, 3], faces, K, cam.width * s, cam.height * s)
+    return frags.mask.float().view(cam.height, s, cam.width, s).mean((1, 3))[..., None]
+
+
 def _score(run: Path, data: Path) -> dict:
     """Per split: mean metrics over its frames and the error budget (summed squared error per region)."""
     import torch
 
     from meshsplat.data import open_dataset
     from meshsplat.metrics import lpips, lpips_available, psnr
-    from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget
+    from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget, silhouette_regions
     from meshsplat.metrics.subject import subject_metrics
     from meshsplat.render.background import composite
     from meshsplat.run_folder import load_avatar
@@ -113,9 +127,17 @@ def _score(run: Path, data: Path) -> dict:
         for i in ds.split(split):
             fr = ds[i]
             row = {}
+            band = silhouette_regions(fr.mask)["band"]
+            mesh_cov = _mesh_coverage(fr.vertices, ds.faces, fr.camera)
+            # silhouette diagnostics in the band: the avatar's alpha and the driving mesh's coverage vs the mask
+            row["mesh_band_abs"] = float((mesh_cov - fr.mask)[band].abs().mean())
             for tag, bg in (("w", white), ("b", black)):
                 with torch.no_grad():
-                    img = avatar.render(fr.vertices, fr.camera, bg).image.float().clamp(0, 1)
+                    rendered = avatar.render(fr.vertices, fr.camera, bg)
+                img = rendered.image.float().clamp(0, 1)
+                if tag == "b":
+                    d = (rendered.alpha.float() - fr.mask)[band]
+                    row["alpha_band_abs"], row["alpha_band_bias"] = float(d.abs().mean()), float(d.mean())
                 gt = composite(fr.image, fr.mask, bg)
                 sub = subject_metrics(img, gt, fr.mask, lp if tag == "w" else None)
                 row[f"psnr_{tag}"] = float(psnr(img, gt))
@@ -183,8 +205,12 @@ def main() -> None:
             cfg = demo_train_config(data, run, sizes, overrides, progress=False, preset=preset)
             t0 = time.perf_counter()
             trainer = Trainer(cfg, resume=True)
+            finished = trainer.iteration >= cfg.iterations
             trainer.train()
             train_s = time.perf_counter() - t0
+            if finished and out.exists():  # a rerun only scores again: keep the training time measured before
+                before = json.loads(out.read_text()).get("captures", {}).get(cap, {}).get("runs", {}).get(name, {})
+                train_s = before.get("train_s", train_s)
             rows[cap]["runs"][name] = {
                 "preset": preset,
                 "overrides": overrides,
@@ -199,7 +225,7 @@ def main() -> None:
 
     print(f"\n{args.renderer} captures, {args.iters} iterations, {args.resolution}px, {args.spp} spp")
     hdr = f"{'capture':<8}{'variant':<15}{'split':<12}{'PSNR':>7}{'mask/w':>8}{'mask/b':>8}{'LPIPSm':>8}"
-    print(hdr + f"{'band%':>7}{'int%':>6}{'out%':>6}")
+    print(hdr + f"{'band%':>7}{'int%':>6}{'out%':>6}{'|a-m|':>7}{'a-m':>7}{'|mesh-m|':>9}")
     for cap, r in rows.items():
         for name, v in r["runs"].items():
             for split, m in v["splits"].items():
@@ -207,6 +233,7 @@ def main() -> None:
                     f"{cap:<8}{name:<15}{split:<12}{m['psnr_w']:>7.2f}{m['psnr_mask_w']:>8.2f}{m['psnr_mask_b']:>8.2f}"
                     f"{(m['lpips_mask'] or float('nan')):>8.3f}{100 * m['share_band']:>7.0f}"
                     f"{100 * m['share_interior']:>6.0f}{100 * m['share_outside']:>6.0f}"
+                    f"{m['alpha_band_abs']:>7.3f}{m['alpha_band_bias']:>7.3f}{m['mesh_band_abs']:>9.3f}"
                 )
     print(f"saved {out}")
 
