@@ -19,7 +19,8 @@ from meshsplat.data.formats import FORMAT_NAMES
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth import contact_sheet
 from meshsplat.synth.capture import synth_capture
-from meshsplat.synth.generate import RIGS
+from meshsplat.synth.generate import RENDERERS, RIGS
+from meshsplat.synth.pbr import PbrSettings
 
 __all__ = ["add_arguments", "run"]
 
@@ -80,6 +81,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="RATIO",
         help="keep about RATIO of the driving mesh's vertices (vertex clustering)",
     )
+    parser.add_argument(
+        "--pose-noise",
+        type=float,
+        default=0.0,
+        metavar="RADIANS",
+        help="body/head models: tracking error, random joint rotations of this standard deviation in the stored poses",
+    )
+    parser.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        default="lambert",
+        help="lambert: fast rasterizer (default); pbr: path traced with shadows and gloss (needs meshsplat[pbr])",
+    )
+    parser.add_argument("--spp", type=int, default=32, help="--renderer pbr: samples per pixel (default 32)")
+    parser.add_argument(
+        "--roughness", type=float, default=0.45, help="--renderer pbr: roughness of the glossy lobe (default 0.45)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer and the pose noise (default 0)")
     parser.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2 up to 384 px)")
     parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet (native only)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
@@ -96,6 +115,12 @@ def run(args: argparse.Namespace) -> int:
     check_range("--driver-smooth", args.driver_smooth, "synth --driver-smooth")
     check_range("--driver-decimate", args.driver_decimate, "synth --driver-decimate")
     check_range("--supersample", args.supersample, "synth --supersample")
+    check_range("--pose-noise", args.pose_noise, "synth --pose-noise")
+    check_range("--spp", args.spp, "synth --spp")
+    check_range("--roughness", args.roughness, "synth --roughness")
+    check_range("--seed", args.seed, "synth --seed")
+    if args.supersample and args.renderer == "pbr":
+        raise MeshsplatError("--supersample applies to --renderer lambert; the path tracer antialiases with --spp")
     ss = args.supersample or (2 if args.resolution <= 384 else 1)
     check_range("--resolution x --supersample", args.resolution * ss, "synth resolution x supersample")
     check_memory(
@@ -137,6 +162,10 @@ def run(args: argparse.Namespace) -> int:
         gender=args.gender,
         up=args.up,
         threads=threads,
+        renderer=args.renderer,
+        pbr=PbrSettings(spp=args.spp, seed=args.seed, roughness=args.roughness),
+        pose_noise=args.pose_noise,
+        seed=args.seed,
     )
     print(f"{args.format} capture written to {out}")
     if args.contact_sheet:

@@ -33,7 +33,15 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz
 from meshsplat.paths import asset
 
-__all__ = ["ModelSource", "load_model_source", "rotate_params", "MODEL_SOURCES", "BODY_FPS", "HEAD_FPS"]
+__all__ = [
+    "ModelSource",
+    "load_model_source",
+    "rotate_params",
+    "perturb_pose",
+    "MODEL_SOURCES",
+    "BODY_FPS",
+    "HEAD_FPS",
+]
 
 MODEL_SOURCES = ("smpl", "smplx", "flame")
 BODY_FPS = 30.0
@@ -56,6 +64,20 @@ def rotate_params(params: dict, R: np.ndarray, pivot: np.ndarray, root_joint: np
     new_go = (Rotation.from_matrix(R) * Rotation.from_rotvec(go.reshape(-1, 3))).as_rotvec().reshape(go.shape)
     new_tr = (j0 + tr - p) @ R.T + p - j0
     return {**params, "global_orient": new_go.astype(np.float32), "transl": new_tr.astype(np.float32)}
+
+
+def perturb_pose(params: dict[str, np.ndarray], sigma: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Tracking error: every joint rotation (``global_orient`` and the ``*_pose`` keys, axis-angle
+    triples) turned by an independent random rotation whose axis-angle components have standard
+    deviation ``sigma`` radians; translation, shape and expression are kept."""
+    out = dict(params)
+    for k in sorted(params):
+        if k != "global_orient" and not k.endswith("_pose"):
+            continue
+        aa = np.asarray(params[k], np.float64).reshape(-1, 3)
+        noise = Rotation.from_rotvec(rng.normal(0.0, sigma, aa.shape))
+        out[k] = (noise * Rotation.from_rotvec(aa)).as_rotvec().reshape(np.shape(params[k])).astype(np.float32)
+    return out
 
 
 class ModelSource:
@@ -108,6 +130,12 @@ class ModelSource:
         """Per-frame parameters of the motion frame nearest ``time`` (each ``[k]``)."""
         r = self._row(clip, time)
         return {k: v[r] for k, v in self.motions[clip].items()}
+
+    def vertices_of(self, frame_params: dict[str, np.ndarray]) -> torch.Tensor:
+        """Posed vertices ``[V,3]`` of per-frame parameters ``frame_params`` (each ``[k]``)."""
+        p = {**self.shared, **{k: np.asarray(v, np.float32).reshape(1, -1) for k, v in frame_params.items()}}
+        with torch.no_grad():
+            return self.model.forward(p).vertices[0].float().cpu()
 
     def pose(self, clip: str, time: float) -> torch.Tensor:
         key = (clip, self._row(clip, time))

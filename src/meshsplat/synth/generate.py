@@ -23,12 +23,14 @@ from meshsplat.camera import intrinsics, look_at, orbit_position, yaw_matrix
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import bbox_diagonal
+from meshsplat.synth.body_source import perturb_pose
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
+from meshsplat.synth.pbr import RENDERERS, PbrRenderer, PbrSettings
 from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture, vertex_normals
 from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.sources import load_source
 
-__all__ = ["synthesize", "render_view", "clip_motion", "RIGS", "Shot"]
+__all__ = ["synthesize", "render_view", "clip_motion", "RIGS", "RENDERERS", "Shot"]
 
 RIGS = ("monocular-turn", "orbit", "multiview")
 _LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
@@ -306,6 +308,10 @@ def synthesize(
     gender: str = "neutral",
     up: str | None = None,
     say: Callable[[str], object] | None = None,
+    renderer: str = "lambert",
+    pbr: PbrSettings | None = None,
+    pose_noise: float = 0.0,
+    seed: int = 0,
 ) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
@@ -319,7 +325,12 @@ def synthesize(
     (default ``$MESHSPLAT_MODEL_DIR``) with ``gender``; its parameters are stored as the dataset's driver.
     ``up``: the asset's up axis (``"y"``/``"z"``; default the asset's own, else y); a z-up asset is
     turned into the y-up world. ``say``: callable told the choices made (default ``print`` when
-    ``progress``). The dataset keeps ``source_map.npz`` (asset vertex of each driving vertex, the
+    ``progress``). ``renderer``: ``"lambert"`` (the fast rasterizer, default) or ``"pbr"`` (path traced
+    with shadows and gloss, :mod:`meshsplat.synth.pbr`, settings ``pbr``; needs the ``[pbr]`` extra;
+    ``supersample`` does not apply: the samples per pixel antialias). ``pose_noise``: for body/head
+    models, the stored (tracked) parameters and driving meshes get every joint rotation turned by a
+    random rotation of ``pose_noise`` radians standard deviation per axis-angle component (seeded by
+    ``seed``), while the images show the exact pose: pose refinement has an error to fix. The dataset keeps ``source_map.npz`` (asset vertex of each driving vertex, the
     asset's rest mesh, the up rotation) so the asset's own animations drive the avatar later.
     Returns the dataset folder.
     """
@@ -352,6 +363,11 @@ def synthesize(
             gender,
             up,
             say if say is not None else (print if progress else None),
+            renderer,
+            pbr,
+            threads,
+            float(pose_noise),
+            int(seed),
         )
     finally:
         torch.set_num_threads(old_threads)
@@ -382,12 +398,27 @@ def _generate(
     gender="neutral",
     up=None,
     say=None,
+    renderer="lambert",
+    pbr_settings=None,
+    threads=None,
+    pose_noise=0.0,
+    seed=0,
 ) -> Path:
+    if renderer not in RENDERERS:
+        raise MeshsplatError(f"renderer: expected one of {', '.join(RENDERERS)}, got {renderer!r}")
     if frames < 1 or resolution < 8:
         raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
     t_start = _time.perf_counter()
     source = load_source(asset, model_dir=model_dir, gender=gender)
     is_model = hasattr(source, "placed_params")
+    if pose_noise and not is_model:
+        raise MeshsplatError(
+            "pose noise applies to body/head models (smpl, smplx, flame); for other assets use "
+            "--driver-smooth / --driver-decimate"
+        )
+    if not 0.0 <= pose_noise <= 1.0:
+        raise MeshsplatError(f"pose_noise: expected 0..1 radians, got {pose_noise}")
+    rng = np.random.default_rng(seed)
     if is_model and up not in (None, "y"):
         raise MeshsplatError(f"up: body/head models are y-up; --up {up} applies to glTF and mesh-sequence assets")
     source, up_used, up_how = with_up(source, up)
@@ -420,6 +451,13 @@ def _generate(
     distance = 1.1 * max(half_h, radius) / math.tan(half_fov) + 0.5 * radius
     K = intrinsics(resolution, resolution, fov_deg)
     viewmats = {cid: look_at(orbit_position(center, distance, az, el), center) for cid, (az, el) in cams.items()}
+    tracer = None
+    if renderer == "pbr":
+        settings = pbr_settings or PbrSettings()
+        tracer = PbrRenderer(source, weld_group, center, float(np.linalg.norm(hi - lo)), _LIGHT, settings, threads)
+        render_record = settings.record()
+    else:
+        render_record = {"name": "lambert", "ambient": 0.4, "supersample": supersample}
 
     def place(v: torch.Tensor, yaw: float) -> torch.Tensor:
         if yaw == 0.0:
@@ -441,7 +479,10 @@ def _generate(
         "driver_decimate": driver_decimate,
         "render_vertices": int(source.rest().shape[0]),
         "driver_vertices": int(drive.rest().shape[0]),
+        "pose_noise": pose_noise,
+        "seed": seed,
         "light_dir": _LIGHT.tolist(),
+        "renderer": render_record,
         "fov_deg": fov_deg,
         "background": list(background),
         "up": [0, 1, 0],
@@ -468,12 +509,29 @@ def _generate(
         rv, dv = poses[(s.clip, round(s.time, 9))]
         mkey = (s.clip, round(s.time, 9), round(s.yaw, 9))
         if mkey not in mesh_ids:
-            mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
-            if is_model:
-                mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
-        rgb, alpha = render_view(
-            source, place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution, weld_group, background, supersample
-        )
+            if is_model and pose_noise > 0:
+                tracked = perturb_pose(source.placed_params(s.clip, s.time, s.yaw, pivot), pose_noise, rng)
+                mesh_ids[mkey] = writer.add_mesh(source.vertices_of(tracked))
+                mesh_params.append(tracked)
+            else:
+                mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
+                if is_model:
+                    mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
+        if tracer is not None:
+            rgb, alpha = tracer.render(place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution, frame=k)
+            rgb = (rgb + (1 - alpha) * torch.tensor(background, dtype=torch.float32)).clamp(0, 1)
+        else:
+            rgb, alpha = render_view(
+                source,
+                place(rv, s.yaw),
+                viewmats[s.camera],
+                K,
+                resolution,
+                resolution,
+                weld_group,
+                background,
+                supersample,
+            )
         if float(alpha.max()) == 0.0:
             raise MeshsplatError(f"shot {k} ({s.split}, camera {s.camera}): subject not visible")
         idx = writer.add_frame(
@@ -495,4 +553,5 @@ def _generate(
         writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)}, {**source.shared, **per_frame})
         writer.meta["model"] = {"type": source.kind, "gender": source.model.gender, "fps": source.fps}
     writer.meta["seconds"] = round(_time.perf_counter() - t_start, 2)
+    writer.meta["seconds_per_frame"] = round(writer.meta["seconds"] / max(len(shots), 1), 3)
     return writer.close()

@@ -1,0 +1,242 @@
+"""Quality on path-traced captures (shadows that move with pose, gloss, imperfect tracking), in one run.
+
+    python bench/quality_pbr.py                                   # 3 captures x (paper, default), small sizes
+    python bench/quality_pbr.py --captures cesium --variants default default_mask
+    python bench/quality_pbr.py --renderer lambert --captures cesium   # the same on today's Lambert renders
+    python bench/quality_pbr.py --tiny                            # seconds, to check the script
+
+Captures (``meshsplat synth --renderer pbr``, monocular turn; glTF driving meshes Taubin-smoothed 5
+iterations like the demo's):
+  cesium  CesiumMan (the demo's capture): held-out frames and views
+  robot   RobotExpressive trained on Walking, tested on Wave and Dance (novel poses: test_clip)
+  smpl    the stand-in SMPL body dancing the bundled AIST++ motion, tracked poses off by --pose-noise
+
+Variants: those of bench/quality.py (``paper``, ``default``, ...) plus candidates on top of the
+default (``quality``) preset listed in EXTRA. Metrics per test split, mean over frames: full-image and
+subject PSNR on white, subject PSNR on black, subject LPIPS (white), and the error budget on black:
+the share of squared error in the silhouette band (2 px either side of the mask's edge), the interior
+and the outside (``meshsplat.metrics.budget``); in the band, the mean |rendered alpha - mask| and its
+sign (``a-m`` > 0: the avatar spills over the edge) and the driving mesh's own coverage error
+(``|mesh-m|``: what a smoothed or mis-posed tracked mesh alone costs at the edge). A rerun with the same
+arguments reuses the captures and finished runs and scores them again. Saves bench/results/<name>-<host>.json after every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from _machine import machine_info, results_path
+from quality import VARIANTS
+
+EXTRA: dict[str, tuple[str, list[str]]] = {
+    "default_mask": ("quality", ["loss.lambda_mask=0.1"]),
+    "default_aa": ("quality", ["model.antialiased=true"]),
+    "default_sh1tri": ("quality", ["model.sh_degree=1", "model.sh_frame=triangle"]),
+    "default_axis": ("quality", ["model.shading_normal=axis"]),
+}
+ALL = {**VARIANTS, **EXTRA}
+CAPTURES = {
+    "cesium": {"asset": "CesiumMan", "driver_smooth": 5},
+    "robot": {"asset": "RobotExpressive", "driver_smooth": 5, "clip": "Walking", "test_clips": ["Wave", "Dance"]},
+    "smpl": {"asset": "smpl"},
+}
+
+
+def _schedule(iterations: int) -> tuple[str, ...]:
+    """The demo's short schedule (refine 300..1200 of 1500) scaled to ``iterations``."""
+    s = iterations / 1500
+    every = max(10, round(100 * s))
+    return (
+        f"strategy.refine_start_iter={round(300 * s)}",
+        f"strategy.refine_stop_iter={round(1200 * s)}",
+        f"strategy.refine_every={every}",
+        "strategy.reset_every=100000",
+        "strategy.max_gaussians=40000",
+        f"walk.every={every}",
+        f"checkpoint_every={iterations}",
+        f"preview_every={iterations}",
+        "log_every=10",
+    )
+
+
+def _capture(name: str, args, work: Path) -> Path:
+    from meshsplat.synth import synthesize
+    from meshsplat.synth.pbr import PbrSettings
+
+    data = work / f"data-{name}-{args.renderer}"
+    if (data / "manifest.json").exists():
+        return data
+    spec = dict(CAPTURES[name])
+    asset = spec.pop("asset")
+    extra: dict = {}
+    if asset == "smpl":
+        from meshsplat.synth.standin_models import write_standin_models
+
+        extra = {"model_dir": write_standin_models(work / "standin_models"), "pose_noise": args.pose_noise}
+    synthesize(
+        asset,
+        data,
+        rig="monocular-turn",
+        frames=args.frames,
+        resolution=args.resolution,
+        test_frames=args.test_frames,
+        test_views=2,
+        test_view_frames=max(2, args.test_frames // 2),
+        renderer=args.renderer,
+        pbr=PbrSettings(spp=args.spp),
+        overwrite=True,
+        **spec,
+        **extra,
+    )
+    return data
+
+
+def _mesh_coverage(verts, faces, cam, s: int = 2):
+    """Pixel coverage ``[H,W,1]`` of the driving mesh (``s`` x ``s`` supersampled): the silhouette the
+    tracked mesh itself would give."""
+    from meshsplat.synth.raster import rasterize_triangles
+
+    vm, K = cam.viewmat.float(), cam.K.float().clone()
+    K[:2] *= s
+    frags = rasterize_triangles(verts.float() @ vm[:3, :3].T + vm[:3, 3], faces, K, cam.width * s, cam.height * s)
+    return frags.mask.float().view(cam.height, s, cam.width, s).mean((1, 3))[..., None]
+
+
+def _score(run: Path, data: Path) -> dict:
+    """Per split: mean metrics over its frames and the error budget (summed squared error per region)."""
+    import torch
+
+    from meshsplat.data import open_dataset
+    from meshsplat.metrics import lpips, lpips_available, psnr
+    from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget, silhouette_regions
+    from meshsplat.metrics.subject import subject_metrics
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_avatar
+
+    avatar = load_avatar(run)
+    ds = open_dataset(data)
+    white, black = torch.ones(3), torch.zeros(3)
+    lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
+    out = {}
+    for split in [s for s in ds.split_names if s != "train"]:
+        rows, sse = [], dict.fromkeys(BUDGET_REGIONS, 0.0)
+        for i in ds.split(split):
+            fr = ds[i]
+            row = {}
+            band = silhouette_regions(fr.mask)["band"]
+            mesh_cov = _mesh_coverage(fr.vertices, ds.faces, fr.camera)
+            # silhouette diagnostics in the band: the avatar's alpha and the driving mesh's coverage vs the mask
+            row["mesh_band_abs"] = float((mesh_cov - fr.mask)[band].abs().mean())
+            for tag, bg in (("w", white), ("b", black)):
+                with torch.no_grad():
+                    rendered = avatar.render(fr.vertices, fr.camera, bg)
+                img = rendered.image.float().clamp(0, 1)
+                if tag == "b":
+                    d = (rendered.alpha.float() - fr.mask)[band]
+                    row["alpha_band_abs"], row["alpha_band_bias"] = float(d.abs().mean()), float(d.mean())
+                gt = composite(fr.image, fr.mask, bg)
+                sub = subject_metrics(img, gt, fr.mask, lp if tag == "w" else None)
+                row[f"psnr_{tag}"] = float(psnr(img, gt))
+                row[f"psnr_mask_{tag}"] = sub["psnr_mask"]
+                if tag == "w":
+                    row["lpips_mask"] = sub["lpips_mask"]
+                else:
+                    b = error_budget(img, gt, fr.mask)
+                    for r in BUDGET_REGIONS:
+                        sse[r] += b[f"sse_{r}"]
+            rows.append(row)
+        total = sum(sse.values()) or 1.0
+        mean = {k: sum(r[k] for r in rows if r[k] is not None) / len(rows) for k in rows[0]}
+        out[split] = {**mean, **{f"share_{r}": sse[r] / total for r in BUDGET_REGIONS}, "frames": len(rows)}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--captures", nargs="*", default=list(CAPTURES), choices=list(CAPTURES))
+    ap.add_argument("--variants", nargs="*", default=["paper", "default"], choices=list(ALL))
+    ap.add_argument("--renderer", default="pbr", choices=("pbr", "lambert"))
+    ap.add_argument("--resolution", type=int, default=128)
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--test-frames", type=int, default=8)
+    ap.add_argument("--iters", type=int, default=600)
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--pose-noise", type=float, default=0.03, help="smpl capture: tracking error (radians)")
+    ap.add_argument("--n-init", type=int, default=5000)
+    ap.add_argument("--tiny", action="store_true", help="seconds: 32 px, 4 frames, 30 iterations, 4 spp")
+    ap.add_argument("--work", default=None)
+    ap.add_argument("--name", default="quality_pbr")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    if args.tiny:
+        args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.n_init = 32, 4, 2, 30, 4, 500
+
+    import torch
+
+    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.train import Trainer
+
+    torch.set_num_threads(args.threads)
+    sizes = replace(
+        PRESETS["default"],
+        frames=args.frames,
+        resolution=args.resolution,
+        iterations=args.iters,
+        n_init=args.n_init,
+        overrides=_schedule(args.iters),
+    )
+    work = Path(args.work or f"runs/bench-{args.name}")
+    out = results_path(args.name)
+    rows: dict = {}
+    for cap in args.captures:
+        t0 = time.perf_counter()
+        data = _capture(cap, args, work)
+        manifest = json.loads((data / "manifest.json").read_text())
+        meta = manifest.get("meta", {})
+        rows[cap] = {"synth_s_per_frame": meta.get("seconds_per_frame"), "renderer": meta.get("renderer"), "runs": {}}
+        print(f"[{cap}] capture ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for name in args.variants:
+            preset, overrides = ALL[name]
+            run = work / f"{cap}-{args.renderer}-{name}"
+            cfg = demo_train_config(data, run, sizes, overrides, progress=False, preset=preset)
+            t0 = time.perf_counter()
+            trainer = Trainer(cfg, resume=True)
+            finished = trainer.iteration >= cfg.iterations
+            trainer.train()
+            train_s = time.perf_counter() - t0
+            if finished and out.exists():  # a rerun only scores again: keep the training time measured before
+                before = json.loads(out.read_text()).get("captures", {}).get(cap, {}).get("runs", {}).get(name, {})
+                train_s = before.get("train_s", train_s)
+            rows[cap]["runs"][name] = {
+                "preset": preset,
+                "overrides": overrides,
+                "train_s": train_s,
+                "gaussians": trainer.num_gaussians,
+                "splits": _score(run, data),
+            }
+            print(f"[{cap}/{name}] trained in {train_s:.0f} s", flush=True)
+            out.write_text(
+                json.dumps({"machine": machine_info(), "args": vars(args), "captures": rows}, indent=2) + "\n"
+            )
+
+    print(f"\n{args.renderer} captures, {args.iters} iterations, {args.resolution}px, {args.spp} spp")
+    hdr = f"{'capture':<8}{'variant':<15}{'split':<12}{'PSNR':>7}{'mask/w':>8}{'mask/b':>8}{'LPIPSm':>8}"
+    print(hdr + f"{'band%':>7}{'int%':>6}{'out%':>6}{'|a-m|':>7}{'a-m':>7}{'|mesh-m|':>9}")
+    for cap, r in rows.items():
+        for name, v in r["runs"].items():
+            for split, m in v["splits"].items():
+                print(
+                    f"{cap:<8}{name:<15}{split:<12}{m['psnr_w']:>7.2f}{m['psnr_mask_w']:>8.2f}{m['psnr_mask_b']:>8.2f}"
+                    f"{(m['lpips_mask'] or float('nan')):>8.3f}{100 * m['share_band']:>7.0f}"
+                    f"{100 * m['share_interior']:>6.0f}{100 * m['share_outside']:>6.0f}"
+                    f"{m['alpha_band_abs']:>7.3f}{m['alpha_band_bias']:>7.3f}{m['mesh_band_abs']:>9.3f}"
+                )
+    print(f"saved {out}")
+
+
+if __name__ == "__main__":
+    main()
