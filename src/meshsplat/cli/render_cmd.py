@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     size = opts.size
     check_output_dir(args.out)
     apply_threads(args)
-    r = load_run(args.run, device=opts.device)
+    r = load_run(args.run, device=opts.device, allow_older=args.allow_older_checkpoint)
     avatar = r.avatar
     ds = None
 

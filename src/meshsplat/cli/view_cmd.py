@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
             raise MeshsplatError("--motion and --animation exclude each other")
         args.animation = ["motion", args.motion]
     opts = render_options(args)
-    r = load_run(args.run, device="cpu")
+    r = load_run(args.run, device="cpu", allow_older=args.allow_older_checkpoint)
     title = args.title or r.run_dir.resolve().name
     up, front = capture_up_front(r, args.dataset)
     camera = {"up": up, "front": front}  # the orbit turns about the capture's up, from its front
