@@ -23,6 +23,7 @@ from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import array_error_text, read_npy, read_npz
+from meshsplat.plausible import focal_problem, parameter_problems
 
 __all__ = [
     "Frame",
@@ -116,7 +117,7 @@ class Frame:
     time: float | None = None
 
 
-_NUMBERED = re.compile(r"^(frame|timestep|camera|mesh) (\d+)\b")
+_NUMBERED = re.compile(r"^(frame|timestep|camera|mesh) '?(\d+)\b'?")  # camera ids may be quoted
 _DIGITS = re.compile(r"\d+")
 
 
@@ -213,6 +214,9 @@ def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, 
         return None
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         problems.add(where, f"non-positive focal length (fx={K[0, 0]:g}, fy={K[1, 1]:g})")
+        ok = False
+    elif w > 0 and h > 0 and (why := focal_problem(K, w, h)) is not None:
+        problems.add(where, why)
         ok = False
     if not np.allclose(K[2], [0, 0, 1], atol=1e-6):
         problems.add(where, f"K last row must be [0, 0, 1], got {K[2].tolist()}")
@@ -585,10 +589,13 @@ def _load_driver_params(root: Path, driver, problems: Problems, allow_outside: b
     if rel is None:
         return None
     try:
-        return read_npz(root / rel, "driver parameters")
+        params = read_npz(root / rel, "driver parameters")
     except MeshsplatError as exc:
         problems.add(rel, str(exc))
         return None
+    for line in parameter_problems(params):
+        problems.add(rel, line)
+    return params
 
 
 def build_dataset(

@@ -252,9 +252,13 @@ def fit_coeffs(name: str, a: np.ndarray, width: int, problems: Problems) -> np.n
     return a
 
 
-def pose_model(model: BodyModel, params: dict, chunk: int = 128) -> np.ndarray:
-    """Posed vertices ``[T,V,3]`` float32 of per-frame ``params`` (shared ones broadcast)."""
-    T = model.check_params(params)
+def pose_model(model: BodyModel, params: dict, source: str, chunk: int = 128) -> np.ndarray:
+    """Posed vertices ``[T,V,3]`` float32 of per-frame ``params`` (shared ones broadcast); parameters out of
+    their plausible range (``meshsplat.plausible``) are refused in one line naming ``source``."""
+    try:
+        T = model.check_params(params)
+    except MeshsplatError as exc:
+        raise MeshsplatError(f"{source}: {exc}") from None
     out = np.empty((T, model.num_vertices, 3), np.float32)
     with torch.no_grad():
         for s in range(0, T, chunk):

@@ -53,6 +53,7 @@ __all__ = [
 NAME = "imavatar"
 DESCRIPTION = "IMavatar/DECA head capture: flame_params.json + image/ (FLAME x4, OpenGL world_mat)"
 SIGNATURE = "flame_params.json"
+WRITE_MODEL = "flame"  # write() stores FLAME parameters: only FLAME-posed datasets can be written
 DECA_SCALE = 4.0  # DECA/IMavatar scale FLAME's template, shape and pose blendshapes by 4
 NUM_SHAPE, NUM_EXPRESSION = 100, 50
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes <-> OpenCV camera axes
@@ -240,7 +241,7 @@ def read(
             ),
         }
         params = {k: np.ascontiguousarray(v, np.float32) for k, v in params.items()}
-        verts = pose_model(model, params)
+        verts = pose_model(model, params, "flame_params.json")
         canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
         faces = model.faces.cpu().numpy()
         check_in_front(cameras, frames, verts, problems, _HINT)

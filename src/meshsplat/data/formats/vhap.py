@@ -36,12 +36,14 @@ from meshsplat.data.formats._heads import (
 )
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz
+from meshsplat.plausible import parameter_problems
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]
 
 NAME = "vhap"
 DESCRIPTION = "GaussianAvatars/VHAP head capture: transforms_*.json + flame_param/*.npz (FLAME 2023)"
 SIGNATURE = "transforms_train.json + flame_param/"
+WRITE_MODEL = "flame"  # write() stores FLAME parameters: only FLAME-posed datasets can be written
 SPLIT_FILES = {"train": "train", "val": "test_views", "test": "test_frames"}  # VHAP file -> meshsplat split
 TEETH_VERTICES = 120  # VHAP appends 120 teeth vertices after FLAME's; meshsplat's FLAME has none
 NUM_SHAPE, NUM_EXPRESSION = 300, 100
@@ -123,7 +125,10 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
     if bad:
         problems.add(where, f"{path.name}: {bad} contain NaN/Inf")
         return None
-    return out
+    implausible = parameter_problems(out)
+    for line in implausible:
+        problems.add(where, f"{path.name}: {line}")
+    return None if implausible else out
 
 
 def read(
@@ -213,7 +218,7 @@ def read(
     if model is not None and loaded and all(p is not None for p in loaded):
         params = _params(cast("list[dict]", loaded), timesteps, model, problems, ignore_dynamic_offset)
         if params is not None:
-            verts = pose_model(model, params)
+            verts = pose_model(model, params, "flame_param/ (rows in timestep order)")
             shared = {k: params[k] for k in ("betas", "static_offset") if k in params}
             canonical = model.rest_vertices(shared).cpu().numpy()
             faces = model.faces.cpu().numpy()
