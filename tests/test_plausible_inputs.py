@@ -10,6 +10,7 @@ import pickle
 import re
 import shutil
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +23,9 @@ from meshsplat.data.formats import format_module, open_capture
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.motion import load_motion
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.paths import asset
-from meshsplat.plausible import focal_problem, parameter_problems, skinning_problem
+from meshsplat.plausible import focal_problem, parameter_problems, sequence_gaps, skinning_problem
 
 HEAD_LAYOUTS = ("native", "imavatar", "insta", "vhap", "meshseq")
 FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])  # a mirror: z negated, det -1
@@ -267,3 +268,59 @@ def test_skinning_problem():
     assert "1 of 4 vertices" in skinning_problem(w)
     assert "negative" in skinning_problem(-np.eye(3))
     assert skinning_problem(np.full((2, 2), np.nan)).startswith("skinning weights: 4 NaN")
+
+
+# ---------------------------------------------------------------- conflicts said, not resolved silently
+
+
+def test_insta_transforms_files_disagreeing_on_a_frame_are_refused(native, model_dir, tmp_path):
+    root = format_module("insta").write(open_dataset(native), tmp_path / "insta")
+    names = sorted(p.name for p in root.glob("transforms*.json"))
+    assert "transforms.json" in names and "transforms_train.json" in names, names
+    split = json.loads((root / "transforms_train.json").read_text())
+    split["frames"][0]["transform_matrix"][0][3] += 0.5  # the camera moved half a unit in one file only
+    (root / "transforms_train.json").write_text(json.dumps(split))
+    with pytest.raises(
+        MeshsplatError, match=r"transforms_train\.json disagrees with transforms\.json on transform_matrix"
+    ):
+        _open(root, "insta", model_dir)
+    split["frames"][0]["transform_matrix"][0][3] -= 0.5 - 1e-9  # equal up to rounding: fine
+    (root / "transforms_train.json").write_text(json.dumps(split))
+    _open(root, "insta", model_dir)
+
+
+def _drop_timestep(root: Path, t: int) -> None:
+    for f in root.glob("transforms*.json"):
+        data = json.loads(f.read_text())
+        data["frames"] = [fr for fr in data["frames"] if fr["timestep_index"] != t]
+        f.write_text(json.dumps(data))
+
+
+def test_vhap_timestep_gap_is_a_note_naming_it(model_dir, tmp_path):
+    src = native_flame_dataset(tmp_path / "n", model_dir, rows=6, views=1, scale=4.0, transl=False)
+    root = format_module("vhap").write(open_dataset(src), tmp_path / "vhap")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MeshsplatWarning)
+        _open(root, "vhap", model_dir)  # no gap, no note
+    _drop_timestep(root, 2)
+    with pytest.warns(MeshsplatWarning, match=r"timesteps jump from 1 to 3: 1 missing"):
+        ds = _open(root, "vhap", model_dir)
+    assert len(ds) == 5
+
+
+def test_vhap_motion_folder_gap_is_a_note(tmp_path, model_dir):
+    folder = tmp_path / "flame_param"
+    folder.mkdir()
+    for t in (0, 1, 2, 7, 8):
+        np.savez(folder / f"{t:05d}.npz", translation=np.zeros((1, 3)), rotation=np.zeros((1, 3)),
+                 neck_pose=np.zeros((1, 3)), jaw_pose=np.zeros((1, 3)), eyes_pose=np.zeros((1, 6)),
+                 shape=np.zeros(100), expr=np.zeros((1, 50)))  # fmt: skip
+    model = BodyModel("flame", model_dir, flame_version="2020")
+    with pytest.warns(MeshsplatWarning, match=r"frame files jump from 2 to 7: 4 missing"):
+        load_motion(folder, model)
+
+
+def test_sequence_gaps_know_a_stride():
+    assert sequence_gaps([0, 2, 4, 6, 8]) is None  # subsampled every second frame
+    assert "4 to 8 (stride 2): 1 missing" in sequence_gaps([0, 2, 4, 8, 10])
+    assert sequence_gaps([3, 1]) is None

@@ -134,6 +134,15 @@ def match_vertices(
 MAX_ANIMATION_FRAMES = 100_000  # docs/limits.md
 
 
+def _before_posing(n: int, what: str, advice: str, check: Callable[[int], None] | None) -> None:
+    """Before any frame is posed: the documented frame limit, then the caller's own check of ``n`` frames
+    (the command line's memory estimate), so a huge animation is refused before it is allocated."""
+    if n > MAX_ANIMATION_FRAMES:
+        raise MeshsplatError(f"{what}: {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} (see docs/limits.md); {advice}")
+    if check is not None:
+        check(n)
+
+
 def _check_frames(frames: list[torch.Tensor], num_vertices: int, what: str) -> list[torch.Tensor]:
     if not frames:
         raise MeshsplatError(f"{what}: no frames")
@@ -314,6 +323,7 @@ def motion_animation(
     model_dir: str | Path | None = None,
     max_frames: int | None = None,
     align: str = "pose",
+    check: Callable[[int], None] | None = None,
 ) -> list[torch.Tensor]:
     """Frames of a body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
@@ -323,6 +333,8 @@ def motion_animation(
     capture) and takes the motion's pose and expression. ``align="pose"`` (default) starts the motion
     where and as the subject stood in its first frame, so the capture's cameras frame it; "translation"
     keeps the motion's orientation; "none" uses its poses as they are (``drivers.motion.reenact``).
+    More than ``MAX_ANIMATION_FRAMES`` frames (after ``max_frames``) are refused before posing; ``check(n)``
+    runs then too (the command line's memory estimate).
     A capture with per-frame meshes only (INSTA) on a standard topology (FLAME 5023, SMPL 6890, SMPL-X
     10475 vertices) is posed by that model with its canonical mesh as the per-vertex offset.
     """
@@ -363,6 +375,11 @@ def motion_animation(
             k: (v[:max_frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
             for k, v in params.items()
         }
+    n = max(
+        (len(v) for k, v in params.items() if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset")),
+        default=1,
+    )
+    _before_posing(n, f"motion {motion}", "render the first N frames with --frames N", check)
     verts = ParametricDriver(model, reenact(params, subject, align=align)).all_vertices()
     return _check_frames(list(verts), avatar.mesh.num_vertices, f"motion {motion}")
 
@@ -421,11 +438,14 @@ def blendshape_animation(
     weights: ArrayLike | str | Path,
     rotations: ArrayLike | None = None,
     translations: ArrayLike | None = None,
+    check: Callable[[int], None] | None = None,
 ) -> list[torch.Tensor]:
     """Frames of a blend-shape model (``.npz`` path or bundled name, None for the bundled ICT head, or a
-    ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``)."""
+    ``BlendshapeDriver``) driven by ``weights [T,K]`` (array, ``.npy`` or ``.json``). More than
+    ``MAX_ANIMATION_FRAMES`` frames are refused before posing; ``check(n)`` runs then too."""
     drv = model if isinstance(model, BlendshapeDriver) else BlendshapeDriver.from_npz(model)
     w = _read_weights(weights, drv.names)
+    _before_posing(len(w), "blend-shape weights", "give fewer rows", check)
     v_avatar = avatar.mesh.num_vertices
     if drv.neutral.shape[0] != v_avatar:
         src = match_vertices(

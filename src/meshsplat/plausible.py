@@ -11,11 +11,13 @@ found and what was expected; readers add them to their ``Problems``, drivers rai
 - shape and expression coefficients (in standard deviations of the model's PCA): at most
   ``MAX_COEFFICIENT`` in magnitude;
 - every value finite;
-- skinning weights: every vertex with a positive weight sum (an all-zero row collapses to the origin).
+- skinning weights: every vertex with a positive weight sum (an all-zero row collapses to the origin);
+- numbered sequences (timesteps, frame files): no gap wider than their usual step (it plays as a jump).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -33,6 +35,7 @@ __all__ = [
     "focal_problem",
     "parameter_problems",
     "skinning_problem",
+    "sequence_gaps",
 ]
 
 MIN_FOCAL_FACTOR = 0.05  # focal length / longer image side: wider than ~170 degrees is no pinhole
@@ -162,3 +165,23 @@ def skinning_problem(weights: Any, what: str = "skinning weights") -> str | None
             f"{group_ids(zero, 4)}); expected weights summing to 1 per vertex"
         )
     return None
+
+
+def sequence_gaps(numbers: Sequence[int], what: str = "timesteps") -> str | None:
+    """The gaps of a numbered sequence (``[0, 1, 2, 5, 6]`` -> 3 and 4 missing), in one line, or None.
+
+    The usual step (the most common difference) is the sequence's stride, so a capture subsampled every
+    second frame has no gap; a larger difference does: its frames would play as one jump."""
+    nums = sorted(set(int(n) for n in numbers))
+    if len(nums) < 3:
+        return None
+    diffs = np.diff(nums)
+    values, counts = np.unique(diffs, return_counts=True)
+    stride = int(values[np.argmax(counts)])
+    jumps = [(a, b) for a, b in itertools.pairwise(nums) if b - a > stride]
+    if not jumps:
+        return None
+    shown = ", ".join(f"{a} to {b}" for a, b in jumps[:4]) + (f" and {len(jumps) - 4} more" if len(jumps) > 4 else "")
+    missing = sum((b - a) // stride - 1 for a, b in jumps)
+    step = "" if stride == 1 else f" (stride {stride})"
+    return f"{what} jump from {shown}{step}: {missing} missing, played as consecutive frames"

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from meshsplat import animate, camera
 from meshsplat.camera import Camera
-from meshsplat.cli._guards import check_memory, check_output_dir, check_range, render_bytes
+from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.cli._options import (
     add_dataset_option,
     add_render_options,
@@ -98,6 +98,10 @@ def run(args: argparse.Namespace) -> int:
         raise MeshsplatError(f"--distance: expected > 0, got {args.distance:g}")
     if args.seconds is not None:
         check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
+    if args.no_png and args.no_mp4:
+        raise MeshsplatError("--no-png and --no-mp4 together leave nothing to write; drop one of them")
+    if args.frames is not None and args.frames < 1:
+        raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
     opts = render_options(args)
     size = opts.size
     check_output_dir(args.out)
@@ -112,6 +116,17 @@ def run(args: argparse.Namespace) -> int:
             ds = r.open_dataset(args.dataset, check_masks=False)
         return ds
 
+    w0, h0 = size or (512, 512)  # the estimate before the cameras are known (a dataset camera: checked again below)
+
+    def before_posing(n: int) -> None:
+        """Frame limit and memory of ``n`` frames, before any is posed (a 200,000-frame motion)."""
+        check_range("frames to render", n, "render frames")
+        check_memory(
+            f"rendering {n:,} frames of {avatar.mesh.num_vertices:,} vertices at {w0}x{h0}",
+            render_bytes(w0, h0, n) + animation_bytes(n, avatar.mesh.num_vertices),
+            "render fewer frames (--frames N) or lower --size",
+        )
+
     frame_cams = None
     if args.gltf:
         frames = animate.gltf_animation(
@@ -123,12 +138,15 @@ def run(args: argparse.Namespace) -> int:
         if not args.weights:
             raise MeshsplatError("--blendshapes needs --weights FILE (.npy or .json, [T,K])")
         model = None if args.blendshapes.lower() == "ict" else args.blendshapes
-        frames = animate.blendshape_animation(avatar, model, args.weights)
+        frames = animate.blendshape_animation(avatar, model, args.weights, check=before_posing)
     elif args.motion:
-        if args.frames is not None and args.frames < 1:
-            raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
         frames = animate.motion_animation(
-            avatar, dataset(), args.motion, r.model_dir(args.model_dir or None), max_frames=args.frames
+            avatar,
+            dataset(),
+            args.motion,
+            r.model_dir(args.model_dir or None),
+            max_frames=args.frames,
+            check=before_posing,
         )
     else:
         frames, frame_cams = animate.dataset_animation(avatar, dataset(), args.dataset_split)
@@ -162,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     w, h = max(sizes, key=lambda s: s[0] * s[1])
     check_memory(
         f"rendering {len(frames)} frames at {w}x{h}",
-        render_bytes(w, h, len(frames)),
+        render_bytes(w, h, len(frames)) + animation_bytes(len(frames), avatar.mesh.num_vertices),
         "lower --size, or render fewer frames (--seconds, --fps)",
     )
     res = animate.render_animation(

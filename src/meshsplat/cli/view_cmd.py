@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from meshsplat import animate
-from meshsplat.cli._guards import check_output_dir, check_range
+from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range
 from meshsplat.cli._options import (
     add_dataset_option,
     add_render_options,
@@ -94,9 +94,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
 
 
+def _before_posing(avatar: Avatar):
+    """The check of ``n`` frames before any is posed: the documented limit and the memory they take."""
+    v = avatar.mesh.num_vertices
+
+    def check(n: int) -> None:
+        check_range("frames in the viewer", n, "view --frames")
+        check_memory(
+            f"a viewer of {n:,} frames of {v:,} vertices", animation_bytes(n, v), "keep fewer frames (--frames N)"
+        )
+
+    return check
+
+
 def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -> list:
-    """Vertex frames [V,3] chosen by ``--animation`` (via meshsplat.animate helpers)."""
+    """Vertex frames [V,3] chosen by ``--animation`` (via meshsplat.animate helpers); the frame limit and the
+    memory estimate are checked before the frames are posed."""
     kind, *rest = args.animation
+    check = _before_posing(avatar)
     if kind not in _KINDS:
         raise MeshsplatError(f"--animation: expected one of {', '.join(_KINDS)}, got {kind!r}")
     if kind == "dataset":
@@ -108,10 +123,13 @@ def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -
         else:
             drv = ds.driver()
             n = drv.num_frames if args.frames is None else min(drv.num_frames, args.frames)
+            check(n)
             frames = animate.sequence_animation(avatar, torch.stack([drv.vertices(i) for i in range(n)]).numpy())
     elif kind == "blendshapes":
         drv = _blendshape_driver(avatar, rest, args)
-        frames = [drv.vertices(i) for i in range(drv.num_frames)]
+        n = drv.num_frames if args.frames is None else min(drv.num_frames, args.frames)
+        check(n)
+        frames = [drv.vertices(i) for i in range(n)]
     else:
         if len(rest) != 1:
             raise MeshsplatError(f"--animation {kind} needs exactly one FILE")
@@ -122,7 +140,7 @@ def load_frames(avatar: Avatar, args: argparse.Namespace, run_info: LoadedRun) -
         elif kind == "motion":
             ds = run_info.open_dataset(args.dataset, check_masks=False)
             mdir = run_info.model_dir(args.model_dir or None)
-            frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames)
+            frames = animate.motion_animation(avatar, ds, rest[0], mdir, max_frames=args.frames, check=check)
         else:
             frames = animate.sequence_animation(avatar, rest[0], source_map=run_info.source_map(args.dataset))
     if args.frames is not None:
@@ -165,7 +183,7 @@ def _serve(folder: Path, port: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_range("--fps", args.fps, "view --fps")
-    check_range("--frames", args.frames, "view --frames")
+    check_range("--frames", args.frames, "view --frames")  # also < 1, before any work
     if args.serve:
         check_range("--port", args.port, "view --port")
     check_output_dir(args.out)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +32,10 @@ from meshsplat.drivers.body_models import (
     split_flame_pose15,
     split_smpl_thetas,
 )
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npz
 from meshsplat.paths import resolve_input
+from meshsplat.plausible import sequence_gaps
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
 
@@ -204,6 +206,9 @@ def _flame_folder(folder: Path) -> dict:
     if not files:
         raise MeshsplatError(f"{folder}: no .npz files; expected {_FLAME_LAYOUTS}")
     frames = [_flame_from_vhap(_read_npz(f), str(f)) for f in files]
+    gaps = sequence_gaps([n for n, _ in map(_frame_number, files)], "frame files")
+    if gaps is not None:
+        warnings.warn(f"{folder}: {gaps}", MeshsplatWarning, stacklevel=3)
     for k in frames[0]:
         if k == "betas":
             continue

@@ -76,10 +76,41 @@ def merge_transform_frames(
             if key not in index:
                 index[key] = len(frames)
                 frames.append((fr, data, path.name))
+            elif isinstance(fr, dict):
+                first, first_top, first_name = frames[index[key]]
+                differ = _disagreeing_keys(first, first_top, fr, data)
+                if differ:
+                    problems.add(
+                        f"frame {index[key]} ({key!r})",
+                        f"{path.name} disagrees with {first_name} on {', '.join(differ)}; the files must "
+                        f"describe a frame alike (fix or remove one of them)",
+                    )
             if split is not None:
                 splits[split].append(index[key])
         tops.append(data)
     return frames, splits, tops
+
+
+_CAMERA_TOP_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
+
+
+def _disagreeing_keys(a: dict, a_top: dict, b: dict, b_top: dict) -> list[str]:
+    """Keys two files' records of one frame both give (the intrinsics also from their files' top level)
+    with different values (numbers compared to 1e-6 relative)."""
+    ea = {**{k: a_top[k] for k in _CAMERA_TOP_KEYS if k in a_top}, **a}
+    eb = {**{k: b_top[k] for k in _CAMERA_TOP_KEYS if k in b_top}, **b}
+    out = []
+    for k in sorted(set(ea) & set(eb)):
+        x, y = ea[k], eb[k]
+        if x == y:
+            continue
+        try:
+            same = np.allclose(np.asarray(x, np.float64), np.asarray(y, np.float64), rtol=1e-6, atol=1e-9)
+        except (TypeError, ValueError):
+            same = False
+        if not same:
+            out.append(k)
+    return out
 
 
 def read_json(path: Path) -> dict:

@@ -49,6 +49,8 @@ __all__ = [
 NAME = "peoplesnapshot"
 DESCRIPTION = "PeopleSnapshot, InstantAvatar / Anim-NeRF layout (SMPL, one fixed camera)"
 SIGNATURE = "cameras.npz + poses.npz (or poses/anim_nerf_*.npz) + images/image_0000.png"
+WRITE_MODEL = "smpl"  # write() stores SMPL parameters: only SMPL-posed datasets can be written
+WRITE_RIGS = ("monocular-turn",)  # one fixed training camera: the synth rigs whose captures it can hold
 
 # PeopleSnapshot split -> meshsplat split; the order is also the precedence when splits share a frame
 SPLIT_NAMES = {"train": "train", "test": "test_frames", "val": "val"}

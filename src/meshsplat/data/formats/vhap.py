@@ -10,6 +10,7 @@ timestep, shared by that timestep's cameras. Page: docs/formats/vhap.md.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 from typing import Any, cast
 
@@ -34,9 +35,9 @@ from meshsplat.data.formats._heads import (
     save_png,
     write_json,
 )
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npz
-from meshsplat.plausible import parameter_problems
+from meshsplat.plausible import parameter_problems, sequence_gaps
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]
 
@@ -200,6 +201,9 @@ def read(
             rec.pop("mask", None)
 
     timesteps = sorted(steps)
+    gaps = sequence_gaps(timesteps)
+    if gaps is not None:  # training is unaffected (frames are independent); a test clip or motion would jump
+        warnings.warn(f"{root}: {gaps} (check that no flame_param file is missing)", MeshsplatWarning, stacklevel=2)
     row_of = {t: r for r, t in enumerate(timesteps)}
     for rec in frames:
         rec["mesh"] = row_of[rec["mesh"]]
