@@ -28,10 +28,10 @@ import torch
 
 from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
 from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.formats._files import npz_or_problem
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
-from meshsplat.io.arrays import read_npz
 
 __all__ = [
     "NAME",
@@ -245,11 +245,7 @@ def _range_dict(r: range) -> dict:
 
 
 def _npz(path: Path, problems: Problems) -> dict | None:
-    try:
-        return read_npz(path)
-    except MeshsplatError as exc:
-        problems.add(path.name, str(exc))
-        return None
+    return npz_or_problem(path, path.name, problems)
 
 
 def _read_config(root: Path, problems: Problems) -> tuple[str | None, dict[str, range] | None]:
