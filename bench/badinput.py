@@ -1105,7 +1105,7 @@ _motion_case(
 def _zero_weights(ctx):
     models, _, _ = _smpl(ctx)
     bad = copy_tree(models, ctx["tmp"] / "zero_weight_models")
-    for f in (bad / "smplx").glob("*.npz"):
+    for f in (bad / "smplx").glob("SMPLX_*.npz"):
         with np.load(f) as z:
             arrays = {k: np.array(z[k]) for k in z.files}
         arrays["weights"] = np.zeros_like(arrays["weights"])
@@ -1257,8 +1257,17 @@ def main() -> int:
         for cls, name, expect, builder in CASES:
             if a.only and not any(w in name for w in a.only):
                 continue
-            built = builder(ctx)
             t0 = time.perf_counter()
+            try:
+                built = builder(ctx)
+            except Exception as exc:  # noqa: BLE001 - a fixture that cannot be built is reported, not fatal
+                built, outcome, line = None, "bench error", f"{type(exc).__name__}: {exc}"[:160]
+                results.append(
+                    {"class": cls, "case": name, "expect": expect, "outcome": outcome, "good": False, "message": line}
+                )
+                print(f"FAIL | {cls} | {name} | {outcome} | {line}", flush=True)
+                continue
+            t0 = time.perf_counter()  # the case itself, not its fixture
             if built is None:
                 outcome, line = "skipped (cannot mount a tmpfs)", ""
             else:

@@ -8,8 +8,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from meshsplat.data.dataset import open_dataset
 from meshsplat.data.formats import FORMAT_NAMES, format_module
+from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth.body_source import MODEL_SOURCES
 from meshsplat.synth.generate import generate

@@ -17,7 +17,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from meshsplat.data.dataset import AvatarDataset, open_dataset
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture", "reader_options"]

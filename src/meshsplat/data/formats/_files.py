@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from meshsplat.data.dataset import AvatarDataset, Problems, inside_capture
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import Problems, inside_capture
 from meshsplat.data.png import write_png
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz

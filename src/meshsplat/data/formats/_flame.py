@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meshsplat.data.dataset import AvatarDataset, Problems
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import Problems
 from meshsplat.drivers.body_models import BodyModel, driver_record
 from meshsplat.errors import MeshsplatError
 

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from meshsplat.camera import K_from_focal, K_from_integer_centers, K_from_normalized, K_to_integer_centers
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats._files import (
     alpha_frames,
     find_file,
@@ -36,6 +36,7 @@ from meshsplat.data.formats._flame import (
     flame_rows,
     pose_model,
 )
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.data.png import image_size
 from meshsplat.drivers.body_models import join_flame_pose15, split_flame_pose15
 from meshsplat.errors import MeshsplatError

@@ -16,7 +16,7 @@ from typing import Any, cast
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats._files import (
     alpha_frames,
     find_file,
@@ -32,6 +32,7 @@ from meshsplat.data.formats._files import (
     write_json,
 )
 from meshsplat.data.formats._flame import check_in_front
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj, write_obj
 

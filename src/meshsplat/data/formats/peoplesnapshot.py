@@ -27,8 +27,9 @@ import numpy as np
 import torch
 
 from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats._files import npz_or_problem
+from meshsplat.data.manifest import Problems, build_dataset
 from meshsplat.data.png import write_png
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning

@@ -60,7 +60,7 @@ def format_problems(module: Any, name: str) -> list[str]:
     if list(read)[:1] != ["root"] or "model_dir" not in read or read["model_dir"].default is not None:
         out.append(f"read(root, model_dir=None, ...), got ({', '.join(read)})")
     write = {p.name: p for p in _params(module.write)}
-    if list(write)[:2] != ["dataset", "out"] or write.get("overwrite", None) is None:
+    if list(write)[:2] != ["dataset", "out"] or write.get("overwrite") is None:
         out.append(f"write(dataset, out, overwrite=False, ...), got ({', '.join(write)})")
     elif write["overwrite"].default is not False:
         out.append("write(): overwrite must default to False")

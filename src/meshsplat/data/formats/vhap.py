@@ -17,7 +17,7 @@ import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
 from meshsplat.data.camera_check import group_ids
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats._files import (
     alpha_frames,
     find_file,
@@ -39,6 +39,7 @@ from meshsplat.data.formats._flame import (
     flame_rows,
     pose_model,
 )
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.plausible import parameter_problems, sequence_gaps
 
