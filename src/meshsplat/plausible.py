@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -65,7 +65,7 @@ AXIS_ANGLE_KEYS = frozenset(
 COEFFICIENT_KEYS = frozenset({"betas", "shape", "expression", "expr"})
 
 
-def group_ids(ids: Sequence[int], limit: int = 8) -> str:
+def group_ids(ids: Iterable[Any], limit: int = 8) -> str:
     """``[3, 4, 5, 9]`` -> ``"3-5, 9"`` (an en dash in the text) (at most ``limit`` groups, then how many more)."""
     ids = sorted(set(int(i) for i in ids))
     groups: list[list[int]] = []
