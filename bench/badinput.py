@@ -1,4 +1,4 @@
-"""Bad-input case table: runs ~90 bad inputs through every command and prints the outcome of each.
+"""Bad-input case table: runs ~140 bad inputs through every command and prints the outcome of each.
 
 Usage (from a checkout; PYTHONPATH picks the meshsplat under test)::
 

@@ -41,8 +41,9 @@ ALLOW_OLDER_FLAG = "--allow-older-checkpoint"  # the command-line spelling of ``
 
 
 def _reason(message: str, path: Path) -> str:
-    """A checkpoint error without its leading path (the caller names the file)."""
-    for prefix in (f"{path}: ", f"{path.name}: "):
+    """A checkpoint error without its file's name (the caller names the file): ``checkpoint 'X' is
+    corrupt ...`` -> ``corrupt ...``."""
+    for prefix in (f"checkpoint {str(path)!r} is ", f"checkpoint {str(path)!r} ", f"{path}: ", f"{path.name}: "):
         if message.startswith(prefix):
             return message[len(prefix) :]
     return message
