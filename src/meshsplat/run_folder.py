@@ -150,14 +150,11 @@ class RunFolder:
                     )
                 return p, state
             newest, why = problems[0]
-            if not allow_older:
-                older = len(ckpts) - 1
-                offer = (
-                    f"; pass {ALLOW_OLDER_FLAG} to use the newest readable one of the {older} older checkpoint(s)"
-                    if older
-                    else ""
+            if not allow_older and len(ckpts) > 1:
+                raise MeshsplatError(
+                    f"the newest checkpoint {newest} is unreadable ({_reason(why, newest)}); pass "
+                    f"{ALLOW_OLDER_FLAG} to use the newest readable one of the {len(ckpts) - 1} older checkpoint(s)"
                 )
-                raise MeshsplatError(f"the newest checkpoint {newest} is unreadable ({_reason(why, newest)}){offer}")
             raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {why}")
         raise MeshsplatError(
             f"no checkpoint in {self.root} (looked for {self.checkpoint_dir}/ckpt_*.pt); is this a training run folder?"
