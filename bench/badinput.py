@@ -1,4 +1,4 @@
-"""Bad-input case table: runs ~90 bad inputs through every command and prints the outcome of each.
+"""Bad-input case table: runs ~140 bad inputs through every command and prints the outcome of each.
 
 Usage (from a checkout; PYTHONPATH picks the meshsplat under test)::
 
@@ -1053,6 +1053,209 @@ def _manifest_garbage(ctx):
     return cli("train", d, "--out", ctx["tmp"] / "mg_out", *TRAIN), {}, None
 
 
+# -- cameras that cannot see the subject, absurd numbers, an older checkpoint, sizes, conflicts
+# (run them alone with --only "camera:" --only "range:" --only "older:" --only "sizes:" --only "conflict:")
+FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])
+TURN = np.diag([-1.0, 1.0, -1.0, 1.0])  # 180 degrees about y: the subject behind the camera
+BAD_CAMERAS = {
+    "focal 1e9": lambda K, vm: (_with_focal(K, 1e9), vm),
+    "subject behind the camera": lambda K, vm: (K, TURN @ vm),
+    "viewmat with z flipped": lambda K, vm: (K, FLIP_Z @ vm),
+}
+
+
+def _with_focal(K: np.ndarray, f: float) -> np.ndarray:
+    K = np.array(K, np.float64)
+    K[0, 0] = K[1, 1] = f
+    return K
+
+
+def _bad_camera_case(layout: str, label: str, fix) -> None:
+    @case("cameras", f"camera: {layout} {label}")
+    def _b(ctx):
+        tag = "".join(c if c.isalnum() else "_" for c in f"cam_{layout}_{label}")
+        if layout == "native":
+
+            def edit(m):
+                cam = m["cameras"]["0"]
+                K, vm = fix(np.asarray(cam["K"]), np.asarray(cam["viewmat"]))
+                cam["K"], cam["viewmat"] = np.asarray(K).tolist(), np.asarray(vm).tolist()
+
+            d = edit_manifest(ctx, tag, edit)
+        else:
+
+            def edit_doc(doc):
+                for cam in doc["cameras"].values():
+                    K, vm = fix(np.asarray(cam["K"]), np.asarray(cam["viewmat"]))
+                    cam["K"], cam["viewmat"] = np.asarray(K).tolist(), np.asarray(vm).tolist()
+
+            d = _edit_cameras(_meshseq(ctx, tag), edit_doc)
+        return cli("train", d, "--out", ctx["tmp"] / f"{tag}_run", *TRAIN), {}, None
+
+
+for _layout in ("native", "meshseq"):
+    for _label, _fix in BAD_CAMERAS.items():
+        _bad_camera_case(_layout, _label, _fix)
+
+
+def _smpl(ctx) -> tuple[Path, Path, Path]:
+    """(stand-in model folder, a synthesized SMPL capture, a one-iteration run on it), built once."""
+    if "smpl_run" not in ctx:
+        from meshsplat.cli.main import main as cli_main
+        from meshsplat.synth.standin_models import write_standin_models
+
+        models = write_standin_models(ctx["tmp"] / "standins", ("smpl", "smplx"))
+        ds = ctx["tmp"] / "smpl_ds"
+        args = ["synth", "smpl", "--model-dir", models, "--out", ds, "--frames", "4", "--resolution", "32"]
+        assert cli_main([str(a) for a in [*args, "--test-views", "0"]]) == 0
+        run = ctx["tmp"] / "smpl_run"
+        assert cli_main([str(a) for a in ["train", ds, "--out", run, "--model-dir", models, *TRAIN]]) == 0
+        ctx["smpl_models"], ctx["smpl_ds"], ctx["smpl_run"] = models, ds, run
+    return ctx["smpl_models"], ctx["smpl_ds"], ctx["smpl_run"]
+
+
+def _params_case(label: str, key: str, value: float) -> None:
+    @case("absurd numbers", f"range: stored driver parameters, {label}")
+    def _b(ctx):
+        models, ds, _ = _smpl(ctx)
+        d = copy_tree(ds, ctx["tmp"] / f"range_{key}_{label[:6].replace(' ', '_')}")
+        manifest = json.loads((d / "manifest.json").read_text())
+        p = d / manifest["driver"]["params"]
+        with np.load(p) as z:
+            arrays = {k: np.array(z[k]) for k in z.files}
+        arrays[key] = arrays[key].astype(np.float64)
+        arrays[key].reshape(-1)[-1] = value
+        np.savez(p, **arrays)
+        return cli("train", d, "--out", ctx["tmp"] / f"{d.name}_run", "--model-dir", models, *TRAIN), {}, None
+
+
+_params_case("NaN in body_pose", "body_pose", float("nan"))
+_params_case("body_pose in degrees (50)", "body_pose", 50.0)
+_params_case("betas of 1e30", "betas", 1e30)
+
+
+def _motion_case(label: str, poses_fn, frames: int = 4, extra=()) -> None:
+    @case("absurd numbers" if "frames" not in label else "sizes", label)
+    def _b(ctx):
+        models, _, run = _smpl(ctx)
+        f = ctx["tmp"] / ("motion_" + "".join(c if c.isalnum() else "_" for c in label)[:40] + ".npz")
+        np.savez_compressed(f, poses=poses_fn(frames), trans=np.zeros((frames, 3), np.float32))
+        cmd = extra[0] if extra else "render"
+        args = [cmd, run, "--motion", f, "--model-dir", models, "--out", ctx["tmp"] / f"{f.stem}_out"]
+        if cmd == "render":
+            args += ["--size", "32x32", "--no-mp4", "--no-progress"]
+        return cli(*args), {}, None
+
+
+def _degrees(n):
+    p = np.zeros((n, 72), np.float32)
+    p[:, 3:6] = 40.0
+    return p
+
+
+def _nan(n):
+    p = np.zeros((n, 72), np.float32)
+    p[1, 5] = np.nan
+    return p
+
+
+_motion_case("range: render --motion in degrees", _degrees)
+_motion_case("range: render --motion with NaN", _nan)
+_motion_case("sizes: render --motion of 200,000 frames", lambda n: np.zeros((n, 72), np.float32), 200_000)
+_motion_case(
+    "sizes: view --motion of 200,000 frames", lambda n: np.zeros((n, 72), np.float32), 200_000, extra=("view",)
+)
+
+
+@case("absurd numbers", "range: SMPL-X model file with all-zero skinning weights")
+def _zero_weights(ctx):
+    models, _, _ = _smpl(ctx)
+    bad = copy_tree(models, ctx["tmp"] / "zero_weight_models")
+    for f in (bad / "smplx").glob("SMPLX_*.npz"):
+        with np.load(f) as z:
+            arrays = {k: np.array(z[k]) for k in z.files}
+        arrays["weights"] = np.zeros_like(arrays["weights"])
+        np.savez(f, **arrays)
+    out = ctx["tmp"] / "zero_weight_synth"
+    return cli("synth", "smplx", "--model-dir", bad, "--out", out, "--frames", "2", "--resolution", "32"), {}, None
+
+
+def _zero_skin(glb: bytes) -> bytes:
+    n_json = struct.unpack_from("<I", glb, 12)[0]
+    doc = json.loads(glb[20 : 20 + n_json])
+    start0, out = 20 + n_json + 8, bytearray(glb)
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            acc = prim["attributes"].get("WEIGHTS_0")
+            if acc is None:
+                continue
+            a = doc["accessors"][acc]
+            view = doc["bufferViews"][a["bufferView"]]
+            size = {5126: 4, 5121: 1, 5123: 2}[a["componentType"]] * 4
+            stride = view.get("byteStride", size)
+            start = start0 + view.get("byteOffset", 0) + a.get("byteOffset", 0)
+            for i in range(a["count"]):
+                out[start + i * stride : start + i * stride + size] = bytes(size)
+    return bytes(out)
+
+
+@case("absurd numbers", "range: glTF skin with all-zero weights (synth)")
+def _zero_skin_case(ctx):
+    glb = ctx["tmp"] / "zero_skin.glb"
+    glb.write_bytes(_zero_skin(Path(GLB).read_bytes()))
+    return cli("synth", glb, "--out", ctx["tmp"] / "zero_skin_out", "--frames", "2", "--resolution", "32"), {}, None
+
+
+def _older_case(command: str, allow: bool) -> None:
+    label = f"older: {command} with the newest checkpoint unreadable" + (" + --allow-older-checkpoint" if allow else "")
+
+    @case("older checkpoint", label, "ok" if allow else "error")
+    def _b(ctx):
+        run = ctx["tmp"] / f"older_{command}_{int(allow)}"
+        if not run.exists():
+            copy_tree(ctx["run"], run)
+            newest = sorted((run / "checkpoints").glob("ckpt_*.pt"))[-1]
+            newest.write_bytes(newest.read_bytes()[:200])  # cut short, as by a full disk
+        out = ctx["tmp"] / f"{run.name}_out"
+        args = {
+            "export": ["export", run, "--out", out],
+            "render": ["render", run, "--dataset-split", "train", "--out", out, "--size", "32x32", "--no-mp4",
+                       "--no-progress"],
+            "view": ["view", run, "--out", out],
+            "eval": ["eval", run, "--out", out, "--no-lpips", "--no-report", "--no-progress"],
+        }[command]  # fmt: skip
+        return cli(*args, *(["--allow-older-checkpoint"] if allow else [])), {}, None
+
+
+for _cmd in ("export", "render", "view", "eval"):
+    _older_case(_cmd, False)
+    _older_case(_cmd, True)
+
+
+@case("sizes", "sizes: render --no-png --no-mp4 (nothing to write)")
+def _nothing(ctx):
+    out = ctx["tmp"] / "nothing_out"
+    return cli("render", ctx["run"], "--dataset-split", "train", "--no-png", "--no-mp4", "--out", out), {}, None
+
+
+@case("sizes", "sizes: synth CesiumMan --format imavatar (no FLAME model)")
+def _synth_mismatch(ctx):
+    out = ctx["tmp"] / "mismatch_out"
+    return cli("synth", GLB, "--format", "imavatar", "--out", out, "--frames", "2", "--resolution", "32"), {}, None
+
+
+@case("conflicts", "conflict: INSTA transforms_train.json disagrees with transforms.json")
+def _insta_conflict(ctx):
+    d = ctx["tmp"] / "insta_conflict"
+    if d.exists():
+        shutil.rmtree(d)
+    format_module("insta").write(open_dataset(ctx["ds"]), d)
+    split = json.loads((d / "transforms_train.json").read_text())
+    split["frames"][0]["transform_matrix"][0][3] += 0.5
+    (d / "transforms_train.json").write_text(json.dumps(split))
+    return cli("train", d, "--out", ctx["tmp"] / "insta_conflict_run", *TRAIN), {}, None
+
+
 def print_table(before: str, after: str) -> None:
     b = {r["case"]: r for r in json.loads(Path(before).read_text())}
     rows = json.loads(Path(after).read_text())
@@ -1063,7 +1266,8 @@ def print_table(before: str, after: str) -> None:
 
         def cell(x):
             msg = re.sub(r"/tmp/badinput_[^/ ]+/", "", x.get("message", "")).replace("meshsplat ", "")
-            text = x.get("outcome", "-") + (f": {msg}" if msg and x.get("outcome") != "ok" else "")
+            secs = f" [{x['seconds']:g} s]" if "seconds" in x else ""
+            text = x.get("outcome", "-") + secs + (f": {msg}" if msg and x.get("outcome") != "ok" else "")
             return text.replace("|", "/")[:110]
 
         print(f"| {r['class']} | {r['case']} | {r['expect']} | {cell(old)} | {cell(r)} |")
@@ -1092,7 +1296,9 @@ def build_context(tmp: Path) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=None)
-    ap.add_argument("--only", default=None, help="run only cases whose name contains this")
+    ap.add_argument(
+        "--only", action="append", default=None, help="run only cases whose name contains this (repeatable)"
+    )
     ap.add_argument(
         "--compare",
         nargs=2,
@@ -1115,9 +1321,19 @@ def main() -> int:
         ctx = build_context(tmp)
         print(f"meshsplat from {Path(meshsplat.__file__).parent}; {len(CASES)} cases", flush=True)
         for cls, name, expect, builder in CASES:
-            if a.only and a.only not in name:
+            if a.only and not any(w in name for w in a.only):
                 continue
-            built = builder(ctx)
+            t0 = time.perf_counter()
+            try:
+                built = builder(ctx)
+            except Exception as exc:  # noqa: BLE001 - a fixture that cannot be built is reported, not fatal
+                built, outcome, line = None, "bench error", f"{type(exc).__name__}: {exc}"[:160]
+                results.append(
+                    {"class": cls, "case": name, "expect": expect, "outcome": outcome, "good": False, "message": line}
+                )
+                print(f"FAIL | {cls} | {name} | {outcome} | {line}", flush=True)
+                continue
+            t0 = time.perf_counter()  # the case itself, not its fixture
             if built is None:
                 outcome, line = "skipped (cannot mount a tmpfs)", ""
             else:
@@ -1126,11 +1342,20 @@ def main() -> int:
                 extra = check() if check else None
                 if extra:
                     outcome += f"; {extra}"
+            seconds = round(time.perf_counter() - t0, 1)
             good = outcome == expect
             results.append(
-                {"class": cls, "case": name, "expect": expect, "outcome": outcome, "good": good, "message": line}
+                {
+                    "class": cls,
+                    "case": name,
+                    "expect": expect,
+                    "outcome": outcome,
+                    "good": good,
+                    "message": line,
+                    "seconds": seconds,
+                }
             )
-            print(f"{'PASS' if good else 'FAIL'} | {cls} | {name} | {outcome} | {line}", flush=True)
+            print(f"{'PASS' if good else 'FAIL'} | {cls} | {name} | {outcome} ({seconds} s) | {line}", flush=True)
     finally:
         for m in ("tmpfs", "rofs"):
             if (tmp / m).is_dir():

@@ -23,7 +23,7 @@ from _head_captures import (
 )
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, imavatar, open_capture
-from meshsplat.data.formats._heads import tail_split
+from meshsplat.data.formats._files import tail_split
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.images import write_png
 

@@ -10,7 +10,7 @@ import pytest
 from _head_captures import assert_vertices_close, native_flame_dataset, project, same_cameras, write_tiny_flame
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import detect_format, insta, open_capture
-from meshsplat.data.formats._heads import obj_vertices
+from meshsplat.data.formats._files import obj_vertices
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.images import write_png
 

@@ -10,7 +10,7 @@ PKG = Path(__file__).resolve().parents[1] / "src" / "meshsplat"
 
 LAYERS = [
     ("errors",),
-    ("_checks", "_typing", "_device", "paths"),
+    ("_checks", "_typing", "_device", "paths", "plausible"),
     ("io", "metrics"),
     ("camera", "drivers"),
     ("mesh",),

@@ -12,7 +12,7 @@ import torch
 from _body_fixtures import write_tiny_models
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver, save_driver_params
 from meshsplat.drivers.motion import load_motion, motion_frame_rate, reenact
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
 
 @pytest.fixture()
@@ -121,16 +121,17 @@ def test_vhap_flame_param_folder(tmp_path, models):
             rotation=np.full((1, 3), 0.01 * t),
             neck_pose=np.zeros((1, 3)),
             jaw_pose=np.full((1, 3), 0.1),
-            eyes_pose=np.arange(6, dtype=np.float32)[None] + t,
+            eyes_pose=0.01 * (np.arange(6, dtype=np.float32)[None] + t),  # radians: plausible
             shape=np.ones(300),
             expr=np.zeros((1, 100)),
             static_offset=np.zeros((1, 5143, 3)),
         )
     for src in (folder, tmp_path):
-        p = load_motion(src, models["flame"])
+        with pytest.warns(MeshsplatWarning, match="frame files jump from 2 to 10: 7 missing"):
+            p = load_motion(src, models["flame"])
         assert p["transl"][:, 0].tolist() == [1, 2, 10]
-        np.testing.assert_array_equal(p["leye_pose"][1], [2, 3, 4])
-        np.testing.assert_array_equal(p["reye_pose"][1], [5, 6, 7])
+        np.testing.assert_allclose(p["leye_pose"][1], [0.02, 0.03, 0.04], rtol=1e-6)
+        np.testing.assert_allclose(p["reye_pose"][1], [0.05, 0.06, 0.07], rtol=1e-6)
         assert "static_offset" not in p and p["betas"].shape == (300,)
 
 

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import pytest
 import torch
 
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io import checkpoint_path, save_checkpoint
 from meshsplat.run_folder import LoadedRun, RunFolder, load_avatar, load_run
 from test_eval_kit import make_avatar, make_run
@@ -43,17 +44,24 @@ def test_of_a_run_or_a_checkpoint_file(tmp_path):
     assert RunFolder.of(flat).root == tmp_path / "old"  # older runs kept checkpoints in RUN itself
 
 
-def test_latest_checkpoint_skips_unreadable_newer_ones(tmp_path):
+def test_unreadable_newest_checkpoint_is_refused_unless_allowed(tmp_path):
     run = RunFolder(tmp_path / "r")
     for it in (10, 20, 30):
         save_checkpoint(run.checkpoint_path(it), {"iteration": it})
     run.checkpoint_path(40).write_bytes(b"garbage")  # newest is corrupt
     (run.checkpoint_dir / "notes.txt").write_text("ignored")
     assert [it for it, _ in run.checkpoints()] == [10, 20, 30, 40]
-    path, state = run.latest_checkpoint()
+    with pytest.raises(MeshsplatError, match=r"newest checkpoint .*ckpt_00000040.pt is unreadable") as e:
+        run.latest_checkpoint()
+    text = _one_line(e)
+    assert "--allow-older-checkpoint" in text and "3 older" in text
+    with pytest.warns(MeshsplatWarning, match=r"skipped .*ckpt_00000040.pt; using ckpt_00000030.pt \(iteration 30\)"):
+        path, state = run.latest_checkpoint(allow_older=True)
     assert path == run.checkpoint_path(30) and state["iteration"] == 30
     save_checkpoint(run.checkpoint_path(50), {"iteration": 50}, keep_last=2)
-    assert run.latest_checkpoint()[0] == run.checkpoint_path(50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a readable newest one: no note
+        assert run.latest_checkpoint()[0] == run.checkpoint_path(50)
 
 
 def test_latest_checkpoint_prefers_checkpoints_folder_then_flat(tmp_path):
@@ -76,8 +84,11 @@ def test_missing_or_unreadable_runs_say_so_in_one_line(tmp_path):
     bad.checkpoint_dir.mkdir(parents=True)
     bad.checkpoint_path(3).write_bytes(b"PK\x03\x04 truncated")
     bad.checkpoint_path(4).write_bytes(b"")
-    with pytest.raises(MeshsplatError, match=r"all 2 checkpoint\(s\) .* unreadable; newest: .*ckpt_00000004.pt") as e:
+    with pytest.raises(MeshsplatError, match=r"newest checkpoint .*ckpt_00000004.pt is unreadable") as e:
         load_avatar(bad.root)
+    _one_line(e)
+    with pytest.raises(MeshsplatError, match=r"all 2 checkpoint\(s\) .* unreadable; newest: .*ckpt_00000004.pt") as e:
+        load_avatar(bad.root, allow_older=True)
     _one_line(e)
     save_checkpoint(bad.checkpoint_path(5), {"iteration": 5})
     with pytest.raises(MeshsplatError, match="checkpoint holds no avatar") as e:

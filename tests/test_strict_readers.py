@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 
 from _head_captures import native_flame_dataset, write_tiny_flame
 from meshsplat.data import open_dataset
-from meshsplat.data.dataset import Problems
 from meshsplat.data.formats import format_module, open_capture
+from meshsplat.data.manifest import Problems
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
 from meshsplat.drivers.motion import load_motion

@@ -54,6 +54,7 @@ _FRONT_DOOR: dict[str, tuple[str, str]] = {
 _SUBMODULES = (
     "errors",
     "paths",
+    "plausible",
     "io",
     "metrics",
     "camera",

@@ -18,6 +18,7 @@ asked for, a checkpoint file inside it (``RUN/checkpoints/ckpt_*.pt``) may be gi
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,12 +30,23 @@ from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
 from meshsplat.data.source_map import SourceMap, read_source_map
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.io.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
 from meshsplat.io.json_file import read_json_object
 
-__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar"]
+__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar", "ALLOW_OLDER_FLAG"]
+
+ALLOW_OLDER_FLAG = "--allow-older-checkpoint"  # the command-line spelling of ``allow_older``
+
+
+def _reason(message: str, path: Path) -> str:
+    """A checkpoint error without its file's name (the caller names the file): ``checkpoint 'X' is
+    corrupt ...`` -> ``corrupt ...``."""
+    for prefix in (f"checkpoint {str(path)!r} is ", f"checkpoint {str(path)!r} ", f"{path}: ", f"{path.name}: "):
+        if message.startswith(prefix):
+            return message[len(prefix) :]
+    return message
 
 
 class RunFolder:
@@ -106,22 +118,44 @@ class RunFolder:
         """``(iteration, path)`` of ``RUN/checkpoints/ckpt_*.pt``, oldest first (not validated)."""
         return list_checkpoints(self.checkpoint_dir)
 
-    def latest_checkpoint(self, map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
-        """``(path, state)`` of the newest checkpoint that loads, from ``RUN/checkpoints`` (else, for
-        older runs, ``RUN/ckpt_*.pt``); unreadable newer ones are skipped. One-line error when none loads."""
+    def latest_checkpoint(
+        self, map_location: str | torch.device = "cpu", allow_older: bool = False
+    ) -> tuple[Path, dict]:
+        """``(path, state)`` of the newest checkpoint of ``RUN/checkpoints`` (else, for older runs,
+        ``RUN/ckpt_*.pt``). An unreadable newest one is refused in one line naming it and the flag
+        ``--allow-older-checkpoint``; with ``allow_older`` the newest readable one is used instead, with a
+        one-line note naming the skipped files and the iteration used. One-line error when none loads."""
         if not self.root.exists():
             raise MeshsplatError(f"run not found: {self.root} (expected a training run folder or a checkpoint file)")
         for folder in (self.checkpoint_dir, self.root):
             ckpts = list_checkpoints(folder)
             if not ckpts:
                 continue
-            problems = []
-            for _, p in reversed(ckpts):
+            problems: list[tuple[Path, str]] = []
+            for it, p in reversed(ckpts):
                 try:
-                    return p, load_checkpoint(p, map_location)
+                    state = load_checkpoint(p, map_location)
                 except MeshsplatError as exc:
-                    problems.append(str(exc))
-            raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {problems[0]}")
+                    problems.append((p, str(exc)))
+                    if not allow_older:
+                        break
+                    continue
+                if problems:
+                    skipped = ", ".join(q.name for q, _ in problems)
+                    warnings.warn(
+                        f"{folder}: skipped the unreadable newest checkpoint(s) {skipped}; using {p.name} "
+                        f"(iteration {it})",
+                        MeshsplatWarning,
+                        stacklevel=3,
+                    )
+                return p, state
+            newest, why = problems[0]
+            if not allow_older and len(ckpts) > 1:
+                raise MeshsplatError(
+                    f"the newest checkpoint {newest} is unreadable ({_reason(why, newest)}); pass "
+                    f"{ALLOW_OLDER_FLAG} to use the newest readable one of the {len(ckpts) - 1} older checkpoint(s)"
+                )
+            raise MeshsplatError(f"all {len(ckpts)} checkpoint(s) in {folder} are unreadable; newest: {why}")
         raise MeshsplatError(
             f"no checkpoint in {self.root} (looked for {self.checkpoint_dir}/ckpt_*.pt); is this a training run folder?"
         )
@@ -134,13 +168,16 @@ class RunFolder:
         return read_json_object(path)
 
 
-def _checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[RunFolder, Path, dict]:
-    """``(run, checkpoint, state)`` for a run folder (its newest loadable checkpoint) or a checkpoint file."""
+def _checkpoint(
+    path: str | Path, map_location: str | torch.device = "cpu", allow_older: bool = False
+) -> tuple[RunFolder, Path, dict]:
+    """``(run, checkpoint, state)`` for a run folder (its newest checkpoint; ``allow_older``: the newest
+    readable one) or a checkpoint file."""
     path = Path(path)
     run = RunFolder.of(path)
     if path.is_file():
         return run, path, load_checkpoint(path, map_location)
-    ckpt, state = RunFolder(path).latest_checkpoint(map_location)
+    ckpt, state = RunFolder(path).latest_checkpoint(map_location, allow_older)
     return run, ckpt, state
 
 
@@ -150,9 +187,10 @@ def _avatar(ckpt: Path, state: dict, device) -> Avatar:
     return Avatar.from_state_dict(state["avatar"], resolve_device(device))
 
 
-def load_avatar(run: str | Path, device: str | torch.device | None = "cpu") -> Avatar:
-    """The avatar of a run folder's newest loadable checkpoint, or of one checkpoint file."""
-    _, ckpt, state = _checkpoint(run)
+def load_avatar(run: str | Path, device: str | torch.device | None = "cpu", allow_older: bool = False) -> Avatar:
+    """The avatar of a run folder's newest checkpoint (``allow_older``: its newest readable one, with a
+    note), or of one checkpoint file."""
+    _, ckpt, state = _checkpoint(run, allow_older=allow_older)
     return _avatar(ckpt, state, device)
 
 
@@ -258,10 +296,11 @@ class LoadedRun:
         return read_source_map(p) if p.is_dir() else None
 
 
-def load_run(run: str | Path, device: str | torch.device | None = "cpu") -> LoadedRun:
-    """Load the avatar of a run folder (newest valid ``checkpoints/ckpt_*.pt``) or of one checkpoint file,
-    with the run's config (``config.json``, else the one stored in the checkpoint)."""
-    folder, ckpt, state = _checkpoint(run)
+def load_run(run: str | Path, device: str | torch.device | None = "cpu", allow_older: bool = False) -> LoadedRun:
+    """Load the avatar of a run folder (newest ``checkpoints/ckpt_*.pt``; an unreadable one is refused unless
+    ``allow_older``, which uses the newest readable one with a note) or of one checkpoint file, with the
+    run's config (``config.json``, else the one stored in the checkpoint)."""
+    folder, ckpt, state = _checkpoint(run, allow_older=allow_older)
     avatar = _avatar(ckpt, state, device)
     config = folder.load_config()
     if config is None:

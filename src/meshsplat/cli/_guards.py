@@ -15,7 +15,15 @@ from pathlib import Path
 
 from meshsplat.errors import MeshsplatError, os_error_text
 
-__all__ = ["LIMITS", "check_range", "check_memory", "check_output_dir", "render_bytes", "synth_bytes"]
+__all__ = [
+    "LIMITS",
+    "check_range",
+    "check_memory",
+    "check_output_dir",
+    "render_bytes",
+    "animation_bytes",
+    "synth_bytes",
+]
 
 # name -> (low, high, unit); both ends included
 LIMITS = {
@@ -95,6 +103,11 @@ def render_bytes(width: int, height: int, frames: int = 1) -> float:
     """Estimate: the rasterizer's buffers plus the rendered frames kept for the video."""
     px = float(width) * float(height)
     return min(1.5e9, 650.0 * px * 8) + 160.0 * px + 2 * 3.0 * px * frames
+
+
+def animation_bytes(frames: int, num_vertices: int) -> float:
+    """Estimate: posed vertex frames kept for rendering or a viewer bundle (float32, plus one working copy)."""
+    return 2 * 12.0 * float(frames) * float(num_vertices)
 
 
 def synth_bytes(resolution: int, supersample: int) -> float:

@@ -19,7 +19,7 @@ from meshsplat.cli._guards import LIMITS, check_range
 from meshsplat.data.dataset import DROP_FLAG, AvatarDataset
 from meshsplat.drivers import ANIMATION_KINDS, AnimationSource
 from meshsplat.errors import MeshsplatError
-from meshsplat.run_folder import LoadedRun
+from meshsplat.run_folder import ALLOW_OLDER_FLAG, LoadedRun
 from meshsplat.viewer.bundle import page_camera
 
 __all__ = [
@@ -44,6 +44,12 @@ __all__ = [
 def add_run_argument(parser: argparse.ArgumentParser, dataset: bool = True) -> None:
     """Positional ``run`` (a training run folder or a checkpoint file) and, with ``dataset``, ``--dataset``."""
     parser.add_argument("run", help="training run folder (or a checkpoint file)")
+    parser.add_argument(
+        ALLOW_OLDER_FLAG,
+        action="store_true",
+        help="when the run's newest checkpoint is unreadable, use its newest readable one (with a note "
+        "naming the skipped file and the iteration used) instead of refusing",
+    )
     if dataset:
         add_dataset_option(parser)
 

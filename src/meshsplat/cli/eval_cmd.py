@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
         progress=opts.progress,
         drop_bad_frames=True if args.drop_bad_frames else None,
         downscale=args.downscale,
+        allow_older_checkpoint=args.allow_older_checkpoint,
     )
     print(
         f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
         raise MeshsplatError(f"--format: expected some of {', '.join(SPLAT_FORMATS)}, got {unknown or 'none'}")
     if args.out:
         check_output_dir(args.out)
-    r = load_run(args.run, device="cpu")
+    r = load_run(args.run, device="cpu", allow_older=args.allow_older_checkpoint)
     out = Path(args.out) if args.out else check_output_dir(r.folder.export_dir)
     res = export_avatar(r.avatar, out, source=str(r.checkpoint), iteration=r.iteration, formats=formats)
     print(f"exported {r.avatar.num_gaussians} Gaussians (iteration {r.iteration}) to {res.folder}:")

@@ -37,7 +37,7 @@ from typing import Any
 
 from meshsplat import animate, camera
 from meshsplat.camera import Camera
-from meshsplat.cli._guards import check_memory, check_output_dir, check_range, render_bytes
+from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.cli._options import (
     LEGACY_ANIMATION_FLAGS,
     add_animation_options,
@@ -53,6 +53,7 @@ from meshsplat.cli._options import (
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.drivers import load_animation
+from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
 
 __all__ = ["add_arguments", "run", "render_cameras"]
@@ -93,14 +94,28 @@ def render_cameras(
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.no_png and args.no_mp4:
+        raise MeshsplatError("--no-png and --no-mp4 together leave nothing to write; drop one of them")
+    if args.frames is not None and args.frames < 1:
+        raise MeshsplatError(f"--frames: expected >= 1, got {args.frames}")
     opts = render_options(args)
     size = opts.size
     check_output_dir(args.out)
     apply_threads(args)
-    r = load_run(args.run, device=opts.device)
+    r = load_run(args.run, device=opts.device, allow_older=args.allow_older_checkpoint)
     source = animation_source(args, r, "render")
     avatar = r.avatar
     ds = None
+    w0, h0 = size or (512, 512)  # the estimate before the cameras are known (checked again below)
+
+    def before_posing(n: int) -> None:
+        """Frame limit and memory of ``n`` frames, before any is posed (a 200,000-frame motion)."""
+        check_range("frames to render", n, "render frames")
+        check_memory(
+            f"rendering {n:,} frames of {avatar.mesh.num_vertices:,} vertices at {w0}x{h0}",
+            render_bytes(w0, h0, n) + animation_bytes(n, avatar.mesh.num_vertices),
+            "render fewer frames (--frames N) or lower --size",
+        )
 
     def dataset():
         nonlocal ds
@@ -110,7 +125,11 @@ def run(args: argparse.Namespace) -> int:
 
     needs_ds = source.kind in ("dataset", "motion")
     anim = load_animation(
-        source, avatar, dataset=dataset() if needs_ds else None, source_map=r.source_map(args.dataset)
+        source,
+        avatar,
+        dataset=dataset() if needs_ds else None,
+        source_map=r.source_map(args.dataset),
+        check=before_posing,
     )
     frames = anim.vertex_frames()
     cameras = render_cameras(args, frames, anim.cameras, size, lambda: capture_up_front(r, args.dataset, ds), dataset)
@@ -119,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     w, h = max(sizes, key=lambda s: s[0] * s[1])
     check_memory(
         f"rendering {len(frames)} frames at {w}x{h}",
-        render_bytes(w, h, len(frames)),
+        render_bytes(w, h, len(frames)) + animation_bytes(len(frames), avatar.mesh.num_vertices),
         "lower --size, or render fewer frames (--seconds, --fps, --frames)",
     )
     res = animate.render_animation(

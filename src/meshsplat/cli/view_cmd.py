@@ -31,7 +31,7 @@ import http.server
 from pathlib import Path
 
 from meshsplat import camera
-from meshsplat.cli._guards import check_output_dir, check_range
+from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range
 from meshsplat.cli._options import (
     add_animation_options,
     add_camera_options,
@@ -90,8 +90,17 @@ def run(args: argparse.Namespace) -> int:
         check_range("--port", args.port, "view --port")
     check_output_dir(args.out)
     opts = render_options(args)
-    r = load_run(args.run, device="cpu")
+    r = load_run(args.run, device="cpu", allow_older=args.allow_older_checkpoint)
     source = animation_source(args, r, "view")
+    v = r.avatar.mesh.num_vertices
+
+    def before_posing(n: int) -> None:
+        """The documented limit and the memory of ``n`` frames, before any is posed."""
+        check_range("frames in the viewer", n, "view --frames")
+        check_memory(
+            f"a viewer of {n:,} frames of {v:,} vertices", animation_bytes(n, v), "keep fewer frames (--frames N)"
+        )
+
     title = args.title or r.run_dir.resolve().name
     needs_ds = source.kind in ("dataset", "motion") or (args.camera or "").startswith("dataset:")
     ds = r.open_dataset(args.dataset, check_masks=False) if needs_ds else None
@@ -103,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         cam = req
     live = source.kind in ("gltf", "blendshapes") and not args.bake
-    anim = load_animation(source, r.avatar, dataset=ds, source_map=r.source_map(args.dataset), live=live)
+    anim = load_animation(
+        source, r.avatar, dataset=ds, source_map=r.source_map(args.dataset), live=live, check=before_posing
+    )
     if isinstance(anim.driver, GltfDriver):
         rig = anim.driver
         what = f"live glTF rig, {len(rig.clips)} clip(s), {sum(rig.morph_nodes().values())} morph target(s)"

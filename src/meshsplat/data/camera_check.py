@@ -26,6 +26,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from meshsplat.plausible import group_ids
+
 __all__ = [
     "CameraCheck",
     "check_cameras",
@@ -98,20 +100,6 @@ class CameraCheck:
     @property
     def ok(self) -> bool:
         return not self.wrong and not self.bad_frames
-
-
-def group_ids(ids: Sequence[int], limit: int = 8) -> str:
-    """``[3, 4, 5, 9]`` -> ``"3-5, 9"`` (at most ``limit`` groups, then how many more frames)."""
-    ids = sorted(set(int(i) for i in ids))
-    groups: list[list[int]] = []
-    for i in ids:
-        if groups and i == groups[-1][1] + 1:
-            groups[-1][1] = i
-        else:
-            groups.append([i, i])
-    shown = [f"{a}" if a == b else f"{a}\u2013{b}" for a, b in groups[:limit]]
-    rest = sum(b - a + 1 for a, b in groups[limit:])
-    return ", ".join(shown) + (f" and {rest} more" if rest else "")
 
 
 def _mask_grid(mask: np.ndarray) -> tuple[np.ndarray, int]:

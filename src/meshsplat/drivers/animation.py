@@ -15,6 +15,7 @@ model, default the bundled ICT head, driven by ``weights [T,K]`` or a procedural
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -140,6 +141,7 @@ def load_animation(
     dataset: AvatarDataset | None = None,
     source_map: SourceMap | None = None,
     live: bool = False,
+    check: Callable[[int], None] | None = None,
 ) -> Animation:
     """Frames (or, with ``live``, the driver of a gltf / blendshapes source) of ``source`` on the canonical
     mesh of ``avatar`` (an ``Avatar`` or its ``TriMesh``).
@@ -147,6 +149,8 @@ def load_animation(
     ``dataset``: the avatar's capture (``run.open_dataset()``), needed by the dataset and motion kinds.
     ``source_map``: the run's or dataset's (``run.source_map()``), so that the asset the avatar was
     synthesized from drives it whatever was done to its driving mesh (:mod:`meshsplat.drivers.avatar_match`).
+    Before any frame is posed, more than ``MAX_ANIMATION_FRAMES`` frames are refused and ``check(n)`` runs
+    (the command line's memory estimate), so a huge motion is refused before it is allocated.
     """
     if not isinstance(source, AnimationSource):
         raise MeshsplatError(f"source: expected an AnimationSource, got {type(source).__name__}")
@@ -161,15 +165,18 @@ def load_animation(
                     "plays the asset in its own axes: use --bake (vertex frames) instead"
                 )
             return Animation(source, driver=drv)
-        frames = _sample_gltf(drv, source)
+        frames = _sample_gltf(drv, source, check)
         if to_world is not None:
             frames = [to_world(v) for v in frames]
         frames = check_frames(frames[:n], mesh.num_vertices, "glTF animation")
     elif kind == "blendshapes":
         bs = blendshapes_for_mesh(mesh, None if _is_ict(source.file) else source.file, source_map)
         if source.weights is not None:
-            bs.set_sequence(read_weights(source.weights, bs.names)[:n])
+            weights = read_weights(source.weights, bs.names)[:n]
+            _before_posing(len(weights), "blend-shape weights", "give fewer rows or --frames N", check)
+            bs.set_sequence(weights)
         else:
+            _before_posing(TALKING_FRAMES if n is None else n, "blend-shape animation", "lower --frames", check)
             bs.talking_sequence(TALKING_FRAMES if n is None else n, source.fps)
         if live:
             return Animation(source, driver=bs)
@@ -178,8 +185,9 @@ def load_animation(
         )
     elif kind == "vertices":
         frames = sequence_for_mesh(mesh, source.file, source_map=source_map)[:n]
+        _before_posing(len(frames), f"vertex frames {source.file}", "keep fewer frames (--frames N)", check)
     elif kind == "motion":
-        frames = _motion_frames(mesh, _need(dataset, kind), source)
+        frames = _motion_frames(mesh, _need(dataset, kind), source, check)
     else:
         ds = _need(dataset, kind)
         if ds.num_vertices != mesh.num_vertices:
@@ -190,12 +198,22 @@ def load_animation(
             ids = ds.split(source.split)[:n]
             if not ids:
                 raise MeshsplatError(f"split {source.split!r} of {ds.root} is empty")
+            _before_posing(len(ids), f"split {source.split!r} of {ds.root}", "keep fewer frames (--frames N)", check)
             frames = [ds.vertices(i) for i in ids]
             return Animation(source, frames=frames, cameras=[ds.frame_camera(i) for i in ids])
         meshes = ds.driver()
         count = meshes.num_frames if n is None else min(meshes.num_frames, n)
+        _before_posing(count, f"dataset {ds.root}", "keep fewer frames (--frames N)", check)
         frames = check_frames([meshes.vertices(i) for i in range(count)], mesh.num_vertices, f"dataset {ds.root}")
     return Animation(source, frames=frames)
+
+
+def _before_posing(n: int, what: str, advice: str, check: Callable[[int], None] | None) -> None:
+    """The documented frame limit, then the caller's own check of ``n`` frames, before any is posed."""
+    if n > MAX_ANIMATION_FRAMES:
+        raise MeshsplatError(f"{what}: {n:,} frames; at most {MAX_ANIMATION_FRAMES:,} (see docs/limits.md); {advice}")
+    if check is not None:
+        check(n)
 
 
 def _is_ict(file: Any) -> bool:
@@ -208,7 +226,9 @@ def _need(dataset: AvatarDataset | None, kind: str) -> AvatarDataset:
     return dataset
 
 
-def _sample_gltf(drv: GltfDriver, source: AnimationSource) -> list[torch.Tensor]:
+def _sample_gltf(
+    drv: GltfDriver, source: AnimationSource, check: Callable[[int], None] | None = None
+) -> list[torch.Tensor]:
     """Frames of the driver's clip at ``fps`` for ``seconds`` (default the clip, end included) from ``start``."""
     fps, seconds = source.fps, source.seconds
     t0, _ = drv.time_range()
@@ -220,10 +240,13 @@ def _sample_gltf(drv: GltfDriver, source: AnimationSource) -> list[torch.Tensor]
         )
     if source.frames is not None:
         count = min(count, source.frames)
+    _before_posing(count, f"glTF animation {source.file}", "lower --fps or --seconds", check)
     return [drv.vertices_at(t0 + source.start + i / fps) for i in range(count)]
 
 
-def _motion_frames(mesh: TriMesh, dataset: AvatarDataset, source: AnimationSource) -> list[torch.Tensor]:
+def _motion_frames(
+    mesh: TriMesh, dataset: AvatarDataset, source: AnimationSource, check: Callable[[int], None] | None = None
+) -> list[torch.Tensor]:
     """A body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
     ``source.file``: an SMPL ``.npz`` (``poses [S,72]``, ``trans [S,3]``), an SMPL-X/AMASS ``.npz``, an
@@ -269,5 +292,10 @@ def _motion_frames(mesh: TriMesh, dataset: AvatarDataset, source: AnimationSourc
             k: (v[: source.frames] if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset") else v)
             for k, v in params.items()
         }
+    n_frames = max(
+        (len(v) for k, v in params.items() if getattr(v, "ndim", 1) == 2 and k not in ("betas", "static_offset")),
+        default=1,
+    )
+    _before_posing(n_frames, f"motion {source.file}", "take the first N frames with --frames N", check)
     verts = ParametricDriver(model, reenact(params, subject, align=source.align)).all_vertices()
     return check_frames(list(verts), mesh.num_vertices, f"motion {source.file}")

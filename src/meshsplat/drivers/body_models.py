@@ -27,6 +27,7 @@ from meshsplat.drivers.base import as_faces
 from meshsplat.drivers.model_files import read_model_file
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz
+from meshsplat.plausible import parameter_problems, skinning_problem
 
 __all__ = [
     "MODEL_KINDS",
@@ -312,6 +313,9 @@ class BodyModel:
         bad = [f"{k} {list(s)} (expected {want})" for k, ok, want, s in checks if not ok]
         if bad:
             raise MeshsplatError(f"{where}: not a {_TITLE[self.kind]} model file: " + "; ".join(bad))
+        why = skinning_problem(arr["weights"], "weights (skinning)")
+        if why is not None:
+            raise MeshsplatError(f"{where}: {why}")
         S = sd.shape[2]
         if self.kind == "smpl":
             nb, ex = S, (0, 0)
@@ -356,6 +360,7 @@ class BodyModel:
         if not isinstance(params, dict):
             raise MeshsplatError(f"{self.kind} params: expected a dict of arrays, got {type(params).__name__}")
         problems, frames = [], {}
+        plain = {}  # finite values read from files (not tensors being optimised): their ranges are checked
         V = self.num_vertices
         for k, x in params.items():
             if not hasattr(x, "shape"):
@@ -392,8 +397,11 @@ class BodyModel:
                 continue
             if not _finite(x):
                 problems.append(f"{k}: contains NaN or Inf")
+            elif not (isinstance(x, torch.Tensor) and x.requires_grad):
+                plain[k] = x
             if len(shape) == 2 and shape[0] != 1:
                 frames[k] = shape[0]
+        problems += parameter_problems(plain)
         counts = set(frames.values())
         if len(counts) > 1:
             problems.append(

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 
 from meshsplat.drivers.gltf_io import Channel, GltfFile, sample_channel, trs_matrix
 from meshsplat.errors import MeshsplatError
+from meshsplat.plausible import skinning_problem
 
 __all__ = ["GltfDriver", "Material", "MorphGroup"]
 
@@ -204,6 +205,9 @@ class GltfDriver:
                         w_parts.append(self.file.accessor(a.WEIGHTS_1))
                     j = np.concatenate(j_parts, 1) + skin_offset[node.skin]
                     w = np.concatenate(w_parts, 1)
+                    why = skinning_problem(w, f"mesh node {ni} ({node.name or 'unnamed'}): WEIGHTS_0")
+                    if why is not None:
+                        raise MeshsplatError(f"{self.path}: {why}")
                     s = w.sum(1, keepdims=True)
                     w = np.where(s > 0, w / np.where(s > 0, s, 1), 0)
                 else:

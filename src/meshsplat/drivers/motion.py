@@ -19,6 +19,7 @@ Layouts read (all numbers float, one row per frame ``S``):
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -30,10 +31,11 @@ from meshsplat.drivers.body_models import (
     split_flame_pose15,
     split_smpl_thetas,
 )
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npz
 from meshsplat.io.json_file import read_json_object
 from meshsplat.paths import resolve_input
+from meshsplat.plausible import sequence_gaps
 
 __all__ = ["load_motion", "reenact", "motion_frame_rate", "ALIGN_MODES"]
 
@@ -202,6 +204,9 @@ def _flame_folder(folder: Path) -> dict:
     if not files:
         raise MeshsplatError(f"{folder}: no .npz files; expected {_FLAME_LAYOUTS}")
     frames = [_flame_from_vhap(_read_npz(f), str(f)) for f in files]
+    gaps = sequence_gaps([n for n, _ in map(_frame_number, files)], "frame files")
+    if gaps is not None:
+        warnings.warn(f"{folder}: {gaps}", MeshsplatWarning, stacklevel=3)
     for k in frames[0]:
         if k == "betas":
             continue

@@ -188,16 +188,18 @@ def evaluate_run(
     progress: bool = False,
     drop_bad_frames: bool | None = None,
     downscale: float | None = None,
+    allow_older_checkpoint: bool = False,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
     ``dataset``: a path (default: the run's ``config.json`` ``data``) or an open ``AvatarDataset``.
     ``drop_bad_frames`` (default: as the run was trained) leaves out the frames failing the camera check.
     ``downscale``: read a dataset path at ``1 / downscale`` of its size (default: the run's
-    ``data_downscale``, the size it was trained at).
+    ``data_downscale``, the size it was trained at). ``allow_older_checkpoint``: when the newest checkpoint
+    is unreadable, evaluate the newest readable one (with a note) instead of refusing.
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
-    run = load_run(run_dir, device)
+    run = load_run(run_dir, device, allow_older=allow_older_checkpoint)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run.dataset_path(dataset)
         ds = run.open_dataset(dataset, drop_bad_frames=drop_bad_frames, downscale=downscale)

@@ -8,10 +8,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from meshsplat.data.dataset import open_dataset
 from meshsplat.data.formats import FORMAT_NAMES, format_module
+from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.out_folder import empty_or_new_folder
+from meshsplat.synth.body_source import MODEL_SOURCES
 from meshsplat.synth.generate import synthesize
 
 __all__ = ["synth_capture"]
@@ -37,9 +38,11 @@ def synth_capture(
         return synthesize(asset, out, overwrite=overwrite, **generate_options)
     out = empty_or_new_folder(out, overwrite)
     try:
-        writer = format_module(format).write
+        module = format_module(format)
+        writer = module.write
     except (ImportError, AttributeError):
         raise MeshsplatError(f"format {format!r}: this installation has no writer for it") from None
+    _check_fits(module, format, asset, str(generate_options.get("rig", "monocular-turn")))
     tmp = None
     if native_dir is None:
         tmp = tempfile.mkdtemp(prefix="meshsplat-synth-")
@@ -54,3 +57,18 @@ def synth_capture(
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _check_fits(module: Any, format: str, asset: Path | str, rig: str) -> None:
+    """Before rendering: the layout can hold what ``asset`` and ``rig`` make (its model, its cameras)."""
+    need = getattr(module, "WRITE_MODEL", None)
+    kind = str(asset).lower() if not Path(asset).exists() and str(asset).lower() in MODEL_SOURCES else None
+    if need is not None and kind != need:
+        has = f"the {kind.upper()} model" if kind else f"{asset}, not a {need.upper()} model"
+        raise MeshsplatError(
+            f"--format {format} stores {need.upper()} parameters but the asset is {has}; synthesize from "
+            f"'{need}' (model files from --model-dir), or write --format native or meshseq"
+        )
+    rigs = getattr(module, "WRITE_RIGS", None)
+    if rigs is not None and rig not in rigs:
+        raise MeshsplatError(f"--format {format} holds one fixed camera; use --rig {' or '.join(rigs)}, not {rig}")

@@ -1,9 +1,12 @@
 """Readers (and writers) for the capture layouts people already have.
 
-Each format module has ``NAME``, ``DESCRIPTION``, ``detect(root) -> bool``,
+Each format module is a ``protocol.CaptureFormat`` (checked for every registered format by a test):
+``NAME``, ``DESCRIPTION``, ``SIGNATURE``, ``detect(root) -> bool``,
 ``read(root, model_dir=None, **options) -> AvatarDataset`` (lazy, validating, every problem of the
-folder in one error) and ``write(dataset, out, **options) -> Path`` (that layout from a native dataset
-with driver parameters; used by ``meshsplat synth --format``). Pages: ``docs/formats/``.
+folder in one error) and ``write(dataset, out, overwrite=False, **options) -> Path`` (that layout from a
+native dataset with driver parameters; used by ``meshsplat synth --format``). The readers' kit:
+``_files`` (generic file helpers), ``_flame`` (FLAME posing). Adding a format touches one new module,
+its docs page and ``FORMAT_NAMES`` below. Pages: ``docs/formats/``.
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from meshsplat.data.dataset import AvatarDataset, open_dataset
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["FORMAT_NAMES", "format_module", "detect_format", "open_capture", "reader_options"]

@@ -15,24 +15,28 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from meshsplat.camera import K_from_focal, K_from_integer_centers, K_from_normalized, K_to_integer_centers
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
-from meshsplat.data.formats._heads import (
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.formats._files import (
     alpha_frames,
-    check_in_front,
     find_file,
-    fit_coeffs,
-    flame_driver_record,
-    flame_model,
-    flame_rows,
+    fit_out,
     frame_pixels,
     mask_choice,
-    pose_model,
     prepare_out,
     read_json,
     save_png,
     tail_split,
     write_json,
 )
+from meshsplat.data.formats._flame import (
+    check_in_front,
+    fit_coeffs,
+    flame_driver_record,
+    flame_model,
+    flame_rows,
+    pose_model,
+)
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.drivers.body_models import join_flame_pose15, split_flame_pose15
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.images import image_size
@@ -53,6 +57,7 @@ __all__ = [
 NAME = "imavatar"
 DESCRIPTION = "IMavatar/DECA head capture: flame_params.json + image/ (FLAME x4, OpenGL world_mat)"
 SIGNATURE = "flame_params.json"
+WRITE_MODEL = "flame"  # write() stores FLAME parameters: only FLAME-posed datasets can be written
 DECA_SCALE = 4.0  # DECA/IMavatar scale FLAME's template, shape and pose blendshapes by 4
 NUM_SHAPE, NUM_EXPRESSION = 100, 50
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes <-> OpenCV camera axes
@@ -240,7 +245,7 @@ def read(
             ),
         }
         params = {k: np.ascontiguousarray(v, np.float32) for k, v in params.items()}
-        verts = pose_model(model, params)
+        verts = pose_model(model, params, "flame_params.json")
         canonical = model.rest_vertices({"betas": params["betas"]}).cpu().numpy()
         faces = model.faces.cpu().numpy()
         check_in_front(cameras, frames, verts, problems, _HINT)
@@ -291,17 +296,6 @@ def _mask_kind(root: Path, mode: str, images: list[str], problems: Problems) -> 
 
 
 # ---------------------------------------------------------------- writing
-def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
-    a = np.asarray(a, np.float64).reshape(-1)
-    if a.size > width:
-        if np.any(a[width:] != 0):
-            raise MeshsplatError(
-                f"imavatar writer: {name} has {a.size} non-zero coefficients, the layout keeps {width}"
-            )
-        return a[:width]
-    return np.concatenate([a, np.zeros(width - a.size)])
-
-
 def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Write an IMavatar folder from a dataset with FLAME parameters.
 
@@ -355,7 +349,9 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
             {
                 "file_path": f"./image/{k}",
                 "world_mat": world_mat_from_viewmat(new).tolist(),
-                "expression": _fit_out("expression", value("expression", row, NUM_EXPRESSION), NUM_EXPRESSION).tolist(),
+                "expression": fit_out(
+                    NAME, "expression", value("expression", row, NUM_EXPRESSION), NUM_EXPRESSION
+                ).tolist(),
                 "pose": pose.tolist(),
             }
         )
@@ -363,7 +359,7 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         out / "flame_params.json",
         {
             "intrinsics": intr,
-            "shape_params": _fit_out("betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE).tolist(),
+            "shape_params": fit_out(NAME, "betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE).tolist(),
             "frames": frames,
             "flame_version": str(info.get("flame_version", "2020")),
         },

@@ -10,27 +10,29 @@ Page: docs/formats/insta.md.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
-from meshsplat.data.formats._heads import (
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.formats._files import (
     alpha_frames,
-    check_in_front,
     find_file,
     frame_pixels,
     mask_choice,
     merge_transform_frames,
+    natural_key,
     obj_vertices,
     prepare_out,
     save_png,
     tail_split,
+    transforms_files,
     write_json,
 )
+from meshsplat.data.formats._flame import check_in_front
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.obj import read_obj, write_obj
 
@@ -43,8 +45,6 @@ CONVENTIONS = ("auto", "opencv", "opengl")
 SPLIT_FILES = {"train": "train", "test": "test_frames", "val": "val"}  # INSTA file -> meshsplat split
 VAL_FRAMES = 20  # INSTA's transforms_val.json: the last 20 frames (of the test frames)
 MASK_FOLDERS = ("masks", "mask", "fg_masks")
-_EXTRA = re.compile(r"^transforms_([A-Za-z0-9_\-]+)\.json$")
-_NUM = re.compile(r"(\d+)")
 
 
 def detect(root: Path | str) -> bool:
@@ -53,12 +53,8 @@ def detect(root: Path | str) -> bool:
     return has_json and ((root / "meshes").is_dir() or (root / "canonical.obj").is_file())
 
 
-def _natural(s: str):
-    return [int(p) if p.isdigit() else p for p in _NUM.split(s)]
-
-
 def _files(root: Path) -> list[tuple[str | None, Path]]:
-    found = {m.group(1): p for p in sorted(root.glob("transforms_*.json")) if (m := _EXTRA.match(p.name))}
+    found = transforms_files(root)
     out: list[tuple[str | None, Path]] = []
     if (root / "transforms.json").is_file():
         out.append((None, root / "transforms.json"))
@@ -115,7 +111,7 @@ def read(
     # capture order (INSTA lists frames as its worker pool finishes them): natural order of the image path
     order = sorted(
         range(len(items)),
-        key=lambda j: _natural(str(items[j][0].get("file_path", "")) if isinstance(items[j][0], dict) else ""),
+        key=lambda j: natural_key(str(items[j][0].get("file_path", "")) if isinstance(items[j][0], dict) else ""),
     )
     new = {old: n for n, old in enumerate(order)}
     items = [items[j] for j in order]

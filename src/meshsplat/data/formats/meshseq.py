@@ -25,8 +25,9 @@ from typing import Any
 import numpy as np
 
 from meshsplat.camera import viewmat_from_opengl_c2w
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
-from meshsplat.data.formats._heads import IMAGE_EXTS, find_file, read_json
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.formats._files import IMAGE_EXTS, find_file, read_json
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, read_mesh_sequence
 from meshsplat.errors import MeshsplatError

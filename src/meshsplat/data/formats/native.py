@@ -6,7 +6,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from meshsplat.data.dataset import AvatarDataset, open_dataset
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.out_folder import empty_or_new_folder
 

@@ -27,10 +27,11 @@ import numpy as np
 import torch
 
 from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.formats._files import npz_or_problem
+from meshsplat.data.manifest import Problems, build_dataset
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
-from meshsplat.io.arrays import read_npz
 from meshsplat.io.images import float_to_uint8, write_png
 from meshsplat.io.out_folder import empty_or_new_folder
 
@@ -50,6 +51,8 @@ __all__ = [
 NAME = "peoplesnapshot"
 DESCRIPTION = "PeopleSnapshot, InstantAvatar / Anim-NeRF layout (SMPL, one fixed camera)"
 SIGNATURE = "cameras.npz + poses.npz (or poses/anim_nerf_*.npz) + images/image_0000.png"
+WRITE_MODEL = "smpl"  # write() stores SMPL parameters: only SMPL-posed datasets can be written
+WRITE_RIGS = ("monocular-turn",)  # one fixed training camera: the synth rigs whose captures it can hold
 
 # PeopleSnapshot split -> meshsplat split; the order is also the precedence when splits share a frame
 SPLIT_NAMES = {"train": "train", "test": "test_frames", "val": "val"}
@@ -244,11 +247,7 @@ def _range_dict(r: range) -> dict:
 
 
 def _npz(path: Path, problems: Problems) -> dict | None:
-    try:
-        return read_npz(path)
-    except MeshsplatError as exc:
-        problems.add(path.name, str(exc))
-        return None
+    return npz_or_problem(path, path.name, problems)
 
 
 def _read_config(root: Path, problems: Problems) -> tuple[str | None, dict[str, range] | None]:

@@ -9,7 +9,7 @@ timestep, shared by that timestep's cameras. Page: docs/formats/vhap.md.
 
 from __future__ import annotations
 
-import re
+import warnings
 from pathlib import Path
 from typing import Any, cast
 
@@ -17,44 +17,50 @@ import numpy as np
 
 from meshsplat.camera import K_from_focal, opengl_c2w_from_viewmat, viewmat_from_opengl_c2w
 from meshsplat.data.camera_check import group_ids
-from meshsplat.data.dataset import AvatarDataset, Problems, build_dataset, inside_capture
-from meshsplat.data.formats._heads import (
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.formats._files import (
     alpha_frames,
-    check_in_front,
     find_file,
+    fit_out,
+    frame_pixels,
+    mask_choice,
+    merge_transform_frames,
+    npz_or_problem,
+    prepare_out,
+    save_png,
+    transforms_files,
+    write_json,
+)
+from meshsplat.data.formats._flame import (
+    check_in_front,
     fit_coeffs,
     flame_driver_record,
     flame_model,
     flame_rows,
-    frame_pixels,
-    mask_choice,
-    merge_transform_frames,
     pose_model,
-    prepare_out,
-    save_png,
-    write_json,
 )
-from meshsplat.errors import MeshsplatError
-from meshsplat.io.arrays import read_npz
+from meshsplat.data.manifest import Problems, build_dataset, inside_capture
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
+from meshsplat.plausible import parameter_problems, sequence_gaps
 
 __all__ = ["NAME", "DESCRIPTION", "SIGNATURE", "detect", "read", "write", "SPLIT_FILES", "TEETH_VERTICES"]
 
 NAME = "vhap"
 DESCRIPTION = "GaussianAvatars/VHAP head capture: transforms_*.json + flame_param/*.npz (FLAME 2023)"
 SIGNATURE = "transforms_train.json + flame_param/"
+WRITE_MODEL = "flame"  # write() stores FLAME parameters: only FLAME-posed datasets can be written
 SPLIT_FILES = {"train": "train", "val": "test_views", "test": "test_frames"}  # VHAP file -> meshsplat split
 TEETH_VERTICES = 120  # VHAP appends 120 teeth vertices after FLAME's; meshsplat's FLAME has none
 NUM_SHAPE, NUM_EXPRESSION = 300, 100
 _KEYS = {"translation": 3, "rotation": 3, "neck_pose": 3, "jaw_pose": 3, "eyes_pose": 6, "expr": None}
 _PER_FRAME = ["global_orient", "neck_pose", "jaw_pose", "leye_pose", "reye_pose", "expression", "transl"]
 _HINT = "VHAP's transform_matrix is camera->world in OpenGL axes (camera looks down -z); check the capture"
-_EXTRA = re.compile(r"^transforms_([A-Za-z0-9_\-]+)\.json$")
 
 
 def _split_files(root: Path) -> dict[str, Path]:
     """meshsplat split name -> file: VHAP's train/val/test, then any other ``transforms_<name>.json``."""
     out: dict[str, Path] = {}
-    found = {m.group(1): p for p in sorted(root.glob("transforms_*.json")) if (m := _EXTRA.match(p.name))}
+    found = transforms_files(root)
     for name in [*SPLIT_FILES, *sorted(found)]:
         if name in found and name not in ("backup", "backup_flame"):
             out.setdefault(SPLIT_FILES.get(name, name), found[name])
@@ -88,10 +94,8 @@ def _load_frames(root: Path, problems: Problems):
 
 
 def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
-    try:
-        raw = read_npz(path, "FLAME parameters")
-    except MeshsplatError as exc:
-        problems.add(where, str(exc))
+    raw = npz_or_problem(path, where, problems, "FLAME parameters")
+    if raw is None:
         return None
     bad_kind = [k for k, a in raw.items() if a.dtype.kind not in "fiub"]
     if bad_kind:
@@ -123,7 +127,10 @@ def _npz(path: Path, where: str, problems: Problems, num_vertices: int | None):
     if bad:
         problems.add(where, f"{path.name}: {bad} contain NaN/Inf")
         return None
-    return out
+    implausible = parameter_problems(out)
+    for line in implausible:
+        problems.add(where, f"{path.name}: {line}")
+    return None if implausible else out
 
 
 def read(
@@ -195,6 +202,9 @@ def read(
             rec.pop("mask", None)
 
     timesteps = sorted(steps)
+    gaps = sequence_gaps(timesteps)
+    if gaps is not None:  # training is unaffected (frames are independent); a test clip or motion would jump
+        warnings.warn(f"{root}: {gaps} (check that no flame_param file is missing)", MeshsplatWarning, stacklevel=2)
     row_of = {t: r for r, t in enumerate(timesteps)}
     for rec in frames:
         rec["mesh"] = row_of[rec["mesh"]]
@@ -213,7 +223,7 @@ def read(
     if model is not None and loaded and all(p is not None for p in loaded):
         params = _params(cast("list[dict]", loaded), timesteps, model, problems, ignore_dynamic_offset)
         if params is not None:
-            verts = pose_model(model, params)
+            verts = pose_model(model, params, "flame_param/ (rows in timestep order)")
             shared = {k: params[k] for k in ("betas", "static_offset") if k in params}
             canonical = model.rest_vertices(shared).cpu().numpy()
             faces = model.faces.cpu().numpy()
@@ -316,15 +326,6 @@ def _params(
 
 
 # ---------------------------------------------------------------- writing
-def _fit_out(name: str, a: np.ndarray, width: int) -> np.ndarray:
-    a = np.asarray(a, np.float64).reshape(-1)
-    if a.size > width:
-        if np.any(a[width:] != 0):
-            raise MeshsplatError(f"vhap writer: {name} has {a.size} non-zero coefficients, the layout keeps {width}")
-        return a[:width]
-    return np.concatenate([a, np.zeros(width - a.size)])
-
-
 def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> Path:
     """Write a GaussianAvatars/VHAP folder from a dataset with FLAME parameters.
 
@@ -348,7 +349,7 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
         v = params[key]
         return v[row] if key in per_frame else v.reshape(-1)
 
-    shape = _fit_out("betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE)
+    shape = fit_out(NAME, "betas", value("betas", 0, NUM_SHAPE), NUM_SHAPE)
     static = None
     if "static_offset" in params:
         so = params["static_offset"].reshape(-1, 3)  # model units: BodyModel scales after posing
@@ -362,7 +363,7 @@ def write(dataset: AvatarDataset, out: Path | str, overwrite: bool = False) -> P
             "jaw_pose": value("jaw_pose", r, 3)[None],
             "eyes_pose": np.concatenate([value("leye_pose", r, 3), value("reye_pose", r, 3)])[None],
             "shape": shape,
-            "expr": _fit_out("expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None],
+            "expr": fit_out(NAME, "expression", value("expression", r, NUM_EXPRESSION), NUM_EXPRESSION)[None],
         }
         if static is not None:
             npz["static_offset"] = static

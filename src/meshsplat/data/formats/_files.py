@@ -1,8 +1,10 @@
-"""Pieces shared by the head-capture layouts (IMavatar, INSTA, GaussianAvatars/VHAP).
+"""The capture readers' kit of generic file helpers (every layout may use them; nothing here knows a model).
 
-Reading: JSON with one-line errors, image/mask lookup, a fast vertices-only OBJ reader, FLAME posing,
-the "mesh in front of its camera" sanity check and the tail test split. Writing: the FLAME parameters
-of a native dataset per mesh row and the frames' pixels as uint8.
+Reading: JSON with one-line errors, instant-ngp ``transforms*.json`` files (their names, merged frames),
+the natural sort key of numbered file names, an npz read into a dict with its problem reported, image and
+mask lookup, alpha decided per image, a fast vertices-only OBJ reader, the tail test split. Writing: an
+output folder, JSON, coefficients fitted to a layout's width, the frames' pixels as uint8 PNG.
+FLAME posing lives in ``_flame``.
 """
 
 from __future__ import annotations
@@ -13,17 +15,22 @@ import re
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from meshsplat.data.camera_check import group_ids
-from meshsplat.data.dataset import AvatarDataset, Problems, inside_capture
-from meshsplat.drivers.body_models import BodyModel, driver_record
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.manifest import Problems, inside_capture
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.arrays import read_npz
 from meshsplat.io.images import float_to_uint8, write_png
 from meshsplat.io.json_file import read_json_object
 from meshsplat.io.out_folder import empty_or_new_folder
+from meshsplat.plausible import group_ids
 
 __all__ = [
+    "TRANSFORMS_FILE",
+    "transforms_files",
+    "natural_key",
+    "npz_or_problem",
+    "fit_out",
     "merge_transform_frames",
     "read_json",
     "prepare_out",
@@ -32,13 +39,7 @@ __all__ = [
     "alpha_frames",
     "find_file",
     "obj_vertices",
-    "flame_model",
-    "fit_coeffs",
-    "pose_model",
-    "flame_driver_record",
-    "check_in_front",
     "mask_choice",
-    "flame_rows",
     "frame_pixels",
     "write_json",
     "save_png",
@@ -49,6 +50,50 @@ __all__ = [
 MASK_MODES = ("auto", "alpha", "folder", "none")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test frames
+SMALL_TEST_FRACTION = 0.2  # captures with <= 350 frames: the last 20% are test frames
+TRANSFORMS_FILE = re.compile(r"^transforms_([A-Za-z0-9_\-]+)\.json$")  # transforms_<split>.json
+_DIGITS = re.compile(r"(\d+)")
+
+
+def transforms_files(root: Path) -> dict[str, Path]:
+    """``<split> -> root/transforms_<split>.json`` of the files present, in name order."""
+    return {m.group(1): p for p in sorted(root.glob("transforms_*.json")) if (m := TRANSFORMS_FILE.match(p.name))}
+
+
+def natural_key(s: str) -> list:
+    """Sort key ordering numbered names as numbers (``img_2`` before ``img_10``)."""
+    return [int(p) if p.isdigit() else p for p in _DIGITS.split(s)]
+
+
+def npz_or_problem(path: Path, where: str, problems: Problems, what: str = "arrays") -> dict[str, np.ndarray] | None:
+    """The arrays of ``path`` as a dict (``meshsplat.io.arrays.read_npz``: no pickles), or None with its
+    one-line problem added to ``problems`` under ``where``."""
+    try:
+        return read_npz(path, what)
+    except MeshsplatError as exc:
+        problems.add(where, str(exc))
+        return None
+
+
+def fit_out(layout: str, name: str, a: np.ndarray, width: int) -> np.ndarray:
+    """Coefficients ``a`` as the ``width`` a layout stores: zero-padded, or cut when the extra ones are zero
+    (a one-line error naming the writer otherwise)."""
+    a = np.asarray(a, np.float64).reshape(-1)
+    if a.size > width:
+        if np.any(a[width:] != 0):
+            raise MeshsplatError(
+                f"{layout} writer: {name} has {a.size} non-zero coefficients, the layout keeps {width}"
+            )
+        return a[:width]
+    return np.concatenate([a, np.zeros(width - a.size)])
+
+
+MASK_MODES = ("auto", "alpha", "folder", "none")
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+DEFAULT_TEST_FRAMES = 350  # SplattingAvatar/INSTA: the last 350 frames are test frames
+
 SMALL_TEST_FRACTION = 0.2  # captures with <= 350 frames: the last 20% are test frames
 
 
@@ -78,10 +123,41 @@ def merge_transform_frames(
             if key not in index:
                 index[key] = len(frames)
                 frames.append((fr, data, path.name))
+            elif isinstance(fr, dict):
+                first, first_top, first_name = frames[index[key]]
+                differ = _disagreeing_keys(first, first_top, fr, data)
+                if differ:
+                    problems.add(
+                        f"frame {index[key]} ({key!r})",
+                        f"{path.name} disagrees with {first_name} on {', '.join(differ)}; the files must "
+                        f"describe a frame alike (fix or remove one of them)",
+                    )
             if split is not None:
                 splits[split].append(index[key])
         tops.append(data)
     return frames, splits, tops
+
+
+_CAMERA_TOP_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
+
+
+def _disagreeing_keys(a: dict, a_top: dict, b: dict, b_top: dict) -> list[str]:
+    """Keys two files' records of one frame both give (the intrinsics also from their files' top level)
+    with different values (numbers compared to 1e-6 relative)."""
+    ea = {**{k: a_top[k] for k in _CAMERA_TOP_KEYS if k in a_top}, **a}
+    eb = {**{k: b_top[k] for k in _CAMERA_TOP_KEYS if k in b_top}, **b}
+    out = []
+    for k in sorted(set(ea) & set(eb)):
+        x, y = ea[k], eb[k]
+        if x == y:
+            continue
+        try:
+            same = np.allclose(np.asarray(x, np.float64), np.asarray(y, np.float64), rtol=1e-6, atol=1e-9)
+        except (TypeError, ValueError):
+            same = False
+        if not same:
+            out.append(k)
+    return out
 
 
 def read_json(path: Path) -> dict:
@@ -194,7 +270,6 @@ def mask_choice(mode: str) -> str:
     return mode
 
 
-# ---------------------------------------------------------------- meshes
 _V_LINE = re.compile(rb"^v[ \t]+([^\r\n]*)", re.M)
 
 
@@ -214,87 +289,6 @@ def obj_vertices(path: Path) -> tuple[np.ndarray, int]:
         return np.array([ln.split()[:3] for ln in vlines], dtype=np.float64), nfaces
     except ValueError:
         raise MeshsplatError(f"{path}: malformed vertex line") from None
-
-
-# ---------------------------------------------------------------- FLAME
-def flame_model(model_dir: Path | str | None, flame_version: str, scale: float, problems: Problems) -> BodyModel | None:
-    """The user's FLAME model (its error, e.g. the file is missing, becomes one of ``problems``)."""
-    try:
-        return BodyModel("flame", model_dir, flame_version=str(flame_version), scale=scale)
-    except MeshsplatError as exc:
-        problems.add("FLAME model", str(exc))
-        return None
-
-
-def fit_coeffs(name: str, a: np.ndarray, width: int, problems: Problems) -> np.ndarray:
-    """Coefficients ``[..., k]`` for a model with ``width`` of them: zero-padded, or trimmed when the
-    extra trailing coefficients are all zero (they add nothing); a problem otherwise."""
-    k = a.shape[-1]
-    if k > width:
-        if np.any(a[..., width:] != 0):
-            problems.add(
-                name,
-                f"{k} coefficients, but the FLAME model file has {width}; "
-                f"non-zero coefficients beyond {width} cannot be used (use a full FLAME model file)",
-            )
-        return a[..., :width]
-    if k < width:
-        pad = np.zeros(a.shape[:-1] + (width - k,), a.dtype)
-        return np.concatenate([a, pad], -1)
-    return a
-
-
-def pose_model(model: BodyModel, params: dict, chunk: int = 128) -> np.ndarray:
-    """Posed vertices ``[T,V,3]`` float32 of per-frame ``params`` (shared ones broadcast)."""
-    T = model.check_params(params)
-    out = np.empty((T, model.num_vertices, 3), np.float32)
-    with torch.no_grad():
-        for s in range(0, T, chunk):
-            e = min(T, s + chunk)
-            p = {
-                k: (v[s:e] if k != "static_offset" and np.ndim(v) == 2 and len(v) == T else v)
-                for k, v in params.items()
-            }
-            out[s:e] = model.forward(p).vertices.cpu().numpy()
-    return out
-
-
-def flame_driver_record(model: BodyModel, source: str, per_frame: list[str]) -> dict:
-    """Manifest ``driver`` entry for meshes posed from a capture's FLAME parameters."""
-    rec = driver_record(model, source)
-    rec["per_frame"] = list(per_frame)
-    return rec
-
-
-def check_in_front(cameras: dict, frames: list[dict], verts: np.ndarray | None, problems: Problems, hint: str) -> None:
-    """Every frame's mesh centre must lie in front of its camera (catches a flipped camera convention)."""
-    if verts is None:
-        return
-    centres = np.asarray(verts, np.float64).mean(axis=1)
-    for i, rec in enumerate(frames):
-        cam = cameras.get(str(rec.get("camera")))
-        row = rec.get("mesh")
-        if cam is None or not isinstance(row, int) or not 0 <= row < len(centres):
-            continue
-        vm = np.asarray(cam["viewmat"], np.float64)
-        if vm.shape != (4, 4):
-            continue
-        z = float(vm[2, :3] @ centres[row] + vm[2, 3])
-        if not z > 0:
-            problems.add(f"frame {i} ({rec.get('name')!r})", f"the mesh lies behind its camera (depth {z:.3g}); {hint}")
-
-
-# ---------------------------------------------------------------- writing from a native dataset
-def flame_rows(dataset: AvatarDataset, fmt: str) -> tuple[dict, dict[str, np.ndarray], set[str]]:
-    """``(driver_info, params, per_frame names)`` of a dataset whose meshes are FLAME-posed."""
-    info, params = dataset.driver_info, dataset.driver_params
-    if info is None or params is None or info.get("type") != "flame":
-        kind = info.get("type") if info else "no body/head model"
-        raise MeshsplatError(
-            f"{fmt} writer: {dataset.root} must carry FLAME parameters (driver type 'flame'), "
-            f"it has {kind}; generate it from a FLAME source"
-        )
-    return info, {k: np.asarray(v, np.float64) for k, v in params.items()}, set(info.get("per_frame", []))
 
 
 def frame_pixels(dataset: AvatarDataset, i: int) -> tuple[np.ndarray, np.ndarray | None]:
