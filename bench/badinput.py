@@ -1141,7 +1141,7 @@ def _motion_case(label: str, poses_fn, frames: int = 4, extra=()) -> None:
         f = ctx["tmp"] / ("motion_" + "".join(c if c.isalnum() else "_" for c in label)[:40] + ".npz")
         np.savez_compressed(f, poses=poses_fn(frames), trans=np.zeros((frames, 3), np.float32))
         cmd = extra[0] if extra else "render"
-        args = [cmd, run, "--motion", f, "--model-dir", models, "--out", ctx["tmp"] / f"{f.stem}_out"]
+        args = [cmd, run, "--animation", "motion", f, "--model-dir", models, "--out", ctx["tmp"] / f"{f.stem}_out"]
         if cmd == "render":
             args += ["--size", "32x32", "--no-mp4", "--no-progress"]
         return cli(*args), {}, None
@@ -1219,7 +1219,7 @@ def _older_case(command: str, allow: bool) -> None:
         out = ctx["tmp"] / f"{run.name}_out"
         args = {
             "export": ["export", run, "--out", out],
-            "render": ["render", run, "--dataset-split", "train", "--out", out, "--size", "32x32", "--no-mp4",
+            "render": ["render", run, "--animation", "dataset", "--split", "train", "--out", out, "--size", "32x32", "--no-mp4",
                        "--no-progress"],
             "view": ["view", run, "--out", out],
             "eval": ["eval", run, "--out", out, "--no-lpips", "--no-report", "--no-progress"],
@@ -1235,7 +1235,11 @@ for _cmd in ("export", "render", "view", "eval"):
 @case("sizes", "sizes: render --no-png --no-mp4 (nothing to write)")
 def _nothing(ctx):
     out = ctx["tmp"] / "nothing_out"
-    return cli("render", ctx["run"], "--dataset-split", "train", "--no-png", "--no-mp4", "--out", out), {}, None
+    return (
+        cli("render", ctx["run"], "--animation", "dataset", "--split", "train", "--no-png", "--no-mp4", "--out", out),
+        {},
+        None,
+    )
 
 
 @case("sizes", "sizes: synth CesiumMan --format imavatar (no FLAME model)")

@@ -27,7 +27,7 @@ def _commands(run, out):
     verts = str(run.parent / "verts.npy")
     return {
         "export": ["export", str(run), "--out", str(out / "export")],
-        "render": ["render", str(run), "--vertices", verts, "--out", str(out / "render"), "--size", "32x32",
+        "render": ["render", str(run), "--animation", "vertices", verts, "--out", str(out / "render"), "--size", "32x32",
                    "--no-mp4", "--no-progress"],
         "view": ["view", str(run), "--out", str(out / "view")],
         "eval": ["eval", str(run), "--out", str(out / "eval"), "--no-lpips", "--no-report", "--no-progress",
