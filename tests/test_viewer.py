@@ -71,7 +71,7 @@ def test_bundle_round_trip(tmp_path, clamp):
     h, a = read_viewer_bundle(tmp_path)
     p = av.params
     assert (h["num_vertices"], h["num_faces"], h["num_gaussians"], h["num_frames"]) == (42, 80, 200, 3)
-    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 2
+    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 3
     assert all(s["offset"] % 4 == 0 for s in h["sections"].values())
     assert np.array_equal(a["faces"], av.mesh.faces.numpy())
     assert np.array_equal(a["canonical_vertices"], av.mesh.vertices.numpy())
@@ -680,3 +680,67 @@ def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
     small = make_run(make_avatar(n=20), tmp_path / "small", None)
     assert main(["view", str(small), "--out", str(tmp_path / "x"), "--animation", "blendshapes"]) == 2
     assert "the model has 26719 vertices" in capsys.readouterr().err
+
+
+def shaded_avatar(n: int = 400, sh_degree: int = 2, sh_frame: str = "triangle", normal: str = "phong") -> Avatar:
+    """The test avatar with pose-dependent shading: a strongly directional learned irradiance (key light
+    from +x+y, coloured) and view-dependent SH bands in the triangle frame."""
+    from meshsplat.gaussians.shading import Shading
+
+    av = make_avatar(n=n, sh_degree=sh_degree)
+    coeffs = torch.zeros(9, 3)
+    coeffs[0] = torch.tensor([2.2, 2.0, 1.8])
+    coeffs[1] = torch.tensor([0.9, 0.6, 0.3])  # y
+    coeffs[3] = torch.tensor([1.1, 0.8, 1.2])  # x
+    coeffs[4] = torch.tensor([0.4, -0.3, 0.2])
+    coeffs[6] = torch.tensor([-0.3, 0.2, 0.1])
+    coeffs[8] = torch.tensor([0.2, 0.3, -0.4])
+    return Avatar(av.mesh, av.params, av.scale_mode, shading=Shading(coeffs, normal), sh_frame=sh_frame)
+
+
+def test_bundle_carries_the_shading(tmp_path):
+    av = shaded_avatar(n=50, sh_degree=3, normal="axis")
+    write_viewer_bundle(av, _frames(av), tmp_path)
+    h, a = read_viewer_bundle(tmp_path)
+    assert h["sh_degree"] == 3 and h["sh_frame"] == "triangle" and h["antialiased"] is False
+    assert h["shading"]["normal"] == "axis"
+    np.testing.assert_allclose(h["shading"]["coeffs"], av.shading.coeffs.numpy(), rtol=1e-7)
+    shn = av.params["shN"].detach().numpy()
+    assert a["gaussian_sh_rest"].shape == shn.shape == (50, 15, 3)
+    np.testing.assert_allclose(a["gaussian_sh_rest"], shn, rtol=2**-11, atol=1e-7)  # half floats
+    # the DC colour is the albedo (0.5 + C0 sh0, not clamped: the page adds the bands, clamps, shades)
+    np.testing.assert_allclose(
+        a["gaussian_rgb"], 0.5 + SH_C0 * av.params["sh0"].detach().numpy()[:, 0], rtol=2**-11, atol=1e-7
+    )
+    assert a["sh_rest"].shape == (50, 24)  # 45 halves -> 23 words -> whole texels
+    plain = make_avatar(n=50)
+    write_viewer_bundle(plain, _frames(plain), tmp_path / "p")
+    h, a = read_viewer_bundle(tmp_path / "p")
+    assert h["shading"] is None and h["sh_degree"] == 0 and "sh_rest" not in a
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "sh_degree,sh_frame,normal,antialiased",
+    [(2, "triangle", "phong", False), (1, "world", "axis", True)],
+)
+def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, normal, antialiased):
+    """Pose-dependent shading on the GPU: the shaded page equals avatar.render in two poses, on the
+    subject and on the full frame; the canonical pose's shading baked in would not."""
+    av = shaded_avatar(sh_degree=sh_degree, sh_frame=sh_frame, normal=normal)
+    av.antialiased = antialiased
+    frames = _frames(av, ts=(0.0, 1.0))
+    write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256})
+    h, a = read_viewer_bundle(tmp_path / "b")
+    refs = []
+    for frame in (0, 1):
+        ref = _render_ref(av, a["vertices"][frame], h["camera"])
+        img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
+        subject = (np.abs(ref - 255).max(-1) > 2) | (np.abs(img - 255).max(-1) > 2)
+        full, on = _psnr(img, ref), _psnr(img[subject], ref[subject])
+        print(f"shaded page vs avatar.render, frame {frame}: full {full:.1f} dB, subject {on:.1f} dB")
+        assert subject.mean() > 0.05
+        assert on >= 40.0 and full >= 40.0, (on, full)
+        refs.append(ref)
+    # the colours do follow the pose: the two frames' shading differs by far more than the page's error
+    assert _psnr(refs[0], refs[1]) < 30.0

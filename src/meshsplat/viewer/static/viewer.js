@@ -21,7 +21,12 @@ const ALPHA_THRESHOLD = 1 / 255;
 const ALPHA_MAX = 0.999;
 const MAX_EXTEND = 3.33;
 const FOV_CLAMP_MARGIN = 0.3;
-const NEAR_PLANE = 0.01;
+const NEAR_PLANE = 0.01;         // as meshsplat.render.rasterize's near_plane
+const SH_C1 = 0.4886025119029199;   // SH constants of meshsplat.gaussians.compose and .shading
+const SH_C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
+const SH_C3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+               -0.4570457994644658, 1.445305721320277, -0.5900435899266435];
+const SH9 = [0.28209479177387814, 0.4886025119029199, 1.0925484305920792, 0.31539156525252005, 0.5462742152960396];
 export const TEX_WIDTH = 2048; // width of every data texture (texel i at (i % W, i / W))
 
 // ------------------------------------------------------------------ bundle decoding
@@ -68,7 +73,7 @@ export function decodeBundle(header, bytes) {
   const N = header.num_gaussians;
   const b = {
     header, V: header.num_vertices, F: header.num_faces, N, T: header.num_frames,
-    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames, packed: arr.gaussians,
+    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames, packed: arr.gaussians, shRest: arr.sh_rest,
     ...unpackGaussians(arr.gaussians, N),
   };
   // canonical per-face frames (constant) and areas
@@ -840,10 +845,15 @@ precision highp sampler2D; precision highp usampler2D;
 layout(location=0) in vec2 corner;      // quad corner in {-1, 1}^2
 layout(location=1) in uint gid;         // Gaussian index, instances in back-to-front order
 uniform usampler2D gTex;                // 2 RGBA32UI texels per Gaussian (bundle.py pack_gaussians)
+uniform usampler2D shTex;               // shTexels RGBA32UI texels per Gaussian: SH bands > 0, half floats
 uniform usampler2D fTex;                // face -> vertex indices (a, b, c)
 uniform sampler2D pTex, nTex, qTex;     // per posed vertex: position, normal, quaternion wxyz
 uniform sampler2D rTex;                 // per face: posed / canonical area (x)
 uniform int scaleMode;                  // 0 none, 1 area, 2 sqrt_area
+uniform int shK, shTexels, shFrame;     // SH coefficients above the DC (0, 3, 8, 15); frame: 0 world, 1 triangle
+uniform int shadeNormal;                // learned irradiance: 0 off, 1 Phong normal, 2 shortest axis
+uniform vec3 irr[9];                    // its SH coefficients (world space, per channel)
+uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I))
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
 uniform vec2 size;                      // width, height (pixels)
@@ -851,6 +861,49 @@ out vec2 offs; out vec3 conic; out vec4 col;
 ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
 vec4 quatMul(vec4 a, vec4 b) {          // Hamilton product, w first
   return vec4(a.x * b.x - dot(a.yzw, b.yzw), a.x * b.yzw + b.x * a.yzw + cross(a.yzw, b.yzw));
+}
+mat3 quatMat(vec4 q) {                  // rotation of a unit wxyz quaternion (GLSL: columns)
+  float qw = q.x, qx = q.y, qy = q.z, qz = q.w;
+  return mat3(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy),
+              2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx),
+              2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy));
+}
+// colour = max(0, 0.5 + SH(view direction)) (meshsplat.gaussians.compose.eval_sh); dc = 0.5 + C0 sh0
+vec3 viewColour(int g, vec3 dc, vec3 dir) {
+  float c[45];
+  for (int t = 0; t < shTexels; t++) {
+    uvec4 w = texelFetch(shTex, at(g * shTexels + t), 0);
+    for (int j = 0; j < 4; j++) {
+      int i = 8 * t + 2 * j;
+      vec2 h = unpackHalf2x16(w[j]);
+      if (i < 45) c[i] = h.x;
+      if (i + 1 < 45) c[i + 1] = h.y;
+    }
+  }
+  #define SH(k) vec3(c[3 * (k)], c[3 * (k) + 1], c[3 * (k) + 2])
+  vec3 d = dir / max(length(dir), 1e-12);
+  float x = d.x, y = d.y, z = d.z;
+  vec3 rgb = dc - ${SH_C1} * y * SH(0) + ${SH_C1} * z * SH(1) - ${SH_C1} * x * SH(2);
+  if (shK >= 8) {
+    float xx = x * x, yy = y * y, zz = z * z;
+    rgb += ${SH_C2[0]} * x * y * SH(3) + ${SH_C2[1]} * y * z * SH(4) + ${SH_C2[2]} * (2.0 * zz - xx - yy) * SH(5)
+         + ${SH_C2[3]} * x * z * SH(6) + ${SH_C2[4]} * (xx - yy) * SH(7);
+    if (shK >= 15) {
+      rgb += ${SH_C3[0]} * y * (3.0 * xx - yy) * SH(8) + ${SH_C3[1]} * x * y * z * SH(9)
+           + ${SH_C3[2]} * y * (4.0 * zz - xx - yy) * SH(10) + ${SH_C3[3]} * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * SH(11)
+           + ${SH_C3[4]} * x * (4.0 * zz - xx - yy) * SH(12) + ${SH_C3[5]} * z * (xx - yy) * SH(13)
+           + ${SH_C3[6]} * x * (xx - 3.0 * yy) * SH(14);
+    }
+  }
+  return rgb;
+}
+// E(n) = max(0, sum_i Y_i(n) irr_i): second-order SH irradiance (meshsplat.gaussians.shading)
+vec3 irradiance(vec3 n) {
+  float x = n.x, y = n.y, z = n.z;
+  vec3 e = ${SH9[0]} * irr[0] + ${SH9[1]} * y * irr[1] + ${SH9[1]} * z * irr[2] + ${SH9[1]} * x * irr[3]
+         + ${SH9[2]} * x * y * irr[4] + ${SH9[2]} * y * z * irr[5] + ${SH9[3]} * (3.0 * z * z - 1.0) * irr[6]
+         + ${SH9[2]} * x * z * irr[7] + ${SH9[4]} * (x * x - y * y) * irr[8];
+  return max(e, 0.0);
 }
 void main() {
   int g = int(gid);
@@ -877,14 +930,10 @@ void main() {
   float fac = scaleMode == 1 ? ratio : scaleMode == 2 ? sqrt(max(ratio, 0.0) + 1e-20) : 1.0;
   vec3 s = vec3(s01, s2b.x) * fac;
   vec3 mc = R * mean + tr;
-  float op = dop.y;
-  if (mc.z < ${NEAR_PLANE} || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  if (mc.z < ${NEAR_PLANE}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   // world covariance M M^T with M = rot(q) diag(s)  (columns of rot(q) scaled)
-  float qw = q.x, qx = q.y, qy = q.z, qz = q.w;
-  mat3 M = mat3(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy),
-                2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx),
-                2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
-         * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
+  mat3 Rq = quatMat(q);
+  mat3 M = Rq * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
   mat3 C = R * (M * transpose(M)) * transpose(R);
   // Jacobian at x/z, y/z clamped to the widened frustum (as gsplat / meshsplat.render.projection)
   float rz = 1.0 / mc.z;
@@ -895,9 +944,12 @@ void main() {
   // GLSL matrices are column-major: J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]] as 3x3 (last row 0)
   mat3 J = mat3(K.x * rz, 0.0, 0.0,  0.0, K.y * rz, 0.0,  -K.x * txy.x * rz * rz, -K.y * txy.y * rz * rz, 0.0);
   mat3 c2 = J * C * transpose(J);
-  float a = c2[0][0] + ${EPS2D}, b = c2[1][0], c = c2[1][1] + ${EPS2D};
+  float a0 = c2[0][0], b = c2[1][0], c0 = c2[1][1];
+  float a = a0 + ${EPS2D}, c = c0 + ${EPS2D};
   float det = a * c - b * b;
-  if (det <= 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  float op = dop.y;
+  if (antialiased) op *= sqrt(clamp(det > 0.0 ? max(a0 * c0 - b * b, 0.0) / det : 1.0, 0.0, 1.0) + 1e-12);
+  if (det <= 0.0 || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   conic = vec3(c, -b, a) / det;
   float extend = min(${MAX_EXTEND}, sqrt(2.0 * log(op / ${ALPHA_THRESHOLD})));
   vec2 radius = ceil(extend * sqrt(vec2(a, c)));
@@ -905,7 +957,25 @@ void main() {
   offs = corner * radius;
   vec2 px = m2 + offs;
   gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
-  col = vec4(rg, s2b.y, op);
+  // colour, per frame: view-dependent SH (view direction in world or the triangle's canonical frame),
+  // times the learned irradiance of the posed normal (meshsplat.gaussians.compose)
+  vec3 rgb = vec3(rg, s2b.y);
+  if (shK > 0) {
+    vec3 dir = mean + transpose(R) * tr;  // mean - camera centre
+    if (shFrame == 1) dir = transpose(quatMat(dq)) * dir;
+    rgb = viewColour(g, rgb, dir);
+  }
+  rgb = max(rgb, 0.0);
+  if (shadeNormal > 0) {
+    vec3 sn = n;
+    if (shadeNormal == 2) {             // shortest posed axis (first minimum), facing the Phong normal's side
+      int i = s.y < s.x ? (s.z < s.y ? 2 : 1) : (s.z < s.x ? 2 : 0);
+      sn = Rq[i];
+      if (dot(sn, n) < 0.0) sn = -sn;
+    }
+    rgb *= irradiance(sn);
+  }
+  col = vec4(rgb, op);
 }`;
 
 const FRAG = `#version 300 es
@@ -987,7 +1057,8 @@ export class SplatRenderer {
     this.gl = gl; this.b = b;
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
-    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "fTex", "pTex", "nTex", "qTex", "rTex", "scaleMode"]);
+    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
+      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "antialiased"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     const ftex = new Uint32Array(4 * b.F);
@@ -1000,6 +1071,7 @@ export class SplatRenderer {
     const { va, adj } = vertexFaces(b.faces, b.V);
     this.t = {
       g: dataTexture(gl, "u4", 2 * b.N, b.packed), f: dataTexture(gl, "u4", b.F, ftex),
+      sh: b.shRest ? dataTexture(gl, "u4", b.shRest.length / 4, b.shRest) : dataTexture(gl, "u4", 1),
       cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
       p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
       fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
@@ -1117,8 +1189,15 @@ export class SplatRenderer {
     gl.uniform3f(p.loc.tr, m[3], m[7], m[11]);
     gl.uniform4f(p.loc.K, K[0], K[1], K[2], K[3]);
     gl.uniform2f(p.loc.size, w, h);
-    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[this.b.header.scale_mode]);
-    this.bind(p, { gTex: t.g, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
+    const hd = this.b.header, shK = [0, 3, 8, 15][hd.sh_degree || 0], shade = hd.shading;
+    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[hd.scale_mode]);
+    gl.uniform1i(p.loc.shK, shK);
+    gl.uniform1i(p.loc.shTexels, shK ? this.b.shRest.length / (4 * this.b.N) : 0);
+    gl.uniform1i(p.loc.shFrame, hd.sh_frame === "triangle" ? 1 : 0);
+    gl.uniform1i(p.loc.shadeNormal, shade ? (shade.normal === "axis" ? 2 : 1) : 0);
+    if (shade) gl.uniform3fv(p.loc.irr, shade.coeffs.flat());
+    gl.uniform1i(p.loc.antialiased, hd.antialiased ? 1 : 0);
+    this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
     gl.bindVertexArray(null);
