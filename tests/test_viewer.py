@@ -744,3 +744,58 @@ def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, norma
         refs.append(ref)
     # the colours do follow the pose: the two frames' shading differs by far more than the page's error
     assert _psnr(refs[0], refs[1]) < 30.0
+
+
+@pytest.mark.slow
+def test_browser_phone_gestures_and_space_bar(tmp_path):
+    """On an emulated phone (touch screen, mobile viewport, 2x pixels): one finger orbits, a pinch
+    zooms without orbiting, a double tap and the reset button give the default view back; the space
+    bar plays/pauses whichever button has the focus, and only once."""
+    from _browser import open_page
+
+    av = make_avatar(n=200)
+    write_viewer_bundle(av, _frames(av), tmp_path / "b")
+    view = "JSON.stringify(window.meshsplatViewer.view)"
+    url = (tmp_path / "b" / "index.html").as_uri() + "?play=0"  # paused: a still page does not redraw
+    with open_page(url, 390, 844, chromium=_chromium(), mobile=True, scale=2) as page:
+        page.wait_ready()
+        assert page.evaluate("window.devicePixelRatio") == 2 and page.evaluate("navigator.maxTouchPoints") > 0
+        v0 = json.loads(page.evaluate(view))
+        # one finger: orbit (0.3 degree per CSS pixel)
+        page.touch("touchStart", [(200, 500)])
+        page.touch("touchMove", [(260, 500)])
+        page.touch("touchMove", [(300, 530)])
+        page.touch("touchEnd", [])
+        v1 = json.loads(page.evaluate(view))
+        assert v1["az"] == pytest.approx(v0["az"] - 30) and v1["el"] == pytest.approx(v0["el"] + 9)
+        assert v1["dist"] == pytest.approx(v0["dist"])
+        # two fingers spread from 100 to 200 px: twice as close, no orbit
+        page.touch("touchStart", [(150, 400), (250, 400)])
+        page.touch("touchMove", [(100, 400), (300, 400)])
+        page.touch("touchEnd", [])
+        v2 = json.loads(page.evaluate(view))
+        assert v2["dist"] == pytest.approx(v0["dist"] / 2) and (v2["az"], v2["el"]) == (v1["az"], v1["el"])
+        # a double tap resets the view
+        for xy in ((200, 300), (203, 302)):
+            page.touch("touchStart", [xy])
+            page.touch("touchEnd", [])
+        assert json.loads(page.evaluate(view)) == v0
+        # ... and so does the visible reset button
+        page.touch("touchStart", [(200, 500)])
+        page.touch("touchMove", [(240, 500)])
+        page.touch("touchEnd", [])
+        assert json.loads(page.evaluate(view)) != v0
+        assert page.evaluate("document.getElementById('reset').getBoundingClientRect().width") > 0
+        page.evaluate("document.getElementById('reset').click()")
+        assert json.loads(page.evaluate(view)) == v0
+        # space bar: play/pause whatever has the focus, never the focused button's own action
+        playing = "window.meshsplatViewer.state.playing"
+        assert page.evaluate(playing) is False
+        page.evaluate("document.getElementById('play').focus()")
+        page.key(" ", "Space", " ")
+        assert page.evaluate(playing) is True
+        assert page.evaluate("document.getElementById('play').textContent") == "pause"
+        page.evaluate("document.getElementById('bg').focus()")
+        page.key(" ", "Space", " ")
+        assert page.evaluate(playing) is False
+        assert page.evaluate("window.meshsplatViewer.state.white") is True  # the background did not toggle

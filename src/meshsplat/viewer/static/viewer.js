@@ -1256,6 +1256,9 @@ export function startViewer(doc) {
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
+  // the page's own timers (the last 1,000 frames and sorts, ms) for the status line and bench/viewer.py
+  const timings = { main: [], sort: [], firstReadyMs: null };
+  const record = (list, ms) => { list.push(ms); if (list.length > 1000) list.shift(); };
   const still = params.get("frame") !== null || params.get("time") !== null;
   const clips = live ? b.rig.clips : [];
   const clipParam = params.get("clip");
@@ -1266,7 +1269,7 @@ export function startViewer(doc) {
     weights: live ? new Float64Array(b.rig.defaultWeights.length).fill(NaN) : null,
     playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
-    poseKey: "", sortedKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
+    poseKey: "", sortedKey: null, drawnKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
   };
   for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
     const [i, w] = kv.split(":").map(Number);
@@ -1278,6 +1281,7 @@ export function startViewer(doc) {
     renderer.setOrder(r.order, r.n);
     sorter.recycle(r.order);
     state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
+    record(timings.sort, r.ms);
   }, params.get("worker") !== "0");
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
@@ -1332,22 +1336,57 @@ export function startViewer(doc) {
     syncUi();
   };
   bg.onclick = () => { state.white = !state.white; syncUi(); };
-  // orbit (drag) and zoom (wheel); "r" resets the default view
-  let drag = null;
-  canvas.addEventListener("pointerdown", (e) => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
-  canvas.addEventListener("pointerup", () => { drag = null; });
+  const resetView = () => { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; };
+  $("reset").onclick = resetView;
+  // one pointer (mouse or finger) drags to orbit; two fingers pinch to zoom (distance ratio); the
+  // wheel zooms; a double tap, the reset button or "r" gives the default view back
+  const pointers = new Map(); // pointerId -> [x, y]
+  let pinch = 0, lastTap = null, press = null; // press: [time, x, y] of a lone finger, null once it moved or had company
+  const spread = () => { const [a, c] = [...pointers.values()]; return Math.hypot(a[0] - c[0], a[1] - c[1]); };
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (pointers.size === 2) pinch = spread();
+    press = pointers.size === 1 && e.pointerType === "touch" ? [e.timeStamp, e.clientX, e.clientY] : null;
+  });
+  const release = (e) => {
+    if (!pointers.delete(e.pointerId)) return;
+    if (pointers.size === 2) pinch = spread();
+    if (e.type !== "pointerup" || !press || pointers.size > 0) return;
+    const now = e.timeStamp; // a tap: short, still, alone; two taps close in time and place reset the view
+    if (now - press[0] < 300) {
+      if (lastTap && now - lastTap[0] < 400 && Math.hypot(press[1] - lastTap[1], press[2] - lastTap[2]) < 40) {
+        resetView(); lastTap = null;
+      } else lastTap = [now, press[1], press[2]];
+    }
+    press = null;
+  };
+  canvas.addEventListener("pointerup", release);
+  canvas.addEventListener("pointercancel", release);
   canvas.addEventListener("pointermove", (e) => {
-    if (!drag) return;
-    cam.az -= 0.3 * (e.clientX - drag[0]);
-    cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - drag[1])));
-    drag = [e.clientX, e.clientY];
+    const prev = pointers.get(e.pointerId);
+    if (!prev) return;
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (press && Math.hypot(e.clientX - press[1], e.clientY - press[2]) > 10) press = null;
+    if (pointers.size === 1) {
+      cam.az -= 0.3 * (e.clientX - prev[0]);
+      cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - prev[1])));
+    } else if (pointers.size === 2) {
+      const d = spread();
+      if (pinch > 0 && d > 0) cam.dist *= pinch / d; // fingers apart: closer
+      pinch = d;
+    }
   });
   canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); },
                           { passive: false });
+  // the space bar plays/pauses whatever has the focus (a focused button would otherwise take it)
+  const isSpace = (e) => e.key === " " || e.code === "Space";
   doc.addEventListener("keydown", (e) => {
-    if (e.key === "r") { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; }
-    if (e.key === " ") play.onclick();
-  });
+    if (isSpace(e)) { e.preventDefault(); if (!e.repeat) play.onclick(); } else if (e.key === "r") resetView();
+  }, true);
+  doc.addEventListener("keyup", (e) => { if (isSpace(e)) e.preventDefault(); }, true);
+  // what the page shows, for tests and benchmarks (read-only use)
+  window.meshsplatViewer = { view: cam, state, timings };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
@@ -1390,8 +1429,14 @@ export function startViewer(doc) {
       state.pendingKey = key; // before the request: without a worker the result comes back inside it
       if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
-    renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
-    mainMs = performance.now() - t0;
+    // draw when the pose, view, order, background or size changed (a still page stays idle)
+    const drawKey = `${key}|${state.sortedKey}|${state.white}|${w}x${h}`;
+    if (drawKey !== state.drawnKey) {
+      renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
+      state.drawnKey = drawKey;
+      mainMs = performance.now() - t0;
+      record(timings.main, mainMs);
+    }
     fpsCount++;
     if (now - fpsT > 500) { fps = 1000 * fpsCount / (now - fpsT); fpsCount = 0; fpsT = now; }
     info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
@@ -1400,7 +1445,10 @@ export function startViewer(doc) {
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
       (key === state.sortedKey ? "" : " · order stale");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view
-    if (key === state.sortedKey) doc.body.dataset.ready = "1";
+    if (key === state.sortedKey) {
+      if (timings.firstReadyMs === null) timings.firstReadyMs = performance.now(); // since navigation start
+      doc.body.dataset.ready = "1";
+    }
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
