@@ -25,6 +25,7 @@ from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 from test_eval_kit import deform, make_avatar, make_run
 
 NODE = shutil.which("node")
+REFERENCE_JS = json.dumps((Path(__file__).resolve().parent / "viewer_reference.mjs").as_uri())  # CPU reference
 needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
 
 
@@ -46,7 +47,8 @@ def _node(script: str, cwd: Path) -> dict:
 
 def _js_pose(bundle: Path) -> list[dict]:
     script = f"""
-import {{ decodeBundle, poseGaussians }} from {json.dumps((bundle / "viewer.js").as_uri())};
+import {{ decodeBundle }} from {json.dumps((bundle / "viewer.js").as_uri())};
+import {{ poseGaussians }} from {REFERENCE_JS};
 import fs from "fs";
 const h = JSON.parse(fs.readFileSync({json.dumps(str(bundle / "avatar.json"))}, "utf8"));
 const b = decodeBundle(h, fs.readFileSync({json.dumps(str(bundle / "avatar.bin"))}));
@@ -255,7 +257,8 @@ def test_js_sort_and_camera(tmp_path):
     means = rng.normal(size=(3000, 3)) * [1, 1, 3] + [0, 0, 2.0]  # some behind the near plane
     means[:40] = means[40]  # exact ties
     script = f"""
-import {{ sortByDepth, orbitViewmat, intrinsics }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ orbitViewmat, intrinsics }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ sortByDepth }} from {REFERENCE_JS};
 const c = {json.dumps(cam)};
 const means = Float32Array.from({json.dumps(means.ravel().tolist())});
 const vm = [0.6, 0, 0.8, 0, 0, 1, 0, 0, -0.8, 0, 0.6, 0.1, 0, 0, 0, 1];  // rotated: float32 depth rounding
@@ -348,8 +351,9 @@ def test_worker_sort_keys_are_the_drawn_centre_depths(tmp_path):
     av = make_avatar(n=400)
     write_viewer_bundle(av, _frames(av), tmp_path, vertex_encoding="float32")
     script = f"""
-import {{ decodeBundle, frameVertices, poseGaussians, vertexNormals, gaussianDepths, sortJob, sortSetup, sortScratch,
+import {{ decodeBundle, frameVertices, vertexNormals, sortJob, sortSetup, sortScratch,
          orbitViewmat }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ poseGaussians, gaussianDepths }} from {REFERENCE_JS};
 import fs from "fs";
 const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
 const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));

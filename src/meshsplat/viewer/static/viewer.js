@@ -1,27 +1,28 @@
-// meshsplat WebGL2 viewer: poses mesh-embedded Gaussians on the GPU every frame and splats them.
+// meshsplat WebGL2 viewer: poses and shades mesh-embedded Gaussians on the GPU every frame and splats them.
 //
-// Per frame the main thread does per-VERTEX work only: it decodes the frame's vertices, computes
-// vertex normals, vertex quaternions and face area ratios (poseMesh) and uploads them to float
-// textures. The vertex shader evaluates each Gaussian's embedding (Phong point + d*n, blended
-// rotation, area scale) from those textures and projects it; one instanced draw call. The depth
-// sort runs in a Web Worker (created from a Blob URL of inline source, so it works from file://),
-// on the posed centres, with a 16-bit counting sort; the main thread never waits for it.
+// Per frame the main thread does per-vertex (vertex frames: decode the frame) or per-joint (live
+// glTF: evaluate the clip) work only and uploads it to float textures. GPU passes then skin the
+// mesh (live glTF), compute per-face rotations and area ratios and per-vertex normals and
+// quaternions; the splat vertex shader evaluates each Gaussian's embedding (Phong point + d*n,
+// blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
+// normal) and projects it; one instanced draw call. The depth sort runs in a Web Worker (created
+// from a Blob URL of inline source, so it works from file://) with a 16-bit counting sort; the main
+// thread never waits for it.
 //
-// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, gaussianDepths, sortGaussians,
-// orbitViewmat, intrinsics) mirror meshsplat.mesh.geometry / meshsplat.embedding /
-// meshsplat.gaussians.compose and run under Node for the tests and bench/viewer.py. The UI starts
-// only in a page that holds the embedded avatar data. Cameras follow the project convention:
-// world->camera viewmat in OpenCV axes (x right, y down, z forward), pinhole K, pixel centres at
-// +0.5. Matrices are row-major flat arrays.
+// The exported functions (decodeBundle, frameVertices, evalRig, skinVertices, sortJob, orbitViewmat,
+// intrinsics, ...) run under Node for the tests (tests/viewer_reference.mjs holds the CPU reference
+// of the GPU posing) and bench/viewer.py. The UI starts only in a page that holds the embedded
+// avatar data. Cameras follow the project convention: world->camera viewmat in OpenCV axes (x right,
+// y down, z forward), pinhole K, pixel centres at +0.5. Matrices are row-major flat arrays.
 
 export const SH_C0 = 0.28209479177387814;
-const EPS = 1e-12;            // meshsplat.mesh.geometry._EPS
+export const EPS = 1e-12;     // meshsplat.mesh.geometry._EPS
 const EPS2D = 0.3;            // 2D covariance dilation (pixels^2), as the rasterizer
 const ALPHA_THRESHOLD = 1 / 255;
 const ALPHA_MAX = 0.999;
 const MAX_EXTEND = 3.33;
 const FOV_CLAMP_MARGIN = 0.3;
-const NEAR_PLANE = 0.01;         // as meshsplat.render.rasterize's near_plane
+export const NEAR_PLANE = 0.01;  // as meshsplat.render.rasterize's near_plane (the worker gets it too)
 const SH_C1 = 0.4886025119029199;   // SH constants of meshsplat.gaussians.compose and .shading
 const SH_C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
 const SH_C3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
@@ -273,7 +274,7 @@ export function frameVertices(b, t, out) {
 
 // ------------------------------------------------------------------ mesh geometry
 /** Per face: cross product (b-a)x(c-a) [F*3], area [F], frame columns (t, bt, n) [F*9], row-major. */
-function faceGeometry(b, p, out) {
+export function faceGeometry(b, p, out) {
   const F = b.F, f = b.faces;
   out = out || { cross: new Float64Array(F * 3), areas: new Float64Array(F), frames: new Float64Array(F * 9) };
   for (let k = 0; k < F; k++) {
@@ -296,140 +297,6 @@ function faceGeometry(b, p, out) {
     } else { // degenerate face: identity frame
       m.fill(0, o, o + 9); m[o] = 1; m[o + 4] = 1; m[o + 8] = 1;
     }
-  }
-  return out;
-}
-
-/** Rotation matrix (row-major, 9 numbers from `m` at `o`) -> unit quaternion wxyz with w >= 0. */
-function matrixToQuat(m, o, q, qo) {
-  const m00 = m[o], m01 = m[o + 1], m02 = m[o + 2], m10 = m[o + 3], m11 = m[o + 4], m12 = m[o + 5];
-  const m20 = m[o + 6], m21 = m[o + 7], m22 = m[o + 8];
-  const c = [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22];
-  let best = 0;
-  for (let i = 1; i < 4; i++) if (c[i] > c[best]) best = i; // first maximum, as torch.argmax
-  let w, x, y, z;
-  if (best === 0) { w = c[0]; x = m21 - m12; y = m02 - m20; z = m10 - m01; }
-  else if (best === 1) { w = m21 - m12; x = c[1]; y = m10 + m01; z = m02 + m20; }
-  else if (best === 2) { w = m02 - m20; x = m10 + m01; y = c[2]; z = m12 + m21; }
-  else { w = m10 - m01; x = m20 + m02; y = m21 + m12; z = c[3]; }
-  let r = 1 / Math.max(Math.sqrt(w * w + x * x + y * y + z * z), 1e-12);
-  if (w * r < 0) r = -r;
-  q[qo] = w * r; q[qo + 1] = x * r; q[qo + 2] = y * r; q[qo + 3] = z * r;
-}
-
-/**
- * Posed per-vertex normals [V*3], quaternions [V*4] (wxyz) and per-face area ratios [F] of the
- * posed vertices `p` [V*3]. `ws` (optional): the result of a previous call, whose buffers are reused.
- */
-export function poseMesh(b, p, ws) {
-  const V = b.V, F = b.F, f = b.faces;
-  ws = ws || { geo: undefined, qf: new Float64Array(F * 4), areaRatio: new Float64Array(F),
-               normals: new Float64Array(V * 3), wmax: new Float64Array(V), ref: new Int32Array(V),
-               quats: new Float64Array(V * 4) };
-  const g = ws.geo = faceGeometry(b, p, ws.geo);
-  const qf = ws.qf, ratio = ws.areaRatio, rot = new Float64Array(9);
-  const cf = b.canoFrames, pf = g.frames;
-  for (let k = 0; k < F; k++) {
-    const o = 9 * k;
-    for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) // R = F_posed F_cano^T
-      rot[3 * i + j] = pf[o + 3 * i] * cf[o + 3 * j] + pf[o + 3 * i + 1] * cf[o + 3 * j + 1] + pf[o + 3 * i + 2] * cf[o + 3 * j + 2];
-    matrixToQuat(rot, 0, qf, 4 * k);
-    const a0 = b.canoAreas[k];
-    ratio[k] = a0 > EPS ? g.areas[k] / a0 : 1;
-  }
-  const nrm = ws.normals, wmax = ws.wmax, ref = ws.ref, acc = ws.quats;
-  nrm.fill(0); wmax.fill(-1); ref.fill(0); acc.fill(0);
-  // area-weighted vertex normals (sum of cross products) and reference face per vertex
-  for (let k = 0; k < F; k++) {
-    for (let j = 0; j < 3; j++) {
-      const v = f[3 * k + j];
-      nrm[3 * v] += g.cross[3 * k]; nrm[3 * v + 1] += g.cross[3 * k + 1]; nrm[3 * v + 2] += g.cross[3 * k + 2];
-      if (g.areas[k] >= wmax[v]) { wmax[v] = g.areas[k]; ref[v] = k; } // ties -> largest face index
-    }
-  }
-  for (let v = 0; v < V; v++) {
-    const x = nrm[3 * v], y = nrm[3 * v + 1], z = nrm[3 * v + 2];
-    const r = 1 / Math.sqrt(Math.max(x * x + y * y + z * z, EPS * EPS));
-    nrm[3 * v] = x * r; nrm[3 * v + 1] = y * r; nrm[3 * v + 2] = z * r;
-  }
-  // vertex quaternion: area-weighted sum of incident face quaternions, signs aligned to the reference face
-  for (let k = 0; k < F; k++) {
-    const w = g.areas[k], q = 4 * k;
-    for (let j = 0; j < 3; j++) {
-      const v = f[3 * k + j], r = 4 * ref[v];
-      const dot = qf[q] * qf[r] + qf[q + 1] * qf[r + 1] + qf[q + 2] * qf[r + 2] + qf[q + 3] * qf[r + 3];
-      const s = dot < 0 ? -w : w;
-      for (let i = 0; i < 4; i++) acc[4 * v + i] += s * qf[q + i];
-    }
-  }
-  for (let v = 0; v < V; v++) {
-    const o = 4 * v, n2 = acc[o] ** 2 + acc[o + 1] ** 2 + acc[o + 2] ** 2 + acc[o + 3] ** 2;
-    if (n2 > 1e-30) {
-      const r = 1 / Math.max(Math.sqrt(n2), 1e-15);
-      for (let i = 0; i < 4; i++) acc[o + i] *= r;
-    } else { acc[o] = 1; acc[o + 1] = 0; acc[o + 2] = 0; acc[o + 3] = 0; }
-  }
-  return ws;
-}
-
-// ------------------------------------------------------------------ Gaussians (CPU reference)
-/**
- * CPU reference of what the vertex shader computes (tests, benchmarks; the page does not call it).
- * Posed Gaussians of frame `t` (or of explicit vertices `verts` [V*3] when given):
- * { means [N*3], quats [N*4] wxyz, scales [N*3], cov [N*6] (xx, xy, xz, yy, yz, zz) } as Float32Array.
- */
-export function poseGaussians(b, t, verts, out) {
-  const N = b.N, f = b.faces;
-  const p = verts || frameVertices(b, t);
-  const m = poseMesh(b, p);
-  const mode = b.header.scale_mode;
-  out = out || { means: new Float32Array(N * 3), quats: new Float32Array(N * 4), scales: new Float32Array(N * 3),
-                 cov: new Float32Array(N * 6) };
-  const vq = m.quats, vn = m.normals;
-  for (let g = 0; g < N; g++) {
-    const k = b.face[g], u = b.uv[2 * g], v = b.uv[2 * g + 1], wc = 1 - u - v;
-    const ia = f[3 * k], ib = f[3 * k + 1], ic = f[3 * k + 2];
-    // Phong point + displacement along the interpolated normal
-    let nx = u * vn[3 * ia] + v * vn[3 * ib] + wc * vn[3 * ic];
-    let ny = u * vn[3 * ia + 1] + v * vn[3 * ib + 1] + wc * vn[3 * ic + 1];
-    let nz = u * vn[3 * ia + 2] + v * vn[3 * ib + 2] + wc * vn[3 * ic + 2];
-    const rn = 1 / Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, EPS * EPS));
-    nx *= rn; ny *= rn; nz *= rn;
-    const d = b.d[g];
-    out.means[3 * g] = u * p[3 * ia] + v * p[3 * ib] + wc * p[3 * ic] + d * nx;
-    out.means[3 * g + 1] = u * p[3 * ia + 1] + v * p[3 * ib + 1] + wc * p[3 * ic + 1] + d * ny;
-    out.means[3 * g + 2] = u * p[3 * ia + 2] + v * p[3 * ib + 2] + wc * p[3 * ic + 2] + d * nz;
-    // delta_q: barycentric blend of the corner quaternions, signs aligned to corner a
-    const qa = 4 * ia, qb = 4 * ib, qc = 4 * ic;
-    let sb = 0, sc = 0;
-    for (let i = 0; i < 4; i++) { sb += vq[qb + i] * vq[qa + i]; sc += vq[qc + i] * vq[qa + i]; }
-    const wb = sb < 0 ? -v : v, wcc = sc < 0 ? -wc : wc;
-    let dw = u * vq[qa] + wb * vq[qb] + wcc * vq[qc], dx = u * vq[qa + 1] + wb * vq[qb + 1] + wcc * vq[qc + 1];
-    let dy = u * vq[qa + 2] + wb * vq[qb + 2] + wcc * vq[qc + 2], dz = u * vq[qa + 3] + wb * vq[qb + 3] + wcc * vq[qc + 3];
-    const rd = 1 / Math.max(Math.sqrt(dw * dw + dx * dx + dy * dy + dz * dz), 1e-12);
-    dw *= rd; dx *= rd; dy *= rd; dz *= rd;
-    // q = delta_q ⊗ q_canonical (Hamilton product), normalized
-    const cw = b.rot[4 * g], cx = b.rot[4 * g + 1], cy = b.rot[4 * g + 2], cz = b.rot[4 * g + 3];
-    let qw = dw * cw - dx * cx - dy * cy - dz * cz, qx = dw * cx + dx * cw + dy * cz - dz * cy;
-    let qy = dw * cy - dx * cz + dy * cw + dz * cx, qz = dw * cz + dx * cy - dy * cx + dz * cw;
-    const rq = 1 / Math.max(Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
-    qw *= rq; qx *= rq; qy *= rq; qz *= rq;
-    out.quats[4 * g] = qw; out.quats[4 * g + 1] = qx; out.quats[4 * g + 2] = qy; out.quats[4 * g + 3] = qz;
-    // scale modulation by the face's area change
-    const ratio = m.areaRatio[k];
-    const fac = mode === "area" ? ratio : mode === "sqrt_area" ? Math.sqrt(Math.max(ratio, 0) + 1e-20) : 1;
-    const s0 = b.scale[3 * g] * fac, s1 = b.scale[3 * g + 1] * fac, s2 = b.scale[3 * g + 2] * fac;
-    out.scales[3 * g] = s0; out.scales[3 * g + 1] = s1; out.scales[3 * g + 2] = s2;
-    // covariance R S S^T R^T
-    const xx = qx * qx, yy = qy * qy, zz = qz * qz, xy = qx * qy, xz = qx * qz, yz = qy * qz;
-    const wx = qw * qx, wy = qw * qy, wz = qw * qz;
-    const r00 = (1 - 2 * (yy + zz)) * s0, r01 = 2 * (xy - wz) * s1, r02 = 2 * (xz + wy) * s2;
-    const r10 = 2 * (xy + wz) * s0, r11 = (1 - 2 * (xx + zz)) * s1, r12 = 2 * (yz - wx) * s2;
-    const r20 = 2 * (xz - wy) * s0, r21 = 2 * (yz + wx) * s1, r22 = (1 - 2 * (xx + yy)) * s2;
-    const c = out.cov, o = 6 * g;
-    c[o] = r00 * r00 + r01 * r01 + r02 * r02; c[o + 1] = r00 * r10 + r01 * r11 + r02 * r12;
-    c[o + 2] = r00 * r20 + r01 * r21 + r02 * r22; c[o + 3] = r10 * r10 + r11 * r11 + r12 * r12;
-    c[o + 4] = r10 * r20 + r11 * r21 + r12 * r22; c[o + 5] = r20 * r20 + r21 * r21 + r22 * r22;
   }
   return out;
 }
@@ -474,7 +341,7 @@ export const EXACT_KEY_MAX = 200000;
  * Per-vertex camera depth z_v and camera z of the normal (and, when `exact`, the normal) in
  * `g.pv` (stride 5 or 2), and `g.corners`: stride * vertex index of each Gaussian's corners (cached).
  */
-function vertexKeys(g, verts, normals, viewmat, exact) {
+export function vertexKeys(g, verts, normals, viewmat, exact) {
   const N = g.N, V = verts.length / 3, S = exact ? 5 : 2, f = g.faces, face = g.face;
   const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
   if (!g.corners || g.corners.length !== 3 * N || g.stride !== S) {
@@ -495,12 +362,12 @@ function vertexKeys(g, verts, normals, viewmat, exact) {
 /**
  * The worker's sort in two passes over the Gaussians: the key of gaussianDepths quantized at once
  * to 16 bits over a range bounded from the vertices ([min z_v - |d|max, max z_v + |d|max], clamped,
- * nearer than 0.01 dropped) and counted; then a stable back-to-front scatter into `order`.
+ * nearer than NEAR_PLANE dropped) and counted; then a stable back-to-front scatter into `order`.
  * `moved`: bound on how far any key moved since the previous call, from the vertices:
  * baryMax max|Δz_v| + |d|max max|Δ(r3.n_v)| (Infinity on the first call). `ws`: scratch.
  */
 export function sortGaussians(g, verts, normals, viewmat, order, ws) {
-  const N = g.N, uv = g.uv, dd = g.d, NEAR = 0.01, exact = N <= EXACT_KEY_MAX;
+  const N = g.N, uv = g.uv, dd = g.d, exact = N <= EXACT_KEY_MAX;
   if (g.dMax === undefined) {
     let dMax = 0, baryMax = 1;
     for (let i = 0; i < N; i++) {
@@ -523,7 +390,7 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
   const moved = prev && prev.length === 2 * V ? g.baryMax * dz + g.dMax * dn : Infinity;
   if (!prev || prev.length !== 2 * V) g.prevKeys = new Float64Array(2 * V);
   for (let v = 0; v < V; v++) { g.prevKeys[2 * v] = pv[S * v]; g.prevKeys[2 * v + 1] = pv[S * v + 1]; }
-  const lo = Math.max(NEAR, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
+  const lo = Math.max(NEAR_PLANE, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
   const counts = ws.counts, bins = ws.bins && ws.bins.length >= N ? ws.bins : (ws.bins = new Int32Array(N));
   counts.fill(0);
   for (let i = 0; i < N; i++) {
@@ -537,7 +404,7 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
       s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
     }
     const key = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
-    if (key >= NEAR) {
+    if (key >= NEAR_PLANE) {
       let x = (key - lo) * q;
       x = x < 0 ? 0 : x > 65535 ? 65535 : x;
       const bin = 65535 - (x | 0); // far first
@@ -550,80 +417,6 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
   return { n: visible, lo, hi, moved };
 }
 
-/**
- * Sort key [N] (Float32Array) of every posed Gaussian: the camera depth of its centre, Phong point
- * + d * normalized interpolated normal, as the vertex shader computes it; per-vertex camera depths
- * make it z = sum w z_v + d (sum w r3.n_v) / |sum w n_v|. Above EXACT_KEY_MAX Gaussians the
- * division by |sum w n_v| is skipped: the key then differs from the centre's depth by at most
- * |d| (1/|n_interp| - 1) (zero for d = 0 or equal corner normals; see docs/viewer.md).
- * From the posed vertices `verts` and unit vertex normals `normals` (both [V*3]); `g` holds face,
- * uv, d of the Gaussians and the mesh faces (a decoded bundle or the worker's copy), and caches the
- * Gaussians' corner vertices. Returns {lo, hi} (visible key range, for sortDepths) and `moved`,
- * the largest |key - prev| when `prev` [N] is given (else Infinity). The worker's per-Gaussian work.
- */
-export function gaussianDepths(g, verts, normals, viewmat, depth, prev) {
-  const N = g.N, uv = g.uv, dd = g.d;
-  const exact = N <= EXACT_KEY_MAX;
-  depth = depth || new Float32Array(N);
-  const { pv, cn } = vertexKeys(g, verts, normals, viewmat, exact);
-  let lo = Infinity, hi = -Infinity, moved = 0;
-  for (let i = 0; i < N; i++) {
-    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
-    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
-    let s = dd[i];
-    if (exact) {
-      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
-      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
-      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
-      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
-    }
-    depth[i] = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
-    const z = depth[i]; // the stored float32 value
-    if (z >= 0.01) { if (z < lo) lo = z; if (z > hi) hi = z; } // NEAR_PLANE
-    if (prev) { const m = Math.abs(z - prev[i]); if (m > moved) moved = m; }
-  }
-  return { depth, lo, hi, moved: prev ? moved : Infinity };
-}
-
-/**
- * Back-to-front order of the depths >= the near plane: one counting sort on 16-bit quantized depth
- * over the visible range [lo, hi] (computed when not given; ties keep index order). Fills `order`
- * [n]; returns the visible count. `ws` (optional) holds reusable scratch
- * {counts: Uint32Array(65536), bins: Uint16Array(n)}.
- */
-export function sortDepths(depth, n, order, ws, lo, hi) {
-  const NEAR = 0.01; // NEAR_PLANE, spelled out: this function also runs in the worker
-  if (lo === undefined) {
-    lo = Infinity; hi = -Infinity;
-    for (let g = 0; g < n; g++) {
-      const z = depth[g];
-      if (z >= NEAR) { if (z < lo) lo = z; if (z > hi) hi = z; }
-    }
-  }
-  const counts = ws && ws.counts ? ws.counts : new Uint32Array(65536);
-  const bins = ws && ws.bins && ws.bins.length >= n ? ws.bins : new Uint16Array(n);
-  counts.fill(0);
-  const q = hi > lo ? 65535 / (hi - lo) : 0;
-  let visible = 0;
-  for (let g = 0; g < n; g++) {
-    const z = depth[g];
-    if (!(z >= NEAR)) continue;
-    const bin = 65535 - Math.min(65535, ((z - lo) * q) | 0); // far first; 0 <= (z - lo) q <= 65535
-    bins[g] = bin; counts[bin]++; visible++;
-  }
-  for (let i = 1; i < 65536; i++) counts[i] += counts[i - 1];
-  for (let g = n - 1; g >= 0; g--) if (depth[g] >= NEAR) order[--counts[bins[g]]] = g;
-  return visible;
-}
-
-/** Back-to-front order of Gaussian centres `means` [n*3] for `viewmat`: float32 depth, then sortDepths. */
-export function sortByDepth(means, n, viewmat, order, counts) {
-  const depth = new Float32Array(n);
-  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
-  for (let g = 0; g < n; g++) depth[g] = r0 * means[3 * g] + r1 * means[3 * g + 1] + r2 * means[3 * g + 2] + t;
-  order = order || new Uint32Array(n);
-  return sortDepths(depth, n, order, { counts });
-}
 // ------------------------------------------------------------------ sort worker
 /** Texels of a TEX_WIDTH-wide texture holding `n` texels (whole rows). */
 export function texSize(n) { return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WIDTH)); }
@@ -656,6 +449,7 @@ export function sortScratch(S) {
 /** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
 export const SORT_WORKER_SOURCE = `"use strict";
 const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
+const NEAR_PLANE = ${NEAR_PLANE};
 ${skinVertices.toString()}
 ${vertexNormals.toString()}
 ${vertexKeys.toString()}
