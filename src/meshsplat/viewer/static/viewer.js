@@ -838,7 +838,7 @@ export function vertexFaces(faces, V) {
 }
 
 /**
- * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians, faces, canonical face
+ * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians (and their SH bands), faces, canonical face
  * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
  * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
  * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call.
