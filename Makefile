@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 
 # Independent readers of our splat exports (tests/test_splat_formats.py), from the npm registry.
 NODE_TOOLS := .node-tools/node_modules/gltf-validator
-NODE_PACKAGES := @playcanvas/splat-transform@2.7.1 gltf-validator@2.0.0-dev.3.10
+NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.10
 
 .PHONY: venv test test-fast demo bench clean node-tools
 

@@ -1,18 +1,21 @@
-"""Benchmark the browser viewer's CPU side under Node (no browser): per-frame main-thread time and
-worker sort time, today's player vs the previous one (commit bae8ae0: posing every Gaussian in JS on
-the main thread), in the same run; plus bundle sizes.
+"""Benchmark the player in a real headless browser (Chromium, SwiftShader WebGL2), with the page's own
+timers: per-frame main-thread time and worker sort time while playing, first complete frame, page
+size; and the shaded page's screenshot against ``avatar.render`` for each driver kind.
 
-Cases: CesiumMan (3,273 vertices, its glTF clip baked to 60 frames, and live), and a larger mesh
-(a deformed UV sphere with about 80k vertices, 60 frames of analytic motion), each with 20k, 100k
-and 500k Gaussians.
+Timing cases (CesiumMan, 3,273 vertices; random shaded avatars at 100k and 500k Gaussians): vertex
+frames (60 baked frames) and live glTF (skin evaluated in the page); baseline in the same run (at
+100k): the same Gaussians without shading or view-dependent SH (the page's colour path before it
+shaded). 20 frames timed at 100k, 8 at 500k (SwiftShader rasterizes 500k splats slowly on a CPU).
+The page records ``window.meshsplatViewer.timings``: ``main`` (its requestAnimationFrame callback:
+advance the clock, pose the driver, uploads, GPU passes and draw calls issued) and ``sort`` (the
+worker's job, timed inside the worker); ``firstReadyMs``: navigation start to the first frame drawn
+in its own sorted order. Under SwiftShader the GPU work runs on the CPU, so frame rates say nothing
+about a real GPU; main-thread and worker times are CPU work either way.
 
-New player, main thread per frame: FramePoser (vertex frames: decode the frame's vertices; live
-glTF: evaluate the clip's node matrices and morph weights). The texture uploads (16 B per vertex,
-or 48 B per joint), the GPU passes and the order upload (4 B per Gaussian when a sort arrives) are
-GPU-driver work that Node cannot time. Worker: sortJob (live glTF: skinning; vertex normals, centre
-depths, 16-bit counting sort).
-Old player, main thread per frame: poseGaussians + sortByDepth + packing 13 floats per Gaussian
-(its SplatRenderer.upload without the WebGL call).
+Accuracy: a shaded avatar (learned irradiance, SH degree 1 in the triangle frame) at 20k Gaussians,
+800², against ``avatar.render`` of the same pose and camera: vertex frames (CesiumMan, frame 20),
+live glTF (CesiumMan, t = 0.8 s), live blendshapes (the ICT FaceKit head, talking frame 10); PSNR on
+the full frame and on the subject (pixels either image draws).
 
 Usage: python bench/viewer.py [--quick] [--out bench/results/viewer-<host>.json]
 """
@@ -20,50 +23,37 @@ Usage: python bench/viewer.py [--quick] [--out bench/results/viewer-<host>.json]
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import shutil
-import subprocess
+import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from _machine import machine_info, results_path
+from meshsplat.camera import Camera
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import make_params
+from meshsplat.gaussians.shading import Shading
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
-from meshsplat.viewer import write_viewer_bundle
+from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 
-OLD_COMMIT = "bae8ae0"
 ROOT = Path(__file__).resolve().parents[1]
-NODE_SCRIPT = Path(__file__).resolve().parent / "_viewer_frame.mjs"
+sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver the browser tests use
+from _browser import find_chromium, open_page  # noqa: E402
+
+SIZE = 256  # timing viewport (CSS px, device pixel ratio 1); main-thread and sort work do not depend on it
 
 
-def old_bundle_module(tmp: Path):
-    """The previous bundle writer and viewer (git show OLD_COMMIT), importable from a temp folder."""
-    folder = tmp / "old_viewer"
-    (folder / "static").mkdir(parents=True)
-    for rel in ("bundle.py", "static/viewer.js", "static/index.html"):
-        src = subprocess.run(
-            ["git", "-C", str(ROOT), "show", f"{OLD_COMMIT}:src/meshsplat/viewer/{rel}"],
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        (folder / rel).write_text(src)
-    spec = importlib.util.spec_from_file_location("old_viewer_bundle", folder / "bundle.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def random_avatar(mesh: TriMesh, n: int, seed: int = 0) -> Avatar:
-    """n Gaussians spread over the mesh by area, small offsets, random rotations and colours."""
+def random_avatar(mesh: TriMesh, n: int, shaded: bool, seed: int = 0) -> Avatar:
+    """n Gaussians spread over the mesh by area, small offsets, random rotations and colours; ``shaded``:
+    a coloured directional irradiance and SH degree 1 in the triangle frame."""
     rng = np.random.default_rng(seed)
     v, f = mesh.vertices.double().numpy(), mesh.faces.numpy()
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
@@ -72,18 +62,25 @@ def random_avatar(mesh: TriMesh, n: int, seed: int = 0) -> Avatar:
     flip = uv.sum(1) > 1
     uv[flip] = 1 - uv[flip]
     s = math.sqrt(area.sum() / n)
-    q = rng.normal(size=(n, 4))
     t = lambda x: torch.from_numpy(np.asarray(x, np.float32))  # noqa: E731
     params = make_params(
         torch.from_numpy(face),
         t(uv),
         d=t(rng.normal(0, 0.2 * s, n)),
-        log_scale=t(np.log(s * rng.uniform(0.3, 1.0, (n, 3)))),
-        rotation=t(q),
+        log_scale=t(np.log(s * rng.uniform(0.5, 1.5, (n, 3)))),
+        rotation=t(rng.normal(size=(n, 4))),
         opacity_logit=t(rng.normal(1, 1, n)),
         sh0=t(rng.normal(0, 0.5, (n, 1, 3))),
+        shN=t(rng.normal(0, 0.15, (n, 3, 3))) if shaded else None,
     )
-    return Avatar(mesh, params)
+    if not shaded:
+        return Avatar(mesh, params)
+    coeffs = torch.zeros(9, 3)
+    coeffs[0] = torch.tensor([2.4, 2.2, 2.0])
+    coeffs[1] = torch.tensor([0.9, 0.7, 0.4])
+    coeffs[3] = torch.tensor([0.8, 0.9, 1.1])
+    coeffs[6] = torch.tensor([-0.3, 0.1, 0.2])
+    return Avatar(mesh, params, shading=Shading(coeffs), sh_frame="triangle")
 
 
 def cesium(frames: int):
@@ -92,156 +89,171 @@ def cesium(frames: int):
     glb = assets_dir() / "gltf" / "CesiumMan.glb"
     drv = GltfDriver(glb, fps=25)
     mesh = TriMesh(drv.rest_vertices(), drv.faces)
-    probe = Avatar(
-        mesh,
-        make_params(
-            torch.zeros(1, dtype=torch.long),
-            torch.full((1, 2), 0.3),
-            log_scale=torch.zeros(1, 3),
-            opacity_logit=torch.zeros(1),
-            sh0=torch.zeros(1, 1, 3),
-        ),
-    )
-    seq = load_animation(AnimationSource("gltf", glb, fps=25), probe).vertex_frames()
+    seq = load_animation(AnimationSource("gltf", glb, fps=25), mesh).vertex_frames()
     return mesh, [seq[i % len(seq)] for i in range(frames)]
 
 
-def live_rig(av):
+def live_rig(av: Avatar):
     from meshsplat.viewer.rig import avatar_driver
 
     return avatar_driver(av, assets_dir() / "gltf" / "CesiumMan.glb")
 
 
-def sphere(frames: int):
-    import trimesh
+def play_and_time(index: Path, min_frames: int, timeout: float) -> dict:
+    """Open the page paused (its first complete frame: drawn in its own sorted order), press play, wait
+    until it has drawn ``min_frames`` frames (or ``timeout`` s), read its timers."""
+    with open_page(index.as_uri() + "?ui=0&play=0", SIZE, SIZE) as page:
+        page.wait_ready(timeout)
+        start = page.evaluate("window.meshsplatViewer.timings.main.length")
+        sorts = page.evaluate("window.meshsplatViewer.timings.sort.length")
+        page.evaluate("document.getElementById('play').click()")
+        deadline = time.monotonic() + timeout
+        while page.evaluate("window.meshsplatViewer.timings.main.length") - start < min_frames:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        t = json.loads(page.evaluate("JSON.stringify(window.meshsplatViewer.timings)"))
+    main, sort = t["main"][start:], t["sort"][sorts:]  # while playing
+    med = lambda a: statistics.median(a) if a else float("nan")  # noqa: E731
+    p90 = lambda a: sorted(a)[int(0.9 * (len(a) - 1))] if a else float("nan")  # noqa: E731
+    return {
+        "main_ms": med(main),
+        "main_p90_ms": p90(main),
+        "sort_ms": med(sort),
+        "sort_min_ms": min(sort) if sort else float("nan"),
+        "frames": len(main),
+        "sorts": len(sort),
+        "first_ready_ms": t["firstReadyMs"],
+    }
 
-    s = trimesh.creation.uv_sphere(count=[201, 201])
-    v = torch.tensor(s.vertices, dtype=torch.float64)
-    mesh = TriMesh(v.float(), torch.tensor(s.faces))
-    out = []
-    for i in range(frames):
-        a = 2 * math.pi * i / frames
-        w = v.clone()
-        w[:, 0] += 0.2 * torch.sin(3 * v[:, 1] + a)
-        w[:, 2] += 0.15 * torch.cos(2 * v[:, 0] - a)
-        out.append(w.float())
-    return mesh, out
+
+def psnr(img: np.ndarray, ref: np.ndarray) -> float:
+    return float(10 * np.log10(255.0**2 / max(((img - ref) ** 2).mean(), 1e-10)))
 
 
-def node_bench(viewer_js: Path, bundle: Path, mode: str, frames: int) -> dict:
-    r = subprocess.run(
-        ["node", str(NODE_SCRIPT), str(viewer_js), str(bundle), mode, str(frames)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=3600,
+def compare(index: Path, query: str, av: Avatar, verts: torch.Tensor, size: int, out_png: Path) -> dict:
+    """Screenshot of the page at ``query`` vs avatar.render of ``verts`` with the bundle's camera."""
+    from PIL import Image
+
+    cam = read_viewer_bundle(index.parent)[0]["camera"]
+    camera = Camera(torch.tensor(cam["viewmat"]).float(), torch.tensor(cam["K"]).float(), size, size)
+    ref = av.render(torch.as_tensor(verts).float(), camera, background=torch.ones(3)).image
+    ref = ref.detach().clamp(0, 1).numpy() * 255
+    with open_page(index.as_uri() + f"?{query}&ui=0", size, size) as page:
+        page.wait_ready(300)
+        page.screenshot(out_png)
+    img = np.asarray(Image.open(out_png).convert("RGB"), dtype=np.float64)
+    subject = (np.abs(ref - 255).max(-1) > 2) | (np.abs(img - 255).max(-1) > 2)
+    return {
+        "full_db": psnr(img, ref),
+        "subject_db": psnr(img[subject], ref[subject]),
+        "subject_fraction": float(subject.mean()),
+    }
+
+
+def accuracy(tmp: Path, n: int, size: int) -> list[dict]:
+    from meshsplat.drivers import BlendshapeDriver
+
+    rows = []
+    mesh, frames = cesium(60)
+    av = random_avatar(mesh, n, shaded=True, seed=1)
+    b = tmp / "acc-frames"
+    write_viewer_bundle(av, frames, b, camera={"width": size, "height": size})
+    verts = torch.from_numpy(read_viewer_bundle(b)[1]["vertices"][20])  # the int16 vertices the page draws
+    rows.append(
+        {
+            "driver": "vertex frames",
+            "case": "CesiumMan, frame 20",
+            **compare(b / "index.html", "frame=20", av, verts, size, tmp / "f.png"),
+        }
     )
-    return json.loads(r.stdout)
+    rig = live_rig(av)
+    b = tmp / "acc-gltf"
+    write_viewer_bundle(av, None, b, rig=rig, camera={"width": size, "height": size})
+    clip = read_viewer_bundle(b)[0]["driver"]["clips"][0]
+    verts = rig.vertices_at(clip["start"] + 0.8, clip=clip["name"])
+    rows.append(
+        {
+            "driver": "live glTF",
+            "case": "CesiumMan, t = 0.8 s",
+            **compare(b / "index.html", "time=0.8", av, verts, size, tmp / "g.png"),
+        }
+    )
+    drv = BlendshapeDriver.from_npz(None)
+    drv.talking_sequence(20, 25.0)
+    head = random_avatar(TriMesh(drv.neutral, drv.faces), n, shaded=True, seed=2)
+    b = tmp / "acc-blend"
+    write_viewer_bundle(head, None, b, fps=25.0, rig=drv, camera={"width": size, "height": size})
+    verts = drv.pose(drv.weights[10], drv.rotations[10], drv.translations[10])
+    rows.append(
+        {
+            "driver": "live blendshapes",
+            "case": "ICT FaceKit head, talking frame 10",
+            **compare(b / "index.html", "time=0.4", head, verts, size, tmp / "h.png"),
+        }
+    )
+    return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="20k Gaussians, CesiumMan only, few frames")
+    ap.add_argument("--quick", action="store_true", help="20k Gaussians, few frames, accuracy at 256²")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    if shutil.which("node") is None:
-        sys.exit("node is not installed")
+    if find_chromium() is None:
+        sys.exit("chromium is not installed")
     torch.set_num_threads(1)
-    counts = [20_000] if args.quick else [20_000, 100_000, 500_000]
-    timed = 5 if args.quick else 20
-    meshes = {"CesiumMan": cesium(60)} if args.quick else {"CesiumMan": cesium(60), "sphere-80k": sphere(60)}
-    rows, sizes = [], []
+    counts = [20_000] if args.quick else [100_000, 500_000]
+    min_frames = {20_000: 10, 100_000: 20, 500_000: 8}  # SwiftShader draws 500k slowly on a CPU
+    rows, acc = [], []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        old = old_bundle_module(tmp)
-        new_js = ROOT / "src/meshsplat/viewer/static/viewer.js"
-        old_js = tmp / "old_viewer/static/viewer.js"
-        for name, (mesh, frames) in meshes.items():
-            for n in counts:
-                av = random_avatar(mesh, n)
-                nb, ob = tmp / f"new-{name}-{n}", tmp / f"old-{name}-{n}"
-                write_viewer_bundle(av, frames, nb)
-                old.write_viewer_bundle(av, frames, ob)
-                if name == "CesiumMan" and n in (20_000, 100_000):
-                    sizes.append(
-                        {
-                            "case": f"{name} 60 frames, {n // 1000}k Gaussians",
-                            **{
-                                f"{k}_{f}": (d / f).stat().st_size
-                                for k, d in (("old", ob), ("new", nb))
-                                for f in ("avatar.bin", "index.html")
-                            },
-                        }
-                    )
-                new = node_bench(new_js, nb, "new", timed)
-                prev = node_bench(old_js, ob, "old", max(3, timed // 4) if n >= 500_000 else timed)
-                rows.append(
-                    {
-                        "mesh": name,
-                        "driver": "frames",
-                        "vertices": mesh.num_vertices,
+        mesh, frames = cesium(60)
+        for n in counts:
+            for shaded in (False, True) if n <= 100_000 else (True,):  # the baseline at 100k (and quick)
+                av = random_avatar(mesh, n, shaded)
+                for driver in ("frames", "live glTF"):
+                    if driver == "live glTF" and not shaded:
+                        continue  # the baseline: vertex frames, unshaded
+                    b = tmp / f"{driver}-{n}-{shaded}"
+                    if driver == "frames":
+                        index = write_viewer_bundle(av, frames, b)
+                    else:
+                        index = write_viewer_bundle(av, None, b, rig=live_rig(av))
+                    r = play_and_time(index, min_frames[n], timeout=300)
+                    row = {
+                        "driver": driver,
                         "gaussians": n,
-                        "new": new,
-                        "old": prev,
+                        "shaded": shaded,
+                        "index_html_bytes": index.stat().st_size,
+                        "avatar_bin_bytes": (b / "avatar.bin").stat().st_size,
+                        **r,
                     }
-                )
-                if name == "CesiumMan":
-                    lb = tmp / f"live-{n}"
-                    write_viewer_bundle(av, None, lb, rig=live_rig(av))
-                    if n in (20_000, 100_000):
-                        sizes[-1].update({f"live_{f}": (lb / f).stat().st_size for f in ("avatar.bin", "index.html")})
-                    rows.append(
-                        {
-                            "mesh": name,
-                            "driver": "live glTF",
-                            "vertices": mesh.num_vertices,
-                            "gaussians": n,
-                            "new": node_bench(new_js, lb, "new", timed),
-                            "old": None,
-                        }
-                    )
-                    shutil.rmtree(lb)
-                for r in rows[-2:] if name == "CesiumMan" else rows[-1:]:
-                    o = r["old"]
+                    rows.append(row)
                     print(
-                        f"{name:10s} {r['driver']:9s} {n:>7,d} G: main old "
-                        f"{o['main_ms'] if o else float('nan'):8.2f} ms  new {r['new']['main_ms']:6.2f} ms | sort old "
-                        f"(main) {o['sort_ms'] if o else float('nan'):6.2f} ms  new (worker) {r['new']['sort_ms']:6.2f} ms",
+                        f"{driver:9s} {n:>7,d} G {'shaded' if shaded else 'plain ':6s}: main {r['main_ms']:.2f} ms "
+                        f"(p90 {r['main_p90_ms']:.2f}, {r['frames']} frames), sort {r['sort_ms']:.2f} ms "
+                        f"({r['sorts']} sorts), first frame {r['first_ready_ms']:.0f} ms, "
+                        f"page {row['index_html_bytes'] / 1e6:.1f} MB",
                         flush=True,
                     )
-                shutil.rmtree(nb)
-                shutil.rmtree(ob)
-    ms = lambda r, k: f"{r[k]:.2f} ({r[k.replace('_ms', '_min_ms')]:.2f}) ms" if r else "n/a"  # noqa: E731
-    print("\nmedian (min) over the timed frames")
-    print(
-        "\n| mesh (vertices) | driver | Gaussians | main thread / frame, old | new | sort, old (main thread) | new (worker) |"
-    )
+                    shutil.rmtree(b)
+        acc = accuracy(tmp, 20_000, 256 if args.quick else 800)
+    print("\nmedian over the frames drawn while playing (page timers; SwiftShader, CPU-only machine)")
+    print("\n| driver | Gaussians | shading | main thread / frame (p90) | worker sort | first frame | index.html |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['mesh']} ({r['vertices']:,}) | {r['driver']} | {r['gaussians'] // 1000}k | {ms(r['old'], 'main_ms')} | "
-            f"**{ms(r['new'], 'main_ms')}** | {ms(r['old'], 'sort_ms')} | **{ms(r['new'], 'sort_ms')}** |"
+            f"| {r['driver']} | {r['gaussians'] // 1000}k | {'shaded, SH 1' if r['shaded'] else 'none (baseline)'} | "
+            f"{r['main_ms']:.2f} ({r['main_p90_ms']:.2f}) ms | {r['sort_ms']:.2f} ms | "
+            f"{r['first_ready_ms'] / 1000:.1f} s | {r['index_html_bytes'] / 1e6:.1f} MB |"
         )
-    print("\n| bundle | avatar.bin old | new | new, live glTF | index.html old | new | new, live glTF |")
-    print("|---|---|---|---|---|---|---|")
-    mb = lambda s, k: f"{s[k] / 1e6:.2f} MB" if k in s else "n/a"  # noqa: E731
-    for s in sizes:
-        print(
-            f"| {s['case']} | {mb(s, 'old_avatar.bin')} | {mb(s, 'new_avatar.bin')} | {mb(s, 'live_avatar.bin')} | "
-            f"{mb(s, 'old_index.html')} | {mb(s, 'new_index.html')} | {mb(s, 'live_index.html')} |"
-        )
-    out = Path(args.out) if args.out else results_path("viewer" + ("-quick" if args.quick else ""))
-    out.write_text(
-        json.dumps(
-            {
-                "machine": machine_info(),
-                "node": subprocess.run(["node", "--version"], capture_output=True, text=True).stdout.strip(),
-                "rows": rows,
-                "sizes": sizes,
-            },
-            indent=1,
-        )
-    )
+    print("\n| driver | case | PSNR full frame | PSNR subject |")
+    print("|---|---|---|---|")
+    for a in acc:
+        print(f"| {a['driver']} | {a['case']} | {a['full_db']:.1f} dB | {a['subject_db']:.1f} dB |")
+    out = Path(args.out) if args.out else results_path("viewer-browser" + ("-quick" if args.quick else ""))
+    out.write_text(json.dumps({"machine": machine_info(), "viewport": SIZE, "rows": rows, "accuracy": acc}, indent=1))
     print(f"saved {out}")
 
 

@@ -3,7 +3,9 @@ messages separated by NUL bytes on file descriptors 3 and 4), standard library o
 
 ``screenshot(url, width, height, out_png)`` opens ``url``, waits until the page sets
 ``document.body.dataset.ready = "1"`` (the viewer does once the drawn depth order belongs to the
-drawn pose and view), and saves a PNG. Raises ``BrowserError`` with the page's error text on failure.
+drawn pose and view), and saves a PNG. ``open_page(url, width, height, mobile=...)`` gives a ``Page``
+to evaluate JavaScript and send touch and key events (a phone when ``mobile``). Raises
+``BrowserError`` with the page's error text on failure.
 """
 
 from __future__ import annotations
@@ -17,9 +19,10 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["find_chromium", "screenshot", "BrowserError"]
+__all__ = ["find_chromium", "screenshot", "open_page", "Page", "BrowserError"]
 
 FLAGS = [
     "--headless",
@@ -74,9 +77,67 @@ class _Pipe:
             self.events.append(reply)
 
 
-def screenshot(
-    url: str, width: int, height: int, out_png: Path, chromium: str | None = None, timeout: float = 120.0
-) -> Path:
+class Page:
+    """One tab of a headless Chromium: ``evaluate`` JavaScript, wait until the viewer is ready, send
+    touch or key events (as a user's: through the browser's input pipeline), take a screenshot."""
+
+    def __init__(self, pipe: _Pipe, session: str):
+        self.pipe, self.session = pipe, session
+
+    def call(self, method: str, params: dict | None = None, timeout: float = 60.0) -> dict:
+        return self.pipe.call(method, params, self.session, timeout)
+
+    def evaluate(self, expression: str):
+        """The JSON value of ``expression`` in the page."""
+        res = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True, "awaitPromise": True})
+        if "exceptionDetails" in res:
+            raise BrowserError(f"page exception: {res['exceptionDetails'].get('text')}")
+        return res.get("result", {}).get("value")
+
+    def wait_ready(self, timeout: float = 120.0) -> None:
+        """Until the page sets ``document.body.dataset.ready = "1"``; its #error text raises."""
+        probe = (
+            "JSON.stringify([document.body ? document.body.dataset.ready || '' : '', "
+            "(document.getElementById('error') || {}).textContent || ''])"
+        )
+        deadline = time.monotonic() + timeout
+        while True:
+            ready, error = json.loads(self.evaluate(probe) or '["", ""]')
+            if error:
+                raise BrowserError(f"page error: {error}")
+            if ready == "1":
+                return
+            if time.monotonic() > deadline:
+                raise BrowserError(f"page not ready after {timeout:.0f} s")
+            time.sleep(0.1)
+
+    def touch(self, kind: str, points: list[tuple[float, float]]) -> None:
+        """``kind``: touchStart | touchMove | touchEnd | touchCancel; ``points``: the fingers down, in order
+        (their index is their id; empty for touchEnd)."""
+        pts = [{"x": x, "y": y, "id": i, "radiusX": 1, "radiusY": 1, "force": 1} for i, (x, y) in enumerate(points)]
+        self.call("Input.dispatchTouchEvent", {"type": kind, "touchPoints": pts})
+
+    def key(self, key: str, code: str, text: str = "") -> None:
+        """Press and release one key (``key``/``code`` as KeyboardEvent's; ``text`` for printable keys)."""
+        for kind in ("keyDown", "keyUp"):
+            params = {"type": kind, "key": key, "code": code, "windowsVirtualKeyCode": ord(key.upper()[0])}
+            if kind == "keyDown" and text:
+                params["text"] = text
+            self.call("Input.dispatchKeyEvent", params)
+
+    def screenshot(self, out_png: Path) -> Path:
+        shot = self.call("Page.captureScreenshot", {"format": "png"})
+        out_png = Path(out_png)
+        out_png.write_bytes(base64.b64decode(shot["data"]))
+        return out_png
+
+
+@contextlib.contextmanager
+def open_page(
+    url: str, width: int, height: int, chromium: str | None = None, mobile: bool = False, scale: float = 1.0
+) -> Iterator[Page]:
+    """A headless Chromium showing ``url`` in a ``width`` x ``height`` viewport; ``mobile``: a phone
+    (touch screen, mobile viewport, device pixel ratio ``scale``). Closed on exit."""
     chromium = chromium or find_chromium()
     if chromium is None:
         raise BrowserError("chromium is not installed")
@@ -105,35 +166,18 @@ def screenshot(
     try:
         target = pipe.call("Target.createTarget", {"url": "about:blank"})["targetId"]
         session = pipe.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        pipe.call(
+        page = Page(pipe, session)
+        page.call(
             "Emulation.setDeviceMetricsOverride",
-            {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
-            session,
+            {"width": width, "height": height, "deviceScaleFactor": scale, "mobile": mobile},
         )
-        pipe.call("Page.navigate", {"url": url}, session)
-        probe = (
-            "JSON.stringify([document.body ? document.body.dataset.ready || '' : '', "
-            "(document.getElementById('error') || {}).textContent || ''])"
-        )
-        deadline = time.monotonic() + timeout
-        while True:
-            res = pipe.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)
-            ready, error = json.loads(res.get("result", {}).get("value") or '["", ""]')
-            if error:
-                raise BrowserError(f"page error: {error}")
-            if ready == "1":
-                break
-            if time.monotonic() > deadline:
-                raise BrowserError(f"page not ready after {timeout:.0f} s")
-            time.sleep(0.1)
-        shot = pipe.call("Page.captureScreenshot", {"format": "png"}, session)
-        out_png = Path(out_png)
-        out_png.write_bytes(base64.b64decode(shot["data"]))
-        return out_png
+        if mobile:
+            page.call("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 5})
+        page.call("Page.navigate", {"url": url})
+        yield page
     finally:
         with contextlib.suppress(BrowserError):
             pipe.call("Browser.close", timeout=5)
-            pass
         os.close(to_w)
         os.close(from_r)
         try:
@@ -142,3 +186,12 @@ def screenshot(
             proc.kill()
             proc.wait()
         shutil.rmtree(profile, ignore_errors=True)
+
+
+def screenshot(
+    url: str, width: int, height: int, out_png: Path, chromium: str | None = None, timeout: float = 120.0
+) -> Path:
+    """Open ``url``, wait until the viewer is ready, save a PNG."""
+    with open_page(url, width, height, chromium) as page:
+        page.wait_ready(timeout)
+        return page.screenshot(out_png)

@@ -223,17 +223,22 @@ def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # 
     assert err6 < 0.8 * err1, (err6, err1)
 
 
-def test_viewer_bundle_bakes_the_canonical_shading(tmp_path):
+def test_viewer_bundle_ships_the_shading(tmp_path):
+    """The player shades on the GPU (tests/test_viewer.py checks its screenshots against avatar.render):
+    the bundle carries the albedo, not a baked colour, and the learned illumination."""
+    from meshsplat.gaussians.params import SH_C0
     from meshsplat.viewer.bundle import read_viewer_bundle, write_viewer_bundle
 
     mesh = _sphere()
     p = init_params(mesh, 120, generator=torch.Generator().manual_seed(0))
     av = Avatar(mesh, p, shading=_lit_from_x())
     write_viewer_bundle(av, mesh.vertices[None].numpy(), tmp_path)
-    _, arrays = read_viewer_bundle(tmp_path)
+    header, arrays = read_viewer_bundle(tmp_path)
+    albedo = 0.5 + SH_C0 * p["sh0"].detach()[:, 0]
     # the bundle stores colours as half floats (relative error <= 2^-11)
-    assert torch.allclose(torch.tensor(arrays["gaussian_rgb"].copy()), av.base_rgb(), atol=1e-5, rtol=2.0**-11)
-    assert not torch.allclose(av.base_rgb(), Avatar(mesh, p).base_rgb(), atol=1e-2)
+    assert torch.allclose(torch.tensor(arrays["gaussian_rgb"].copy()), albedo, atol=1e-5, rtol=2.0**-11)
+    assert torch.equal(torch.tensor(header["shading"]["coeffs"]).float(), av.shading.coeffs.float())
+    assert header["shading"]["normal"] == av.shading.normal
 
 
 def test_antialias_compensation_dims_small_gaussians_only():

@@ -245,12 +245,27 @@ def _node_tool(name: str) -> Path:
     return path
 
 
+def _pinned(package: str) -> str:
+    """The version of ``package`` that the Makefile installs for these tests (``make node-tools``)."""
+    text = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    return text.split(f"{package}@", 1)[1].split()[0]
+
+
 def test_splat_transform_reads_our_files(tmp_path):
-    """PlayCanvas splat-transform converts each of our files to PLY; SPZ comes back with y and z negated,
-    its documented axis change from SPZ's y-up (RUB) to PLY's y-down (RDF)."""
+    """PlayCanvas splat-transform (the release the Makefile pins) converts our PLY, .splat and SPZ to PLY
+    with the same values, SPZ in our axes (no flip); it has no glTF reader and refuses our .glb."""
     cli = _node_tool(".bin/splat-transform")
+    package = json.loads((cli.parents[1] / "@playcanvas" / "splat-transform" / "package.json").read_text())
+    assert package["version"] == _pinned("@playcanvas/splat-transform"), "run `make node-tools` again"
     g = _gaussians(k=15)
+    t = {k: torch.from_numpy(v).float() for k, v in g.items()}
     files = {
+        "ply": (
+            write_gaussian_ply(
+                tmp_path / "a.ply", t["means"], t["quats"], t["log_scales"], t["opacity_logits"], t["sh0"], t["shN"]
+            ),
+            read_gaussian_ply,
+        ),
         "splat": (write_splat(tmp_path / "a.splat", g), read_splat),
         "spz": (write_spz(tmp_path / "a.spz", g), read_spz),
     }
@@ -260,21 +275,26 @@ def test_splat_transform_reads_our_files(tmp_path):
         assert r.returncode == 0, r.stderr
         back = {k: v.double().numpy() for k, v in read_gaussian_ply(out).items()}
         back["sh0"] = back["sh0"].reshape(-1, 3)
-        ours = reader(path)
-        if fmt == "spz":
-            back["means"] = back["means"] * [1, -1, -1]
-            back["quats"] = back["quats"] * [1, 1, -1, -1]
+        ours = {
+            k: np.asarray(v.double() if isinstance(v, torch.Tensor) else v, np.float64) for k, v in reader(path).items()
+        }
+        ours["sh0"] = ours["sh0"].reshape(-1, 3)
         idx = _align(back, ours)
         for key in ("means", "log_scales", "sh0"):
             np.testing.assert_allclose(back[key], ours[key][idx], atol=2e-3, err_msg=f"{fmt} {key}")
         np.testing.assert_allclose(_sigmoid(back["opacity_logits"]), _sigmoid(ours["opacity_logits"][idx]), atol=2e-3)
         _same_rotation(back["quats"] / np.linalg.norm(back["quats"], axis=1, keepdims=True), ours["quats"][idx], 0.02)
+    glb = write_gltf_splats(tmp_path / "a.glb", g)
+    r = subprocess.run([str(cli), "-w", str(glb), str(tmp_path / "st_glb.ply")], capture_output=True, text=True)
+    assert r.returncode != 0 and "Unsupported input" in r.stdout + r.stderr  # when it learns glTF: test it here
 
 
 def test_khronos_validator_accepts_our_glb(tmp_path):
-    """No errors except the extension's attribute names, which this validator release predates
-    (it reports the same for splat-transform's own KHR_gaussian_splatting output)."""
-    _node_tool("gltf-validator")
+    """No errors except the extension's attribute names, which this validator release (the newest
+    published, the one the Makefile pins) predates; it reports the same for splat-transform's own
+    KHR_gaussian_splatting output."""
+    tool = _node_tool("gltf-validator")
+    assert json.loads((tool / "package.json").read_text())["version"] == _pinned("gltf-validator")
     glb = write_gltf_splats(tmp_path / "a.glb", _gaussians(n=40, k=3))
     script = tmp_path / "validate.cjs"
     script.write_text(

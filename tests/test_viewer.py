@@ -25,6 +25,7 @@ from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 from test_eval_kit import deform, make_avatar, make_run
 
 NODE = shutil.which("node")
+REFERENCE_JS = json.dumps((Path(__file__).resolve().parent / "viewer_reference.mjs").as_uri())  # CPU reference
 needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
 
 
@@ -46,7 +47,8 @@ def _node(script: str, cwd: Path) -> dict:
 
 def _js_pose(bundle: Path) -> list[dict]:
     script = f"""
-import {{ decodeBundle, poseGaussians }} from {json.dumps((bundle / "viewer.js").as_uri())};
+import {{ decodeBundle }} from {json.dumps((bundle / "viewer.js").as_uri())};
+import {{ poseGaussians }} from {REFERENCE_JS};
 import fs from "fs";
 const h = JSON.parse(fs.readFileSync({json.dumps(str(bundle / "avatar.json"))}, "utf8"));
 const b = decodeBundle(h, fs.readFileSync({json.dumps(str(bundle / "avatar.bin"))}));
@@ -71,7 +73,7 @@ def test_bundle_round_trip(tmp_path, clamp):
     h, a = read_viewer_bundle(tmp_path)
     p = av.params
     assert (h["num_vertices"], h["num_faces"], h["num_gaussians"], h["num_frames"]) == (42, 80, 200, 3)
-    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 2
+    assert h["fps"] == 12.5 and h["scale_mode"] == "sqrt_area" and h["version"] == 3
     assert all(s["offset"] % 4 == 0 for s in h["sections"].values())
     assert np.array_equal(a["faces"], av.mesh.faces.numpy())
     assert np.array_equal(a["canonical_vertices"], av.mesh.vertices.numpy())
@@ -255,7 +257,8 @@ def test_js_sort_and_camera(tmp_path):
     means = rng.normal(size=(3000, 3)) * [1, 1, 3] + [0, 0, 2.0]  # some behind the near plane
     means[:40] = means[40]  # exact ties
     script = f"""
-import {{ sortByDepth, orbitViewmat, intrinsics }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ orbitViewmat, intrinsics }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ sortByDepth }} from {REFERENCE_JS};
 const c = {json.dumps(cam)};
 const means = Float32Array.from({json.dumps(means.ravel().tolist())});
 const vm = [0.6, 0, 0.8, 0, 0, 1, 0, 0, -0.8, 0, 0.6, 0.1, 0, 0, 0, 1];  // rotated: float32 depth rounding
@@ -348,8 +351,9 @@ def test_worker_sort_keys_are_the_drawn_centre_depths(tmp_path):
     av = make_avatar(n=400)
     write_viewer_bundle(av, _frames(av), tmp_path, vertex_encoding="float32")
     script = f"""
-import {{ decodeBundle, frameVertices, poseGaussians, vertexNormals, gaussianDepths, sortJob, sortSetup, sortScratch,
+import {{ decodeBundle, frameVertices, vertexNormals, sortJob, sortSetup, sortScratch,
          orbitViewmat }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ poseGaussians, gaussianDepths }} from {REFERENCE_JS};
 import fs from "fs";
 const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
 const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
@@ -680,3 +684,122 @@ def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
     small = make_run(make_avatar(n=20), tmp_path / "small", None)
     assert main(["view", str(small), "--out", str(tmp_path / "x"), "--animation", "blendshapes"]) == 2
     assert "driver mesh has 26719 vertices" in capsys.readouterr().err
+
+
+def shaded_avatar(n: int = 400, sh_degree: int = 2, sh_frame: str = "triangle", normal: str = "phong") -> Avatar:
+    """The test avatar with pose-dependent shading: a strongly directional learned irradiance (key light
+    from +x+y, coloured) and view-dependent SH bands in the triangle frame."""
+    from meshsplat.gaussians.shading import Shading
+
+    av = make_avatar(n=n, sh_degree=sh_degree)
+    coeffs = torch.zeros(9, 3)
+    coeffs[0] = torch.tensor([2.2, 2.0, 1.8])
+    coeffs[1] = torch.tensor([0.9, 0.6, 0.3])  # y
+    coeffs[3] = torch.tensor([1.1, 0.8, 1.2])  # x
+    coeffs[4] = torch.tensor([0.4, -0.3, 0.2])
+    coeffs[6] = torch.tensor([-0.3, 0.2, 0.1])
+    coeffs[8] = torch.tensor([0.2, 0.3, -0.4])
+    return Avatar(av.mesh, av.params, av.scale_mode, shading=Shading(coeffs, normal), sh_frame=sh_frame)
+
+
+def test_bundle_carries_the_shading(tmp_path):
+    av = shaded_avatar(n=50, sh_degree=3, normal="axis")
+    write_viewer_bundle(av, _frames(av), tmp_path)
+    h, a = read_viewer_bundle(tmp_path)
+    assert h["sh_degree"] == 3 and h["sh_frame"] == "triangle" and h["antialiased"] is False
+    assert h["shading"]["normal"] == "axis"
+    np.testing.assert_allclose(h["shading"]["coeffs"], av.shading.coeffs.numpy(), rtol=1e-7)
+    shn = av.params["shN"].detach().numpy()
+    assert a["gaussian_sh_rest"].shape == shn.shape == (50, 15, 3)
+    np.testing.assert_allclose(a["gaussian_sh_rest"], shn, rtol=2**-11, atol=1e-7)  # half floats
+    # the DC colour is the albedo (0.5 + C0 sh0, not clamped: the page adds the bands, clamps, shades)
+    np.testing.assert_allclose(
+        a["gaussian_rgb"], 0.5 + SH_C0 * av.params["sh0"].detach().numpy()[:, 0], rtol=2**-11, atol=1e-7
+    )
+    assert a["sh_rest"].shape == (50, 24)  # 45 halves -> 23 words -> whole texels
+    plain = make_avatar(n=50)
+    write_viewer_bundle(plain, _frames(plain), tmp_path / "p")
+    h, a = read_viewer_bundle(tmp_path / "p")
+    assert h["shading"] is None and h["sh_degree"] == 0 and "sh_rest" not in a
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "sh_degree,sh_frame,normal,antialiased",
+    [(2, "triangle", "phong", False), (1, "world", "axis", True)],
+)
+def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, normal, antialiased):
+    """Pose-dependent shading on the GPU: the shaded page equals avatar.render in two poses, on the
+    subject and on the full frame; the canonical pose's shading baked in would not."""
+    av = shaded_avatar(sh_degree=sh_degree, sh_frame=sh_frame, normal=normal)
+    av.antialiased = antialiased
+    frames = _frames(av, ts=(0.0, 1.0))
+    write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256})
+    h, a = read_viewer_bundle(tmp_path / "b")
+    refs = []
+    for frame in (0, 1):
+        ref = _render_ref(av, a["vertices"][frame], h["camera"])
+        img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
+        subject = (np.abs(ref - 255).max(-1) > 2) | (np.abs(img - 255).max(-1) > 2)
+        full, on = _psnr(img, ref), _psnr(img[subject], ref[subject])
+        print(f"shaded page vs avatar.render, frame {frame}: full {full:.1f} dB, subject {on:.1f} dB")
+        assert subject.mean() > 0.05
+        assert on >= 40.0 and full >= 40.0, (on, full)
+        refs.append(ref)
+    # the colours do follow the pose: the two frames' shading differs by far more than the page's error
+    assert _psnr(refs[0], refs[1]) < 30.0
+
+
+@pytest.mark.slow
+def test_browser_phone_gestures_and_space_bar(tmp_path):
+    """On an emulated phone (touch screen, mobile viewport, 2x pixels): one finger orbits, a pinch
+    zooms without orbiting, a double tap and the reset button give the default view back; the space
+    bar plays/pauses whichever button has the focus, and only once."""
+    from _browser import open_page
+
+    av = make_avatar(n=200)
+    write_viewer_bundle(av, _frames(av), tmp_path / "b")
+    view = "JSON.stringify(window.meshsplatViewer.view)"
+    url = (tmp_path / "b" / "index.html").as_uri() + "?play=0"  # paused: a still page does not redraw
+    with open_page(url, 390, 844, chromium=_chromium(), mobile=True, scale=2) as page:
+        page.wait_ready()
+        assert page.evaluate("window.devicePixelRatio") == 2 and page.evaluate("navigator.maxTouchPoints") > 0
+        v0 = json.loads(page.evaluate(view))
+        # one finger: orbit (0.3 degree per CSS pixel)
+        page.touch("touchStart", [(200, 500)])
+        page.touch("touchMove", [(260, 500)])
+        page.touch("touchMove", [(300, 530)])
+        page.touch("touchEnd", [])
+        v1 = json.loads(page.evaluate(view))
+        assert v1["az"] == pytest.approx(v0["az"] - 30) and v1["el"] == pytest.approx(v0["el"] + 9)
+        assert v1["dist"] == pytest.approx(v0["dist"])
+        # two fingers spread from 100 to 200 px: twice as close, no orbit
+        page.touch("touchStart", [(150, 400), (250, 400)])
+        page.touch("touchMove", [(100, 400), (300, 400)])
+        page.touch("touchEnd", [])
+        v2 = json.loads(page.evaluate(view))
+        assert v2["dist"] == pytest.approx(v0["dist"] / 2) and (v2["az"], v2["el"]) == (v1["az"], v1["el"])
+        # a double tap resets the view
+        for xy in ((200, 300), (203, 302)):
+            page.touch("touchStart", [xy])
+            page.touch("touchEnd", [])
+        assert json.loads(page.evaluate(view)) == v0
+        # ... and so does the visible reset button
+        page.touch("touchStart", [(200, 500)])
+        page.touch("touchMove", [(240, 500)])
+        page.touch("touchEnd", [])
+        assert json.loads(page.evaluate(view)) != v0
+        assert page.evaluate("document.getElementById('reset').getBoundingClientRect().width") > 0
+        page.evaluate("document.getElementById('reset').click()")
+        assert json.loads(page.evaluate(view)) == v0
+        # space bar: play/pause whatever has the focus, never the focused button's own action
+        playing = "window.meshsplatViewer.state.playing"
+        assert page.evaluate(playing) is False
+        page.evaluate("document.getElementById('play').focus()")
+        page.key(" ", "Space", " ")
+        assert page.evaluate(playing) is True
+        assert page.evaluate("document.getElementById('play').textContent") == "pause"
+        page.evaluate("document.getElementById('bg').focus()")
+        page.key(" ", "Space", " ")
+        assert page.evaluate(playing) is False
+        assert page.evaluate("window.meshsplatViewer.state.white") is True  # the background did not toggle

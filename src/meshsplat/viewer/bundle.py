@@ -7,9 +7,10 @@ The bundle folder holds ``index.html`` (self-contained: viewer code, ``avatar.js
 ``avatar.json`` as separate files for tools and tests. ``avatar.bin`` is little-endian; each
 section of ``avatar.json["sections"]`` gives its byte ``offset`` (4-byte aligned), ``dtype``
 (float32, uint32, int16) and ``shape``. The Gaussians are packed into 32 bytes each (face index
-plus half floats, :func:`pack_gaussians`). The browser poses the Gaussians from the mesh each
-frame on the GPU exactly as :func:`meshsplat.gaussians.compose` does (DC colour only). See
-docs/viewer.md.
+plus half floats, :func:`pack_gaussians`), their higher SH bands into ``sh_rest`` (half floats).
+The browser poses and shades the Gaussians from the mesh each frame on the GPU exactly as
+:func:`meshsplat.gaussians.compose` does (view-dependent colour, the learned irradiance of the
+posed normal, antialiasing compensation). See docs/viewer.md.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ __all__ = [
     "VERTEX_ENCODINGS",
 ]
 
-BUNDLE_VERSION = 2
+BUNDLE_VERSION = 3
 VERTEX_ENCODINGS = ("int16", "float32")
 _STATIC = Path(__file__).parent / "static"
 _DTYPES: dict[str, np.dtype] = {
@@ -210,15 +211,39 @@ def _gaussian_arrays(avatar) -> dict[str, np.ndarray]:
             "gaussian_rotation": rot.cpu().numpy(),
             "gaussian_scale": p["log_scale"].detach().double().exp().cpu().numpy(),
             "gaussian_opacity": torch.sigmoid(p["opacity_logit"].detach().double()).cpu().numpy(),
-            # shaded avatars (model.shading): the canonical pose's shading is baked in (the player does not shade)
-            "gaussian_rgb": (
-                avatar.base_rgb().double()
-                if getattr(avatar, "shading", None) is not None
-                else (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).clamp_min(0.0)
-            )
-            .cpu()
-            .numpy(),
+            # 0.5 + C0 sh0, not clamped: the page adds the view-dependent bands, clamps, then shades
+            "gaussian_rgb": (0.5 + SH_C0 * p["sh0"].detach().double()[:, 0]).cpu().numpy(),
         }
+
+
+def _sh_rest(avatar: Avatar) -> np.ndarray | None:
+    """``[N, W]`` uint32: the SH bands above 0 (``shN [N,K,3]``, coefficient-major) as half-float pairs,
+    ``W`` padded to a multiple of 4 (whole RGBA32UI texels); None for SH degree 0."""
+    shn = avatar.params.get("shN")
+    if shn is None or shn.shape[1] == 0:
+        return None
+    flat = shn.detach().double().cpu().numpy().reshape(len(shn), -1)  # [N, 3K]: k-th coefficient's r, g, b
+    if not np.isfinite(flat).all() or np.abs(flat).max(initial=0) > 65504:
+        raise MeshsplatError("avatar: SH coefficients beyond the half-float range of the viewer")
+    words = -(-flat.shape[1] // 2)
+    words += (-words) % 4
+    halves = np.zeros((len(flat), 2 * words), np.float64)
+    halves[:, : flat.shape[1]] = flat
+    bits = _half_bits(halves)
+    return np.ascontiguousarray(bits[:, 0::2] | (bits[:, 1::2] << 16)).astype("<u4")
+
+
+def _shading_header(avatar: Avatar) -> dict[str, Any]:
+    """What the page needs to colour the Gaussians as ``compose`` does."""
+    sh = avatar.shading
+    return {
+        "sh_degree": avatar.sh_degree,
+        "sh_frame": avatar.sh_frame,
+        "antialiased": avatar.antialiased,
+        "shading": None
+        if sh is None
+        else {"coeffs": sh.coeffs.detach().double().cpu().tolist(), "normal": sh.normal, "space": "world"},
+    }
 
 
 # Packed Gaussian: 8 little-endian uint32 words; "a|b" = two IEEE half floats, a in the low 16 bits
@@ -379,6 +404,9 @@ def write_viewer_bundle(
         driver = {"kind": "frames"}
         num_frames = int(verts.shape[0])
     sections["gaussians"] = pack_gaussians(_gaussian_arrays(avatar))
+    sh_rest = _sh_rest(avatar)
+    if sh_rest is not None:
+        sections["sh_rest"] = sh_rest
     blob, layout = _pack(sections)
     header = {
         "format": "meshsplat-viewer",
@@ -390,6 +418,7 @@ def write_viewer_bundle(
         "num_frames": num_frames,
         "fps": float(fps),
         "scale_mode": avatar.scale_mode,
+        **_shading_header(avatar),
         "vertex_encoding": vertex_encoding,
         **quant,
         "background": background,
@@ -478,6 +507,11 @@ def read_viewer_bundle(out_dir: str | Path) -> tuple[dict[str, Any], dict[str, n
             "write it again with this meshsplat"
         )
     arrays.update(unpack_gaussians(arrays["gaussians"]))
+    if "sh_rest" in arrays:  # [N, W] half pairs -> [N, K, 3]
+        k = {1: 3, 2: 8, 3: 15}[header["sh_degree"]]
+        w = arrays["sh_rest"]
+        halves = np.stack([w & 0xFFFF, w >> 16], -1).reshape(len(w), -1)[:, : 3 * k]
+        arrays["gaussian_sh_rest"] = halves.astype(np.uint16).view(np.float16).astype("<f4").reshape(-1, k, 3)
     if "frames" in arrays:
         frames = arrays["frames"].astype(np.float64)
         if header["vertex_encoding"] == "int16":

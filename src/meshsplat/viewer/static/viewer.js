@@ -1,27 +1,33 @@
-// meshsplat WebGL2 viewer: poses mesh-embedded Gaussians on the GPU every frame and splats them.
+// meshsplat WebGL2 viewer: poses and shades mesh-embedded Gaussians on the GPU every frame and splats them.
 //
-// Per frame the main thread does per-VERTEX work only: it decodes the frame's vertices, computes
-// vertex normals, vertex quaternions and face area ratios (poseMesh) and uploads them to float
-// textures. The vertex shader evaluates each Gaussian's embedding (Phong point + d*n, blended
-// rotation, area scale) from those textures and projects it; one instanced draw call. The depth
-// sort runs in a Web Worker (created from a Blob URL of inline source, so it works from file://),
-// on the posed centres, with a 16-bit counting sort; the main thread never waits for it.
+// Per frame the main thread does per-vertex (vertex frames: decode the frame) or per-joint (live
+// glTF: evaluate the clip) work only and uploads it to float textures. GPU passes then skin the
+// mesh (live glTF), compute per-face rotations and area ratios and per-vertex normals and
+// quaternions; the splat vertex shader evaluates each Gaussian's embedding (Phong point + d*n,
+// blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
+// normal) and projects it; one instanced draw call. The depth sort runs in a Web Worker (created
+// from a Blob URL of inline source, so it works from file://) with a 16-bit counting sort; the main
+// thread never waits for it.
 //
-// Pure functions (decodeBundle, frameVertices, poseMesh, poseGaussians, gaussianDepths, sortGaussians,
-// orbitViewmat, intrinsics) mirror meshsplat.mesh.geometry / meshsplat.embedding /
-// meshsplat.gaussians.compose and run under Node for the tests and bench/viewer.py. The UI starts
-// only in a page that holds the embedded avatar data. Cameras follow the project convention:
-// world->camera viewmat in OpenCV axes (x right, y down, z forward), pinhole K, pixel centres at
-// +0.5. Matrices are row-major flat arrays.
+// The exported functions (decodeBundle, frameVertices, evalRig, skinVertices, sortJob, orbitViewmat,
+// intrinsics, ...) run under Node for the tests (tests/viewer_reference.mjs holds the CPU reference
+// of the GPU posing) and bench/viewer.py. The UI starts only in a page that holds the embedded
+// avatar data. Cameras follow the project convention: world->camera viewmat in OpenCV axes (x right,
+// y down, z forward), pinhole K, pixel centres at +0.5. Matrices are row-major flat arrays.
 
 export const SH_C0 = 0.28209479177387814;
-const EPS = 1e-12;            // meshsplat.mesh.geometry._EPS
+export const EPS = 1e-12;     // meshsplat.mesh.geometry._EPS
 const EPS2D = 0.3;            // 2D covariance dilation (pixels^2), as the rasterizer
 const ALPHA_THRESHOLD = 1 / 255;
 const ALPHA_MAX = 0.999;
 const MAX_EXTEND = 3.33;
 const FOV_CLAMP_MARGIN = 0.3;
-const NEAR_PLANE = 0.01;
+export const NEAR_PLANE = 0.01;  // as meshsplat.render.rasterize's near_plane (the worker gets it too)
+const SH_C1 = 0.4886025119029199;   // SH constants of meshsplat.gaussians.compose and .shading
+const SH_C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
+const SH_C3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+               -0.4570457994644658, 1.445305721320277, -0.5900435899266435];
+const SH9 = [0.28209479177387814, 0.4886025119029199, 1.0925484305920792, 0.31539156525252005, 0.5462742152960396];
 export const TEX_WIDTH = 2048; // width of every data texture (texel i at (i % W, i / W))
 
 // ------------------------------------------------------------------ bundle decoding
@@ -68,7 +74,7 @@ export function decodeBundle(header, bytes) {
   const N = header.num_gaussians;
   const b = {
     header, V: header.num_vertices, F: header.num_faces, N, T: header.num_frames,
-    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames, packed: arr.gaussians,
+    faces: arr.faces, cano: arr.canonical_vertices, frames: arr.frames, packed: arr.gaussians, shRest: arr.sh_rest,
     ...unpackGaussians(arr.gaussians, N),
   };
   // canonical per-face frames (constant) and areas
@@ -268,7 +274,7 @@ export function frameVertices(b, t, out) {
 
 // ------------------------------------------------------------------ mesh geometry
 /** Per face: cross product (b-a)x(c-a) [F*3], area [F], frame columns (t, bt, n) [F*9], row-major. */
-function faceGeometry(b, p, out) {
+export function faceGeometry(b, p, out) {
   const F = b.F, f = b.faces;
   out = out || { cross: new Float64Array(F * 3), areas: new Float64Array(F), frames: new Float64Array(F * 9) };
   for (let k = 0; k < F; k++) {
@@ -291,140 +297,6 @@ function faceGeometry(b, p, out) {
     } else { // degenerate face: identity frame
       m.fill(0, o, o + 9); m[o] = 1; m[o + 4] = 1; m[o + 8] = 1;
     }
-  }
-  return out;
-}
-
-/** Rotation matrix (row-major, 9 numbers from `m` at `o`) -> unit quaternion wxyz with w >= 0. */
-function matrixToQuat(m, o, q, qo) {
-  const m00 = m[o], m01 = m[o + 1], m02 = m[o + 2], m10 = m[o + 3], m11 = m[o + 4], m12 = m[o + 5];
-  const m20 = m[o + 6], m21 = m[o + 7], m22 = m[o + 8];
-  const c = [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22];
-  let best = 0;
-  for (let i = 1; i < 4; i++) if (c[i] > c[best]) best = i; // first maximum, as torch.argmax
-  let w, x, y, z;
-  if (best === 0) { w = c[0]; x = m21 - m12; y = m02 - m20; z = m10 - m01; }
-  else if (best === 1) { w = m21 - m12; x = c[1]; y = m10 + m01; z = m02 + m20; }
-  else if (best === 2) { w = m02 - m20; x = m10 + m01; y = c[2]; z = m12 + m21; }
-  else { w = m10 - m01; x = m20 + m02; y = m21 + m12; z = c[3]; }
-  let r = 1 / Math.max(Math.sqrt(w * w + x * x + y * y + z * z), 1e-12);
-  if (w * r < 0) r = -r;
-  q[qo] = w * r; q[qo + 1] = x * r; q[qo + 2] = y * r; q[qo + 3] = z * r;
-}
-
-/**
- * Posed per-vertex normals [V*3], quaternions [V*4] (wxyz) and per-face area ratios [F] of the
- * posed vertices `p` [V*3]. `ws` (optional): the result of a previous call, whose buffers are reused.
- */
-export function poseMesh(b, p, ws) {
-  const V = b.V, F = b.F, f = b.faces;
-  ws = ws || { geo: undefined, qf: new Float64Array(F * 4), areaRatio: new Float64Array(F),
-               normals: new Float64Array(V * 3), wmax: new Float64Array(V), ref: new Int32Array(V),
-               quats: new Float64Array(V * 4) };
-  const g = ws.geo = faceGeometry(b, p, ws.geo);
-  const qf = ws.qf, ratio = ws.areaRatio, rot = new Float64Array(9);
-  const cf = b.canoFrames, pf = g.frames;
-  for (let k = 0; k < F; k++) {
-    const o = 9 * k;
-    for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) // R = F_posed F_cano^T
-      rot[3 * i + j] = pf[o + 3 * i] * cf[o + 3 * j] + pf[o + 3 * i + 1] * cf[o + 3 * j + 1] + pf[o + 3 * i + 2] * cf[o + 3 * j + 2];
-    matrixToQuat(rot, 0, qf, 4 * k);
-    const a0 = b.canoAreas[k];
-    ratio[k] = a0 > EPS ? g.areas[k] / a0 : 1;
-  }
-  const nrm = ws.normals, wmax = ws.wmax, ref = ws.ref, acc = ws.quats;
-  nrm.fill(0); wmax.fill(-1); ref.fill(0); acc.fill(0);
-  // area-weighted vertex normals (sum of cross products) and reference face per vertex
-  for (let k = 0; k < F; k++) {
-    for (let j = 0; j < 3; j++) {
-      const v = f[3 * k + j];
-      nrm[3 * v] += g.cross[3 * k]; nrm[3 * v + 1] += g.cross[3 * k + 1]; nrm[3 * v + 2] += g.cross[3 * k + 2];
-      if (g.areas[k] >= wmax[v]) { wmax[v] = g.areas[k]; ref[v] = k; } // ties -> largest face index
-    }
-  }
-  for (let v = 0; v < V; v++) {
-    const x = nrm[3 * v], y = nrm[3 * v + 1], z = nrm[3 * v + 2];
-    const r = 1 / Math.sqrt(Math.max(x * x + y * y + z * z, EPS * EPS));
-    nrm[3 * v] = x * r; nrm[3 * v + 1] = y * r; nrm[3 * v + 2] = z * r;
-  }
-  // vertex quaternion: area-weighted sum of incident face quaternions, signs aligned to the reference face
-  for (let k = 0; k < F; k++) {
-    const w = g.areas[k], q = 4 * k;
-    for (let j = 0; j < 3; j++) {
-      const v = f[3 * k + j], r = 4 * ref[v];
-      const dot = qf[q] * qf[r] + qf[q + 1] * qf[r + 1] + qf[q + 2] * qf[r + 2] + qf[q + 3] * qf[r + 3];
-      const s = dot < 0 ? -w : w;
-      for (let i = 0; i < 4; i++) acc[4 * v + i] += s * qf[q + i];
-    }
-  }
-  for (let v = 0; v < V; v++) {
-    const o = 4 * v, n2 = acc[o] ** 2 + acc[o + 1] ** 2 + acc[o + 2] ** 2 + acc[o + 3] ** 2;
-    if (n2 > 1e-30) {
-      const r = 1 / Math.max(Math.sqrt(n2), 1e-15);
-      for (let i = 0; i < 4; i++) acc[o + i] *= r;
-    } else { acc[o] = 1; acc[o + 1] = 0; acc[o + 2] = 0; acc[o + 3] = 0; }
-  }
-  return ws;
-}
-
-// ------------------------------------------------------------------ Gaussians (CPU reference)
-/**
- * CPU reference of what the vertex shader computes (tests, benchmarks; the page does not call it).
- * Posed Gaussians of frame `t` (or of explicit vertices `verts` [V*3] when given):
- * { means [N*3], quats [N*4] wxyz, scales [N*3], cov [N*6] (xx, xy, xz, yy, yz, zz) } as Float32Array.
- */
-export function poseGaussians(b, t, verts, out) {
-  const N = b.N, f = b.faces;
-  const p = verts || frameVertices(b, t);
-  const m = poseMesh(b, p);
-  const mode = b.header.scale_mode;
-  out = out || { means: new Float32Array(N * 3), quats: new Float32Array(N * 4), scales: new Float32Array(N * 3),
-                 cov: new Float32Array(N * 6) };
-  const vq = m.quats, vn = m.normals;
-  for (let g = 0; g < N; g++) {
-    const k = b.face[g], u = b.uv[2 * g], v = b.uv[2 * g + 1], wc = 1 - u - v;
-    const ia = f[3 * k], ib = f[3 * k + 1], ic = f[3 * k + 2];
-    // Phong point + displacement along the interpolated normal
-    let nx = u * vn[3 * ia] + v * vn[3 * ib] + wc * vn[3 * ic];
-    let ny = u * vn[3 * ia + 1] + v * vn[3 * ib + 1] + wc * vn[3 * ic + 1];
-    let nz = u * vn[3 * ia + 2] + v * vn[3 * ib + 2] + wc * vn[3 * ic + 2];
-    const rn = 1 / Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, EPS * EPS));
-    nx *= rn; ny *= rn; nz *= rn;
-    const d = b.d[g];
-    out.means[3 * g] = u * p[3 * ia] + v * p[3 * ib] + wc * p[3 * ic] + d * nx;
-    out.means[3 * g + 1] = u * p[3 * ia + 1] + v * p[3 * ib + 1] + wc * p[3 * ic + 1] + d * ny;
-    out.means[3 * g + 2] = u * p[3 * ia + 2] + v * p[3 * ib + 2] + wc * p[3 * ic + 2] + d * nz;
-    // delta_q: barycentric blend of the corner quaternions, signs aligned to corner a
-    const qa = 4 * ia, qb = 4 * ib, qc = 4 * ic;
-    let sb = 0, sc = 0;
-    for (let i = 0; i < 4; i++) { sb += vq[qb + i] * vq[qa + i]; sc += vq[qc + i] * vq[qa + i]; }
-    const wb = sb < 0 ? -v : v, wcc = sc < 0 ? -wc : wc;
-    let dw = u * vq[qa] + wb * vq[qb] + wcc * vq[qc], dx = u * vq[qa + 1] + wb * vq[qb + 1] + wcc * vq[qc + 1];
-    let dy = u * vq[qa + 2] + wb * vq[qb + 2] + wcc * vq[qc + 2], dz = u * vq[qa + 3] + wb * vq[qb + 3] + wcc * vq[qc + 3];
-    const rd = 1 / Math.max(Math.sqrt(dw * dw + dx * dx + dy * dy + dz * dz), 1e-12);
-    dw *= rd; dx *= rd; dy *= rd; dz *= rd;
-    // q = delta_q ⊗ q_canonical (Hamilton product), normalized
-    const cw = b.rot[4 * g], cx = b.rot[4 * g + 1], cy = b.rot[4 * g + 2], cz = b.rot[4 * g + 3];
-    let qw = dw * cw - dx * cx - dy * cy - dz * cz, qx = dw * cx + dx * cw + dy * cz - dz * cy;
-    let qy = dw * cy - dx * cz + dy * cw + dz * cx, qz = dw * cz + dx * cy - dy * cx + dz * cw;
-    const rq = 1 / Math.max(Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
-    qw *= rq; qx *= rq; qy *= rq; qz *= rq;
-    out.quats[4 * g] = qw; out.quats[4 * g + 1] = qx; out.quats[4 * g + 2] = qy; out.quats[4 * g + 3] = qz;
-    // scale modulation by the face's area change
-    const ratio = m.areaRatio[k];
-    const fac = mode === "area" ? ratio : mode === "sqrt_area" ? Math.sqrt(Math.max(ratio, 0) + 1e-20) : 1;
-    const s0 = b.scale[3 * g] * fac, s1 = b.scale[3 * g + 1] * fac, s2 = b.scale[3 * g + 2] * fac;
-    out.scales[3 * g] = s0; out.scales[3 * g + 1] = s1; out.scales[3 * g + 2] = s2;
-    // covariance R S S^T R^T
-    const xx = qx * qx, yy = qy * qy, zz = qz * qz, xy = qx * qy, xz = qx * qz, yz = qy * qz;
-    const wx = qw * qx, wy = qw * qy, wz = qw * qz;
-    const r00 = (1 - 2 * (yy + zz)) * s0, r01 = 2 * (xy - wz) * s1, r02 = 2 * (xz + wy) * s2;
-    const r10 = 2 * (xy + wz) * s0, r11 = (1 - 2 * (xx + zz)) * s1, r12 = 2 * (yz - wx) * s2;
-    const r20 = 2 * (xz - wy) * s0, r21 = 2 * (yz + wx) * s1, r22 = (1 - 2 * (xx + yy)) * s2;
-    const c = out.cov, o = 6 * g;
-    c[o] = r00 * r00 + r01 * r01 + r02 * r02; c[o + 1] = r00 * r10 + r01 * r11 + r02 * r12;
-    c[o + 2] = r00 * r20 + r01 * r21 + r02 * r22; c[o + 3] = r10 * r10 + r11 * r11 + r12 * r12;
-    c[o + 4] = r10 * r20 + r11 * r21 + r12 * r22; c[o + 5] = r20 * r20 + r21 * r21 + r22 * r22;
   }
   return out;
 }
@@ -469,7 +341,7 @@ export const EXACT_KEY_MAX = 200000;
  * Per-vertex camera depth z_v and camera z of the normal (and, when `exact`, the normal) in
  * `g.pv` (stride 5 or 2), and `g.corners`: stride * vertex index of each Gaussian's corners (cached).
  */
-function vertexKeys(g, verts, normals, viewmat, exact) {
+export function vertexKeys(g, verts, normals, viewmat, exact) {
   const N = g.N, V = verts.length / 3, S = exact ? 5 : 2, f = g.faces, face = g.face;
   const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
   if (!g.corners || g.corners.length !== 3 * N || g.stride !== S) {
@@ -490,12 +362,12 @@ function vertexKeys(g, verts, normals, viewmat, exact) {
 /**
  * The worker's sort in two passes over the Gaussians: the key of gaussianDepths quantized at once
  * to 16 bits over a range bounded from the vertices ([min z_v - |d|max, max z_v + |d|max], clamped,
- * nearer than 0.01 dropped) and counted; then a stable back-to-front scatter into `order`.
+ * nearer than NEAR_PLANE dropped) and counted; then a stable back-to-front scatter into `order`.
  * `moved`: bound on how far any key moved since the previous call, from the vertices:
  * baryMax max|Δz_v| + |d|max max|Δ(r3.n_v)| (Infinity on the first call). `ws`: scratch.
  */
 export function sortGaussians(g, verts, normals, viewmat, order, ws) {
-  const N = g.N, uv = g.uv, dd = g.d, NEAR = 0.01, exact = N <= EXACT_KEY_MAX;
+  const N = g.N, uv = g.uv, dd = g.d, exact = N <= EXACT_KEY_MAX;
   if (g.dMax === undefined) {
     let dMax = 0, baryMax = 1;
     for (let i = 0; i < N; i++) {
@@ -518,7 +390,7 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
   const moved = prev && prev.length === 2 * V ? g.baryMax * dz + g.dMax * dn : Infinity;
   if (!prev || prev.length !== 2 * V) g.prevKeys = new Float64Array(2 * V);
   for (let v = 0; v < V; v++) { g.prevKeys[2 * v] = pv[S * v]; g.prevKeys[2 * v + 1] = pv[S * v + 1]; }
-  const lo = Math.max(NEAR, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
+  const lo = Math.max(NEAR_PLANE, zmin - g.dMax), hi = Math.max(lo + 1e-12, zmax + g.dMax), q = 65535 / (hi - lo);
   const counts = ws.counts, bins = ws.bins && ws.bins.length >= N ? ws.bins : (ws.bins = new Int32Array(N));
   counts.fill(0);
   for (let i = 0; i < N; i++) {
@@ -532,7 +404,7 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
       s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
     }
     const key = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
-    if (key >= NEAR) {
+    if (key >= NEAR_PLANE) {
       let x = (key - lo) * q;
       x = x < 0 ? 0 : x > 65535 ? 65535 : x;
       const bin = 65535 - (x | 0); // far first
@@ -545,80 +417,6 @@ export function sortGaussians(g, verts, normals, viewmat, order, ws) {
   return { n: visible, lo, hi, moved };
 }
 
-/**
- * Sort key [N] (Float32Array) of every posed Gaussian: the camera depth of its centre, Phong point
- * + d * normalized interpolated normal, as the vertex shader computes it; per-vertex camera depths
- * make it z = sum w z_v + d (sum w r3.n_v) / |sum w n_v|. Above EXACT_KEY_MAX Gaussians the
- * division by |sum w n_v| is skipped: the key then differs from the centre's depth by at most
- * |d| (1/|n_interp| - 1) (zero for d = 0 or equal corner normals; see docs/viewer.md).
- * From the posed vertices `verts` and unit vertex normals `normals` (both [V*3]); `g` holds face,
- * uv, d of the Gaussians and the mesh faces (a decoded bundle or the worker's copy), and caches the
- * Gaussians' corner vertices. Returns {lo, hi} (visible key range, for sortDepths) and `moved`,
- * the largest |key - prev| when `prev` [N] is given (else Infinity). The worker's per-Gaussian work.
- */
-export function gaussianDepths(g, verts, normals, viewmat, depth, prev) {
-  const N = g.N, uv = g.uv, dd = g.d;
-  const exact = N <= EXACT_KEY_MAX;
-  depth = depth || new Float32Array(N);
-  const { pv, cn } = vertexKeys(g, verts, normals, viewmat, exact);
-  let lo = Infinity, hi = -Infinity, moved = 0;
-  for (let i = 0; i < N; i++) {
-    const u = uv[2 * i], v = uv[2 * i + 1], w = 1 - u - v;
-    const a = cn[3 * i], b = cn[3 * i + 1], c = cn[3 * i + 2];
-    let s = dd[i];
-    if (exact) {
-      const nx = u * pv[a + 2] + v * pv[b + 2] + w * pv[c + 2];
-      const ny = u * pv[a + 3] + v * pv[b + 3] + w * pv[c + 3];
-      const nz = u * pv[a + 4] + v * pv[b + 4] + w * pv[c + 4];
-      s /= Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-24));
-    }
-    depth[i] = u * pv[a] + v * pv[b] + w * pv[c] + s * (u * pv[a + 1] + v * pv[b + 1] + w * pv[c + 1]);
-    const z = depth[i]; // the stored float32 value
-    if (z >= 0.01) { if (z < lo) lo = z; if (z > hi) hi = z; } // NEAR_PLANE
-    if (prev) { const m = Math.abs(z - prev[i]); if (m > moved) moved = m; }
-  }
-  return { depth, lo, hi, moved: prev ? moved : Infinity };
-}
-
-/**
- * Back-to-front order of the depths >= the near plane: one counting sort on 16-bit quantized depth
- * over the visible range [lo, hi] (computed when not given; ties keep index order). Fills `order`
- * [n]; returns the visible count. `ws` (optional) holds reusable scratch
- * {counts: Uint32Array(65536), bins: Uint16Array(n)}.
- */
-export function sortDepths(depth, n, order, ws, lo, hi) {
-  const NEAR = 0.01; // NEAR_PLANE, spelled out: this function also runs in the worker
-  if (lo === undefined) {
-    lo = Infinity; hi = -Infinity;
-    for (let g = 0; g < n; g++) {
-      const z = depth[g];
-      if (z >= NEAR) { if (z < lo) lo = z; if (z > hi) hi = z; }
-    }
-  }
-  const counts = ws && ws.counts ? ws.counts : new Uint32Array(65536);
-  const bins = ws && ws.bins && ws.bins.length >= n ? ws.bins : new Uint16Array(n);
-  counts.fill(0);
-  const q = hi > lo ? 65535 / (hi - lo) : 0;
-  let visible = 0;
-  for (let g = 0; g < n; g++) {
-    const z = depth[g];
-    if (!(z >= NEAR)) continue;
-    const bin = 65535 - Math.min(65535, ((z - lo) * q) | 0); // far first; 0 <= (z - lo) q <= 65535
-    bins[g] = bin; counts[bin]++; visible++;
-  }
-  for (let i = 1; i < 65536; i++) counts[i] += counts[i - 1];
-  for (let g = n - 1; g >= 0; g--) if (depth[g] >= NEAR) order[--counts[bins[g]]] = g;
-  return visible;
-}
-
-/** Back-to-front order of Gaussian centres `means` [n*3] for `viewmat`: float32 depth, then sortDepths. */
-export function sortByDepth(means, n, viewmat, order, counts) {
-  const depth = new Float32Array(n);
-  const r0 = viewmat[8], r1 = viewmat[9], r2 = viewmat[10], t = viewmat[11];
-  for (let g = 0; g < n; g++) depth[g] = r0 * means[3 * g] + r1 * means[3 * g + 1] + r2 * means[3 * g + 2] + t;
-  order = order || new Uint32Array(n);
-  return sortDepths(depth, n, order, { counts });
-}
 // ------------------------------------------------------------------ sort worker
 /** Texels of a TEX_WIDTH-wide texture holding `n` texels (whole rows). */
 export function texSize(n) { return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WIDTH)); }
@@ -651,6 +449,7 @@ export function sortScratch(S) {
 /** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
 export const SORT_WORKER_SOURCE = `"use strict";
 const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
+const NEAR_PLANE = ${NEAR_PLANE};
 ${skinVertices.toString()}
 ${vertexNormals.toString()}
 ${vertexKeys.toString()}
@@ -840,10 +639,15 @@ precision highp sampler2D; precision highp usampler2D;
 layout(location=0) in vec2 corner;      // quad corner in {-1, 1}^2
 layout(location=1) in uint gid;         // Gaussian index, instances in back-to-front order
 uniform usampler2D gTex;                // 2 RGBA32UI texels per Gaussian (bundle.py pack_gaussians)
+uniform usampler2D shTex;               // shTexels RGBA32UI texels per Gaussian: SH bands > 0, half floats
 uniform usampler2D fTex;                // face -> vertex indices (a, b, c)
 uniform sampler2D pTex, nTex, qTex;     // per posed vertex: position, normal, quaternion wxyz
 uniform sampler2D rTex;                 // per face: posed / canonical area (x)
 uniform int scaleMode;                  // 0 none, 1 area, 2 sqrt_area
+uniform int shK, shTexels, shFrame;     // SH coefficients above the DC (0, 3, 8, 15); frame: 0 world, 1 triangle
+uniform int shadeNormal;                // learned irradiance: 0 off, 1 Phong normal, 2 shortest axis
+uniform vec3 irr[9];                    // its SH coefficients (world space, per channel)
+uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I))
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
 uniform vec2 size;                      // width, height (pixels)
@@ -851,6 +655,49 @@ out vec2 offs; out vec3 conic; out vec4 col;
 ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
 vec4 quatMul(vec4 a, vec4 b) {          // Hamilton product, w first
   return vec4(a.x * b.x - dot(a.yzw, b.yzw), a.x * b.yzw + b.x * a.yzw + cross(a.yzw, b.yzw));
+}
+mat3 quatMat(vec4 q) {                  // rotation of a unit wxyz quaternion (GLSL: columns)
+  float qw = q.x, qx = q.y, qy = q.z, qz = q.w;
+  return mat3(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy),
+              2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx),
+              2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy));
+}
+// colour = max(0, 0.5 + SH(view direction)) (meshsplat.gaussians.compose.eval_sh); dc = 0.5 + C0 sh0
+vec3 viewColour(int g, vec3 dc, vec3 dir) {
+  float c[45];
+  for (int t = 0; t < shTexels; t++) {
+    uvec4 w = texelFetch(shTex, at(g * shTexels + t), 0);
+    for (int j = 0; j < 4; j++) {
+      int i = 8 * t + 2 * j;
+      vec2 h = unpackHalf2x16(w[j]);
+      if (i < 45) c[i] = h.x;
+      if (i + 1 < 45) c[i + 1] = h.y;
+    }
+  }
+  #define SH(k) vec3(c[3 * (k)], c[3 * (k) + 1], c[3 * (k) + 2])
+  vec3 d = dir / max(length(dir), 1e-12);
+  float x = d.x, y = d.y, z = d.z;
+  vec3 rgb = dc - ${SH_C1} * y * SH(0) + ${SH_C1} * z * SH(1) - ${SH_C1} * x * SH(2);
+  if (shK >= 8) {
+    float xx = x * x, yy = y * y, zz = z * z;
+    rgb += ${SH_C2[0]} * x * y * SH(3) + ${SH_C2[1]} * y * z * SH(4) + ${SH_C2[2]} * (2.0 * zz - xx - yy) * SH(5)
+         + ${SH_C2[3]} * x * z * SH(6) + ${SH_C2[4]} * (xx - yy) * SH(7);
+    if (shK >= 15) {
+      rgb += ${SH_C3[0]} * y * (3.0 * xx - yy) * SH(8) + ${SH_C3[1]} * x * y * z * SH(9)
+           + ${SH_C3[2]} * y * (4.0 * zz - xx - yy) * SH(10) + ${SH_C3[3]} * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * SH(11)
+           + ${SH_C3[4]} * x * (4.0 * zz - xx - yy) * SH(12) + ${SH_C3[5]} * z * (xx - yy) * SH(13)
+           + ${SH_C3[6]} * x * (xx - 3.0 * yy) * SH(14);
+    }
+  }
+  return rgb;
+}
+// E(n) = max(0, sum_i Y_i(n) irr_i): second-order SH irradiance (meshsplat.gaussians.shading)
+vec3 irradiance(vec3 n) {
+  float x = n.x, y = n.y, z = n.z;
+  vec3 e = ${SH9[0]} * irr[0] + ${SH9[1]} * y * irr[1] + ${SH9[1]} * z * irr[2] + ${SH9[1]} * x * irr[3]
+         + ${SH9[2]} * x * y * irr[4] + ${SH9[2]} * y * z * irr[5] + ${SH9[3]} * (3.0 * z * z - 1.0) * irr[6]
+         + ${SH9[2]} * x * z * irr[7] + ${SH9[4]} * (x * x - y * y) * irr[8];
+  return max(e, 0.0);
 }
 void main() {
   int g = int(gid);
@@ -877,14 +724,10 @@ void main() {
   float fac = scaleMode == 1 ? ratio : scaleMode == 2 ? sqrt(max(ratio, 0.0) + 1e-20) : 1.0;
   vec3 s = vec3(s01, s2b.x) * fac;
   vec3 mc = R * mean + tr;
-  float op = dop.y;
-  if (mc.z < ${NEAR_PLANE} || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  if (mc.z < ${NEAR_PLANE}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   // world covariance M M^T with M = rot(q) diag(s)  (columns of rot(q) scaled)
-  float qw = q.x, qx = q.y, qy = q.z, qz = q.w;
-  mat3 M = mat3(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy + qw * qz), 2.0 * (qx * qz - qw * qy),
-                2.0 * (qx * qy - qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz + qw * qx),
-                2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
-         * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
+  mat3 Rq = quatMat(q);
+  mat3 M = Rq * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
   mat3 C = R * (M * transpose(M)) * transpose(R);
   // Jacobian at x/z, y/z clamped to the widened frustum (as gsplat / meshsplat.render.projection)
   float rz = 1.0 / mc.z;
@@ -895,9 +738,12 @@ void main() {
   // GLSL matrices are column-major: J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]] as 3x3 (last row 0)
   mat3 J = mat3(K.x * rz, 0.0, 0.0,  0.0, K.y * rz, 0.0,  -K.x * txy.x * rz * rz, -K.y * txy.y * rz * rz, 0.0);
   mat3 c2 = J * C * transpose(J);
-  float a = c2[0][0] + ${EPS2D}, b = c2[1][0], c = c2[1][1] + ${EPS2D};
+  float a0 = c2[0][0], b = c2[1][0], c0 = c2[1][1];
+  float a = a0 + ${EPS2D}, c = c0 + ${EPS2D};
   float det = a * c - b * b;
-  if (det <= 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  float op = dop.y;
+  if (antialiased) op *= sqrt(clamp(det > 0.0 ? max(a0 * c0 - b * b, 0.0) / det : 1.0, 0.0, 1.0) + 1e-12);
+  if (det <= 0.0 || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
   conic = vec3(c, -b, a) / det;
   float extend = min(${MAX_EXTEND}, sqrt(2.0 * log(op / ${ALPHA_THRESHOLD})));
   vec2 radius = ceil(extend * sqrt(vec2(a, c)));
@@ -905,7 +751,25 @@ void main() {
   offs = corner * radius;
   vec2 px = m2 + offs;
   gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
-  col = vec4(rg, s2b.y, op);
+  // colour, per frame: view-dependent SH (view direction in world or the triangle's canonical frame),
+  // times the learned irradiance of the posed normal (meshsplat.gaussians.compose)
+  vec3 rgb = vec3(rg, s2b.y);
+  if (shK > 0) {
+    vec3 dir = mean + transpose(R) * tr;  // mean - camera centre
+    if (shFrame == 1) dir = transpose(quatMat(dq)) * dir;
+    rgb = viewColour(g, rgb, dir);
+  }
+  rgb = max(rgb, 0.0);
+  if (shadeNormal > 0) {
+    vec3 sn = n;
+    if (shadeNormal == 2) {             // shortest posed axis (first minimum), facing the Phong normal's side
+      int i = s.y < s.x ? (s.z < s.y ? 2 : 1) : (s.z < s.x ? 2 : 0);
+      sn = Rq[i];
+      if (dot(sn, n) < 0.0) sn = -sn;
+    }
+    rgb *= irradiance(sn);
+  }
+  col = vec4(rgb, op);
 }`;
 
 const FRAG = `#version 300 es
@@ -974,7 +838,7 @@ export function vertexFaces(faces, V) {
 }
 
 /**
- * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians, faces, canonical face
+ * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians (and their SH bands), faces, canonical face
  * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
  * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
  * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call.
@@ -987,7 +851,8 @@ export class SplatRenderer {
     this.gl = gl; this.b = b;
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
-    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "fTex", "pTex", "nTex", "qTex", "rTex", "scaleMode"]);
+    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
+      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "antialiased"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     const ftex = new Uint32Array(4 * b.F);
@@ -1000,6 +865,7 @@ export class SplatRenderer {
     const { va, adj } = vertexFaces(b.faces, b.V);
     this.t = {
       g: dataTexture(gl, "u4", 2 * b.N, b.packed), f: dataTexture(gl, "u4", b.F, ftex),
+      sh: b.shRest ? dataTexture(gl, "u4", b.shRest.length / 4, b.shRest) : dataTexture(gl, "u4", 1),
       cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
       p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
       fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
@@ -1117,8 +983,15 @@ export class SplatRenderer {
     gl.uniform3f(p.loc.tr, m[3], m[7], m[11]);
     gl.uniform4f(p.loc.K, K[0], K[1], K[2], K[3]);
     gl.uniform2f(p.loc.size, w, h);
-    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[this.b.header.scale_mode]);
-    this.bind(p, { gTex: t.g, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
+    const hd = this.b.header, shK = [0, 3, 8, 15][hd.sh_degree || 0], shade = hd.shading;
+    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[hd.scale_mode]);
+    gl.uniform1i(p.loc.shK, shK);
+    gl.uniform1i(p.loc.shTexels, shK ? this.b.shRest.length / (4 * this.b.N) : 0);
+    gl.uniform1i(p.loc.shFrame, hd.sh_frame === "triangle" ? 1 : 0);
+    gl.uniform1i(p.loc.shadeNormal, shade ? (shade.normal === "axis" ? 2 : 1) : 0);
+    if (shade) gl.uniform3fv(p.loc.irr, shade.coeffs.flat());
+    gl.uniform1i(p.loc.antialiased, hd.antialiased ? 1 : 0);
+    this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
     gl.bindVertexArray(null);
@@ -1177,6 +1050,9 @@ export function startViewer(doc) {
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
+  // the page's own timers (the last 1,000 frames and sorts, ms) for the status line and bench/viewer.py
+  const timings = { main: [], sort: [], firstReadyMs: null };
+  const record = (list, ms) => { list.push(ms); if (list.length > 1000) list.shift(); };
   const still = params.get("frame") !== null || params.get("time") !== null;
   const clips = live ? b.rig.clips : [];
   const clipParam = params.get("clip");
@@ -1187,7 +1063,7 @@ export function startViewer(doc) {
     weights: live ? new Float64Array(b.rig.defaultWeights.length).fill(NaN) : null,
     playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
-    poseKey: "", sortedKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
+    poseKey: "", sortedKey: null, drawnKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
   };
   for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
     const [i, w] = kv.split(":").map(Number);
@@ -1199,6 +1075,7 @@ export function startViewer(doc) {
     renderer.setOrder(r.order, r.n);
     sorter.recycle(r.order);
     state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
+    record(timings.sort, r.ms);
   }, params.get("worker") !== "0");
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
@@ -1253,22 +1130,57 @@ export function startViewer(doc) {
     syncUi();
   };
   bg.onclick = () => { state.white = !state.white; syncUi(); };
-  // orbit (drag) and zoom (wheel); "r" resets the default view
-  let drag = null;
-  canvas.addEventListener("pointerdown", (e) => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
-  canvas.addEventListener("pointerup", () => { drag = null; });
+  const resetView = () => { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; };
+  $("reset").onclick = resetView;
+  // one pointer (mouse or finger) drags to orbit; two fingers pinch to zoom (distance ratio); the
+  // wheel zooms; a double tap, the reset button or "r" gives the default view back
+  const pointers = new Map(); // pointerId -> [x, y]
+  let pinch = 0, lastTap = null, press = null; // press: [time, x, y] of a lone finger, null once it moved or had company
+  const spread = () => { const [a, c] = [...pointers.values()]; return Math.hypot(a[0] - c[0], a[1] - c[1]); };
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (pointers.size === 2) pinch = spread();
+    press = pointers.size === 1 && e.pointerType === "touch" ? [e.timeStamp, e.clientX, e.clientY] : null;
+  });
+  const release = (e) => {
+    if (!pointers.delete(e.pointerId)) return;
+    if (pointers.size === 2) pinch = spread();
+    if (e.type !== "pointerup" || !press || pointers.size > 0) return;
+    const now = e.timeStamp; // a tap: short, still, alone; two taps close in time and place reset the view
+    if (now - press[0] < 300) {
+      if (lastTap && now - lastTap[0] < 400 && Math.hypot(press[1] - lastTap[1], press[2] - lastTap[2]) < 40) {
+        resetView(); lastTap = null;
+      } else lastTap = [now, press[1], press[2]];
+    }
+    press = null;
+  };
+  canvas.addEventListener("pointerup", release);
+  canvas.addEventListener("pointercancel", release);
   canvas.addEventListener("pointermove", (e) => {
-    if (!drag) return;
-    cam.az -= 0.3 * (e.clientX - drag[0]);
-    cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - drag[1])));
-    drag = [e.clientX, e.clientY];
+    const prev = pointers.get(e.pointerId);
+    if (!prev) return;
+    pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (press && Math.hypot(e.clientX - press[1], e.clientY - press[2]) > 10) press = null;
+    if (pointers.size === 1) {
+      cam.az -= 0.3 * (e.clientX - prev[0]);
+      cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - prev[1])));
+    } else if (pointers.size === 2) {
+      const d = spread();
+      if (pinch > 0 && d > 0) cam.dist *= pinch / d; // fingers apart: closer
+      pinch = d;
+    }
   });
   canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); },
                           { passive: false });
+  // the space bar plays/pauses whatever has the focus (a focused button would otherwise take it)
+  const isSpace = (e) => e.key === " " || e.code === "Space";
   doc.addEventListener("keydown", (e) => {
-    if (e.key === "r") { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; }
-    if (e.key === " ") play.onclick();
-  });
+    if (isSpace(e)) { e.preventDefault(); if (!e.repeat) play.onclick(); } else if (e.key === "r") resetView();
+  }, true);
+  doc.addEventListener("keyup", (e) => { if (isSpace(e)) e.preventDefault(); }, true);
+  // what the page shows, for tests and benchmarks (read-only use)
+  window.meshsplatViewer = { view: cam, state, timings };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
@@ -1311,8 +1223,14 @@ export function startViewer(doc) {
       state.pendingKey = key; // before the request: without a worker the result comes back inside it
       if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
-    renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
-    mainMs = performance.now() - t0;
+    // draw when the pose, view, order, background or size changed (a still page stays idle)
+    const drawKey = `${key}|${state.sortedKey}|${state.white}|${w}x${h}`;
+    if (drawKey !== state.drawnKey) {
+      renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
+      state.drawnKey = drawKey;
+      mainMs = performance.now() - t0;
+      record(timings.main, mainMs);
+    }
     fpsCount++;
     if (now - fpsT > 500) { fps = 1000 * fpsCount / (now - fpsT); fpsCount = 0; fpsT = now; }
     info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
@@ -1321,7 +1239,10 @@ export function startViewer(doc) {
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
       (key === state.sortedKey ? "" : " · order stale");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view
-    if (key === state.sortedKey) doc.body.dataset.ready = "1";
+    if (key === state.sortedKey) {
+      if (timings.firstReadyMs === null) timings.firstReadyMs = performance.now(); // since navigation start
+      doc.body.dataset.ready = "1";
+    }
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
