@@ -181,6 +181,28 @@ def test_strategy_clone_split_prune_on_schedule():
     assert state["grad2d"].shape[0] == p["face"].shape[0] and torch.all(state["grad2d"] == 0)
 
 
+def test_the_final_iteration_neither_refines_nor_resets():
+    """A run ending on a refinement (or reset) step saves what it trained: new Gaussians or reset
+    opacities that no iteration would train are not made."""
+    mesh = plane(8)
+    n = 30
+    p = init_params(mesh, n, generator=torch.Generator().manual_seed(1))
+    opts = build_optimizers(p, LRS)
+    strat = DensifyStrategy(refine_start_iter=2, refine_every=2, refine_stop_iter=100, reset_every=2)
+    state = strat.initialize_state(extent=1.0)
+    with torch.no_grad():
+        p["log_scale"][:] = math.log(0.005)
+    before = {k: v.detach().clone() for k, v in p.items()}
+    grad = torch.full((n,), 1e-3)
+    radii = torch.full((n,), 3)
+    strat.step_post_backward(p, opts, state, 1, _fake_info(n, grad, radii), mesh=mesh)
+    out = strat.step_post_backward(p, opts, state, 2, _fake_info(n, grad, radii), mesh=mesh, final=True)
+    assert out == {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+    assert all(torch.equal(p[k], before[k]) for k in before)
+    out = strat.step_post_backward(p, opts, state, 2, _fake_info(n, grad, radii), mesh=mesh)  # not final: it does
+    assert out["cloned"] == n and out["reset"] == 1
+
+
 def test_screen_size_prune_is_a_fraction_of_the_image_size():
     """After the first opacity reset, Gaussians wider than prune_scale2d * max(width, height) go."""
     mesh = plane(8)

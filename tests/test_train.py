@@ -229,6 +229,19 @@ def test_training_learns_and_writes_run_dir(tiny_dataset, tmp_path):
     assert sum(int(r["walked"]) for r in rows) > 0  # embeddings changed face during training
 
 
+def test_a_run_ending_on_a_refinement_step_saves_what_it_trained(tiny_dataset, tmp_path):
+    """The last iteration neither densifies nor resets opacities: the checkpoint holds the Gaussians the
+    run trained (refinement on the final step used to save children no iteration had trained)."""
+    cfg = small_config(tiny_dataset, tmp_path / "run", 12, ["strategy.grow_grad2d=1e-7", "strategy.reset_every=6"])
+    tr = Trainer(cfg)
+    run = tr.train()
+    with open(run / "log.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    counts = [int(r["n_gaussians"]) for r in rows]
+    assert counts[3] != counts[2] and counts[7] != counts[6]  # iterations 4 and 8 refined
+    assert load_avatar(run).num_gaussians == tr.num_gaussians == counts[10]  # iteration 12 did not
+
+
 def test_ablation_switches(tiny_dataset, tmp_path):
     frozen = Trainer(small_config(tiny_dataset, tmp_path / "frozen", 10, ["model.freeze_embedding=true"]))
     frozen.train()

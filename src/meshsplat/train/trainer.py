@@ -382,6 +382,7 @@ class Trainer:
             scale_mode=cfg.model.scale_mode,
             batch_size=B,
             reduce=self.dp.reduce_statistics if self.dp.active else None,
+            final=it == cfg.iterations,
         )
         walked = 0
         if it % cfg.walk.every == 0 and not cfg.model.freeze_embedding:

@@ -113,12 +113,14 @@ class DensifyStrategy:
         scale_mode: str = "sqrt_area",
         batch_size: int | None = None,
         reduce: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
+        final: bool = False,
     ) -> dict[str, int]:
         """Update statistics (``info``: one meta or a list, one per image of this process's share of a
         batch of ``batch_size`` images, default the list's length), then refine / reset on schedule.
-        Returns counts of what changed."""
+        ``final``: the run's last iteration, which neither refines nor resets (no iteration would train
+        the new Gaussians or the reset opacities before they are saved). Returns counts of what changed."""
         out = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
-        if not self.enabled or step > self.refine_stop_iter:
+        if not self.enabled or step > self.refine_stop_iter or final:
             return out
         infos = [info] if isinstance(info, dict) else list(info)
         self._update_state(params, state, infos, batch_size or len(infos), reduce)
