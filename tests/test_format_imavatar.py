@@ -186,6 +186,17 @@ def test_test_split_rule(tmp_path, model_dir):
     assert ds.split("train") == [0, 1, 2] and ds.split("test_frames") == [3, 4]
 
 
+@pytest.mark.parametrize("intr", ["../other/images/0.png", {"fx": 1}, [[1, 2], [3]]])
+def test_intrinsics_that_are_not_numbers_are_one_line(tmp_path, model_dir, intr):
+    """Found by the readers' property test: a string in ``intrinsics`` was a ValueError traceback."""
+    root = _capture(tmp_path / "c", [(_gl_world_mat(np.eye(3), [0, 0, -4]), *_zeros())] * 3)
+    data = json.loads((root / "flame_params.json").read_text())
+    data["intrinsics"] = intr
+    (root / "flame_params.json").write_text(json.dumps(data))
+    with pytest.raises(MeshsplatError, match="intrinsics: expected 4 finite numbers"):
+        imavatar.read(root, model_dir=model_dir)
+
+
 def test_every_problem_in_one_error(tmp_path, model_dir):
     wm = _gl_world_mat(np.eye(3), [0, 0, -4])
     root = _capture(tmp_path / "bad", [(wm, *_zeros())] * 4)

@@ -95,12 +95,13 @@ def K_from_intrinsics(intr: ArrayLike | None, width: int, height: int) -> np.nda
     units on a 512-pixel base, as IMavatar's own reader treats them), in meshsplat's pixel-centre
     convention: IMavatar casts its rays through integer pixel coordinates (``code/datasets/real_dataset.py``
     ``uv = np.mgrid[...]``), so its principal point moves by +0.5 pixel (``meshsplat.camera``)."""
-    a = np.asarray(intr, np.float64).reshape(-1)
+    try:
+        a = np.asarray(intr, np.float64).reshape(-1)
+        got = f"shape {list(np.shape(cast(ArrayLike, intr)))}"
+    except (TypeError, ValueError):
+        a, got = np.full(1, np.nan), f"{type(intr).__name__} {str(intr)[:60]!r}"  # not numbers
     if a.shape != (4,) or not np.isfinite(a).all():
-        raise MeshsplatError(
-            "intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], "
-            f"got {list(np.shape(cast(ArrayLike, intr)))}"
-        )
+        raise MeshsplatError(f"intrinsics: expected 4 finite numbers [fx/W, fy/H, cx/W, cy/H], got {got}")
     if abs(a[3]) > 1:
         a = a / 512.0
     return K_from_integer_centers(K_from_normalized(a, width, height))
