@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -9,6 +11,9 @@ import torch
 from meshsplat.camera import look_at
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data import open_dataset
+from meshsplat.errors import MeshsplatError
+from meshsplat.io.images import read_image
+from meshsplat.render.background import composite
 from meshsplat.synth import rasterize_triangles, synthesize
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
 from meshsplat.synth.raster import sample_texture
@@ -113,6 +118,38 @@ def test_small_synth_round_trip(assets, tmp_path):
     px = (proj[:, :2] / proj[:, 2:]).long().clamp(0, 63)
     assert float(fr.mask[px[:, 1], px[:, 0], 0].gt(0).float().mean()) > 0.9
     assert ds.meta["train_clip"] == "clip0" and "CesiumMan" in ds.meta["attribution"]
+
+
+def test_capture_on_one_backdrop_composites_like_one_rendered_on_another(assets, tmp_path):
+    """The same capture rendered over black and over white: each, composited over the other's colour
+    through its soft mask, is the other (8-bit rounding). Without the manifest's ``backdrop`` the
+    edge pixels would keep a fringe of the colour they were rendered over (up to 0.25 off)."""
+    kw = dict(frames=2, resolution=64, test_frames=0, test_views=0)
+    black = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "b", background=(0, 0, 0), **kw))
+    white = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "w", background=(1, 1, 1), **kw))
+    assert black.manifest["backdrop"] == [0.0, 0.0, 0.0] and white.manifest["backdrop"] == [1.0, 1.0, 1.0]
+    for i in range(len(black)):
+        b, w = black[i], white[i]
+        assert b.mask is not None and w.mask is not None and torch.equal(b.mask, w.mask)
+        edge = (b.mask > 0) & (b.mask < 1)
+        assert int(edge.sum()) > 20  # soft edges to test
+        on_white = composite(b.image, b.mask, torch.ones(3))
+        on_black = composite(w.image, w.mask, torch.zeros(3))
+        recorded_w = torch.from_numpy(read_image(white.root / white.manifest["frames"][i]["image"], 3) / 255.0)
+        recorded_b = torch.from_numpy(read_image(black.root / black.manifest["frames"][i]["image"], 3) / 255.0)
+        assert float((on_white - recorded_w).abs().max()) < 2.5 / 255
+        assert float((on_black - recorded_b).abs().max()) < 2.5 / 255
+
+
+def test_backdrop_key_is_checked(assets, tmp_path):
+    out = synthesize(
+        assets / "gltf" / "CesiumMan.glb", tmp_path / "c", frames=1, resolution=32, test_frames=0, test_views=0
+    )
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["backdrop"] = [0, 0, 2]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(MeshsplatError, match="'backdrop' must be three numbers in \\[0, 1\\]"):
+        open_dataset(out)
 
 
 @pytest.mark.slow

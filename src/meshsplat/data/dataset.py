@@ -73,6 +73,8 @@ class AvatarDataset:
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
         self.downscale = 1.0  # set_downscale: cameras and frames at 1/downscale of the recorded size
+        backdrop = manifest.get("backdrop")
+        self.backdrop = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
 
     def set_downscale(self, factor: float) -> AvatarDataset:
         """Hand out cameras and frames at ``1 / factor`` of the recorded size (``meshsplat.data.downscale``:
@@ -206,6 +208,8 @@ class AvatarDataset:
         arr = read_image(self.root / rec["image"], 3)
         img = torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
         mask = self._load_mask(rec)
+        if self.backdrop is not None and mask is not None:
+            img = remove_backdrop(img, mask, self.backdrop)
         camera = self.camera(rec["camera"])
         if self.downscale != 1:
             img, mask = downscale_frame(img, mask, camera.width, camera.height)
@@ -240,6 +244,17 @@ class AvatarDataset:
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
             yield self[i]
+
+
+def remove_backdrop(image: torch.Tensor, mask: torch.Tensor, backdrop: torch.Tensor) -> torch.Tensor:
+    """The subject's own colour ``[H,W,3]`` from ``image [H,W,3]`` recorded over a uniform ``backdrop [3]``
+    (``image = colour * mask + backdrop * (1 - mask)``, ``mask [H,W,1]``): at the subject's soft edge the
+    recorded pixel mixes in the backdrop, which ``composite(image, mask, bg)`` would keep; with the
+    colour instead, the composite over any ``bg`` is exactly ``colour * mask + bg * (1 - mask)``.
+    Where the mask is 0 the image is kept; values are clamped to [0, 1] (8-bit rounding at tiny masks)."""
+    covered = mask > 0
+    colour = (image - backdrop * (1 - mask)) / torch.where(covered, mask, torch.ones_like(mask))
+    return torch.where(covered, colour.clamp_(0.0, 1.0), image)
 
 
 def _read_npy_mask(path: Path) -> np.ndarray:

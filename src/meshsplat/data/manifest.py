@@ -480,6 +480,11 @@ def build_dataset(
             problems.add(f"split {sname!r}", f"frame indices out of range or not integers: {bad[:5]}")
     if not isinstance(manifest.get("meta") or {}, dict):
         problems.add("manifest", f"'meta' must be an object, got {_type_name(manifest.get('meta'))}")
+    backdrop = manifest.get("backdrop")
+    if backdrop is not None and not (
+        isinstance(backdrop, list) and len(backdrop) == 3 and all(_is_number(x) and 0 <= x <= 1 for x in backdrop)
+    ):
+        problems.add("manifest", f"'backdrop' must be three numbers in [0, 1] (an RGB colour), got {backdrop!r}")
     problems.raise_if_any()
     assert canonical is not None and faces is not None and verts is not None, "a None array comes with a problem"
     manifest["splits"] = splits

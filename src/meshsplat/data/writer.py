@@ -32,7 +32,9 @@ class DatasetWriter:
     """Streams frames to ``root``: images and masks are written at once, meshes and the manifest
     on :meth:`close` (atomic manifest write). Use as a context manager.
 
-    ``canonical_vertices [V,3]``, ``faces [F,3]``: the rest (canonical) driving mesh.
+    ``canonical_vertices [V,3]``, ``faces [F,3]``: the rest (canonical) driving mesh. ``backdrop [3]``:
+    the uniform colour the images were rendered over (manifest key ``backdrop``; the loader recovers
+    the subject's colour at soft mask edges from it), or None for images as a camera recorded them.
     """
 
     def __init__(
@@ -42,6 +44,7 @@ class DatasetWriter:
         faces: torch.Tensor | ArrayLike,
         overwrite: bool = False,
         meta: dict | None = None,
+        backdrop: tuple[float, float, float] | list[float] | None = None,
     ) -> None:
         self.root = Path(root)
         if (self.root / "manifest.json").exists() and not overwrite:
@@ -54,6 +57,7 @@ class DatasetWriter:
         if self.faces.ndim != 2 or self.faces.shape[1] != 3:
             raise MeshsplatError(f"faces: expected shape [F,3], got {list(self.faces.shape)}")
         self.meta = dict(meta or {})
+        self.backdrop = None if backdrop is None else [float(x) for x in backdrop]
         self.cameras: dict[str, dict] = {}
         self.frames: list[dict] = []
         self.meshes: list[np.ndarray] = []
@@ -200,6 +204,8 @@ class DatasetWriter:
             "splits": splits,
             "meta": self.meta,
         }
+        if self.backdrop is not None:
+            manifest["backdrop"] = self.backdrop
         if self.driver is not None and self.driver_params is not None:
             per_frame = self.driver.get(
                 "per_frame", [k for k, v in self.driver_params.items() if v.ndim == 2 and len(v) == len(self.meshes)]

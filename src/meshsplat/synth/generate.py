@@ -490,7 +490,7 @@ def _generate(
         "mesh_size": size,
         "attribution": getattr(source, "attribution", ""),
     }
-    writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta)
+    writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta, backdrop=background)
     writer.set_source_map(
         smap["source_index"],
         rest0,
