@@ -11,6 +11,11 @@ iterations like the demo's):
   robot   RobotExpressive trained on Walking, tested on Wave and Dance (novel poses: test_clip)
   smpl    the stand-in SMPL body dancing the bundled AIST++ motion, tracked poses off by --pose-noise
 
+Scoring: path-traced captures are scored against the same frames rendered again with ``--ref-spp``
+samples per pixel (default 256; the training capture has ``--spp``, 32): Monte Carlo noise in the
+references would otherwise cap every model's score (``capture_vs_ref`` in the JSON: the noisy capture's
+own subject PSNR against the references).
+
 Variants: those of bench/quality.py (``paper``, ``default``, ...) plus candidates on top of the
 default (``quality``) preset listed in EXTRA. Metrics per test split, mean over frames: full-image and
 subject PSNR on white, subject PSNR on black, subject LPIPS (white), and the error budget on black:
@@ -63,11 +68,14 @@ def _schedule(iterations: int) -> tuple[str, ...]:
     )
 
 
-def _capture(name: str, args, work: Path) -> Path:
+def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
+    """The capture ``name`` (``spp``: samples per pixel, default ``args.spp``; another count renders the
+    held-out frames only, same names, cameras and poses, with less noise: the low-noise references)."""
     from meshsplat.synth import synthesize
     from meshsplat.synth.pbr import PbrSettings
 
-    data = work / f"data-{name}-{args.renderer}"
+    spp = args.spp if spp is None else spp
+    data = work / (f"data-{name}-{args.renderer}" + (f"-spp{spp}" if spp != args.spp else ""))
     if (data / "manifest.json").exists():
         return data
     spec = dict(CAPTURES[name])
@@ -87,12 +95,17 @@ def _capture(name: str, args, work: Path) -> Path:
         test_views=2,
         test_view_frames=max(2, args.test_frames // 2),
         renderer=args.renderer,
-        pbr=PbrSettings(spp=args.spp),
+        pbr=PbrSettings(spp=spp),
         overwrite=True,
+        splits=None if spp == args.spp else [s for s in _planned_splits(name) if s != "train"],
         **spec,
         **extra,
     )
     return data
+
+
+def _planned_splits(name: str) -> list[str]:
+    return ["train", "test_frames", "test_views"] + (["test_clip"] if CAPTURES[name].get("test_clips") else [])
 
 
 def _mesh_coverage(verts, faces, cam, s: int = 2):
@@ -106,8 +119,10 @@ def _mesh_coverage(verts, faces, cam, s: int = 2):
     return frags.mask.float().view(cam.height, s, cam.width, s).mean((1, 3))[..., None]
 
 
-def _score(run: Path, data: Path) -> dict:
-    """Per split: mean metrics over its frames and the error budget (summed squared error per region)."""
+def _score(run: Path, data: Path, ref: Path) -> dict:
+    """Per split of ``data``: mean metrics over its frames and the error budget (summed squared error per
+    region), against the images and masks of the same frames in ``ref`` (the low-noise references; may
+    be ``data`` itself)."""
     import torch
 
     from meshsplat.data import open_dataset
@@ -118,14 +133,16 @@ def _score(run: Path, data: Path) -> dict:
     from meshsplat.run_folder import load_avatar
 
     avatar = load_avatar(run)
-    ds = open_dataset(data)
+    ds, refs = open_dataset(data), open_dataset(ref)
+    by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     white, black = torch.ones(3), torch.zeros(3)
     lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
     out = {}
     for split in [s for s in ds.split_names if s != "train"]:
         rows, sse = [], dict.fromkeys(BUDGET_REGIONS, 0.0)
         for i in ds.split(split):
-            fr = ds[i]
+            target = refs[by_name[ds.frame_info(i)["name"]]]
+            fr = replace(ds[i], image=target.image, mask=target.mask)
             row = {}
             band = silhouette_regions(fr.mask)["band"]
             mesh_cov = _mesh_coverage(fr.vertices, ds.faces, fr.camera)
@@ -155,6 +172,32 @@ def _score(run: Path, data: Path) -> dict:
     return out
 
 
+def _noise(data: Path, ref: Path) -> dict:
+    """Subject PSNR (white) of the capture's own test images against the low-noise references: the
+    ceiling a model scored against the noisy capture would have had."""
+    import torch
+
+    from meshsplat.data import open_dataset
+    from meshsplat.metrics.subject import subject_metrics
+    from meshsplat.render.background import composite
+
+    a, b = open_dataset(data), open_dataset(ref)
+    by_name = {b.frame_info(j)["name"]: j for j in range(len(b))}
+    out = {}
+    for split in [s for s in a.split_names if s != "train"]:
+        vals = []
+        for i in a.split(split):
+            fa, fb = a[i], b[by_name[a.frame_info(i)["name"]]]
+            white = torch.ones(3)
+            vals.append(
+                subject_metrics(composite(fa.image, fa.mask, white), composite(fb.image, fb.mask, white), fb.mask)[
+                    "psnr_mask"
+                ]
+            )
+        out[split] = round(sum(vals) / len(vals), 2)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--captures", nargs="*", default=list(CAPTURES), choices=list(CAPTURES))
@@ -164,7 +207,13 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--test-frames", type=int, default=8)
     ap.add_argument("--iters", type=int, default=600)
-    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--spp", type=int, default=32, help="samples per pixel of the training capture")
+    ap.add_argument(
+        "--ref-spp",
+        type=int,
+        default=256,
+        help="pbr: score against the same frames rendered with this many spp (0: the capture)",
+    )
     ap.add_argument("--pose-noise", type=float, default=0.03, help="smpl capture: tracking error (radians)")
     ap.add_argument("--n-init", type=int, default=5000)
     ap.add_argument("--tiny", action="store_true", help="seconds: 32 px, 4 frames, 30 iterations, 4 spp")
@@ -199,6 +248,16 @@ def main() -> None:
         meta = manifest.get("meta", {})
         rows[cap] = {"synth_s_per_frame": meta.get("seconds_per_frame"), "renderer": meta.get("renderer"), "runs": {}}
         print(f"[{cap}] capture ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+        ref = data
+        if args.renderer == "pbr" and args.ref_spp and args.ref_spp != args.spp:
+            ref = _capture(cap, args, work, spp=args.ref_spp)
+            ref_meta = json.loads((ref / "manifest.json").read_text()).get("meta", {})
+            rows[cap]["ref_spp"] = args.ref_spp
+            rows[cap]["ref_s_per_frame"] = ref_meta.get("seconds_per_frame")
+            rows[cap]["capture_vs_ref"] = _noise(data, ref)
+            print(
+                f"[{cap}] references ready ({args.ref_spp} spp); capture vs references: {rows[cap]['capture_vs_ref']}"
+            )
         for name in args.variants:
             preset, overrides = ALL[name]
             run = work / f"{cap}-{args.renderer}-{name}"
@@ -216,7 +275,7 @@ def main() -> None:
                 "overrides": overrides,
                 "train_s": train_s,
                 "gaussians": trainer.num_gaussians,
-                "splits": _score(run, data),
+                "splits": _score(run, data, ref),
             }
             print(f"[{cap}/{name}] trained in {train_s:.0f} s", flush=True)
             out.write_text(

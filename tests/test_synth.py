@@ -179,3 +179,18 @@ def test_synth_cli_smoothed_decimated_driver(assets, tmp_path):
     assert ds.num_vertices < 0.6 * ds.meta["render_vertices"]
     assert len({ds.frame_info(i)["camera"] for i in ds.split("train")}) == 3
     assert cli_main(["synth", "nope.glb", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_rendering_some_splits_again_gives_the_same_frames(assets, tmp_path):
+    kw = dict(frames=3, resolution=32, test_frames=2, test_views=1, test_view_frames=2)
+    full = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "full", **kw))
+    part = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "part", splits=["test_views"], **kw))
+    assert part.split("train") == [] and len(part) == len(full.split("test_views")) == 2
+    names = {full.frame_info(i)["name"]: i for i in range(len(full))}
+    for j in part.split("test_views"):
+        i = names[part.frame_info(j)["name"]]
+        assert i in full.split("test_views")
+        assert torch.equal(part[j].image, full[i].image) and torch.equal(part[j].mask, full[i].mask)
+        assert torch.equal(part[j].camera.viewmat, full[i].camera.viewmat)
+    with pytest.raises(MeshsplatError, match="splits: expected some of"):
+        synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "bad", splits=["test_clip"], **kw)

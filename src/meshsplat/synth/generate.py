@@ -312,6 +312,7 @@ def synthesize(
     pbr: PbrSettings | None = None,
     pose_noise: float = 0.0,
     seed: int = 0,
+    splits: Sequence[str] | None = None,
 ) -> Path:
     """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
 
@@ -332,7 +333,9 @@ def synthesize(
     random rotation of ``pose_noise`` radians standard deviation per axis-angle component (seeded by
     ``seed``), while the images show the exact pose: pose refinement has an error to fix. The dataset keeps ``source_map.npz`` (asset vertex of each driving vertex, the
     asset's rest mesh, the up rotation) so the asset's own animations drive the avatar later.
-    Returns the dataset folder.
+    ``splits``: render only the frames of these splits (same names, cameras, poses and per-frame
+    sampler seeds as the full capture; e.g. a capture's held-out frames again with more samples per
+    pixel, as low-noise references); None: all. Returns the dataset folder.
     """
     old_threads = torch.get_num_threads()
     if threads:
@@ -368,6 +371,7 @@ def synthesize(
             threads,
             float(pose_noise),
             int(seed),
+            None if splits is None else [str(x) for x in splits],
         )
     finally:
         torch.set_num_threads(old_threads)
@@ -403,6 +407,7 @@ def _generate(
     threads=None,
     pose_noise=0.0,
     seed=0,
+    splits=None,
 ) -> Path:
     if renderer not in RENDERERS:
         raise MeshsplatError(f"renderer: expected one of {', '.join(RENDERERS)}, got {renderer!r}")
@@ -431,6 +436,9 @@ def _generate(
     n_test = test_frames if test_frames is not None else max(2, frames // 4)
     n_tv = test_view_frames if test_view_frames is not None else max(2, frames // 8)
     shots, cams = _plan(rig, clips, frames, n_test, min(n_tv, frames), views, test_views, turns)
+    planned = sorted({s.split for s in shots})
+    if splits is not None and (not splits or set(splits) - set(planned)):
+        raise MeshsplatError(f"splits: expected some of {planned} (this capture's splits), got {list(splits)}")
 
     if is_model:
         drive, weld_group, smap = _model_mesh(source, int(driver_smooth), driver_decimate)
@@ -502,7 +510,7 @@ def _generate(
     )
     for cid in cams:
         writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
-    splits: dict[str, list[int]] = {}
+    written: dict[str, list[int]] = {}
     mesh_ids: dict[tuple, int] = {}
     mesh_params: list[dict] = []
     for k, s in enumerate(shots):
@@ -517,6 +525,8 @@ def _generate(
                 mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
                 if is_model:
                     mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
+        if splits is not None and s.split not in splits:
+            continue  # not rendered; poses and seeds above stay those of the full capture
         if tracer is not None:
             rgb, alpha = tracer.render(place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution, frame=k)
             rgb = (rgb + (1 - alpha) * torch.tensor(background, dtype=torch.float32)).clamp(0, 1)
@@ -539,14 +549,17 @@ def _generate(
             s.camera,
             mesh=mesh_ids[mkey],
             mask=alpha,
+            name=f"{k:06d}",
             clip=s.clip,
             time=s.time,
             extra={"yaw": s.yaw, "split": s.split},
         )
-        splits.setdefault(s.split, []).append(idx)
+        written.setdefault(s.split, []).append(idx)
         if progress and (k + 1) % 20 == 0:
             print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
-    for name, indices in splits.items():
+    if splits is not None:
+        written.setdefault("train", [])  # not rendered: an empty split, not "every frame" (the writer's default)
+    for name, indices in written.items():
         writer.set_split(name, indices)
     if is_model:
         per_frame = {k: np.stack([p[k] for p in mesh_params]) for k in mesh_params[0]}
