@@ -172,6 +172,40 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
     return out
 
 
+def _picture(runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: int = 2) -> None:
+    """Per held-out frame (``frames`` of each test split): reference | each run | the last run's squared
+    error on black, silhouette band in red, interior in green (brighter = larger), as a PNG."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from meshsplat.data import open_dataset
+    from meshsplat.metrics.budget import silhouette_regions
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_avatar
+
+    avatars = {name: load_avatar(r) for name, r in runs.items()}
+    ds, refs = open_dataset(data), open_dataset(ref)
+    by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
+    rows = []
+    for split in [s for s in ds.split_names if s != "train"]:
+        for i in ds.split(split)[:frames]:
+            fr, target = ds[i], refs[by_name[ds.frame_info(i)["name"]]]
+            black = torch.zeros(3)
+            gt = composite(target.image, target.mask, black)
+            tiles = [gt]
+            for av in avatars.values():
+                with torch.no_grad():
+                    tiles.append(av.render(fr.vertices, fr.camera, black).image.float().clamp(0, 1))
+            err = (tiles[-1] - gt).pow(2).sum(-1).sqrt().clamp(0, 1)
+            reg = silhouette_regions(target.mask)
+            tiles.append(torch.stack([err * reg["band"], err * reg["interior"], torch.zeros_like(err)], -1))
+            rows.append(torch.cat(tiles, 1))
+    img = (torch.cat(rows, 0).numpy() * 255 + 0.5).astype(np.uint8)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(img).save(out)
+
+
 def _noise(data: Path, ref: Path) -> dict:
     """Subject PSNR (white) of the capture's own test images against the low-noise references: the
     ceiling a model scored against the noisy capture would have had."""
@@ -220,6 +254,9 @@ def main() -> None:
     ap.add_argument("--work", default=None)
     ap.add_argument("--name", default="quality_pbr")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--picture", default=None, help="PNG per capture: reference | variants | error budget (name gets -<capture>)"
+    )
     args = ap.parse_args()
     if args.tiny:
         args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.n_init = 32, 4, 2, 30, 4, 500
@@ -281,6 +318,12 @@ def main() -> None:
             out.write_text(
                 json.dumps({"machine": machine_info(), "args": vars(args), "captures": rows}, indent=2) + "\n"
             )
+
+        if args.picture:
+            pic = Path(args.picture)
+            pic = pic.with_name(f"{pic.stem}-{cap}{pic.suffix}")
+            _picture({n: work / f"{cap}-{args.renderer}-{n}" for n in args.variants}, data, ref, pic)
+            print(f"[{cap}] picture: {pic}")
 
     print(f"\n{args.renderer} captures, {args.iters} iterations, {args.resolution}px, {args.spp} spp")
     hdr = f"{'capture':<8}{'variant':<15}{'split':<12}{'PSNR':>7}{'mask/w':>8}{'mask/b':>8}{'LPIPSm':>8}"
