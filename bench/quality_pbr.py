@@ -4,6 +4,7 @@
     python bench/quality_pbr.py --captures cesium --variants default default_mask
     python bench/quality_pbr.py --renderer lambert --captures cesium   # the same on today's Lambert renders
     python bench/quality_pbr.py --tiny                            # seconds, to check the script
+    python bench/quality_pbr.py --captures cesium --variants default default_occl --seed 1   # another seed
 
 Captures (``meshsplat synth --renderer pbr``, monocular turn; glTF driving meshes Taubin-smoothed 5
 iterations like the demo's):
@@ -42,6 +43,7 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_aa": ("quality", ["model.antialiased=true"]),
     "default_sh1tri": ("quality", ["model.sh_degree=1", "model.sh_frame=triangle"]),
     "default_axis": ("quality", ["model.shading_normal=axis"]),
+    "default_occl": ("quality", ["model.occlusion=directions"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
@@ -257,6 +259,7 @@ def main() -> None:
     ap.add_argument(
         "--picture", default=None, help="PNG per capture: reference | variants | error budget (name gets -<capture>)"
     )
+    ap.add_argument("--seed", type=int, default=0, help="training seed; not 0: rows and runs named VARIANT_sSEED")
     args = ap.parse_args()
     if args.tiny:
         args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.n_init = 32, 4, 2, 30, 4, 500
@@ -295,8 +298,10 @@ def main() -> None:
             print(
                 f"[{cap}] references ready ({args.ref_spp} spp); capture vs references: {rows[cap]['capture_vs_ref']}"
             )
-        for name in args.variants:
-            preset, overrides = ALL[name]
+        for variant in args.variants:
+            preset, overrides = ALL[variant]
+            name = variant if args.seed == 0 else f"{variant}_s{args.seed}"  # the run's folder and its row
+            overrides = list(overrides) + ([f"seed={args.seed}"] if args.seed else [])
             run = work / f"{cap}-{args.renderer}-{name}"
             cfg = demo_train_config(data, run, sizes, overrides, progress=False, preset=preset)
             t0 = time.perf_counter()
@@ -322,17 +327,18 @@ def main() -> None:
         if args.picture:
             pic = Path(args.picture)
             pic = pic.with_name(f"{pic.stem}-{cap}{pic.suffix}")
-            _picture({n: work / f"{cap}-{args.renderer}-{n}" for n in args.variants}, data, ref, pic)
+            names = [v if args.seed == 0 else f"{v}_s{args.seed}" for v in args.variants]
+            _picture({n: work / f"{cap}-{args.renderer}-{n}" for n in names}, data, ref, pic)
             print(f"[{cap}] picture: {pic}")
 
     print(f"\n{args.renderer} captures, {args.iters} iterations, {args.resolution}px, {args.spp} spp")
-    hdr = f"{'capture':<8}{'variant':<15}{'split':<12}{'PSNR':>7}{'mask/w':>8}{'mask/b':>8}{'LPIPSm':>8}"
+    hdr = f"{'capture':<8}{'variant':<18}{'split':<12}{'PSNR':>7}{'mask/w':>8}{'mask/b':>8}{'LPIPSm':>8}"
     print(hdr + f"{'band%':>7}{'int%':>6}{'out%':>6}{'|a-m|':>7}{'a-m':>7}{'|mesh-m|':>9}")
     for cap, r in rows.items():
         for name, v in r["runs"].items():
             for split, m in v["splits"].items():
                 print(
-                    f"{cap:<8}{name:<15}{split:<12}{m['psnr_w']:>7.2f}{m['psnr_mask_w']:>8.2f}{m['psnr_mask_b']:>8.2f}"
+                    f"{cap:<8}{name:<18}{split:<12}{m['psnr_w']:>7.2f}{m['psnr_mask_w']:>8.2f}{m['psnr_mask_b']:>8.2f}"
                     f"{(m['lpips_mask'] or float('nan')):>8.3f}{100 * m['share_band']:>7.0f}"
                     f"{100 * m['share_interior']:>6.0f}{100 * m['share_outside']:>6.0f}"
                     f"{m['alpha_band_abs']:>7.3f}{m['alpha_band_bias']:>7.3f}{m['mesh_band_abs']:>9.3f}"

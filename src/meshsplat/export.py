@@ -92,6 +92,9 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
     0.315392*(3z^2-1), 1.092548*xz, 0.546274*(x^2-y^2)), n = the posed Phong normal ("phong")
     or the Gaussian's shortest posed axis facing the same side ("axis"), per meta.shading.normal.
     {ply} has the shading BAKED for the canonical pose (its f_dc is albedo * E(canonical normal)).
+    With meta.shading.occlusion (model.occlusion=directions), E also holds lights from fixed
+    directions shadowed by the posed mesh (see meta.shading.colour); the PLY bakes those of the
+    canonical pose.
 
 """
 
@@ -203,13 +206,26 @@ def export_avatar(
     }
     if avatar.shading is not None:
         sd = avatar.shading.state_dict()
-        meta["shading"] = {
+        shading_meta: dict[str, Any] = {
             "coeffs": sd["coeffs"].tolist(),
             "normal": sd["normal"],
             "space": sd["space"],
             "order": sd["order"],
             "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)",
         }
+        if "occlusion" in sd:  # tensors -> lists for JSON
+            occ = sd["occlusion"]
+            shading_meta["occlusion"] = {
+                "kind": occ["kind"],
+                "directions": occ["directions"].tolist(),
+                "grid": occ["grid"],
+                "light": occ["light"].tolist(),
+            }
+            shading_meta["colour"] = (
+                "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "
+                "V_k: the surface point lit from directions_k by the posed mesh (meshsplat.mesh.visibility)"
+            )
+        meta["shading"] = shading_meta
     # every file goes to a temporary name and is renamed into place: a full disk leaves no truncated file
     emb = write_with(out / EMBEDDING_NAME, lambda tmp: write_embedding_json(tmp, emb_params, meta))
     mesh = write_with(out / MESH_NAME, lambda tmp: write_obj(tmp, avatar.mesh.vertices.detach(), avatar.mesh.faces))

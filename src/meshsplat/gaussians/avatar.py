@@ -8,7 +8,8 @@
 (``vertices``, ``faces``), ``params`` (see ``meshsplat.gaussians.params``), ``scale_mode``,
 ``sh_degree``, ``clamp_to_face`` (True for avatars trained without walking), ``sh_frame`` and
 ``antialiased`` (opacity compensated for the screen-space dilation per view), ``shading`` (None, or the learned illumination's ``Shading.state_dict()``: then the SH colour is an
-albedo and every render is shaded by the posed normals).
+albedo and every render is shaded by the posed normals; with its ``occlusion`` also by the posed mesh's
+shadows from fixed directions).
 """
 
 from __future__ import annotations
@@ -20,11 +21,11 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat.camera import Camera
-from meshsplat.embedding import SCALE_MODES, embed
+from meshsplat.embedding import SCALE_MODES
 from meshsplat.errors import MeshsplatError
-from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose, effective_uv
+from meshsplat.gaussians.compose import SH_FRAMES, ComposedGaussians, compose
 from meshsplat.gaussians.params import check_params, num_gaussians, sh0_to_rgb, sh_degree_of
-from meshsplat.gaussians.shading import Shading, shading_normals
+from meshsplat.gaussians.shading import Shading
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.render import rasterize
 from meshsplat.render.projection import antialias_compensation
@@ -115,13 +116,8 @@ class Avatar:
             rgb = sh0_to_rgb(self.params["sh0"].detach()).clamp_min(0.0)
             if self.shading is None:
                 return rgb
-            g = self.compose(self.mesh.vertices if verts_posed is None else verts_posed)
-            pose = self.pose(self.mesh.vertices if verts_posed is None else verts_posed)
-            _, phong = embed(
-                pose, self.params["face"], effective_uv(self.params, self.clamp_to_face), self.params["d"].detach()
-            )
-            n = shading_normals(self.shading.normal, phong, g.quats.detach(), g.scales.detach())
-            return rgb * self.shading.irradiance(n)
+            # compose without a camera colours by the DC band alone: the albedo times E (occlusion included)
+            return self.compose(self.mesh.vertices if verts_posed is None else verts_posed).colors.detach()
 
     def render(
         self, vertices: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto"

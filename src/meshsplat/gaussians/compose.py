@@ -3,7 +3,9 @@
 ``mu = embed(pose, face, uv + duv, d)``, ``q = delta_q ⊗ normalize(rotation)``,
 ``scale = exp(log_scale) * scale_factor``, ``opacity = sigmoid(opacity_logit)``,
 ``colour = max(0, 0.5 + SH(sh0, shN; view direction))``, times ``E(posed normal)`` when a
-``Shading`` is given (then the SH colour is the albedo; see ``meshsplat.gaussians.shading``).
+``Shading`` is given (then the SH colour is the albedo; see ``meshsplat.gaussians.shading``); a
+shading with occlusion also reads the visibility of each Gaussian's surface point (at ``uv + duv``,
+before the offset ``d``) from the posed mesh.
 
 ``sh_frame``: the frame the view direction is expressed in for SH degree > 0. ``"world"`` (the
 published code); ``"triangle"``: rotated back by the embedding triangle's pose rotation, i.e. into
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from meshsplat.embedding import SCALE_MODES, embed, pose_frame, project_uv_to_triangle
+from meshsplat.embedding import SCALE_MODES, embed, pose_frame, project_uv_to_triangle, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0, check_params
 from meshsplat.gaussians.shading import Shading
@@ -137,5 +139,10 @@ def compose(
             dirs = (quat_to_matrix(delta_q).transpose(-1, -2) @ dirs.unsqueeze(-1))[..., 0]
     colors = eval_sh(params["sh0"], params.get("shN"), dirs)
     if shading is not None:
-        colors = shading.shade(colors, normals, quats, scales)
+        visible = None
+        if shading.occlusion != "none":
+            with torch.no_grad():
+                points = surface_points(pose.verts.detach(), pose.faces, face, uv.detach())
+                visible = shading.visibility(pose.verts.detach(), pose.faces, points, normals.detach())
+        colors = shading.shade(colors, normals, quats, scales, visible)
     return ComposedGaussians(means, quats, scales, opacities, colors)

@@ -13,6 +13,14 @@ uniform light) so the untrained model equals the unshaded one.
 Normals (``normal``): ``"phong"`` - the interpolated vertex normal of the embedding on the posed
 mesh (smooth, follows the surface); ``"axis"`` - the Gaussian's own shortest posed axis, signed to
 face the same side as the Phong normal (follows the flattened splat).
+
+Occlusion (``occlusion="directions"``): the irradiance gains a direct term that knows the posed mesh's
+shadows, ``E(x, n) = E_sh2(n) + sum_k L_k V_k(x) max(0, n . w_k)``, over ``K`` fixed far directions
+``w_k [K,3]`` spread over the sphere, with learned non-negative RGB intensities ``light [K,3]`` (zero at
+the start, so the untrained model equals the one without occlusion) and the visibility ``V_k(x)`` of
+the Gaussian's surface point from ``w_k``, computed every frame from the posed driving mesh
+(``meshsplat.mesh.visibility``: a depth grid of ``grid x grid`` cells per direction; no learning, no
+gradient through it).
 """
 
 from __future__ import annotations
@@ -24,11 +32,13 @@ import torch
 from meshsplat._typing import Device
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import quat_to_matrix
+from meshsplat.mesh.visibility import sphere_directions, visibility
 
-__all__ = ["Shading", "SHADING_MODES", "SHADING_NORMALS", "sh9_basis", "shading_normals"]
+__all__ = ["Shading", "SHADING_MODES", "SHADING_NORMALS", "OCCLUSION_MODES", "sh9_basis", "shading_normals"]
 
 SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
 SHADING_NORMALS = ("phong", "axis")
+OCCLUSION_MODES = ("none", "directions")  # model.occlusion: off | lights from fixed directions, shadowed by the mesh
 _Y00 = 0.28209479177387814
 
 
@@ -65,7 +75,9 @@ def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales:
 
 
 class Shading:
-    """Learned illumination ``coeffs [9,3]`` (world-space SH irradiance) and which normal it shades."""
+    """Learned illumination ``coeffs [9,3]`` (world-space SH irradiance) and which normal it shades; with
+    ``occlusion="directions"`` also ``light [K,3]`` from the fixed ``directions [K,3]``, shadowed by the
+    posed mesh (visibility on a ``grid x grid`` depth grid per direction)."""
 
     def __init__(
         self,
@@ -73,6 +85,11 @@ class Shading:
         normal: str = "phong",
         device: Device | None = None,
         dtype: torch.dtype = torch.float32,
+        *,
+        occlusion: str = "none",
+        directions: int = 16,
+        grid: int = 64,
+        light: torch.Tensor | None = None,
     ) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
@@ -85,22 +102,90 @@ class Shading:
             raise MeshsplatError("shading coeffs: contain NaN or infinity")
         self.coeffs = coeffs
         self.normal = normal
+        if occlusion not in OCCLUSION_MODES:
+            raise MeshsplatError(f"shading occlusion: expected one of {OCCLUSION_MODES}, got {occlusion!r}")
+        self.occlusion = occlusion
+        self.directions: torch.Tensor | None = None
+        self.light: torch.Tensor | None = None
+        self.grid = int(grid)
+        if occlusion == "directions":
+            if not isinstance(directions, int) or not 1 <= directions <= 256:
+                raise MeshsplatError(f"shading occlusion directions: expected 1..256, got {directions!r}")
+            if not isinstance(grid, int) or not 8 <= grid <= 1024:
+                raise MeshsplatError(f"shading occlusion grid: expected 8..1024 cells, got {grid!r}")
+            self.directions = sphere_directions(directions, coeffs.dtype, coeffs.device)
+            if light is None:
+                light = torch.zeros(directions, 3, dtype=coeffs.dtype, device=coeffs.device)
+            if not isinstance(light, torch.Tensor) or tuple(light.shape) != (directions, 3):
+                raise MeshsplatError(f"shading light: expected a float tensor of shape [{directions}, 3]")
+            if not bool(torch.isfinite(light).all()):
+                raise MeshsplatError("shading light: contains NaN or infinity")
+            self.light = light
 
-    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
-        """``E(n) [N,3]`` (clamped at 0) for unit ``normals [N,3]``."""
-        return (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
+    def parameters(self) -> list[torch.Tensor]:
+        """The learned tensors: ``coeffs`` and, with occlusion, ``light``."""
+        return [self.coeffs] if self.light is None else [self.coeffs, self.light]
+
+    @torch.no_grad()
+    def project(self) -> None:
+        """Keep the learned light intensities non-negative (after an optimizer step)."""
+        if self.light is not None:
+            self.light.clamp_(min=0.0)
+
+    def visibility(
+        self, verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor, normals: torch.Tensor
+    ) -> torch.Tensor | None:
+        """``V [N,K]`` of surface ``points [N,3]`` (unit ``normals [N,3]``) on the posed mesh ``verts [V,3]``,
+        ``faces [F,3]``; None without occlusion."""
+        if self.directions is None:
+            return None
+        return visibility(verts, faces, points, normals, self.directions.to(verts), self.grid)
+
+    def irradiance(self, normals: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
+        """``E(n) [N,3]`` (the SH2 part clamped at 0) for unit ``normals [N,3]``, plus the shadowed directional
+        light when ``visible [N,K]`` (from ``visibility``) is given."""
+        e = (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
+        if self.light is None or self.directions is None:
+            return e
+        if visible is None:
+            raise MeshsplatError("shading with occlusion: the visibility of the posed mesh is needed")
+        cos = (normals @ self.directions.to(normals).T).clamp_min(0.0)  # [N,K]
+        return e + (visible.to(normals) * cos) @ self.light.to(normals).clamp_min(0.0)
 
     def shade(
-        self, albedo: torch.Tensor, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
+        self,
+        albedo: torch.Tensor,
+        phong: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        visible: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Displayed colour ``[N,3]`` = albedo * E(normal)."""
-        return albedo * self.irradiance(shading_normals(self.normal, phong, quats, scales))
+        """Displayed colour ``[N,3]`` = albedo * E(normal) (``visible [N,K]``: with occlusion)."""
+        return albedo * self.irradiance(shading_normals(self.normal, phong, quats, scales), visible)
 
     def to(self, device: Device) -> Shading:
-        return Shading(self.coeffs.detach().to(device), self.normal)
+        light = None if self.light is None else self.light.detach().to(device)
+        return Shading(self.coeffs.detach().to(device), self.normal, **self._occlusion_args(), light=light)
+
+    def _occlusion_args(self) -> dict[str, Any]:
+        k = 16 if self.directions is None else int(self.directions.shape[0])
+        return {"occlusion": self.occlusion, "directions": k, "grid": self.grid}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"coeffs": self.coeffs.detach().cpu().clone(), "normal": self.normal, "space": "world", "order": 2}
+        sd: dict[str, Any] = {
+            "coeffs": self.coeffs.detach().cpu().clone(),
+            "normal": self.normal,
+            "space": "world",
+            "order": 2,
+        }
+        if self.light is not None and self.directions is not None:
+            sd["occlusion"] = {
+                "kind": self.occlusion,
+                "directions": self.directions.detach().cpu().clone(),
+                "grid": self.grid,
+                "light": self.light.detach().cpu().clone(),
+            }
+        return sd
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, Any] | None, device: Device = "cpu") -> Shading | None:
@@ -108,14 +193,40 @@ class Shading:
             return None
         if not isinstance(sd, dict) or "coeffs" not in sd or not isinstance(sd.get("normal"), str):
             raise MeshsplatError("shading state: expected a dict with coeffs [9,3] and normal (phong|axis)")
-        c = sd["coeffs"]
-        try:  # a tensor (checkpoint) or nested lists (embedding JSON)
-            c = torch.as_tensor(c.detach().cpu() if isinstance(c, torch.Tensor) else c, dtype=torch.float32)
-        except (TypeError, ValueError, RuntimeError):
-            raise MeshsplatError(f"shading state: coeffs must be numbers [9,3], got {type(c).__name__}") from None
+        c = _float_array("coeffs", sd["coeffs"])
         if tuple(c.shape) != (9, 3) or not bool(torch.isfinite(c).all()):
             raise MeshsplatError(f"shading state: coeffs must be finite numbers [9,3], got shape {list(c.shape)}")
-        return cls(c.to(device), sd["normal"])
+        occ = sd.get("occlusion")  # absent in states written before occlusion existed
+        if occ is None:
+            return cls(c.to(device), sd["normal"])
+        if (
+            not isinstance(occ, dict)
+            or occ.get("kind") not in OCCLUSION_MODES[1:]
+            or not isinstance(occ.get("grid"), int)
+        ):
+            raise MeshsplatError("shading state: occlusion must hold kind (directions), directions, grid and light")
+        dirs, light = (
+            _float_array("occlusion directions", occ.get("directions")),
+            _float_array("light", occ.get("light")),
+        )
+        k = int(dirs.shape[0]) if dirs.ndim == 2 else -1
+        if k < 1 or tuple(dirs.shape) != (k, 3) or tuple(light.shape) != (k, 3):
+            raise MeshsplatError("shading state: occlusion directions and light must both be [K,3]")
+        if not torch.allclose(dirs, sphere_directions(k), atol=1e-5):
+            raise MeshsplatError(f"shading state: occlusion directions are not the {k} directions this version uses")
+        return cls(
+            c.to(device), sd["normal"], occlusion=occ["kind"], directions=k, grid=occ["grid"], light=light.to(device)
+        )
 
     def __repr__(self) -> str:
-        return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()})"
+        occ = "" if self.light is None else f", occlusion={self.occlusion!r} x{self.light.shape[0]}"
+        return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ})"
+
+
+def _float_array(name: str, value: Any) -> torch.Tensor:
+    """A float32 CPU tensor from a tensor (checkpoint) or nested lists (embedding JSON)."""
+    try:
+        v = value.detach().cpu() if isinstance(value, torch.Tensor) else value
+        return torch.as_tensor(v, dtype=torch.float32)
+    except (TypeError, ValueError, RuntimeError):
+        raise MeshsplatError(f"shading state: {name} must be numbers, got {type(value).__name__}") from None

@@ -30,7 +30,7 @@ from typing import Any
 from meshsplat.embedding import SCALE_MODES, WALK_MODES
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES
-from meshsplat.gaussians.shading import SHADING_MODES, SHADING_NORMALS
+from meshsplat.gaussians.shading import OCCLUSION_MODES, SHADING_MODES, SHADING_NORMALS
 from meshsplat.io.json_file import read_json_object
 from meshsplat.render import BACKENDS, BACKGROUNDS
 from meshsplat.train.strategy.default import DensifyStrategy
@@ -98,6 +98,11 @@ class ModelConfig:
     shading_normal: str = "phong"  # "phong": the embedding's interpolated normal | "axis": shortest Gaussian axis
     sh_frame: str = "world"  # SH degree > 0: view direction in "world" (published code) or "triangle" frame
     antialiased: bool = False  # opacity x sqrt(det S / det(S + 0.3 I)) per view (gsplat's "antialiased" mode)
+    # Shadows from the posed driving mesh (needs shading != "none"): "none" | "directions": learned lights from
+    # occlusion_directions fixed directions, each Gaussian's visibility on an occlusion_grid^2 depth grid per direction.
+    occlusion: str = "none"
+    occlusion_directions: int = 16
+    occlusion_grid: int = 64
 
 
 @dataclass
@@ -235,6 +240,13 @@ class TrainConfig:
             (self.model.shading in SHADING_MODES, f"model.shading: {'|'.join(SHADING_MODES)}"),
             (self.model.shading_normal in SHADING_NORMALS, f"model.shading_normal: {'|'.join(SHADING_NORMALS)}"),
             (self.model.sh_frame in SH_FRAMES, f"model.sh_frame: {'|'.join(SH_FRAMES)}"),
+            (self.model.occlusion in OCCLUSION_MODES, f"model.occlusion: {'|'.join(OCCLUSION_MODES)}"),
+            (
+                self.model.occlusion == "none" or self.model.shading != "none",
+                "model.occlusion needs model.shading (the shadowed lights add to its irradiance)",
+            ),
+            (1 <= self.model.occlusion_directions <= 256, "model.occlusion_directions must be in 1..256"),
+            (8 <= self.model.occlusion_grid <= 1024, "model.occlusion_grid must be in 8..1024"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),

@@ -20,7 +20,8 @@ asset in centimetres and the same in metres train and log alike; extent ≈ 1 on
 (``losses.subject_crop``: mask and rendered alpha), times its area share; backward; Adam steps; densification strategy; every ``walk.every``
 iterations walking on triangles.
 
-With ``model.shading`` on, the learned illumination (``Shading.coeffs``) has its own Adam
+With ``model.shading`` on, the learned illumination (``Shading.coeffs``, and with ``model.occlusion`` the
+non-negative ``Shading.light``, clamped after each step) has its own Adam
 (``lr_shading``), stored in checkpoints under ``shading_optimizer``; the avatar state carries the
 illumination itself.
 """
@@ -222,7 +223,15 @@ class Trainer:
         )
         self.optimizers = build_optimizers(self.params, self.lrs, cfg.optim.eps)
         if cfg.model.shading != "none":
-            self._set_shading(Shading(normal=cfg.model.shading_normal, device=self.device))
+            self._set_shading(
+                Shading(
+                    normal=cfg.model.shading_normal,
+                    device=self.device,
+                    occlusion=cfg.model.occlusion,
+                    directions=cfg.model.occlusion_directions,
+                    grid=cfg.model.occlusion_grid,
+                )
+            )
         self.strategy_state = self.strategy.initialize_state(self.extent)
         self.order_gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.bg_gen = torch.Generator().manual_seed(cfg.seed + 2)
@@ -240,9 +249,11 @@ class Trainer:
 
     def _set_shading(self, shading: Shading) -> None:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
+        if shading.light is not None:
+            shading.light = torch.nn.Parameter(shading.light.detach().clone().to(self.device))
         self.shading = shading
         self.shading_opt = torch.optim.Adam(
-            [shading.coeffs], lr=self.cfg.optim.lr_shading * self.lr_factor, eps=self.cfg.optim.eps
+            shading.parameters(), lr=self.cfg.optim.lr_shading * self.lr_factor, eps=self.cfg.optim.eps
         )
 
     # ---- data ------------------------------------------------------------------------
@@ -327,7 +338,7 @@ class Trainer:
         """Every tensor an optimizer steps (the gradients data-parallel training all-reduces)."""
         out = [p for opt in self.optimizers.values() for g in opt.param_groups for p in g["params"]]
         if self.shading is not None:
-            out.append(self.shading.coeffs)
+            out.extend(self.shading.parameters())
         if self.refiner is not None:
             out.extend(self.refiner.offsets.values())
         return out
@@ -370,6 +381,8 @@ class Trainer:
         if self.shading_opt is not None:
             self.shading_opt.step()
             self.shading_opt.zero_grad(set_to_none=True)
+            if self.shading is not None:
+                self.shading.project()
         if self.refiner is not None:
             self.refiner.step()
         self.strategy.step_post_backward(
@@ -605,6 +618,11 @@ class Trainer:
         if sh_state is not None:
             shading = Shading.from_state_dict(sh_state, dev)
             assert shading is not None  # sh_state is not None
+            if shading.occlusion != self.cfg.model.occlusion:
+                raise MeshsplatError(
+                    f"checkpoint: its occlusion ({shading.occlusion}) does not match model.occlusion "
+                    f"({self.cfg.model.occlusion}); resume with the run's own config.json or start a new run"
+                )
             self._set_shading(shading)
             if st.get("shading_optimizer"):
                 assert self.shading_opt is not None  # made by _set_shading

@@ -373,6 +373,11 @@ def write_viewer_bundle(
     fps = 25.0 if fps is None else fps
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
+    if avatar.shading is not None and avatar.shading.occlusion != "none":
+        raise MeshsplatError(
+            f"avatar: trained with model.occlusion={avatar.shading.occlusion}, which the web player does not "
+            "shade (its shadows come from the posed mesh); use meshsplat render for this avatar"
+        )
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise MeshsplatError(f"fps: expected > 0, got {fps}")
     if vertex_encoding not in VERTEX_ENCODINGS:

@@ -1,0 +1,114 @@
+"""What shading with occlusion (model.occlusion=directions) costs per frame, on the CesiumMan mesh.
+
+    python bench/occlusion_cost.py                 # 10k Gaussians, 256 px, 16/32 directions x 32/64 cells
+    python bench/occlusion_cost.py --tiny          # seconds, to check the script
+
+Times, interleaved and in the same process (median of --repeats), the visibility alone
+(``meshsplat.mesh.visibility``), ``Avatar.compose`` and a whole ``Avatar.render`` for today's shading
+(``sh2``) and for each occlusion setting, on poses of the bundled CesiumMan walk (4672 triangles).
+Saves bench/results/<name>-<host>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+from _machine import machine_info, results_path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--gaussians", type=int, default=10_000)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--name", default="occlusion_cost")
+    ap.add_argument("--tiny", action="store_true")
+    args = ap.parse_args()
+    if args.tiny:
+        args.gaussians, args.size, args.repeats = 1000, 64, 2
+
+    import torch
+
+    from meshsplat.camera import Camera
+    from meshsplat.drivers import GltfDriver
+    from meshsplat.embedding import embed, sample_surface
+    from meshsplat.gaussians import Avatar, init_params
+    from meshsplat.gaussians.shading import Shading
+    from meshsplat.mesh import MeshPose, TriMesh
+    from meshsplat.mesh.visibility import visibility
+    from meshsplat.paths import bundled_asset
+
+    torch.set_num_threads(args.threads)
+    drv = GltfDriver(bundled_asset("CesiumMan"))
+    mesh = TriMesh(drv.rest_vertices(), drv.faces)
+    frames = [drv.vertices(i) for i in range(0, drv.num_frames, max(1, drv.num_frames // 4))][:4]
+    params = init_params(mesh, args.gaussians, generator=torch.Generator().manual_seed(0))
+    lo, hi = mesh.vertices.amin(0), mesh.vertices.amax(0)
+    centre, diag = (lo + hi) / 2, float((hi - lo).norm())
+    eye = centre + torch.tensor([0.0, 0.0, 1.3 * diag])  # in front (glTF: y up, facing +z)
+    fwd = torch.nn.functional.normalize(centre - eye, dim=0)
+    up = torch.tensor([0.0, 1.0, 0.0])
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, up), dim=0)
+    down = torch.linalg.cross(fwd, right)
+    R = torch.stack([right, down, fwd])
+    viewmat = torch.eye(4)
+    viewmat[:3, :3], viewmat[:3, 3] = R, -R @ eye
+    f = args.size * 1.2
+    K = torch.tensor([[f, 0, args.size / 2], [0, f, args.size / 2], [0, 0, 1.0]])
+    cam = Camera(viewmat, K, args.size, args.size)
+
+    settings = {"sh2 (today)": None}
+    for k in (16, 32):
+        for g in (32, 64):
+            settings[f"occl K={k} grid={g}"] = (k, g)
+    avatars = {}
+    for name, s in settings.items():
+        sh = Shading() if s is None else Shading(occlusion="directions", directions=s[0], grid=s[1])
+        if sh.light is not None:
+            sh.light.fill_(0.2)
+        avatars[name] = Avatar(mesh, params, shading=sh)
+
+    face, uv = sample_surface(mesh.vertices, mesh.faces, args.gaussians, generator=torch.Generator().manual_seed(1))
+    times: dict[str, dict[str, list[float]]] = {n: {"visibility": [], "compose": [], "render": []} for n in settings}
+    with torch.no_grad():
+        for _ in range(args.repeats + 1):  # the first round warms up (numba compile, allocator)
+            for name, av in avatars.items():
+                for v in frames:
+                    t = {}
+                    if av.shading is not None and av.shading.directions is not None:
+                        pose = MeshPose.from_vertices(mesh, v)
+                        pts, n = embed(pose, face, uv, torch.zeros(len(face)))
+                        t0 = time.perf_counter()
+                        visibility(v, mesh.faces, pts, n, av.shading.directions, av.shading.grid)
+                        t["visibility"] = time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    av.compose(v)
+                    t["compose"] = time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    av.render(v, cam, torch.ones(3), backend=args.backend)
+                    t["render"] = time.perf_counter() - t0
+                    for key, val in t.items():
+                        times[name][key].append(val)
+    skip = len(frames)
+    rows = {n: {k: 1000 * statistics.median(v[skip:]) for k, v in t.items() if len(v) > skip} for n, t in times.items()}
+    base = rows["sh2 (today)"]["render"]
+    print(
+        f"CesiumMan ({mesh.num_faces} triangles), {args.gaussians} Gaussians, {args.size} px, backend {args.backend}, "
+        f"{args.threads} thread(s); median ms per frame over {args.repeats} x {len(frames)} poses"
+    )
+    print(f"{'setting':<22}{'visibility':>12}{'compose':>10}{'render':>10}{'render x':>10}")
+    for n, r in rows.items():
+        vis = f"{r['visibility']:.1f}" if "visibility" in r else "-"
+        print(f"{n:<22}{vis:>12}{r['compose']:>10.1f}{r['render']:>10.1f}{r['render'] / base:>10.2f}")
+    out = results_path(args.name)
+    out.write_text(json.dumps({"machine": machine_info(), "args": vars(args), "ms": rows}, indent=2) + "\n")
+    print(f"saved {out}")
+
+
+if __name__ == "__main__":
+    main()

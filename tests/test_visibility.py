@@ -1,0 +1,122 @@
+"""Visibility of far light directions from a posed mesh (meshsplat.mesh.visibility)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meshsplat.embedding import sample_surface, surface_points
+from meshsplat.errors import MeshsplatError
+from meshsplat.mesh.visibility import sphere_directions, surface_samples, visibility
+
+
+def box(lo: float = -1.0, hi: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A closed axis-aligned cube: 8 vertices, 12 outward-facing triangles."""
+    v = torch.tensor([[x, y, z] for x in (lo, hi) for y in (lo, hi) for z in (lo, hi)], dtype=torch.float32)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return v, torch.tensor(faces)
+
+
+def uv_sphere(rings: int = 24, segments: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
+    """A closed unit sphere: poles plus ``rings - 1`` latitude circles."""
+    verts = [[0.0, 0.0, 1.0]]
+    for i in range(1, rings):
+        th = math.pi * i / rings
+        for j in range(segments):
+            ph = 2 * math.pi * j / segments
+            verts.append([math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)])
+    verts.append([0.0, 0.0, -1.0])
+    faces = []
+    ring = lambda i, j: 1 + (i - 1) * segments + j % segments  # noqa: E731
+    for j in range(segments):
+        faces.append((0, ring(1, j), ring(1, j + 1)))
+        faces.append((len(verts) - 1, ring(rings - 1, j + 1), ring(rings - 1, j)))
+    for i in range(1, rings - 1):
+        for j in range(segments):
+            a, b, c, d = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
+            faces += [(a, c, d), (a, d, b)]
+    return torch.tensor(verts), torch.tensor(faces)
+
+
+def test_directions_are_unit_spread_and_deterministic():
+    d = sphere_directions(32)
+    assert d.shape == (32, 3)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(32), atol=1e-6)
+    assert torch.equal(d, sphere_directions(32))
+    assert d.mean(0).norm() < 0.05  # no preferred side
+    assert (d[:, 1] > 0).sum() == 16  # half above the equator
+
+
+def test_point_inside_a_closed_box_sees_no_direction():
+    v, f = box()
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.5, 0.2]])
+    normals = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [1.0, 1.0, 0.0]]), dim=-1)
+    vis = visibility(v, f, pts, normals, sphere_directions(32), grid=64)
+    assert vis.shape == (2, 32)
+    assert vis.sum() == 0
+
+
+def test_a_sphere_point_sees_the_half_above_its_tangent_plane():
+    v, f = uv_sphere()
+    dirs = sphere_directions(64)
+    pts = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [-0.3, 0.9, 0.1]]), dim=-1)
+    vis = visibility(v, f, pts * 0.999, pts, dirs, grid=64)
+    cos = pts @ dirs.T
+    for i in range(len(pts)):
+        assert 24 <= int(vis[i].sum()) <= 40  # about half of 64
+        assert bool((vis[i][cos[i] > 0.3] == 1).all())  # well above the tangent plane: lit
+        assert bool((vis[i][cos[i] < -0.3] == 0).all())  # well below: the sphere is in the way
+
+
+def test_a_point_under_an_overhang_is_shadowed_from_above_not_from_below():
+    floor, f_floor = box(-1.0, 1.0)
+    floor = floor * torch.tensor([2.0, 2.0, 0.05])  # a thin slab around z = 0
+    roof = floor + torch.tensor([0.0, 0.0, 1.0])  # the same slab at z = 1: the overhang
+    v = torch.cat([floor, roof])
+    f = torch.cat([f_floor, f_floor + 8])
+    pt = torch.tensor([[0.0, 0.0, 0.05]])  # on the top of the lower slab, under the roof
+    up = torch.tensor([[0.0, 0.0, 1.0]])
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.1, 0.0, 0.995]])
+    vis = visibility(v, f, pt, up, dirs, grid=32)
+    assert vis[0].tolist() == [0.0, 1.0, 0.0]
+    # without the roof, the light from above reaches it
+    alone = visibility(floor, f_floor, pt, up, dirs, grid=32)
+    assert alone[0, 0] == 1.0 and alone[0, 2] == 1.0
+
+
+def test_visibility_is_deterministic_and_a_pure_function_of_the_pose():
+    v, f = uv_sphere(12, 24)
+    g = torch.Generator().manual_seed(0)
+    pts = torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=-1)
+    a = visibility(v, f, pts, pts, sphere_directions(16))
+    b = visibility(v.clone(), f.clone(), pts.clone(), pts.clone(), sphere_directions(16))
+    assert torch.equal(a, b)
+    vg = v.clone().requires_grad_(True)
+    c = visibility(vg, f, pts, pts, sphere_directions(16))
+    assert torch.equal(a, c) and not c.requires_grad
+
+
+def test_bad_input_is_one_clear_error():
+    v, f = box()
+    with pytest.raises(MeshsplatError, match="points"):
+        visibility(v, f, torch.zeros(3), torch.zeros(3), sphere_directions(4))
+    with pytest.raises(MeshsplatError, match="grid"):
+        visibility(v, f, torch.zeros(1, 3), torch.zeros(1, 3), sphere_directions(4), grid=1)
+    with pytest.raises(MeshsplatError, match="direction count"):
+        sphere_directions(0)
+
+
+def test_surface_samples_leave_no_point_of_the_surface_far_from_a_sample():
+    """Every surface point lies within spacing / sqrt(3) of a sample (what keeps the depth grid hole-free)."""
+    v, f = box()
+    v = v * torch.tensor([1.0, 0.3, 2.0])  # long thin triangles too
+    spacing = 0.1
+    s = surface_samples(v, f, spacing)
+    face, uv = sample_surface(v, f, 3000, generator=torch.Generator().manual_seed(0))
+    pts = surface_points(v, f, face, uv)
+    assert float(torch.cdist(pts, s).amin(-1).max()) <= spacing / math.sqrt(3) + 1e-6
+    area = 2 * (2 * 0.6 + 2 * 4 + 0.6 * 4)
+    assert len(s) < 4 * area * 2 / (math.sqrt(3) * spacing**2)  # within 4x of an ideal triangular lattice
