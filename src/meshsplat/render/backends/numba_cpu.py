@@ -9,15 +9,22 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
 1. Binning: each entry's footprint box (the same closed-form ``alpha >= 1/255`` ellipse and
    0.05 px slack as the torch backend's row spans, float64) is cut into 16x16 tiles; tile lists
    are filled in entry order, so each tile's list is depth-ordered exactly as the torch backend.
+   Each entry's values (projection outputs, footprint terms, colours) go into one float64 record, and
+   records are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
+   six arrays at random (memory latency, not arithmetic, is much of what the walks wait on).
 2. Forward, parallel over tiles (``prange``): every pixel walks its tile's list front to back
    (alpha evaluated in the input dtype with the torch backend's operation order and thresholds;
    transmittance in float64), stops before the splat that would take T to ``<= 1e-4``, and keeps
-   its final T (float64) and the list position after its last contributing splat.
+   its final T (float64) and the list position after its last contributing splat. An entry's row
+   spans are computed in one pass before its pixels.
 3. Backward, parallel over tiles: the standard reverse walk from that position (T recovered by
    division in float64, "later splats" sums carried along). Each (tile, entry) intersection owns
    a gradient row that only its tile writes; rows are summed into ``means2d``/``conics [C,N]``,
-   opacities and colours in intersection order afterwards (serial). No atomics, no per-thread buffers: the result is bit-identical for any thread
-   count and scheduling.
+   opacities and colours in intersection order afterwards (serial). No atomics, no per-thread buffers:
+   the result is bit-identical for any thread count and scheduling.
+
+Tiles are handed to the threads as combs (every n-th tile to each of n threads): numba gives each thread one
+contiguous share of a ``prange``, and an avatar's work is not spread evenly over the image's rows.
 
 numba is imported lazily (first call); kernels are compiled with ``cache=True`` (on-disk cache next
 to this file, or numba's user cache directory when that is read-only). The thread count follows
@@ -47,48 +54,74 @@ __all__ = ["rasterize_numba", "TILE_SIZE", "warm_up"]
 
 TILE_SIZE = 16
 _SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint, as torch_ref (the alpha test is exact)
+# columns of an entry's record (float64; the projection's values kept exactly, then the colours)
+_MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
 
 # The kernels below are plain Python until _kernels() wraps them with numba.njit; these globals are
 # then rebound to numba's prange and the jitted helper, which the kernels resolve when compiled.
 _prange: Any = range
 
 
-def _bin_kernel(m2, con, op, cam, n_cams, width, height, tile, tiles_x, tiles_y):  # pragma: no cover - compiled
-    """Footprints and tile lists.
+def _bin_kernel(
+    m2, con, op, col, flat, col_row, n_gauss, n_cams, width, height, tile, tiles_x, tiles_y
+):  # pragma: no cover - compiled
+    """Entry records and tile lists, from the projection's ``means2d [C*N,2]``, ``conics [C*N,3]``,
+    ``opacities [N]`` and colours ``[rows, D]`` (input dtype), for the visible entries ``flat [M]`` (camera * N
+    + Gaussian) in compositing order.
 
-    Returns ``foot [M,6]`` float64 (mx, my, a, b, 2 a tau, det: the torch backend's row-span terms),
-    ``rows [M,2]`` int64 (first, last pixel row; last < first: empty), ``tile_ptr [T+1]`` int64 and
-    ``isect [I]`` int32 entry ids, in entry (= depth) order within each tile.
+    Records are stored in the order of the first tile each entry touches, so that a tile's entries lie close
+    together in memory (random reads are what a tile's walk waits on); ``isect`` holds these record ids.
+    Returns ``rec [M, 10+D]`` float64 (mx, my, a, b, c, opacity: the input values exactly; 2 a tau, det: the
+    torch backend's row-span terms; first and last pixel row, last < first: empty; colours), ``rflat [M]``
+    (record -> camera * N + Gaussian), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth order
+    within each tile.
     """
-    m = op.shape[0]
-    foot = np.empty((m, 6), np.float64)
-    rows = np.empty((m, 2), np.int64)
+    m = flat.shape[0]
+    d_out = col.shape[1]
+    per_cam = tiles_x * tiles_y
     rect = np.empty((m, 4), np.int64)
+    foot = np.empty((m, 4), np.float64)
     tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
+    first = np.zeros(n_cams * per_cam + 1, np.int64)  # entries per first tile, then counting-sort offsets
     for e in range(m):  # serial: cheap next to compositing, and a serial kernel compiles much faster
-        mx, my = np.float64(m2[e, 0]), np.float64(m2[e, 1])
-        a, b, c = np.float64(con[e, 0]), np.float64(con[e, 1]), np.float64(con[e, 2])
-        tau = min(max(math.log(np.float64(op[e]) / ALPHA_THRESHOLD), 0.0), tau_max)
+        f = flat[e]
+        mx, my = np.float64(m2[f, 0]), np.float64(m2[f, 1])
+        a, b, c = np.float64(con[f, 0]), np.float64(con[f, 1]), np.float64(con[f, 2])
+        tau = min(max(math.log(np.float64(op[f % n_gauss]) / ALPHA_THRESHOLD), 0.0), tau_max)
         det = max(a * c - b * b, 1e-300)
         ry = math.sqrt(2.0 * tau * a / det)
         rx = math.sqrt(2.0 * tau * c / det)
-        foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3] = mx, my, a, b
-        foot[e, 4], foot[e, 5] = 2.0 * a * tau, det
+        foot[e, 0], foot[e, 1] = 2.0 * a * tau, det
         y0 = max(np.ceil(my - ry - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
         y1 = min(np.floor(my + ry - PIXEL_CENTER + _SPAN_MARGIN), height - 1.0)
         x0 = max(np.ceil(mx - rx - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
         x1 = min(np.floor(mx + rx - PIXEL_CENTER + _SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
-            rows[e, 0], rows[e, 1] = 0, -1
+            foot[e, 2], foot[e, 3] = 0.0, -1.0
             rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
+            first[1] += 1
         else:
-            rows[e, 0], rows[e, 1] = int(y0), int(y1)
+            foot[e, 2], foot[e, 3] = y0, y1
             rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
             rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
-    per_cam = tiles_x * tiles_y
+            first[(f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] + 1] += 1
+    first = np.cumsum(first)
+    rid = np.empty(m, np.int64)  # entry -> record id (stable counting sort by first tile)
+    rflat = np.empty(m, np.int64)
+    rec = np.empty((m, _COL + d_out), np.float64)
     counts = np.zeros(n_cams * per_cam + 1, np.int64)
     for e in range(m):
-        base = cam[e] * per_cam
+        f = flat[e]
+        base = (f // n_gauss) * per_cam
+        key = base + rect[e, 2] * tiles_x + rect[e, 0] if rect[e, 1] >= rect[e, 0] else 0
+        r = first[key]
+        first[key] += 1
+        rid[e], rflat[r] = r, f
+        rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
+        rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[f % n_gauss]
+        rec[r, _TWO_A_TAU], rec[r, _DET], rec[r, _Y0], rec[r, _Y1] = foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3]
+        for d in range(d_out):
+            rec[r, _COL + d] = col[col_row[e], d]
         for ty in range(rect[e, 2], rect[e, 3] + 1):
             for tx in range(rect[e, 0], rect[e, 1] + 1):
                 counts[base + ty * tiles_x + tx + 1] += 1
@@ -96,96 +129,112 @@ def _bin_kernel(m2, con, op, cam, n_cams, width, height, tile, tiles_x, tiles_y)
     cursor = tile_ptr[:-1].copy()
     isect = np.empty(tile_ptr[-1], np.int32)
     for e in range(m):  # entry order = depth order within each camera, hence within each tile
-        base = cam[e] * per_cam
+        base = (flat[e] // n_gauss) * per_cam
         for ty in range(rect[e, 2], rect[e, 3] + 1):
             for tx in range(rect[e, 0], rect[e, 1] + 1):
                 t = base + ty * tiles_x + tx
-                isect[cursor[t]] = e
+                isect[cursor[t]] = rid[e]
                 cursor[t] += 1
-    return foot, rows, tile_ptr, isect
+    return rec, rflat, tile_ptr, isect
 
 
-def _row_span_py(foot, e, y, lo, hi):  # pragma: no cover - compiled
-    """Columns [x0, x1] of row y inside entry e's ``alpha >= 1/255`` ellipse, clipped to [lo, hi]
-    (the torch backend's ``_row_spans`` arithmetic, float64)."""
-    mx, my, a, b, two_a_tau, det = foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3], foot[e, 4], foot[e, 5]
-    dy = my - (y + PIXEL_CENTER)
-    disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
-    dx_lo = (-b * dy - disc) / a
-    dx_hi = (-b * dy + disc) / a
-    x0 = np.ceil(mx - dx_hi - PIXEL_CENTER - _SPAN_MARGIN)
-    x1 = np.floor(mx - dx_lo - PIXEL_CENTER + _SPAN_MARGIN)
-    if not (x0 <= x1):  # also NaN
-        return 0, -1
-    return int(min(max(x0, lo), hi + 1.0)), int(max(min(x1, hi), lo - 1.0))
+def _spans_py(rec, e, ya, yb, lo, hi, span):  # pragma: no cover - compiled
+    """Columns ``span[y - ya] = (x0, x1)`` of rows ya..yb inside entry e's ``alpha >= 1/255`` ellipse, clipped
+    to [lo, hi] (the torch backend's ``_row_spans`` arithmetic, float64; x1 < x0: empty). One pass over the
+    rows before the pixels: the rows' square roots and divisions overlap instead of waiting on each other."""
+    mx, my, a, b = rec[e, _MX], rec[e, _MY], rec[e, _CA], rec[e, _CB]
+    two_a_tau, det = rec[e, _TWO_A_TAU], rec[e, _DET]
+    for y in range(ya, yb + 1):
+        dy = my - (y + PIXEL_CENTER)
+        disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
+        dx_lo = (-b * dy - disc) / a
+        dx_hi = (-b * dy + disc) / a
+        x0 = np.ceil(mx - dx_hi - PIXEL_CENTER - _SPAN_MARGIN)
+        x1 = np.floor(mx - dx_lo - PIXEL_CENTER + _SPAN_MARGIN)
+        if not (x0 <= x1):  # also NaN
+            span[y - ya, 0], span[y - ya, 1] = lo, lo - 1
+        else:
+            span[y - ya, 0] = int(min(max(x0, lo), hi + 1.0))
+            span[y - ya, 1] = int(max(min(x1, hi), lo - 1.0))
 
 
-_row_span: Any = _row_span_py
+_spans: Any = _spans_py
 
 
 def _forward_kernel(
-    tile_ptr, isect, foot, rows, m2, con, op, col, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y
+    tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y
 ):  # pragma: no cover - compiled
     """Composite every pixel: colors [P,D] (dtype), final T [P] float64, list position after the last splat [P].
 
-    Per tile, entries are walked front to back and each one visits only the pixels of its exact
-    footprint rows; per-pixel state (T, colour sums, done) lives in tile buffers.
+    Per tile (in ``order``), entries are walked front to back and each one visits only the pixels of its
+    exact footprint rows; per-pixel state (T, colour sums, done) lives in tile buffers.
     """
     half, a_max, a_thr = consts[0], consts[1], consts[2]
-    d_out = col.shape[1]
+    to_dt = xs.dtype.type  # the record keeps input-dtype values exactly; alpha is evaluated in that dtype
+    d_out = rec.shape[1] - _COL
     n_pix_cam = width * height
     n_cams = bg.shape[0]
-    out = np.zeros((n_cams * n_pix_cam, d_out), col.dtype)
+    out = np.zeros((n_cams * n_pix_cam, d_out), bg.dtype)
     t_final = np.ones(n_cams * n_pix_cam, np.float64)
     n_contrib = np.zeros(n_cams * n_pix_cam, np.int32)
     per_cam = tiles_x * tiles_y
-    for t in _prange(n_cams * per_cam):
+    for i in _prange(order.shape[0]):
+        t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * tile
         ty0 = ((t % per_cam) // tiles_x) * tile
         tw = min(width, tx0 + tile) - tx0
         th = min(height, ty0 + tile) - ty0
         trans = np.ones(tw * th, np.float64)
-        acc = np.zeros((tw * th, d_out), np.float64)
+        acc = np.zeros((d_out, tw * th), np.float64)
         done = np.zeros(tw * th, np.bool_)
         last = np.zeros(tw * th, np.int32)
+        span = np.empty((tile, 2), np.int64)
+        col = np.empty(d_out, np.float64)
         n_done = 0
         s0 = tile_ptr[t]
         for k in range(s0, tile_ptr[t + 1]):
             if n_done == tw * th:
                 break
             e = isect[k]
-            mxe, mye = m2[e, 0], m2[e, 1]
-            ca, cb, cc, ope = con[e, 0], con[e, 1], con[e, 2], op[e]
-            for y in range(max(rows[e, 0], ty0), min(rows[e, 1], ty0 + th - 1) + 1):
-                x0, x1 = _row_span(foot, e, y, tx0, tx0 + tw - 1)
+            ya, yb = max(int(rec[e, _Y0]), ty0), min(int(rec[e, _Y1]), ty0 + th - 1)
+            _spans(rec, e, ya, yb, tx0, tx0 + tw - 1, span)
+            mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
+            ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
+            for d in range(d_out):
+                col[d] = rec[e, _COL + d]
+            step = np.int32(k - s0 + 1)
+            for y in range(ya, yb + 1):
                 dy = mye - ys[y]
-                for x in range(x0, x1 + 1):
-                    q = (y - ty0) * tw + (x - tx0)
+                cdy = cc * dy * dy
+                row = (y - ty0) * tw - tx0
+                for x in range(span[y - ya, 0], span[y - ya, 1] + 1):
+                    q = row + x
                     if done[q]:
                         continue
                     dx = mxe - xs[x]
-                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    sigma = half * (ca * dx * dx + cdy) + cb * dx * dy
                     if sigma < 0:
                         continue
                     alpha = min(ope * math.exp(-sigma), a_max)
                     if alpha < a_thr:
                         continue
                     a64 = np.float64(alpha)
-                    t_next = trans[q] * (1.0 - a64)
+                    tq = trans[q]
+                    t_next = tq * (1.0 - a64)
                     if t_next <= TRANSMITTANCE_MIN:
                         done[q] = True
                         n_done += 1
                         continue
-                    w = a64 * trans[q]
+                    w = a64 * tq
                     for d in range(d_out):
-                        acc[q, d] += w * col[e, d]
+                        acc[d, q] += w * col[d]
                     trans[q] = t_next
-                    last[q] = k - s0 + 1
+                    last[q] = step
         for q in range(tw * th):
             p = c * n_pix_cam + (ty0 + q // tw) * width + tx0 + q % tw
             for d in range(d_out):
-                out[p, d] = acc[q, d] + trans[q] * bg[c, d]
+                out[p, d] = acc[d, q] + trans[q] * bg[c, d]
             t_final[p] = trans[q]
             n_contrib[p] = last[q]
     return out, t_final, n_contrib
@@ -194,12 +243,8 @@ def _forward_kernel(
 def _backward_kernel(
     tile_ptr,
     isect,
-    foot,
-    rows,
-    m2,
-    con,
-    op,
-    col,
+    rec,
+    order,
     bg,
     xs,
     ys,
@@ -220,12 +265,13 @@ def _backward_kernel(
     T (recovered by division, float64) and the sum of later splats' ``w_j <g, c_j>``.
     """
     half, a_max, a_thr = consts[0], consts[1], consts[2]
-    d_out = col.shape[1]
+    to_dt = xs.dtype.type
+    d_out = rec.shape[1] - _COL
     n_pix_cam = width * height
-    n_cams = bg.shape[0]
     per_cam = tiles_x * tiles_y
     grad = np.zeros((isect.shape[0], 6 + d_out), np.float64)
-    for t in _prange(n_cams * per_cam):
+    for i in _prange(order.shape[0]):
+        t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * tile
         ty0 = ((t % per_cam) // tiles_x) * tile
@@ -233,8 +279,11 @@ def _backward_kernel(
         th = min(height, ty0 + tile) - ty0
         trans = np.empty(tw * th, np.float64)
         later = np.empty(tw * th, np.float64)  # extra terms + sum over later splats of w_j <g, c_j>
-        gp = np.empty((tw * th, d_out), np.float64)
+        gp = np.empty((d_out, tw * th), np.float64)
         last = np.empty(tw * th, np.int32)
+        span = np.empty((tile, 2), np.int64)
+        col = np.empty(d_out, np.float64)
+        g_c = np.empty(d_out, np.float64)
         max_last = 0
         for q in range(tw * th):
             p = c * n_pix_cam + (ty0 + q // tw) * width + tx0 + q % tw
@@ -242,28 +291,35 @@ def _backward_kernel(
             trans[q] = tf
             ex = -np.float64(g_alpha[p]) * tf
             for d in range(d_out):
-                gp[q, d] = g_col[p, d]
-                ex += tf * np.float64(bg[c, d]) * gp[q, d]
+                gp[d, q] = g_col[p, d]
+                ex += tf * np.float64(bg[c, d]) * gp[d, q]
             later[q] = ex
             last[q] = n_contrib[p]
             max_last = max(max_last, n_contrib[p])
         s0 = tile_ptr[t]
-        g = np.zeros(6 + d_out, np.float64)
         for k in range(s0 + max_last - 1, s0 - 1, -1):
             e = isect[k]
-            mxe, mye = m2[e, 0], m2[e, 1]
-            ca, cb, cc, ope = con[e, 0], con[e, 1], con[e, 2], op[e]
-            ca64, cb64, cc64 = np.float64(ca), np.float64(cb), np.float64(cc)
-            g[:] = 0.0
-            for y in range(max(rows[e, 0], ty0), min(rows[e, 1], ty0 + th - 1) + 1):
-                x0, x1 = _row_span(foot, e, y, tx0, tx0 + tw - 1)
+            ya, yb = max(int(rec[e, _Y0]), ty0), min(int(rec[e, _Y1]), ty0 + th - 1)
+            _spans(rec, e, ya, yb, tx0, tx0 + tw - 1, span)
+            mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
+            ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
+            ca64, cb64, cc64 = rec[e, _CA], rec[e, _CB], rec[e, _CC]
+            for d in range(d_out):
+                col[d] = rec[e, _COL + d]
+                g_c[d] = 0.0
+            g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+            kk = k - s0
+            for y in range(ya, yb + 1):
                 dy = mye - ys[y]
-                for x in range(x0, x1 + 1):
-                    q = (y - ty0) * tw + (x - tx0)
-                    if k - s0 >= last[q]:
+                cdy = cc * dy * dy
+                fdy = np.float64(dy)
+                row = (y - ty0) * tw - tx0
+                for x in range(span[y - ya, 0], span[y - ya, 1] + 1):
+                    q = row + x
+                    if kk >= last[q]:
                         continue
                     dx = mxe - xs[x]
-                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    sigma = half * (ca * dx * dx + cdy) + cb * dx * dy
                     if sigma < 0:
                         continue
                     vis = math.exp(-sigma)
@@ -278,43 +334,44 @@ def _backward_kernel(
                     w = a64 * tr
                     cg = 0.0
                     for d in range(d_out):
-                        cg += gp[q, d] * np.float64(col[e, d])
-                        g[6 + d] += gp[q, d] * w
+                        cg += gp[d, q] * col[d]
+                        g_c[d] += gp[d, q] * w
                     if raw <= a_max:  # through the 0.999 clamp no gradient passes (as gsplat)
                         v_alpha = tr * cg - later[q] / one_m
                         v_sigma = -a64 * v_alpha
-                        fdx, fdy = np.float64(dx), np.float64(dy)
-                        g[0] += v_sigma * (ca64 * fdx + cb64 * fdy)
-                        g[1] += v_sigma * (cb64 * fdx + cc64 * fdy)
-                        g[2] += 0.5 * v_sigma * fdx * fdx
-                        g[3] += v_sigma * fdx * fdy
-                        g[4] += 0.5 * v_sigma * fdy * fdy
-                        g[5] += np.float64(vis) * v_alpha
+                        fdx = np.float64(dx)
+                        g0 += v_sigma * (ca64 * fdx + cb64 * fdy)
+                        g1 += v_sigma * (cb64 * fdx + cc64 * fdy)
+                        g2 += 0.5 * v_sigma * fdx * fdx
+                        g3 += v_sigma * fdx * fdy
+                        g4 += 0.5 * v_sigma * fdy * fdy
+                        g5 += np.float64(vis) * v_alpha
                     later[q] += w * cg
-            for j in range(6 + d_out):
-                grad[k, j] = g[j]
+            grad[k, 0], grad[k, 1], grad[k, 2], grad[k, 3], grad[k, 4], grad[k, 5] = g0, g1, g2, g3, g4, g5
+            for d in range(d_out):
+                grad[k, 6 + d] = g_c[d]
     return grad
 
 
-def _scatter_kernel(isect, grad, flat, col_row, n_flat, n_gauss, n_col_rows):  # pragma: no cover - compiled
+def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams):  # pragma: no cover - compiled
     """Sum intersection rows into the gradients of the projection's outputs, in intersection order (serial:
-    deterministic): means2d and conics [C*N, 2|3] (row ``flat[e]``), opacities [N] and colours [rows, D]
-    (row ``col_row[e]``), float64."""
+    deterministic; one pass over the rows, faster than a per-Gaussian pass that reads them at random):
+    means2d and conics [C*N, 2|3] (row ``rflat[r]``), opacities [N] and colours ([N, D] when
+    ``shared_colors``, else [C*N, D]), float64."""
     d_out = grad.shape[1] - 6
-    g_m2 = np.zeros((n_flat, 2), np.float64)
-    g_con = np.zeros((n_flat, 3), np.float64)
+    g_m2 = np.zeros((n_cams * n_gauss, 2), np.float64)
+    g_con = np.zeros((n_cams * n_gauss, 3), np.float64)
     g_op = np.zeros(n_gauss, np.float64)
-    g_col = np.zeros((n_col_rows, d_out), np.float64)
+    g_col = np.zeros((n_gauss if shared_colors else n_cams * n_gauss, d_out), np.float64)
     for k in range(isect.shape[0]):
-        e = isect[k]
-        f = flat[e]
+        f = rflat[isect[k]]
         g_m2[f, 0] += grad[k, 0]
         g_m2[f, 1] += grad[k, 1]
         g_con[f, 0] += grad[k, 2]
         g_con[f, 1] += grad[k, 3]
         g_con[f, 2] += grad[k, 4]
         g_op[f % n_gauss] += grad[k, 5]
-        r = col_row[e]
+        r = f % n_gauss if shared_colors else f
         for d in range(d_out):
             g_col[r, d] += grad[k, 6 + d]
     return g_m2, g_con, g_op, g_col
@@ -332,14 +389,14 @@ class _Kernels(NamedTuple):
 @lru_cache(maxsize=1)
 def _kernels() -> _Kernels:
     """Import numba and wrap the kernels (compilation itself happens per dtype on first call)."""
-    global _prange, _row_span
+    global _prange, _spans
     try:
         import numba
     except Exception as exc:  # ImportError, or a broken llvmlite/numpy combination
         raise MeshsplatError(f"numba could not be imported ({exc}); use backend='torch'") from exc
     _prange = numba.prange
     ser = numba.njit(cache=True, fastmath=False, nogil=True)
-    _row_span = numba.njit(cache=True, fastmath=False, nogil=True)(_row_span_py)
+    _spans = ser(_spans_py)
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
     proj, proj_bwd = numba_projection.compile_kernels(numba)
     return _Kernels(ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd)
@@ -361,9 +418,19 @@ def _threads() -> Iterator[None]:
             torch.set_num_threads(n)
 
 
+def _tile_order(n_tiles: int) -> np.ndarray:
+    """Tiles in the order the parallel kernels take them: every n-th tile, for each of numba's n threads in
+    turn. numba hands each thread one contiguous share of a ``prange``, so each thread gets a comb of tiles
+    spread over the whole image instead of one band of it (an avatar's busy rows are not evenly spread)."""
+    import numba
+
+    n = numba.get_num_threads()
+    return np.argsort(np.arange(n_tiles) % n, kind="stable")
+
+
 class _Geometry:
     """No-grad per-call state shared by forward and backward: the visible entries in compositing order
-    (camera, then depth, ties by Gaussian index), their footprints and tile lists (numpy arrays)."""
+    (camera, then depth, ties by Gaussian index), their records and tile lists (numpy arrays)."""
 
     def __init__(self, proj: Projection, n_gauss: int, shared_colors: bool, width: int, height: int, tile: int) -> None:
         dt = proj.means2d.dtype
@@ -377,45 +444,29 @@ class _Geometry:
             order = torch.argsort(key, dim=1, stable=True)
             flat = (order + torch.arange(n_cams)[:, None] * n_gauss)[proj.visible.gather(1, order)]
         self.flat = flat.numpy()  # [M] entry -> camera * N + Gaussian
-        self.cam = self.flat // max(n_gauss, 1)
-        self.col_row = self.flat - self.cam * n_gauss if shared_colors else self.flat
-        self.m2 = proj.means2d.detach().reshape(-1, 2).numpy()[self.flat]
-        self.con = proj.conics.detach().reshape(-1, 3).numpy()[self.flat]
+        self.col_row = self.flat % max(n_gauss, 1) if shared_colors else self.flat
+        self.m2 = proj.means2d.detach().reshape(-1, 2).contiguous().numpy()
+        self.con = proj.conics.detach().reshape(-1, 3).contiguous().numpy()
         # pixel centres in the input dtype, as torch_ref's ``arange(W, dtype) + 0.5``
         self.xs = torch.arange(width, dtype=dt).add_(PIXEL_CENTER).numpy()
         self.ys = torch.arange(height, dtype=dt).add_(PIXEL_CENTER).numpy()
         self.consts = np.array([0.5, ALPHA_MAX, ALPHA_THRESHOLD], dtype=np_dt)
-        self.op: np.ndarray | None = None
         self.t_final: np.ndarray | None = None
         self.n_contrib: np.ndarray | None = None
 
-    def bin(self, opacities: torch.Tensor) -> None:
-        self.op = np.ascontiguousarray(opacities.detach().numpy()[self.flat - self.cam * self.n_gauss])
-        self.foot, self.rows, self.tile_ptr, self.isect = _kernels().bin(
-            self.m2, self.con, self.op, self.cam, self.n_cams, self.width, self.height, self.tile, self.tiles_x,
-            self.tiles_y,
+    def bin(self, opacities: torch.Tensor, colors: torch.Tensor) -> None:
+        """Entry records (footprints, the projection's values, colours ``[N,D]`` or ``[C,N,D]``) and tile lists."""
+        op = opacities.detach().contiguous().numpy()
+        col = colors.detach().reshape(-1, colors.shape[-1]).contiguous().numpy()
+        self.rec, self.rflat, self.tile_ptr, self.isect = _kernels().bin(
+            self.m2, self.con, op, col, self.flat, self.col_row, self.n_gauss, self.n_cams, self.width, self.height,
+            self.tile, self.tiles_x, self.tiles_y,
         )  # fmt: skip
 
-    def args(self, col: np.ndarray, bg: np.ndarray) -> tuple[Any, ...]:
-        return (
-            self.tile_ptr,
-            self.isect,
-            self.foot,
-            self.rows,
-            self.m2,
-            self.con,
-            self.op,
-            col,
-            bg,
-            self.xs,
-            self.ys,
-            self.consts,
-            self.width,
-            self.height,
-            self.tile,
-            self.tiles_x,
-            self.tiles_y,
-        )
+    def args(self, bg: np.ndarray) -> tuple[Any, ...]:
+        order = _tile_order(self.n_cams * self.tiles_x * self.tiles_y)
+        return (self.tile_ptr, self.isect, self.rec, order, bg, self.xs, self.ys, self.consts, self.width,
+                self.height, self.tile, self.tiles_x, self.tiles_y)  # fmt: skip
 
 
 def _bg_array(bg: torch.Tensor | None, n_cams: int, d: int, dtype: torch.dtype) -> np.ndarray:
@@ -432,42 +483,37 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, bg, geo):
         C, H, W, D = geo.n_cams, geo.height, geo.width, colors.shape[-1]
-        geo.bin(opacities)
-        colv = np.ascontiguousarray(colors.detach().reshape(-1, D).numpy()[geo.col_row])
+        geo.bin(opacities, colors)
         bgv = _bg_array(bg, C, D, colors.dtype)
         with _threads():
-            out, t_final, n_contrib = _kernels().forward(*geo.args(colv, bgv))
-        geo.t_final, geo.n_contrib, geo.col = t_final, n_contrib, colv
-        ctx.geo, ctx.has_bg, ctx.col_shape = geo, bg is not None, tuple(colors.shape)
+            out, t_final, n_contrib = _kernels().forward(*geo.args(bgv))
+        geo.t_final, geo.n_contrib = t_final, n_contrib
+        ctx.geo, ctx.has_bg, ctx.col_shape, ctx.dtype = geo, bg is not None, tuple(colors.shape), colors.dtype
         ctx.save_for_backward(bg if bg is not None else torch.empty(0))
         img = torch.from_numpy(out).reshape(C, H, W, D)
-        alpha = torch.from_numpy((1.0 - t_final).astype(colv.dtype)).reshape(C, H, W, 1)
+        alpha = torch.from_numpy((1.0 - t_final).astype(out.dtype)).reshape(C, H, W, 1)
         return img, alpha
 
     @staticmethod
     def backward(ctx, g_out, g_alpha):
         (bg,) = ctx.saved_tensors
         bg = bg if ctx.has_bg else None
-        geo = ctx.geo
-        C, H, W, D = geo.n_cams, geo.height, geo.width, geo.col.shape[1]
+        geo, dtype = ctx.geo, ctx.dtype
+        C, H, W, D = geo.n_cams, geo.height, geo.width, ctx.col_shape[-1]
         n_pix = C * H * W
-        dtype = torch.float32 if geo.col.dtype == np.float32 else torch.float64
         g_out = torch.zeros(n_pix, D, dtype=dtype) if g_out is None else g_out.reshape(n_pix, D)
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
-        n_col_rows = ctx.col_shape[0] if len(ctx.col_shape) == 2 else C * geo.n_gauss
         with _threads():
             rows = k.backward(
-                *geo.args(geo.col, bgv),
+                *geo.args(bgv),
                 g_out.detach().contiguous().numpy(),
                 g_alpha.detach().contiguous().numpy(),
                 geo.t_final,
                 geo.n_contrib,
             )
-            g_m2, g_con, g_op, g_col = k.scatter(
-                geo.isect, rows, geo.flat, geo.col_row, C * geo.n_gauss, geo.n_gauss, n_col_rows
-            )
+            g_m2, g_con, g_op, g_col = k.scatter(geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C)
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
             t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
