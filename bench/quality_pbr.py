@@ -44,6 +44,8 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_sh1tri": ("quality", ["model.sh_degree=1", "model.sh_frame=triangle"]),
     "default_axis": ("quality", ["model.shading_normal=axis"]),
     "default_occl": ("quality", ["model.occlusion=directions"]),
+    "default_spec": ("quality", ["model.specular=sh2"]),
+    "default_spec_occl": ("quality", ["model.specular=sh2", "model.occlusion=directions"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {

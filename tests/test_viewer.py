@@ -21,6 +21,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
+from meshsplat.gaussians.shading import Shading
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 from test_eval_kit import deform, make_avatar, make_run
 
@@ -686,11 +687,12 @@ def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
     assert "driver mesh has 26719 vertices" in capsys.readouterr().err
 
 
-def shaded_avatar(n: int = 400, sh_degree: int = 2, sh_frame: str = "triangle", normal: str = "phong") -> Avatar:
+def shaded_avatar(
+    n: int = 400, sh_degree: int = 2, sh_frame: str = "triangle", normal: str = "phong", specular: bool = False
+) -> Avatar:
     """The test avatar with pose-dependent shading: a strongly directional learned irradiance (key light
-    from +x+y, coloured) and view-dependent SH bands in the triangle frame."""
-    from meshsplat.gaussians.shading import Shading
-
+    from +x+y, coloured) and view-dependent SH bands in the triangle frame; ``specular``: plus an added
+    highlight from -x+z (model.specular=sh2), negative in places."""
     av = make_avatar(n=n, sh_degree=sh_degree)
     coeffs = torch.zeros(9, 3)
     coeffs[0] = torch.tensor([2.2, 2.0, 1.8])
@@ -699,7 +701,16 @@ def shaded_avatar(n: int = 400, sh_degree: int = 2, sh_frame: str = "triangle", 
     coeffs[4] = torch.tensor([0.4, -0.3, 0.2])
     coeffs[6] = torch.tensor([-0.3, 0.2, 0.1])
     coeffs[8] = torch.tensor([0.2, 0.3, -0.4])
-    return Avatar(av.mesh, av.params, av.scale_mode, shading=Shading(coeffs, normal), sh_frame=sh_frame)
+    spec = None
+    if specular:
+        spec = torch.zeros(9, 3)
+        spec[0] = torch.tensor([0.2, 0.25, 0.3])
+        spec[3] = torch.tensor([-0.3, -0.25, -0.2])  # x
+        spec[2] = torch.tensor([0.25, 0.2, 0.3])  # z
+        spec[5] = torch.tensor([0.1, -0.1, 0.05])  # yz
+        spec[8] = torch.tensor([-0.1, 0.05, 0.1])
+    shading = Shading(coeffs, normal, specular="sh2" if specular else "none", specular_coeffs=spec)
+    return Avatar(av.mesh, av.params, av.scale_mode, shading=shading, sh_frame=sh_frame)
 
 
 def test_bundle_carries_the_shading(tmp_path):
@@ -725,13 +736,14 @@ def test_bundle_carries_the_shading(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "sh_degree,sh_frame,normal,antialiased",
-    [(2, "triangle", "phong", False), (1, "world", "axis", True)],
+    "sh_degree,sh_frame,normal,antialiased,specular",
+    [(2, "triangle", "phong", False, False), (1, "world", "axis", True, False), (2, "triangle", "phong", False, True)],
 )
-def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, normal, antialiased):
+def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, normal, antialiased, specular):
     """Pose-dependent shading on the GPU: the shaded page equals avatar.render in two poses, on the
-    subject and on the full frame; the canonical pose's shading baked in would not."""
-    av = shaded_avatar(sh_degree=sh_degree, sh_frame=sh_frame, normal=normal)
+    subject and on the full frame; the canonical pose's shading baked in would not. With ``specular``
+    the page adds the specular term (and leaving it out would not match)."""
+    av = shaded_avatar(sh_degree=sh_degree, sh_frame=sh_frame, normal=normal, specular=specular)
     av.antialiased = antialiased
     frames = _frames(av, ts=(0.0, 1.0))
     write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256})
@@ -748,6 +760,13 @@ def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, norma
         refs.append(ref)
     # the colours do follow the pose: the two frames' shading differs by far more than the page's error
     assert _psnr(refs[0], refs[1]) < 30.0
+    if specular:  # the term is visible: the same avatar without it renders far from the page's error
+        assert av.shading is not None and av.shading.specular is not None
+        without = Avatar(
+            av.mesh, av.params, av.scale_mode, shading=Shading(av.shading.coeffs, normal), sh_frame=sh_frame
+        )
+        without.antialiased = antialiased
+        assert _psnr(_render_ref(without, a["vertices"][0], h["camera"]), refs[0]) < 30.0
 
 
 @pytest.mark.slow

@@ -94,7 +94,8 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
     {ply} has the shading BAKED for the canonical pose (its f_dc is albedo * E(canonical normal)).
     With meta.shading.occlusion (model.occlusion=directions), E also holds lights from fixed
     directions shadowed by the posed mesh (see meta.shading.colour); the PLY bakes those of the
-    canonical pose.
+    canonical pose. With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
+    is ADDED after the albedo multiply (not clamped); the PLY bakes it too.
 
 """
 
@@ -225,6 +226,9 @@ def export_avatar(
                 "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "
                 "V_k: the surface point lit from directions_k by the posed mesh (meshsplat.mesh.visibility)"
             )
+        if "specular" in sd:
+            shading_meta["specular"] = {"kind": sd["specular"]["kind"], "coeffs": sd["specular"]["coeffs"].tolist()}
+            shading_meta["colour"] += " + SH9(n) . specular.coeffs (added, not clamped)"
         meta["shading"] = shading_meta
     # every file goes to a temporary name and is renamed into place: a full disk leaves no truncated file
     emb = write_with(out / EMBEDDING_NAME, lambda tmp: write_embedding_json(tmp, emb_params, meta))

@@ -116,7 +116,8 @@ class Avatar:
             rgb = sh0_to_rgb(self.params["sh0"].detach()).clamp_min(0.0)
             if self.shading is None:
                 return rgb
-            # compose without a camera colours by the DC band alone: the albedo times E (occlusion included)
+            # compose without a camera colours by the DC band alone: the albedo times E (occlusion included),
+            # plus the specular term
             return self.compose(self.mesh.vertices if verts_posed is None else verts_posed).colors.detach()
 
     def render(

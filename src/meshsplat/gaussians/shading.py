@@ -21,6 +21,14 @@ the start, so the untrained model equals the one without occlusion) and the visi
 the Gaussian's surface point from ``w_k``, computed every frame from the posed driving mesh
 (``meshsplat.mesh.visibility``: a depth grid of ``grid x grid`` cells per direction; no learning, no
 gradient through it).
+
+Specular (``specular="sh2"``): light that is ADDED rather than albedo-multiplied, ``S(n) = SH9(n) . spec``
+with learned ``specular [9,3]`` (zero at the start, so the untrained model equals the one without it):
+
+    colour = albedo * E(n) + S(n)
+
+A glossy highlight on a coloured surface (white on a blue stripe) is such added light; ``albedo * E``
+alone cannot make it. ``S`` is not clamped (it may also darken where the albedo overshoots).
 """
 
 from __future__ import annotations
@@ -34,11 +42,20 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.quaternion import quat_to_matrix
 from meshsplat.mesh.visibility import sphere_directions, visibility
 
-__all__ = ["Shading", "SHADING_MODES", "SHADING_NORMALS", "OCCLUSION_MODES", "sh9_basis", "shading_normals"]
+__all__ = [
+    "Shading",
+    "SHADING_MODES",
+    "SHADING_NORMALS",
+    "OCCLUSION_MODES",
+    "SPECULAR_MODES",
+    "sh9_basis",
+    "shading_normals",
+]
 
 SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
 SHADING_NORMALS = ("phong", "axis")
 OCCLUSION_MODES = ("none", "directions")  # model.occlusion: off | lights from fixed directions, shadowed by the mesh
+SPECULAR_MODES = ("none", "sh2")  # model.specular: off | an added (not albedo-multiplied) SH2 term of the normal
 _Y00 = 0.28209479177387814
 
 
@@ -77,7 +94,8 @@ def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales:
 class Shading:
     """Learned illumination ``coeffs [9,3]`` (world-space SH irradiance) and which normal it shades; with
     ``occlusion="directions"`` also ``light [K,3]`` from the fixed ``directions [K,3]``, shadowed by the
-    posed mesh (visibility on a ``grid x grid`` depth grid per direction)."""
+    posed mesh (visibility on a ``grid x grid`` depth grid per direction); with ``specular="sh2"`` also the
+    added ``specular [9,3]`` (colour = albedo * E(n) + SH9(n) . specular)."""
 
     def __init__(
         self,
@@ -90,6 +108,8 @@ class Shading:
         directions: int = 16,
         grid: int = 64,
         light: torch.Tensor | None = None,
+        specular: str = "none",
+        specular_coeffs: torch.Tensor | None = None,
     ) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
@@ -121,10 +141,30 @@ class Shading:
             if not bool(torch.isfinite(light).all()):
                 raise MeshsplatError("shading light: contains NaN or infinity")
             self.light = light
+        if specular not in SPECULAR_MODES:
+            raise MeshsplatError(f"shading specular: expected one of {SPECULAR_MODES}, got {specular!r}")
+        self.specular_mode = specular
+        self.specular: torch.Tensor | None = None
+        if specular == "sh2":
+            if specular_coeffs is None:
+                specular_coeffs = torch.zeros(9, 3, dtype=coeffs.dtype, device=coeffs.device)
+            s = specular_coeffs
+            if not isinstance(s, torch.Tensor) or tuple(s.shape) != (9, 3) or not s.is_floating_point():
+                raise MeshsplatError("shading specular: expected a float tensor of shape [9, 3]")
+            if not bool(torch.isfinite(s).all()):
+                raise MeshsplatError("shading specular: contains NaN or infinity")
+            self.specular = s
+        elif specular_coeffs is not None:
+            raise MeshsplatError("shading specular: coefficients given but specular is 'none'")
 
     def parameters(self) -> list[torch.Tensor]:
-        """The learned tensors: ``coeffs`` and, with occlusion, ``light``."""
-        return [self.coeffs] if self.light is None else [self.coeffs, self.light]
+        """The learned tensors: ``coeffs``, with occlusion ``light``, with specular ``specular``."""
+        out = [self.coeffs]
+        if self.light is not None:
+            out.append(self.light)
+        if self.specular is not None:
+            out.append(self.specular)
+        return out
 
     @torch.no_grad()
     def project(self) -> None:
@@ -160,12 +200,25 @@ class Shading:
         scales: torch.Tensor,
         visible: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Displayed colour ``[N,3]`` = albedo * E(normal) (``visible [N,K]``: with occlusion)."""
-        return albedo * self.irradiance(shading_normals(self.normal, phong, quats, scales), visible)
+        """Displayed colour ``[N,3]`` = albedo * E(normal) (``visible [N,K]``: with occlusion), plus the
+        specular term SH9(normal) . specular when on."""
+        n = shading_normals(self.normal, phong, quats, scales)
+        colour = albedo * self.irradiance(n, visible)
+        if self.specular is None:
+            return colour
+        return colour + sh9_basis(n) @ self.specular.to(n)
 
     def to(self, device: Device) -> Shading:
         light = None if self.light is None else self.light.detach().to(device)
-        return Shading(self.coeffs.detach().to(device), self.normal, **self._occlusion_args(), light=light)
+        spec = None if self.specular is None else self.specular.detach().to(device)
+        return Shading(
+            self.coeffs.detach().to(device),
+            self.normal,
+            **self._occlusion_args(),
+            light=light,
+            specular=self.specular_mode,
+            specular_coeffs=spec,
+        )
 
     def _occlusion_args(self) -> dict[str, Any]:
         k = 16 if self.directions is None else int(self.directions.shape[0])
@@ -185,6 +238,8 @@ class Shading:
                 "grid": self.grid,
                 "light": self.light.detach().cpu().clone(),
             }
+        if self.specular is not None:
+            sd["specular"] = {"kind": self.specular_mode, "coeffs": self.specular.detach().cpu().clone()}
         return sd
 
     @classmethod
@@ -196,9 +251,10 @@ class Shading:
         c = _float_array("coeffs", sd["coeffs"])
         if tuple(c.shape) != (9, 3) or not bool(torch.isfinite(c).all()):
             raise MeshsplatError(f"shading state: coeffs must be finite numbers [9,3], got shape {list(c.shape)}")
+        spec_kw = _specular_state(sd.get("specular"), device)  # absent in states written before specular existed
         occ = sd.get("occlusion")  # absent in states written before occlusion existed
         if occ is None:
-            return cls(c.to(device), sd["normal"])
+            return cls(c.to(device), sd["normal"], **spec_kw)
         if (
             not isinstance(occ, dict)
             or occ.get("kind") not in OCCLUSION_MODES[1:]
@@ -215,12 +271,31 @@ class Shading:
         if not torch.allclose(dirs, sphere_directions(k), atol=1e-5):
             raise MeshsplatError(f"shading state: occlusion directions are not the {k} directions this version uses")
         return cls(
-            c.to(device), sd["normal"], occlusion=occ["kind"], directions=k, grid=occ["grid"], light=light.to(device)
+            c.to(device),
+            sd["normal"],
+            occlusion=occ["kind"],
+            directions=k,
+            grid=occ["grid"],
+            light=light.to(device),
+            **spec_kw,
         )
 
     def __repr__(self) -> str:
         occ = "" if self.light is None else f", occlusion={self.occlusion!r} x{self.light.shape[0]}"
-        return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ})"
+        spec = "" if self.specular is None else f", specular={self.specular_mode!r}"
+        return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ}{spec})"
+
+
+def _specular_state(spec: Any, device: Device) -> dict[str, Any]:
+    """Keyword arguments of ``Shading`` from a state's ``specular`` entry (None: off)."""
+    if spec is None:
+        return {}
+    if not isinstance(spec, dict) or spec.get("kind") not in SPECULAR_MODES[1:] or "coeffs" not in spec:
+        raise MeshsplatError("shading state: specular must hold kind (sh2) and coeffs [9,3]")
+    s = _float_array("specular coeffs", spec["coeffs"])
+    if tuple(s.shape) != (9, 3) or not bool(torch.isfinite(s).all()):
+        raise MeshsplatError(f"shading state: specular coeffs must be finite numbers [9,3], got shape {list(s.shape)}")
+    return {"specular": spec["kind"], "specular_coeffs": s.to(device)}
 
 
 def _float_array(name: str, value: Any) -> torch.Tensor:

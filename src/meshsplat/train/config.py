@@ -30,7 +30,7 @@ from typing import Any
 from meshsplat.embedding import SCALE_MODES, WALK_MODES
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.compose import SH_FRAMES
-from meshsplat.gaussians.shading import OCCLUSION_MODES, SHADING_MODES, SHADING_NORMALS
+from meshsplat.gaussians.shading import OCCLUSION_MODES, SHADING_MODES, SHADING_NORMALS, SPECULAR_MODES
 from meshsplat.io.json_file import read_json_object
 from meshsplat.render import BACKENDS, BACKGROUNDS
 from meshsplat.train.strategy.default import DensifyStrategy
@@ -103,6 +103,9 @@ class ModelConfig:
     occlusion: str = "none"
     occlusion_directions: int = 16
     occlusion_grid: int = 64
+    # Added light (needs shading != "none"): "none" | "sh2": colour = albedo * E(n) + SH9(n) . specular, a learned
+    # [9,3] added, not albedo-multiplied (a glossy highlight on a coloured surface); zero at the start.
+    specular: str = "none"
 
 
 @dataclass
@@ -244,6 +247,11 @@ class TrainConfig:
             (
                 self.model.occlusion == "none" or self.model.shading != "none",
                 "model.occlusion needs model.shading (the shadowed lights add to its irradiance)",
+            ),
+            (self.model.specular in SPECULAR_MODES, f"model.specular: {'|'.join(SPECULAR_MODES)}"),
+            (
+                self.model.specular == "none" or self.model.shading != "none",
+                "model.specular needs model.shading (the added light is a term of the shaded colour)",
             ),
             (1 <= self.model.occlusion_directions <= 256, "model.occlusion_directions must be in 1..256"),
             (8 <= self.model.occlusion_grid <= 1024, "model.occlusion_grid must be in 8..1024"),

@@ -21,7 +21,7 @@ asset in centimetres and the same in metres train and log alike; extent ≈ 1 on
 iterations walking on triangles.
 
 With ``model.shading`` on, the learned illumination (``Shading.coeffs``, and with ``model.occlusion`` the
-non-negative ``Shading.light``, clamped after each step) has its own Adam
+non-negative ``Shading.light``, clamped after each step; with ``model.specular`` the added ``Shading.specular``) has its own Adam
 (``lr_shading``), stored in checkpoints under ``shading_optimizer``; the avatar state carries the
 illumination itself.
 """
@@ -230,6 +230,7 @@ class Trainer:
                     occlusion=cfg.model.occlusion,
                     directions=cfg.model.occlusion_directions,
                     grid=cfg.model.occlusion_grid,
+                    specular=cfg.model.specular,
                 )
             )
         self.strategy_state = self.strategy.initialize_state(self.extent)
@@ -251,6 +252,8 @@ class Trainer:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
         if shading.light is not None:
             shading.light = torch.nn.Parameter(shading.light.detach().clone().to(self.device))
+        if shading.specular is not None:
+            shading.specular = torch.nn.Parameter(shading.specular.detach().clone().to(self.device))
         self.shading = shading
         self.shading_opt = torch.optim.Adam(
             shading.parameters(), lr=self.cfg.optim.lr_shading * self.lr_factor, eps=self.cfg.optim.eps
@@ -622,6 +625,11 @@ class Trainer:
                 raise MeshsplatError(
                     f"checkpoint: its occlusion ({shading.occlusion}) does not match model.occlusion "
                     f"({self.cfg.model.occlusion}); resume with the run's own config.json or start a new run"
+                )
+            if shading.specular_mode != self.cfg.model.specular:
+                raise MeshsplatError(
+                    f"checkpoint: its specular ({shading.specular_mode}) does not match model.specular "
+                    f"({self.cfg.model.specular}); resume with the run's own config.json or start a new run"
                 )
             self._set_shading(shading)
             if st.get("shading_optimizer"):

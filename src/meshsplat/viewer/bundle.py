@@ -236,13 +236,16 @@ def _sh_rest(avatar: Avatar) -> np.ndarray | None:
 def _shading_header(avatar: Avatar) -> dict[str, Any]:
     """What the page needs to colour the Gaussians as ``compose`` does."""
     sh = avatar.shading
+    shading: dict[str, Any] | None = None
+    if sh is not None:
+        shading = {"coeffs": sh.coeffs.detach().double().cpu().tolist(), "normal": sh.normal, "space": "world"}
+        if sh.specular is not None:  # added after the albedo multiply (model.specular=sh2)
+            shading["specular"] = sh.specular.detach().double().cpu().tolist()
     return {
         "sh_degree": avatar.sh_degree,
         "sh_frame": avatar.sh_frame,
         "antialiased": avatar.antialiased,
-        "shading": None
-        if sh is None
-        else {"coeffs": sh.coeffs.detach().double().cpu().tolist(), "normal": sh.normal, "space": "world"},
+        "shading": shading,
     }
 
 

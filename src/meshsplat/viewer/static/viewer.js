@@ -647,6 +647,8 @@ uniform int scaleMode;                  // 0 none, 1 area, 2 sqrt_area
 uniform int shK, shTexels, shFrame;     // SH coefficients above the DC (0, 3, 8, 15); frame: 0 world, 1 triangle
 uniform int shadeNormal;                // learned irradiance: 0 off, 1 Phong normal, 2 shortest axis
 uniform vec3 irr[9];                    // its SH coefficients (world space, per channel)
+uniform bool specular;                  // an added SH2 term of the same normal (model.specular=sh2)
+uniform vec3 spec[9];                   // its SH coefficients (world space, per channel)
 uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I))
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
@@ -691,13 +693,12 @@ vec3 viewColour(int g, vec3 dc, vec3 dir) {
   }
   return rgb;
 }
-// E(n) = max(0, sum_i Y_i(n) irr_i): second-order SH irradiance (meshsplat.gaussians.shading)
-vec3 irradiance(vec3 n) {
+// sum_i Y_i(n) c_i: the 9 real SH basis functions up to order 2 at n (meshsplat.gaussians.shading.sh9_basis)
+vec3 sh9(vec3 n, vec3 c[9]) {
   float x = n.x, y = n.y, z = n.z;
-  vec3 e = ${SH9[0]} * irr[0] + ${SH9[1]} * y * irr[1] + ${SH9[1]} * z * irr[2] + ${SH9[1]} * x * irr[3]
-         + ${SH9[2]} * x * y * irr[4] + ${SH9[2]} * y * z * irr[5] + ${SH9[3]} * (3.0 * z * z - 1.0) * irr[6]
-         + ${SH9[2]} * x * z * irr[7] + ${SH9[4]} * (x * x - y * y) * irr[8];
-  return max(e, 0.0);
+  return ${SH9[0]} * c[0] + ${SH9[1]} * y * c[1] + ${SH9[1]} * z * c[2] + ${SH9[1]} * x * c[3]
+       + ${SH9[2]} * x * y * c[4] + ${SH9[2]} * y * z * c[5] + ${SH9[3]} * (3.0 * z * z - 1.0) * c[6]
+       + ${SH9[2]} * x * z * c[7] + ${SH9[4]} * (x * x - y * y) * c[8];
 }
 void main() {
   int g = int(gid);
@@ -752,7 +753,8 @@ void main() {
   vec2 px = m2 + offs;
   gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
   // colour, per frame: view-dependent SH (view direction in world or the triangle's canonical frame),
-  // times the learned irradiance of the posed normal (meshsplat.gaussians.compose)
+  // times the learned irradiance E(n) = max(0, sh9(n, irr)) of the posed normal, plus the learned
+  // specular sh9(n, spec), not clamped (meshsplat.gaussians.shading.Shading.shade)
   vec3 rgb = vec3(rg, s2b.y);
   if (shK > 0) {
     vec3 dir = mean + transpose(R) * tr;  // mean - camera centre
@@ -767,7 +769,8 @@ void main() {
       sn = Rq[i];
       if (dot(sn, n) < 0.0) sn = -sn;
     }
-    rgb *= irradiance(sn);
+    rgb *= max(sh9(sn, irr), 0.0);
+    if (specular) rgb += sh9(sn, spec);
   }
   col = vec4(rgb, op);
 }`;
@@ -852,7 +855,7 @@ export class SplatRenderer {
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
     this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
-      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "antialiased"]);
+      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "specular", "spec", "antialiased"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     const ftex = new Uint32Array(4 * b.F);
@@ -990,6 +993,8 @@ export class SplatRenderer {
     gl.uniform1i(p.loc.shFrame, hd.sh_frame === "triangle" ? 1 : 0);
     gl.uniform1i(p.loc.shadeNormal, shade ? (shade.normal === "axis" ? 2 : 1) : 0);
     if (shade) gl.uniform3fv(p.loc.irr, shade.coeffs.flat());
+    gl.uniform1i(p.loc.specular, shade && shade.specular ? 1 : 0);
+    if (shade && shade.specular) gl.uniform3fv(p.loc.spec, shade.specular.flat());
     gl.uniform1i(p.loc.antialiased, hd.antialiased ? 1 : 0);
     this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
     gl.bindVertexArray(this.vao);
