@@ -315,7 +315,9 @@ def test_synth_write_read_parity(tmp_path, standin_model_dir, masks):
     assert torch.equal(nat.faces, back.faces)
     for k, i in enumerate(written):
         assert (nat.vertices(i) - back.vertices(k)).abs().max() < 1e-5
-        assert torch.equal(nat[i].image, back[k].image)
+        # the native capture gives the subject's colour at its soft edge (its backdrop taken out); the
+        # written layout stores that colour in 8 bits, so it composites exactly too
+        assert float((nat[i].image - back[k].image).abs().max()) <= 0.5 / 255 + 1e-6
         if masks == "png":
             assert torch.equal(nat[i].mask, back[k].mask)
         else:
