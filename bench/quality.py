@@ -24,6 +24,11 @@ all but ``default`` start from the ``paper`` preset):
   dens_low      densification threshold grow_grad2d 1e-4 instead of 2e-4 (the subject is a small target)
   lr_color      colour learning rate 1e-2 instead of 2.5e-3 (short runs)
   default       the ``quality`` training preset (the default of meshsplat train and the demo)
+  lpips_every2  ``default`` with LPIPS on every 2nd iteration, twice its weight (loss.lpips_every=2)
+  lpips_every4  ``default`` with LPIPS on every 4th iteration, 4x its weight
+  lpips_every4_unscaled  every 4th iteration at the plain weight (lambda_lpips 0.01 / 4 x 4): a quarter of
+                the mean LPIPS weight, to compare with the scaled one under Adam
+  no_lpips      ``default`` without LPIPS (lambda_lpips=0): the bound of what skipping LPIPS can cost
 
 Prints full-image and subject (inside the mask) PSNR / SSIM / LPIPS per test split and saves
 bench/results/<name>-<host>.json after every variant (a rerun resumes finished variants' runs).
@@ -56,6 +61,10 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "dens_low": ("paper", ["strategy.grow_grad2d=1e-4"]),
     "lr_color": ("paper", ["optim.lr_color=1e-2"]),
     "default": ("quality", []),
+    "lpips_every2": ("quality", ["loss.lpips_every=2"]),
+    "lpips_every4": ("quality", ["loss.lpips_every=4"]),
+    "lpips_every4_unscaled": ("quality", ["loss.lpips_every=4", "loss.lambda_lpips=0.0025"]),
+    "no_lpips": ("quality", ["loss.lambda_lpips=0"]),
 }
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask", "psnr_crop", "ssim_crop", "lpips_crop")
 
@@ -166,14 +175,14 @@ def main() -> None:
     fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(f"\n{args.asset}, {preset.iterations} iterations, {preset.resolution}px; full image | inside the mask")
     print(
-        f"{'variant':<14}{'split':<12}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7} |{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}"
+        f"{'variant':<22}{'split':<12}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7} |{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}"
         f"{'N':>7}{'train s':>8}"
     )
     for name, r in rows.items():
         for s in splits:
             m = r["splits"].get(s, {})
             print(
-                f"{name:<14}{s:<12}{fmt(m.get('psnr'), 2):>7}{fmt(m.get('ssim'), 3):>7}{fmt(m.get('lpips'), 3):>7} |"
+                f"{name:<22}{s:<12}{fmt(m.get('psnr'), 2):>7}{fmt(m.get('ssim'), 3):>7}{fmt(m.get('lpips'), 3):>7} |"
                 f"{fmt(m.get('psnr_mask'), 2):>7}{fmt(m.get('ssim_mask'), 3):>7}{fmt(m.get('lpips_mask'), 3):>7}"
                 f"{r['gaussians']:>7}{r['train_s']:>8.0f}"
             )

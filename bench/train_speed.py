@@ -1,13 +1,19 @@
 """Training time per iteration on the demo capture: today's default vs the code path before the
 compiled rasterizer and the subject-crop losses, in the same run, at 1 and 2 threads.
 
-    python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20] [--threads 1,2] [--quick]
+    python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20] [--threads 1,2]
+                                [--lpips-every 2,4] [--quick]
 
 Variants (both the quality preset on the demo's schedule, ``demo_train_config`` with the ``default``
 demo sizes, same seed): ``before`` = ``backend=torch`` and ``loss.crop_to_subject=false`` (the path of
 meshsplat before the numba backend and the crop), ``now`` = the defaults (``backend=auto``: numba on
-CPU when installed; LPIPS on the subject's box). Per thread count, both trainers are warmed up, then
-timed in alternating blocks so a change of the machine's load hits both alike. ``--data`` reuses a
+CPU when installed; LPIPS on the subject's box), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k``
+for each k of ``--lpips-every`` (LPIPS on every k-th iteration; "" for none). Per thread count, every
+trainer is warmed up, then timed in alternating blocks so a change of the machine's load hits all alike.
+An iteration with LPIPS costs more than one without: besides the median and mean time per iteration,
+``cycle_median_s`` is the median over aligned groups of lcm(k) consecutive iterations of their mean
+time (each group holds the same mix of iterations with and without LPIPS), the figure the speed-ups
+``speedup_cycle`` compare. ``--data`` reuses a
 generated demo dataset (``OUT/data`` of ``meshsplat demo``). Saves bench/results/train_speed-<host>.json.
 """
 
@@ -15,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import tempfile
 import time
@@ -37,17 +44,25 @@ def main() -> None:
     ap.add_argument("--block", type=int, default=20)
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/train_speed-<host>.json)")
-    ap.add_argument("--quick", action="store_true", help="20 timed iterations after 10 warm-up ones, blocks of 10")
+    ap.add_argument("--lpips-every", default="2,4", help="comma-separated loss.lpips_every values to time too")
+    ap.add_argument("--quick", action="store_true", help="24 timed iterations after 12 warm-up ones, blocks of 12")
     args = ap.parse_args()
     if args.quick:
-        args.iters, args.warmup, args.block = 20, 10, 10
+        args.iters, args.warmup, args.block = 24, 12, 12
+    variants = dict(VARIANTS)
+    cadences = [int(k) for k in args.lpips_every.split(",") if k.strip()]
+    for k in cadences:
+        variants[f"now_lpips{k}"] = [f"loss.lpips_every={k}"]
+    cycle = math.lcm(1, *cadences)
+    if args.warmup % cycle or args.block % cycle:
+        raise SystemExit(f"--warmup and --block must be multiples of {cycle} (the lcm of --lpips-every)")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_"))
     data = args.data if args.data is not None else _generate(tmp / "data", PRESETS["default"], progress=False)
     rows = []
     for threads in [int(t) for t in args.threads.split(",")]:
         torch.set_num_threads(threads)
         trainers = {}
-        for name, extra in VARIANTS.items():
+        for name, extra in variants.items():
             cfg = demo_train_config(data, tmp / f"{name}{threads}", PRESETS["default"], extra, progress=False)
             trainers[name] = Trainer(cfg)
             for _ in range(args.warmup):
@@ -70,17 +85,23 @@ def main() -> None:
                     "variant": name,
                     "median_s": statistics.median(t),
                     "mean_s": statistics.mean(t),
+                    "cycle_median_s": statistics.median(
+                        statistics.mean(t[i : i + cycle]) for i in range(0, len(t) - cycle + 1, cycle)
+                    ),
+                    "cycle": cycle,
                     "gaussians": trainers[name].num_gaussians,
                 }
             )
-    print(f"{'threads':>7} {'variant':>7} {'median s':>9} {'mean s':>8} {'speed-up':>8}")
+    print(f"{'threads':>7} {'variant':>11} {'median s':>9} {'mean s':>8} {'cycle s':>8} {'speed-up':>8} {'(cycle)':>8}")
     for r in rows:
         base = next(b for b in rows if b["threads"] == r["threads"] and b["variant"] == "before")
         r["speedup_median"] = base["median_s"] / r["median_s"]
+        r["speedup_cycle"] = base["cycle_median_s"] / r["cycle_median_s"]
         print(
-            f"{r['threads']:>7} {r['variant']:>7} {r['median_s']:9.4f} {r['mean_s']:8.4f} {r['speedup_median']:7.2f}x"
+            f"{r['threads']:>7} {r['variant']:>11} {r['median_s']:9.4f} {r['mean_s']:8.4f} "
+            f"{r['cycle_median_s']:8.4f} {r['speedup_median']:7.2f}x {r['speedup_cycle']:7.2f}x"
         )
-    out = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}, "variants": VARIANTS}
+    out = {"machine": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}, "variants": variants}
     out["rows"] = rows
     path = args.out or results_path("train_speed")
     path.write_text(json.dumps(out, indent=1) + "\n")

@@ -14,9 +14,10 @@ from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
+from meshsplat.metrics.lpips_net import get_lpips
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import LOG_COLUMNS, TrainConfig, Trainer, apply_overrides, load_config
-from meshsplat.train.losses import subject_crop
+from meshsplat.train.losses import avatar_loss, subject_crop
 
 W = H = 32
 VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
@@ -152,6 +153,95 @@ def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
             small_config(ds, tmp_path / "resumed", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]),
             resume=True,
         )
+
+
+class _Counted:
+    """The trainer's own perceptual loss, still doing the work, noting the iteration of each call."""
+
+    def __init__(self, trainer):
+        self.trainer, self.inner, self.iterations = trainer, trainer.perceptual, []
+
+    def __call__(self, render, gt):
+        self.iterations.append(self.trainer.iteration)
+        return self.inner(render, gt)
+
+
+def test_lpips_every_skips_the_perceptual_net_and_resumes_bit_exact(tmp_path):
+    ds = make_tiny_dataset(tmp_path / "ds96", size=96)
+    on = ["loss.lpips_every=3", "loss.lambda_ssim=0.2", "checkpoint_every=5"]
+    full = Trainer(small_config(ds, tmp_path / "full", 10, on))
+    counted = full.perceptual = _Counted(full)
+    net_calls: list[int] = []
+    hook = None
+    if counted.inner.net is not None:  # the LPIPS network itself (installed weights): note its forwards
+        net = get_lpips(counted.inner.net, "cpu")
+        hook = net.register_forward_hook(lambda *_: net_calls.append(full.iteration))
+    try:
+        full.train()
+    finally:
+        if hook is not None:
+            hook.remove()
+    assert counted.iterations == [3, 6, 9]
+    if hook is not None:
+        assert sorted(set(net_calls)) == [3, 6, 9]  # no forward of the network on the skipped iterations
+    due = [it % 3 == 0 for it in range(1, 11)]
+    for r, d in zip(full.history, due, strict=True):
+        assert math.isnan(r["lpips"]) != d and math.isnan(r["dssim"]) != d
+    assert full.history[2]["lpips"] > 0 and full.history[2]["dssim"] > 0
+    for r, d in zip(full.history, due, strict=True):  # 3x the weights when due, the rest alone otherwise
+        perceptual = 3 * (0.01 * r["lpips"] + 0.2 * r["dssim"]) if d else 0.0
+        assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual, rel=1e-5)
+    with open(tmp_path / "full" / "log.csv", newline="") as fh:
+        log = list(csv.DictReader(fh))
+    assert [r["lpips"] == "" for r in log] == [it % 3 != 0 for it in range(1, 11)]  # empty: not computed
+    assert [r["dssim"] == "" for r in log] == [it % 3 != 0 for it in range(1, 11)]
+    # resume from iteration 5 (not a multiple of 3): the cadence follows the iteration counter
+    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000005.pt", tmp_path / "resumed" / "checkpoints")
+    res = Trainer(small_config(ds, tmp_path / "resumed", 10, on), resume=True)
+    res.train()
+    for k in full.params:
+        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
+    assert [r["loss"] for r in full.history[5:]] == [r["loss"] for r in res.history]
+
+
+def _image_loss_before_lpips_every(self, out, gt, mask):
+    """``Trainer._image_loss`` as it was before ``loss.lpips_every`` (the reference of the test below)."""
+    L = self.cfg.loss
+    crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject else None
+    loss, parts = avatar_loss(
+        out.image,
+        gt,
+        self.params["log_scale"].exp(),
+        thresh_scale=L.scale_max * self.extent,
+        thresh_ratio=L.scale_ratio,
+        lambda_l1=L.lambda_l1,
+        lambda_lpips=L.lambda_lpips,
+        lambda_scale=L.lambda_scale / self.extent,
+        lambda_mse=L.lambda_mse,
+        lambda_dssim=L.lambda_ssim,
+        perceptual=self.perceptual,
+        crop=crop,
+    )
+    if L.lambda_mask and mask is not None:
+        mask_l1 = (out.alpha - mask).abs().mean()
+        loss = loss + L.lambda_mask * mask_l1
+        parts["mask"] = mask_l1.detach()
+    return loss, parts
+
+
+def test_lpips_every_1_is_bit_identical_to_the_loss_before_it(tmp_path, monkeypatch):
+    ds = make_tiny_dataset(tmp_path / "ds96", size=96)
+    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1"]
+    now = Trainer(small_config(ds, tmp_path / "now", 8, ["loss.lpips_every=1", *extra]))
+    now.train()
+    monkeypatch.setattr(Trainer, "_image_loss", _image_loss_before_lpips_every)
+    old = Trainer(small_config(ds, tmp_path / "old", 8, extra))
+    old.train()
+    for k in now.params:
+        assert torch.equal(now.params[k].detach(), old.params[k].detach()), k
+    drop = lambda rows: [{k: v for k, v in r.items() if k != "time_s"} for r in rows]  # noqa: E731
+    assert drop(now.history) == drop(old.history)
 
 
 def test_older_run_folder_resumes_bit_exact(tiny_dataset, tmp_path):

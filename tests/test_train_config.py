@@ -61,6 +61,9 @@ def test_json_roundtrip(tmp_path):
         ("strategy.refine_stop=5", "renamed to strategy.refine_stop_iter"),
         ("strategy.prune_scale2d=20", "fraction of the image size"),
         ("backend=vulkan", "backend: auto"),
+        ("loss.lpips_every=0", r"^config: loss\.lpips_every must be >= 1 \(1 = LPIPS on every iteration\)$"),
+        ("loss.lpips_every=-4", r"loss\.lpips_every must be >= 1"),
+        ("loss.lpips_every=2.5", "loss.lpips_every expects int"),
     ],
 )
 def test_override_errors(item, match):

@@ -143,6 +143,9 @@ class LossConfig:
     # sides rounded up to multiples of 32 px), times its area share; L1/MSE stay full-frame. The paper (preset): false.
     crop_to_subject: bool = True
     crop_margin: float = 0.05  # crop_to_subject: margin on every side, a fraction of the image's larger side
+    # LPIPS (and D-SSIM) only on iterations it % lpips_every == 0, weighted lpips_every x (the same mean weight);
+    # the other iterations skip the perceptual net (L1/MSE/scale/mask every iteration). 1 = every iteration.
+    lpips_every: int = 1
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -258,6 +261,7 @@ class TrainConfig:
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),
+            (self.loss.lpips_every >= 1, "loss.lpips_every must be >= 1 (1 = LPIPS on every iteration)"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
             (self.optim.uv_lr_units in UV_LR_UNITS, f"optim.uv_lr_units: {'|'.join(UV_LR_UNITS)}"),
             (self.background in TRAIN_BACKGROUNDS, f"background: {'|'.join(TRAIN_BACKGROUNDS)}"),

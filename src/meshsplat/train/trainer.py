@@ -17,7 +17,8 @@ random background (also blended into the ground truth through the mask); loss
 (pose-independent) scales with T_s = ``loss.scale_max * extent``, measured in mesh extents (so an
 asset in centimetres and the same in metres train and log alike; extent ≈ 1 on the paper's bodies)
 (+ λ_mask |alpha - mask|); with ``loss.crop_to_subject`` LPIPS and D-SSIM on the box around the subject
-(``losses.subject_crop``: mask and rendered alpha), times its area share; backward; Adam steps; densification strategy; every ``walk.every``
+(``losses.subject_crop``: mask and rendered alpha), times its area share; with ``loss.lpips_every`` = k
+both only on iterations ``it % k == 0``, times k (log.csv leaves their cells empty on the others); backward; Adam steps; densification strategy; every ``walk.every``
 iterations walking on triangles.
 
 With ``model.shading`` on, the learned illumination (``Shading.coeffs``, and with ``model.occlusion`` the
@@ -98,6 +99,14 @@ LOG_COLUMNS = (
     "time_s",
     "mask",
 )
+
+
+def _cell(value: float | int) -> str | float | int:
+    """A ``log.csv`` cell: floats to 6 significant digits; nan (a term not computed on that iteration, see
+    ``loss.lpips_every``) as an empty cell."""
+    if isinstance(value, float):
+        return "" if math.isnan(value) else f"{value:.6g}"
+    return value
 
 
 def mesh_extent(vertices: torch.Tensor) -> float:
@@ -316,7 +325,9 @@ class Trainer:
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The training loss of one rendered image and its parts."""
         L = self.cfg.loss
-        crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject else None
+        # loss.lpips_every = k: the perceptual terms on every k-th iteration only, k times their weight
+        k = L.lpips_every if self.perceptual_due else 0
+        crop = subject_crop(mask, out.alpha, L.crop_margin) if L.crop_to_subject and k else None
         loss, parts = avatar_loss(
             out.image,
             gt,
@@ -324,10 +335,10 @@ class Trainer:
             thresh_scale=L.scale_max * self.extent,
             thresh_ratio=L.scale_ratio,
             lambda_l1=L.lambda_l1,
-            lambda_lpips=L.lambda_lpips,
+            lambda_lpips=L.lambda_lpips * k,
             lambda_scale=L.lambda_scale / self.extent,
             lambda_mse=L.lambda_mse,
-            lambda_dssim=L.lambda_ssim,
+            lambda_dssim=L.lambda_ssim * k,
             perceptual=self.perceptual,
             crop=crop,
         )
@@ -336,6 +347,13 @@ class Trainer:
             loss = loss + L.lambda_mask * mask_l1
             parts["mask"] = mask_l1.detach()
         return loss, parts
+
+    @property
+    def perceptual_due(self) -> bool:
+        """Whether this iteration (``self.iteration``, 1-based, already counted by ``step``) computes LPIPS and
+        D-SSIM: every ``loss.lpips_every``-th one. Depends on the iteration counter only, so a resumed run
+        skips the same iterations."""
+        return self.iteration % self.cfg.loss.lpips_every == 0
 
     def _trained_tensors(self) -> list[torch.Tensor]:
         """Every tensor an optimizer steps (the gradients data-parallel training all-reduces)."""
@@ -424,6 +442,10 @@ class Trainer:
         }
         for k, name in enumerate(_LOGGED_PARTS):
             row[name] = float(logged[k + 2])
+        if not self.perceptual_due:  # not computed this iteration: nan here, an empty cell in log.csv
+            for name, weight in (("lpips", cfg.loss.lambda_lpips), ("dssim", cfg.loss.lambda_ssim)):
+                if weight:
+                    row[name] = math.nan
         row["scale"] /= self.extent  # relative to the mesh size (as optimised), so assets in cm and m compare
         return row
 
@@ -524,9 +546,7 @@ class Trainer:
     def _log(self, row: dict[str, float]) -> None:
         self.history.append(row)
         with open(self.folder.log_path, "a", newline="") as fh:
-            csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow(
-                {k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in LOG_COLUMNS}
-            )
+            csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow({k: _cell(row[k]) for k in LOG_COLUMNS})
 
     @torch.no_grad()
     def save_preview(self, idx: int | None = None) -> Path:
