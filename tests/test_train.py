@@ -130,15 +130,20 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
 
 def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
-    on = ["loss.crop_to_subject=true", "checkpoint_every=5"]
+    on = ["loss.crop_to_subject=true", "loss.lpips_every=1", "checkpoint_every=5"]
     full = Trainer(small_config(ds, tmp_path / "full", 10, on))
     _, mask, _, _ = full._frame(full.train_ids[0])
     box = subject_crop(mask, None, full.cfg.loss.crop_margin)
     assert box is not None and box.area_fraction < 0.5  # the crop really is a crop here
     full.train()
-    off = Trainer(small_config(ds, tmp_path / "off", 10, ["loss.crop_to_subject=false", "checkpoint_every=5"]))
+    off = Trainer(
+        small_config(
+            ds, tmp_path / "off", 10, ["loss.crop_to_subject=false", "loss.lpips_every=1", "checkpoint_every=5"]
+        )
+    )
     off.train()
     assert full.history[0]["l1"] == off.history[0]["l1"]  # same first render: L1 stays full-frame
+    assert full.history[0]["lpips"] > 0 and off.history[0]["lpips"] > 0
     assert full.history[0]["lpips"] != off.history[0]["lpips"]  # the perceptual term is on the crop
     (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000005.pt", tmp_path / "resumed" / "checkpoints")
@@ -232,8 +237,8 @@ def _image_loss_before_lpips_every(self, out, gt, mask):
 
 def test_lpips_every_1_is_bit_identical_to_the_loss_before_it(tmp_path, monkeypatch):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
-    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1"]
-    now = Trainer(small_config(ds, tmp_path / "now", 8, ["loss.lpips_every=1", *extra]))
+    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1", "loss.lpips_every=1"]
+    now = Trainer(small_config(ds, tmp_path / "now", 8, extra))
     now.train()
     monkeypatch.setattr(Trainer, "_image_loss", _image_loss_before_lpips_every)
     old = Trainer(small_config(ds, tmp_path / "old", 8, extra))

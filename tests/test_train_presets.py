@@ -16,6 +16,7 @@ from meshsplat.train.config import (
     CONFIG_VERSION,
     VERSION_1_DEFAULTS,
     VERSION_2_DEFAULTS,
+    VERSION_3_DEFAULTS,
     upgrade_config_dict,
 )
 from meshsplat.train.presets import preset_differences, preset_overrides
@@ -83,6 +84,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "model.init_color_frames=1 (the quality preset's: 8)",
         "optim.lr_color=0.0025 (the quality preset's: 0.01)",
         "loss.crop_to_subject=False (the quality preset's: True)",
+        "loss.lpips_every=1 (the quality preset's: 2)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -91,7 +93,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS):
+    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS):
         assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
 
 
@@ -102,9 +104,16 @@ _OLD_DEFAULTS = [
     "model.init_color_frames=1",
     "optim.lr_color=2.5e-3",
     "loss.crop_to_subject=false",
+    "loss.lpips_every=1",
 ]
-# plus the LPIPS crop, on in the quality preset since config version 3
-_OLD_QUALITY = ["model.shading=sh2", "model.init_color_frames=8", "optim.lr_color=1e-2", "loss.crop_to_subject=true"]
+# plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
+_OLD_QUALITY = [
+    "model.shading=sh2",
+    "model.init_color_frames=8",
+    "optim.lr_color=1e-2",
+    "loss.crop_to_subject=true",
+    "loss.lpips_every=2",
+]
 _OLD_SCHEDULES = {
     "default": [
         "strategy.refine_start_iter=300",
@@ -149,11 +158,11 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 3)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 4)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 3, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 4, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
         preset_config("paper"), ["seed=5"]
@@ -190,17 +199,30 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
     assert got == apply_overrides(preset_config("quality"), ["loss.crop_to_subject=false"])
     (tmp_path / "partial.json").write_text(json.dumps({"version": 2, "seed": 5}))
     assert not load_config(tmp_path / "partial.json").loss.crop_to_subject
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 3, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 4, "seed": 5}))
     assert load_config(tmp_path / "partial.json").loss.crop_to_subject
     # a version-2 dict that sets it keeps its value; an unversioned one (version 1) gets the paper's
     assert TrainConfig.from_dict({"version": 2, "loss": {"crop_to_subject": True}}).loss.crop_to_subject
     assert not TrainConfig.from_dict({"seed": 1}).loss.crop_to_subject
 
 
+def test_version_3_config_keeps_lpips_on_every_iteration(tmp_path):
+    # written before loss.lpips_every was 2 by default (the key did not exist yet)
+    old = preset_config("quality").to_dict()
+    del old["loss"]["lpips_every"]
+    (tmp_path / "config.json").write_text(json.dumps({"version": 3, **old}))
+    got = load_config(tmp_path / "config.json")
+    assert got == apply_overrides(preset_config("quality"), ["loss.lpips_every=1"])
+    assert TrainConfig.from_dict({"version": 3, "seed": 1}).loss.lpips_every == 1
+    assert TrainConfig.from_dict({"version": 3, "loss": {"lpips_every": 3}}).loss.lpips_every == 3
+    assert TrainConfig.from_dict({"version": 4, "seed": 1}).loss.lpips_every == 2
+    assert TrainConfig.from_dict({"seed": 1}).loss.lpips_every == 1  # version 1
+
+
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 4}, r"^config: format version 4 is newer than this meshsplat reads \(3\); update meshsplat"),
+        ({"version": 5}, r"^config: format version 5 is newer than this meshsplat reads \(4\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

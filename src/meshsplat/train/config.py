@@ -10,7 +10,8 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 ``quality`` preset; ``meshsplat.train.presets`` also has ``paper``, the published method.
 
 ``config.json`` carries ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION}`` beside the keys.
-A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``).
+A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``),
+a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -55,6 +56,7 @@ __all__ = [
     "CONFIG_VERSION",
     "VERSION_1_DEFAULTS",
     "VERSION_2_DEFAULTS",
+    "VERSION_3_DEFAULTS",
     "config_version",
 ]
 
@@ -69,12 +71,15 @@ RENAMED_KEYS = {
 CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 1: no "format"/"version" fields (older meshsplat; defaults were the paper's). 2: the quality defaults.
 # 3: loss.crop_to_subject on by default (docs/quality.md, "Losses where the subject is").
-CONFIG_VERSION = 3
+# 4: loss.lpips_every 2 by default (docs/rendering.md, "Training on CPU").
+CONFIG_VERSION = 4
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
 # Keys whose default changed since version 2, with their version-2 value (a version-1 dict gets them too).
 VERSION_2_DEFAULTS = {"loss.crop_to_subject": False}
+# Keys whose default changed since version 3, with their version-3 value (older dicts get them too).
+VERSION_3_DEFAULTS = {"loss.lpips_every": 1}
 
 
 @dataclass
@@ -144,8 +149,8 @@ class LossConfig:
     crop_to_subject: bool = True
     crop_margin: float = 0.05  # crop_to_subject: margin on every side, a fraction of the image's larger side
     # LPIPS (and D-SSIM) only on iterations it % lpips_every == 0, weighted lpips_every x (the same mean weight);
-    # the other iterations skip the perceptual net (L1/MSE/scale/mask every iteration). 1 = every iteration.
-    lpips_every: int = 1
+    # the other iterations skip the perceptual net (L1/MSE/scale/mask every iteration). The paper (preset): 1.
+    lpips_every: int = 2
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -463,7 +468,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     Version 1 (no "version" field; older meshsplat, whose defaults were the paper's): each key of
     ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
     version (or an older partial file) keeps its meaning under today's defaults. Versions 1 and 2
-    likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false).
+    likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
+    versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -480,6 +486,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_1_DEFAULTS)
     if version <= 2:
         d = _with_defaults(d, VERSION_2_DEFAULTS)
+    if version <= 3:
+        d = _with_defaults(d, VERSION_3_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])
