@@ -22,7 +22,9 @@ def _code_keys() -> dict[str, tuple[str, object]]:
             if hasattr(tp, "__dataclass_fields__"):
                 walk(tp, value, f"{prefix}{name}.")
             else:
-                out[prefix + name] = (tp.__name__, value)
+                args = [a for a in typing.get_args(tp) if a is not type(None)]
+                # Optional[X] (X | None) reads "X or null" in the doc
+                out[prefix + name] = (f"{args[0].__name__} or null" if args else tp.__name__, value)
 
     walk(TrainConfig, TrainConfig(), "")
     return out
@@ -31,7 +33,7 @@ def _code_keys() -> dict[str, tuple[str, object]]:
 def _doc_rows() -> dict[str, tuple[str, object]]:
     rows = {}
     for line in DOC.read_text().splitlines():
-        m = re.match(r"^\| `([A-Za-z_0-9.]+)` \| (\w+) \| `(.*?)` \|", line)
+        m = re.match(r"^\| `([A-Za-z_0-9.]+)` \| (\w+(?: or null)?) \| `(.*?)` \|", line)
         if m:
             assert m.group(1) not in rows, f"docs/config.md lists {m.group(1)} twice"
             rows[m.group(1)] = (m.group(2), json.loads(m.group(3)))

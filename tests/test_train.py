@@ -106,8 +106,9 @@ def _psnr_on_train(avatar: Avatar, ds) -> float:
     return sum(vals) / len(vals)
 
 
-def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
-    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20))
+@pytest.mark.parametrize("extra", [(), ("optim.lr_color_final=1e-3",)], ids=["constant_colour_lr", "colour_lr_decay"])
+def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path, extra):
+    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, extra))
     n0 = full.num_gaussians
     full.train()
     assert full.num_gaussians != n0  # densification really ran
@@ -115,10 +116,12 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path):
     # "killed" after the checkpoint at 10: a run dir that holds only that checkpoint
     (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt", tmp_path / "resumed" / "checkpoints")
-    res = Trainer(small_config(tiny_dataset, tmp_path / "resumed", 20), resume=True)
+    res = Trainer(small_config(tiny_dataset, tmp_path / "resumed", 20, extra), resume=True)
     assert res.iteration == 10 and res.resumed_from is not None
     res.train()
     assert res.iteration == 20
+    colour_lr = full.optimizers["sh0"].param_groups[0]["lr"]
+    assert colour_lr == pytest.approx(1e-3 if extra else 1e-2) == res.optimizers["sh0"].param_groups[0]["lr"]
     assert set(full.params) == set(res.params)
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k

@@ -147,3 +147,47 @@ def test_embedding_lrs_scale_with_mesh_and_decay():
     got = sched.apply(opts, 1000)
     assert got["d"] == pytest.approx(1.6e-6 * 2.0) and got["sh0"] == pytest.approx(cfg.lr_color)  # colour: constant
     assert opts["duv"].param_groups[0]["lr"] == pytest.approx(1.6e-6 * 2.0 / 0.05)
+
+
+def test_colour_lr_decay_hits_both_ends_and_none_keeps_todays_lrs(tmp_path):
+    lrs = base_learning_rates(OptimConfig(), extent=2.0, mean_edge=0.05)
+    today = LrSchedule(OptimConfig(), lrs, max_steps=1000)
+    assert OptimConfig().lr_color_final is None
+    for step in (0, 1, 500, 1000, 1200):  # None: every key as before (colour constant, embedding decays)
+        for key in lrs:
+            ratio = OptimConfig().lr_embedding_final / OptimConfig().lr_embedding
+            want = lrs[key] if key not in ("duv", "d") else expon_lr(step, lrs[key], lrs[key] * ratio, 1000)
+            assert today.lr(key, step) == want, (key, step)
+    cfg = OptimConfig(lr_color_final=1e-3)
+    sched = LrSchedule(cfg, lrs, max_steps=1000)
+    assert sched.lr("sh0", 0) == pytest.approx(1e-2) and sched.lr("sh0", 1000) == pytest.approx(1e-3)
+    assert sched.lr("sh0", 500) == pytest.approx(math.sqrt(1e-2 * 1e-3))  # log-linear
+    assert sched.lr("sh0", 5000) == pytest.approx(1e-3)  # past the end: the final lr
+    assert sched.lr("shN", 0) == pytest.approx(cfg.lr_shN) and sched.lr("shN", 1000) == pytest.approx(cfg.lr_shN / 10)
+    for key in ("duv", "d", "opacity_logit", "log_scale", "rotation"):  # only the colour keys change
+        assert [sched.lr(key, s) for s in (0, 700, 1000)] == [today.lr(key, s) for s in (0, 700, 1000)], key
+    # scaled base lrs (batches: times sqrt(batch size)) keep the ratio
+    big = LrSchedule(cfg, {k: 2 * v for k, v in lrs.items()}, max_steps=10)
+    assert big.lr("sh0", 10) == pytest.approx(2e-3)
+
+
+def test_lr_color_final_parses_round_trips_and_validates(tmp_path):
+    base = TrainConfig()
+    assert apply_overrides(base, ["optim.lr_color_final=1e-3"]).optim.lr_color_final == 1e-3
+    for none in ("null", "None", "none"):
+        assert apply_overrides(base, [f"optim.lr_color_final={none}"]).optim.lr_color_final is None
+    cfg = apply_overrides(base, ["optim.lr_color_final=3e-4"])
+    cfg.to_json(tmp_path / "c.json")
+    assert load_config(tmp_path / "c.json").optim.lr_color_final == 3e-4
+    base.to_json(tmp_path / "d.json")
+    assert json.loads((tmp_path / "d.json").read_text())["optim"]["lr_color_final"] is None
+    assert load_config(tmp_path / "d.json").optim.lr_color_final is None
+    with pytest.raises(MeshsplatError, match="lr_color_final expects float"):
+        apply_overrides(base, ["optim.lr_color_final=fast"])
+    for bad in (
+        ["optim.lr_color_final=0"],
+        ["optim.lr_color_final=-1e-3"],
+        ["optim.lr_color=0", "optim.lr_color_final=1e-3"],
+    ):
+        with pytest.raises(MeshsplatError, match="lr_color_final"):
+            apply_overrides(base, bad).validate()

@@ -124,6 +124,9 @@ class OptimConfig:
     lr_delay_steps: int = 0  # 3DGS default: the delay multiplier acts only when this is > 0
     uv_lr_units: str = "world"  # "world": duv lr * extent / mean edge length; "barycentric": raw lr
     lr_color: float = 1e-2
+    # None: lr_color is constant; a value: log-linear decay of the colour lrs (sh0, shN) from lr_color (times
+    # lr_shN / lr_color for shN) to this at the last iteration, like the embedding's (no warm-up)
+    lr_color_final: float | None = None
     lr_shN: float = 2.5e-3 / 20.0
     lr_opacity: float = 5e-2
     lr_scale: float = 5e-3
@@ -264,6 +267,11 @@ class TrainConfig:
             (1 <= self.model.occlusion_directions <= 256, "model.occlusion_directions must be in 1..256"),
             (8 <= self.model.occlusion_grid <= 1024, "model.occlusion_grid must be in 8..1024"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
+            (
+                self.optim.lr_color_final is None or (self.optim.lr_color_final > 0 and self.optim.lr_color > 0),
+                "optim.lr_color_final must be > 0 (a log-linear decay from optim.lr_color, which must be > 0 too) "
+                "or null (constant colour lr)",
+            ),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),
             (self.loss.lpips_every >= 1, "loss.lpips_every must be >= 1 (1 = LPIPS on every iteration)"),
@@ -365,6 +373,11 @@ def _from_dict(cls, d: Any, prefix: str):
 
 
 def _coerce(value: Any, tp: Any, key: str):
+    args = typing.get_args(tp)
+    if len(args) == 2 and type(None) in args:  # Optional[X]: None, "none" or "null" (JSON / --set), else an X
+        if value is None or (isinstance(value, str) and value.strip().lower() in ("none", "null")):
+            return None
+        tp = next(a for a in args if a is not type(None))
     if tp is bool:
         if isinstance(value, bool):
             return value

@@ -9,6 +9,13 @@ by about one edge length: with ``uv_lr_units="world"`` (default) its lr is addit
 by the mean edge length, i.e. ``lr_duv = lr * extent / mean_edge``, so that tangential and
 normal motion have the same world-space speed as 3DGS positions, whatever the mesh resolution.
 ``"barycentric"`` uses the raw lr (as the published configuration does, with extent 1).
+
+Colour learning rates. ``lr_color`` (sh0) and ``lr_shN`` are constant unless ``lr_color_final`` is
+set: then both decay log-linearly by the factor ``lr_color_final / lr_color`` over the run (no
+warm-up), like the embedding's. The schedule depends only on the iteration, so a resumed run
+continues it exactly. The global illumination coefficients (``lr_shading``, their own optimizer in
+the trainer) stay constant: a handful of numbers fit to every pixel of every frame, Monte Carlo
+noise averages out in their gradient, and they are what carries the lighting the albedo is divided by.
 """
 
 from __future__ import annotations
@@ -20,9 +27,10 @@ import torch
 
 from meshsplat.train.config import OptimConfig
 
-__all__ = ["expon_lr", "EMBEDDING_KEYS", "base_learning_rates", "build_optimizers", "LrSchedule"]
+__all__ = ["expon_lr", "EMBEDDING_KEYS", "COLOR_KEYS", "base_learning_rates", "build_optimizers", "LrSchedule"]
 
 EMBEDDING_KEYS = ("duv", "d")
+COLOR_KEYS = ("sh0", "shN")  # decay with optim.lr_color_final (when set)
 
 
 def expon_lr(
@@ -69,12 +77,16 @@ def build_optimizers(
 
 
 class LrSchedule:
-    """Exponential decay of the embedding lrs (``duv``, ``d``); other keys keep their lr."""
+    """Exponential decay of the embedding lrs (``duv``, ``d``) and, with ``lr_color_final`` set, of the
+    colour lrs (``sh0``, ``shN``); other keys keep their lr."""
 
     def __init__(self, cfg: OptimConfig, base: dict[str, float], max_steps: int) -> None:
         self.cfg, self.base, self.max_steps = cfg, dict(base), max_steps
 
     def lr(self, key: str, step: int) -> float:
+        if key in COLOR_KEYS and self.cfg.lr_color_final is not None:
+            ratio = self.cfg.lr_color_final / self.cfg.lr_color
+            return expon_lr(step, self.base[key], self.base[key] * ratio, self.max_steps)
         if key not in EMBEDDING_KEYS:
             return self.base[key]
         ratio = self.cfg.lr_embedding_final / self.cfg.lr_embedding
