@@ -34,7 +34,7 @@ from meshsplat.synth.standin_models import write_standin_models
 from meshsplat.train import Trainer, preset_config
 from meshsplat.train.config import apply_overrides
 
-VARIANTS = {"before": ["backend=torch", "loss.crop_to_subject=false"], "now": []}
+VARIANTS = {"before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"], "now": []}
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")
 
 

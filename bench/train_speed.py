@@ -2,16 +2,18 @@
 compiled rasterizer and the subject-crop losses, in the same run, at 1 and 2 threads.
 
     python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20] [--threads 1,2]
-                                [--lpips-every 2,4] [--quick]
+                                [--lpips-every 4] [--quick]
 
-Variants (both the quality preset on the demo's schedule, ``demo_train_config`` with the ``default``
-demo sizes, same seed): ``before`` = ``backend=torch`` and ``loss.crop_to_subject=false`` (the path of
-meshsplat before the numba backend and the crop), ``now`` = the defaults (``backend=auto``: numba on
-CPU when installed; LPIPS on the subject's box), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k``
-for each k of ``--lpips-every`` (LPIPS on every k-th iteration; "" for none). Per thread count, every
-trainer is warmed up, then timed in alternating blocks so a change of the machine's load hits all alike.
-An iteration with LPIPS costs more than one without: besides the median and mean time per iteration,
-``cycle_median_s`` is the median over aligned groups of lcm(k) consecutive iterations of their mean
+Variants (the quality preset on the demo's schedule, ``demo_train_config`` with the ``default`` demo
+sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false`` and
+``loss.lpips_every=1`` (the path of meshsplat before the numba backend, the crop and the LPIPS
+cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
+``now`` = the defaults (``backend=auto``: numba on CPU when installed; LPIPS on the subject's box, every
+second iteration), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
+``--lpips-every`` (default none). Per thread count, every trainer is warmed up, then timed in
+alternating blocks so a change of the machine's load hits all alike. An iteration with LPIPS costs
+more than one without: besides the median and mean time per iteration, ``cycle_median_s`` is the
+median over aligned groups of lcm(k) consecutive iterations of their mean
 time (each group holds the same mix of iterations with and without LPIPS), the figure the speed-ups
 ``speedup_cycle`` compare. ``--data`` reuses a
 generated demo dataset (``OUT/data`` of ``meshsplat demo``). Saves bench/results/train_speed-<host>.json.
@@ -33,7 +35,12 @@ from _machine import machine_info, results_path
 from meshsplat.demo import PRESETS, _generate, demo_train_config
 from meshsplat.train import Trainer
 
-VARIANTS = {"before": ["backend=torch", "loss.crop_to_subject=false"], "now": []}
+VARIANTS = {
+    "before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"],
+    "numba_crop": ["loss.lpips_every=1"],
+    "now": [],
+}
+CADENCES = {"before": 1, "numba_crop": 1, "now": 2}  # loss.lpips_every of each variant
 
 
 def main() -> None:
@@ -44,7 +51,7 @@ def main() -> None:
     ap.add_argument("--block", type=int, default=20)
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/train_speed-<host>.json)")
-    ap.add_argument("--lpips-every", default="2,4", help="comma-separated loss.lpips_every values to time too")
+    ap.add_argument("--lpips-every", default="", help="comma-separated other loss.lpips_every values to time too")
     ap.add_argument("--quick", action="store_true", help="24 timed iterations after 12 warm-up ones, blocks of 12")
     args = ap.parse_args()
     if args.quick:
@@ -53,7 +60,7 @@ def main() -> None:
     cadences = [int(k) for k in args.lpips_every.split(",") if k.strip()]
     for k in cadences:
         variants[f"now_lpips{k}"] = [f"loss.lpips_every={k}"]
-    cycle = math.lcm(1, *cadences)
+    cycle = math.lcm(*CADENCES.values(), *cadences)
     if args.warmup % cycle or args.block % cycle:
         raise SystemExit(f"--warmup and --block must be multiples of {cycle} (the lcm of --lpips-every)")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_"))
