@@ -10,7 +10,7 @@ import torch
 from meshsplat.cli import train_cmd
 from meshsplat.cli.main import build_parser, main
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
-from meshsplat.train import Trainer, apply_overrides, load_config, preset_config
+from meshsplat.train import Trainer, apply_overrides, load_config, preset_config, preset_overrides
 from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
@@ -84,24 +84,25 @@ def test_resume_refuses_another_preset(tiny_dataset, tmp_path, capsys):  # noqa:
 
 def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_path):  # noqa: F811
     """A paper run written before presets and before the shading keys (no version, no model.shading or
-    model.init_color_frames in config.json or the checkpoint, nor loss.crop_to_subject) resumes bit for bit
-    under the quality defaults."""
-    paper = ["model.shading=none", "model.init_color_frames=1", "optim.lr_color=2.5e-3", "loss.crop_to_subject=false"]
+    model.init_color_frames in config.json or the checkpoint, nor loss.crop_to_subject or loss.lpips_every)
+    resumes bit for bit under the quality defaults."""
+    paper = list(preset_overrides("paper"))
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, paper))
     full.train()
     st = load_checkpoint(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt")
     for key in ("shading", "init_color_frames"):
         del st["config"]["model"][key]
     del st["config"]["loss"]["crop_to_subject"]
+    del st["config"]["loss"]["lpips_every"]
     (tmp_path / "old" / "checkpoints").mkdir(parents=True)
     save_checkpoint(tmp_path / "old" / "checkpoints" / "ckpt_00000010.pt", st)
     old = dict(st["config"], out=str(tmp_path / "old"))
     (tmp_path / "old" / "config.json").write_text(json.dumps(old))  # no "version": older meshsplat
     cfg = load_config(tmp_path / "old" / "config.json")
     assert (cfg.model.shading, cfg.model.init_color_frames, cfg.optim.lr_color) == ("none", 1, 2.5e-3)
-    assert not cfg.loss.crop_to_subject
+    assert not cfg.loss.crop_to_subject and cfg.loss.lpips_every == 1
     res = Trainer(cfg, resume=True)
     res.train()
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
-    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 3  # rewritten, full
+    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 4  # rewritten, full
