@@ -186,6 +186,8 @@ def test_rendering_some_splits_again_gives_the_same_frames(assets, tmp_path):
     full = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "full", **kw))
     part = open_dataset(synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "part", splits=["test_views"], **kw))
     assert part.split("train") == [] and len(part) == len(full.split("test_views")) == 2
+    # the cost per frame counts the frames rendered, not those planned
+    assert part.meta["frames_rendered"] == 2 and full.meta["frames_rendered"] == len(full)
     names = {full.frame_info(i)["name"]: i for i in range(len(full))}
     for j in part.split("test_views"):
         i = names[part.frame_info(j)["name"]]

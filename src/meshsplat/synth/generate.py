@@ -566,5 +566,7 @@ def _generate(
         writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)}, {**source.shared, **per_frame})
         writer.meta["model"] = {"type": source.kind, "gender": source.model.gender, "fps": source.fps}
     writer.meta["seconds"] = round(_time.perf_counter() - t_start, 2)
-    writer.meta["seconds_per_frame"] = round(writer.meta["seconds"] / max(len(shots), 1), 3)
+    rendered = sum(len(v) for v in written.values())  # with ``splits``, only those frames were rendered
+    writer.meta["frames_rendered"] = rendered
+    writer.meta["seconds_per_frame"] = round(writer.meta["seconds"] / max(rendered, 1), 3)
     return writer.close()
