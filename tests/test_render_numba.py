@@ -1,7 +1,8 @@
 """The compiled CPU backend (numba) against the torch backend, gradcheck, determinism.
 
-numba is in the ``dev`` extra, so these run in CI; without numba they are skipped here and the
-fallback (``auto`` -> torch) is tested in test_render_api.py.
+numba is in the ``dev`` extra, so these run in CI; without numba, or with it switched off
+(``MESHSPLAT_NO_NUMBA=1``), they are skipped here and the fallback (``auto`` -> torch) is tested in
+test_render_api.py.
 """
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ import torch
 
 from meshsplat.render import api as render_api
 from meshsplat.render import rasterize
+from meshsplat.render.backends import numba_available
 from test_render_parity import PARAMS, _gradcheck_scene, _loss, _with_grad, random_scene
 
 numba = pytest.importorskip("numba")
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is switched off (MESHSPLAT_NO_NUMBA=1)")
 
 GRAD_NAMES = PARAMS + ("backgrounds",)
 

@@ -18,7 +18,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.io import load_checkpoint
 from meshsplat.run_folder import RunFolder
 from meshsplat.train import Trainer
-from meshsplat.train.launch import launch
+from meshsplat.train.launch import _wait, launch
 from test_train import make_tiny_dataset, small_config
 
 BATCH = [
@@ -133,3 +133,16 @@ def test_a_killed_process_stops_the_job_and_the_run_resumes(tiny, tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert load_checkpoint(RunFolder(run).checkpoints()[-1][1])["iteration"] == state["iteration"] + 2
+
+
+def test_an_outside_kill_is_named_before_a_peer_that_aborted():
+    """When one worker is killed, its peer often aborts (SIGABRT, the process group lost) in the same poll:
+    the report names the killed one, whatever the ranks."""
+    aborts = [sys.executable, "-c", "import os; os.abort()"]
+    killed = [sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"]
+    procs = [subprocess.Popen(cmd, stderr=subprocess.DEVNULL) for cmd in (aborts, killed)]
+    for p in procs:
+        p.wait()
+    assert _wait(procs, 0.01) == (1, -signal.SIGKILL)
+    fails = [subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"]), procs[0]]
+    assert _wait(fails, 0.01) == (1, -signal.SIGABRT)  # a signal before an error exit

@@ -95,7 +95,7 @@ def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | Non
             bad = [(r, c) for r, c in enumerate(codes) if c not in (None, 0)]
             if bad:
                 _stop(procs)
-                return min(bad, key=lambda rc: (rc[1] >= 0, rc[0]))  # a killed worker first: the cause
+                return min(bad, key=_cause_first)
             if all(c == 0 for c in codes):
                 return None
             time.sleep(poll_s)
@@ -103,6 +103,14 @@ def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | Non
         for p in procs:
             p.wait()
         return next(((r, c) for r, p in enumerate(procs) if (c := p.returncode) != 0), None)
+
+
+def _cause_first(rank_code: tuple[int, int]) -> tuple[bool, bool, int]:
+    """Sort key of failed workers, the likely cause first: a worker killed by a signal before one that exited
+    with an error, and among the killed an outside kill before SIGABRT (what a worker does to itself when the
+    process group loses a peer: gloo's "terminate called"), then the lower rank."""
+    rank, code = rank_code
+    return (code >= 0, code == -signal.SIGABRT, rank)
 
 
 def _stop(procs: list[subprocess.Popen]) -> None:
