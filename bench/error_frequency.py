@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -38,28 +37,16 @@ from PIL import Image
 from _machine import machine_info, results_path
 from meshsplat.data import open_dataset
 from meshsplat.metrics.budget import silhouette_regions
+from meshsplat.metrics.ssim import gaussian_blur
 from meshsplat.render.background import composite
 from meshsplat.run_folder import load_avatar
 
 SIGMAS = (1.0, 2.0, 4.0, 8.0)
 
 
-def _blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Gaussian blur of ``x [H,W,C]`` (zero outside)."""
-    r = max(1, math.ceil(3 * sigma))
-    t = torch.arange(-r, r + 1, dtype=torch.float32)
-    k = torch.exp(-0.5 * (t / sigma) ** 2)
-    k = k / k.sum()
-    c = x.shape[-1]
-    y = x.permute(2, 0, 1)[None]
-    y = F.conv2d(y, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, r), groups=c)
-    y = F.conv2d(y, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), padding=(r, 0), groups=c)
-    return y[0].permute(1, 2, 0)
-
-
 def _lowpass(x: torch.Tensor, w: torch.Tensor, sigma: float) -> torch.Tensor:
     """Normalised convolution: the blur of ``x [H,W,C]`` over the pixels where ``w [H,W,1]`` is 1."""
-    return _blur(x * w, sigma) / _blur(w, sigma).clamp_min(1e-6)
+    return gaussian_blur(x * w, sigma) / gaussian_blur(w, sigma).clamp_min(1e-6)
 
 
 def _psnr(sq: torch.Tensor) -> float:

@@ -11,6 +11,7 @@ from scipy.signal import convolve2d
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.metrics import psnr, ssim
+from meshsplat.metrics.ssim import gaussian_blur
 
 
 def _ssim_reference(x: np.ndarray, y: np.ndarray) -> float:
@@ -116,3 +117,16 @@ def test_subject_metrics_score_only_the_subject():
     img2[:5] = 0.0
     assert subject_metrics(img2, gt, mask)["psnr_mask"] == pytest.approx(m["psnr_mask"])
     assert subject_metrics(img, gt, torch.zeros(64, 48, 1))["psnr_mask"] is None
+
+
+def test_gaussian_blur_keeps_a_constant_inside_and_its_mass():
+    x = torch.zeros(41, 41, 2)
+    x[20, 20] = torch.tensor([1.0, 3.0])
+    y = gaussian_blur(x, 2.0)
+    assert y.shape == x.shape
+    assert torch.allclose(y.sum(dim=(0, 1)), torch.tensor([1.0, 3.0]), atol=1e-5)  # a point's mass stays
+    assert torch.allclose(y[20], y[:, 20])  # isotropic
+    assert y[20, 20, 0] > y[20, 22, 0] > y[20, 26, 0] > 0 and y[20, 27, 0] == 0  # radius ceil(3 sigma) = 6
+    flat = gaussian_blur(torch.full((30, 30, 1), 0.5), 1.0)
+    assert torch.allclose(flat[3:-3, 3:-3], torch.tensor(0.5))  # zero outside: only the border darkens
+    assert flat[0, 0, 0] < 0.5

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.metrics.psnr import as_batch_hwc
 
-__all__ = ["ssim", "ssim_map", "gaussian_window"]
+__all__ = ["ssim", "ssim_map", "gaussian_window", "gaussian_blur"]
 
 C1 = 0.01**2  # (K1 * L)^2 with L = 1
 C2 = 0.03**2  # (K2 * L)^2
@@ -30,6 +32,12 @@ def _blur(x: torch.Tensor, g: torch.Tensor, padding: str) -> torch.Tensor:
     pad = k // 2 if padding == "same" else 0
     x = F.conv2d(x, g.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(pad, 0), groups=c)
     return F.conv2d(x, g.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, pad), groups=c)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Gaussian blur of ``x [H,W,C]`` with standard deviation ``sigma`` px (radius ceil(3 sigma), zero outside)."""
+    g = gaussian_window(2 * max(1, math.ceil(3 * sigma)) + 1, sigma, dtype=x.dtype, device=x.device)
+    return _blur(x.permute(2, 0, 1)[None], g, "same")[0].permute(1, 2, 0)
 
 
 def ssim_map(
