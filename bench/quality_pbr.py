@@ -46,6 +46,8 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_occl": ("quality", ["model.occlusion=directions"]),
     "default_spec": ("quality", ["model.specular=sh2"]),
     "default_spec_occl": ("quality", ["model.specular=sh2", "model.occlusion=directions"]),
+    "default_key": ("quality", ["model.occlusion=key"]),
+    "default_key_spec": ("quality", ["model.occlusion=key", "model.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
     "default_lrdecay3e-4": ("quality", ["optim.lr_color_final=3e-4"]),
 }

@@ -94,7 +94,8 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
     {ply} has the shading BAKED for the canonical pose (its f_dc is albedo * E(canonical normal)).
     With meta.shading.occlusion (model.occlusion=directions), E also holds lights from fixed
     directions shadowed by the posed mesh (see meta.shading.colour); the PLY bakes those of the
-    canonical pose. With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
+    canonical pose. model.occlusion=key: the same with one direction, the key light, once
+    meta.shading.occlusion.aligned. With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
     is ADDED after the albedo multiply (not clamped); the PLY bakes it too.
 
 """
@@ -221,6 +222,7 @@ def export_avatar(
                 "directions": occ["directions"].tolist(),
                 "grid": occ["grid"],
                 "light": occ["light"].tolist(),
+                **{k: occ[k] for k in ("candidates", "stage", "aligned") if k in occ},  # model.occlusion=key
             }
             shading_meta["colour"] = (
                 "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "

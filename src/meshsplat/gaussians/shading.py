@@ -22,6 +22,16 @@ the Gaussian's surface point from ``w_k``, computed every frame from the posed d
 (``meshsplat.mesh.visibility``: a depth grid of ``grid x grid`` cells per direction; no learning, no
 gradient through it).
 
+Key light (``occlusion="key"``): the same candidate directions at first; then, in stages
+(:meth:`Shading.align_key`, called by the trainer), the estimate of the key light's direction is the
+intensity-weighted mean of the strongest light and its neighbours within ``KEY_CONE_DEG``; the remaining
+lights fold into the SH2 irradiance (their clamped-cosine lobes' SH2 projection, unshadowed). Each of
+``KEY_RINGS_DEG`` then puts a ring of ``KEY_RING`` new candidates around the estimate (the estimate
+keeping the merged intensity, the ring none), to be weighted again, narrowing the estimate; the last
+stage keeps one key light: one shadow map per frame, ``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``.
+A key light's shadow placed within a few degrees of the true light is what moves with pose; the fixed
+directions are tens of degrees off, which is why their shadows transfer badly.
+
 Specular (``specular="sh2"``): light that is ADDED rather than albedo-multiplied, ``S(n) = SH9(n) . spec``
 with learned ``specular [9,3]`` (zero at the start, so the untrained model equals the one without it):
 
@@ -33,6 +43,7 @@ alone cannot make it. ``S`` is not clamped (it may also darken where the albedo 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -54,7 +65,14 @@ __all__ = [
 
 SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
 SHADING_NORMALS = ("phong", "axis")
-OCCLUSION_MODES = ("none", "directions")  # model.occlusion: off | lights from fixed directions, shadowed by the mesh
+# model.occlusion: off | lights from fixed directions, shadowed by the mesh | one key light found among them
+OCCLUSION_MODES = ("none", "directions", "key")
+KEY_CONE_DEG = 70.0  # align_key: candidate lights this close to the strongest one merge into the key
+KEY_RINGS_DEG = (20.0, 8.0)  # align_key: the rings of new candidates around the estimate, stage by stage
+KEY_RING = 6  # candidates per ring
+KEY_STAGES = 1 + len(KEY_RINGS_DEG)  # align_key calls until one key light is left
+# the clamped cosine max(0, n . w) in SH2: A_l * Y_lm(w) per band l (Ramamoorthi & Hanrahan)
+_CLAMPED_COS_BANDS = (math.pi, 2 * math.pi / 3, 2 * math.pi / 3, 2 * math.pi / 3) + (math.pi / 4,) * 5
 SPECULAR_MODES = ("none", "sh2")  # model.specular: off | an added (not albedo-multiplied) SH2 term of the normal
 _Y00 = 0.28209479177387814
 
@@ -108,6 +126,8 @@ class Shading:
         directions: int = 16,
         grid: int = 64,
         light: torch.Tensor | None = None,
+        key: torch.Tensor | None = None,
+        key_stage: int = 0,
         specular: str = "none",
         specular_coeffs: torch.Tensor | None = None,
     ) -> None:
@@ -128,16 +148,36 @@ class Shading:
         self.directions: torch.Tensor | None = None
         self.light: torch.Tensor | None = None
         self.grid = int(grid)
-        if occlusion == "directions":
+        self.candidates = int(directions) if isinstance(directions, int) else 0  # "key": the first candidates
+        if (key is not None or key_stage) and occlusion != "key":
+            raise MeshsplatError("shading key: key directions given but occlusion is not 'key'")
+        if not isinstance(key_stage, int) or not 0 <= key_stage <= KEY_STAGES or (key is None) != (key_stage == 0):
+            raise MeshsplatError(
+                f"shading key: stage 0 has no key directions, stages 1..{KEY_STAGES} have; got {key_stage!r}"
+            )
+        self.key_stage = key_stage
+        if occlusion != "none":
             if not isinstance(directions, int) or not 1 <= directions <= 256:
                 raise MeshsplatError(f"shading occlusion directions: expected 1..256, got {directions!r}")
             if not isinstance(grid, int) or not 8 <= grid <= 1024:
                 raise MeshsplatError(f"shading occlusion grid: expected 8..1024 cells, got {grid!r}")
             self.directions = sphere_directions(directions, coeffs.dtype, coeffs.device)
+            if key is not None:
+                m = 1 if key_stage == KEY_STAGES else 1 + KEY_RING
+                if (
+                    not isinstance(key, torch.Tensor)
+                    or tuple(key.shape) != (m, 3)
+                    or not bool(torch.isfinite(key).all())
+                ):
+                    raise MeshsplatError(f"shading key: stage {key_stage} expects finite directions of shape [{m}, 3]")
+                if float((key.norm(dim=-1) - 1.0).abs().max()) > 1e-3:
+                    raise MeshsplatError("shading key: expected unit directions")
+                self.directions = key.to(coeffs)
+            k = int(self.directions.shape[0])
             if light is None:
-                light = torch.zeros(directions, 3, dtype=coeffs.dtype, device=coeffs.device)
-            if not isinstance(light, torch.Tensor) or tuple(light.shape) != (directions, 3):
-                raise MeshsplatError(f"shading light: expected a float tensor of shape [{directions}, 3]")
+                light = torch.zeros(k, 3, dtype=coeffs.dtype, device=coeffs.device)
+            if not isinstance(light, torch.Tensor) or tuple(light.shape) != (k, 3):
+                raise MeshsplatError(f"shading light: expected a float tensor of shape [{k}, 3]")
             if not bool(torch.isfinite(light).all()):
                 raise MeshsplatError("shading light: contains NaN or infinity")
             self.light = light
@@ -171,6 +211,40 @@ class Shading:
         """Keep the learned light intensities non-negative (after an optimizer step)."""
         if self.light is not None:
             self.light.clamp_(min=0.0)
+
+    @property
+    def key_aligned(self) -> bool:
+        """``occlusion="key"``: one key light is left (the last stage)."""
+        return self.key_stage == KEY_STAGES
+
+    @torch.no_grad()
+    def align_key(self) -> None:
+        """``occlusion="key"``: the next stage; the candidate lights collapse into the key's estimate.
+
+        The estimate is the mean of the strongest light's direction and its neighbours' within
+        ``KEY_CONE_DEG``, weighted by intensity (mean over RGB), carrying their summed intensity; every
+        other light is folded into ``coeffs`` (its clamped-cosine lobe's SH2 projection, now unshadowed).
+        Then a ring of new, unlit candidates around the estimate (``KEY_RINGS_DEG``), or, at the last
+        stage, the key alone. With no light learned yet the strongest is the first direction, at zero
+        intensity. In place; the tensors are new (an optimizer of the old ones must be rebuilt)."""
+        if self.occlusion != "key" or self.key_aligned:
+            raise MeshsplatError("align_key: only a Shading with occlusion='key' that is not aligned yet")
+        assert self.directions is not None and self.light is not None
+        dirs, light = self.directions.detach(), self.light.detach().clamp_min(0.0)
+        weight = light.mean(-1)  # [K]
+        strongest = dirs[int(weight.argmax())]
+        near = dirs @ strongest >= math.cos(math.radians(KEY_CONE_DEG))  # [K]
+        w = (weight[near, None] * dirs[near]).sum(0)
+        key = strongest if float(w.norm()) < 1e-12 else w / w.norm()
+        cos_sh = sh9_basis(dirs[~near]) * torch.tensor(_CLAMPED_COS_BANDS).to(dirs)  # [K',9]
+        self.coeffs = self.coeffs.detach() + cos_sh.T @ light[~near]
+        merged = light[near].sum(0, keepdim=True)  # [1,3]
+        self.key_stage += 1
+        if self.key_aligned:
+            self.directions, self.light = key[None].clone(), merged
+            return
+        self.directions = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[self.key_stage - 1], KEY_RING)])
+        self.light = torch.cat([merged, torch.zeros(KEY_RING, 3).to(merged)])
 
     def visibility(
         self, verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor, normals: torch.Tensor
@@ -214,15 +288,25 @@ class Shading:
         return Shading(
             self.coeffs.detach().to(device),
             self.normal,
-            **self._occlusion_args(),
+            **self._occlusion_args(device),
             light=light,
             specular=self.specular_mode,
             specular_coeffs=spec,
         )
 
-    def _occlusion_args(self) -> dict[str, Any]:
-        k = 16 if self.directions is None else int(self.directions.shape[0])
-        return {"occlusion": self.occlusion, "directions": k, "grid": self.grid}
+    def _occlusion_args(self, device: Device = "cpu") -> dict[str, Any]:
+        if self.directions is None:
+            return {"occlusion": self.occlusion, "directions": 16, "grid": self.grid}
+        if self.occlusion != "key" or self.key_stage == 0:
+            return {"occlusion": self.occlusion, "directions": int(self.directions.shape[0]), "grid": self.grid}
+        key = self.directions.detach().to(device)
+        return {
+            "occlusion": "key",
+            "directions": self.candidates,
+            "grid": self.grid,
+            "key": key,
+            "key_stage": self.key_stage,
+        }
 
     def state_dict(self) -> dict[str, Any]:
         sd: dict[str, Any] = {
@@ -238,6 +322,10 @@ class Shading:
                 "grid": self.grid,
                 "light": self.light.detach().cpu().clone(),
             }
+            if self.occlusion == "key":
+                sd["occlusion"]["candidates"] = self.candidates
+                sd["occlusion"]["stage"] = self.key_stage
+                sd["occlusion"]["aligned"] = self.key_aligned  # for readers: one key light
         if self.specular is not None:
             sd["specular"] = {"kind": self.specular_mode, "coeffs": self.specular.detach().cpu().clone()}
         return sd
@@ -268,7 +356,16 @@ class Shading:
         k = int(dirs.shape[0]) if dirs.ndim == 2 else -1
         if k < 1 or tuple(dirs.shape) != (k, 3) or tuple(light.shape) != (k, 3):
             raise MeshsplatError("shading state: occlusion directions and light must both be [K,3]")
-        if not torch.allclose(dirs, sphere_directions(k), atol=1e-5):
+        key, stage = None, 0
+        if occ["kind"] == "key":
+            st, cand = occ.get("stage"), occ.get("candidates")
+            if not isinstance(st, int) or not isinstance(cand, int) or not 0 <= st <= KEY_STAGES:
+                raise MeshsplatError(f"shading state: a key occlusion holds its stage (0..{KEY_STAGES}) and candidates")
+            stage, k = st, cand
+            if stage == 0 and dirs.shape[0] != k:
+                raise MeshsplatError(f"shading state: a key occlusion at stage 0 holds its {k} candidates")
+            key = dirs if stage else None
+        if key is None and not torch.allclose(dirs, sphere_directions(k), atol=1e-5):
             raise MeshsplatError(f"shading state: occlusion directions are not the {k} directions this version uses")
         return cls(
             c.to(device),
@@ -277,6 +374,8 @@ class Shading:
             directions=k,
             grid=occ["grid"],
             light=light.to(device),
+            key=None if key is None else key.to(device),
+            key_stage=stage,
             **spec_kw,
         )
 
@@ -284,6 +383,16 @@ class Shading:
         occ = "" if self.light is None else f", occlusion={self.occlusion!r} x{self.light.shape[0]}"
         spec = "" if self.specular is None else f", specular={self.specular_mode!r}"
         return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ}{spec})"
+
+
+def _ring(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
+    """``m`` unit directions ``[m,3]`` at ``degrees`` from the unit ``centre [3]``, evenly around it."""
+    helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(centre[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
+    a = torch.nn.functional.normalize(torch.linalg.cross(helper.to(centre), centre), dim=0)
+    b = torch.linalg.cross(centre, a)
+    phi = torch.arange(m).to(centre) * (2 * math.pi / m)
+    t = math.radians(degrees)
+    return math.cos(t) * centre + math.sin(t) * (phi.cos()[:, None] * a + phi.sin()[:, None] * b)
 
 
 def _specular_state(spec: Any, device: Device) -> dict[str, Any]:

@@ -105,9 +105,13 @@ class ModelConfig:
     antialiased: bool = False  # opacity x sqrt(det S / det(S + 0.3 I)) per view (gsplat's "antialiased" mode)
     # Shadows from the posed driving mesh (needs shading != "none"): "none" | "directions": learned lights from
     # occlusion_directions fixed directions, each Gaussian's visibility on an occlusion_grid^2 depth grid per direction.
+    # "key": the same directions, then one key light found among them in stages of occlusion_key_iter iterations
+    # (shading.align_key: its direction the intensity-weighted mean near the strongest, narrowed by rings of
+    # candidates), the rest folded into the SH2 irradiance; one key light from 3 x occlusion_key_iter on.
     occlusion: str = "none"
     occlusion_directions: int = 16
     occlusion_grid: int = 64
+    occlusion_key_iter: int = 300
     # Added light (needs shading != "none"): "none" | "sh2": colour = albedo * E(n) + SH9(n) . specular, a learned
     # [9,3] added, not albedo-multiplied (a glossy highlight on a coloured surface); zero at the start.
     specular: str = "none"
@@ -266,6 +270,7 @@ class TrainConfig:
             ),
             (1 <= self.model.occlusion_directions <= 256, "model.occlusion_directions must be in 1..256"),
             (8 <= self.model.occlusion_grid <= 1024, "model.occlusion_grid must be in 8..1024"),
+            (self.model.occlusion_key_iter >= 1, "model.occlusion_key_iter must be >= 1"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (
                 self.optim.lr_color_final is None or (self.optim.lr_color_final > 0 and self.optim.lr_color > 0),

@@ -257,6 +257,18 @@ class Trainer:
         picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
         return mean_view_colors(self.mesh, (self._frame(i) for i in picks), face, uv)
 
+    def _align_key(self, it: int) -> None:
+        """``model.occlusion=key``: the next stage every ``occlusion_key_iter`` iterations, all that are left
+        at the last iteration (a short run ends with one key light too)."""
+        sh, every = self.shading, self.cfg.model.occlusion_key_iter
+        if sh is None or sh.occlusion != "key" or sh.key_aligned:
+            return
+        stage = sh.key_stage
+        while not sh.key_aligned and (it >= every * (sh.key_stage + 1) or it == self.cfg.iterations):
+            sh.align_key()
+        if sh.key_stage != stage:  # new tensors: a new optimizer
+            self._set_shading(sh)
+
     def _set_shading(self, shading: Shading) -> None:
         shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(self.device))
         if shading.light is not None:
@@ -404,6 +416,7 @@ class Trainer:
             self.shading_opt.zero_grad(set_to_none=True)
             if self.shading is not None:
                 self.shading.project()
+                self._align_key(it)
         if self.refiner is not None:
             self.refiner.step()
         self.strategy.step_post_backward(
