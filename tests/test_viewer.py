@@ -822,3 +822,224 @@ def test_browser_phone_gestures_and_space_bar(tmp_path):
         page.key(" ", "Space", " ")
         assert page.evaluate(playing) is False
         assert page.evaluate("window.meshsplatViewer.state.white") is True  # the background did not toggle
+
+
+# ---------------------------------------------------------------- the key light's shadow (model.occlusion=key)
+KEY_DIR = (1.0, 0.25, 0.1)  # the light: from +x, where the smaller sphere shades the larger one
+
+
+def key_avatar(n: int = 3000, grid: int = 64, normal: str = "phong", specular: bool = False) -> Avatar:
+    """Two spheres side by side (the right one, smaller, higher and nearer, shadows the left one's lit
+    side), Gaussians on the surface (rotated, scales perturbed), shaded by ``key_shading(KEY_DIR)``."""
+    import trimesh
+
+    from meshsplat.gaussians import init_params
+    from meshsplat.mesh import TriMesh
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    v = torch.tensor(ico.vertices, dtype=torch.float32) * 0.5
+    f = torch.tensor(ico.faces, dtype=torch.long)
+    verts = torch.cat([v + torch.tensor([-0.55, 0.0, 0.0]), v * 0.8 + torch.tensor([0.45, 0.25, 0.15])])
+    mesh = TriMesh(verts, torch.cat([f, f + len(v)]))
+    g = torch.Generator().manual_seed(0)
+    p = init_params(
+        mesh,
+        n,
+        init_opacity=0.8,
+        generator=g,
+        colors_fn=lambda f, uv: 0.3 + 0.5 * torch.rand(f.shape[0], 3, generator=g),
+    )
+    with torch.no_grad():  # no ties among the scales (the axis normal is the shortest one)
+        p["log_scale"].add_(0.3 * torch.randn(n, 3, generator=g))
+        p["rotation"].copy_(torch.randn(n, 4, generator=g))
+    return Avatar(mesh, p, "sqrt_area", shading=key_shading(KEY_DIR, grid, normal, specular))
+
+
+def key_shading(direction, grid: int = 64, normal: str = "phong", specular: bool = False) -> Shading:
+    """A low ambient ``sh2`` irradiance (a little more from above) plus an aligned, bright key light from
+    ``direction`` (model.occlusion=key after its last stage); ``specular``: plus an added SH2 term. With
+    albedos up to 0.8 and opacities 0.8 the colours stay below 1 / opacity: the page's 8-bit target
+    clamps each splat's premultiplied colour at 1, the rasterizer only the blended sum."""
+    from meshsplat.gaussians.shading import KEY_STAGES
+
+    coeffs = torch.zeros(9, 3)
+    coeffs[0] = torch.tensor([0.35, 0.35, 0.4]) / 0.28209479177387814  # E = 0.35 everywhere
+    coeffs[1] = torch.tensor([0.1, 0.1, 0.15])  # a little more from above
+    key = torch.nn.functional.normalize(torch.tensor(direction, dtype=torch.float32), dim=0)[None]
+    spec = torch.zeros(9, 3)
+    spec[0] = torch.tensor([0.1, 0.12, 0.15])
+    spec[2] = torch.tensor([0.1, 0.05, 0.1])
+    return Shading(
+        coeffs,
+        normal,
+        occlusion="key",
+        directions=16,
+        grid=grid,
+        key=key,
+        key_stage=KEY_STAGES,
+        light=torch.tensor([[1.1, 1.0, 0.9]]),
+        specular="sh2" if specular else "none",
+        specular_coeffs=spec if specular else None,
+    )
+
+
+def _key_frames(av: Avatar, ts=(0.0, 0.5, 1.0)) -> list[torch.Tensor]:
+    return [deform(av.mesh.vertices, t) for t in ts]
+
+
+def test_bundle_carries_the_key_light_and_refuses_other_occlusion(tmp_path):
+    from meshsplat.gaussians.shading import KEY_STAGES
+
+    av = key_avatar(n=100, grid=48)
+    write_viewer_bundle(av, _key_frames(av), tmp_path / "k")
+    h, _ = read_viewer_bundle(tmp_path / "k")
+    key = h["shading"]["key"]
+    assert av.shading is not None and av.shading.directions is not None and av.shading.light is not None
+    np.testing.assert_allclose(key["direction"], av.shading.directions[0].numpy(), rtol=1e-7)
+    np.testing.assert_allclose(key["light"], av.shading.light[0].numpy(), rtol=1e-7)
+    assert key["grid"] == 48
+    # without occlusion: no key in the header
+    plain = shaded_avatar(n=50)
+    write_viewer_bundle(plain, _frames(plain), tmp_path / "p")
+    assert "key" not in read_viewer_bundle(tmp_path / "p")[0]["shading"]
+    # refused: lights from fixed directions, and a key light not aligned yet (one line each, naming the option)
+    sh = av.shading
+    for shading, match in (
+        (Shading(sh.coeffs, occlusion="directions", directions=8), r"model\.occlusion=directions"),
+        (Shading(sh.coeffs, occlusion="key", directions=8), r"model\.occlusion=key .*not aligned"),
+        (
+            Shading(sh.coeffs, occlusion="key", directions=8, key=sh.directions.expand(7, 3), key_stage=KEY_STAGES - 1),
+            r"model\.occlusion=key .*not aligned",
+        ),
+    ):
+        bad = Avatar(av.mesh, av.params, av.scale_mode, shading=shading)
+        with pytest.raises(MeshsplatError, match=match) as err:
+            write_viewer_bundle(bad, _key_frames(av), tmp_path / "bad")
+        assert "\n" not in str(err.value)
+    assert not (tmp_path / "bad").exists()
+
+
+@needs_node
+def test_js_key_visibility_matches_shading_visibility(tmp_path):
+    """The page's height map (keyShadowMap, CPU) and the shader's lookup (keyVisibility mirrors
+    keyVisible) against Shading.visibility on the same posed vertices, surface points and Phong
+    normals: the same lit/shadowed verdict for every Gaussian, in three poses, with real self-shadowing."""
+    from meshsplat.embedding import embed, surface_points
+    from meshsplat.mesh import MeshPose, TriMesh
+
+    av = key_avatar(n=3000)
+    frames = _key_frames(av)
+    write_viewer_bundle(av, frames, tmp_path)
+    _, a = read_viewer_bundle(tmp_path)
+    script = f"""
+import {{ decodeBundle }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import {{ keyVisibilities }} from {REFERENCE_JS};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
+const out = [];
+for (let t = 0; t < b.T; t++) out.push(keyVisibilities(b, t));
+console.log(JSON.stringify(out));
+"""
+    js = _node(script, tmp_path)
+    sh = av.shading
+    assert sh is not None and sh.directions is not None
+    faces = av.mesh.faces
+    face = torch.from_numpy(a["gaussian_face"].astype(np.int64))
+    for t, out in enumerate(js):
+        for dtype in (torch.float32, torch.float64):
+            verts = torch.from_numpy(a["vertices"][t]).float().to(dtype)  # the float32 vertices the page uploads
+            uv = torch.from_numpy(a["gaussian_uv"]).to(dtype)  # the half-float uv the page reads
+            pose = MeshPose.from_vertices(TriMesh(av.mesh.vertices.to(dtype), faces), verts)
+            _, normals = embed(pose, face, uv, torch.zeros(len(uv), dtype=dtype))
+            vis = sh.visibility(verts, faces, surface_points(verts, faces, face, uv), normals)
+            assert vis is not None
+            want, got = vis[:, 0].numpy(), np.asarray(out["visible"], np.float64)
+            print(f"pose {t} ({dtype}): {int((want != got).sum())} of {len(want)} Gaussians differ")
+            assert (want != got).sum() <= 0.001 * len(want)
+            if dtype == torch.float64:
+                assert np.array_equal(want, got)
+        # real self-shadowing: many Gaussians facing the light are in the other sphere's shadow
+        facing = (normals @ sh.directions[0].double()).numpy() > 0.2
+        assert facing.mean() > 0.2 and (want[facing] == 0).mean() > 0.2, ((want[facing] == 0).mean(), facing.mean())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("normal,specular", [("phong", False), ("axis", True)])
+def test_browser_key_shadow_matches_rasterizer(tmp_path, normal, specular):
+    """The page shades the key light's shadow from the posed mesh as avatar.render does, in two poses;
+    the same avatar with the key light unshadowed (V = 1) renders far from the page's error."""
+    av = key_avatar(normal=normal, specular=specular)
+    frames = _key_frames(av, ts=(0.0, 1.0))
+    write_viewer_bundle(av, frames, tmp_path / "b", camera={"width": 256, "height": 256, "azimuth_deg": 60.0})
+    h, a = read_viewer_bundle(tmp_path / "b")
+    for frame in (0, 1):
+        ref = _render_ref(av, a["vertices"][frame], h["camera"])
+        img = _shoot(tmp_path / "b", frame, 256, tmp_path / f"shot{frame}.png")
+        subject = (np.abs(ref - 255).max(-1) > 2) | (np.abs(img - 255).max(-1) > 2)
+        full, on = _psnr(img, ref), _psnr(img[subject], ref[subject])
+        # the shadow is visible: the key light without it (lit everywhere, as a convex mesh would be)
+        sh = av.shading
+        assert sh is not None and sh.light is not None and sh.directions is not None
+        unshadowed = _render_unshadowed(av, a["vertices"][frame], h["camera"])
+        off = _psnr(unshadowed[subject], ref[subject])
+        print(
+            f"key shadow page vs avatar.render, frame {frame}: full {full:.1f} dB, subject {on:.1f} dB; "
+            f"unshadowed vs avatar.render: subject {off:.1f} dB"
+        )
+        assert subject.mean() > 0.05
+        assert on >= 40.0 and full >= 40.0, (on, full)
+        assert off < 30.0, off
+
+
+def _render_unshadowed(av: Avatar, verts, cam) -> np.ndarray:
+    """avatar.render with the key light's visibility forced to 1 (the key light, no shadow)."""
+    from unittest import mock
+
+    sh = av.shading
+    assert sh is not None
+    with mock.patch.object(sh, "visibility", lambda v, f, p, n: torch.ones(len(p), 1, dtype=p.dtype)):
+        return _render_ref(av, verts, cam)
+
+
+@pytest.mark.slow
+def test_browser_live_gltf_key_shadow_matches_rasterizer(tmp_path):
+    """Live glTF skinning (CesiumMan): the page skins the mesh on the GPU and, for the height map, on
+    the CPU; its key-light shadows equal avatar.render of GltfDriver's vertices."""
+    from PIL import Image
+
+    from meshsplat.drivers import GltfDriver
+    from meshsplat.gaussians import init_params
+    from meshsplat.mesh import TriMesh
+    from meshsplat.paths import assets_dir
+    from meshsplat.viewer.rig import avatar_driver
+
+    glb = assets_dir() / "gltf" / "CesiumMan.glb"
+    drv0 = GltfDriver(glb)
+    mesh = TriMesh(drv0.rest_vertices(), drv0.faces)
+    g = torch.Generator().manual_seed(0)
+    p = init_params(
+        mesh,
+        6000,
+        init_opacity=0.8,
+        generator=g,
+        colors_fn=lambda f, uv: 0.3 + 0.5 * torch.rand(f.shape[0], 3, generator=g),
+    )
+    av = Avatar(mesh, p, shading=key_shading((0.6, 0.3, 0.75)))
+    drv = avatar_driver(av, glb)
+    write_viewer_bundle(av, None, tmp_path / "b", rig=drv, camera={"width": 256, "height": 256})
+    h = read_viewer_bundle(tmp_path / "b")[0]
+    clip = next(c for c in h["driver"]["clips"] if c["name"] == h["driver"]["clip"])
+    verts = drv.vertices_at(clip["start"] + 0.8, clip=clip["name"])
+    ref = _render_ref(av, verts, h["camera"])
+    screenshot(
+        (tmp_path / "b" / "index.html").as_uri() + "?time=0.8&ui=0", 256, 256, tmp_path / "s.png", chromium=_chromium()
+    )
+    img = np.asarray(Image.open(tmp_path / "s.png").convert("RGB"), dtype=np.float64)
+    subject = (np.abs(ref - 255).max(-1) > 2) | (np.abs(img - 255).max(-1) > 2)
+    full, on = _psnr(img, ref), _psnr(img[subject], ref[subject])
+    off = _psnr(_render_unshadowed(av, verts, h["camera"])[subject], ref[subject])
+    print(f"live glTF key shadow vs avatar.render: full {full:.1f} dB, subject {on:.1f} dB; unshadowed {off:.1f} dB")
+    assert subject.mean() > 0.02
+    assert on >= 40.0 and full >= 40.0, (on, full)
+    assert off < 35.0, off

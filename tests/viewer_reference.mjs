@@ -1,9 +1,10 @@
 // CPU reference of the player's GPU posing and of its depth keys, for the tests only (the shipped
 // page does not need it): poseMesh (face and vertex passes), poseGaussians (the splat vertex shader's
 // placement), gaussianDepths (the worker's sort keys, one per Gaussian), sortDepths and sortByDepth
-// (a counting sort of given depths). They mirror meshsplat.mesh.geometry, meshsplat.embedding and
+// (a counting sort of given depths), keyVisibilities (the key light's visibility the splat shader reads). They mirror meshsplat.mesh.geometry, meshsplat.embedding and
 // meshsplat.gaussians.compose; tests/test_viewer.py compares them with those under Node.
-import { EPS, EXACT_KEY_MAX, NEAR_PLANE, faceGeometry, frameVertices, vertexKeys } from "../src/meshsplat/viewer/static/viewer.js";
+import { EPS, EXACT_KEY_MAX, NEAR_PLANE, faceGeometry, frameVertices, keyShadowMap, keyVisibility, vertexKeys }
+  from "../src/meshsplat/viewer/static/viewer.js";
 
 /** Rotation matrix (row-major, 9 numbers from `m` at `o`) -> unit quaternion wxyz with w >= 0. */
 function matrixToQuat(m, o, q, qo) {
@@ -211,4 +212,26 @@ export function sortByDepth(means, n, viewmat, order, counts) {
   for (let g = 0; g < n; g++) depth[g] = r0 * means[3 * g] + r1 * means[3 * g + 1] + r2 * means[3 * g + 2] + t;
   order = order || new Uint32Array(n);
   return sortDepths(depth, n, order, { counts });
+}
+
+/**
+ * Visibility (0/1) [N] from the key light (header.shading.key) of every Gaussian's surface point
+ * (Phong point at its uv, before d) in frame `t`: the page's height map (keyShadowMap of the float32
+ * vertices it uploads) and the splat shader's lookup with the Phong normal's bias (keyVisibility).
+ */
+export function keyVisibilities(b, t) {
+  const p = Float32Array.from(frameVertices(b, t)), f = b.faces, N = b.N;
+  const map = keyShadowMap(f, b.V, p, b.header.shading.key);
+  const nrm = poseMesh(b, Float64Array.from(p)).normals, out = new Uint8Array(N), x = [0, 0, 0], n = [0, 0, 0];
+  for (let i = 0; i < N; i++) {
+    const u = b.uv[2 * i], v = b.uv[2 * i + 1], w = 1 - u - v, k = 3 * b.face[i];
+    const ia = 3 * f[k], ib = 3 * f[k + 1], ic = 3 * f[k + 2];
+    for (let j = 0; j < 3; j++) {
+      x[j] = u * p[ia + j] + v * p[ib + j] + w * p[ic + j];
+      n[j] = u * nrm[ia + j] + v * nrm[ib + j] + w * nrm[ic + j];
+    }
+    const r = 1 / Math.sqrt(Math.max(n[0] ** 2 + n[1] ** 2 + n[2] ** 2, 1e-24));
+    out[i] = keyVisibility(map, x, [n[0] * r, n[1] * r, n[2] * r]);
+  }
+  return { visible: Array.from(out), empty: Array.from(map.depth).filter((d) => d === -Infinity).length };
 }

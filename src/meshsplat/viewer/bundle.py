@@ -10,7 +10,8 @@ section of ``avatar.json["sections"]`` gives its byte ``offset`` (4-byte aligned
 plus half floats, :func:`pack_gaussians`), their higher SH bands into ``sh_rest`` (half floats).
 The browser poses and shades the Gaussians from the mesh each frame on the GPU exactly as
 :func:`meshsplat.gaussians.compose` does (view-dependent colour, the learned irradiance of the
-posed normal, antialiasing compensation). See docs/viewer.md.
+posed normal, the shadowed key light of ``model.occlusion=key``, antialiasing compensation). See
+docs/viewer.md.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
+from meshsplat.gaussians.shading import KEY_STAGES
 from meshsplat.io.atomic import write_bytes_atomic, write_text_atomic
 from meshsplat.io.json_file import read_json_object
 from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
@@ -233,6 +235,23 @@ def _sh_rest(avatar: Avatar) -> np.ndarray | None:
     return np.ascontiguousarray(bits[:, 0::2] | (bits[:, 1::2] << 16)).astype("<u4")
 
 
+def _check_occlusion(avatar: Avatar) -> None:
+    """The player shades ``model.occlusion=none`` and an aligned ``key`` (one shadow map per frame)."""
+    sh = avatar.shading
+    if sh is None or sh.occlusion == "none" or (sh.occlusion == "key" and sh.key_aligned):
+        return
+    if sh.occlusion == "key":
+        raise MeshsplatError(
+            f"avatar: model.occlusion=key with the key light not aligned yet (stage {sh.key_stage} of "
+            f"{KEY_STAGES}; the web player shades one key light); train to {KEY_STAGES} x "
+            "model.occlusion_key_iter or use meshsplat render for this avatar"
+        )
+    raise MeshsplatError(
+        f"avatar: trained with model.occlusion={sh.occlusion}, which the web player does not shade (one "
+        "shadow map per light direction and frame; it shades model.occlusion=key); use meshsplat render for this avatar"
+    )
+
+
 def _shading_header(avatar: Avatar) -> dict[str, Any]:
     """What the page needs to colour the Gaussians as ``compose`` does."""
     sh = avatar.shading
@@ -241,6 +260,13 @@ def _shading_header(avatar: Avatar) -> dict[str, Any]:
         shading = {"coeffs": sh.coeffs.detach().double().cpu().tolist(), "normal": sh.normal, "space": "world"}
         if sh.specular is not None:  # added after the albedo multiply (model.specular=sh2)
             shading["specular"] = sh.specular.detach().double().cpu().tolist()
+        if sh.occlusion == "key":  # one shadowed key light (model.occlusion=key, aligned): E += L V(x) max(0, n . w)
+            assert sh.directions is not None and sh.light is not None
+            shading["key"] = {
+                "direction": sh.directions[0].detach().double().cpu().tolist(),
+                "light": sh.light[0].detach().double().clamp_min(0.0).cpu().tolist(),
+                "grid": sh.grid,
+            }
     return {
         "sh_degree": avatar.sh_degree,
         "sh_frame": avatar.sh_frame,
@@ -376,11 +402,7 @@ def write_viewer_bundle(
     fps = 25.0 if fps is None else fps
     if not isinstance(avatar, Avatar):
         raise MeshsplatError(f"avatar: expected an Avatar, got {type(avatar).__name__}")
-    if avatar.shading is not None and avatar.shading.occlusion != "none":
-        raise MeshsplatError(
-            f"avatar: trained with model.occlusion={avatar.shading.occlusion}, which the web player does not "
-            "shade (its shadows come from the posed mesh); use meshsplat render for this avatar"
-        )
+    _check_occlusion(avatar)
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise MeshsplatError(f"fps: expected > 0, got {fps}")
     if vertex_encoding not in VERTEX_ENCODINGS:

@@ -5,9 +5,10 @@
 // mesh (live glTF), compute per-face rotations and area ratios and per-vertex normals and
 // quaternions; the splat vertex shader evaluates each Gaussian's embedding (Phong point + d*n,
 // blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
-// normal) and projects it; one instanced draw call. The depth sort runs in a Web Worker (created
-// from a Blob URL of inline source, so it works from file://) with a 16-bit counting sort; the main
-// thread never waits for it.
+// normal, the key light shadowed by the posed mesh) and projects it; one instanced draw call. The key
+// light's height map (model.occlusion=key) is built per pose on the main thread's CPU and uploaded
+// (keyShadowMap). The depth sort runs in a Web Worker (created from a Blob URL of inline source, so it
+// works from file://) with a 16-bit counting sort; the main thread never waits for it.
 //
 // The exported functions (decodeBundle, frameVertices, evalRig, skinVertices, sortJob, orbitViewmat,
 // intrinsics, ...) run under Node for the tests (tests/viewer_reference.mjs holds the CPU reference
@@ -299,6 +300,89 @@ export function faceGeometry(b, p, out) {
     }
   }
   return out;
+}
+
+// ------------------------------------------------------------------ key light shadow (as meshsplat.mesh.visibility)
+const KEY_BIAS_CELLS = 0.75, KEY_SLOPE_CELLS = 1.5, KEY_MAX_TAN = 2.0; // meshsplat.mesh.visibility._BIAS_CELLS, ...
+export const KEY_EMPTY = -3e38; // a cell no surface sample fell into (the Python grid's -inf): everything is lit there
+
+/** Grid frame of a key light (unit `w`, `a`, `b`): (a, b) index the grid, w is the height towards the light. */
+export function keyFrame(direction) {
+  const n = Math.max(Math.hypot(direction[0], direction[1], direction[2]), 1e-12);
+  const w = [direction[0] / n, direction[1] / n, direction[2] / n];
+  const h = Math.abs(w[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0]; // the helper vector
+  const c = [h[1] * w[2] - h[2] * w[1], h[2] * w[0] - h[0] * w[2], h[0] * w[1] - h[1] * w[0]];
+  const cn = Math.max(Math.hypot(c[0], c[1], c[2]), 1e-12);
+  const a = [c[0] / cn, c[1] / cn, c[2] / cn];
+  const b = [w[1] * a[2] - w[2] * a[1], w[2] * a[0] - w[0] * a[2], w[0] * a[1] - w[1] * a[0]];
+  return { a, b, w };
+}
+
+/**
+ * The key light's height map of the posed mesh (positions `p` [V*3]) exactly as
+ * meshsplat.mesh.visibility.visibility builds it: over the bounding sphere of the vertices
+ * (centre = box centre, radius = half the box diagonal * 1.001 + 1e-12), `grid` x `grid` cells of
+ * 2 radius / grid, each holding the largest height w.(x - centre) of the surface samples over it
+ * (the vertices, plus a barycentric lattice with at most half a cell between neighbours on each triangle
+ * with a longer edge); cell (i, j) at depth[i * grid + j], i along a, j along b; KEY_EMPTY where none fell.
+ * `out`: the previous result to reuse (same grid). CPU, float64.
+ */
+export function keyShadowMap(faces, V, p, key, out) {
+  const grid = key.grid;
+  if (!out || out.grid !== grid) out = { grid, depth: new Float64Array(grid * grid), frame: keyFrame(key.direction) };
+  const { a, b, w } = out.frame;
+  let lx = Infinity, ly = Infinity, lz = Infinity, hx = -Infinity, hy = -Infinity, hz = -Infinity;
+  for (let v = 0; v < 3 * V; v += 3) {
+    const x = p[v], y = p[v + 1], z = p[v + 2];
+    if (x < lx) lx = x; if (x > hx) hx = x; if (y < ly) ly = y; if (y > hy) hy = y; if (z < lz) lz = z; if (z > hz) hz = z;
+  }
+  const cx = (lx + hx) / 2, cy = (ly + hy) / 2, cz = (lz + hz) / 2;
+  const radius = Math.hypot(hx - lx, hy - ly, hz - lz) / 2 * 1.001 + 1e-12, cell = 2 * radius / grid;
+  const inv = 1 / cell, spacing = cell / 2, depth = out.depth, g1 = grid - 1;
+  const a0 = a[0], a1 = a[1], a2 = a[2], b0 = b[0], b1 = b[1], b2 = b[2], w0 = w[0], w1 = w[1], w2 = w[2];
+  depth.fill(-Infinity);
+  const put = (x, y, z) => {
+    x -= cx; y -= cy; z -= cz;
+    let i = Math.floor((a0 * x + a1 * y + a2 * z + radius) * inv), j = Math.floor((b0 * x + b1 * y + b2 * z + radius) * inv);
+    i = i < 0 ? 0 : i > g1 ? g1 : i; j = j < 0 ? 0 : j > g1 ? g1 : j;
+    const h = w0 * x + w1 * y + w2 * z, k = i * grid + j;
+    if (h > depth[k]) depth[k] = h;
+  };
+  for (let v = 0; v < 3 * V; v += 3) put(p[v], p[v + 1], p[v + 2]);
+  for (let f = 0; f < faces.length; f += 3) {
+    const ia = 3 * faces[f], ib = 3 * faces[f + 1], ic = 3 * faces[f + 2];
+    const ax = p[ia], ay = p[ia + 1], az = p[ia + 2], bx = p[ib], by = p[ib + 1], bz = p[ib + 2];
+    const qx = p[ic], qy = p[ic + 1], qz = p[ic + 2];
+    const e = Math.max(Math.hypot(ax - qx, ay - qy, az - qz), Math.hypot(bx - ax, by - ay, bz - az),
+                       Math.hypot(qx - bx, qy - by, qz - bz));
+    const s = Math.max(1, Math.ceil(e / spacing));
+    if (!(s > 1)) continue;
+    for (let i = 0; i <= s; i++) {
+      for (let j = 0; j <= s - i; j++) {
+        if ((i === 0 && j === 0) || (i === s && j === 0) || (i === 0 && j === s)) continue; // the corners: vertices
+        const u = i / s, v = j / s, t = (s - i - j) / s;
+        put(u * ax + v * bx + t * qx, u * ay + v * by + t * qy, u * az + v * bz + t * qz);
+      }
+    }
+  }
+  Object.assign(out, { centre: [cx, cy, cz], radius, cell });
+  return out;
+}
+
+/**
+ * Visibility (0 or 1) from the key light of a surface point `x` [3] with unit normal `n` [3] (the Phong
+ * normal, for the slope-scaled bias) in a keyShadowMap `m`: the splat shader's keyVisible on the CPU.
+ */
+export function keyVisibility(m, x, n) {
+  const { a, b, w } = m.frame, g1 = m.grid - 1, inv = 1 / m.cell;
+  const rx = x[0] - m.centre[0], ry = x[1] - m.centre[1], rz = x[2] - m.centre[2];
+  let i = Math.floor((a[0] * rx + a[1] * ry + a[2] * rz + m.radius) * inv);
+  let j = Math.floor((b[0] * rx + b[1] * ry + b[2] * rz + m.radius) * inv);
+  i = i < 0 ? 0 : i > g1 ? g1 : i; j = j < 0 ? 0 : j > g1 ? g1 : j;
+  const cos = Math.min(Math.max(Math.abs(n[0] * w[0] + n[1] * w[1] + n[2] * w[2]), 1e-6), 1);
+  const tan = Math.min(Math.sqrt(Math.max(1 - cos * cos, 0)) / cos, KEY_MAX_TAN);
+  const bias = m.cell * (KEY_BIAS_CELLS + KEY_SLOPE_CELLS * tan);
+  return w[0] * rx + w[1] * ry + w[2] * rz >= m.depth[i * m.grid + j] - bias ? 1 : 0;
 }
 
 // ------------------------------------------------------------------ cameras (as meshsplat.synth.rigs)
@@ -649,6 +733,12 @@ uniform int shadeNormal;                // learned irradiance: 0 off, 1 Phong no
 uniform vec3 irr[9];                    // its SH coefficients (world space, per channel)
 uniform bool specular;                  // an added SH2 term of the same normal (model.specular=sh2)
 uniform vec3 spec[9];                   // its SH coefficients (world space, per channel)
+uniform bool keyOn;                     // the shadowed key light (model.occlusion=key): E += L V(x) max(0, n . w)
+uniform vec3 keyLight, keyDir, keyA, keyB; // L (RGB); the height map's frame (a, b, w), w towards the light
+uniform vec3 keyCentre;                 // the posed mesh's bounding-sphere centre (this frame)
+uniform float keyRadius, keyCell;       // its radius, the cell size 2 radius / grid
+uniform int keyGrid;
+uniform sampler2D kTex;                 // grid x grid heights (R32F): cell (i, j) at texel (j, i)
 uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I))
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
@@ -693,6 +783,19 @@ vec3 viewColour(int g, vec3 dc, vec3 dir) {
   }
   return rgb;
 }
+// 1 when the surface point x (unit Phong normal n) is not below its cell's height by more than the
+// slope-scaled bias, else 0 (meshsplat.mesh.visibility.visibility; keyVisibility in viewer.js)
+float keyVisible(vec3 x, vec3 n) {
+  vec3 r = x - keyCentre;
+  float inv = 1.0 / keyCell;
+  int g1 = keyGrid - 1;
+  int i = clamp(int(floor((dot(keyA, r) + keyRadius) * inv)), 0, g1);
+  int j = clamp(int(floor((dot(keyB, r) + keyRadius) * inv)), 0, g1);
+  float c = clamp(abs(dot(n, keyDir)), 1e-6, 1.0);
+  float t = min(sqrt(max(1.0 - c * c, 0.0)) / c, ${KEY_MAX_TAN.toFixed(1)});
+  float bias = keyCell * (${KEY_BIAS_CELLS} + ${KEY_SLOPE_CELLS} * t);
+  return dot(keyDir, r) >= texelFetch(kTex, ivec2(j, i), 0).x - bias ? 1.0 : 0.0;
+}
 // sum_i Y_i(n) c_i: the 9 real SH basis functions up to order 2 at n (meshsplat.gaussians.shading.sh9_basis)
 vec3 sh9(vec3 n, vec3 c[9]) {
   float x = n.x, y = n.y, z = n.z;
@@ -713,8 +816,8 @@ void main() {
   // Phong point + d along the normalized interpolated normal (meshsplat.embedding)
   vec3 n = u * texelFetch(nTex, ia, 0).xyz + v * texelFetch(nTex, ib, 0).xyz + w * texelFetch(nTex, ic, 0).xyz;
   n *= inversesqrt(max(dot(n, n), 1e-24));
-  vec3 mean = u * texelFetch(pTex, ia, 0).xyz + v * texelFetch(pTex, ib, 0).xyz + w * texelFetch(pTex, ic, 0).xyz
-            + dop.x * n;
+  vec3 surf = u * texelFetch(pTex, ia, 0).xyz + v * texelFetch(pTex, ib, 0).xyz + w * texelFetch(pTex, ic, 0).xyz;
+  vec3 mean = surf + dop.x * n;
   // delta_q: blend of the corner quaternions sign-aligned to corner a; q = delta_q (x) q_canonical
   vec4 qa = texelFetch(qTex, ia, 0), qb = texelFetch(qTex, ib, 0), qq = texelFetch(qTex, ic, 0);
   vec4 dq = u * qa + (dot(qb, qa) < 0.0 ? -v : v) * qb + (dot(qq, qa) < 0.0 ? -w : w) * qq;
@@ -753,7 +856,8 @@ void main() {
   vec2 px = m2 + offs;
   gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
   // colour, per frame: view-dependent SH (view direction in world or the triangle's canonical frame),
-  // times the learned irradiance E(n) = max(0, sh9(n, irr)) of the posed normal, plus the learned
+  // times the learned irradiance E(n) = max(0, sh9(n, irr)) of the posed normal (plus the key light
+  // L V(x) max(0, n . w), its visibility V of the surface point before the offset d), plus the learned
   // specular sh9(n, spec), not clamped (meshsplat.gaussians.shading.Shading.shade)
   vec3 rgb = vec3(rg, s2b.y);
   if (shK > 0) {
@@ -769,7 +873,9 @@ void main() {
       sn = Rq[i];
       if (dot(sn, n) < 0.0) sn = -sn;
     }
-    rgb *= max(sh9(sn, irr), 0.0);
+    vec3 e = max(sh9(sn, irr), 0.0);
+    if (keyOn) e += keyLight * (keyVisible(surf, n) * max(dot(sn, keyDir), 0.0));
+    rgb *= e;
     if (specular) rgb += sh9(sn, spec);
   }
   col = vec4(rgb, op);
@@ -855,7 +961,8 @@ export class SplatRenderer {
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
     this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
-      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "specular", "spec", "antialiased"]);
+      "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "specular", "spec", "antialiased",
+      "keyOn", "keyLight", "keyDir", "keyA", "keyB", "keyCentre", "keyRadius", "keyCell", "keyGrid", "kTex"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     const ftex = new Uint32Array(4 * b.F);
@@ -873,6 +980,14 @@ export class SplatRenderer {
       p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
       fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
     };
+    // the key light's height map (model.occlusion=key): grid x grid, rebuilt on the CPU per pose (setKeyMap)
+    this.key = (b.header.shading && b.header.shading.key) || null;
+    this.keyMs = 0;
+    const kg = this.key ? this.key.grid : 1;
+    this.t.k = { tex: gl.createTexture(), grid: kg, buf: new Float32Array(kg * kg) };
+    gl.bindTexture(gl.TEXTURE_2D, this.t.k.tex);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, kg, 0, gl.RED, gl.FLOAT, this.t.k.buf);
     if (b.rig) {
       const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
       for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
@@ -946,6 +1061,18 @@ export class SplatRenderer {
     for (let v = 0; v < V; v++) { p4[4 * v] = p[3 * v]; p4[4 * v + 1] = p[3 * v + 1]; p4[4 * v + 2] = p[3 * v + 2]; }
     updateTexture(this.gl, this.t.p, p4);
     this.poseMeshPasses();
+    if (this.key) this.setKeyMap(p);
+  }
+
+  /** The key light's height map of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded. */
+  setKeyMap(p) {
+    const t0 = performance.now(), gl = this.gl, k = this.t.k;
+    this.keyMap = keyShadowMap(this.b.faces, this.b.V, p, this.key, this.keyMap);
+    const d = this.keyMap.depth;
+    for (let i = 0; i < d.length; i++) k.buf[i] = d[i] === -Infinity ? KEY_EMPTY : d[i];
+    gl.bindTexture(gl.TEXTURE_2D, k.tex);
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, k.grid, k.grid, gl.RED, gl.FLOAT, k.buf);
+    this.keyMs = performance.now() - t0;
   }
 
   /** Rig state of evalRig (live glTF driver): skinning pass, then the face and vertex passes. */
@@ -957,6 +1084,8 @@ export class SplatRenderer {
     this.runPass(this.skinPass, this.fbSkin, this.b.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
       pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
     this.poseMeshPasses();
+    // the height map needs the posed vertices on the CPU: the same skinning as the GPU pass (as the sort worker's)
+    if (this.key) this.setKeyMap(this.skinned = skinVertices(this.b.rig, state, this.b.V, this.skinned));
   }
 
   poseMeshPasses() {
@@ -996,7 +1125,15 @@ export class SplatRenderer {
     gl.uniform1i(p.loc.specular, shade && shade.specular ? 1 : 0);
     if (shade && shade.specular) gl.uniform3fv(p.loc.spec, shade.specular.flat());
     gl.uniform1i(p.loc.antialiased, hd.antialiased ? 1 : 0);
-    this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r });
+    const key = shade && this.key && this.keyMap ? this.keyMap : null;
+    gl.uniform1i(p.loc.keyOn, key ? 1 : 0);
+    if (key) {
+      const { a, b, w } = key.frame;
+      gl.uniform3fv(p.loc.keyLight, this.key.light); gl.uniform3fv(p.loc.keyDir, w);
+      gl.uniform3fv(p.loc.keyA, a); gl.uniform3fv(p.loc.keyB, b); gl.uniform3fv(p.loc.keyCentre, key.centre);
+      gl.uniform1f(p.loc.keyRadius, key.radius); gl.uniform1f(p.loc.keyCell, key.cell); gl.uniform1i(p.loc.keyGrid, key.grid);
+    }
+    this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
     gl.bindVertexArray(null);
@@ -1056,7 +1193,7 @@ export function startViewer(doc) {
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
   // the page's own timers (the last 1,000 frames and sorts, ms) for the status line and bench/viewer.py
-  const timings = { main: [], sort: [], firstReadyMs: null };
+  const timings = { main: [], sort: [], key: [], firstReadyMs: null }; // key: the key light's height map (CPU)
   const record = (list, ms) => { list.push(ms); if (list.length > 1000) list.shift(); };
   const still = params.get("frame") !== null || params.get("time") !== null;
   const clips = live ? b.rig.clips : [];
@@ -1220,6 +1357,7 @@ export function startViewer(doc) {
         pose = poser.frame(state.frame);
         renderer.setVertices(pose.verts);
       }
+      if (renderer.key) record(timings.key, renderer.keyMs);
       state.poseKey = poseKey;
     }
     // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
@@ -1241,6 +1379,7 @@ export function startViewer(doc) {
     info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
     stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
       ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
+      (renderer.key ? ` · shadow map ${renderer.keyMs.toFixed(1)} ms` : "") +
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
       (key === state.sortedKey ? "" : " · order stale");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view
