@@ -141,11 +141,13 @@ def test_export_round_trip(tmp_path):
 
 
 def test_the_player_refuses_an_occluded_avatar(tmp_path):
+    """Lights from fixed directions: refused in one line (the player shades one aligned key light,
+    model.occlusion=key; tests/test_viewer.py)."""
     from meshsplat.viewer.bundle import write_viewer_bundle
 
     mesh = _sphere()
     av = Avatar(mesh, init_params(mesh, 50, generator=torch.Generator().manual_seed(0)), shading=_occluded(0.1))
-    with pytest.raises(MeshsplatError, match=r"model\.occlusion=directions"):
+    with pytest.raises(MeshsplatError, match=r"model\.occlusion=directions.*shades model\.occlusion=key"):
         write_viewer_bundle(av, mesh.vertices[None].numpy(), tmp_path / "v")
     assert not (tmp_path / "v").exists()
 

@@ -1043,3 +1043,27 @@ def test_browser_live_gltf_key_shadow_matches_rasterizer(tmp_path):
     assert subject.mean() > 0.02
     assert on >= 40.0 and full >= 40.0, (on, full)
     assert off < 35.0, off
+
+
+def test_view_cli_key_light_run(tmp_path, capsys):
+    """`meshsplat view` of a run trained with model.occlusion=key: the checkpoint's aligned key light
+    reaches the page's header; a run saved before the key was aligned is a one-line error."""
+    from meshsplat.cli.main import main
+
+    av = key_avatar(n=200, grid=32)
+    seq = torch.stack(_key_frames(av))
+    np.save(tmp_path / "seq.npy", seq.numpy())
+    run = make_run(av, tmp_path / "run", None)
+    argv = ["view", str(run), "--animation", "vertices", str(tmp_path / "seq.npy")]
+    assert main([*argv[:2], "--out", str(tmp_path / "v"), *argv[2:]]) == 0
+    h, _ = read_viewer_bundle(tmp_path / "v")
+    sh = av.shading
+    assert sh is not None and sh.directions is not None
+    assert h["shading"]["key"]["grid"] == 32
+    np.testing.assert_allclose(h["shading"]["key"]["direction"], sh.directions[0].numpy(), rtol=1e-6)
+    early = Avatar(av.mesh, av.params, av.scale_mode, shading=Shading(sh.coeffs, occlusion="key", directions=8))
+    run2 = make_run(early, tmp_path / "run2", None)
+    capsys.readouterr()
+    assert main(["view", str(run2), "--out", str(tmp_path / "v2"), *argv[2:]]) == 2
+    err = capsys.readouterr().err
+    assert "model.occlusion=key" in err and "not aligned" in err

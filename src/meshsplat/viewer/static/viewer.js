@@ -324,7 +324,8 @@ export function keyFrame(direction) {
  * (centre = box centre, radius = half the box diagonal * 1.001 + 1e-12), `grid` x `grid` cells of
  * 2 radius / grid, each holding the largest height w.(x - centre) of the surface samples over it
  * (the vertices, plus a barycentric lattice with at most half a cell between neighbours on each triangle
- * with a longer edge); cell (i, j) at depth[i * grid + j], i along a, j along b; KEY_EMPTY where none fell.
+ * with a longer edge); cell (i, j) at depth[i * grid + j], i along a, j along b; -Infinity where none
+ * fell (uploaded as KEY_EMPTY). Returns { grid, depth, frame: keyFrame, centre, radius, cell, samples }.
  * `out`: the previous result to reuse (same grid). CPU, float64.
  */
 export function keyShadowMap(faces, V, p, key, out) {
@@ -341,31 +342,39 @@ export function keyShadowMap(faces, V, p, key, out) {
   const inv = 1 / cell, spacing = cell / 2, depth = out.depth, g1 = grid - 1;
   const a0 = a[0], a1 = a[1], a2 = a[2], b0 = b[0], b1 = b[1], b2 = b[2], w0 = w[0], w1 = w[1], w2 = w[2];
   depth.fill(-Infinity);
-  const put = (x, y, z) => {
-    x -= cx; y -= cy; z -= cz;
-    let i = Math.floor((a0 * x + a1 * y + a2 * z + radius) * inv), j = Math.floor((b0 * x + b1 * y + b2 * z + radius) * inv);
-    i = i < 0 ? 0 : i > g1 ? g1 : i; j = j < 0 ? 0 : j > g1 ? g1 : j;
-    const h = w0 * x + w1 * y + w2 * z, k = i * grid + j;
+  // per vertex: grid coordinates (a.(x - centre) + radius) / cell, (b. ...) and height w.(x - centre); a
+  // lattice sample's are the same barycentric blend of its triangle's (all three are linear in x)
+  const q = out.q && out.q.length === 3 * V ? out.q : (out.q = new Float64Array(3 * V));
+  for (let v = 0; v < 3 * V; v += 3) {
+    const x = p[v] - cx, y = p[v + 1] - cy, z = p[v + 2] - cz;
+    const gi = (a0 * x + a1 * y + a2 * z + radius) * inv, gj = (b0 * x + b1 * y + b2 * z + radius) * inv;
+    const h = w0 * x + w1 * y + w2 * z;
+    q[v] = gi; q[v + 1] = gj; q[v + 2] = h;
+    const i = gi < 0 ? 0 : gi >= grid ? g1 : gi | 0, j = gj < 0 ? 0 : gj >= grid ? g1 : gj | 0, k = i * grid + j;
     if (h > depth[k]) depth[k] = h;
-  };
-  for (let v = 0; v < 3 * V; v += 3) put(p[v], p[v + 1], p[v + 2]);
+  }
+  let samples = V;
   for (let f = 0; f < faces.length; f += 3) {
     const ia = 3 * faces[f], ib = 3 * faces[f + 1], ic = 3 * faces[f + 2];
     const ax = p[ia], ay = p[ia + 1], az = p[ia + 2], bx = p[ib], by = p[ib + 1], bz = p[ib + 2];
-    const qx = p[ic], qy = p[ic + 1], qz = p[ic + 2];
-    const e = Math.max(Math.hypot(ax - qx, ay - qy, az - qz), Math.hypot(bx - ax, by - ay, bz - az),
-                       Math.hypot(qx - bx, qy - by, qz - bz));
-    const s = Math.max(1, Math.ceil(e / spacing));
+    const cx_ = p[ic], cy_ = p[ic + 1], cz_ = p[ic + 2];
+    const e2 = Math.max((ax - cx_) ** 2 + (ay - cy_) ** 2 + (az - cz_) ** 2, (bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2,
+                        (cx_ - bx) ** 2 + (cy_ - by) ** 2 + (cz_ - bz) ** 2);
+    const s = Math.max(1, Math.ceil(Math.sqrt(e2) / spacing)); // the longest edge, in lattice steps
     if (!(s > 1)) continue;
+    samples += (s + 1) * (s + 2) / 2 - 3;
+    const r = 1 / s, ci = q[ic], cj = q[ic + 1], ch = q[ic + 2];
+    const di = (q[ia] - ci) * r, dj = (q[ia + 1] - cj) * r, dh = (q[ia + 2] - ch) * r; // per step of i (towards a)
+    const ei = (q[ib] - ci) * r, ej = (q[ib + 1] - cj) * r, eh = (q[ib + 2] - ch) * r; // per step of j (towards b)
     for (let i = 0; i <= s; i++) {
-      for (let j = 0; j <= s - i; j++) {
-        if ((i === 0 && j === 0) || (i === s && j === 0) || (i === 0 && j === s)) continue; // the corners: vertices
-        const u = i / s, v = j / s, t = (s - i - j) / s;
-        put(u * ax + v * bx + t * qx, u * ay + v * by + t * qy, u * az + v * bz + t * qz);
+      for (let j = i === 0 ? 1 : 0, jn = i === s ? -1 : s - i - (i === 0 ? 1 : 0); j <= jn; j++) { // no corners
+        const gi = ci + i * di + j * ei, gj = cj + i * dj + j * ej, h = ch + i * dh + j * eh;
+        const ii = gi < 0 ? 0 : gi >= grid ? g1 : gi | 0, jj = gj < 0 ? 0 : gj >= grid ? g1 : gj | 0, k = ii * grid + jj;
+        if (h > depth[k]) depth[k] = h;
       }
     }
   }
-  Object.assign(out, { centre: [cx, cy, cz], radius, cell });
+  Object.assign(out, { centre: [cx, cy, cz], radius, cell, samples });
   return out;
 }
 
@@ -1064,9 +1073,10 @@ export class SplatRenderer {
     if (this.key) this.setKeyMap(p);
   }
 
-  /** The key light's height map of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded. */
-  setKeyMap(p) {
-    const t0 = performance.now(), gl = this.gl, k = this.t.k;
+  /** The key light's height map of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded;
+   * `keyMs`: its time since `t0` (default now; live glTF: the CPU skinning's start). */
+  setKeyMap(p, t0 = performance.now()) {
+    const gl = this.gl, k = this.t.k;
     this.keyMap = keyShadowMap(this.b.faces, this.b.V, p, this.key, this.keyMap);
     const d = this.keyMap.depth;
     for (let i = 0; i < d.length; i++) k.buf[i] = d[i] === -Infinity ? KEY_EMPTY : d[i];
@@ -1085,7 +1095,10 @@ export class SplatRenderer {
       pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
     this.poseMeshPasses();
     // the height map needs the posed vertices on the CPU: the same skinning as the GPU pass (as the sort worker's)
-    if (this.key) this.setKeyMap(this.skinned = skinVertices(this.b.rig, state, this.b.V, this.skinned));
+    if (this.key) {
+      const t0 = performance.now();
+      this.setKeyMap(this.skinned = skinVertices(this.b.rig, state, this.b.V, this.skinned), t0);
+    }
   }
 
   poseMeshPasses() {

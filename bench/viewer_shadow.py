@@ -1,0 +1,202 @@
+"""Cost of the web player's key-light shadow (model.occlusion=key): the page's per-pose height map
+(``keyShadowMap`` in viewer.js, CPU, main thread) under Node, and in a real headless browser (Chromium,
+SwiftShader WebGL2) the page's own timers while playing, with the same avatar without the key light as
+the same-run baseline.
+
+Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
+FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), grid 64 and 128;
+``keyShadowMap`` timed 5 times per frame after 3 warm-up calls; medians over all calls; the surface
+sample count it scatters. Browser: CesiumMan with 20k Gaussians, vertex frames and live glTF (the page
+then also skins the vertices on the CPU for the height map), ``timings.key`` (height map and upload;
+live glTF: plus that skinning) and ``timings.main`` (the whole requestAnimationFrame callback) while
+playing, 40 frames each.
+
+Usage: python bench/viewer_shadow.py [--quick] [--out bench/results/viewer_shadow-<host>.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _machine import machine_info, results_path
+from meshsplat.gaussians import Avatar
+from meshsplat.gaussians.shading import KEY_STAGES, Shading
+from meshsplat.mesh import TriMesh
+from meshsplat.paths import assets_dir
+from meshsplat.viewer import write_viewer_bundle
+from viewer import SIZE, cesium, live_rig, random_avatar
+
+ROOT = Path(__file__).resolve().parents[1]
+VIEWER_JS = ROOT / "src" / "meshsplat" / "viewer" / "static" / "viewer.js"
+
+
+def key_shading(grid: int) -> Shading:
+    coeffs = torch.zeros(9, 3)
+    coeffs[0] = 0.4 / 0.28209479177387814
+    key = torch.nn.functional.normalize(torch.tensor([0.6, 0.5, 0.6]), dim=0)[None]
+    return Shading(
+        coeffs,
+        occlusion="key",
+        directions=16,
+        grid=grid,
+        key=key,
+        key_stage=KEY_STAGES,
+        light=torch.tensor([[1.0, 0.9, 0.8]]),
+    )
+
+
+def twist(v: torch.Tensor, t: float) -> torch.Tensor:
+    y = v[:, 1:2] - v[:, 1].mean()
+    a = t * 1.5 * y / max(float(y.abs().max()), 1e-9)
+    c, s = torch.cos(a), torch.sin(a)
+    return torch.cat([c * v[:, 0:1] + s * v[:, 2:3], v[:, 1:2], -s * v[:, 0:1] + c * v[:, 2:3]], 1)
+
+
+def meshes(quick: bool) -> list[tuple[str, TriMesh, list[torch.Tensor]]]:
+    import trimesh
+
+    out = []
+    cm, frames = cesium(8)
+    out.append(("CesiumMan", cm, frames))
+    sph = trimesh.creation.uv_sphere(count=[72, 72])
+    m = TriMesh(torch.tensor(sph.vertices, dtype=torch.float32), torch.tensor(sph.faces))
+    out.append(("uv sphere", m, [twist(m.vertices, t) for t in np.linspace(0, 1, 8)]))
+    if not quick:
+        v, f = trimesh.remesh.subdivide(cm.vertices.double().numpy(), cm.faces.numpy())
+        sub = TriMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f))
+        out.append(("CesiumMan subdivided", sub, [twist(sub.vertices, t) for t in np.linspace(0, 1, 8)]))
+        from meshsplat.drivers import BlendshapeDriver
+
+        drv = BlendshapeDriver.from_npz(assets_dir() / "ict_facekit" / "ict_face_arkit53.npz")
+        ict = TriMesh(drv.neutral, drv.faces)
+        out.append(("ICT FaceKit head", ict, [twist(ict.vertices, t) for t in np.linspace(0, 1, 8)]))
+    return out
+
+
+def node_times(bundle: Path) -> dict:
+    script = f"""
+import {{ decodeBundle, frameVertices, keyShadowMap }} from {json.dumps(VIEWER_JS.as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(bundle / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(bundle / "avatar.bin"))}));
+const key = h.shading.key, ms = [];
+let m, samples = 0;
+for (let t = 0; t < b.T; t++) {{
+  const p = Float32Array.from(frameVertices(b, t));
+  for (let r = 0; r < 8; r++) {{
+    const t0 = performance.now();
+    m = keyShadowMap(b.faces, b.V, p, key, m);
+    if (r >= 3) ms.push(performance.now() - t0);
+  }}
+  samples = Math.max(samples, m.samples);
+}}
+console.log(JSON.stringify({{ ms, samples }}));
+"""
+    path = bundle / "time.mjs"
+    path.write_text(script)
+    r = subprocess.run(["node", str(path)], capture_output=True, text=True, check=True)
+    return json.loads(r.stdout)
+
+
+def play(index: Path, min_frames: int, timeout: float) -> dict:
+    """Open the page paused, press play, wait for ``min_frames`` drawn frames (or ``timeout`` s); the
+    medians of its timers while playing (as bench/viewer.py's play_and_time, plus ``timings.key``)."""
+    from _browser import open_page
+
+    with open_page(index.as_uri() + "?ui=0&play=0", SIZE, SIZE) as page:
+        page.wait_ready(timeout)
+        start = {k: page.evaluate(f"window.meshsplatViewer.timings.{k}.length") for k in ("main", "key")}
+        page.evaluate("document.getElementById('play').click()")
+        deadline = time.monotonic() + timeout
+        while page.evaluate("window.meshsplatViewer.timings.main.length") - start["main"] < min_frames:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        t = json.loads(page.evaluate("JSON.stringify(window.meshsplatViewer.timings)"))
+    main, key = t["main"][start["main"] :], t["key"][start["key"] :]
+    med = lambda a: statistics.median(a) if a else float("nan")  # noqa: E731
+    p90 = lambda a: sorted(a)[int(0.9 * (len(a) - 1))] if a else float("nan")  # noqa: E731
+    return {"main_ms": med(main), "main_p90_ms": p90(main), "key_ms": med(key), "frames": len(main)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="two meshes, grid 64, no browser")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    if shutil.which("node") is None:
+        sys.exit("node is not installed")
+    rows, browser = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, mesh, frames in meshes(args.quick):
+            for grid in (64,) if args.quick else (64, 128):
+                av = Avatar(mesh, random_avatar(mesh, 200, False).params, shading=key_shading(grid))
+                folder = Path(tmp) / f"{name}-{grid}".replace(" ", "_")
+                write_viewer_bundle(av, frames, folder, vertex_encoding="float32")
+                t = node_times(folder)
+                rows.append(
+                    {
+                        "mesh": name,
+                        "vertices": mesh.num_vertices,
+                        "triangles": mesh.num_faces,
+                        "grid": grid,
+                        "samples": t["samples"],
+                        "median_ms": statistics.median(t["ms"]),
+                        "min_ms": min(t["ms"]),
+                        "calls": len(t["ms"]),
+                    }
+                )
+        if not args.quick:
+            from _browser import find_chromium
+
+            if find_chromium() is None:
+                sys.exit("chromium is not installed (or run with --quick)")
+            mesh, frames = cesium(60)
+            base = random_avatar(mesh, 20000, True)
+            assert base.shading is not None
+            for kind in ("frames", "live glTF"):
+                for with_key in (False, True):
+                    sh = key_shading(64) if with_key else Shading(base.shading.coeffs)
+                    if with_key:
+                        sh.coeffs = base.shading.coeffs.clone()
+                    av = Avatar(mesh, base.params, shading=sh, sh_frame="triangle")
+                    folder = Path(tmp) / f"page-{kind}-{with_key}".replace(" ", "_")
+                    if kind == "frames":
+                        write_viewer_bundle(av, frames, folder, fps=25)
+                    else:
+                        write_viewer_bundle(av, None, folder, rig=live_rig(av))
+                    browser.append({"driver": kind, "key": with_key, **play(folder / "index.html", 40, 120.0)})
+    print("keyShadowMap under Node (median of the timed calls, 8 poses x 5 calls)")
+    print(f"{'mesh':<22} {'verts':>6} {'tris':>6} {'grid':>4} {'samples':>8} {'median ms':>9} {'min ms':>7}")
+    for r in rows:
+        print(
+            f"{r['mesh']:<22} {r['vertices']:>6} {r['triangles']:>6} {r['grid']:>4} {r['samples']:>8}"
+            f" {r['median_ms']:>9.2f} {r['min_ms']:>7.2f}"
+        )
+    if browser:
+        print("\npage while playing (CesiumMan, 20k Gaussians, SwiftShader): medians per frame")
+        print(f"{'driver':<10} {'key':>5} {'main ms':>8} {'main p90':>8} {'shadow map ms':>13} {'frames':>6}")
+        for r in browser:
+            print(
+                f"{r['driver']:<10} {r['key']!s:>5} {r['main_ms']:>8.2f} {r['main_p90_ms']:>8.2f}"
+                f" {r['key_ms']:>13.2f} {r['frames']:>6}"
+            )
+    out = args.out or results_path("viewer_shadow")
+    out.write_text(json.dumps({"machine": machine_info(), "node": rows, "browser": browser}, indent=1) + "\n")
+    print(f"saved {out}")
+
+
+if __name__ == "__main__":
+    main()
