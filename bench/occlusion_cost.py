@@ -1,4 +1,4 @@
-"""What shading with occlusion (model.occlusion=directions) costs per frame, on the CesiumMan mesh.
+"""What shading with occlusion (model.occlusion=directions, key) costs per frame, on the CesiumMan mesh.
 
     python bench/occlusion_cost.py                 # 10k Gaussians, 256 px, 16/32 directions x 32/64 cells
     python bench/occlusion_cost.py --tiny          # seconds, to check the script
@@ -38,7 +38,7 @@ def main() -> None:
     from meshsplat.drivers import GltfDriver
     from meshsplat.embedding import embed, sample_surface
     from meshsplat.gaussians import Avatar, init_params
-    from meshsplat.gaussians.shading import Shading
+    from meshsplat.gaussians.shading import KEY_STAGES, Shading
     from meshsplat.mesh import MeshPose, TriMesh
     from meshsplat.mesh.visibility import visibility
     from meshsplat.paths import bundled_asset
@@ -65,12 +65,17 @@ def main() -> None:
     settings = {"sh2 (today)": None}
     for k in (16, 32):
         for g in (32, 64):
-            settings[f"occl K={k} grid={g}"] = (k, g)
+            settings[f"occl K={k} grid={g}"] = (k, g, 0)
+    settings["key, rings (7)"] = (16, 64, 1)  # model.occlusion=key while it narrows the direction
+    settings["key (1 light)"] = (16, 64, KEY_STAGES)  # model.occlusion=key once aligned
     avatars = {}
     for name, s in settings.items():
-        sh = Shading() if s is None else Shading(occlusion="directions", directions=s[0], grid=s[1])
+        kind = "directions" if s is None or not s[2] else "key"
+        sh = Shading() if s is None else Shading(occlusion=kind, directions=s[0], grid=s[1])
         if sh.light is not None:
             sh.light.fill_(0.2)
+        for _ in range(0 if s is None else s[2]):
+            sh.align_key()
         avatars[name] = Avatar(mesh, params, shading=sh)
 
     face, uv = sample_surface(mesh.vertices, mesh.faces, args.gaussians, generator=torch.Generator().manual_seed(1))

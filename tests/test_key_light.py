@@ -43,9 +43,9 @@ def test_align_key_weights_the_direction_and_folds_the_rest_into_sh2():
     sh.align_key()
     assert sh.key_stage == 1 and not sh.key_aligned and sh.light is not None
     assert sh.directions.shape == (1 + KEY_RING, 3)
-    want = torch.nn.functional.normalize(1.0 * d[a] + 0.5 * d[b], dim=0)
+    want = torch.nn.functional.normalize(1.0**2 * d[a] + 0.5**2 * d[b], dim=0)  # weighted by intensity squared
     assert torch.allclose(sh.directions[0], want, atol=1e-6)
-    assert torch.allclose(sh.light[0], torch.full((3,), 1.5)) and float(sh.light[1:].abs().max()) == 0.0
+    assert torch.allclose(sh.light, torch.full((1 + KEY_RING, 3), 1.5 / (1 + KEY_RING)))  # shared equally
     ring = sh.directions[1:] @ want  # the new candidates: evenly around the estimate at the first ring's angle
     assert torch.allclose(ring, torch.full((KEY_RING,), math.cos(math.radians(KEY_RINGS_DEG[0]))), atol=1e-6)
     assert torch.allclose(sh.directions.norm(dim=-1), torch.ones(1 + KEY_RING), atol=1e-6)
@@ -63,10 +63,10 @@ def test_the_rings_narrow_the_estimate_onto_the_light():
         # pretend training shared the light between the estimate and ring candidate 1 as 1 : 2
         sh.light.zero_()
         sh.light[0], sh.light[1] = 1.0, 2.0
-        want = torch.nn.functional.normalize(sh.directions[0] + 2.0 * sh.directions[1], dim=0)
+        want = torch.nn.functional.normalize(sh.directions[0] + 2.0**2 * sh.directions[1], dim=0)
         sh.align_key()
         assert torch.allclose(sh.directions[0], want, atol=1e-6)
-        assert torch.allclose(sh.light[0], torch.full((3,), 3.0))
+        assert torch.allclose(sh.light.sum(0), torch.full((3,), 3.0))  # the merged intensity, kept
     assert sh.key_aligned and sh.directions.shape == (1, 3) and sh.light.shape == (1, 3)
     with pytest.raises(MeshsplatError, match="align_key"):
         sh.align_key()

@@ -24,10 +24,11 @@ gradient through it).
 
 Key light (``occlusion="key"``): the same candidate directions at first; then, in stages
 (:meth:`Shading.align_key`, called by the trainer), the estimate of the key light's direction is the
-intensity-weighted mean of the strongest light and its neighbours within ``KEY_CONE_DEG``; the remaining
-lights fold into the SH2 irradiance (their clamped-cosine lobes' SH2 projection, unshadowed). Each of
-``KEY_RINGS_DEG`` then puts a ring of ``KEY_RING`` new candidates around the estimate (the estimate
-keeping the merged intensity, the ring none), to be weighted again, narrowing the estimate; the last
+mean of the strongest light and its neighbours within ``KEY_CONE_DEG``, weighted by intensity squared;
+the remaining lights fold into the SH2 irradiance (their clamped-cosine lobes' SH2 projection,
+unshadowed). Each of ``KEY_RINGS_DEG`` then puts a ring of ``KEY_RING`` new candidates around the
+estimate (all of them sharing the merged intensity equally), to be weighted again, narrowing the
+estimate; the last
 stage keeps one key light: one shadow map per frame, ``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``.
 A key light's shadow placed within a few degrees of the true light is what moves with pose; the fixed
 directions are tens of degrees off, which is why their shadows transfer badly.
@@ -68,7 +69,7 @@ SHADING_NORMALS = ("phong", "axis")
 # model.occlusion: off | lights from fixed directions, shadowed by the mesh | one key light found among them
 OCCLUSION_MODES = ("none", "directions", "key")
 KEY_CONE_DEG = 70.0  # align_key: candidate lights this close to the strongest one merge into the key
-KEY_RINGS_DEG = (20.0, 8.0)  # align_key: the rings of new candidates around the estimate, stage by stage
+KEY_RINGS_DEG = (25.0, 10.0)  # align_key: the rings of new candidates around the estimate, stage by stage
 KEY_RING = 6  # candidates per ring
 KEY_STAGES = 1 + len(KEY_RINGS_DEG)  # align_key calls until one key light is left
 # the clamped cosine max(0, n . w) in SH2: A_l * Y_lm(w) per band l (Ramamoorthi & Hanrahan)
@@ -222,10 +223,10 @@ class Shading:
         """``occlusion="key"``: the next stage; the candidate lights collapse into the key's estimate.
 
         The estimate is the mean of the strongest light's direction and its neighbours' within
-        ``KEY_CONE_DEG``, weighted by intensity (mean over RGB), carrying their summed intensity; every
-        other light is folded into ``coeffs`` (its clamped-cosine lobe's SH2 projection, now unshadowed).
-        Then a ring of new, unlit candidates around the estimate (``KEY_RINGS_DEG``), or, at the last
-        stage, the key alone. With no light learned yet the strongest is the first direction, at zero
+        ``KEY_CONE_DEG``, weighted by intensity (mean over RGB) squared, carrying their summed intensity;
+        every other light is folded into ``coeffs`` (its clamped-cosine lobe's SH2 projection, now
+        unshadowed). Then the estimate and a ring of candidates around it (``KEY_RINGS_DEG``) share that
+        intensity equally, or, at the last stage, the key alone holds it. With no light learned yet the strongest is the first direction, at zero
         intensity. In place; the tensors are new (an optimizer of the old ones must be rebuilt)."""
         if self.occlusion != "key" or self.key_aligned:
             raise MeshsplatError("align_key: only a Shading with occlusion='key' that is not aligned yet")
@@ -234,7 +235,7 @@ class Shading:
         weight = light.mean(-1)  # [K]
         strongest = dirs[int(weight.argmax())]
         near = dirs @ strongest >= math.cos(math.radians(KEY_CONE_DEG))  # [K]
-        w = (weight[near, None] * dirs[near]).sum(0)
+        w = (weight[near, None] ** 2 * dirs[near]).sum(0)  # squared: the best-fitting candidates lead
         key = strongest if float(w.norm()) < 1e-12 else w / w.norm()
         cos_sh = sh9_basis(dirs[~near]) * torch.tensor(_CLAMPED_COS_BANDS).to(dirs)  # [K',9]
         self.coeffs = self.coeffs.detach() + cos_sh.T @ light[~near]
@@ -244,7 +245,7 @@ class Shading:
             self.directions, self.light = key[None].clone(), merged
             return
         self.directions = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[self.key_stage - 1], KEY_RING)])
-        self.light = torch.cat([merged, torch.zeros(KEY_RING, 3).to(merged)])
+        self.light = merged.expand(1 + KEY_RING, 3) / (1 + KEY_RING)  # no candidate favoured at the start
 
     def visibility(
         self, verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor, normals: torch.Tensor

@@ -106,7 +106,7 @@ class ModelConfig:
     # Shadows from the posed driving mesh (needs shading != "none"): "none" | "directions": learned lights from
     # occlusion_directions fixed directions, each Gaussian's visibility on an occlusion_grid^2 depth grid per direction.
     # "key": the same directions, then one key light found among them in stages of occlusion_key_iter iterations
-    # (shading.align_key: its direction the intensity-weighted mean near the strongest, narrowed by rings of
+    # (shading.align_key: its direction the intensity²-weighted mean near the strongest, narrowed by rings of
     # candidates), the rest folded into the SH2 irradiance; one key light from 3 x occlusion_key_iter on.
     occlusion: str = "none"
     occlusion_directions: int = 16
