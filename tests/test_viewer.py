@@ -586,6 +586,19 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
     )
     same = np.asarray(Image.open(tmp_path / "main.png").convert("RGB"), dtype=np.float64)
     assert np.array_equal(same, img)
+    # colours <= 1: the 8-bit path (?float=0) composites the same image, up to its rounding after every blend
+    screenshot(
+        (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&float=0",
+        256,
+        256,
+        tmp_path / "8bit.png",
+        chromium=_chromium(),
+    )
+    eight = np.asarray(Image.open(tmp_path / "8bit.png").convert("RGB"), dtype=np.float64)
+    print(
+        f"float vs 8-bit blending, frame 1: PSNR {_psnr(img, eight):.1f} dB; 8-bit vs rasterizer {_psnr(eight, ref):.1f} dB"
+    )
+    assert _psnr(img, eight) > 45.0
 
 
 def _bundle_camera(cam, size):
@@ -770,6 +783,78 @@ def test_browser_shading_matches_rasterizer(tmp_path, sh_degree, sh_frame, norma
 
 
 @pytest.mark.slow
+def test_browser_bright_splats_blend_unclamped(tmp_path):
+    """Colours above 1 (the shaded test avatar with its irradiance 1.5 times as bright) where splats
+    overlap with partial alpha: the page blends into a float target and clamps the blended image once,
+    as avatar.render does, on a white and a black background and after the canvas is resized (a new
+    size, then the same pixels at twice the pixel ratio). Blending straight into the 8-bit canvas
+    (?float=0, the page before, and its fallback without a float target) clamps every splat's
+    premultiplied colour and is far off; the page says so in its status line."""
+    from PIL import Image
+
+    from _browser import open_page
+    from meshsplat.camera import intrinsics
+
+    shaded = shaded_avatar()
+    assert shaded.shading is not None
+    shading = Shading(1.5 * shaded.shading.coeffs, "phong")
+    av = Avatar(shaded.mesh, shaded.params, shaded.scale_mode, shading=shading, sh_frame="triangle")
+    write_viewer_bundle(av, _frames(av, ts=(0.0,)), tmp_path / "b", camera={"width": 256, "height": 256})
+    h, a = read_viewer_bundle(tmp_path / "b")
+    verts = torch.from_numpy(a["vertices"][0]).float()
+    bright = (av.base_rgb(verts).max(-1).values > 1.0).float().mean().item()
+    assert bright > 0.1, bright  # Gaussians brighter than 1 (the lit side)
+    url = (tmp_path / "b" / "index.html").as_uri() + "?frame=0&ui=0"
+    shot = lambda out: np.asarray(Image.open(out).convert("RGB"), dtype=np.float64)  # noqa: E731
+
+    def compare(img, ref, what):
+        subject = (np.abs(ref - ref[0, 0]).max(-1) > 2) | (np.abs(img - ref[0, 0]).max(-1) > 2)
+        full, on = _psnr(img, ref), _psnr(img[subject], ref[subject])
+        print(f"bright splats, {what}: full {full:.1f} dB, subject {on:.1f} dB")
+        assert subject.mean() > 0.05
+        return full, on
+
+    for bg in ("white", "black"):
+        ref = av.render(verts, _bundle_camera(h["camera"], 256), background=torch.full((3,), float(bg == "white")))
+        ref = ref.image.detach().clamp(0, 1).numpy() * 255
+        for blend in ("float", "8-bit") if bg == "white" else ("float",):
+            with open_page(url + f"&bg={bg}" + ("&float=0" if blend == "8-bit" else ""), 256, 256, _chromium()) as page:
+                page.wait_ready()
+                assert page.evaluate("window.meshsplatViewer.floatTarget") is (blend == "float")
+                stats = page.evaluate("document.getElementById('stats').textContent")
+                assert ("8-bit blending" in stats) is (blend == "8-bit"), stats
+                img = shot(page.screenshot(tmp_path / f"{bg}-{blend}.png"))
+            full, on = compare(img, ref, f"{blend} blending, {bg} background")
+            if blend == "float":
+                assert on >= 40.0 and full >= 40.0, (on, full)
+            else:  # the 8-bit canvas clamps splat by splat: darker where bright splats overlap
+                assert on < 35.0, on
+    # resized canvas: a float target of the new size, at a device pixel ratio of 1, then 2
+    cam = h["camera"]
+    K = torch.from_numpy(intrinsics(320, 200, cam["fov_deg"])).float()
+    ref = av.render(verts, Camera(torch.tensor(cam["viewmat"]).float(), K, 320, 200), background=torch.ones(3))
+    ref = ref.image.detach().clamp(0, 1).numpy() * 255
+    with open_page(url, 256, 256, chromium=_chromium()) as page:
+        page.wait_ready()
+        assert page.evaluate("window.meshsplatViewer.floatTarget") is True
+        for width, height, scale in ((320, 200, 1), (160, 100, 2)):
+            metrics = {"width": width, "height": height, "deviceScaleFactor": scale, "mobile": False}
+            page.call("Emulation.setDeviceMetricsOverride", metrics)
+            for _ in range(100):  # until the canvas has the new size and a frame after it was drawn
+                size = page.evaluate(
+                    "new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(() => "
+                    "r([document.getElementById('canvas').width, document.getElementById('canvas').height, "
+                    "window.meshsplatViewer.state.drawnKey]))))"
+                )
+                if size[:2] == [320, 200] and size[2].endswith("320x200"):
+                    break
+            img = shot(page.screenshot(tmp_path / f"resized{scale}.png"))
+            assert img.shape == ref.shape, img.shape
+            full, on = compare(img, ref, f"float blending, resized to 320x200 at pixel ratio {scale}")
+            assert on >= 40.0 and full >= 40.0, (on, full)
+
+
+@pytest.mark.slow
 def test_browser_phone_gestures_and_space_bar(tmp_path):
     """On an emulated phone (touch screen, mobile viewport, 2x pixels): one finger orbits, a pinch
     zooms without orbiting, a double tap and the reset button give the default view back; the space
@@ -858,8 +943,8 @@ def key_avatar(n: int = 3000, grid: int = 64, normal: str = "phong", specular: b
 def key_shading(direction, grid: int = 64, normal: str = "phong", specular: bool = False) -> Shading:
     """A low ambient ``sh2`` irradiance (a little more from above) plus an aligned, bright key light from
     ``direction`` (model.occlusion=key after its last stage); ``specular``: plus an added SH2 term. With
-    albedos up to 0.8 and opacities 0.8 the colours stay below 1 / opacity: the page's 8-bit target
-    clamps each splat's premultiplied colour at 1, the rasterizer only the blended sum."""
+    albedos up to 0.8 and opacities 0.8 the colours stay below 1 / opacity, so that even the page's 8-bit
+    fallback (which clamps each splat's premultiplied colour at 1) would not clamp them."""
     from meshsplat.gaussians.shading import KEY_STAGES
 
     coeffs = torch.zeros(9, 3)

@@ -5,7 +5,8 @@
 // mesh (live glTF), compute per-face rotations and area ratios and per-vertex normals and
 // quaternions; the splat vertex shader evaluates each Gaussian's embedding (Phong point + d*n,
 // blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
-// normal, the key light shadowed by the posed mesh) and projects it; one instanced draw call. The key
+// normal, the key light shadowed by the posed mesh) and projects it; one instanced draw call, blended
+// unclamped into a half-float target, then one full-screen pass clamps the image into the canvas. The key
 // light's height map (model.occlusion=key) is built per pose on the main thread's CPU and uploaded
 // (keyShadowMap). The depth sort runs in a Web Worker (created from a Blob URL of inline source, so it
 // works from file://) with a 16-bit counting sort; the main thread never waits for it.
@@ -902,6 +903,14 @@ void main() {
   frag = vec4(col.rgb * alpha, alpha);  // premultiplied, blended ONE, ONE_MINUS_SRC_ALPHA back to front
 }`;
 
+// the last pass: the splats' float image (RGBA16F, blended unclamped as the rasterizer accumulates) to the
+// canvas, clamped to [0, 1] once (as the rasterizer clamps only the blended image); opaque, as the 8-bit path
+const COMPOSITE_FRAG = `#version 300 es
+precision highp float; precision highp sampler2D;
+uniform sampler2D img;
+out vec4 frag;
+void main() { frag = vec4(clamp(texelFetch(img, ivec2(gl_FragCoord.xy), 0).rgb, 0.0, 1.0), 1.0); }`;
+
 function compile(gl, type, src) {
   const s = gl.createShader(type);
   gl.shaderSource(s, src);
@@ -959,10 +968,11 @@ export function vertexFaces(faces, V) {
  * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians (and their SH bands), faces, canonical face
  * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
  * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
- * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call.
+ * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call into an RGBA16F
+ * target (`floatTarget`; else straight into the canvas) and one full-screen pass that clamps it into the canvas.
  */
 export class SplatRenderer {
-  constructor(canvas, b) {
+  constructor(canvas, b, { floatTarget = true } = {}) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
     if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float textures (EXT_color_buffer_float)");
@@ -974,6 +984,14 @@ export class SplatRenderer {
       "keyOn", "keyLight", "keyDir", "keyA", "keyB", "keyCentre", "keyRadius", "keyCell", "keyGrid", "kTex"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
+    // the splats blend into an RGBA16F target (renderable and blendable with EXT_color_buffer_float),
+    // then one full-screen pass clamps it to the canvas; without a complete float target (or with
+    // floatTarget false: ?float=0), they blend straight into the canvas's 8-bit buffer, which clamps
+    // every splat's premultiplied colour at 1 (darker where bright splats overlap)
+    this.composite = program(gl, PASS_VERT, COMPOSITE_FRAG, ["img"]);
+    this.target = null;
+    this.floatTarget = floatTarget && this.resizeTarget(1, 1);
+    if (floatTarget && !this.floatTarget) console.warn("meshsplat viewer: no RGBA16F render target; blending in 8 bits (colours above 1 clamped per splat)");
     const ftex = new Uint32Array(4 * b.F);
     for (let k = 0; k < b.F; k++) for (let j = 0; j < 3; j++) ftex[4 * k + j] = b.faces[3 * k + j];
     const cf = new Float32Array(12 * b.F); // rows (t_i, b_i, n_i, area) of the canonical face frames
@@ -1038,6 +1056,24 @@ export class SplatRenderer {
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     if (status !== gl.FRAMEBUFFER_COMPLETE) throw new Error(`float render target incomplete (${status})`);
     return { fb, rows: targets[0].rows };
+  }
+
+  /** The float target at `w` x `h` (re-allocated when the canvas size changed); false if incomplete. */
+  resizeTarget(w, h) {
+    const gl = this.gl;
+    if (this.target && this.target.w === w && this.target.h === h) return true;
+    const t = this.target || { tex: gl.createTexture(), fb: gl.createFramebuffer() };
+    gl.bindTexture(gl.TEXTURE_2D, t.tex);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h, 0, gl.RGBA, gl.HALF_FLOAT, null);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, t.fb);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, t.tex, 0);
+    gl.drawBuffers([gl.COLOR_ATTACHMENT0]);
+    const ok = gl.checkFramebufferStatus(gl.FRAMEBUFFER) === gl.FRAMEBUFFER_COMPLETE;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    Object.assign(t, { w, h });
+    this.target = t;
+    return ok;
   }
 
   bind(p, textures) { // textures: {uniformName: texture}
@@ -1116,6 +1152,11 @@ export class SplatRenderer {
 
   draw(viewmat, K, background) {
     const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, p = this.splat, t = this.t;
+    if (this.floatTarget && !this.resizeTarget(Math.max(w, 1), Math.max(h, 1))) {
+      this.floatTarget = false;
+      console.warn(`meshsplat viewer: no ${w}x${h} RGBA16F render target; blending in 8 bits from now on`);
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.floatTarget ? this.target.fb : null);
     gl.viewport(0, 0, w, h);
     gl.clearColor(background[0], background[1], background[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
@@ -1149,6 +1190,13 @@ export class SplatRenderer {
     this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
+    if (this.floatTarget) { // one full-screen pass: clamp the blended image into the canvas
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.disable(gl.BLEND);
+      gl.useProgram(this.composite.prog);
+      this.bind(this.composite, { img: this.target });
+      gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+    }
     gl.bindVertexArray(null);
   }
 }
@@ -1200,7 +1248,7 @@ export function startViewer(doc) {
   const b = decodeBundle(header, decodeBase64($("avatar-data").textContent));
   const params = new URLSearchParams(doc.location ? doc.location.search : "");
   const canvas = $("canvas");
-  const renderer = new SplatRenderer(canvas, b);
+  const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0" });
   const poser = new FramePoser(b);
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
@@ -1335,7 +1383,25 @@ export function startViewer(doc) {
   }, true);
   doc.addEventListener("keyup", (e) => { if (isSpace(e)) e.preventDefault(); }, true);
   // what the page shows, for tests and benchmarks (read-only use)
-  window.meshsplatViewer = { view: cam, state, timings };
+  // floatTarget: whether the splats blend in floating point (false: the 8-bit fallback, or ?float=0);
+  // timeDraws(n, float) (bench/viewer_float.py): the last frame drawn again n times, each waited for by
+  // a 1-pixel readback, its times (ms); `float` false: through the 8-bit path this once (the float
+  // target when true and the page has one), then the canvas gets the page's own path back
+  let lastDraw = null;
+  const timeDraws = (n, float) => {
+    const gl = renderer.gl, px = new Uint8Array(4), out = [], own = renderer.floatTarget;
+    if (float !== undefined) renderer.floatTarget = own && float;
+    for (let i = 0; lastDraw && i < n; i++) {
+      const t0 = performance.now();
+      renderer.draw(...lastDraw);
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+      out.push(performance.now() - t0);
+    }
+    renderer.floatTarget = own;
+    if (lastDraw) renderer.draw(...lastDraw);
+    return out;
+  };
+  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get floatTarget() { return renderer.floatTarget; } };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
@@ -1382,7 +1448,8 @@ export function startViewer(doc) {
     // draw when the pose, view, order, background or size changed (a still page stays idle)
     const drawKey = `${key}|${state.sortedKey}|${state.white}|${w}x${h}`;
     if (drawKey !== state.drawnKey) {
-      renderer.draw(viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]);
+      lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
+      renderer.draw(...lastDraw);
       state.drawnKey = drawKey;
       mainMs = performance.now() - t0;
       record(timings.main, mainMs);
@@ -1393,6 +1460,7 @@ export function startViewer(doc) {
     stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
       ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
       (renderer.key ? ` · shadow map ${renderer.keyMs.toFixed(1)} ms` : "") +
+      (renderer.floatTarget ? "" : " · 8-bit blending (bright overlaps clamped)") +
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
       (key === state.sortedKey ? "" : " · order stale");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view
