@@ -155,7 +155,7 @@ def test_the_player_refuses_an_occluded_avatar(tmp_path):
 def test_config_keys_validate():
     cfg = apply_overrides(TrainConfig(), OCCL).validate()
     assert (cfg.model.occlusion, cfg.model.occlusion_directions, cfg.model.occlusion_grid) == ("directions", 8, 32)
-    assert TrainConfig().model.occlusion == "none"
+    assert TrainConfig().model.occlusion == "key"  # the quality preset's
     for bad in (
         ["model.occlusion=rays"],
         ["model.occlusion=directions", "model.shading=none"],

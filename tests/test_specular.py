@@ -140,7 +140,7 @@ def test_the_bundle_carries_the_specular(tmp_path):
 def test_config_keys_validate():
     assert apply_overrides(TrainConfig(), SPEC).validate().model.specular == "sh2"
     assert TrainConfig().model.specular == "none"
-    for bad in (["model.specular=phong"], ["model.specular=sh2", "model.shading=none"]):
+    for bad in (["model.specular=phong"], ["model.specular=sh2", "model.shading=none", "model.occlusion=none"]):
         with pytest.raises(MeshsplatError, match="specular"):
             apply_overrides(TrainConfig(), bad).validate()
 

@@ -84,13 +84,14 @@ def test_resume_refuses_another_preset(tiny_dataset, tmp_path, capsys):  # noqa:
 
 def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_path):  # noqa: F811
     """A paper run written before presets and before the shading keys (no version, no model.shading or
-    model.init_color_frames in config.json or the checkpoint, nor loss.crop_to_subject or loss.lpips_every)
+    model.init_color_frames in config.json or the checkpoint, nor loss.crop_to_subject, loss.lpips_every or
+    model.occlusion)
     resumes bit for bit under the quality defaults."""
     paper = list(preset_overrides("paper"))
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, paper))
     full.train()
     st = load_checkpoint(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt")
-    for key in ("shading", "init_color_frames"):
+    for key in ("shading", "init_color_frames", "occlusion"):
         del st["config"]["model"][key]
     del st["config"]["loss"]["crop_to_subject"]
     del st["config"]["loss"]["lpips_every"]
@@ -100,9 +101,9 @@ def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_pat
     (tmp_path / "old" / "config.json").write_text(json.dumps(old))  # no "version": older meshsplat
     cfg = load_config(tmp_path / "old" / "config.json")
     assert (cfg.model.shading, cfg.model.init_color_frames, cfg.optim.lr_color) == ("none", 1, 2.5e-3)
-    assert not cfg.loss.crop_to_subject and cfg.loss.lpips_every == 1
+    assert not cfg.loss.crop_to_subject and cfg.loss.lpips_every == 1 and cfg.model.occlusion == "none"
     res = Trainer(cfg, resume=True)
     res.train()
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
-    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 4  # rewritten, full
+    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 5  # rewritten, full

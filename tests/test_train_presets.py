@@ -17,6 +17,7 @@ from meshsplat.train.config import (
     VERSION_1_DEFAULTS,
     VERSION_2_DEFAULTS,
     VERSION_3_DEFAULTS,
+    VERSION_4_DEFAULTS,
     upgrade_config_dict,
 )
 from meshsplat.train.presets import preset_differences, preset_overrides
@@ -85,6 +86,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "optim.lr_color=0.0025 (the quality preset's: 0.01)",
         "loss.crop_to_subject=False (the quality preset's: True)",
         "loss.lpips_every=1 (the quality preset's: 2)",
+        "model.occlusion='none' (the quality preset's: 'key')",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -93,7 +95,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS):
+    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS, VERSION_4_DEFAULTS):
         assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
 
 
@@ -105,6 +107,7 @@ _OLD_DEFAULTS = [
     "optim.lr_color=2.5e-3",
     "loss.crop_to_subject=false",
     "loss.lpips_every=1",
+    "model.occlusion=none",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -113,6 +116,7 @@ _OLD_QUALITY = [
     "optim.lr_color=1e-2",
     "loss.crop_to_subject=true",
     "loss.lpips_every=2",
+    "model.occlusion=key",  # the key light, default since config version 5
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -158,11 +162,11 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 4)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 5)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 4, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 5, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
         preset_config("paper"), ["seed=5"]
@@ -219,10 +223,23 @@ def test_version_3_config_keeps_lpips_on_every_iteration(tmp_path):
     assert TrainConfig.from_dict({"seed": 1}).loss.lpips_every == 1  # version 1
 
 
+def test_version_4_config_keeps_training_without_the_key_light(tmp_path):
+    # written before model.occlusion was key by default
+    old = preset_config("quality").to_dict()
+    del old["model"]["occlusion"]
+    (tmp_path / "config.json").write_text(json.dumps({"version": 4, **old}))
+    got = load_config(tmp_path / "config.json")
+    assert got == apply_overrides(preset_config("quality"), ["model.occlusion=none"])
+    assert TrainConfig.from_dict({"version": 4, "seed": 1}).model.occlusion == "none"
+    assert TrainConfig.from_dict({"version": 4, "model": {"occlusion": "key"}}).model.occlusion == "key"
+    assert TrainConfig.from_dict({"version": 5, "seed": 1}).model.occlusion == "key"
+    assert TrainConfig.from_dict({"seed": 1}).model.occlusion == "none"  # version 1
+
+
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 5}, r"^config: format version 5 is newer than this meshsplat reads \(4\); update meshsplat"),
+        ({"version": 6}, r"^config: format version 6 is newer than this meshsplat reads \(5\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

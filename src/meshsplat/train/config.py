@@ -11,7 +11,8 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 
 ``config.json`` carries ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION}`` beside the keys.
 A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``),
-a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``).
+a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a version-4 dict before
+``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -57,6 +58,7 @@ __all__ = [
     "VERSION_1_DEFAULTS",
     "VERSION_2_DEFAULTS",
     "VERSION_3_DEFAULTS",
+    "VERSION_4_DEFAULTS",
     "config_version",
 ]
 
@@ -72,7 +74,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 1: no "format"/"version" fields (older meshsplat; defaults were the paper's). 2: the quality defaults.
 # 3: loss.crop_to_subject on by default (docs/quality.md, "Losses where the subject is").
 # 4: loss.lpips_every 2 by default (docs/rendering.md, "Training on CPU").
-CONFIG_VERSION = 4
+# 5: model.occlusion key by default (docs/quality.md, "A key light found in training").
+CONFIG_VERSION = 5
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -80,6 +83,8 @@ VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "op
 VERSION_2_DEFAULTS = {"loss.crop_to_subject": False}
 # Keys whose default changed since version 3, with their version-3 value (older dicts get them too).
 VERSION_3_DEFAULTS = {"loss.lpips_every": 1}
+# Keys whose default changed since version 4, with their version-4 value (older dicts get them too).
+VERSION_4_DEFAULTS = {"model.occlusion": "none"}
 
 
 @dataclass
@@ -108,7 +113,7 @@ class ModelConfig:
     # "key": the same directions, then one key light found among them in stages of occlusion_key_iter iterations
     # (shading.align_key: its direction the intensity²-weighted mean near the strongest, narrowed by rings of
     # candidates), the rest folded into the SH2 irradiance; one key light from 3 x occlusion_key_iter on.
-    occlusion: str = "none"
+    occlusion: str = "key"
     occlusion_directions: int = 16
     occlusion_grid: int = 64
     occlusion_key_iter: int = 300
@@ -487,7 +492,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
     version (or an older partial file) keeps its meaning under today's defaults. Versions 1 and 2
     likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
-    versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1).
+    versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
+    ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -506,6 +512,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_2_DEFAULTS)
     if version <= 3:
         d = _with_defaults(d, VERSION_3_DEFAULTS)
+    if version <= 4:
+        d = _with_defaults(d, VERSION_4_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

@@ -2,7 +2,9 @@
 
     quality   the default (``TrainConfig()``, ``meshsplat train``): pose-dependent shading
               (model.shading=sh2), colours initialised from 8 frames, colour lr 1e-2, LPIPS on the
-              box around the subject and on every second iteration (at twice the weight); measured in docs/quality.md (bench/quality.py, bench/loss_crop.py)
+              box around the subject and on every second iteration (at twice the weight), and a key light
+              found in training whose shadow the posed mesh casts (model.occlusion=key); measured in
+              docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
               first frame, the paper's learning rates, LPIPS on the full frame every iteration, on the same
               30k-iteration schedule
@@ -31,6 +33,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "optim.lr_color=1e-2",
         "loss.crop_to_subject=true",
         "loss.lpips_every=2",
+        "model.occlusion=key",
     ),
     "paper": (
         "model.shading=none",
@@ -38,6 +41,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "optim.lr_color=2.5e-3",
         "loss.crop_to_subject=false",
         "loss.lpips_every=1",
+        "model.occlusion=none",
     ),
 }
 DEFAULT_PRESET = "quality"
