@@ -48,6 +48,7 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_spec_occl": ("quality", ["model.specular=sh2", "model.occlusion=directions"]),
     "default_key": ("quality", ["model.occlusion=key"]),
     "default_nokey": ("quality", ["model.occlusion=none"]),  # the default before model.occlusion=key
+    "default_key150": ("quality", ["model.occlusion_key_iter=150"]),  # a shorter search
     "default_key_spec": ("quality", ["model.occlusion=key", "model.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
     "default_lrdecay3e-4": ("quality", ["optim.lr_color_final=3e-4"]),
