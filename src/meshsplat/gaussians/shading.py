@@ -28,8 +28,8 @@ mean of the strongest light and its neighbours within ``KEY_CONE_DEG``, weighted
 the remaining lights fold into the SH2 irradiance (their clamped-cosine lobes' SH2 projection,
 unshadowed). Each of ``KEY_RINGS_DEG`` then puts a ring of ``KEY_RING`` new candidates around the
 estimate (all of them sharing the merged intensity equally), to be weighted again, narrowing the
-estimate; the last
-stage keeps one key light: one shadow map per frame, ``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``.
+estimate; the last stage keeps one key light: one shadow map per frame,
+``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``.
 A key light's shadow placed within a few degrees of the true light is what moves with pose; the fixed
 directions are tens of degrees off, which is why their shadows transfer badly.
 
@@ -226,8 +226,9 @@ class Shading:
         ``KEY_CONE_DEG``, weighted by intensity (mean over RGB) squared, carrying their summed intensity;
         every other light is folded into ``coeffs`` (its clamped-cosine lobe's SH2 projection, now
         unshadowed). Then the estimate and a ring of candidates around it (``KEY_RINGS_DEG``) share that
-        intensity equally, or, at the last stage, the key alone holds it. With no light learned yet the strongest is the first direction, at zero
-        intensity. In place; the tensors are new (an optimizer of the old ones must be rebuilt)."""
+        intensity equally, or, at the last stage, the key alone holds it. With no light learned yet the
+        strongest is the first direction, at zero intensity. In place; the tensors are new (an optimizer
+        of the old ones must be rebuilt)."""
         if self.occlusion != "key" or self.key_aligned:
             raise MeshsplatError("align_key: only a Shading with occlusion='key' that is not aligned yet")
         assert self.directions is not None and self.light is not None
