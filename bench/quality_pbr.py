@@ -47,7 +47,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_spec": ("quality", ["model.specular=sh2"]),
     "default_spec_occl": ("quality", ["model.specular=sh2", "model.occlusion=directions"]),
     "default_key": ("quality", ["model.occlusion=key"]),
-    "default_nokey": ("quality", ["model.occlusion=none"]),  # the default before model.occlusion=key
+    # the default before model.occlusion=key and pose_refine.auto
+    "default_nokey": ("quality", ["model.occlusion=none", "pose_refine.auto=false"]),
+    "default_norefine": ("quality", ["pose_refine.auto=false"]),  # the key light without pose refinement
     "default_key150": ("quality", ["model.occlusion_key_iter=150"]),  # a shorter search
     "default_key_spec": ("quality", ["model.occlusion=key", "model.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
@@ -92,9 +94,7 @@ def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
     asset = spec.pop("asset")
     extra: dict = {}
     if asset == "smpl":
-        from meshsplat.synth.standin_models import write_standin_models
-
-        extra = {"model_dir": write_standin_models(work / "standin_models"), "pose_noise": args.pose_noise}
+        extra = {"model_dir": _model_dir(name, work), "pose_noise": args.pose_noise}
     synthesize(
         asset,
         data,
@@ -112,6 +112,17 @@ def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
         **extra,
     )
     return data
+
+
+def _model_dir(name: str, work: Path) -> Path | None:
+    """The body-model files of capture ``name`` (the stand-in SMPL files, written once), None for a mesh asset.
+    Training is given them as a user gives ``--model-dir``: the default then refines the tracked poses."""
+    if CAPTURES[name]["asset"] != "smpl":
+        return None
+    from meshsplat.synth.standin_models import write_standin_models
+
+    folder = work / "standin_models"
+    return folder if (folder / "smpl").is_dir() else write_standin_models(folder)
 
 
 def _planned_splits(name: str) -> list[str]:
@@ -140,10 +151,12 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
     from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget, silhouette_regions
     from meshsplat.metrics.subject import subject_metrics
     from meshsplat.render.background import composite
-    from meshsplat.run_folder import load_avatar
+    from meshsplat.run_folder import load_run
 
-    avatar = load_avatar(run)
-    ds, refs = open_dataset(data), open_dataset(ref)
+    loaded = load_run(run)
+    avatar = loaded.avatar
+    # held-out views of training frames in the poses training refined, if it did (as meshsplat eval)
+    ds, refs = loaded.open_dataset(data), open_dataset(ref)
     by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     white, black = torch.ones(3), torch.zeros(3)
     lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
@@ -192,9 +205,10 @@ def _picture(runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: in
     from meshsplat.data import open_dataset
     from meshsplat.metrics.budget import silhouette_regions
     from meshsplat.render.background import composite
-    from meshsplat.run_folder import load_avatar
+    from meshsplat.run_folder import load_run
 
-    avatars = {name: load_avatar(r) for name, r in runs.items()}
+    loaded = {name: load_run(r) for name, r in runs.items()}
+    sets = {name: lr.open_dataset(data) for name, lr in loaded.items()}  # each run's refined poses, if any
     ds, refs = open_dataset(data), open_dataset(ref)
     by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     rows = []
@@ -204,9 +218,10 @@ def _picture(runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: in
             black = torch.zeros(3)
             gt = composite(target.image, target.mask, black)
             tiles = [gt]
-            for av in avatars.values():
+            for name, lr in loaded.items():
                 with torch.no_grad():
-                    tiles.append(av.render(fr.vertices, fr.camera, black).image.float().clamp(0, 1))
+                    rendered = lr.avatar.render(sets[name].vertices(i), fr.camera, black)
+                tiles.append(rendered.image.float().clamp(0, 1))
             err = (tiles[-1] - gt).pow(2).sum(-1).sqrt().clamp(0, 1)
             reg = silhouette_regions(target.mask)
             tiles.append(torch.stack([err * reg["band"], err * reg["interior"], torch.zeros_like(err)], -1))
@@ -310,6 +325,8 @@ def main() -> None:
             preset, overrides = ALL[variant]
             name = variant if args.seed == 0 else f"{variant}_s{args.seed}"  # the run's folder and its row
             overrides = list(overrides) + ([f"seed={args.seed}"] if args.seed else [])
+            if _model_dir(cap, work) is not None:
+                overrides.append(f"model_dir={_model_dir(cap, work)}")
             run = work / f"{cap}-{args.renderer}-{name}"
             cfg = demo_train_config(data, run, sizes, overrides, progress=False, preset=preset)
             t0 = time.perf_counter()

@@ -106,4 +106,4 @@ def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_pat
     res.train()
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
-    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 5  # rewritten, full
+    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 6  # rewritten, full

@@ -18,6 +18,7 @@ from meshsplat.train.config import (
     VERSION_2_DEFAULTS,
     VERSION_3_DEFAULTS,
     VERSION_4_DEFAULTS,
+    VERSION_5_DEFAULTS,
     upgrade_config_dict,
 )
 from meshsplat.train.presets import preset_differences, preset_overrides
@@ -87,6 +88,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "loss.crop_to_subject=False (the quality preset's: True)",
         "loss.lpips_every=1 (the quality preset's: 2)",
         "model.occlusion='none' (the quality preset's: 'key')",
+        "pose_refine.auto=False (the quality preset's: True)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -95,7 +97,8 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    for table in (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS, VERSION_4_DEFAULTS):
+    tables = (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS, VERSION_4_DEFAULTS, VERSION_5_DEFAULTS)
+    for table in tables:
         assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
 
 
@@ -108,6 +111,7 @@ _OLD_DEFAULTS = [
     "loss.crop_to_subject=false",
     "loss.lpips_every=1",
     "model.occlusion=none",
+    "pose_refine.auto=false",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -117,6 +121,7 @@ _OLD_QUALITY = [
     "loss.crop_to_subject=true",
     "loss.lpips_every=2",
     "model.occlusion=key",  # the key light, default since config version 5
+    "pose_refine.auto=true",  # since config version 6
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -162,11 +167,11 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 5)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 6)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 5, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 6, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
         preset_config("paper"), ["seed=5"]
@@ -236,10 +241,23 @@ def test_version_4_config_keeps_training_without_the_key_light(tmp_path):
     assert TrainConfig.from_dict({"seed": 1}).model.occlusion == "none"  # version 1
 
 
+def test_version_5_config_keeps_the_tracked_poses(tmp_path):
+    # written before pose_refine.auto was on by default (the key did not exist yet)
+    old = preset_config("quality").to_dict()
+    del old["pose_refine"]["auto"]
+    (tmp_path / "config.json").write_text(json.dumps({"version": 5, **old}))
+    got = load_config(tmp_path / "config.json")
+    assert got == apply_overrides(preset_config("quality"), ["pose_refine.auto=false"])
+    assert not TrainConfig.from_dict({"version": 5, "seed": 1}).pose_refine.auto
+    assert TrainConfig.from_dict({"version": 5, "pose_refine": {"auto": True}}).pose_refine.auto
+    assert TrainConfig.from_dict({"version": 6, "seed": 1}).pose_refine.auto
+    assert not TrainConfig.from_dict({"seed": 1}).pose_refine.auto  # version 1
+
+
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 6}, r"^config: format version 6 is newer than this meshsplat reads \(5\); update meshsplat"),
+        ({"version": 7}, r"^config: format version 7 is newer than this meshsplat reads \(6\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
@@ -35,9 +36,10 @@ from meshsplat.gaussians.avatar import Avatar
 from meshsplat.io.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
 from meshsplat.io.json_file import read_json_object
 
-__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar", "ALLOW_OLDER_FLAG"]
+__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar", "ALLOW_OLDER_FLAG", "TRACKED_POSES_FLAG"]
 
 ALLOW_OLDER_FLAG = "--allow-older-checkpoint"  # the command-line spelling of ``allow_older``
+TRACKED_POSES_FLAG = "--tracked-poses"  # the command-line spelling of ``refined_poses=False``
 
 
 def _reason(message: str, path: Path) -> str:
@@ -256,13 +258,15 @@ class LoadedRun:
         check_masks: bool = True,
         drop_bad_frames: bool | None = None,
         downscale: float | None = None,
+        refined_poses: bool = True,
     ) -> AvatarDataset:
         """The run's capture (any layout, as recorded in its config), or ``dataset`` if given.
 
         ``model_dir`` (SMPL/FLAME files) defaults to the run's ``model_dir``, then ``$MESHSPLAT_MODEL_DIR``;
         ``drop_bad_frames`` to the run's (frames failing the camera check left out, as in training).
         ``downscale`` defaults to the run's ``data_downscale`` (also for another ``dataset``: the size the
-        avatar was trained at); pass 1 to read a capture as recorded.
+        avatar was trained at); pass 1 to read a capture as recorded. ``refined_poses``: the run's own capture
+        comes with the training poses it refined (:meth:`refined_meshes`) in place of the tracker's.
         """
         path = self.dataset_path(dataset)
         fmt = self.config.get("data_format") or None if dataset is None else None
@@ -270,9 +274,65 @@ class LoadedRun:
         drop = bool(self.config.get("drop_bad_frames", False)) if drop_bad_frames is None else drop_bad_frames
         factor = self.training_downscale if downscale is None else downscale
         opts = reader_options(self.config.get("data_gender"), self.config.get("data_shape"))  # as trained
-        return open_capture(
+        ds = open_capture(
             path, format=fmt, model_dir=mdir, check_masks=check_masks, drop_bad_frames=drop, downscale=factor, **opts
         )
+        if refined_poses and self._own_dataset(path):
+            meshes = self.refined_meshes(ds, mdir)
+            if meshes:
+                ds = ds.with_meshes(meshes)
+        return ds
+
+    def _own_dataset(self, path: Path) -> bool:
+        data = self.config.get("data")
+        if not isinstance(data, str) or not data:
+            return False
+        try:
+            return self.dataset_path().resolve() == path.resolve()
+        except MeshsplatError:
+            return False
+
+    def refined_meshes(self, dataset: AvatarDataset, model_dir: str | Path | None = None) -> dict[int, np.ndarray]:
+        """Driving meshes ``row -> vertices [V,3]`` of the training frames whose poses the run refined
+        (``RUN/refined_params.npz`` with ``dataset``'s shared parameters, through its body model); empty
+        when the run refined none. A held-out view of a training frame is then rendered in the refined pose
+        (fitted on the training images only); held-out frames keep the tracker's."""
+        path = self.folder.refined_params_path
+        if not path.is_file():
+            return {}
+        redo = f"retrain with pose refinement, or evaluate with the tracker's poses ({TRACKED_POSES_FLAG})"
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: np.asarray(z[k]) for k in z.files}
+        except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same one line
+            raise MeshsplatError(f"{path}: unreadable refined poses ({type(exc).__name__}); {redo}") from None
+        rows = arrays.pop("mesh_rows", None)
+        params = dataset.driver_params or {}
+        per_frame = dataset.per_frame_param_names
+        n = len(params[per_frame[0]]) if per_frame else 0
+        if rows is None or rows.ndim != 1 or rows.dtype.kind not in "iu" or len(set(rows.tolist())) != len(rows):
+            raise MeshsplatError(f"{path}: 'mesh_rows' must be distinct integers [R]; {redo}")
+        if len(rows) and (rows.min() < 0 or rows.max() >= n):
+            raise MeshsplatError(f"{path}: mesh rows outside the capture's {n} meshes (another capture?); {redo}")
+        for k, v in arrays.items():
+            if k not in per_frame:
+                raise MeshsplatError(f"{path}: {k!r} is not a per-frame parameter of the capture {per_frame}; {redo}")
+            if v.shape != (len(rows), *params[k].shape[1:]) or not np.isfinite(v).all():
+                raise MeshsplatError(
+                    f"{path}: {k!r} has shape {list(v.shape)} (finite numbers expected), expected "
+                    f"{[len(rows), *params[k].shape[1:]]}; {redo}"
+                )
+        if not len(rows):
+            return {}
+        model = dataset.body_model(model_dir if model_dir is not None else self.model_dir(), "cpu")
+        full = {k: (arrays[k] if k in arrays else params[k][rows]) if k in per_frame else v for k, v in params.items()}
+        out: dict[int, np.ndarray] = {}
+        with torch.no_grad():
+            for a in range(0, len(rows), 64):  # bounded memory on long captures
+                chunk = {k: (v[a : a + 64] if k in per_frame else v) for k, v in full.items()}
+                verts = model.forward(chunk).vertices.float().cpu().numpy()
+                out.update({int(r): verts[j] for j, r in enumerate(rows[a : a + 64])})
+        return out
 
     @property
     def training_downscale(self) -> float:

@@ -23,7 +23,7 @@ from meshsplat.cli._options import (
 )
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.eval import evaluate_run
-from meshsplat.run_folder import RunFolder
+from meshsplat.run_folder import TRACKED_POSES_FLAG, RunFolder
 
 __all__ = ["add_arguments", "run"]
 
@@ -39,6 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_threads_argument(parser)
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     parser.add_argument("--no-report", action="store_true", help="only metrics.json (no figures, no HTML)")
+    parser.add_argument(
+        TRACKED_POSES_FLAG,
+        action="store_true",
+        help="render held-out views of training frames in the tracker's poses, not the poses training refined",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,10 +68,12 @@ def run(args: argparse.Namespace) -> int:
         drop_bad_frames=True if args.drop_bad_frames else None,
         downscale=args.downscale,
         allow_older_checkpoint=args.allow_older_checkpoint,
+        refined_poses=not args.tracked_poses,
     )
     print(
         f"checkpoint {m['checkpoint']} (iteration {m['iteration']}, {m['n_gaussians']} Gaussians), "
         f"background {m['background']}"
+        + (f", {m['refined_pose_frames']} frames in the poses training refined" if m.get("refined_pose_frames") else "")
     )
     fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(f"{'':<23}{'full image':^25}{'subject (in mask)':^25}")

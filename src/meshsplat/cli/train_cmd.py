@@ -60,10 +60,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_reader_arguments(parser)
     add_drop_bad_frames_option(parser)
-    parser.add_argument(
+    refine = parser.add_mutually_exclusive_group()
+    refine.add_argument(
         "--refine-pose",
         action="store_true",
-        help="optimise the tracker's per-frame pose/expression parameters of the training frames",
+        help="optimise the tracker's per-frame pose/expression parameters of the training frames; the default "
+        "(pose_refine.auto) already does when the capture has SMPL/SMPL-X/FLAME parameters and the model files "
+        "are found; with this flag a capture without them is refused",
+    )
+    refine.add_argument(
+        "--no-refine-pose", action="store_true", help="keep the tracker's poses (pose_refine.auto=false)"
     )
     parser.add_argument("--out", required=True, help="run directory")
     add_downscale_option(parser, "1, or data_downscale of --config (stored in RUN/config.json; eval reads it)")
@@ -156,6 +162,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         cfg.data_shape = args.shape
     if args.refine_pose:
         cfg.pose_refine.enabled = True
+    if args.no_refine_pose:
+        cfg.pose_refine.enabled = cfg.pose_refine.auto = False
     if args.drop_bad_frames:
         cfg.drop_bad_frames = True
     if args.downscale is not None:
@@ -209,6 +217,8 @@ def run(args: argparse.Namespace) -> int:
             )
     elif args.resume:
         print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
+    if trainer.pose_refine_note:
+        print(trainer.pose_refine_note)
     if trainer.iteration >= cfg.iterations:
         print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
         return 0

@@ -6,6 +6,7 @@ the one validation path of every reader) and then hands out frames lazily.
 
 from __future__ import annotations
 
+import copy
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ import torch
 from meshsplat.camera import Camera, capture_front, capture_up
 from meshsplat.data.downscale import check_downscale, downscale_frame, downscaled_size, scale_intrinsics
 from meshsplat.drivers.base import SequenceDriver
+from meshsplat.drivers.body_models import BodyModel
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy
 from meshsplat.io.images import png_max, read_image
@@ -72,6 +74,7 @@ class AvatarDataset:
         self._splits = {k: [int(i) for i in v] for k, v in manifest.get("splits", {}).items()}
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
+        self.replaced_meshes: frozenset[int] = frozenset()  # mesh rows set by with_meshes
         self.downscale = 1.0  # set_downscale: cameras and frames at 1/downscale of the recorded size
         backdrop = manifest.get("backdrop")
         self.backdrop = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
@@ -188,6 +191,42 @@ class AvatarDataset:
         """Driving vertices ``[V,3]`` of frame ``i`` without loading its image."""
         rec = self._frames[self._index(i)]
         return torch.from_numpy(np.array(self._verts[rec["mesh"]], dtype=np.float32))
+
+    def body_model(self, model_dir: str | Path | None, device: torch.device | str = "cpu") -> BodyModel:
+        """The body/head model whose parameters (``driver_params``) drive this capture's meshes, from the
+        model files in ``model_dir`` (else ``$MESHSPLAT_MODEL_DIR``); one line when the capture has none."""
+        info = self.driver_info
+        if info is None or self.driver_params is None:
+            raise MeshsplatError(
+                f"{self.root} has no body/head model parameters ({self.format_name} layout): "
+                "its meshes are not driven by SMPL/SMPL-X/FLAME parameters"
+            )
+        return BodyModel(
+            info["type"],
+            model_dir,
+            gender=info.get("gender", "neutral"),
+            flame_version=str(info.get("flame_version", "2020")),
+            scale=float(info.get("scale", 1.0)),
+            device=device,
+        )
+
+    def with_meshes(self, meshes: dict[int, np.ndarray]) -> AvatarDataset:
+        """A copy whose driving meshes ``row -> vertices [V,3]`` replace the stored ones (e.g. a run's refined
+        training poses); images, cameras and splits are shared."""
+        shape = (self.num_vertices, 3)
+        for row, v in meshes.items():
+            if not 0 <= int(row) < self._verts.shape[0] or tuple(np.shape(v)) != shape:
+                raise MeshsplatError(
+                    f"with_meshes: mesh row {row} with shape {list(np.shape(v))}; expected a row in "
+                    f"[0, {self._verts.shape[0]}) and [{shape[0]}, 3]"
+                )
+        out = copy.copy(self)
+        out._verts = np.array(self._verts, dtype=np.float32)
+        for row, v in meshes.items():
+            out._verts[int(row)] = np.asarray(v, dtype=np.float32)
+        out._cache = OrderedDict()
+        out.replaced_meshes = self.replaced_meshes | {int(r) for r in meshes}
+        return out
 
     def driver(self) -> SequenceDriver:
         """All stored meshes as a :class:`SequenceDriver` (rest = canonical)."""

@@ -128,6 +128,7 @@ def evaluate_avatar(
                 "camera_id": fr.camera_id,
                 "clip": fr.clip,
                 "time": fr.time,
+                "refined_pose": int(dataset.frame_info(i)["mesh"]) in dataset.replaced_meshes,
                 "psnr": _finite(float(psnr(img, gt))),
                 "ssim": float(ssim(img, gt)),
                 "lpips": float(lpips(img, gt, net=net)) if use_lpips else None,
@@ -189,6 +190,7 @@ def evaluate_run(
     drop_bad_frames: bool | None = None,
     downscale: float | None = None,
     allow_older_checkpoint: bool = False,
+    refined_poses: bool = True,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
@@ -196,13 +198,17 @@ def evaluate_run(
     ``drop_bad_frames`` (default: as the run was trained) leaves out the frames failing the camera check.
     ``downscale``: read a dataset path at ``1 / downscale`` of its size (default: the run's
     ``data_downscale``, the size it was trained at). ``allow_older_checkpoint``: when the newest checkpoint
-    is unreadable, evaluate the newest readable one (with a note) instead of refusing.
+    is unreadable, evaluate the newest readable one (with a note) instead of refusing. ``refined_poses``:
+    frames of the run's own capture whose poses training refined (held-out views of training frames) are
+    rendered in the refined pose (``LoadedRun.refined_meshes``); held-out frames keep the tracker's poses.
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
     run = load_run(run_dir, device, allow_older=allow_older_checkpoint)
     if dataset is None or isinstance(dataset, (str, Path)):
         ds_path = run.dataset_path(dataset)
-        ds = run.open_dataset(dataset, drop_bad_frames=drop_bad_frames, downscale=downscale)
+        ds = run.open_dataset(
+            dataset, drop_bad_frames=drop_bad_frames, downscale=downscale, refined_poses=refined_poses
+        )
     else:
         ds, ds_path = dataset, dataset.root
     results, samples = evaluate_avatar(
@@ -224,6 +230,8 @@ def evaluate_run(
         "iteration": run.iteration,
         "dataset": str(ds_path),
         "downscale": ds.downscale,
+        # frames rendered in the poses training refined (held-out views of training frames)
+        "refined_pose_frames": sum(f["refined_pose"] for sp in results["splits"].values() for f in sp["frames"]),
         **results,
     }
     if ds.meta.get("attribution"):

@@ -12,7 +12,8 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 ``config.json`` carries ``{"format": CONFIG_FORMAT, "version": CONFIG_VERSION}`` beside the keys.
 A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``),
 a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a version-4 dict before
-``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``).
+``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``), a version-5 dict before ``pose_refine.auto``
+was on (``VERSION_5_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -59,6 +60,7 @@ __all__ = [
     "VERSION_2_DEFAULTS",
     "VERSION_3_DEFAULTS",
     "VERSION_4_DEFAULTS",
+    "VERSION_5_DEFAULTS",
     "config_version",
 ]
 
@@ -75,7 +77,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 3: loss.crop_to_subject on by default (docs/quality.md, "Losses where the subject is").
 # 4: loss.lpips_every 2 by default (docs/rendering.md, "Training on CPU").
 # 5: model.occlusion key by default (docs/quality.md, "A key light found in training").
-CONFIG_VERSION = 5
+# 6: pose_refine.auto on by default (docs/real-captures.md, "Pose refinement").
+CONFIG_VERSION = 6
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -85,6 +88,8 @@ VERSION_2_DEFAULTS = {"loss.crop_to_subject": False}
 VERSION_3_DEFAULTS = {"loss.lpips_every": 1}
 # Keys whose default changed since version 4, with their version-4 value (older dicts get them too).
 VERSION_4_DEFAULTS = {"model.occlusion": "none"}
+# Keys whose default changed since version 5, with their version-5 value (older dicts get them too).
+VERSION_5_DEFAULTS = {"pose_refine.auto": False}
 
 
 @dataclass
@@ -188,7 +193,10 @@ class PoseRefineConfig:
     units for translation and expression). Test frames keep the tracker's parameters.
     """
 
-    enabled: bool = False
+    enabled: bool = False  # refine; a capture without body/head-model parameters is refused
+    # refine when the capture's meshes come from SMPL/SMPL-X/FLAME parameters and the model files are found
+    # (else train without, saying why); the paper (preset): false
+    auto: bool = True
     lr: float = 3e-4  # bench/pose_refine.py: 3e-4 best of 3e-4, 1e-3, 5e-3 (diverges) at the demo budget
     params: str = "global_orient,body_pose,transl,neck_pose,jaw_pose,expression"
 
@@ -493,7 +501,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     version (or an older partial file) keeps its meaning under today's defaults. Versions 1 and 2
     likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
     versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
-    ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none).
+    ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none), versions 1 to 5 each ``VERSION_5_DEFAULTS`` key
+    (``pose_refine.auto``: false).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -514,6 +523,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_3_DEFAULTS)
     if version <= 4:
         d = _with_defaults(d, VERSION_4_DEFAULTS)
+    if version <= 5:
+        d = _with_defaults(d, VERSION_5_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

@@ -15,7 +15,6 @@ import numpy as np
 import torch
 
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.drivers.body_models import BodyModel
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["PoseRefiner"]
@@ -33,20 +32,12 @@ class PoseRefiner:
         model_dir: str | None,
         device: torch.device,
     ) -> None:
-        info = dataset.driver_info
-        if info is None or dataset.driver_params is None:
+        if dataset.driver_info is None or dataset.driver_params is None:
             raise MeshsplatError(
                 f"pose_refine: {dataset.root} has no body/head model parameters "
                 f"({dataset.format_name} layout); pose refinement needs SMPL/SMPL-X/FLAME parameters"
             )
-        self.model = BodyModel(
-            info["type"],
-            model_dir,
-            gender=info.get("gender", "neutral"),
-            flame_version=str(info.get("flame_version", "2020")),
-            scale=float(info.get("scale", 1.0)),
-            device=device,
-        )
+        self.model = dataset.body_model(model_dir, device)
         per_frame = set(dataset.per_frame_param_names)
         params = dataset.driver_params
         rows = sorted({int(dataset.frame_info(i)["mesh"]) for i in train_ids})

@@ -3,8 +3,9 @@
     quality   the default (``TrainConfig()``, ``meshsplat train``): pose-dependent shading
               (model.shading=sh2), colours initialised from 8 frames, colour lr 1e-2, LPIPS on the
               box around the subject and on every second iteration (at twice the weight), and a key light
-              found in training whose shadow the posed mesh casts (model.occlusion=key); measured in
-              docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
+              found in training whose shadow the posed mesh casts (model.occlusion=key), and the tracked
+              poses refined when the capture has SMPL/SMPL-X/FLAME parameters (pose_refine.auto); measured
+              in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
               first frame, the paper's learning rates, LPIPS on the full frame every iteration, on the same
               30k-iteration schedule
@@ -34,6 +35,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.crop_to_subject=true",
         "loss.lpips_every=2",
         "model.occlusion=key",
+        "pose_refine.auto=true",
     ),
     "paper": (
         "model.shading=none",
@@ -42,6 +44,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.crop_to_subject=false",
         "loss.lpips_every=1",
         "model.occlusion=none",
+        "pose_refine.auto=false",
     ),
 }
 DEFAULT_PRESET = "quality"

@@ -167,12 +167,7 @@ class Trainer:
         if self.cfg.batch_size > 1:
             self.lrs = {k: v * self.lr_factor for k, v in self.lrs.items()}
         self.schedule = LrSchedule(self.cfg.optim, self.lrs, self.cfg.iterations)
-        self.refiner = None
-        if self.cfg.pose_refine.enabled:
-            pr = self.cfg.pose_refine
-            self.refiner = PoseRefiner(
-                self.dataset, self.train_ids, pr.params, pr.lr * self.lr_factor, self.cfg.model_dir or None, self.device
-            )
+        self.refiner, self.pose_refine_note = self._pose_refiner()
         self.perceptual = None
         if self.cfg.loss.lambda_lpips:
             # built now: nothing may draw random numbers after seeding or restoring the generators
@@ -211,6 +206,28 @@ class Trainer:
             self._fresh_start()
 
     # ---- setup -----------------------------------------------------------------------
+    def _pose_refiner(self) -> tuple[PoseRefiner | None, str | None]:
+        """The refiner of ``pose_refine.enabled`` (refusing a capture it cannot refine) or of
+        ``pose_refine.auto`` (when the capture's meshes come from body/head-model parameters and the model
+        files are found), and a one-line note of what auto decided (None when there was nothing to decide)."""
+        pr = self.cfg.pose_refine
+        has_params = self.dataset.driver_info is not None and self.dataset.driver_params is not None
+        if not pr.enabled and not (pr.auto and has_params):
+            return None, None
+        try:
+            refiner = PoseRefiner(
+                self.dataset, self.train_ids, pr.params, pr.lr * self.lr_factor, self.cfg.model_dir or None, self.device
+            )
+        except MeshsplatError as exc:
+            if pr.enabled:
+                raise
+            return None, f"pose refinement off, the tracker's poses are kept: {exc}"
+        kind = str((self.dataset.driver_info or {}).get("type", "model")).upper()
+        return (
+            refiner,
+            f"pose refinement on: {', '.join(refiner.names)} of {len(refiner.row_of)} training meshes ({kind})",
+        )
+
     def _fresh_start(self) -> None:
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
@@ -645,6 +662,12 @@ class Trainer:
                     "pose_refine.enabled or start a new run"
                 )
             self.refiner.load_state_dict(st["pose_refine"])
+        elif st.get("pose_refine"):
+            why = f" ({self.pose_refine_note})" if self.pose_refine_note else ""
+            raise MeshsplatError(
+                f"checkpoint: it was trained with pose refinement, which this configuration does not do{why}; "
+                "resume with the same settings and model files (--model-dir) or start a new run"
+            )
         sh_state = av.get("shading")
         if (sh_state is None) != (self.cfg.model.shading == "none"):
             raise MeshsplatError(

@@ -1,0 +1,216 @@
+"""Pose refinement: the trained offsets, the refined poses a run hands to eval, and their refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.eval import evaluate_run
+from meshsplat.run_folder import TRACKED_POSES_FLAG, load_run
+from meshsplat.synth import synthesize
+from meshsplat.train import TrainConfig, Trainer, apply_overrides
+
+
+@pytest.fixture(scope="module")
+def noisy_smpl(tmp_path_factory, standin_model_dir):
+    """The stand-in SMPL body, 6 training frames at 48 px whose tracked poses are off by 0.05 rad, two
+    held-out frames and held-out views of 2 training frames."""
+    root = tmp_path_factory.mktemp("smpl") / "noisy"
+    synthesize(
+        "smpl",
+        root,
+        frames=6,
+        resolution=48,
+        test_frames=2,
+        test_views=1,
+        test_view_frames=2,
+        model_dir=standin_model_dir,
+        pose_noise=0.05,
+        threads=None,
+    )
+    return root
+
+
+@pytest.fixture(scope="module")
+def refined_run(tmp_path_factory, noisy_smpl, standin_model_dir):
+    out = tmp_path_factory.mktemp("runs") / "refined"
+    cfg = TrainConfig(data=str(noisy_smpl), out=str(out), iterations=12, device="cpu", backend="torch")
+    cfg = apply_overrides(
+        cfg,
+        [
+            "progress=false",
+            "model.n_init=300",
+            "loss.lambda_lpips=0",
+            "checkpoint_every=12",
+            "preview_every=100",
+            "pose_refine.enabled=true",
+            "pose_refine.lr=1e-2",
+            f"model_dir={standin_model_dir}",
+        ],
+    )
+    trainer = Trainer(cfg)
+    trainer.train()
+    return out, trainer
+
+
+def _rows(ds, split):
+    return {int(ds.frame_info(i)["mesh"]) for i in ds.split(split)}
+
+
+def test_training_moves_the_poses_and_saves_them(refined_run, noisy_smpl):
+    out, trainer = refined_run
+    assert all(v > 0 for v in trainer.refiner.offset_norms().values())
+    with np.load(out / "refined_params.npz", allow_pickle=False) as z:
+        rows = set(z["mesh_rows"].tolist())
+    assert rows == _rows(trainer.dataset, "train")
+
+
+def test_a_run_hands_eval_its_refined_training_poses(refined_run):
+    """Held-out views of training frames come in the refined pose (the one training rendered); held-out
+    frames keep the tracker's; ``refined_poses=False`` gives the tracker's everywhere."""
+    out, trainer = refined_run
+    run = load_run(out)
+    tracked, refined = run.open_dataset(refined_poses=False), run.open_dataset()
+    train_rows = _rows(tracked, "train")
+    assert refined.replaced_meshes == train_rows and not tracked.replaced_meshes
+    assert _rows(tracked, "test_views") <= train_rows and not _rows(tracked, "test_frames") & train_rows
+    for i in tracked.split("test_views"):
+        row = int(tracked.frame_info(i)["mesh"])
+        with torch.no_grad():
+            want = trainer.refiner.vertices(row).float()
+        torch.testing.assert_close(refined.vertices(i), want, atol=1e-5, rtol=0)
+        assert float((refined.vertices(i) - tracked.vertices(i)).abs().max()) > 1e-4
+    for i in tracked.split("test_frames"):
+        assert torch.equal(refined.vertices(i), tracked.vertices(i))
+
+
+def test_eval_says_which_frames_used_refined_poses(refined_run, tmp_path):
+    out, _ = refined_run
+    m = evaluate_run(out, out_dir=tmp_path / "a", lpips_net=None, report=False, device="cpu")
+    views = m["splits"]["test_views"]["frames"]
+    assert m["refined_pose_frames"] == len(views) == 2 and all(f["refined_pose"] for f in views)
+    assert not any(f["refined_pose"] for f in m["splits"]["test_frames"]["frames"])
+    t = evaluate_run(out, out_dir=tmp_path / "b", lpips_net=None, report=False, device="cpu", refined_poses=False)
+    assert t["refined_pose_frames"] == 0
+    assert t["splits"]["test_frames"]["psnr"] == pytest.approx(m["splits"]["test_frames"]["psnr"])
+    assert json.loads((tmp_path / "a" / "metrics.json").read_text())["refined_pose_frames"] == 2
+
+
+def test_another_capture_gets_no_refined_poses(refined_run, noisy_smpl, tmp_path):
+    import shutil
+
+    out, _ = refined_run
+    copy = tmp_path / "copy"
+    shutil.copytree(noisy_smpl, copy)
+    assert not load_run(out).open_dataset(copy).replaced_meshes
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda p: p.write_bytes(b"not an npz"),
+        lambda p: np.savez(p, mesh_rows=np.array([0, 0])),
+        lambda p: np.savez(p, mesh_rows=np.array([10_000])),
+        lambda p: np.savez(p, mesh_rows=np.array([0]), body_pose=np.zeros((1, 5), np.float32)),
+        lambda p: np.savez(p, mesh_rows=np.array([0]), body_pose=np.full((1, 69), np.nan, np.float32)),
+        lambda p: np.savez(p, mesh_rows=np.array([0]), shoe_size=np.zeros((1, 1), np.float32)),
+    ],
+    ids=["not_npz", "repeated_rows", "row_out_of_range", "wrong_width", "nan", "unknown_key"],
+)
+def test_broken_refined_poses_are_refused_in_one_line(refined_run, tmp_path, damage):
+    import shutil
+
+    out, _ = refined_run
+    run_dir = tmp_path / "run"
+    shutil.copytree(out, run_dir)
+    damage(run_dir / "refined_params.npz")
+    with pytest.raises(MeshsplatError) as err:
+        load_run(run_dir).open_dataset()
+    msg = str(err.value)
+    assert "\n" not in msg and "refined_params.npz" in msg and TRACKED_POSES_FLAG in msg
+    assert not load_run(run_dir).open_dataset(refined_poses=False).replaced_meshes
+
+
+def test_with_meshes_checks_rows_and_shapes(noisy_smpl):
+    from meshsplat.data import open_dataset
+
+    ds = open_dataset(noisy_smpl)
+    v = np.zeros((ds.num_vertices, 3), np.float32)
+    other = ds.with_meshes({0: v})
+    i = next(j for j in range(len(ds)) if int(ds.frame_info(j)["mesh"]) == 0)
+    assert float(other.vertices(i).abs().max()) == 0 and float(ds.vertices(i).abs().max()) > 0
+    for bad in ({0: v[:5]}, {-1: v}, {10_000: v}):
+        with pytest.raises(MeshsplatError, match="with_meshes"):
+            ds.with_meshes(bad)
+
+
+def test_eval_command_names_refined_frames_and_takes_tracked_poses(refined_run, tmp_path, capsys):
+    from meshsplat.cli.main import main
+
+    out, _ = refined_run
+    assert main(["eval", str(out), "--out", str(tmp_path / "a"), "--no-lpips", "--no-report"]) == 0
+    assert "2 frames in the poses training refined" in capsys.readouterr().out
+    assert main(["eval", str(out), "--out", str(tmp_path / "b"), "--no-lpips", "--no-report", TRACKED_POSES_FLAG]) == 0
+    assert "poses training refined" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["refined_pose_frames"] == 0
+
+
+def _short(data, out, *extra):
+    cfg = TrainConfig(data=str(data), out=str(out), iterations=2, device="cpu", backend="torch")
+    return apply_overrides(
+        cfg, ["progress=false", "model.n_init=100", "loss.lambda_lpips=0", "checkpoint_every=2", *extra]
+    )
+
+
+def test_the_default_refines_a_body_model_capture_when_it_finds_the_model_files(
+    noisy_smpl, standin_model_dir, tmp_path, monkeypatch
+):
+    monkeypatch.delenv("MESHSPLAT_MODEL_DIR", raising=False)
+    on = Trainer(_short(noisy_smpl, tmp_path / "on", f"model_dir={standin_model_dir}"))
+    assert on.refiner is not None and on.pose_refine_note.startswith("pose refinement on: ")
+    assert "SMPL" in on.pose_refine_note and "of 6 training meshes" in on.pose_refine_note
+    off = Trainer(_short(noisy_smpl, tmp_path / "off", f"model_dir={tmp_path / 'nothing'}"))
+    assert off.refiner is None and off.pose_refine_note.startswith("pose refinement off, ")
+    assert "--model-dir" in off.pose_refine_note and "\n" not in off.pose_refine_note
+    # asked for explicitly, missing model files are an error, as before
+    with pytest.raises(MeshsplatError):
+        Trainer(_short(noisy_smpl, tmp_path / "on2", "pose_refine.enabled=true", f"model_dir={tmp_path / 'none'}"))
+    assert Trainer(_short(noisy_smpl, tmp_path / "no", "pose_refine.auto=false")).refiner is None
+
+
+def test_a_mesh_capture_trains_without_refinement_and_without_a_note(noisy_smpl, tmp_path):
+    import shutil
+
+    plain = tmp_path / "plain"
+    shutil.copytree(noisy_smpl, plain)
+    doc = json.loads((plain / "manifest.json").read_text())
+    doc.pop("driver", None)
+    (plain / "manifest.json").write_text(json.dumps(doc))
+    t = Trainer(_short(plain, tmp_path / "run"))
+    assert t.refiner is None and t.pose_refine_note is None
+    with pytest.raises(MeshsplatError, match="no body/head model parameters"):
+        Trainer(_short(plain, tmp_path / "run2", "pose_refine.enabled=true"))
+
+
+def test_resuming_a_refined_run_without_the_model_files_is_refused(noisy_smpl, standin_model_dir, tmp_path):
+    out = tmp_path / "run"
+    Trainer(_short(noisy_smpl, out, f"model_dir={standin_model_dir}")).train()
+    cfg = _short(noisy_smpl, out, f"model_dir={tmp_path / 'gone'}")
+    with pytest.raises(MeshsplatError) as err:
+        Trainer(cfg, resume=True)
+    assert "trained with pose refinement" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_train_command_says_what_it_decided(noisy_smpl, standin_model_dir, tmp_path, capsys):
+    from meshsplat.cli.main import main
+
+    args = ["train", str(noisy_smpl), "--iters", "2", "--set", "model.n_init=100", "loss.lambda_lpips=0"]
+    assert main([*args, "--out", str(tmp_path / "a"), "--model-dir", str(standin_model_dir)]) == 0
+    assert "pose refinement on: " in capsys.readouterr().out
+    assert main([*args, "--out", str(tmp_path / "b"), "--model-dir", str(standin_model_dir), "--no-refine-pose"]) == 0
+    assert "pose refinement" not in capsys.readouterr().out
+    assert not json.loads((tmp_path / "b" / "config.json").read_text())["pose_refine"]["auto"]
