@@ -135,6 +135,17 @@ def test_broken_refined_poses_are_refused_in_one_line(refined_run, tmp_path, dam
     assert not load_run(run_dir).open_dataset(refined_poses=False).replaced_meshes
 
 
+def test_refined_poses_without_the_model_files_name_the_way_out(refined_run, tmp_path, monkeypatch):
+    out, _ = refined_run
+    monkeypatch.delenv("MESHSPLAT_MODEL_DIR", raising=False)
+    run = load_run(out)
+    with pytest.raises(MeshsplatError) as err:
+        run.open_dataset(model_dir=tmp_path / "no_models")
+    msg = str(err.value)
+    assert "\n" not in msg and "refined poses need the body model" in msg and TRACKED_POSES_FLAG in msg
+    assert not run.open_dataset(model_dir=tmp_path / "no_models", refined_poses=False).replaced_meshes
+
+
 def test_with_meshes_checks_rows_and_shapes(noisy_smpl):
     from meshsplat.data import open_dataset
 

@@ -324,7 +324,10 @@ class LoadedRun:
                 )
         if not len(rows):
             return {}
-        model = dataset.body_model(model_dir if model_dir is not None else self.model_dir(), "cpu")
+        try:
+            model = dataset.body_model(model_dir if model_dir is not None else self.model_dir(), "cpu")
+        except MeshsplatError as exc:
+            raise MeshsplatError(f"the run's refined poses need the body model: {exc}; {redo}") from None
         full = {k: (arrays[k] if k in arrays else params[k][rows]) if k in per_frame else v for k, v in params.items()}
         out: dict[int, np.ndarray] = {}
         with torch.no_grad():
