@@ -254,3 +254,16 @@ def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_
         np.load(tmp_path / "resumed" / "refined_params.npz") as b,
     ):
         assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
+def test_with_meshes_holds_only_the_replaced_rows_and_drives_with_them(noisy_smpl):
+    from meshsplat.data import open_dataset
+
+    ds = open_dataset(noisy_smpl)
+    v = np.full((ds.num_vertices, 3), 0.25, np.float32)
+    other = ds.with_meshes({1: v})
+    assert other._verts is ds._verts  # the stored meshes are shared, not copied
+    again = other.with_meshes({2: v})
+    assert again.replaced_meshes == {1, 2} and other.replaced_meshes == {1}
+    drv = again.driver()
+    assert torch.equal(drv.vertices(1), torch.from_numpy(v)) and torch.equal(drv.vertices(0), ds.driver().vertices(0))

@@ -74,7 +74,7 @@ class AvatarDataset:
         self._splits = {k: [int(i) for i in v] for k, v in manifest.get("splits", {}).items()}
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
-        self.replaced_meshes: frozenset[int] = frozenset()  # mesh rows set by with_meshes
+        self._replaced: dict[int, np.ndarray] = {}  # mesh row -> vertices [V,3] set by with_meshes
         self.downscale = 1.0  # set_downscale: cameras and frames at 1/downscale of the recorded size
         backdrop = manifest.get("backdrop")
         self.backdrop = None if backdrop is None else torch.tensor(backdrop, dtype=torch.float32)
@@ -146,7 +146,7 @@ class AvatarDataset:
         """Where orbit cameras start (azimuth 0) ``[3]``: +z in a +y-up world, else the first frame's
         camera side of the subject (``camera.capture_front``)."""
         rec = self._frames[0]
-        center = np.asarray(self._verts[rec["mesh"]], np.float64).mean(0)
+        center = np.asarray(self._mesh(rec["mesh"]), np.float64).mean(0)
         return torch.from_numpy(capture_front(self._cameras[str(rec["camera"])][1], center, self.up.double())).float()
 
     @property
@@ -190,7 +190,17 @@ class AvatarDataset:
     def vertices(self, i: int) -> torch.Tensor:
         """Driving vertices ``[V,3]`` of frame ``i`` without loading its image."""
         rec = self._frames[self._index(i)]
-        return torch.from_numpy(np.array(self._verts[rec["mesh"]], dtype=np.float32))
+        return torch.from_numpy(np.array(self._mesh(rec["mesh"]), dtype=np.float32))
+
+    def _mesh(self, row: int) -> np.ndarray:
+        """Driving vertices ``[V,3]`` of mesh ``row``: the replaced ones (``with_meshes``), else the stored."""
+        hit = self._replaced.get(int(row))
+        return self._verts[row] if hit is None else hit
+
+    @property
+    def replaced_meshes(self) -> frozenset[int]:
+        """Mesh rows whose vertices ``with_meshes`` replaced."""
+        return frozenset(self._replaced)
 
     def body_model(self, model_dir: str | Path | None, device: torch.device | str = "cpu") -> BodyModel:
         """The body/head model whose parameters (``driver_params``) drive this capture's meshes, from the
@@ -212,7 +222,8 @@ class AvatarDataset:
 
     def with_meshes(self, meshes: dict[int, np.ndarray]) -> AvatarDataset:
         """A copy whose driving meshes ``row -> vertices [V,3]`` replace the stored ones (e.g. a run's refined
-        training poses); images, cameras and splits are shared."""
+        training poses); images, cameras, splits and the stored meshes are shared (only the replaced rows
+        are held)."""
         shape = (self.num_vertices, 3)
         for row, v in meshes.items():
             if not 0 <= int(row) < self._verts.shape[0] or tuple(np.shape(v)) != shape:
@@ -221,16 +232,18 @@ class AvatarDataset:
                     f"[0, {self._verts.shape[0]}) and [{shape[0]}, 3]"
                 )
         out = copy.copy(self)
-        out._verts = np.array(self._verts, dtype=np.float32)
-        for row, v in meshes.items():
-            out._verts[int(row)] = np.asarray(v, dtype=np.float32)
+        out._replaced = {**self._replaced, **{int(r): np.asarray(v, dtype=np.float32) for r, v in meshes.items()}}
         out._cache = OrderedDict()
-        out.replaced_meshes = self.replaced_meshes | {int(r) for r in meshes}
         return out
 
     def driver(self) -> SequenceDriver:
-        """All stored meshes as a :class:`SequenceDriver` (rest = canonical)."""
-        return SequenceDriver(self._verts, self.faces, rest=self.canonical_vertices)
+        """All meshes as a :class:`SequenceDriver` (rest = canonical); replaced rows as replaced."""
+        verts = self._verts
+        if self._replaced:  # a copy only here: frames read the replaced rows one by one (_mesh)
+            verts = np.array(verts, dtype=np.float32)
+            for row, v in self._replaced.items():
+                verts[row] = v
+        return SequenceDriver(verts, self.faces, rest=self.canonical_vertices)
 
     def _index(self, i: int) -> int:
         n = len(self._frames)
