@@ -18,7 +18,7 @@ import torch
 from meshsplat.camera import Camera, capture_front, capture_up
 from meshsplat.data.downscale import check_downscale, downscale_frame, downscaled_size, scale_intrinsics
 from meshsplat.drivers.base import SequenceDriver
-from meshsplat.drivers.body_models import BodyModel
+from meshsplat.drivers.body_models import BodyModel, model_from_record
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy
 from meshsplat.io.images import png_max, read_image
@@ -211,14 +211,7 @@ class AvatarDataset:
                 f"{self.root} has no body/head model parameters ({self.format_name} layout): "
                 "its meshes are not driven by SMPL/SMPL-X/FLAME parameters"
             )
-        return BodyModel(
-            info["type"],
-            model_dir,
-            gender=info.get("gender", "neutral"),
-            flame_version=str(info.get("flame_version", "2020")),
-            scale=float(info.get("scale", 1.0)),
-            device=device,
-        )
+        return model_from_record(info, model_dir, device)
 
     def with_meshes(self, meshes: dict[int, np.ndarray]) -> AvatarDataset:
         """A copy whose driving meshes ``row -> vertices [V,3]`` replace the stored ones (e.g. a run's refined

@@ -31,7 +31,7 @@ from meshsplat.drivers.avatar_match import (
     sequence_for_mesh,
 )
 from meshsplat.drivers.blendshape import BlendshapeDriver, read_weights
-from meshsplat.drivers.body_models import BodyModel, ParametricDriver, model_kind_for
+from meshsplat.drivers.body_models import ParametricDriver, model_from_record, model_kind_for
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
@@ -266,13 +266,7 @@ def _motion_frames(
                 "standard topology; use --animation gltf FILE or --animation vertices FILE"
             )
         info = {"type": kind}
-    model = BodyModel(
-        info["type"],
-        source.model_dir,
-        gender=info.get("gender", "neutral"),
-        flame_version=str(info.get("flame_version", "2020")),
-        scale=float(info.get("scale", 1.0)),
-    )
+    model = model_from_record(info, source.model_dir)
     if model.num_vertices != mesh.num_vertices:
         raise MeshsplatError(
             f"the {info['type']} model in {model.path} has {model.num_vertices} vertices but the "

@@ -37,6 +37,7 @@ __all__ = [
     "model_kind_for",
     "BodyModel",
     "BodyOutput",
+    "model_from_record",
     "ParametricDriver",
     "resolve_model_dir",
     "find_model_file",
@@ -567,3 +568,18 @@ def driver_record(model: BodyModel, params_file: str = "driver_params.npz") -> d
         "scale": model.scale,
         "params": params_file,
     }
+
+
+def model_from_record(
+    record: dict, model_dir: Path | str | None = None, device: torch.device | str = "cpu"
+) -> BodyModel:
+    """The model a manifest's ``driver`` entry (``driver_record``) names, from the user's files in
+    ``model_dir`` (default ``$MESHSPLAT_MODEL_DIR``)."""
+    return BodyModel(
+        record["type"],
+        model_dir,
+        gender=record.get("gender", "neutral"),
+        flame_version=str(record.get("flame_version", "2020")),
+        scale=float(record.get("scale", 1.0)),
+        device=device,
+    )
