@@ -54,6 +54,11 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_key_spec": ("quality", ["model.occlusion=key", "model.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
     "default_lrdecay3e-4": ("quality", ["optim.lr_color_final=3e-4"]),
+    # the lighting's learning rate; 5e-3 was the default before config version 7, 5e-2 is the default now
+    "default_lr5e-3": ("quality", ["optim.lr_shading=5e-3"]),
+    "default_lrsh2e-2": ("quality", ["optim.lr_shading=2e-2"]),
+    "default_lrsh5e-2": ("quality", ["optim.lr_shading=5e-2"]),
+    "default_lrsh1e-1": ("quality", ["optim.lr_shading=1e-1"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {

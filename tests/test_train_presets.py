@@ -11,16 +11,8 @@ from meshsplat.demo import PRESETS as DEMO_SIZES
 from meshsplat.demo import demo_train_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.train import DEFAULT_PRESET, PRESETS, TrainConfig, apply_overrides, load_config, preset_config
-from meshsplat.train.config import (
-    CONFIG_FORMAT,
-    CONFIG_VERSION,
-    VERSION_1_DEFAULTS,
-    VERSION_2_DEFAULTS,
-    VERSION_3_DEFAULTS,
-    VERSION_4_DEFAULTS,
-    VERSION_5_DEFAULTS,
-    upgrade_config_dict,
-)
+from meshsplat.train import config as config_module
+from meshsplat.train.config import CONFIG_FORMAT, CONFIG_VERSION, upgrade_config_dict
 from meshsplat.train.presets import preset_differences, preset_overrides
 
 
@@ -89,6 +81,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "loss.lpips_every=1 (the quality preset's: 2)",
         "model.occlusion='none' (the quality preset's: 'key')",
         "pose_refine.auto=False (the quality preset's: True)",
+        "optim.lr_shading=0.005 (the quality preset's: 0.05)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -97,7 +90,8 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    tables = (VERSION_1_DEFAULTS, VERSION_2_DEFAULTS, VERSION_3_DEFAULTS, VERSION_4_DEFAULTS, VERSION_5_DEFAULTS)
+    # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_6_DEFAULTS)
+    tables = [getattr(config_module, f"VERSION_{v}_DEFAULTS") for v in range(1, CONFIG_VERSION)]
     for table in tables:
         assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
 
@@ -112,6 +106,7 @@ _OLD_DEFAULTS = [
     "loss.lpips_every=1",
     "model.occlusion=none",
     "pose_refine.auto=false",
+    "optim.lr_shading=5e-3",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -122,6 +117,7 @@ _OLD_QUALITY = [
     "loss.lpips_every=2",
     "model.occlusion=key",  # the key light, default since config version 5
     "pose_refine.auto=true",  # since config version 6
+    "optim.lr_shading=5e-2",  # since config version 7
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -167,11 +163,11 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 6)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 7)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
-    (tmp_path / "partial.json").write_text(json.dumps({"version": 6, "seed": 5}))
+    (tmp_path / "partial.json").write_text(json.dumps({"version": 7, "seed": 5}))
     assert load_config(tmp_path / "partial.json").model.shading == "sh2"
     assert load_config(tmp_path / "partial.json", base=preset_config("paper")) == apply_overrides(
         preset_config("paper"), ["seed=5"]
@@ -215,49 +211,35 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
     assert not TrainConfig.from_dict({"seed": 1}).loss.crop_to_subject
 
 
-def test_version_3_config_keeps_lpips_on_every_iteration(tmp_path):
-    # written before loss.lpips_every was 2 by default (the key did not exist yet)
+@pytest.mark.parametrize(
+    "version, key, old_value, set_value",
+    [
+        (3, "loss.lpips_every", 1, 3),  # written before loss.lpips_every was 2
+        (4, "model.occlusion", "none", "key"),  # before model.occlusion was key
+        (5, "pose_refine.auto", False, True),  # before pose_refine.auto was on (the key did not exist yet)
+        (6, "optim.lr_shading", 5e-3, 0.05),  # before optim.lr_shading was 5e-2
+    ],
+)
+def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, key, old_value, set_value):
+    section, name = key.split(".")
+
+    def value(cfg):
+        return getattr(getattr(cfg, section), name)
+
     old = preset_config("quality").to_dict()
-    del old["loss"]["lpips_every"]
-    (tmp_path / "config.json").write_text(json.dumps({"version": 3, **old}))
-    got = load_config(tmp_path / "config.json")
-    assert got == apply_overrides(preset_config("quality"), ["loss.lpips_every=1"])
-    assert TrainConfig.from_dict({"version": 3, "seed": 1}).loss.lpips_every == 1
-    assert TrainConfig.from_dict({"version": 3, "loss": {"lpips_every": 3}}).loss.lpips_every == 3
-    assert TrainConfig.from_dict({"version": 4, "seed": 1}).loss.lpips_every == 2
-    assert TrainConfig.from_dict({"seed": 1}).loss.lpips_every == 1  # version 1
-
-
-def test_version_4_config_keeps_training_without_the_key_light(tmp_path):
-    # written before model.occlusion was key by default
-    old = preset_config("quality").to_dict()
-    del old["model"]["occlusion"]
-    (tmp_path / "config.json").write_text(json.dumps({"version": 4, **old}))
-    got = load_config(tmp_path / "config.json")
-    assert got == apply_overrides(preset_config("quality"), ["model.occlusion=none"])
-    assert TrainConfig.from_dict({"version": 4, "seed": 1}).model.occlusion == "none"
-    assert TrainConfig.from_dict({"version": 4, "model": {"occlusion": "key"}}).model.occlusion == "key"
-    assert TrainConfig.from_dict({"version": 5, "seed": 1}).model.occlusion == "key"
-    assert TrainConfig.from_dict({"seed": 1}).model.occlusion == "none"  # version 1
-
-
-def test_version_5_config_keeps_the_tracked_poses(tmp_path):
-    # written before pose_refine.auto was on by default (the key did not exist yet)
-    old = preset_config("quality").to_dict()
-    del old["pose_refine"]["auto"]
-    (tmp_path / "config.json").write_text(json.dumps({"version": 5, **old}))
-    got = load_config(tmp_path / "config.json")
-    assert got == apply_overrides(preset_config("quality"), ["pose_refine.auto=false"])
-    assert not TrainConfig.from_dict({"version": 5, "seed": 1}).pose_refine.auto
-    assert TrainConfig.from_dict({"version": 5, "pose_refine": {"auto": True}}).pose_refine.auto
-    assert TrainConfig.from_dict({"version": 6, "seed": 1}).pose_refine.auto
-    assert not TrainConfig.from_dict({"seed": 1}).pose_refine.auto  # version 1
+    del old[section][name]
+    (tmp_path / "config.json").write_text(json.dumps({"version": version, **old}))
+    assert load_config(tmp_path / "config.json") == apply_overrides(preset_config("quality"), [f"{key}={old_value}"])
+    assert value(TrainConfig.from_dict({"version": version, "seed": 1})) == old_value
+    assert value(TrainConfig.from_dict({"version": version, section: {name: set_value}})) == set_value
+    assert value(TrainConfig.from_dict({"version": version + 1, "seed": 1})) == value(preset_config("quality"))
+    assert value(TrainConfig.from_dict({"seed": 1})) == old_value  # version 1
 
 
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 7}, r"^config: format version 7 is newer than this meshsplat reads \(6\); update meshsplat"),
+        ({"version": 8}, r"^config: format version 8 is newer than this meshsplat reads \(7\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

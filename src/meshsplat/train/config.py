@@ -13,7 +13,7 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``),
 a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a version-4 dict before
 ``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``), a version-5 dict before ``pose_refine.auto``
-was on (``VERSION_5_DEFAULTS``).
+was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` was 5e-2 (``VERSION_6_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -61,6 +61,7 @@ __all__ = [
     "VERSION_3_DEFAULTS",
     "VERSION_4_DEFAULTS",
     "VERSION_5_DEFAULTS",
+    "VERSION_6_DEFAULTS",
     "config_version",
 ]
 
@@ -78,7 +79,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 4: loss.lpips_every 2 by default (docs/rendering.md, "Training on CPU").
 # 5: model.occlusion key by default (docs/quality.md, "A key light found in training").
 # 6: pose_refine.auto on by default (docs/real-captures.md, "Pose refinement").
-CONFIG_VERSION = 6
+# 7: optim.lr_shading 5e-2 by default (docs/quality.md, "The lighting's learning rate").
+CONFIG_VERSION = 7
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -90,6 +92,8 @@ VERSION_3_DEFAULTS = {"loss.lpips_every": 1}
 VERSION_4_DEFAULTS = {"model.occlusion": "none"}
 # Keys whose default changed since version 5, with their version-5 value (older dicts get them too).
 VERSION_5_DEFAULTS = {"pose_refine.auto": False}
+# Keys whose default changed since version 6, with their version-6 value (older dicts get them too).
+VERSION_6_DEFAULTS = {"optim.lr_shading": 5e-3}
 
 
 @dataclass
@@ -145,7 +149,7 @@ class OptimConfig:
     lr_opacity: float = 5e-2
     lr_scale: float = 5e-3
     lr_rotation: float = 1e-3
-    lr_shading: float = 5e-3  # the illumination coefficients (model.shading != "none")
+    lr_shading: float = 5e-2  # the illumination coefficients (model.shading != "none")
     eps: float = 1e-15
 
 
@@ -502,7 +506,7 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
     versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
     ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none), versions 1 to 5 each ``VERSION_5_DEFAULTS`` key
-    (``pose_refine.auto``: false).
+    (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -525,6 +529,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_4_DEFAULTS)
     if version <= 5:
         d = _with_defaults(d, VERSION_5_DEFAULTS)
+    if version <= 6:
+        d = _with_defaults(d, VERSION_6_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

@@ -4,10 +4,11 @@
               (model.shading=sh2), colours initialised from 8 frames, colour lr 1e-2, LPIPS on the
               box around the subject and on every second iteration (at twice the weight), and a key light
               found in training whose shadow the posed mesh casts (model.occlusion=key), and the tracked
-              poses refined when the capture has SMPL/SMPL-X/FLAME parameters (pose_refine.auto); measured
+              poses refined when the capture has SMPL/SMPL-X/FLAME parameters (pose_refine.auto), the lighting
+              learned at lr 5e-2 (optim.lr_shading); measured
               in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
-              first frame, the paper's learning rates, LPIPS on the full frame every iteration, on the same
+              first frame, the paper's learning rates (and lr_shading as before, unused without shading), LPIPS on the full frame every iteration, on the same
               30k-iteration schedule
 
 Both set the same keys, so applying a preset's overrides to any config gives that preset's model
@@ -36,6 +37,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.lpips_every=2",
         "model.occlusion=key",
         "pose_refine.auto=true",
+        "optim.lr_shading=5e-2",
     ),
     "paper": (
         "model.shading=none",
@@ -45,6 +47,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.lpips_every=1",
         "model.occlusion=none",
         "pose_refine.auto=false",
+        "optim.lr_shading=5e-3",
     ),
 }
 DEFAULT_PRESET = "quality"
