@@ -11,6 +11,7 @@ from meshsplat.cli import train_cmd
 from meshsplat.cli.main import build_parser, main
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from meshsplat.train import Trainer, apply_overrides, load_config, preset_config, preset_overrides
+from meshsplat.train.config import CONFIG_VERSION
 from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
@@ -106,4 +107,4 @@ def test_run_folder_of_an_older_version_resumes_as_written(tiny_dataset, tmp_pat
     res.train()
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
-    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == 6  # rewritten, full
+    assert json.loads((tmp_path / "old" / "config.json").read_text())["version"] == CONFIG_VERSION  # rewritten, full
