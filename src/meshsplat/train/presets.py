@@ -8,8 +8,8 @@
               learned at lr 5e-2 (optim.lr_shading); measured
               in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
-              first frame, the paper's learning rates (and lr_shading as before, unused without shading), LPIPS on the full frame every iteration, on the same
-              30k-iteration schedule
+              first frame, the paper's learning rates (lr_shading the old 5e-3, unused without shading),
+              LPIPS on the full frame every iteration, on the same 30k-iteration schedule
 
 Both set the same keys, so applying a preset's overrides to any config gives that preset's model
 (``meshsplat train --resume --preset NAME`` relies on it: the resume check then refuses a preset
