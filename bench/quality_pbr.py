@@ -58,6 +58,7 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_lr5e-3": ("quality", ["optim.lr_shading=5e-3"]),
     "default_lrsh2e-2": ("quality", ["optim.lr_shading=2e-2"]),
     "default_lrsh5e-2": ("quality", ["optim.lr_shading=5e-2"]),
+    "default_lrsh5e-2_soft8": ("quality", ["optim.lr_shading=5e-2", "model.occlusion_key_soft=8"]),
     "default_lrsh1e-1": ("quality", ["optim.lr_shading=1e-1"]),
 }
 ALL = {**VARIANTS, **EXTRA}

@@ -29,7 +29,9 @@ the remaining lights fold into the SH2 irradiance (their clamped-cosine lobes' S
 unshadowed). Each of ``KEY_RINGS_DEG`` then puts a ring of ``KEY_RING`` new candidates around the
 estimate (all of them sharing the merged intensity equally), to be weighted again, narrowing the
 estimate; the last stage keeps one key light: one shadow map per frame,
-``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``.
+``E(x, n) = E_sh2(n) + L V(x) max(0, n . w)``. With ``key_soft`` (an angular radius in degrees) the key
+is an area light: ``V(x)`` is the mean visibility from ``KEY_SOFT_SAMPLES`` directions spread over the
+disk of that radius around ``w``, so shadows soften with the occluder's distance as a studio light's do.
 A key light's shadow placed within a few degrees of the true light is what moves with pose; the fixed
 directions are tens of degrees off, which is why their shadows transfer badly.
 
@@ -72,6 +74,7 @@ KEY_CONE_DEG = 70.0  # align_key: candidate lights this close to the strongest o
 KEY_RINGS_DEG = (25.0, 10.0)  # align_key: the rings of new candidates around the estimate, stage by stage
 KEY_RING = 6  # candidates per ring
 KEY_STAGES = 1 + len(KEY_RINGS_DEG)  # align_key calls until one key light is left
+KEY_SOFT_SAMPLES = 12  # key_soft > 0: shadow-map directions spread over the key light's disk
 # the clamped cosine max(0, n . w) in SH2: A_l * Y_lm(w) per band l (Ramamoorthi & Hanrahan)
 _CLAMPED_COS_BANDS = (math.pi, 2 * math.pi / 3, 2 * math.pi / 3, 2 * math.pi / 3) + (math.pi / 4,) * 5
 SPECULAR_MODES = ("none", "sh2")  # model.specular: off | an added (not albedo-multiplied) SH2 term of the normal
@@ -131,6 +134,7 @@ class Shading:
         key_stage: int = 0,
         specular: str = "none",
         specular_coeffs: torch.Tensor | None = None,
+        key_soft: float = 0.0,
     ) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
@@ -157,6 +161,9 @@ class Shading:
                 f"shading key: stage 0 has no key directions, stages 1..{KEY_STAGES} have; got {key_stage!r}"
             )
         self.key_stage = key_stage
+        if not isinstance(key_soft, (int, float)) or not 0.0 <= float(key_soft) <= 45.0:
+            raise MeshsplatError(f"shading key_soft: expected an angular radius in 0..45 degrees, got {key_soft!r}")
+        self.key_soft = float(key_soft)
         if occlusion != "none":
             if not isinstance(directions, int) or not 1 <= directions <= 256:
                 raise MeshsplatError(f"shading occlusion directions: expected 1..256, got {directions!r}")
@@ -255,7 +262,26 @@ class Shading:
         ``faces [F,3]``; None without occlusion."""
         if self.directions is None:
             return None
-        return visibility(verts, faces, points, normals, self.directions.to(verts), self.grid)
+        dirs = self.shadow_directions()
+        assert dirs is not None
+        v = visibility(verts, faces, points, normals, dirs.to(verts), self.grid)
+        return v.mean(-1, keepdim=True) if self.soft_key else v
+
+    @property
+    def soft_key(self) -> bool:
+        """An aligned key light with an angular radius (``key_soft`` > 0): an area light, its shadow the mean
+        of ``KEY_SOFT_SAMPLES`` shadow maps."""
+        return self.key_aligned and self.key_soft > 0.0
+
+    def shadow_directions(self) -> torch.Tensor | None:
+        """The directions ``[K,3]`` whose shadow maps ``visibility`` builds: the lights' own, or for a soft key
+        the ``KEY_SOFT_SAMPLES`` directions over its disk (float64, as the web player reads them); None
+        without occlusion."""
+        if self.directions is None:
+            return None
+        if self.soft_key:
+            return _disk(self.directions[0].double(), self.key_soft, KEY_SOFT_SAMPLES)
+        return self.directions
 
     def irradiance(self, normals: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
         """``E(n) [N,3]`` (the SH2 part clamped at 0) for unit ``normals [N,3]``, plus the shadowed directional
@@ -294,6 +320,7 @@ class Shading:
             light=light,
             specular=self.specular_mode,
             specular_coeffs=spec,
+            key_soft=self.key_soft,
         )
 
     def _occlusion_args(self, device: Device = "cpu") -> dict[str, Any]:
@@ -325,6 +352,7 @@ class Shading:
                 "light": self.light.detach().cpu().clone(),
             }
             if self.occlusion == "key":
+                sd["occlusion"]["soft_deg"] = self.key_soft
                 sd["occlusion"]["candidates"] = self.candidates
                 sd["occlusion"]["stage"] = self.key_stage
                 sd["occlusion"]["aligned"] = self.key_aligned  # for readers: one key light
@@ -369,9 +397,13 @@ class Shading:
             key = dirs if stage else None
         if key is None and not torch.allclose(dirs, sphere_directions(k), atol=1e-5):
             raise MeshsplatError(f"shading state: occlusion directions are not the {k} directions this version uses")
+        soft = occ.get("soft_deg", 0.0)  # absent in states written before soft key shadows existed
+        if not isinstance(soft, (int, float)):
+            raise MeshsplatError("shading state: occlusion soft_deg must be a number")
         return cls(
             c.to(device),
             sd["normal"],
+            key_soft=float(soft),
             occlusion=occ["kind"],
             directions=k,
             grid=occ["grid"],
@@ -395,6 +427,19 @@ def _ring(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
     phi = torch.arange(m).to(centre) * (2 * math.pi / m)
     t = math.radians(degrees)
     return math.cos(t) * centre + math.sin(t) * (phi.cos()[:, None] * a + phi.sin()[:, None] * b)
+
+
+def _disk(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
+    """``m`` unit directions ``[m,3]`` spread evenly over the cone of half-angle ``degrees`` around the unit
+    ``centre [3]`` (a Vogel spiral on the tangent disk)."""
+    helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(centre[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
+    a = torch.nn.functional.normalize(torch.linalg.cross(helper.to(centre), centre), dim=0)
+    b = torch.linalg.cross(centre, a)
+    i = torch.arange(m).to(centre) + 0.5
+    r = (i / m).sqrt() * math.tan(math.radians(degrees))
+    phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
+    d = centre + r[:, None] * (phi.cos()[:, None] * a + phi.sin()[:, None] * b)
+    return torch.nn.functional.normalize(d, dim=-1)
 
 
 def _specular_state(spec: Any, device: Device) -> dict[str, Any]:

@@ -126,6 +126,7 @@ class ModelConfig:
     occlusion_directions: int = 16
     occlusion_grid: int = 64
     occlusion_key_iter: int = 300
+    occlusion_key_soft: float = 0.0  # "key": the light's angular radius (degrees); > 0 averages a disk of shadow maps
     # Added light (needs shading != "none"): "none" | "sh2": colour = albedo * E(n) + SH9(n) . specular, a learned
     # [9,3] added, not albedo-multiplied (a glossy highlight on a coloured surface); zero at the start.
     specular: str = "none"
@@ -288,6 +289,7 @@ class TrainConfig:
             (1 <= self.model.occlusion_directions <= 256, "model.occlusion_directions must be in 1..256"),
             (8 <= self.model.occlusion_grid <= 1024, "model.occlusion_grid must be in 8..1024"),
             (self.model.occlusion_key_iter >= 1, "model.occlusion_key_iter must be >= 1"),
+            (0.0 <= self.model.occlusion_key_soft <= 45.0, "model.occlusion_key_soft must be in 0..45 (degrees)"),
             (self.optim.lr_shading > 0, "optim.lr_shading must be > 0"),
             (
                 self.optim.lr_color_final is None or (self.optim.lr_color_final > 0 and self.optim.lr_color > 0),
