@@ -95,21 +95,21 @@ def visibility(
     a = torch.nn.functional.normalize(torch.linalg.cross(helper, dirs), dim=-1)
     b = torch.linalg.cross(dirs, a)
     k = dirs.shape[0]
-    frame = torch.stack([a, b, dirs], 1).reshape(3 * k, 3)  # rows a_k, b_k, w_k per direction
-    offset = torch.arange(k, device=verts.device) * (grid * grid)
+    frame = torch.cat([a, b, dirs])  # [3K,3]: rows a_1..a_K, b_1..b_K, w_1..w_K
+    offset = (torch.arange(k, device=verts.device) * (grid * grid))[:, None]
 
     def cells(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Cell index into the flat ``[K*grid*grid]`` depth and height, both ``[P,K]``, of points ``p [P,3]``."""
-        q = (p @ frame.T).view(-1, k, 3)
-        ij = q[..., :2].add(radius).mul_(1.0 / cell).floor_().clamp_(0, grid - 1)
-        return (ij[..., 0] * grid + ij[..., 1]).long() + offset, q[..., 2]
+        """Cell index into the flat ``[K*grid*grid]`` depth and height, both ``[K,P]``, of points ``p [P,3]``."""
+        q = frame @ p.T  # [3K,P], each row contiguous
+        ij = q[: 2 * k].add_(radius).mul_(1.0 / cell).floor_().clamp_(0, grid - 1)
+        return (ij[:k] * grid).add_(ij[k:]).long().add_(offset), q[2 * k :]
 
     s_idx, s_h = cells(samples)
     depth = torch.full((k * grid * grid,), -math.inf, dtype=verts.dtype, device=verts.device)
     depth.scatter_reduce_(0, s_idx.reshape(-1), s_h.reshape(-1), reduce="amax")
     p_idx, p_h = cells(rel)
-    cos = (normals @ dirs.T).abs().clamp(1e-6, 1.0)  # [N,K]
+    cos = (dirs @ normals.T).abs_().clamp_(1e-6, 1.0)  # [K,N]
     tan = ((1 - cos * cos).clamp_min(0).sqrt() / cos).clamp_max(_MAX_TAN)
     bias = cell * (_BIAS_CELLS + _SLOPE_CELLS * tan)
     lit = p_h >= depth[p_idx] - bias
-    return lit.to(verts.dtype)
+    return lit.T.to(verts.dtype)
