@@ -4,10 +4,11 @@ SwiftShader WebGL2) the page's own timers while playing, with the same avatar wi
 the same-run baseline.
 
 Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
-FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), grid 64 and 128;
-``keyShadowMap`` timed 5 times per frame after 3 warm-up calls; medians over all calls; the surface
-sample count it scatters. Browser: CesiumMan with 20k Gaussians, vertex frames and live glTF (the page
-then also skins the vertices on the CPU for the height map), ``timings.key`` (height map and upload;
+FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), a hard key at grid 64
+and 128 and a soft key (``model.occlusion_key_soft`` 8: 12 maps) at grid 64; ``keyShadowMap`` timed 5
+times per frame after 3 warm-up calls; medians over all calls; the surface sample count it scatters per
+map. Browser: CesiumMan with 20k Gaussians, vertex frames and live glTF (the page then also skins the
+vertices on the CPU for the height map), no key / hard / soft, ``timings.key`` (height maps and upload;
 live glTF: plus that skinning) and ``timings.main`` (the whole requestAnimationFrame callback) while
 playing, 40 frames each.
 
@@ -31,7 +32,7 @@ import torch
 
 from _machine import machine_info, results_path
 from meshsplat.gaussians import Avatar
-from meshsplat.gaussians.shading import KEY_STAGES, Shading
+from meshsplat.gaussians.shading import KEY_SOFT_SAMPLES, KEY_STAGES, Shading
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
 from meshsplat.viewer import write_viewer_bundle
@@ -39,9 +40,10 @@ from viewer import SIZE, cesium, live_rig, random_avatar
 
 ROOT = Path(__file__).resolve().parents[1]
 VIEWER_JS = ROOT / "src" / "meshsplat" / "viewer" / "static" / "viewer.js"
+SOFT_DEG = 8.0  # the soft key's angular radius (model.occlusion_key_soft): KEY_SOFT_SAMPLES maps per pose
 
 
-def key_shading(grid: int) -> Shading:
+def key_shading(grid: int, soft: float = 0.0) -> Shading:
     coeffs = torch.zeros(9, 3)
     coeffs[0] = 0.4 / 0.28209479177387814
     key = torch.nn.functional.normalize(torch.tensor([0.6, 0.5, 0.6]), dim=0)[None]
@@ -53,6 +55,7 @@ def key_shading(grid: int) -> Shading:
         key=key,
         key_stage=KEY_STAGES,
         light=torch.tensor([[1.0, 0.9, 0.8]]),
+        key_soft=soft,
     )
 
 
@@ -141,9 +144,9 @@ def main() -> None:
     rows, browser = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name, mesh, frames in meshes(args.quick):
-            for grid in (64,) if args.quick else (64, 128):
-                av = Avatar(mesh, random_avatar(mesh, 200, False).params, shading=key_shading(grid))
-                folder = Path(tmp) / f"{name}-{grid}".replace(" ", "_")
+            for grid, soft in ((64, 0.0), (64, SOFT_DEG)) + (() if args.quick else ((128, 0.0),)):
+                av = Avatar(mesh, random_avatar(mesh, 200, False).params, shading=key_shading(grid, soft))
+                folder = Path(tmp) / f"{name}-{grid}-{soft}".replace(" ", "_")
                 write_viewer_bundle(av, frames, folder, vertex_encoding="float32")
                 t = node_times(folder)
                 rows.append(
@@ -152,6 +155,7 @@ def main() -> None:
                         "vertices": mesh.num_vertices,
                         "triangles": mesh.num_faces,
                         "grid": grid,
+                        "maps": KEY_SOFT_SAMPLES if soft else 1,
                         "samples": t["samples"],
                         "median_ms": statistics.median(t["ms"]),
                         "min_ms": min(t["ms"]),
@@ -167,10 +171,11 @@ def main() -> None:
             base = random_avatar(mesh, 20000, True)
             assert base.shading is not None
             for kind in ("frames", "live glTF"):
-                for with_key in (False, True):
-                    sh = key_shading(64) if with_key else Shading(base.shading.coeffs)
-                    if with_key:
-                        sh.coeffs = base.shading.coeffs.clone()
+                for with_key in ("none", "hard", "soft"):
+                    sh = key_shading(64, SOFT_DEG if with_key == "soft" else 0.0)
+                    if with_key == "none":
+                        sh = Shading(base.shading.coeffs)
+                    sh.coeffs = base.shading.coeffs.clone()
                     av = Avatar(mesh, base.params, shading=sh, sh_frame="triangle")
                     folder = Path(tmp) / f"page-{kind}-{with_key}".replace(" ", "_")
                     if kind == "frames":
@@ -179,10 +184,12 @@ def main() -> None:
                         write_viewer_bundle(av, None, folder, rig=live_rig(av))
                     browser.append({"driver": kind, "key": with_key, **play(folder / "index.html", 40, 120.0)})
     print("keyShadowMap under Node (median of the timed calls, 8 poses x 5 calls)")
-    print(f"{'mesh':<22} {'verts':>6} {'tris':>6} {'grid':>4} {'samples':>8} {'median ms':>9} {'min ms':>7}")
+    print(
+        f"{'mesh':<22} {'verts':>6} {'tris':>6} {'grid':>4} {'maps':>4} {'samples':>8} {'median ms':>9} {'min ms':>7}"
+    )
     for r in rows:
         print(
-            f"{r['mesh']:<22} {r['vertices']:>6} {r['triangles']:>6} {r['grid']:>4} {r['samples']:>8}"
+            f"{r['mesh']:<22} {r['vertices']:>6} {r['triangles']:>6} {r['grid']:>4} {r['maps']:>4} {r['samples']:>8}"
             f" {r['median_ms']:>9.2f} {r['min_ms']:>7.2f}"
         )
     if browser:

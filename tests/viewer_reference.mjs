@@ -215,14 +215,15 @@ export function sortByDepth(means, n, viewmat, order, counts) {
 }
 
 /**
- * Visibility (0/1) [N] from the key light (header.shading.key) of every Gaussian's surface point
- * (Phong point at its uv, before d) in frame `t`: the page's height map (keyShadowMap of the float32
- * vertices it uploads) and the splat shader's lookup with the Phong normal's bias (keyVisibility).
+ * Visibility [N] (0 or 1; a soft key: the mean over its maps) from the key light (header.shading.key) of
+ * every Gaussian's surface point (Phong point at its uv, before d) in frame `t`: the page's height maps
+ * (keyShadowMap of the float32 vertices it uploads) and the splat shader's lookup with the Phong normal's
+ * bias (keyVisibility).
  */
 export function keyVisibilities(b, t) {
   const p = Float32Array.from(frameVertices(b, t)), f = b.faces, N = b.N;
   const map = keyShadowMap(f, b.V, p, b.header.shading.key);
-  const nrm = poseMesh(b, Float64Array.from(p)).normals, out = new Uint8Array(N), x = [0, 0, 0], n = [0, 0, 0];
+  const nrm = poseMesh(b, Float64Array.from(p)).normals, out = new Float64Array(N), x = [0, 0, 0], n = [0, 0, 0];
   for (let i = 0; i < N; i++) {
     const u = b.uv[2 * i], v = b.uv[2 * i + 1], w = 1 - u - v, k = 3 * b.face[i];
     const ia = 3 * f[k], ib = 3 * f[k + 1], ic = 3 * f[k + 2];

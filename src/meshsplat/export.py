@@ -95,7 +95,8 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
     With meta.shading.occlusion (model.occlusion=directions), E also holds lights from fixed
     directions shadowed by the posed mesh (see meta.shading.colour); the PLY bakes those of the
     canonical pose. model.occlusion=key: the same with one direction, the key light, once
-    meta.shading.occlusion.aligned. With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
+    meta.shading.occlusion.aligned; with soft_deg > 0 its V is the mean over directions within
+    soft_deg degrees of it (an area light's soft shadow). With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
     is ADDED after the albedo multiply (not clamped); the PLY bakes it too.
 
 """
@@ -222,12 +223,19 @@ def export_avatar(
                 "directions": occ["directions"].tolist(),
                 "grid": occ["grid"],
                 "light": occ["light"].tolist(),
-                **{k: occ[k] for k in ("candidates", "stage", "aligned") if k in occ},  # model.occlusion=key
+                **{
+                    k: occ[k] for k in ("candidates", "stage", "aligned", "soft_deg") if k in occ
+                },  # model.occlusion=key
             }
             shading_meta["colour"] = (
                 "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "
                 "V_k: the surface point lit from directions_k by the posed mesh (meshsplat.mesh.visibility)"
             )
+            if occ.get("soft_deg"):
+                shading_meta["colour"] += (
+                    "; the aligned key's V: the mean of V over the directions within soft_deg of it "
+                    "(meshsplat.gaussians.shading.Shading.shadow_directions)"
+                )
         if "specular" in sd:
             shading_meta["specular"] = {"kind": sd["specular"]["kind"], "coeffs": sd["specular"]["coeffs"].tolist()}
             shading_meta["colour"] += " + SH9(n) . specular.coeffs (added, not clamped)"

@@ -236,7 +236,7 @@ def _sh_rest(avatar: Avatar) -> np.ndarray | None:
 
 
 def _check_occlusion(avatar: Avatar) -> None:
-    """The player shades ``model.occlusion=none`` and an aligned ``key`` (one shadow map per frame)."""
+    """The player shades ``model.occlusion=none`` and an aligned ``key`` (its shadow maps built per frame)."""
     sh = avatar.shading
     if sh is None or sh.occlusion == "none" or (sh.occlusion == "key" and sh.key_aligned):
         return
@@ -261,11 +261,13 @@ def _shading_header(avatar: Avatar) -> dict[str, Any]:
         if sh.specular is not None:  # added after the albedo multiply (model.specular=sh2)
             shading["specular"] = sh.specular.detach().double().cpu().tolist()
         if sh.occlusion == "key":  # one shadowed key light (model.occlusion=key, aligned): E += L V(x) max(0, n . w)
-            assert sh.directions is not None and sh.light is not None
+            shadows = sh.shadow_directions()  # V(x): the mean over these directions' height maps
+            assert sh.directions is not None and sh.light is not None and shadows is not None
             shading["key"] = {
                 "direction": sh.directions[0].detach().double().cpu().tolist(),
                 "light": sh.light[0].detach().double().clamp_min(0.0).cpu().tolist(),
                 "grid": sh.grid,
+                "shadows": shadows.detach().double().cpu().tolist(),
             }
     return {
         "sh_degree": avatar.sh_degree,

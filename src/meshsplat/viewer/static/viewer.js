@@ -7,8 +7,8 @@
 // blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
 // normal, the key light shadowed by the posed mesh) and projects it; one instanced draw call, blended
 // unclamped into a half-float target, then one full-screen pass clamps the image into the canvas. The key
-// light's height map (model.occlusion=key) is built per pose on the main thread's CPU and uploaded
-// (keyShadowMap). The depth sort runs in a Web Worker (created from a Blob URL of inline source, so it
+// light's height map (model.occlusion=key; one per direction over a soft key's disk) is built per pose on
+// the main thread's CPU and uploaded (keyShadowMap). The depth sort runs in a Web Worker (created from a Blob URL of inline source, so it
 // works from file://) with a 16-bit counting sort; the main thread never waits for it.
 //
 // The exported functions (decodeBundle, frameVertices, evalRig, skinVertices, sortJob, orbitViewmat,
@@ -306,6 +306,7 @@ export function faceGeometry(b, p, out) {
 // ------------------------------------------------------------------ key light shadow (as meshsplat.mesh.visibility)
 const KEY_BIAS_CELLS = 0.75, KEY_SLOPE_CELLS = 1.5, KEY_MAX_TAN = 2.0; // meshsplat.mesh.visibility._BIAS_CELLS, ...
 export const KEY_EMPTY = -3e38; // a cell no surface sample fell into (the Python grid's -inf): everything is lit there
+export const KEY_MAX_MAPS = 12; // the most height maps a key's shadow averages (meshsplat.gaussians.shading.KEY_SOFT_SAMPLES)
 
 /** Grid frame of a key light (unit `w`, `a`, `b`): (a, b) index the grid, w is the height towards the light. */
 export function keyFrame(direction) {
@@ -319,20 +320,28 @@ export function keyFrame(direction) {
   return { a, b, w };
 }
 
+/** The directions [S][3] whose height maps a key light's shadow averages (header.shading.key.shadows,
+ * Shading.shadow_directions): its own, or a soft key's KEY_SOFT_SAMPLES directions over its disk. */
+export function keyShadowDirections(key) {
+  return key.shadows;
+}
+
 /**
- * The key light's height map of the posed mesh (positions `p` [V*3]) exactly as
- * meshsplat.mesh.visibility.visibility builds it: over the bounding sphere of the vertices
- * (centre = box centre, radius = half the box diagonal * 1.001 + 1e-12), `grid` x `grid` cells of
- * 2 radius / grid, each holding the largest height w.(x - centre) of the surface samples over it
- * (the vertices, plus a barycentric lattice with at most half a cell between neighbours on each triangle
- * with a longer edge); cell (i, j) at depth[i * grid + j], i along a, j along b; -Infinity where none
- * fell (uploaded as KEY_EMPTY). Returns { grid, depth, frame: keyFrame, centre, radius, cell, samples }.
- * `out`: the previous result to reuse (same grid). CPU, float64.
+ * The key light's height maps of the posed mesh (positions `p` [V*3]) exactly as
+ * meshsplat.mesh.visibility.visibility builds them, one per keyShadowDirections(key): over the bounding
+ * sphere of the vertices (centre = box centre, radius = half the box diagonal * 1.001 + 1e-12),
+ * `grid` x `grid` cells of 2 radius / grid, each holding the largest height w.(x - centre) of the surface
+ * samples over it (the vertices, plus a barycentric lattice with at most half a cell between neighbours on
+ * each triangle with a longer edge); map s's cell (i, j) at depth[(s * grid + i) * grid + j], i along a,
+ * j along b; -Infinity where none fell (uploaded as KEY_EMPTY). Returns { grid, depth, frame (the key's
+ * own keyFrame), frames (one per map), centre, radius, cell, samples (per map) }. `out`: the previous
+ * result to reuse (same key). CPU, float64.
  */
 export function keyShadowMap(faces, V, p, key, out) {
-  const grid = key.grid;
-  if (!out || out.grid !== grid) out = { grid, depth: new Float64Array(grid * grid), frame: keyFrame(key.direction) };
-  const { a, b, w } = out.frame;
+  const grid = key.grid, dirs = keyShadowDirections(key), S = dirs.length;
+  if (!out || out.grid !== grid || out.frames.length !== S) {
+    out = { grid, depth: new Float64Array(S * grid * grid), frame: keyFrame(key.direction), frames: dirs.map(keyFrame) };
+  }
   let lx = Infinity, ly = Infinity, lz = Infinity, hx = -Infinity, hy = -Infinity, hz = -Infinity;
   for (let v = 0; v < 3 * V; v += 3) {
     const x = p[v], y = p[v + 1], z = p[v + 2];
@@ -340,39 +349,18 @@ export function keyShadowMap(faces, V, p, key, out) {
   }
   const cx = (lx + hx) / 2, cy = (ly + hy) / 2, cz = (lz + hz) / 2;
   const radius = Math.hypot(hx - lx, hy - ly, hz - lz) / 2 * 1.001 + 1e-12, cell = 2 * radius / grid;
-  const inv = 1 / cell, spacing = cell / 2, depth = out.depth, g1 = grid - 1;
-  const a0 = a[0], a1 = a[1], a2 = a[2], b0 = b[0], b1 = b[1], b2 = b[2], w0 = w[0], w1 = w[1], w2 = w[2];
+  const samples = surfaceSamples(faces, V, p, [cx, cy, cz], cell / 2, out);
+  const pts = out.pts, inv = 1 / cell, g1 = grid - 1, depth = out.depth;
   depth.fill(-Infinity);
-  // per vertex: grid coordinates (a.(x - centre) + radius) / cell, (b. ...) and height w.(x - centre); a
-  // lattice sample's are the same barycentric blend of its triangle's (all three are linear in x)
-  const q = out.q && out.q.length === 3 * V ? out.q : (out.q = new Float64Array(3 * V));
-  for (let v = 0; v < 3 * V; v += 3) {
-    const x = p[v] - cx, y = p[v + 1] - cy, z = p[v + 2] - cz;
-    const gi = (a0 * x + a1 * y + a2 * z + radius) * inv, gj = (b0 * x + b1 * y + b2 * z + radius) * inv;
-    const h = w0 * x + w1 * y + w2 * z;
-    q[v] = gi; q[v + 1] = gj; q[v + 2] = h;
-    const i = gi < 0 ? 0 : gi >= grid ? g1 : gi | 0, j = gj < 0 ? 0 : gj >= grid ? g1 : gj | 0, k = i * grid + j;
-    if (h > depth[k]) depth[k] = h;
-  }
-  let samples = V;
-  for (let f = 0; f < faces.length; f += 3) {
-    const ia = 3 * faces[f], ib = 3 * faces[f + 1], ic = 3 * faces[f + 2];
-    const ax = p[ia], ay = p[ia + 1], az = p[ia + 2], bx = p[ib], by = p[ib + 1], bz = p[ib + 2];
-    const cx_ = p[ic], cy_ = p[ic + 1], cz_ = p[ic + 2];
-    const e2 = Math.max((ax - cx_) ** 2 + (ay - cy_) ** 2 + (az - cz_) ** 2, (bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2,
-                        (cx_ - bx) ** 2 + (cy_ - by) ** 2 + (cz_ - bz) ** 2);
-    const s = Math.max(1, Math.ceil(Math.sqrt(e2) / spacing)); // the longest edge, in lattice steps
-    if (!(s > 1)) continue;
-    samples += (s + 1) * (s + 2) / 2 - 3;
-    const r = 1 / s, ci = q[ic], cj = q[ic + 1], ch = q[ic + 2];
-    const di = (q[ia] - ci) * r, dj = (q[ia + 1] - cj) * r, dh = (q[ia + 2] - ch) * r; // per step of i (towards a)
-    const ei = (q[ib] - ci) * r, ej = (q[ib + 1] - cj) * r, eh = (q[ib + 2] - ch) * r; // per step of j (towards b)
-    for (let i = 0; i <= s; i++) {
-      for (let j = i === 0 ? 1 : 0, jn = i === s ? -1 : s - i - (i === 0 ? 1 : 0); j <= jn; j++) { // no corners
-        const gi = ci + i * di + j * ei, gj = cj + i * dj + j * ej, h = ch + i * dh + j * eh;
-        const ii = gi < 0 ? 0 : gi >= grid ? g1 : gi | 0, jj = gj < 0 ? 0 : gj >= grid ? g1 : gj | 0, k = ii * grid + jj;
-        if (h > depth[k]) depth[k] = h;
-      }
+  for (let s = 0; s < S; s++) { // each map: every sample's cell (a.(x - centre) + radius) / cell, (b. ...) and height w.(x - centre)
+    const { a, b, w } = out.frames[s], o = s * grid * grid;
+    const a0 = a[0], a1 = a[1], a2 = a[2], b0 = b[0], b1 = b[1], b2 = b[2], w0 = w[0], w1 = w[1], w2 = w[2];
+    for (let m = 0; m < 3 * samples; m += 3) {
+      const x = pts[m], y = pts[m + 1], z = pts[m + 2];
+      const gi = (a0 * x + a1 * y + a2 * z + radius) * inv, gj = (b0 * x + b1 * y + b2 * z + radius) * inv;
+      const h = w0 * x + w1 * y + w2 * z;
+      const i = gi < 0 ? 0 : gi >= grid ? g1 : gi | 0, j = gj < 0 ? 0 : gj >= grid ? g1 : gj | 0, k = o + i * grid + j;
+      if (h > depth[k]) depth[k] = h;
     }
   }
   Object.assign(out, { centre: [cx, cy, cz], radius, cell, samples });
@@ -380,19 +368,57 @@ export function keyShadowMap(faces, V, p, key, out) {
 }
 
 /**
- * Visibility (0 or 1) from the key light of a surface point `x` [3] with unit normal `n` [3] (the Phong
- * normal, for the slope-scaled bias) in a keyShadowMap `m`: the splat shader's keyVisible on the CPU.
+ * The surface samples of meshsplat.mesh.visibility.surface_samples, less `centre` [3], into `out.pts`
+ * (grown as needed): the vertices of `p` [V*3], then on each triangle (a, b, c) with an edge longer than
+ * `spacing` the barycentric lattice of s = ceil(longest edge / spacing) steps, (i/s) a + (j/s) b +
+ * ((s-i-j)/s) c, its corners left out. Returns the sample count.
+ */
+function surfaceSamples(faces, V, p, centre, spacing, out) {
+  let n = V, pts = out.pts && out.pts.length >= 3 * V ? out.pts : (out.pts = new Float64Array(Math.max(3 * V, 1024)));
+  const ox = centre[0], oy = centre[1], oz = centre[2];
+  for (let v = 0; v < 3 * V; v += 3) { pts[v] = p[v] - ox; pts[v + 1] = p[v + 1] - oy; pts[v + 2] = p[v + 2] - oz; }
+  for (let f = 0; f < faces.length; f += 3) {
+    const ia = 3 * faces[f], ib = 3 * faces[f + 1], ic = 3 * faces[f + 2];
+    const ax = p[ia], ay = p[ia + 1], az = p[ia + 2], bx = p[ib], by = p[ib + 1], bz = p[ib + 2];
+    const cx = p[ic], cy = p[ic + 1], cz = p[ic + 2];
+    const e2 = Math.max((ax - cx) ** 2 + (ay - cy) ** 2 + (az - cz) ** 2, (bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2,
+                        (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2);
+    const st = Math.max(1, Math.ceil(Math.sqrt(e2) / spacing)); // the longest edge, in lattice steps
+    if (!(st > 1)) continue;
+    const need = 3 * (n + (st + 1) * (st + 2) / 2 - 3);
+    if (need > pts.length) { const grown = new Float64Array(Math.max(need, 2 * pts.length)); grown.set(pts); pts = out.pts = grown; }
+    for (let i = 0; i <= st; i++) {
+      for (let j = i === 0 ? 1 : 0, jn = i === st ? -1 : st - i - (i === 0 ? 1 : 0); j <= jn; j++) { // no corners
+        const u = i / st, v = j / st, w = (st - i - j) / st;
+        pts[3 * n] = u * ax + v * bx + w * cx - ox; pts[3 * n + 1] = u * ay + v * by + w * cy - oy;
+        pts[3 * n + 2] = u * az + v * bz + w * cz - oz;
+        n++;
+      }
+    }
+  }
+  return n;
+}
+
+/**
+ * Visibility from the key light of a surface point `x` [3] with unit normal `n` [3] (the Phong normal,
+ * for the slope-scaled bias) in a keyShadowMap `m`: the mean over its maps of lit (1) or not (0); the
+ * splat shader's keyVisible on the CPU.
  */
 export function keyVisibility(m, x, n) {
-  const { a, b, w } = m.frame, g1 = m.grid - 1, inv = 1 / m.cell;
+  const g1 = m.grid - 1, inv = 1 / m.cell, S = m.frames.length;
   const rx = x[0] - m.centre[0], ry = x[1] - m.centre[1], rz = x[2] - m.centre[2];
-  let i = Math.floor((a[0] * rx + a[1] * ry + a[2] * rz + m.radius) * inv);
-  let j = Math.floor((b[0] * rx + b[1] * ry + b[2] * rz + m.radius) * inv);
-  i = i < 0 ? 0 : i > g1 ? g1 : i; j = j < 0 ? 0 : j > g1 ? g1 : j;
-  const cos = Math.min(Math.max(Math.abs(n[0] * w[0] + n[1] * w[1] + n[2] * w[2]), 1e-6), 1);
-  const tan = Math.min(Math.sqrt(Math.max(1 - cos * cos, 0)) / cos, KEY_MAX_TAN);
-  const bias = m.cell * (KEY_BIAS_CELLS + KEY_SLOPE_CELLS * tan);
-  return w[0] * rx + w[1] * ry + w[2] * rz >= m.depth[i * m.grid + j] - bias ? 1 : 0;
+  let lit = 0;
+  for (let s = 0; s < S; s++) {
+    const { a, b, w } = m.frames[s];
+    let i = Math.floor((a[0] * rx + a[1] * ry + a[2] * rz + m.radius) * inv);
+    let j = Math.floor((b[0] * rx + b[1] * ry + b[2] * rz + m.radius) * inv);
+    i = i < 0 ? 0 : i > g1 ? g1 : i; j = j < 0 ? 0 : j > g1 ? g1 : j;
+    const cos = Math.min(Math.max(Math.abs(n[0] * w[0] + n[1] * w[1] + n[2] * w[2]), 1e-6), 1);
+    const tan = Math.min(Math.sqrt(Math.max(1 - cos * cos, 0)) / cos, KEY_MAX_TAN);
+    const bias = m.cell * (KEY_BIAS_CELLS + KEY_SLOPE_CELLS * tan);
+    if (w[0] * rx + w[1] * ry + w[2] * rz >= m.depth[(s * m.grid + i) * m.grid + j] - bias) lit++;
+  }
+  return lit / S;
 }
 
 // ------------------------------------------------------------------ cameras (as meshsplat.synth.rigs)
@@ -744,11 +770,13 @@ uniform vec3 irr[9];                    // its SH coefficients (world space, per
 uniform bool specular;                  // an added SH2 term of the same normal (model.specular=sh2)
 uniform vec3 spec[9];                   // its SH coefficients (world space, per channel)
 uniform bool keyOn;                     // the shadowed key light (model.occlusion=key): E += L V(x) max(0, n . w)
-uniform vec3 keyLight, keyDir, keyA, keyB; // L (RGB); the height map's frame (a, b, w), w towards the light
+uniform vec3 keyLight, keyDir;          // L (RGB); w, towards the light
+uniform vec3 keyA[${KEY_MAX_MAPS}], keyB[${KEY_MAX_MAPS}], keyW[${KEY_MAX_MAPS}]; // each height map's frame (a, b, w)
+uniform int keyMaps;                    // how many height maps the shadow averages (1: a hard shadow)
 uniform vec3 keyCentre;                 // the posed mesh's bounding-sphere centre (this frame)
 uniform float keyRadius, keyCell;       // its radius, the cell size 2 radius / grid
 uniform int keyGrid;
-uniform sampler2D kTex;                 // grid x grid heights (R32F): cell (i, j) at texel (j, i)
+uniform sampler2D kTex;                 // keyMaps grid x grid heights (R32F) stacked: map s's cell (i, j) at (j, s grid + i)
 uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I))
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
@@ -793,18 +821,24 @@ vec3 viewColour(int g, vec3 dc, vec3 dir) {
   }
   return rgb;
 }
-// 1 when the surface point x (unit Phong normal n) is not below its cell's height by more than the
-// slope-scaled bias, else 0 (meshsplat.mesh.visibility.visibility; keyVisibility in viewer.js)
+// the mean over the height maps of 1 when the surface point x (unit Phong normal n) is not below its
+// cell's height by more than the slope-scaled bias, else 0 (meshsplat.mesh.visibility.visibility, averaged
+// over Shading.shadow_directions; keyVisibility in viewer.js)
 float keyVisible(vec3 x, vec3 n) {
   vec3 r = x - keyCentre;
   float inv = 1.0 / keyCell;
   int g1 = keyGrid - 1;
-  int i = clamp(int(floor((dot(keyA, r) + keyRadius) * inv)), 0, g1);
-  int j = clamp(int(floor((dot(keyB, r) + keyRadius) * inv)), 0, g1);
-  float c = clamp(abs(dot(n, keyDir)), 1e-6, 1.0);
-  float t = min(sqrt(max(1.0 - c * c, 0.0)) / c, ${KEY_MAX_TAN.toFixed(1)});
-  float bias = keyCell * (${KEY_BIAS_CELLS} + ${KEY_SLOPE_CELLS} * t);
-  return dot(keyDir, r) >= texelFetch(kTex, ivec2(j, i), 0).x - bias ? 1.0 : 0.0;
+  float lit = 0.0;
+  for (int s = 0; s < ${KEY_MAX_MAPS}; s++) {
+    if (s >= keyMaps) break;
+    int i = clamp(int(floor((dot(keyA[s], r) + keyRadius) * inv)), 0, g1);
+    int j = clamp(int(floor((dot(keyB[s], r) + keyRadius) * inv)), 0, g1);
+    float c = clamp(abs(dot(n, keyW[s])), 1e-6, 1.0);
+    float t = min(sqrt(max(1.0 - c * c, 0.0)) / c, ${KEY_MAX_TAN.toFixed(1)});
+    float bias = keyCell * (${KEY_BIAS_CELLS} + ${KEY_SLOPE_CELLS} * t);
+    if (dot(keyW[s], r) >= texelFetch(kTex, ivec2(j, s * keyGrid + i), 0).x - bias) lit += 1.0;
+  }
+  return lit / float(keyMaps);
 }
 // sum_i Y_i(n) c_i: the 9 real SH basis functions up to order 2 at n (meshsplat.gaussians.shading.sh9_basis)
 vec3 sh9(vec3 n, vec3 c[9]) {
@@ -981,7 +1015,7 @@ export class SplatRenderer {
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
     this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
       "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "specular", "spec", "antialiased",
-      "keyOn", "keyLight", "keyDir", "keyA", "keyB", "keyCentre", "keyRadius", "keyCell", "keyGrid", "kTex"]);
+      "keyOn", "keyLight", "keyDir", "keyA", "keyB", "keyW", "keyMaps", "keyCentre", "keyRadius", "keyCell", "keyGrid", "kTex"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     // the splats blend into an RGBA16F target (renderable and blendable with EXT_color_buffer_float),
@@ -1007,14 +1041,16 @@ export class SplatRenderer {
       p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
       fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
     };
-    // the key light's height map (model.occlusion=key): grid x grid, rebuilt on the CPU per pose (setKeyMap)
+    // the key light's height maps (model.occlusion=key): S grid x grid, stacked, rebuilt on the CPU per pose (setKeyMap)
     this.key = (b.header.shading && b.header.shading.key) || null;
     this.keyMs = 0;
-    const kg = this.key ? this.key.grid : 1;
-    this.t.k = { tex: gl.createTexture(), grid: kg, buf: new Float32Array(kg * kg) };
+    const kg = this.key ? this.key.grid : 1, ks = this.key ? keyShadowDirections(this.key).length : 1;
+    if (ks > KEY_MAX_MAPS) throw new Error(`the key light's shadow averages ${ks} height maps; this player shades at most ${KEY_MAX_MAPS}`);
+    if (kg * ks > maxRows) throw new Error(`the key light's ${ks} height maps of ${kg}^2 cells exceed this GPU's texture size`);
+    this.t.k = { tex: gl.createTexture(), grid: kg, maps: ks, buf: new Float32Array(ks * kg * kg) };
     gl.bindTexture(gl.TEXTURE_2D, this.t.k.tex);
     for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, kg, 0, gl.RED, gl.FLOAT, this.t.k.buf);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, ks * kg, 0, gl.RED, gl.FLOAT, this.t.k.buf);
     if (b.rig) {
       const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
       for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
@@ -1109,7 +1145,7 @@ export class SplatRenderer {
     if (this.key) this.setKeyMap(p);
   }
 
-  /** The key light's height map of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded;
+  /** The key light's height maps of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded;
    * `keyMs`: its time since `t0` (default now; live glTF: the CPU skinning's start). */
   setKeyMap(p, t0 = performance.now()) {
     const gl = this.gl, k = this.t.k;
@@ -1117,7 +1153,7 @@ export class SplatRenderer {
     const d = this.keyMap.depth;
     for (let i = 0; i < d.length; i++) k.buf[i] = d[i] === -Infinity ? KEY_EMPTY : d[i];
     gl.bindTexture(gl.TEXTURE_2D, k.tex);
-    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, k.grid, k.grid, gl.RED, gl.FLOAT, k.buf);
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, k.grid, k.maps * k.grid, gl.RED, gl.FLOAT, k.buf);
     this.keyMs = performance.now() - t0;
   }
 
@@ -1182,9 +1218,9 @@ export class SplatRenderer {
     const key = shade && this.key && this.keyMap ? this.keyMap : null;
     gl.uniform1i(p.loc.keyOn, key ? 1 : 0);
     if (key) {
-      const { a, b, w } = key.frame;
-      gl.uniform3fv(p.loc.keyLight, this.key.light); gl.uniform3fv(p.loc.keyDir, w);
-      gl.uniform3fv(p.loc.keyA, a); gl.uniform3fv(p.loc.keyB, b); gl.uniform3fv(p.loc.keyCentre, key.centre);
+      gl.uniform3fv(p.loc.keyLight, this.key.light); gl.uniform3fv(p.loc.keyDir, key.frame.w);
+      for (const [name, axis] of [["keyA", "a"], ["keyB", "b"], ["keyW", "w"]]) gl.uniform3fv(p.loc[name], key.frames.flatMap((f) => f[axis]));
+      gl.uniform1i(p.loc.keyMaps, key.frames.length); gl.uniform3fv(p.loc.keyCentre, key.centre);
       gl.uniform1f(p.loc.keyRadius, key.radius); gl.uniform1f(p.loc.keyCell, key.cell); gl.uniform1i(p.loc.keyGrid, key.grid);
     }
     this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k });
