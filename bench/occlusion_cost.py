@@ -5,7 +5,7 @@
 
 Times, interleaved and in the same process (median of --repeats), the visibility alone
 (``meshsplat.mesh.visibility``), ``Avatar.compose`` and a whole ``Avatar.render`` for today's shading
-(``sh2``) and for each occlusion setting, on poses of the bundled CesiumMan walk (4672 triangles).
+(``sh2``) and for each occlusion setting (the key: hard, and soft with 12 maps), on poses of the bundled CesiumMan walk (4672 triangles).
 Saves bench/results/<name>-<host>.json.
 """
 
@@ -40,7 +40,6 @@ def main() -> None:
     from meshsplat.gaussians import Avatar, init_params
     from meshsplat.gaussians.shading import KEY_STAGES, Shading
     from meshsplat.mesh import MeshPose, TriMesh
-    from meshsplat.mesh.visibility import visibility
     from meshsplat.paths import bundled_asset
 
     torch.set_num_threads(args.threads)
@@ -65,13 +64,14 @@ def main() -> None:
     settings = {"sh2 (today)": None}
     for k in (16, 32):
         for g in (32, 64):
-            settings[f"occl K={k} grid={g}"] = (k, g, 0)
-    settings["key, rings (7)"] = (16, 64, 1)  # model.occlusion=key while it narrows the direction
-    settings["key (1 light)"] = (16, 64, KEY_STAGES)  # model.occlusion=key once aligned
+            settings[f"occl K={k} grid={g}"] = (k, g, 0, 0.0)
+    settings["key, rings (7)"] = (16, 64, 1, 0.0)  # model.occlusion=key while it narrows the direction
+    settings["key (1 light)"] = (16, 64, KEY_STAGES, 0.0)  # model.occlusion=key once aligned, a hard shadow
+    settings["key soft (12 maps)"] = (16, 64, KEY_STAGES, 8.0)  # aligned, model.occlusion_key_soft=8
     avatars = {}
     for name, s in settings.items():
         kind = "directions" if s is None or not s[2] else "key"
-        sh = Shading() if s is None else Shading(occlusion=kind, directions=s[0], grid=s[1])
+        sh = Shading() if s is None else Shading(occlusion=kind, directions=s[0], grid=s[1], key_soft=s[3])
         if sh.light is not None:
             sh.light.fill_(0.2)
         for _ in range(0 if s is None else s[2]):
@@ -89,7 +89,7 @@ def main() -> None:
                         pose = MeshPose.from_vertices(mesh, v)
                         pts, n = embed(pose, face, uv, torch.zeros(len(face)))
                         t0 = time.perf_counter()
-                        visibility(v, mesh.faces, pts, n, av.shading.directions, av.shading.grid)
+                        av.shading.visibility(v, mesh.faces, pts, n)
                         t["visibility"] = time.perf_counter() - t0
                     t0 = time.perf_counter()
                     av.compose(v)

@@ -181,3 +181,119 @@ def test_a_short_run_aligns_at_its_last_iteration(tiny_dataset, tmp_path):  # no
     t = Trainer(cfg)
     t.train()
     assert t.shading is not None and t.shading.key_aligned
+
+
+def _plate_over_floor(height: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A 4 x 4 floor (y = 0) and a 1 x 1 plate at ``height`` above its centre: vertices ``[V,3]``, faces ``[F,3]``."""
+
+    def grid(n: int, half: float, y: float) -> tuple[torch.Tensor, torch.Tensor]:
+        t = torch.linspace(-half, half, n)
+        x, z = torch.meshgrid(t, t, indexing="ij")
+        v = torch.stack([x.reshape(-1), torch.full((n * n,), y), z.reshape(-1)], -1)
+        i = torch.arange(n - 1)[:, None] * n + torch.arange(n - 1)[None]
+        i = i.reshape(-1)
+        f = torch.cat([torch.stack([i, i + 1, i + n], -1), torch.stack([i + 1, i + n + 1, i + n], -1)])
+        return v, f
+
+    vf, ff = grid(41, 2.0, 0.0)
+    vp, fp = grid(11, 0.5, height)
+    return torch.cat([vf, vp]), torch.cat([ff, fp + len(vf)])
+
+
+def _soft_key(degrees: float) -> Shading:
+    """An aligned key light straight from above, ``degrees`` its angular radius (0: a hard shadow)."""
+    return Shading(
+        occlusion="key",
+        directions=16,
+        key=torch.tensor([[0.0, 1.0, 0.0]]),
+        key_stage=KEY_STAGES,
+        light=torch.ones(1, 3),
+        key_soft=degrees,
+    )
+
+
+def test_a_soft_key_averages_the_shadow_maps_of_its_disk():
+    from meshsplat.gaussians.shading import KEY_SOFT_SAMPLES
+    from meshsplat.mesh.visibility import visibility
+
+    sh = _soft_key(8.0)
+    dirs = sh.shadow_directions()
+    assert dirs is not None and dirs.shape == (KEY_SOFT_SAMPLES, 3) and dirs.dtype == torch.float64
+    cos = dirs @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(dirs.norm(dim=-1), torch.ones(KEY_SOFT_SAMPLES, dtype=torch.float64))
+    assert float(cos.min()) >= math.cos(math.radians(8.0)) - 1e-12 and float(cos.max()) < 1.0  # spread over the disk
+    assert float(torch.nn.functional.normalize(dirs.sum(0), dim=0)[1]) > math.cos(math.radians(1.0))  # centred
+    verts, faces = _plate_over_floor(1.0)
+    pts = torch.stack([torch.linspace(0.0, 1.2, 121), torch.zeros(121), torch.full((121,), 0.05)], -1)
+    up = torch.tensor([[0.0, 1.0, 0.0]]).expand(121, 3)
+    v = sh.visibility(verts, faces, pts, up)
+    assert v is not None and v.shape == (121, 1)
+    want = visibility(verts.double(), faces, pts.double(), up.double(), dirs, sh.grid).mean(-1, keepdim=True)
+    assert torch.equal(v, want.float())
+    # a hard key: 0 or 1 only; the same key before alignment ignores key_soft (the candidates' own maps)
+    hard = _soft_key(0.0).visibility(verts, faces, pts, up)
+    assert hard is not None and set(hard.unique().tolist()) == {0.0, 1.0}
+    early = Shading(occlusion="key", directions=16, key_soft=8.0)
+    assert not early.soft_key and torch.equal(early.shadow_directions(), early.directions)
+
+
+def test_the_soft_penumbra_widens_with_the_occluders_distance():
+    """Under a plate, the floor is dark (umbra), far from it lit, and in between partly lit: a penumbra
+    about twice height x tan(radius) wide, wider for a plate farther above (at a 64^2 grid's cells of
+    0.09, the low plate's penumbra is a fraction of a cell narrower than that)."""
+    pts = torch.stack([torch.linspace(0.0, 1.2, 241), torch.zeros(241), torch.full((241,), 0.05)], -1)
+    up = torch.tensor([[0.0, 1.0, 0.0]]).expand(241, 3)
+    widths = []
+    for height in (0.5, 1.5):
+        verts, faces = _plate_over_floor(height)
+        v = _soft_key(8.0).visibility(verts, faces, pts, up)
+        assert v is not None
+        v = v[:, 0]
+        assert float(v[0]) == 0.0 and float(v[-1]) == 1.0
+        partial = (v > 0) & (v < 1)
+        widths.append(float(partial.sum()) * 1.2 / 240)
+        assert v[partial].unique().numel() >= 4  # graded, not one step
+    assert widths[1] > 2.0 * widths[0] > 0, widths
+    assert abs(widths[1] - 2 * 1.5 * math.tan(math.radians(8.0))) < 0.15, widths
+
+
+def test_a_soft_key_round_trips_and_validates(tmp_path):
+    from meshsplat.export import export_avatar, load_exported_avatar
+
+    mesh = _sphere()
+    p = init_params(mesh, 150, generator=torch.Generator().manual_seed(0))
+    av = Avatar(mesh, p, shading=_soft_key(8.0))
+    v = mesh.vertices * torch.tensor([1.2, 0.9, 1.0])
+    back = Avatar.from_state_dict(av.state_dict())
+    assert back.shading is not None and back.shading.key_soft == 8.0 and back.shading.soft_key
+    assert torch.equal(av.compose(v).colors, back.compose(v).colors)
+    assert av.shading is not None and av.shading.to("cpu").key_soft == 8.0
+    export_avatar(av, tmp_path)
+    loaded = load_exported_avatar(tmp_path)
+    assert loaded.shading is not None and loaded.shading.key_soft == 8.0
+    assert torch.allclose(av.compose(v).colors, loaded.compose(v).colors, atol=1e-5)
+    old = av.state_dict()  # written before soft keys existed: a hard key
+    del old["shading"]["occlusion"]["soft_deg"]
+    assert Avatar.from_state_dict(old).shading.key_soft == 0.0  # type: ignore[union-attr]
+    old["shading"]["occlusion"]["soft_deg"] = "wide"
+    with pytest.raises(MeshsplatError, match="soft_deg"):
+        Avatar.from_state_dict(old)
+    for bad, match in ((50.0, "0..45"), (float("nan"), "0..45"), (-1.0, "0..45")):
+        with pytest.raises(MeshsplatError, match=match):
+            _soft_key(bad)
+    with pytest.raises(MeshsplatError, match="needs occlusion='key'"):
+        Shading(occlusion="directions", directions=8, key_soft=8.0)
+    with pytest.raises(MeshsplatError, match="occlusion_key_soft"):
+        apply_overrides(TrainConfig(), ["model.occlusion_key_soft=90"]).validate()
+
+
+def test_the_trainer_builds_a_soft_key_only_for_occlusion_key(tiny_dataset, tmp_path):  # noqa: F811
+    t = Trainer(small_config(tiny_dataset, tmp_path / "soft", 12, [*KEY, "model.occlusion_key_soft=6"]))
+    t.train()
+    assert t.shading is not None and t.shading.soft_key and t.shading.key_soft == 6.0
+    av = load_avatar(tmp_path / "soft")
+    assert av.shading is not None and av.shading.key_soft == 6.0
+    off = Trainer(
+        small_config(tiny_dataset, tmp_path / "none", 2, ["model.occlusion=none", "model.occlusion_key_soft=6"])
+    )
+    assert off.shading is not None and off.shading.occlusion == "none"

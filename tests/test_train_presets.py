@@ -82,6 +82,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "model.occlusion='none' (the quality preset's: 'key')",
         "pose_refine.auto=False (the quality preset's: True)",
         "optim.lr_shading=0.005 (the quality preset's: 0.05)",
+        "model.occlusion_key_soft=0.0 (the quality preset's: 8.0)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -107,6 +108,7 @@ _OLD_DEFAULTS = [
     "model.occlusion=none",
     "pose_refine.auto=false",
     "optim.lr_shading=5e-3",
+    "model.occlusion_key_soft=0",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -118,6 +120,7 @@ _OLD_QUALITY = [
     "model.occlusion=key",  # the key light, default since config version 5
     "pose_refine.auto=true",  # since config version 6
     "optim.lr_shading=5e-2",  # since config version 7
+    "model.occlusion_key_soft=8",  # since config version 8
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -163,7 +166,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 7)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 8)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -218,6 +221,7 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (4, "model.occlusion", "none", "key"),  # before model.occlusion was key
         (5, "pose_refine.auto", False, True),  # before pose_refine.auto was on (the key did not exist yet)
         (6, "optim.lr_shading", 5e-3, 0.05),  # before optim.lr_shading was 5e-2
+        (7, "model.occlusion_key_soft", 0.0, 4.0),  # before the key's shadow was soft
     ],
 )
 def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, key, old_value, set_value):
@@ -239,7 +243,7 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 8}, r"^config: format version 8 is newer than this meshsplat reads \(7\); update meshsplat"),
+        ({"version": 9}, r"^config: format version 9 is newer than this meshsplat reads \(8\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

@@ -163,6 +163,8 @@ class Shading:
         self.key_stage = key_stage
         if not isinstance(key_soft, (int, float)) or not 0.0 <= float(key_soft) <= 45.0:
             raise MeshsplatError(f"shading key_soft: expected an angular radius in 0..45 degrees, got {key_soft!r}")
+        if key_soft and occlusion != "key":
+            raise MeshsplatError("shading key_soft: a soft key light needs occlusion='key'")
         self.key_soft = float(key_soft)
         if occlusion != "none":
             if not isinstance(directions, int) or not 1 <= directions <= 256:

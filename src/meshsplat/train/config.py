@@ -13,7 +13,8 @@ Every key, with its type, default, unit and meaning, is in docs/config.md. The d
 A version-2 dict was written before ``loss.crop_to_subject`` was on by default (``VERSION_2_DEFAULTS``),
 a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a version-4 dict before
 ``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``), a version-5 dict before ``pose_refine.auto``
-was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` was 5e-2 (``VERSION_6_DEFAULTS``).
+was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` was 5e-2 (``VERSION_6_DEFAULTS``),
+a version-7 dict before ``model.occlusion_key_soft`` was 8 (``VERSION_7_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -62,6 +63,7 @@ __all__ = [
     "VERSION_4_DEFAULTS",
     "VERSION_5_DEFAULTS",
     "VERSION_6_DEFAULTS",
+    "VERSION_7_DEFAULTS",
     "config_version",
 ]
 
@@ -80,7 +82,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 5: model.occlusion key by default (docs/quality.md, "A key light found in training").
 # 6: pose_refine.auto on by default (docs/real-captures.md, "Pose refinement").
 # 7: optim.lr_shading 5e-2 by default (docs/quality.md, "The lighting's learning rate").
-CONFIG_VERSION = 7
+# 8: model.occlusion_key_soft 8 by default (docs/quality.md, "Soft key shadows").
+CONFIG_VERSION = 8
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -94,6 +97,8 @@ VERSION_4_DEFAULTS = {"model.occlusion": "none"}
 VERSION_5_DEFAULTS = {"pose_refine.auto": False}
 # Keys whose default changed since version 6, with their version-6 value (older dicts get them too).
 VERSION_6_DEFAULTS = {"optim.lr_shading": 5e-3}
+# Keys whose default changed since version 7, with their version-7 value (older dicts get them too).
+VERSION_7_DEFAULTS = {"model.occlusion_key_soft": 0.0}
 
 
 @dataclass
@@ -126,7 +131,9 @@ class ModelConfig:
     occlusion_directions: int = 16
     occlusion_grid: int = 64
     occlusion_key_iter: int = 300
-    occlusion_key_soft: float = 0.0  # "key": the light's angular radius (degrees); > 0 averages a disk of shadow maps
+    # "key": the light's angular radius (degrees): once aligned, its shadow is the mean of 12 shadow maps over that
+    # disk (an area light's soft shadow); 0: one map (hard). Unused by the other occlusion modes.
+    occlusion_key_soft: float = 8.0
     # Added light (needs shading != "none"): "none" | "sh2": colour = albedo * E(n) + SH9(n) . specular, a learned
     # [9,3] added, not albedo-multiplied (a glossy highlight on a coloured surface); zero at the start.
     specular: str = "none"
@@ -508,7 +515,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
     versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
     ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none), versions 1 to 5 each ``VERSION_5_DEFAULTS`` key
-    (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3).
+    (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3),
+    versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -533,6 +541,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_5_DEFAULTS)
     if version <= 6:
         d = _with_defaults(d, VERSION_6_DEFAULTS)
+    if version <= 7:
+        d = _with_defaults(d, VERSION_7_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

@@ -257,7 +257,7 @@ class Trainer:
                     directions=cfg.model.occlusion_directions,
                     grid=cfg.model.occlusion_grid,
                     specular=cfg.model.specular,
-                    key_soft=cfg.model.occlusion_key_soft,
+                    key_soft=cfg.model.occlusion_key_soft if cfg.model.occlusion == "key" else 0.0,
                 )
             )
         self.strategy_state = self.strategy.initialize_state(self.extent)
