@@ -58,6 +58,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_lr5e-3": ("quality", ["optim.lr_shading=5e-3"]),
     "default_lrsh2e-2": ("quality", ["optim.lr_shading=2e-2"]),
     "default_lrsh5e-2": ("quality", ["optim.lr_shading=5e-2"]),
+    # the key's shadow: hard (one map) up to config version 7, soft (8 degrees) since 8. quality_pbr_*_soft8*-vm.json
+    # compare default_lrsh5e-2, trained while it meant the hard key (default_hard today), with default_lrsh5e-2_soft8
+    "default_hard": ("quality", ["model.occlusion_key_soft=0"]),
     "default_lrsh5e-2_soft8": ("quality", ["optim.lr_shading=5e-2", "model.occlusion_key_soft=8"]),
     "default_lrsh1e-1": ("quality", ["optim.lr_shading=1e-1"]),
 }
