@@ -421,11 +421,16 @@ class Shading:
         return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ}{spec})"
 
 
-def _ring(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
-    """``m`` unit directions ``[m,3]`` at ``degrees`` from the unit ``centre [3]``, evenly around it."""
+def _tangents(centre: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit ``a, b [3]`` completing the unit ``centre [3]`` to an orthonormal frame (helper +x, or +y near x)."""
     helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(centre[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
     a = torch.nn.functional.normalize(torch.linalg.cross(helper.to(centre), centre), dim=0)
-    b = torch.linalg.cross(centre, a)
+    return a, torch.linalg.cross(centre, a)
+
+
+def _ring(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
+    """``m`` unit directions ``[m,3]`` at ``degrees`` from the unit ``centre [3]``, evenly around it."""
+    a, b = _tangents(centre)
     phi = torch.arange(m).to(centre) * (2 * math.pi / m)
     t = math.radians(degrees)
     return math.cos(t) * centre + math.sin(t) * (phi.cos()[:, None] * a + phi.sin()[:, None] * b)
@@ -434,9 +439,7 @@ def _ring(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
 def _disk(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
     """``m`` unit directions ``[m,3]`` spread evenly over the cone of half-angle ``degrees`` around the unit
     ``centre [3]`` (a Vogel spiral on the tangent disk)."""
-    helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(centre[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
-    a = torch.nn.functional.normalize(torch.linalg.cross(helper.to(centre), centre), dim=0)
-    b = torch.linalg.cross(centre, a)
+    a, b = _tangents(centre)
     i = torch.arange(m).to(centre) + 0.5
     r = (i / m).sqrt() * math.tan(math.radians(degrees))
     phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
