@@ -1,16 +1,18 @@
-"""Cost of the web player's key-light shadow (model.occlusion=key): the page's per-pose height map
-(``keyShadowMap`` in viewer.js, CPU, main thread) under Node, and in a real headless browser (Chromium,
-SwiftShader WebGL2) the page's own timers while playing, with the same avatar without the key light as
-the same-run baseline.
+"""Cost of the web player's key-light shadow (model.occlusion=key): the page's per-pose height maps
+(``keyShadowMap`` in viewer.js, CPU) under Node, and in a real headless browser (Chromium, SwiftShader
+WebGL2) the page's own timers while playing, with the same avatar without the key light as the same-run
+baseline.
 
 Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
 FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), a hard key at grid 64
 and 128 and a soft key (``model.occlusion_key_soft`` 8: 12 maps) at grid 64; ``keyShadowMap`` timed 5
 times per frame after 3 warm-up calls; medians over all calls; the surface sample count it scatters per
-map. Browser: CesiumMan with 20k Gaussians, vertex frames and live glTF (the page then also skins the
-vertices on the CPU for the height map), no key / hard / soft, ``timings.key`` (height maps and upload;
-live glTF: plus that skinning) and ``timings.main`` (the whole requestAnimationFrame callback) while
-playing, 40 frames each.
+map. Browser: 20k Gaussians on CesiumMan (vertex frames and live glTF) and on the ICT head (vertex
+frames), no key / hard / soft; the page builds the height maps in its shadow worker, and with
+``?worker=0`` on the main thread (as before the worker; that also sorts on the main thread, whose time
+``timings.sort`` reports). Per frame while playing, 40 frames each: ``timings.main`` (the whole
+requestAnimationFrame callback, main thread) and ``timings.key`` (the height maps of one pose, in the
+worker or on the main thread; live glTF: plus the CPU skinning they need).
 
 Usage: python bench/viewer_shadow.py [--quick] [--out bench/results/viewer_shadow-<host>.json]
 """
@@ -112,14 +114,16 @@ console.log(JSON.stringify({{ ms, samples }}));
     return json.loads(r.stdout)
 
 
-def play(index: Path, min_frames: int, timeout: float) -> dict:
+def play(index: Path, min_frames: int, timeout: float, worker: bool = True) -> dict:
     """Open the page paused, press play, wait for ``min_frames`` drawn frames (or ``timeout`` s); the
-    medians of its timers while playing (as bench/viewer.py's play_and_time, plus ``timings.key``)."""
+    medians of its timers while playing (as bench/viewer.py's play_and_time, plus ``timings.key`` and
+    ``timings.sort``). ``worker`` False: ``?worker=0`` (height maps and sort on the main thread)."""
     from _browser import open_page
 
-    with open_page(index.as_uri() + "?ui=0&play=0", SIZE, SIZE) as page:
+    with open_page(index.as_uri() + "?ui=0&play=0" + ("" if worker else "&worker=0"), SIZE, SIZE) as page:
         page.wait_ready(timeout)
-        start = {k: page.evaluate(f"window.meshsplatViewer.timings.{k}.length") for k in ("main", "key")}
+        in_worker = page.evaluate("window.meshsplatViewer.shadowWorker")
+        start = {k: page.evaluate(f"window.meshsplatViewer.timings.{k}.length") for k in ("main", "key", "sort")}
         page.evaluate("document.getElementById('play').click()")
         deadline = time.monotonic() + timeout
         while page.evaluate("window.meshsplatViewer.timings.main.length") - start["main"] < min_frames:
@@ -127,10 +131,17 @@ def play(index: Path, min_frames: int, timeout: float) -> dict:
                 break
             time.sleep(0.5)
         t = json.loads(page.evaluate("JSON.stringify(window.meshsplatViewer.timings)"))
-    main, key = t["main"][start["main"] :], t["key"][start["key"] :]
+    main, key, sort = (t[k][start[k] :] for k in ("main", "key", "sort"))
     med = lambda a: statistics.median(a) if a else float("nan")  # noqa: E731
     p90 = lambda a: sorted(a)[int(0.9 * (len(a) - 1))] if a else float("nan")  # noqa: E731
-    return {"main_ms": med(main), "main_p90_ms": p90(main), "key_ms": med(key), "frames": len(main)}
+    return {
+        "maps_in": "-" if in_worker is None else "worker" if in_worker else "main",
+        "main_ms": med(main),
+        "main_p90_ms": p90(main),
+        "key_ms": med(key),
+        "sort_ms": med(sort),
+        "frames": len(main),
+    }
 
 
 def main() -> None:
@@ -167,22 +178,27 @@ def main() -> None:
 
             if find_chromium() is None:
                 sys.exit("chromium is not installed (or run with --quick)")
-            mesh, frames = cesium(60)
-            base = random_avatar(mesh, 20000, True)
-            assert base.shading is not None
-            for kind in ("frames", "live glTF"):
+            cm, cm_frames = cesium(60)
+            head = next((m, f) for n, m, f in meshes(False) if n == "ICT FaceKit head")
+            cases = [("CesiumMan", "frames", cm, cm_frames), ("CesiumMan", "live glTF", cm, None)]
+            cases.append(("ICT head", "frames", head[0], [twist(head[0].vertices, t) for t in np.linspace(0, 1, 60)]))
+            for name, kind, mesh, frames in cases:
+                base = random_avatar(mesh, 20000, True)
+                assert base.shading is not None
                 for with_key in ("none", "hard", "soft"):
                     sh = key_shading(64, SOFT_DEG if with_key == "soft" else 0.0)
                     if with_key == "none":
                         sh = Shading(base.shading.coeffs)
                     sh.coeffs = base.shading.coeffs.clone()
                     av = Avatar(mesh, base.params, shading=sh, sh_frame="triangle")
-                    folder = Path(tmp) / f"page-{kind}-{with_key}".replace(" ", "_")
+                    folder = Path(tmp) / f"page-{name}-{kind}-{with_key}".replace(" ", "_")
                     if kind == "frames":
                         write_viewer_bundle(av, frames, folder, fps=25)
                     else:
                         write_viewer_bundle(av, None, folder, rig=live_rig(av))
-                    browser.append({"driver": kind, "key": with_key, **play(folder / "index.html", 40, 120.0)})
+                    for worker in (True, False) if with_key != "none" else (True,):
+                        timed = play(folder / "index.html", 40, 120.0, worker)
+                        browser.append({"mesh": name, "driver": kind, "key": with_key, **timed})
     print("keyShadowMap under Node (median of the timed calls, 8 poses x 5 calls)")
     print(
         f"{'mesh':<22} {'verts':>6} {'tris':>6} {'grid':>4} {'maps':>4} {'samples':>8} {'median ms':>9} {'min ms':>7}"
@@ -193,12 +209,15 @@ def main() -> None:
             f" {r['median_ms']:>9.2f} {r['min_ms']:>7.2f}"
         )
     if browser:
-        print("\npage while playing (CesiumMan, 20k Gaussians, SwiftShader): medians per frame")
-        print(f"{'driver':<10} {'key':>5} {'main ms':>8} {'main p90':>8} {'shadow map ms':>13} {'frames':>6}")
+        print("\npage while playing (20k Gaussians, SwiftShader): medians per frame")
+        print(
+            f"{'mesh':<10} {'driver':<10} {'key':>5} {'maps in':>7} {'main ms':>8} {'main p90':>8}"
+            f" {'shadow maps ms':>14} {'sort ms':>7} {'frames':>6}"
+        )
         for r in browser:
             print(
-                f"{r['driver']:<10} {r['key']!s:>5} {r['main_ms']:>8.2f} {r['main_p90_ms']:>8.2f}"
-                f" {r['key_ms']:>13.2f} {r['frames']:>6}"
+                f"{r['mesh']:<10} {r['driver']:<10} {r['key']!s:>5} {r['maps_in']:>7} {r['main_ms']:>8.2f}"
+                f" {r['main_p90_ms']:>8.2f} {r['key_ms']:>14.2f} {r['sort_ms']:>7.2f} {r['frames']:>6}"
             )
     out = args.out or results_path("viewer_shadow")
     out.write_text(json.dumps({"machine": machine_info(), "node": rows, "browser": browser}, indent=1) + "\n")

@@ -1066,6 +1066,48 @@ console.log(JSON.stringify(out));
             assert ((want > 0) & (want < 1)).mean() > 0.02
 
 
+@needs_node
+def test_shadow_worker_job_is_the_pages_height_maps(tmp_path):
+    """The shadow worker's job (shadowJob, vertex frames and a soft key) gives keyShadowMap's heights as
+    the float32 texture data (KEY_EMPTY where no sample fell), in each pose, reusing its buffers; its
+    inline source (SHADOW_WORKER_SOURCE) runs on its own and answers a request with the same maps."""
+    av = key_avatar(n=500, soft=8.0)
+    write_viewer_bundle(av, _key_frames(av), tmp_path)
+    script = f"""
+import {{ decodeBundle, frameVertices, keyShadowMap, shadowJob, shadowSetup, SHADOW_WORKER_SOURCE, KEY_EMPTY }}
+  from {json.dumps((tmp_path / "viewer.js").as_uri())};
+import fs from "fs";
+const h = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "avatar.json"))}, "utf8"));
+const b = decodeBundle(h, fs.readFileSync({json.dumps(str(tmp_path / "avatar.bin"))}));
+const S = shadowSetup(b), out = [];
+for (let t = 0; t < b.T; t++) {{
+  const p = Float32Array.from(frameVertices(b, t));
+  const want = keyShadowMap(b.faces, b.V, p, h.shading.key);
+  const r = shadowJob(S, {{ id: t, verts: p }});
+  const f32 = Float32Array.from(want.depth, (x) => (x === -Infinity ? KEY_EMPTY : x));
+  out.push({{ same: r.depth.every((x, i) => x === f32[i]), maps: want.frames.length, empty: f32.filter((x) => x === KEY_EMPTY).length,
+             cells: f32.length, place: [r.centre, r.radius, r.cell].flat().every((x, i) => x === [want.centre, want.radius, want.cell].flat()[i]) }});
+  S.spare.push(r.depth);
+}}
+// the worker source alone: its onmessage answers as shadowJob does
+const posted = [];
+const onmessage = new Function("postMessage", "performance", SHADOW_WORKER_SOURCE.replace('"use strict";', "") + "; return onmessage;")(
+  (r) => posted.push(r), performance);
+onmessage({{ data: {{ type: "init", setup: shadowSetup(b) }} }});
+const p = Float32Array.from(frameVertices(b, 1));
+onmessage({{ data: {{ type: "map", id: 7, verts: p }} }});
+const again = shadowJob(shadowSetup(b), {{ id: 7, verts: p }});
+console.log(JSON.stringify({{ out, worker: posted.length === 1 && posted[0].id === 7 && posted[0].ms >= 0 &&
+  posted[0].depth.every((x, i) => x === again.depth[i]) }}));
+"""
+    res = _node(script, tmp_path)
+    assert len(res["out"]) == 3
+    for r in res["out"]:
+        assert r["same"] and r["place"] and r["maps"] == 12
+        assert r["empty"] < r["cells"]
+    assert res["worker"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("normal,specular,soft", [("phong", False, 0.0), ("axis", True, 0.0), ("phong", False, 8.0)])
 def test_browser_key_shadow_matches_rasterizer(tmp_path, normal, specular, soft):
@@ -1146,6 +1188,15 @@ def test_browser_live_gltf_key_shadow_matches_rasterizer(tmp_path):
     assert subject.mean() > 0.02
     assert on >= 40.0 and full >= 40.0, (on, full)
     assert off < 35.0, off
+    # without Web Workers the page skins and builds the height maps on the main thread: the same image
+    screenshot(
+        (tmp_path / "b" / "index.html").as_uri() + "?time=0.8&ui=0&worker=0",
+        256,
+        256,
+        tmp_path / "s0.png",
+        chromium=_chromium(),
+    )
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "s0.png").convert("RGB"), dtype=np.float64), img)
 
 
 def test_view_cli_key_light_run(tmp_path, capsys):

@@ -7,9 +7,10 @@
 // blended rotation, area scale) and colour (view-dependent SH, learned irradiance of the posed
 // normal, the key light shadowed by the posed mesh) and projects it; one instanced draw call, blended
 // unclamped into a half-float target, then one full-screen pass clamps the image into the canvas. The key
-// light's height map (model.occlusion=key; one per direction over a soft key's disk) is built per pose on
-// the main thread's CPU and uploaded (keyShadowMap). The depth sort runs in a Web Worker (created from a Blob URL of inline source, so it
-// works from file://) with a 16-bit counting sort; the main thread never waits for it.
+// light's height maps (model.occlusion=key; one per direction over a soft key's disk) are built per pose on
+// the CPU in a second Web Worker (keyShadowMap, ShadowMapper) and uploaded; while playing they may trail
+// the drawn pose by a frame or two. The depth sort runs in a Web Worker (created from a Blob URL of inline
+// source, so it works from file://) with a 16-bit counting sort; the main thread never waits for either.
 //
 // The exported functions (decodeBundle, frameVertices, evalRig, skinVertices, sortJob, orbitViewmat,
 // intrinsics, ...) run under Node for the tests (tests/viewer_reference.mjs holds the CPU reference
@@ -419,6 +420,99 @@ export function keyVisibility(m, x, n) {
     if (w[0] * rx + w[1] * ry + w[2] * rz >= m.depth[(s * m.grid + i) * m.grid + j] - bias) lit++;
   }
   return lit / S;
+}
+
+// ------------------------------------------------------------------ key light height maps off the main thread
+/**
+ * The shadow worker's job for one pose: posed vertices (given, or skinned from a rig state as the GPU
+ * pass does), keyShadowMap, and its depths as the float32 texture data the page uploads (KEY_EMPTY where
+ * no sample fell). `S` holds the static data (faces, V, key, rig) and the reused map and spare buffers.
+ * Returns { id, depth (Float32Array), centre, radius, cell, samples }.
+ */
+export function shadowJob(S, msg) {
+  const verts = msg.verts || (S.skinned = skinVertices(S.rig, msg.rig, S.V, S.skinned));
+  const m = S.map = keyShadowMap(S.faces, S.V, verts, S.key, S.map);
+  const d = m.depth, out = S.spare.pop() || new Float32Array(d.length);
+  for (let i = 0; i < d.length; i++) out[i] = d[i] === -Infinity ? KEY_EMPTY : d[i];
+  return { id: msg.id, depth: out, centre: m.centre, radius: m.radius, cell: m.cell, samples: m.samples };
+}
+
+/** Static data for shadowJob from a decoded bundle with a key light (what the worker receives once). */
+export function shadowSetup(b) {
+  return { faces: b.faces, V: b.V, key: b.header.shading.key, rig: b.rig ? { ...b.rig, clips: null } : null, spare: [] };
+}
+
+/** Source of the shadow worker (inline, so that it can start from a Blob URL under file://). */
+export const SHADOW_WORKER_SOURCE = `"use strict";
+const KEY_EMPTY = ${KEY_EMPTY};
+${skinVertices.toString()}
+${keyFrame.toString()}
+${keyShadowDirections.toString()}
+${keyShadowMap.toString()}
+${surfaceSamples.toString()}
+${shadowJob.toString()}
+let S = null;
+onmessage = (e) => {
+  if (e.data.type === "init") { S = e.data.setup; return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.depth); return; }
+  const t0 = performance.now();
+  const r = shadowJob(S, e.data);
+  r.ms = performance.now() - t0;
+  postMessage(r, [r.depth.buffer]);
+};
+`;
+
+/**
+ * The key light's height maps of each new pose, built in a Web Worker when available (the main thread
+ * only uploads them), else (or after a worker failure) by the same functions on the calling thread.
+ * `onResult(r)` gets each shadowJob result (with `ms`, the time it took), or null when a request was lost.
+ */
+export class ShadowMapper {
+  constructor(b, onResult, useWorker = true) {
+    this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
+    const setup = this.setup = shadowSetup(b);
+    try {
+      if (!useWorker) throw new Error("disabled by ?worker=0");
+      const url = URL.createObjectURL(new Blob([SHADOW_WORKER_SOURCE], { type: "text/javascript" }));
+      this.worker = new Worker(url);
+      this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
+      this.worker.onerror = (e) => { // fall back to this thread
+        console.error("shadow worker:", e.message); this.worker = null; this.inWorker = false; this.busy = false;
+        this.onResult(null); // the pending request is lost: ask again
+      };
+      this.worker.postMessage({ type: "init", setup });
+      this.inWorker = true;
+    } catch (err) {
+      if (useWorker) console.warn("no Web Worker, building the shadow maps on the main thread:", err);
+      this.worker = null;
+    }
+  }
+
+  /** Give a depth buffer back once it has been uploaded (saves an allocation). */
+  recycle(depth) {
+    if (this.worker) this.worker.postMessage({ type: "recycle", depth }, [depth.buffer]);
+    else this.setup.spare.push(depth);
+  }
+
+  /** Ask for the height maps of a pose ({verts} float32 [V*3] or {rig} state); false when busy. */
+  request(pose) {
+    if (this.busy) return false;
+    const msg = { type: "map", id: this.nextId++ };
+    const transfer = [];
+    if (pose.verts) { msg.verts = pose.verts.slice(); transfer.push(msg.verts.buffer); }
+    else msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
+    this.busy = true;
+    if (this.worker) {
+      this.worker.postMessage(msg, transfer);
+    } else {
+      const t0 = performance.now();
+      const r = shadowJob(this.setup, msg);
+      r.ms = performance.now() - t0;
+      this.busy = false;
+      this.onResult(r);
+    }
+    return msg.id;
+  }
 }
 
 // ------------------------------------------------------------------ cameras (as meshsplat.synth.rigs)
@@ -1047,10 +1141,11 @@ export class SplatRenderer {
     const kg = this.key ? this.key.grid : 1, ks = this.key ? keyShadowDirections(this.key).length : 1;
     if (ks > KEY_MAX_MAPS) throw new Error(`the key light's shadow averages ${ks} height maps; this player shades at most ${KEY_MAX_MAPS}`);
     if (kg * ks > maxRows) throw new Error(`the key light's ${ks} height maps of ${kg}^2 cells exceed this GPU's texture size`);
-    this.t.k = { tex: gl.createTexture(), grid: kg, maps: ks, buf: new Float32Array(ks * kg * kg) };
+    this.t.k = { tex: gl.createTexture(), grid: kg, maps: ks };
+    if (this.key) this.keyFrames = { grid: kg, frame: keyFrame(this.key.direction), frames: keyShadowDirections(this.key).map(keyFrame) };
     gl.bindTexture(gl.TEXTURE_2D, this.t.k.tex);
     for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, ks * kg, 0, gl.RED, gl.FLOAT, this.t.k.buf);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, ks * kg, 0, gl.RED, gl.FLOAT, new Float32Array(ks * kg * kg));
     if (b.rig) {
       const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
       for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
@@ -1142,19 +1237,16 @@ export class SplatRenderer {
     for (let v = 0; v < V; v++) { p4[4 * v] = p[3 * v]; p4[4 * v + 1] = p[3 * v + 1]; p4[4 * v + 2] = p[3 * v + 2]; }
     updateTexture(this.gl, this.t.p, p4);
     this.poseMeshPasses();
-    if (this.key) this.setKeyMap(p);
   }
 
-  /** The key light's height maps of posed positions `p` [V*3] (keyShadowMap on the CPU), uploaded;
-   * `keyMs`: its time since `t0` (default now; live glTF: the CPU skinning's start). */
-  setKeyMap(p, t0 = performance.now()) {
+  /** The key light's height maps of a pose (a shadowJob result: its depths [maps * grid * grid] and
+   * grid placement), uploaded; the splat shader reads them from the next draw on. */
+  setKeyMaps(r) {
     const gl = this.gl, k = this.t.k;
-    this.keyMap = keyShadowMap(this.b.faces, this.b.V, p, this.key, this.keyMap);
-    const d = this.keyMap.depth;
-    for (let i = 0; i < d.length; i++) k.buf[i] = d[i] === -Infinity ? KEY_EMPTY : d[i];
     gl.bindTexture(gl.TEXTURE_2D, k.tex);
-    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, k.grid, k.maps * k.grid, gl.RED, gl.FLOAT, k.buf);
-    this.keyMs = performance.now() - t0;
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, k.grid, k.maps * k.grid, gl.RED, gl.FLOAT, r.depth);
+    this.keyMap = { ...this.keyFrames, centre: r.centre, radius: r.radius, cell: r.cell };
+    this.keyMs = r.ms;
   }
 
   /** Rig state of evalRig (live glTF driver): skinning pass, then the face and vertex passes. */
@@ -1166,11 +1258,6 @@ export class SplatRenderer {
     this.runPass(this.skinPass, this.fbSkin, this.b.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
       pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
     this.poseMeshPasses();
-    // the height map needs the posed vertices on the CPU: the same skinning as the GPU pass (as the sort worker's)
-    if (this.key) {
-      const t0 = performance.now();
-      this.setKeyMap(this.skinned = skinVertices(this.b.rig, state, this.b.V, this.skinned), t0);
-    }
   }
 
   poseMeshPasses() {
@@ -1290,7 +1377,7 @@ export function startViewer(doc) {
   const cam0 = header.camera;
   const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
   // the page's own timers (the last 1,000 frames and sorts, ms) for the status line and bench/viewer.py
-  const timings = { main: [], sort: [], key: [], firstReadyMs: null }; // key: the key light's height map (CPU)
+  const timings = { main: [], sort: [], key: [], firstReadyMs: null }; // key: the key light's height maps (CPU, worker)
   const record = (list, ms) => { list.push(ms); if (list.length > 1000) list.shift(); };
   const still = params.get("frame") !== null || params.get("time") !== null;
   const clips = live ? b.rig.clips : [];
@@ -1303,6 +1390,7 @@ export function startViewer(doc) {
     playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
     poseKey: "", sortedKey: null, drawnKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
+    shadowKey: null, shadowPending: null, // the pose whose height maps are uploaded / being built (model.occlusion=key)
   };
   for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
     const [i, w] = kv.split(":").map(Number);
@@ -1316,6 +1404,13 @@ export function startViewer(doc) {
     state.sortedKey = state.pendingKey; state.pendingKey = null; state.sortMs = r.ms; state.moved = r.moved;
     record(timings.sort, r.ms);
   }, params.get("worker") !== "0");
+  const mapper = renderer.key ? new ShadowMapper(b, (r) => {
+    if (r === null) { state.shadowPending = null; return; }
+    renderer.setKeyMaps(r);
+    mapper.recycle(r.depth);
+    state.shadowKey = state.shadowPending; state.shadowPending = null;
+    record(timings.key, r.ms);
+  }, params.get("worker") !== "0") : null;
   if (params.get("ui") === "0") $("ui").style.display = "none";
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
   $("title").textContent = header.title || "meshsplat avatar";
@@ -1437,7 +1532,8 @@ export function startViewer(doc) {
     if (lastDraw) renderer.draw(...lastDraw);
     return out;
   };
-  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get floatTarget() { return renderer.floatTarget; } };
+  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get floatTarget() { return renderer.floatTarget; },
+                            get shadowWorker() { return mapper ? mapper.inWorker : null; } };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
   const tick = (now) => {
@@ -1472,8 +1568,12 @@ export function startViewer(doc) {
         pose = poser.frame(state.frame);
         renderer.setVertices(pose.verts);
       }
-      if (renderer.key) record(timings.key, renderer.keyMs);
       state.poseKey = poseKey;
+    }
+    // the shadow worker builds the key light's height maps of the newest pose whenever it is free
+    if (mapper && poseKey !== state.shadowKey && state.shadowPending === null) {
+      state.shadowPending = poseKey; // before the request: without a worker the result comes back inside it
+      if (!mapper.request(pose)) state.shadowPending = null;
     }
     // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
     const key = `${poseKey}#${Array.from(viewmat).join()}`;
@@ -1482,8 +1582,8 @@ export function startViewer(doc) {
       if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
     // draw when the pose, view, order, background or size changed (a still page stays idle)
-    const drawKey = `${key}|${state.sortedKey}|${state.white}|${w}x${h}`;
-    if (drawKey !== state.drawnKey) {
+    const drawKey = `${key}|${state.sortedKey}|${state.shadowKey}|${state.white}|${w}x${h}`;
+    if (drawKey !== state.drawnKey && !(mapper && state.shadowKey === null)) { // not before the first height maps
       lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
       renderer.draw(...lastDraw);
       state.drawnKey = drawKey;
@@ -1495,12 +1595,12 @@ export function startViewer(doc) {
     info.textContent = live ? `${state.time.toFixed(2)} s` : `frame ${state.frame + 1}/${b.T}`;
     stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
       ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
-      (renderer.key ? ` · shadow map ${renderer.keyMs.toFixed(1)} ms` : "") +
+      (mapper ? ` · shadow maps ${renderer.keyMs.toFixed(1)} ms (${mapper.inWorker ? "worker" : "main thread"})` : "") +
       (renderer.floatTarget ? "" : " · 8-bit blending (bright overlaps clamped)") +
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
-      (key === state.sortedKey ? "" : " · order stale");
-    // ready (for screenshots) once the drawn order belongs to the drawn pose and view
-    if (key === state.sortedKey) {
+      (key === state.sortedKey ? "" : " · order stale") + (mapper && state.shadowKey !== poseKey ? " · shadow stale" : "");
+    // ready (for screenshots) once the drawn order belongs to the drawn pose and view, and so do its height maps
+    if (key === state.sortedKey && (!mapper || state.shadowKey === poseKey) && state.drawnKey === drawKey) {
       if (timings.firstReadyMs === null) timings.firstReadyMs = performance.now(); // since navigation start
       doc.body.dataset.ready = "1";
     }
