@@ -5,7 +5,7 @@
 
 Times, interleaved and in the same process (median of --repeats), the visibility alone
 (``meshsplat.mesh.visibility``), ``Avatar.compose`` and a whole ``Avatar.render`` for today's shading
-(``sh2``) and for each occlusion setting (the key: hard, and soft with 12 maps), on poses of the bundled CesiumMan walk (4672 triangles).
+(``sh2``) and for each occlusion setting (the key: hard, and soft with 12 maps at grid 64, 96 and 128), on poses of the bundled CesiumMan walk (4672 triangles).
 Saves bench/results/<name>-<host>.json.
 """
 
@@ -68,6 +68,8 @@ def main() -> None:
     settings["key, rings (7)"] = (16, 64, 1, 0.0)  # model.occlusion=key while it narrows the direction
     settings["key (1 light)"] = (16, 64, KEY_STAGES, 0.0)  # model.occlusion=key once aligned, a hard shadow
     settings["key soft (12 maps)"] = (16, 64, KEY_STAGES, 8.0)  # aligned, model.occlusion_key_soft=8
+    settings["key soft, grid 96"] = (16, 96, KEY_STAGES, 8.0)  # finer maps (model.occlusion_grid)
+    settings["key soft, grid 128"] = (16, 128, KEY_STAGES, 8.0)
     avatars = {}
     for name, s in settings.items():
         kind = "directions" if s is None or not s[2] else "key"

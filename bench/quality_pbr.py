@@ -63,6 +63,12 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_hard": ("quality", ["model.occlusion_key_soft=0"]),
     "default_lrsh5e-2_soft8": ("quality", ["optim.lr_shading=5e-2", "model.occlusion_key_soft=8"]),
     "default_lrsh1e-1": ("quality", ["optim.lr_shading=1e-1"]),
+    "default_soft4": ("quality", ["model.occlusion_key_soft=4"]),  # the soft key's radius
+    "default_soft12": ("quality", ["model.occlusion_key_soft=12"]),
+    "default_grid96": ("quality", ["model.occlusion_grid=96"]),  # finer shadow maps
+    "default_grid128": ("quality", ["model.occlusion_grid=128"]),
+    "default_soft16": ("quality", ["model.occlusion_key_soft=16"]),
+    "default_g96s12": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=12"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
