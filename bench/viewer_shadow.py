@@ -5,7 +5,8 @@ baseline.
 
 Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
 FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), a hard key at grid 64
-and 128 and a soft key (``model.occlusion_key_soft`` 8: 12 maps) at grid 64; ``keyShadowMap`` timed 5
+and 128 and a soft key (``model.occlusion_key_soft``: 12 maps) at grid 64 and 96 (the default since
+config version 9); ``keyShadowMap`` timed 5
 times per frame after 3 warm-up calls; medians over all calls; the surface sample count it scatters per
 map. Browser: 20k Gaussians on CesiumMan (vertex frames and live glTF) and on the ICT head (vertex
 frames), no key / hard / soft; the page builds the height maps in its shadow worker, and with
@@ -155,7 +156,7 @@ def main() -> None:
     rows, browser = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name, mesh, frames in meshes(args.quick):
-            for grid, soft in ((64, 0.0), (64, SOFT_DEG)) + (() if args.quick else ((128, 0.0),)):
+            for grid, soft in ((64, 0.0), (64, SOFT_DEG), (96, SOFT_DEG)) + (() if args.quick else ((128, 0.0),)):
                 av = Avatar(mesh, random_avatar(mesh, 200, False).params, shading=key_shading(grid, soft))
                 folder = Path(tmp) / f"{name}-{grid}-{soft}".replace(" ", "_")
                 write_viewer_bundle(av, frames, folder, vertex_encoding="float32")

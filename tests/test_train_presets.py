@@ -82,7 +82,8 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "model.occlusion='none' (the quality preset's: 'key')",
         "pose_refine.auto=False (the quality preset's: True)",
         "optim.lr_shading=0.005 (the quality preset's: 0.05)",
-        "model.occlusion_key_soft=0.0 (the quality preset's: 8.0)",
+        "model.occlusion_key_soft=0.0 (the quality preset's: 12.0)",
+        "model.occlusion_grid=64 (the quality preset's: 96)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -91,10 +92,15 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_6_DEFAULTS)
+    # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_8_DEFAULTS): the first value a
+    # key had, before its default first changed, is the paper's; a later table holds a later default
     tables = [getattr(config_module, f"VERSION_{v}_DEFAULTS") for v in range(1, CONFIG_VERSION)]
+    seen: set[str] = set()
     for table in tables:
-        assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in table} == table
+        first = {k: v for k, v in table.items() if k not in seen}
+        assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in first} == first
+        seen |= set(table)
+    assert tables[-1]["model.occlusion_key_soft"] == 8.0  # changed twice: 0, then 8, then 12
 
 
 # The demo's TrainConfig before training presets existed (hand-coded from demo.py of that time): the defaults
@@ -109,6 +115,7 @@ _OLD_DEFAULTS = [
     "pose_refine.auto=false",
     "optim.lr_shading=5e-3",
     "model.occlusion_key_soft=0",
+    "model.occlusion_grid=64",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -120,7 +127,8 @@ _OLD_QUALITY = [
     "model.occlusion=key",  # the key light, default since config version 5
     "pose_refine.auto=true",  # since config version 6
     "optim.lr_shading=5e-2",  # since config version 7
-    "model.occlusion_key_soft=8",  # since config version 8
+    "model.occlusion_key_soft=12",  # 8 since config version 8, 12 since 9
+    "model.occlusion_grid=96",  # since config version 9
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -166,7 +174,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 8)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 9)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -222,6 +230,8 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (5, "pose_refine.auto", False, True),  # before pose_refine.auto was on (the key did not exist yet)
         (6, "optim.lr_shading", 5e-3, 0.05),  # before optim.lr_shading was 5e-2
         (7, "model.occlusion_key_soft", 0.0, 4.0),  # before the key's shadow was soft
+        (8, "model.occlusion_grid", 64, 128),  # before the shadow maps had 96 cells a side
+        (8, "model.occlusion_key_soft", 8.0, 4.0),  # before the key's disk was 12 degrees
     ],
 )
 def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, key, old_value, set_value):
@@ -236,14 +246,23 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
     assert load_config(tmp_path / "config.json") == apply_overrides(preset_config("quality"), [f"{key}={old_value}"])
     assert value(TrainConfig.from_dict({"version": version, "seed": 1})) == old_value
     assert value(TrainConfig.from_dict({"version": version, section: {name: set_value}})) == set_value
-    assert value(TrainConfig.from_dict({"version": version + 1, "seed": 1})) == value(preset_config("quality"))
-    assert value(TrainConfig.from_dict({"seed": 1})) == old_value  # version 1
+    # one version later: the default of then (a later table's, for a key changed twice), else today's
+    later = [getattr(config_module, f"VERSION_{v}_DEFAULTS") for v in range(version + 1, CONFIG_VERSION)]
+    then = next((t[key] for t in later if key in t), value(preset_config("quality")))
+    assert value(TrainConfig.from_dict({"version": version + 1, "seed": 1})) == then
+    # version 1: the value before the key's first change (the paper's)
+    first = next(
+        getattr(config_module, f"VERSION_{v}_DEFAULTS")[key]
+        for v in range(1, CONFIG_VERSION)
+        if key in getattr(config_module, f"VERSION_{v}_DEFAULTS")
+    )
+    assert value(TrainConfig.from_dict({"seed": 1})) == first
 
 
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 9}, r"^config: format version 9 is newer than this meshsplat reads \(8\); update meshsplat"),
+        ({"version": 10}, r"^config: format version 10 is newer than this meshsplat reads \(9\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

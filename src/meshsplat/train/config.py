@@ -14,7 +14,8 @@ A version-2 dict was written before ``loss.crop_to_subject`` was on by default (
 a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a version-4 dict before
 ``model.occlusion`` was ``key`` (``VERSION_4_DEFAULTS``), a version-5 dict before ``pose_refine.auto``
 was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` was 5e-2 (``VERSION_6_DEFAULTS``),
-a version-7 dict before ``model.occlusion_key_soft`` was 8 (``VERSION_7_DEFAULTS``).
+a version-7 dict before ``model.occlusion_key_soft`` was 8 (``VERSION_7_DEFAULTS``), a version-8 dict before
+``model.occlusion_grid`` was 96 and ``model.occlusion_key_soft`` 12 (``VERSION_8_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -64,6 +65,7 @@ __all__ = [
     "VERSION_5_DEFAULTS",
     "VERSION_6_DEFAULTS",
     "VERSION_7_DEFAULTS",
+    "VERSION_8_DEFAULTS",
     "config_version",
 ]
 
@@ -83,7 +85,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 6: pose_refine.auto on by default (docs/real-captures.md, "Pose refinement").
 # 7: optim.lr_shading 5e-2 by default (docs/quality.md, "The lighting's learning rate").
 # 8: model.occlusion_key_soft 8 by default (docs/quality.md, "Soft key shadows").
-CONFIG_VERSION = 8
+# 9: model.occlusion_grid 96 and model.occlusion_key_soft 12 by default (docs/quality.md, "Finer key shadow maps").
+CONFIG_VERSION = 9
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -99,6 +102,8 @@ VERSION_5_DEFAULTS = {"pose_refine.auto": False}
 VERSION_6_DEFAULTS = {"optim.lr_shading": 5e-3}
 # Keys whose default changed since version 7, with their version-7 value (older dicts get them too).
 VERSION_7_DEFAULTS = {"model.occlusion_key_soft": 0.0}
+# Keys whose default changed since version 8, with their version-8 value (older dicts get them too).
+VERSION_8_DEFAULTS = {"model.occlusion_grid": 64, "model.occlusion_key_soft": 8.0}
 
 
 @dataclass
@@ -129,11 +134,11 @@ class ModelConfig:
     # candidates), the rest folded into the SH2 irradiance; one key light from 3 x occlusion_key_iter on.
     occlusion: str = "key"
     occlusion_directions: int = 16
-    occlusion_grid: int = 64
+    occlusion_grid: int = 96  # cells per side of each shadow map (64 before config version 9)
     occlusion_key_iter: int = 300
     # "key": the light's angular radius (degrees): once aligned, its shadow is the mean of 12 shadow maps over that
     # disk (an area light's soft shadow); 0: one map (hard). Unused by the other occlusion modes.
-    occlusion_key_soft: float = 8.0
+    occlusion_key_soft: float = 12.0  # 8 in config version 8
     # Added light (needs shading != "none"): "none" | "sh2": colour = albedo * E(n) + SH9(n) . specular, a learned
     # [9,3] added, not albedo-multiplied (a glossy highlight on a coloured surface); zero at the start.
     specular: str = "none"
@@ -516,7 +521,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
     ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none), versions 1 to 5 each ``VERSION_5_DEFAULTS`` key
     (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3),
-    versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0).
+    versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0), versions 1 to 8 each
+    ``VERSION_8_DEFAULTS`` key (``model.occlusion_grid``: 64, ``model.occlusion_key_soft``: 8).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -543,6 +549,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_6_DEFAULTS)
     if version <= 7:
         d = _with_defaults(d, VERSION_7_DEFAULTS)
+    if version <= 8:
+        d = _with_defaults(d, VERSION_8_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])
