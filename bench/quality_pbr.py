@@ -69,6 +69,7 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_grid128": ("quality", ["model.occlusion_grid=128"]),
     "default_soft16": ("quality", ["model.occlusion_key_soft=16"]),
     "default_g96s12": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=12"]),
+    "default_v8": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=8"]),  # config version 8's
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
