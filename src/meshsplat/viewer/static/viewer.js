@@ -422,6 +422,68 @@ export function keyVisibility(m, x, n) {
   return lit / S;
 }
 
+// ------------------------------------------------------------------ jobs in Web Workers (depth sort, shadow maps)
+/** The posed vertices of `pose` ({verts} float32 [V*3], copied, or a {rig} state) into the message `msg`;
+ * returns the buffers to transfer. */
+function poseMessage(pose, msg) {
+  if (pose.verts) { msg.verts = pose.verts.slice(); return [msg.verts.buffer]; }
+  msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
+  return [];
+}
+
+/**
+ * One job at a time in a Web Worker started from the inline `source` (a Blob URL, so that it works under
+ * file://; it answers "init" with the static `setup`, "recycle" with a buffer to reuse, and any other
+ * message with job's result), else (no Web Worker, `?worker=0`, or after a worker failure) the same
+ * `job(state, msg)` on the calling thread, `state = scratch(setup)`. `onResult(r)` gets each result,
+ * with `ms` (the job's time), or null when a request was lost. `what` names the job in console messages.
+ */
+class WorkerJob {
+  constructor(what, source, setup, job, scratch, onResult, useWorker) {
+    Object.assign(this, { what, setup, job, scratch, onResult, busy: false, nextId: 1, inWorker: false, S: null });
+    try {
+      if (!useWorker) throw new Error("disabled by ?worker=0");
+      const url = URL.createObjectURL(new Blob([source], { type: "text/javascript" }));
+      this.worker = new Worker(url);
+      this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
+      this.worker.onerror = (e) => { // fall back to this thread
+        console.error(`worker ${what}:`, e.message); this.worker = null; this.inWorker = false; this.busy = false;
+        this.onResult(null); // the pending request is lost: ask again
+      };
+      this.worker.postMessage({ type: "init", setup });
+      this.inWorker = true;
+    } catch (err) {
+      if (useWorker) console.warn(`no Web Worker, ${what} on the main thread:`, err);
+      this.worker = null;
+    }
+  }
+
+  /** The job's state on this thread (made once, also after a worker failure). */
+  local() { return this.S || (this.S = this.scratch(this.setup)); }
+
+  /** Give a result's buffer back once it has been uploaded (saves an allocation). */
+  recycle(buffer) {
+    if (this.worker) this.worker.postMessage({ type: "recycle", buffer }, [buffer.buffer]);
+    else this.local().spare.push(buffer);
+  }
+
+  /** Run the job on `msg` (given an id), in the worker (`transfer`: its buffers) or here. */
+  run(msg, transfer) {
+    msg.id = this.nextId++;
+    this.busy = true;
+    if (this.worker) {
+      this.worker.postMessage(msg, transfer);
+    } else {
+      const t0 = performance.now();
+      const r = this.job(this.local(), msg);
+      r.ms = performance.now() - t0;
+      this.busy = false;
+      this.onResult(r);
+    }
+    return msg.id;
+  }
+}
+
 // ------------------------------------------------------------------ key light height maps off the main thread
 /**
  * The shadow worker's job for one pose: posed vertices (given, or skinned from a rig state as the GPU
@@ -454,7 +516,7 @@ ${shadowJob.toString()}
 let S = null;
 onmessage = (e) => {
   if (e.data.type === "init") { S = e.data.setup; return; }
-  if (e.data.type === "recycle") { S.spare.push(e.data.depth); return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.buffer); return; }
   const t0 = performance.now();
   const r = shadowJob(S, e.data);
   r.ms = performance.now() - t0;
@@ -463,55 +525,19 @@ onmessage = (e) => {
 `;
 
 /**
- * The key light's height maps of each new pose, built in a Web Worker when available (the main thread
- * only uploads them), else (or after a worker failure) by the same functions on the calling thread.
- * `onResult(r)` gets each shadowJob result (with `ms`, the time it took), or null when a request was lost.
+ * The key light's height maps of each new pose (shadowJob), built in a Web Worker when available (the
+ * main thread only uploads them), else on the calling thread. `onResult(r)` as WorkerJob's.
  */
-export class ShadowMapper {
+export class ShadowMapper extends WorkerJob {
   constructor(b, onResult, useWorker = true) {
-    this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
-    const setup = this.setup = shadowSetup(b);
-    try {
-      if (!useWorker) throw new Error("disabled by ?worker=0");
-      const url = URL.createObjectURL(new Blob([SHADOW_WORKER_SOURCE], { type: "text/javascript" }));
-      this.worker = new Worker(url);
-      this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
-      this.worker.onerror = (e) => { // fall back to this thread
-        console.error("shadow worker:", e.message); this.worker = null; this.inWorker = false; this.busy = false;
-        this.onResult(null); // the pending request is lost: ask again
-      };
-      this.worker.postMessage({ type: "init", setup });
-      this.inWorker = true;
-    } catch (err) {
-      if (useWorker) console.warn("no Web Worker, building the shadow maps on the main thread:", err);
-      this.worker = null;
-    }
-  }
-
-  /** Give a depth buffer back once it has been uploaded (saves an allocation). */
-  recycle(depth) {
-    if (this.worker) this.worker.postMessage({ type: "recycle", depth }, [depth.buffer]);
-    else this.setup.spare.push(depth);
+    super("building the shadow maps", SHADOW_WORKER_SOURCE, shadowSetup(b), shadowJob, (setup) => setup, onResult, useWorker);
   }
 
   /** Ask for the height maps of a pose ({verts} float32 [V*3] or {rig} state); false when busy. */
   request(pose) {
     if (this.busy) return false;
-    const msg = { type: "map", id: this.nextId++ };
-    const transfer = [];
-    if (pose.verts) { msg.verts = pose.verts.slice(); transfer.push(msg.verts.buffer); }
-    else msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
-    this.busy = true;
-    if (this.worker) {
-      this.worker.postMessage(msg, transfer);
-    } else {
-      const t0 = performance.now();
-      const r = shadowJob(this.setup, msg);
-      r.ms = performance.now() - t0;
-      this.busy = false;
-      this.onResult(r);
-    }
-    return msg.id;
+    const msg = { type: "map" };
+    return this.run(msg, poseMessage(pose, msg));
   }
 }
 
@@ -673,7 +699,7 @@ ${sortScratch.toString()}
 let S = null;
 onmessage = (e) => {
   if (e.data.type === "init") { S = sortScratch(e.data.setup); return; }
-  if (e.data.type === "recycle") { S.spare.push(e.data.order); return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.buffer); return; }
   const t0 = performance.now();
   const r = sortJob(S, e.data);
   r.ms = performance.now() - t0;
@@ -681,56 +707,17 @@ onmessage = (e) => {
 };
 `;
 
-/**
- * The depth sorter: a Web Worker when available, else (or after a worker failure) the same
- * functions on the calling thread. `onResult(r)` gets each result, or null when a request was lost.
- */
-export class DepthSorter {
+/** The depth sorter (sortJob): a Web Worker when available, else the calling thread (see WorkerJob). */
+export class DepthSorter extends WorkerJob {
   constructor(b, onResult, useWorker = true) {
-    this.onResult = onResult; this.busy = false; this.nextId = 1; this.inWorker = false;
-    const setup = this.setup = sortSetup(b);
-    try {
-      if (!useWorker) throw new Error("disabled by ?worker=0");
-      const url = URL.createObjectURL(new Blob([SORT_WORKER_SOURCE], { type: "text/javascript" }));
-      this.worker = new Worker(url);
-      this.worker.onmessage = (e) => { this.busy = false; this.onResult(e.data); };
-      this.worker.onerror = (e) => { // fall back to sorting on this thread
-        console.error("sort worker:", e.message); this.worker = null; this.inWorker = false; this.busy = false;
-        this.onResult(null); // the pending request is lost: ask again
-      };
-      this.worker.postMessage({ type: "init", setup });
-      this.inWorker = true;
-    } catch (err) {
-      console.warn("no Web Worker, sorting on the main thread:", err);
-      this.worker = null; this.S = sortScratch(setup);
-    }
-  }
-
-  /** Give an order buffer back to the worker once it has been uploaded (saves an allocation). */
-  recycle(order) {
-    if (this.worker) this.worker.postMessage({ type: "recycle", order }, [order.buffer]);
-    else this.S.spare.push(order);
+    super("sorting", SORT_WORKER_SOURCE, sortSetup(b), sortJob, sortScratch, onResult, useWorker);
   }
 
   /** Ask for a sort of a pose ({verts} float32 [V*3] or {rig} state) seen from `viewmat`; false when busy. */
   request(pose, viewmat) {
     if (this.busy) return false;
-    const msg = { type: "sort", id: this.nextId++, viewmat: Array.from(viewmat) };
-    const transfer = [];
-    if (pose.verts) { msg.verts = pose.verts.slice(); transfer.push(msg.verts.buffer); }
-    else msg.rig = { pairs: pose.rig.pairs.slice(), weights: pose.rig.weights.slice() };
-    this.busy = true;
-    if (this.worker) {
-      this.worker.postMessage(msg, transfer);
-    } else {
-      this.S = this.S || sortScratch(this.setup); // also after a worker failure
-      const t0 = performance.now();
-      const r = sortJob(this.S, msg);
-      r.ms = performance.now() - t0;
-      this.busy = false;
-      this.onResult(r);
-    }
-    return msg.id;
+    const msg = { type: "sort", viewmat: Array.from(viewmat) };
+    return this.run(msg, poseMessage(pose, msg));
   }
 }
 
