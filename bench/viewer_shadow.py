@@ -6,14 +6,14 @@ baseline.
 Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
 FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), a hard key at grid 64
 and 128 and a soft key (``model.occlusion_key_soft``: 12 maps) at grid 64 and 96 (the default since
-config version 9); ``keyShadowMap`` timed 5
-times per frame after 3 warm-up calls; medians over all calls; the surface sample count it scatters per
-map. Browser: 20k Gaussians on CesiumMan (vertex frames and live glTF) and on the ICT head (vertex
-frames), no key / hard / soft; the page builds the height maps in its shadow worker, and with
-``?worker=0`` on the main thread (as before the worker; that also sorts on the main thread, whose time
-``timings.sort`` reports). Per frame while playing, 40 frames each: ``timings.main`` (the whole
-requestAnimationFrame callback, main thread) and ``timings.key`` (the height maps of one pose, in the
-worker or on the main thread; live glTF: plus the CPU skinning they need).
+config version 9); ``keyShadowMap`` timed 5 times per frame after 3 warm-up calls; medians over all
+calls; the surface sample count it scatters per map. Browser: 20k Gaussians on CesiumMan (vertex frames and live glTF) and on the ICT head (vertex
+frames), no key / hard / soft at grid 64 / soft at grid 96 (``soft96``, the default since config
+version 9); the page builds the height maps in its shadow worker, and with ``?worker=0`` on the main
+thread (as before the worker; that also sorts on the main thread, whose time ``timings.sort``
+reports). Per frame while playing, 40 frames each: ``timings.main`` (the whole requestAnimationFrame
+callback, main thread) and ``timings.key`` (the height maps of one pose, in the worker or on the main
+thread; live glTF: plus the CPU skinning they need).
 
 Usage: python bench/viewer_shadow.py [--quick] [--out bench/results/viewer_shadow-<host>.json]
 """
@@ -186,8 +186,8 @@ def main() -> None:
             for name, kind, mesh, frames in cases:
                 base = random_avatar(mesh, 20000, True)
                 assert base.shading is not None
-                for with_key in ("none", "hard", "soft"):
-                    sh = key_shading(64, SOFT_DEG if with_key == "soft" else 0.0)
+                for with_key in ("none", "hard", "soft", "soft96"):  # soft96: the default's 96-cell maps
+                    sh = key_shading(96 if with_key == "soft96" else 64, 0.0 if with_key == "hard" else SOFT_DEG)
                     if with_key == "none":
                         sh = Shading(base.shading.coeffs)
                     sh.coeffs = base.shading.coeffs.clone()
