@@ -547,12 +547,16 @@ def _psnr(img: np.ndarray, ref: np.ndarray) -> float:
     return float(10 * np.log10(255.0**2 / max(((img - ref) ** 2).mean(), 1e-10)))
 
 
-def _shoot(bundle: Path, frame: int, size: int, out: Path) -> np.ndarray:
+def _page_image(url: str, size: int, out: Path) -> np.ndarray:
+    """A ``size``-square screenshot of the page at ``url`` (saved to ``out``) as float RGB ``[H,W,3]``."""
     from PIL import Image
 
-    url = (bundle / "index.html").as_uri() + f"?frame={frame}&ui=0"
     screenshot(url, size, size, out, chromium=_chromium())
     return np.asarray(Image.open(out).convert("RGB"), dtype=np.float64)
+
+
+def _shoot(bundle: Path, frame: int, size: int, out: Path) -> np.ndarray:
+    return _page_image((bundle / "index.html").as_uri() + f"?frame={frame}&ui=0", size, out)
 
 
 @pytest.mark.slow
@@ -575,26 +579,10 @@ def test_browser_screenshot_matches_rasterizer(tmp_path):
         assert psnr > 40.0, psnr
         assert (img < 250).any(axis=-1).mean() > 0.02  # the avatar is drawn, not an empty page
     # sorting on the main thread (?worker=0, the fallback without Web Workers) draws the same image
-    from PIL import Image
-
-    screenshot(
-        (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&worker=0",
-        256,
-        256,
-        tmp_path / "main.png",
-        chromium=_chromium(),
-    )
-    same = np.asarray(Image.open(tmp_path / "main.png").convert("RGB"), dtype=np.float64)
+    same = _page_image((tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&worker=0", 256, tmp_path / "main.png")
     assert np.array_equal(same, img)
     # colours <= 1: the 8-bit path (?float=0) composites the same image, up to its rounding after every blend
-    screenshot(
-        (tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&float=0",
-        256,
-        256,
-        tmp_path / "8bit.png",
-        chromium=_chromium(),
-    )
-    eight = np.asarray(Image.open(tmp_path / "8bit.png").convert("RGB"), dtype=np.float64)
+    eight = _page_image((tmp_path / "b" / "index.html").as_uri() + "?frame=1&ui=0&float=0", 256, tmp_path / "8bit.png")
     print(
         f"float vs 8-bit blending, frame 1: PSNR {_psnr(img, eight):.1f} dB; 8-bit vs rasterizer {_psnr(eight, ref):.1f} dB"
     )
@@ -1189,14 +1177,8 @@ def test_browser_live_gltf_key_shadow_matches_rasterizer(tmp_path):
     assert on >= 40.0 and full >= 40.0, (on, full)
     assert off < 35.0, off
     # without Web Workers the page skins and builds the height maps on the main thread: the same image
-    screenshot(
-        (tmp_path / "b" / "index.html").as_uri() + "?time=0.8&ui=0&worker=0",
-        256,
-        256,
-        tmp_path / "s0.png",
-        chromium=_chromium(),
-    )
-    assert np.array_equal(np.asarray(Image.open(tmp_path / "s0.png").convert("RGB"), dtype=np.float64), img)
+    main = _page_image((tmp_path / "b" / "index.html").as_uri() + "?time=0.8&ui=0&worker=0", 256, tmp_path / "s0.png")
+    assert np.array_equal(main, img)
 
 
 def test_view_cli_key_light_run(tmp_path, capsys):
