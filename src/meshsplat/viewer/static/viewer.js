@@ -484,6 +484,29 @@ class WorkerJob {
   }
 }
 
+/**
+ * Inline source of a WorkerJob's worker (it can then start from a Blob URL under file://): the constants
+ * `consts` ({name: value}), the functions `fns` (job and scratch among them), and the protocol WorkerJob
+ * speaks: "init" makes the state `scratch(setup)` (no scratch: the setup itself), "recycle" hands a
+ * result buffer back to `S.spare`,
+ * any other message runs `job(S, msg)` and posts its result with `ms`, transferring `r[result].buffer`.
+ */
+function workerSource(consts, fns, job, scratch, result) {
+  return `"use strict";
+${Object.entries(consts).map(([k, v]) => `const ${k} = ${v};`).join("\n")}
+${fns.map((f) => f.toString()).join("\n")}
+let S = null;
+onmessage = (e) => {
+  if (e.data.type === "init") { S = ${scratch ? scratch.name : ""}(e.data.setup); return; }
+  if (e.data.type === "recycle") { S.spare.push(e.data.buffer); return; }
+  const t0 = performance.now();
+  const r = ${job.name}(S, e.data);
+  r.ms = performance.now() - t0;
+  postMessage(r, [r.${result}.buffer]);
+};
+`;
+}
+
 // ------------------------------------------------------------------ key light height maps off the main thread
 /**
  * The shadow worker's job for one pose: posed vertices (given, or skinned from a rig state as the GPU
@@ -505,24 +528,9 @@ export function shadowSetup(b) {
 }
 
 /** Source of the shadow worker (inline, so that it can start from a Blob URL under file://). */
-export const SHADOW_WORKER_SOURCE = `"use strict";
-const KEY_EMPTY = ${KEY_EMPTY};
-${skinVertices.toString()}
-${keyFrame.toString()}
-${keyShadowDirections.toString()}
-${keyShadowMap.toString()}
-${surfaceSamples.toString()}
-${shadowJob.toString()}
-let S = null;
-onmessage = (e) => {
-  if (e.data.type === "init") { S = e.data.setup; return; }
-  if (e.data.type === "recycle") { S.spare.push(e.data.buffer); return; }
-  const t0 = performance.now();
-  const r = shadowJob(S, e.data);
-  r.ms = performance.now() - t0;
-  postMessage(r, [r.depth.buffer]);
-};
-`;
+export const SHADOW_WORKER_SOURCE = workerSource(
+  { KEY_EMPTY }, [skinVertices, keyFrame, keyShadowDirections, keyShadowMap, surfaceSamples, shadowJob],
+  shadowJob, null, "depth");
 
 /**
  * The key light's height maps of each new pose (shadowJob), built in a Web Worker when available (the
@@ -687,25 +695,9 @@ export function sortScratch(S) {
 }
 
 /** Source of the sort worker (inline, so that it can start from a Blob URL under file://). */
-export const SORT_WORKER_SOURCE = `"use strict";
-const EXACT_KEY_MAX = ${EXACT_KEY_MAX};
-const NEAR_PLANE = ${NEAR_PLANE};
-${skinVertices.toString()}
-${vertexNormals.toString()}
-${vertexKeys.toString()}
-${sortGaussians.toString()}
-${sortJob.toString()}
-${sortScratch.toString()}
-let S = null;
-onmessage = (e) => {
-  if (e.data.type === "init") { S = sortScratch(e.data.setup); return; }
-  if (e.data.type === "recycle") { S.spare.push(e.data.buffer); return; }
-  const t0 = performance.now();
-  const r = sortJob(S, e.data);
-  r.ms = performance.now() - t0;
-  postMessage(r, [r.order.buffer]);
-};
-`;
+export const SORT_WORKER_SOURCE = workerSource(
+  { EXACT_KEY_MAX, NEAR_PLANE }, [skinVertices, vertexNormals, vertexKeys, sortGaussians, sortJob, sortScratch],
+  sortJob, sortScratch, "order");
 
 /** The depth sorter (sortJob): a Web Worker when available, else the calling thread (see WorkerJob). */
 export class DepthSorter extends WorkerJob {
