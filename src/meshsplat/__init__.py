@@ -24,8 +24,14 @@ first use, so ``import meshsplat`` stays light (no torch, gsplat, smplx or video
 from __future__ import annotations
 
 import importlib
+import os
 
 from meshsplat.errors import MeshsplatError
+
+# Intel MKL (torch's CPU BLAS) otherwise picks code paths by buffer alignment, so a matrix product can differ
+# in the last bit from run to run and a resumed training would not be bit-exact (docs/architecture.md,
+# "Determinism"). MKL reads it once, when it first computes; a user's own MKL_CBWR wins.
+os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 TYPE_CHECKING = False  # not typing.TYPE_CHECKING: importing typing would double the time of `import meshsplat`
 
