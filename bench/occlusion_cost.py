@@ -1,11 +1,15 @@
 """What shading with occlusion (model.occlusion=directions, key) costs per frame, on the CesiumMan mesh.
 
     python bench/occlusion_cost.py                 # 10k Gaussians, 256 px, 16/32 directions x 32/64 cells
+    python bench/occlusion_cost.py --asset RobotExpressive   # another bundled glTF (longer triangles)
     python bench/occlusion_cost.py --tiny          # seconds, to check the script
 
 Times, interleaved and in the same process (median of --repeats), the visibility alone
 (``meshsplat.mesh.visibility``), ``Avatar.compose`` and a whole ``Avatar.render`` for today's shading
 (``sh2``) and for each occlusion setting (the key: hard, and soft with 12 maps at grid 64, 96 and 128), on poses of the bundled CesiumMan walk (4672 triangles).
+The soft key at grid 64 and 96 is timed twice: with the shadow maps compiled (numba, what CPU tensors use
+when it is installed) and in pure torch (``, torch maps``: ``mesh.visibility`` told numba is missing; the
+rasterizer keeps ``--backend``), the baseline of the compiled maps.
 Saves bench/results/<name>-<host>.json.
 """
 
@@ -27,6 +31,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--name", default="occlusion_cost")
+    ap.add_argument("--asset", default="CesiumMan", help="a bundled glTF: CesiumMan, RobotExpressive")
     ap.add_argument("--tiny", action="store_true")
     args = ap.parse_args()
     if args.tiny:
@@ -34,6 +39,8 @@ def main() -> None:
 
     import torch
 
+    import meshsplat.mesh.visibility as vis_module
+    from meshsplat._numba import numba_available
     from meshsplat.camera import Camera
     from meshsplat.drivers import GltfDriver
     from meshsplat.embedding import embed, sample_surface
@@ -43,7 +50,7 @@ def main() -> None:
     from meshsplat.paths import bundled_asset
 
     torch.set_num_threads(args.threads)
-    drv = GltfDriver(bundled_asset("CesiumMan"))
+    drv = GltfDriver(bundled_asset(args.asset))
     mesh = TriMesh(drv.rest_vertices(), drv.faces)
     frames = [drv.vertices(i) for i in range(0, drv.num_frames, max(1, drv.num_frames // 4))][:4]
     params = init_params(mesh, args.gaussians, generator=torch.Generator().manual_seed(0))
@@ -68,7 +75,9 @@ def main() -> None:
     settings["key, rings (7)"] = (16, 64, 1, 0.0)  # model.occlusion=key while it narrows the direction
     settings["key (1 light)"] = (16, 64, KEY_STAGES, 0.0)  # model.occlusion=key once aligned, a hard shadow
     settings["key soft (12 maps)"] = (16, 64, KEY_STAGES, 8.0)  # aligned, model.occlusion_key_soft=8
+    settings["key soft, grid 64, torch maps"] = (16, 64, KEY_STAGES, 8.0)
     settings["key soft, grid 96"] = (16, 96, KEY_STAGES, 8.0)  # finer maps (model.occlusion_grid)
+    settings["key soft, grid 96, torch maps"] = (16, 96, KEY_STAGES, 8.0)
     settings["key soft, grid 128"] = (16, 128, KEY_STAGES, 8.0)
     avatars = {}
     for name, s in settings.items():
@@ -85,6 +94,7 @@ def main() -> None:
     with torch.no_grad():
         for _ in range(args.repeats + 1):  # the first round warms up (numba compile, allocator)
             for name, av in avatars.items():
+                vis_module.numba_available = (lambda: False) if name.endswith("torch maps") else numba_available
                 for v in frames:
                     t = {}
                     if av.shading is not None and av.shading.directions is not None:
@@ -105,13 +115,13 @@ def main() -> None:
     rows = {n: {k: 1000 * statistics.median(v[skip:]) for k, v in t.items() if len(v) > skip} for n, t in times.items()}
     base = rows["sh2 (today)"]["render"]
     print(
-        f"CesiumMan ({mesh.num_faces} triangles), {args.gaussians} Gaussians, {args.size} px, backend {args.backend}, "
+        f"{args.asset} ({mesh.num_faces} triangles), {args.gaussians} Gaussians, {args.size} px, backend {args.backend}, "
         f"{args.threads} thread(s); median ms per frame over {args.repeats} x {len(frames)} poses"
     )
-    print(f"{'setting':<22}{'visibility':>12}{'compose':>10}{'render':>10}{'render x':>10}")
+    print(f"{'setting':<32}{'visibility':>12}{'compose':>10}{'render':>10}{'render x':>10}")
     for n, r in rows.items():
         vis = f"{r['visibility']:.1f}" if "visibility" in r else "-"
-        print(f"{n:<22}{vis:>12}{r['compose']:>10.1f}{r['render']:>10.1f}{r['render'] / base:>10.2f}")
+        print(f"{n:<32}{vis:>12}{r['compose']:>10.1f}{r['render']:>10.1f}{r['render'] / base:>10.2f}")
     out = results_path(args.name)
     out.write_text(json.dumps({"machine": machine_info(), "args": vars(args), "ms": rows}, indent=2) + "\n")
     print(f"saved {out}")

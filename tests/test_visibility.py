@@ -7,9 +7,20 @@ import math
 import pytest
 import torch
 
+from meshsplat._numba import NO_NUMBA_ENV, numba_available
 from meshsplat.embedding import sample_surface, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.visibility import sphere_directions, surface_samples, visibility
+
+
+@pytest.fixture(autouse=True, params=["compiled", "torch"])
+def path(request, monkeypatch):
+    """Every test on both paths: the numba kernels (CPU, when installed) and pure torch (any device)."""
+    if request.param == "torch":
+        monkeypatch.setenv(NO_NUMBA_ENV, "1")
+    elif not numba_available():
+        pytest.skip("numba is not installed (pip install 'meshsplat[fast]')")
+    return request.param
 
 
 def box(lo: float = -1.0, hi: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -21,7 +21,9 @@ import math
 import torch
 
 from meshsplat._checks import check_tensor
+from meshsplat._numba import numba_available
 from meshsplat.errors import MeshsplatError
+from meshsplat.mesh._visibility_numba import visibility_compiled
 
 __all__ = ["sphere_directions", "visibility", "surface_samples"]
 
@@ -86,7 +88,6 @@ def visibility(
     lo, hi = verts.amin(0), verts.amax(0)
     centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2 * 1.001 + 1e-12
     cell = 2 * radius / grid
-    samples = surface_samples(verts, faces.long(), cell / 2) - centre  # [M,3]
     rel = points - centre
     # an orthonormal frame (a, b, w) per direction: (a, b) index the grid, w is the height towards the light
     helper = torch.where(
@@ -104,7 +105,10 @@ def visibility(
         ij = q[: 2 * k].add_(radius).mul_(1.0 / cell).floor_().clamp_(0, grid - 1)
         return (ij[:k] * grid).add_(ij[k:]).long().add_(offset), q[2 * k :]
 
-    s_idx, s_h = cells(samples)
+    if verts.device.type == "cpu" and numba_available():  # the same, compiled: 2-3x faster, no sample arrays
+        slope = (_BIAS_CELLS, _SLOPE_CELLS, _MAX_TAN)
+        return visibility_compiled(verts, faces, frame, centre, rel, normals, radius, cell, grid, slope)
+    s_idx, s_h = cells(surface_samples(verts, faces.long(), cell / 2) - centre)
     depth = torch.full((k * grid * grid,), -math.inf, dtype=verts.dtype, device=verts.device)
     depth.scatter_reduce_(0, s_idx.reshape(-1), s_h.reshape(-1), reduce="amax")
     p_idx, p_h = cells(rel)

@@ -33,15 +33,14 @@ to this file, or numba's user cache directory when that is read-only). The threa
 
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Iterator
 from functools import lru_cache
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
+from meshsplat._numba import numba_threads
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import ALPHA_MAX, ALPHA_THRESHOLD, MAX_EXTEND, PIXEL_CENTER, TRANSMITTANCE_MIN
 from meshsplat.render.backends import numba_available, numba_projection
@@ -402,22 +401,6 @@ def _kernels() -> _Kernels:
     return _Kernels(ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd)
 
 
-@contextlib.contextmanager
-def _threads() -> Iterator[None]:
-    """Run numba's parallel kernels on ``torch.get_num_threads()`` threads (capped by numba's pool), and
-    give torch its count back afterwards: numba's OpenMP layer shares the runtime and would raise it."""
-    import numba
-
-    n = torch.get_num_threads()
-    pool = int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))
-    numba.set_num_threads(max(1, min(n, pool)))
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != n:
-            torch.set_num_threads(n)
-
-
 def _tile_order(n_tiles: int) -> np.ndarray:
     """Tiles in the order the parallel kernels take them: every n-th tile, for each of numba's n threads in
     turn. numba hands each thread one contiguous share of a ``prange``, so each thread gets a comb of tiles
@@ -485,7 +468,7 @@ class _Composite(torch.autograd.Function):
         C, H, W, D = geo.n_cams, geo.height, geo.width, colors.shape[-1]
         geo.bin(opacities, colors)
         bgv = _bg_array(bg, C, D, colors.dtype)
-        with _threads():
+        with numba_threads():
             out, t_final, n_contrib = _kernels().forward(*geo.args(bgv))
         geo.t_final, geo.n_contrib = t_final, n_contrib
         ctx.geo, ctx.has_bg, ctx.col_shape, ctx.dtype = geo, bg is not None, tuple(colors.shape), colors.dtype
@@ -505,7 +488,7 @@ class _Composite(torch.autograd.Function):
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
-        with _threads():
+        with numba_threads():
             rows = k.backward(
                 *geo.args(bgv),
                 g_out.detach().contiguous().numpy(),
@@ -580,7 +563,7 @@ def rasterize_numba(
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, W, H, near_plane, far_plane)
     else:
         k = _kernels()
-        proj = project_numba((k.project, k.project_backward), _threads, means, quats, scales, opacities, viewmats, Ks, W, H,
+        proj = project_numba((k.project, k.project_backward), numba_threads, means, quats, scales, opacities, viewmats, Ks, W, H,
                              near_plane, far_plane)  # fmt: skip
     means2d = proj.means2d
     if means2d.requires_grad:
