@@ -1,7 +1,6 @@
-"""The shadow maps of ``mesh.visibility`` compiled with numba (CPU): the same surface samples and cells,
-without materialising their cells. float64 inside; each direction's map is filled by one thread,
-so the result does not depend on the
-thread count (a maximum does not depend on the order either)."""
+"""``mesh.visibility`` compiled with numba (CPU): the same surface samples, cells and bias, without arrays of
+samples per direction. float64 inside. Each direction's map is filled by one thread (and a maximum does not
+depend on the order), so the result does not depend on the thread count."""
 
 from __future__ import annotations
 
@@ -77,7 +76,7 @@ def _depth_kernel(verts, faces, frame, centre, radius, inv_cell, grid, spacing, 
 
 def _lit_kernel(
     depth, frame, rel, normals, radius, inv_cell, grid, cell, bias_cells, slope_cells, max_tan
-):  # pragma: no cover
+):  # pragma: no cover - compiled
     """``[N,K]`` 1.0 where the points ``rel [N,3]`` (relative to the grid's centre; unit ``normals [N,3]``) are
     not below their cell's height by more than the slope-scaled bias, else 0.0."""
     n, k = rel.shape[0], frame.shape[0] // 3
