@@ -69,6 +69,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_grid128": ("quality", ["model.occlusion_grid=128"]),
     "default_soft16": ("quality", ["model.occlusion_key_soft=16"]),
     "default_g96s12": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=12"]),
+    # the two halves of config version 9's change, each alone (today's preset has grid 96 and 12 degrees)
+    "default_g96s8": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=8"]),
+    "default_g64s12": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=12"]),
     "default_v8": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=8"]),  # config version 8's
 }
 ALL = {**VARIANTS, **EXTRA}
