@@ -5,12 +5,14 @@ compiled rasterizer and the subject-crop losses, in the same run, at 1 and 2 thr
                                 [--lpips-every 4] [--quick]
 
 Variants (the quality preset on the demo's schedule, ``demo_train_config`` with the ``default`` demo
-sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false`` and
-``loss.lpips_every=1`` (the path of meshsplat before the numba backend, the crop and the LPIPS
-cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
+sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false``,
+``loss.lpips_every=1`` and the torch shadow maps (the path of meshsplat before the numba backend, the crop
+and the LPIPS cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
 ``now`` = the defaults (``backend=auto``: numba on CPU when installed; LPIPS on the subject's box, every
 second iteration), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
-``--lpips-every`` (default none). Per thread count, every trainer is warmed up, then timed in
+``--lpips-every`` (default none), ``now_torch_maps`` = ``now`` with the key light's shadow maps in pure
+torch (``mesh.visibility`` told numba is missing while its trainer steps; the rasterizer stays numba): the
+baseline of the compiled maps. Per thread count, every trainer is warmed up, then timed in
 alternating blocks so a change of the machine's load hits all alike. An iteration with LPIPS costs
 more than one without: besides the median and mean time per iteration, ``cycle_median_s`` is the
 median over aligned groups of lcm(k) consecutive iterations of their mean
@@ -31,7 +33,9 @@ from pathlib import Path
 
 import torch
 
+import meshsplat.mesh.visibility as vis_module
 from _machine import machine_info, results_path
+from meshsplat._numba import numba_available
 from meshsplat.demo import PRESETS, _generate, demo_train_config
 from meshsplat.train import Trainer
 
@@ -39,8 +43,10 @@ VARIANTS = {
     "before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"],
     "numba_crop": ["loss.lpips_every=1"],
     "now": [],
+    "now_torch_maps": [],
 }
-CADENCES = {"before": 1, "numba_crop": 1, "now": 2}  # loss.lpips_every of each variant
+TORCH_MAPS = {"before", "now_torch_maps"}  # variants whose shadow maps are built by the torch path
+CADENCES = {"before": 1, "numba_crop": 1, "now": 2, "now_torch_maps": 2}  # loss.lpips_every of each variant
 
 
 def main() -> None:
@@ -72,6 +78,7 @@ def main() -> None:
         for name, extra in variants.items():
             cfg = demo_train_config(data, tmp / f"{name}{threads}", PRESETS["default"], extra, progress=False)
             trainers[name] = Trainer(cfg)
+            vis_module.numba_available = (lambda: False) if name in TORCH_MAPS else numba_available
             for _ in range(args.warmup):
                 trainers[name].step()
         times: dict[str, list[float]] = {name: [] for name in trainers}
@@ -79,11 +86,13 @@ def main() -> None:
         while done < args.iters:
             n = min(args.block, args.iters - done)
             for name, tr in trainers.items():
+                vis_module.numba_available = (lambda: False) if name in TORCH_MAPS else numba_available
                 for _ in range(n):
                     t = time.perf_counter()
                     tr.step()
                     times[name].append(time.perf_counter() - t)
             done += n
+        vis_module.numba_available = numba_available
         assert torch.get_num_threads() == threads, "a backend changed torch's thread count"
         for name, t in times.items():
             rows.append(
