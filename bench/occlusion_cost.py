@@ -39,8 +39,7 @@ def main() -> None:
 
     import torch
 
-    import meshsplat.mesh.visibility as vis_module
-    from meshsplat._numba import numba_available
+    from _shadow_maps import use_torch_maps
     from meshsplat.camera import Camera
     from meshsplat.drivers import GltfDriver
     from meshsplat.embedding import embed, sample_surface
@@ -94,7 +93,7 @@ def main() -> None:
     with torch.no_grad():
         for _ in range(args.repeats + 1):  # the first round warms up (numba compile, allocator)
             for name, av in avatars.items():
-                vis_module.numba_available = (lambda: False) if name.endswith("torch maps") else numba_available
+                use_torch_maps(name.endswith("torch maps"))
                 for v in frames:
                     t = {}
                     if av.shading is not None and av.shading.directions is not None:

@@ -33,9 +33,8 @@ from pathlib import Path
 
 import torch
 
-import meshsplat.mesh.visibility as vis_module
 from _machine import machine_info, results_path
-from meshsplat._numba import numba_available
+from _shadow_maps import use_torch_maps
 from meshsplat.demo import PRESETS, _generate, demo_train_config
 from meshsplat.train import Trainer
 
@@ -78,7 +77,7 @@ def main() -> None:
         for name, extra in variants.items():
             cfg = demo_train_config(data, tmp / f"{name}{threads}", PRESETS["default"], extra, progress=False)
             trainers[name] = Trainer(cfg)
-            vis_module.numba_available = (lambda: False) if name in TORCH_MAPS else numba_available
+            use_torch_maps(name in TORCH_MAPS)
             for _ in range(args.warmup):
                 trainers[name].step()
         times: dict[str, list[float]] = {name: [] for name in trainers}
@@ -86,13 +85,13 @@ def main() -> None:
         while done < args.iters:
             n = min(args.block, args.iters - done)
             for name, tr in trainers.items():
-                vis_module.numba_available = (lambda: False) if name in TORCH_MAPS else numba_available
+                use_torch_maps(name in TORCH_MAPS)
                 for _ in range(n):
                     t = time.perf_counter()
                     tr.step()
                     times[name].append(time.perf_counter() - t)
             done += n
-        vis_module.numba_available = numba_available
+        use_torch_maps(False)
         assert torch.get_num_threads() == threads, "a backend changed torch's thread count"
         for name, t in times.items():
             rows.append(
