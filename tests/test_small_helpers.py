@@ -97,3 +97,19 @@ def test_read_json_object(tmp_path):
     p.write_text("[1, 2]")
     with pytest.raises(MeshsplatError, match=r"a\.json: expected a run config, got list"):
         read_json_object(p, "a run config")
+
+
+def test_check_finite_finds_every_nan_and_inf_and_passes_sums_that_overflow():
+    from meshsplat._checks import check_finite
+
+    big = torch.full((4, 3), 3e38)  # finite, but their sum overflows to inf: the exact check clears it
+    assert check_finite("big", big) is big
+    for bad, count in ((float("nan"), 1), (float("inf"), 1), (-float("inf"), 1)):
+        x = torch.zeros(5, 3)
+        x[2, 1] = bad
+        with pytest.raises(MeshsplatError, match=f"x: contains {count} NaN/Inf values"):
+            check_finite("x", x)
+    both = torch.tensor([float("inf"), -float("inf"), 1.0])  # inf - inf sums to nan: still found, both counted
+    with pytest.raises(MeshsplatError, match="contains 2 NaN/Inf"):
+        check_finite("both", both)
+    assert check_finite("ints", torch.arange(3)) is not None and check_finite("empty", torch.zeros(0, 3)).numel() == 0
