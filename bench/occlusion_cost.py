@@ -100,7 +100,7 @@ def main() -> None:
                         pose = MeshPose.from_vertices(mesh, v)
                         pts, n = embed(pose, face, uv, torch.zeros(len(face)))
                         t0 = time.perf_counter()
-                        av.shading.visibility(v, mesh.faces, pts, n)
+                        av.shading.visibility(pose, pts, n)
                         t["visibility"] = time.perf_counter() - t0
                     t0 = time.perf_counter()
                     av.compose(v)

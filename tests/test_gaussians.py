@@ -267,3 +267,23 @@ def test_camera_checks_its_fields():
     moved = cam.to(dtype=torch.float64)
     assert moved.viewmat.dtype == moved.K.dtype == torch.float64 and (moved.width, moved.height) == (40, 30)
     assert cam.viewmat.dtype == torch.float32  # the original is unchanged
+
+
+def test_avatar_renders_a_shared_mesh_pose_as_its_vertices():
+    """A ``MeshPose`` from ``avatar.pose`` renders exactly what its vertices do (the trainer poses each training
+    frame once); one of another mesh or dtype is refused with a clear message."""
+    mesh = icosphere(2)
+    av = Avatar(mesh, init_params(mesh, 300, sh_degree=1, generator=torch.Generator().manual_seed(3)))
+    verts = mesh.vertices * torch.tensor([1.0, 1.2, 0.9])
+    cam, bg = _turned_camera(), torch.tensor([0.2, 0.3, 0.4])
+    pose = av.pose(verts)
+    assert av.pose(pose) is pose
+    with torch.no_grad():
+        want = av.render(verts, cam, bg, backend="torch")
+        got = av.render(pose, cam, bg, backend="torch")
+    assert torch.equal(got.image, want.image) and torch.equal(got.alpha, want.alpha)
+    other = icosphere(1)
+    with pytest.raises(MeshsplatError, match="pose: a MeshPose of 42 vertices and 80 faces, the avatar's mesh has 162"):
+        av.render(MeshPose.canonical(other), cam)
+    with pytest.raises(MeshsplatError, match=r"pose: a MeshPose on cpu in torch\.float64"):
+        av.render(MeshPose.from_vertices(TriMesh(mesh.vertices.double(), mesh.faces), verts.double()), cam)

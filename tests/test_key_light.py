@@ -11,7 +11,7 @@ import torch
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params
 from meshsplat.gaussians.shading import KEY_CONE_DEG, KEY_RING, KEY_RINGS_DEG, KEY_STAGES, Shading, sh9_basis
-from meshsplat.mesh import MeshPose
+from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import TrainConfig, Trainer, apply_overrides
 from test_quality_options import _sphere
@@ -94,7 +94,7 @@ def test_key_shadows_with_one_map_after_alignment():
         sh.align_key()
     got = compose(p, pose, shading=sh).colors
     assert sh.directions is not None
-    assert sh.visibility(pose.verts, pose.faces, pose.verts[:5], torch.ones(5, 3) / 3**0.5).shape == (5, 1)
+    assert sh.visibility(pose, pose.verts[:5], torch.ones(5, 3) / 3**0.5).shape == (5, 1)
     assert torch.isfinite(got).all()
 
 
@@ -183,6 +183,29 @@ def test_a_short_run_aligns_at_its_last_iteration(tiny_dataset, tmp_path):  # no
     assert t.shading is not None and t.shading.key_aligned
 
 
+def test_training_frames_are_posed_once_and_render_as_their_vertices(tiny_dataset, tmp_path):  # noqa: F811
+    """The trainer keeps each training frame's ``MeshPose`` (and with it the key's shadow maps): a frame renders
+    bit for bit as the avatar does from its vertices, and the second time from the same pose and maps."""
+    t = Trainer(small_config(tiny_dataset, tmp_path / "posed", 13, KEY))
+    t.train()
+    assert t.shading is not None and t.shading.key_aligned
+    bg = torch.tensor([0.3, 0.5, 0.7])
+    idx = t.train_ids[0]
+    out, _ = t.render_frame(idx, bg)
+    pose = t._pose_cache[idx]
+    maps = pose._shadows
+    again, _ = t.render_frame(idx, bg)
+    assert t._pose_cache[idx] is pose and pose._shadows is maps and maps is not None
+    _, _, camera, verts = t._frame(idx)
+    want = t.avatar().render(verts, camera, bg, backend=t.cfg.backend)
+    for got in (out, again):
+        assert torch.equal(got.image, want.image) and torch.equal(got.alpha, want.alpha)
+
+
+def _posed(verts: torch.Tensor, faces: torch.Tensor) -> MeshPose:
+    return MeshPose.from_vertices(TriMesh(verts, faces), verts)
+
+
 def _plate_over_floor(height: float) -> tuple[torch.Tensor, torch.Tensor]:
     """A 4 x 4 floor (y = 0) and a 1 x 1 plate at ``height`` above its centre: vertices ``[V,3]``, faces ``[F,3]``."""
 
@@ -226,12 +249,12 @@ def test_a_soft_key_averages_the_shadow_maps_of_its_disk():
     verts, faces = _plate_over_floor(1.0)
     pts = torch.stack([torch.linspace(0.0, 1.2, 121), torch.zeros(121), torch.full((121,), 0.05)], -1)
     up = torch.tensor([[0.0, 1.0, 0.0]]).expand(121, 3)
-    v = sh.visibility(verts, faces, pts, up)
+    v = sh.visibility(_posed(verts, faces), pts, up)
     assert v is not None and v.shape == (121, 1)
     want = visibility(verts.double(), faces, pts.double(), up.double(), dirs, sh.grid).mean(-1, keepdim=True)
     assert torch.equal(v, want.float())
     # a hard key: 0 or 1 only; the same key before alignment ignores key_soft (the candidates' own maps)
-    hard = _soft_key(0.0).visibility(verts, faces, pts, up)
+    hard = _soft_key(0.0).visibility(_posed(verts, faces), pts, up)
     assert hard is not None and set(hard.unique().tolist()) == {0.0, 1.0}
     early = Shading(occlusion="key", directions=16, key_soft=8.0)
     assert not early.soft_key and torch.equal(early.shadow_directions(), early.directions)
@@ -246,7 +269,7 @@ def test_the_soft_penumbra_widens_with_the_occluders_distance():
     widths = []
     for height in (0.5, 1.5):
         verts, faces = _plate_over_floor(height)
-        v = _soft_key(8.0).visibility(verts, faces, pts, up)
+        v = _soft_key(8.0).visibility(_posed(verts, faces), pts, up)
         assert v is not None
         v = v[:, 0]
         assert float(v[0]) == 0.0 and float(v[-1]) == 1.0

@@ -24,6 +24,7 @@ from meshsplat.mesh import (
     vertex_normals,
     vertex_quaternions,
 )
+from meshsplat.mesh.geometry import pose_quantities
 
 
 def _sphere(sub=2, dtype=torch.float64):
@@ -132,6 +133,29 @@ def test_mesh_pose_rest_is_identity():
     pose = MeshPose.canonical(TriMesh(v, f))
     assert torch.allclose(pose.vertex_quats, torch.tensor([1.0, 0, 0, 0]).expand_as(pose.vertex_quats), atol=1e-6)
     assert torch.allclose(pose.area_ratio, torch.ones_like(pose.area_ratio))
+
+
+def test_vertex_sums_match_a_loop_over_faces_batched():
+    """Area-weighted vertex normals and the area ratio of a batch of poses against a plain loop over the
+    faces of each pose (the flat per-corner scatter and its batch offsets); ``pose_quantities`` gives the same."""
+    v, f = _sphere(1)
+    g = torch.Generator().manual_seed(0)
+    posed = v * torch.tensor([1.0, 1.3, 0.8], dtype=v.dtype) + 0.05 * torch.randn(
+        3, *v.shape, generator=g, dtype=v.dtype
+    )
+    n = vertex_normals(posed, f)
+    for b in range(posed.shape[0]):
+        acc = torch.zeros_like(v)
+        for a, c, d in f.tolist():
+            cross = torch.linalg.cross(posed[b, c] - posed[b, a], posed[b, d] - posed[b, a], dim=0)
+            for i in (a, c, d):
+                acc[i] += cross
+        assert torch.allclose(n[b], torch.nn.functional.normalize(acc, dim=-1), atol=1e-12)
+    want = face_areas(posed, f) / face_areas(v, f)
+    assert torch.allclose(face_area_ratio(v, posed, f), want, atol=1e-12)
+    normals, quats, ratio = pose_quantities(v, posed, f)
+    assert torch.equal(normals, n) and torch.equal(ratio, face_area_ratio(v, posed, f))
+    assert torch.equal(quats, vertex_quaternions(v, posed, f))
 
 
 @pytest.mark.gradcheck

@@ -1038,7 +1038,7 @@ console.log(JSON.stringify(out));
             uv = torch.from_numpy(a["gaussian_uv"]).to(dtype)  # the half-float uv the page reads
             pose = MeshPose.from_vertices(TriMesh(av.mesh.vertices.to(dtype), faces), verts)
             _, normals = embed(pose, face, uv, torch.zeros(len(uv), dtype=dtype))
-            vis = sh.visibility(verts, faces, surface_points(verts, faces, face, uv), normals)
+            vis = sh.visibility(pose, surface_points(verts, faces, face, uv), normals)
             assert vis is not None
             want, got = vis[:, 0].double().numpy(), np.asarray(out["visible"], np.float64)
             differ = np.abs(want - got) > 1e-6  # float32: k / 12 rounded
@@ -1131,7 +1131,7 @@ def _render_unshadowed(av: Avatar, verts, cam) -> np.ndarray:
 
     sh = av.shading
     assert sh is not None
-    with mock.patch.object(sh, "visibility", lambda v, f, p, n: torch.ones(len(p), 1, dtype=p.dtype)):
+    with mock.patch.object(sh, "visibility", lambda pose, p, n: torch.ones(len(p), 1, dtype=p.dtype)):
         return _render_ref(av, verts, cam)
 
 

@@ -10,7 +10,8 @@ import torch
 from meshsplat._numba import NO_NUMBA_ENV, numba_available
 from meshsplat.embedding import sample_surface, surface_points
 from meshsplat.errors import MeshsplatError
-from meshsplat.mesh.visibility import sphere_directions, surface_samples, visibility
+from meshsplat.mesh import MeshPose, TriMesh
+from meshsplat.mesh.visibility import shadow_maps, sphere_directions, surface_samples, visibility
 
 
 @pytest.fixture(autouse=True, params=["compiled", "torch"])
@@ -108,6 +109,31 @@ def test_visibility_is_deterministic_and_a_pure_function_of_the_pose():
     vg = v.clone().requires_grad_(True)
     c = visibility(vg, f, pts, pts, sphere_directions(16))
     assert torch.equal(a, c) and not c.requires_grad
+
+
+def test_shadow_maps_answer_for_any_points_and_a_pose_keeps_its_last():
+    """Maps built once look up any points as ``visibility`` does; a ``MeshPose`` keeps its last maps for the same
+    lights and grid, and builds new ones for others or after its vertices changed in place."""
+    v, f = uv_sphere(12, 24)
+    g = torch.Generator().manual_seed(1)
+    pts = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)
+    dirs = sphere_directions(16)
+    maps = shadow_maps(v, f, dirs, 32)
+    assert maps.num_directions == 16 and maps.grid == 32
+    assert torch.equal(maps.lit(pts, pts), visibility(v, f, pts, pts, dirs, 32))
+    assert torch.equal(maps.lit(pts[:40], pts[:40]), visibility(v, f, pts[:40], pts[:40], dirs, 32))
+    pose = MeshPose.from_vertices(TriMesh(v, f), v.clone())
+    first = pose.shadow_maps(dirs, 32)
+    assert torch.equal(first.lit(pts, pts), maps.lit(pts, pts))
+    assert pose.shadow_maps(dirs.clone(), 32) is first
+    assert pose.shadow_maps(dirs, 48).grid == 48
+    other = pose.shadow_maps(dirs[:4], 32)
+    assert other.num_directions == 4 and pose.shadow_maps(dirs[:4], 32) is other
+    again = pose.shadow_maps(dirs, 32)
+    with torch.no_grad():
+        pose.verts.mul_(2.0)
+    moved = pose.shadow_maps(dirs, 32)
+    assert moved is not again and moved.radius == pytest.approx(2 * again.radius, rel=1e-6)
 
 
 def test_bad_input_is_one_clear_error():

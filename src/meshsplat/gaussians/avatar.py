@@ -91,13 +91,28 @@ class Avatar:
         return Avatar(mesh, params, self.scale_mode, self.clamp_to_face, shading, self.sh_frame, self.antialiased)
 
     # ---- posing and rendering --------------------------------------------------------
-    def pose(self, verts_posed: torch.Tensor) -> MeshPose:
-        """``MeshPose`` for ``verts_posed [V,3]`` (moved to the avatar's device and dtype)."""
+    def pose(self, verts_posed: torch.Tensor | MeshPose) -> MeshPose:
+        """``MeshPose`` for ``verts_posed [V,3]`` (moved to the avatar's device and dtype). A ``MeshPose`` (from
+        an earlier call) is returned as it is: posing costs milliseconds, so renders of one pose can share it."""
+        dtype = self.params["uv"].dtype
+        if isinstance(verts_posed, MeshPose):
+            if verts_posed.verts.shape != self.mesh.vertices.shape or verts_posed.num_faces != self.mesh.num_faces:
+                raise MeshsplatError(
+                    f"pose: a MeshPose of {verts_posed.verts.shape[0]} vertices and {verts_posed.num_faces} faces, "
+                    f"the avatar's mesh has {self.mesh.num_vertices} and {self.mesh.num_faces}"
+                )
+            if verts_posed.verts.device != self.device or verts_posed.verts.dtype != dtype:
+                raise MeshsplatError(
+                    f"pose: a MeshPose on {verts_posed.verts.device} in {verts_posed.verts.dtype}, the avatar is on "
+                    f"{self.device} in {dtype} (make it with avatar.pose(vertices))"
+                )
+            return verts_posed
         check_tensor("verts_posed", verts_posed, "V,3", {"V": self.mesh.num_vertices}, dtype="float", finite=True)
-        return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=self.params["uv"].dtype))
+        return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=dtype))
 
-    def compose(self, verts_posed: torch.Tensor, campos: torch.Tensor | None = None) -> ComposedGaussians:
-        """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]``."""
+    def compose(self, verts_posed: torch.Tensor | MeshPose, campos: torch.Tensor | None = None) -> ComposedGaussians:
+        """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]`` (or its
+        ``MeshPose``, see :meth:`pose`)."""
         return compose(
             self.params,
             self.pose(verts_posed),
@@ -121,10 +136,15 @@ class Avatar:
             return self.compose(self.mesh.vertices if verts_posed is None else verts_posed).colors.detach()
 
     def render(
-        self, vertices: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto"
+        self,
+        vertices: torch.Tensor | MeshPose,
+        camera: Camera,
+        background: torch.Tensor | None = None,
+        backend: str = "auto",
     ) -> AvatarRender:
-        """Render the avatar posed by ``vertices [V,3]`` as seen by ``camera`` (a :class:`Camera`: world->camera
-        ``viewmat``, ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``."""
+        """Render the avatar posed by ``vertices [V,3]`` (or their ``MeshPose`` from :meth:`pose`, to share the
+        posing between renders of one pose) as seen by ``camera`` (a :class:`Camera`: world->camera ``viewmat``,
+        ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``."""
         if not isinstance(camera, Camera):
             raise MeshsplatError(
                 f"camera: expected a meshsplat.Camera, got {type(camera).__name__} (the signature is "

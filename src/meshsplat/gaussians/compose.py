@@ -143,6 +143,6 @@ def compose(
         if shading.occlusion != "none":
             with torch.no_grad():
                 points = surface_points(pose.verts.detach(), pose.faces, face, uv.detach())
-                visible = shading.visibility(pose.verts.detach(), pose.faces, points, normals.detach())
+                visible = shading.visibility(pose, points, normals.detach())
         colors = shading.shade(colors, normals, quats, scales, visible)
     return ComposedGaussians(means, quats, scales, opacities, colors)

@@ -53,8 +53,9 @@ import torch
 
 from meshsplat._typing import Device
 from meshsplat.errors import MeshsplatError
+from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import quat_to_matrix
-from meshsplat.mesh.visibility import sphere_directions, visibility
+from meshsplat.mesh.visibility import sphere_directions
 
 __all__ = [
     "Shading",
@@ -257,16 +258,14 @@ class Shading:
         self.directions = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[self.key_stage - 1], KEY_RING)])
         self.light = merged.expand(1 + KEY_RING, 3) / (1 + KEY_RING)  # no candidate favoured at the start
 
-    def visibility(
-        self, verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor, normals: torch.Tensor
-    ) -> torch.Tensor | None:
-        """``V [N,K]`` of surface ``points [N,3]`` (unit ``normals [N,3]``) on the posed mesh ``verts [V,3]``,
-        ``faces [F,3]``; None without occlusion."""
+    def visibility(self, pose: MeshPose, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
+        """``V [N,K]`` of surface ``points [N,3]`` (unit ``normals [N,3]``) on the posed mesh ``pose``; None
+        without occlusion. The pose keeps its shadow maps for the next call with the same lights."""
         if self.directions is None:
             return None
         dirs = self.shadow_directions()
         assert dirs is not None
-        v = visibility(verts, faces, points, normals, dirs.to(verts), self.grid)
+        v = pose.shadow_maps(dirs.to(pose.verts), self.grid).lit(points, normals)
         return v.mean(-1, keepdim=True) if self.soft_key else v
 
     @property

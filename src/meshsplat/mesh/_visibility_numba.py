@@ -107,11 +107,29 @@ def _kernel() -> Any:
     return par(_depth_kernel), par(_lit_kernel)
 
 
-def visibility_compiled(
+def depth_compiled(
     verts: torch.Tensor,
     faces: torch.Tensor,
     frame: torch.Tensor,
     centre: torch.Tensor,
+    radius: float,
+    cell: float,
+    grid: int,
+) -> torch.Tensor:
+    """``ShadowMaps.depth`` ``[K*grid*grid]`` (float64) of ``verts [V,3]``/``faces [F,3]`` along ``frame [3K,3]``
+    around ``centre [3]``, compiled for CPU tensors."""
+    import numba
+
+    depth_k, _ = _kernel()
+    with numba_threads():
+        faces64 = np.ascontiguousarray(faces.cpu().numpy(), dtype=np.int64)
+        args = (_as64(verts), faces64, _as64(frame), _as64(centre), float(radius), 1.0 / cell, int(grid), cell / 2)
+        return torch.from_numpy(depth_k(*args, numba.get_num_threads()))
+
+
+def lit_compiled(
+    depth: torch.Tensor,
+    frame: torch.Tensor,
     rel: torch.Tensor,
     normals: torch.Tensor,
     radius: float,
@@ -119,17 +137,24 @@ def visibility_compiled(
     grid: int,
     bias: tuple[float, float, float],
 ) -> torch.Tensor:
-    """``visibility``'s ``[N,K]`` (0 or 1, in ``verts``' dtype), compiled for CPU tensors: its depth grids of
-    ``verts [V,3]``/``faces [F,3]`` along ``frame [3K,3]`` around ``centre [3]``, looked up at ``rel [N,3]``
-    (points less ``centre``) with unit ``normals [N,3]``; ``bias``: (cells, slope cells, largest tangent)."""
-    import numba
-
-    as64 = lambda t: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)  # noqa: E731
-    depth_k, lit_k = _kernel()
-    fr = as64(frame)
+    """``ShadowMaps.lit``'s ``[N,K]`` (0 or 1, float64), compiled: the points ``rel [N,3]`` (less the grid's
+    centre) with unit ``normals [N,3]`` looked up in ``depth`` (from :func:`depth_compiled`) along ``frame [3K,3]``;
+    ``bias``: (cells, slope cells, largest tangent)."""
+    _, lit_k = _kernel()
     with numba_threads():
-        faces64 = np.ascontiguousarray(faces.cpu().numpy(), dtype=np.int64)
-        args = (as64(verts), faces64, fr, as64(centre), float(radius), 1.0 / cell, int(grid), cell / 2)
-        depth = depth_k(*args, numba.get_num_threads())
-        lit = lit_k(depth, fr, as64(rel), as64(normals), float(radius), 1.0 / cell, int(grid), float(cell), *bias)
-    return torch.from_numpy(lit).to(verts.dtype)
+        lit = lit_k(
+            _as64(depth),
+            _as64(frame),
+            _as64(rel),
+            _as64(normals),
+            float(radius),
+            1.0 / cell,
+            int(grid),
+            float(cell),
+            *bias,
+        )
+    return torch.from_numpy(lit)
+
+
+def _as64(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)

@@ -17,15 +17,16 @@ deterministic function of the vertices.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat._numba import numba_available
 from meshsplat.errors import MeshsplatError
-from meshsplat.mesh._visibility_numba import visibility_compiled
+from meshsplat.mesh._visibility_numba import depth_compiled, lit_compiled
 
-__all__ = ["sphere_directions", "visibility", "surface_samples"]
+__all__ = ["sphere_directions", "visibility", "shadow_maps", "ShadowMaps", "surface_samples"]
 
 _BIAS_CELLS = 0.75
 _SLOPE_CELLS = 1.5
@@ -64,7 +65,92 @@ def surface_samples(verts: torch.Tensor, faces: torch.Tensor, spacing: float) ->
     return torch.cat(out)
 
 
+def _cells(frame: torch.Tensor, radius: float, grid: int, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cell index into a flat ``[K*grid*grid]`` depth and height, both ``[K,P]``, of points ``p [P,3]`` (relative
+    to the grid's centre) along ``frame [3K,3]``."""
+    k = frame.shape[0] // 3
+    q = frame @ p.T  # [3K,P], each row contiguous
+    ij = q[: 2 * k].add_(radius).mul_(1.0 / (2 * radius / grid)).floor_().clamp_(0, grid - 1)
+    offset = (torch.arange(k, device=p.device) * (grid * grid))[:, None]
+    return (ij[:k] * grid).add_(ij[k:]).long().add_(offset), q[2 * k :]
+
+
+@dataclass(frozen=True)
+class ShadowMaps:
+    """The depth grids of one posed mesh along ``K`` far directions (:func:`shadow_maps`); :meth:`lit` looks
+    points up. Built once, they answer for any points of that pose (Gaussians move, the mesh does not)."""
+
+    depth: torch.Tensor  # [K*grid*grid] highest surface height per cell (-inf: no surface); float64 when compiled
+    frame: torch.Tensor  # [3K,3] rows a_1..a_K, b_1..b_K (grid axes), w_1..w_K (the directions)
+    centre: torch.Tensor  # [3] the grid's centre
+    radius: float  # the bounding sphere's radius: the grid spans [-radius, radius] on each axis
+    grid: int
+    compiled: bool  # built (and looked up) by the numba kernels
+
+    @property
+    def num_directions(self) -> int:
+        return self.frame.shape[0] // 3
+
+    @property
+    def cell(self) -> float:
+        return 2 * self.radius / self.grid
+
+    @torch.no_grad()
+    def lit(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """``[N,K]`` float (0 or 1, in the maps' mesh dtype): whether ``points [N,3]`` (on the surface, with unit
+        ``normals [N,3]`` for the bias) are lit from each direction."""
+        dims: dict[str, int] = {}
+        check_tensor("points", points, "N,3", dims, dtype="float", finite=True)
+        check_tensor("normals", normals, "N,3", dims, dtype="float")
+        dtype = self.frame.dtype
+        rel = points.detach().to(self.centre) - self.centre
+        normals = normals.detach().to(self.centre)
+        if self.compiled:
+            slope = (_BIAS_CELLS, _SLOPE_CELLS, _MAX_TAN)
+            return lit_compiled(self.depth, self.frame, rel, normals, self.radius, self.cell, self.grid, slope).to(
+                dtype
+            )
+        dirs = self.frame[2 * self.num_directions :]
+        p_idx, p_h = _cells(self.frame, self.radius, self.grid, rel)
+        cos = (dirs @ normals.T).abs_().clamp_(1e-6, 1.0)  # [K,N]
+        tan = ((1 - cos * cos).clamp_min(0).sqrt() / cos).clamp_max(_MAX_TAN)
+        bias = self.cell * (_BIAS_CELLS + _SLOPE_CELLS * tan)
+        lit = p_h >= self.depth[p_idx] - bias
+        return lit.T.to(dtype)
+
+
 @torch.no_grad()
+def shadow_maps(verts: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, grid: int = 64) -> ShadowMaps:
+    """The depth grids of the surface ``verts [V,3]``/``faces [F,3]`` seen from each far direction
+    ``directions [K,3]``, ``grid x grid`` cells over its bounding sphere (compiled on CPU with numba)."""
+    dims: dict[str, int] = {}
+    check_tensor("verts", verts, "V,3", dims, dtype="float", finite=True)
+    check_tensor("faces", faces, "F,3", dims, dtype="int")
+    check_tensor("directions", directions, "K,3", dims, dtype="float", finite=True)
+    if not isinstance(grid, int) or grid < 2:
+        raise MeshsplatError(f"grid: expected an integer >= 2, got {grid!r}")
+    verts = verts.detach()
+    dirs = torch.nn.functional.normalize(directions.detach().to(verts), dim=-1)
+    lo, hi = verts.amin(0), verts.amax(0)
+    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2 * 1.001 + 1e-12
+    cell = 2 * radius / grid
+    # an orthonormal frame (a, b, w) per direction: (a, b) index the grid, w is the height towards the light
+    helper = torch.where(
+        dirs[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0]).to(verts), torch.tensor([0, 1.0, 0]).to(verts)
+    )
+    a = torch.nn.functional.normalize(torch.linalg.cross(helper, dirs), dim=-1)
+    b = torch.linalg.cross(dirs, a)
+    k = dirs.shape[0]
+    frame = torch.cat([a, b, dirs])  # [3K,3]
+    if verts.device.type == "cpu" and numba_available():  # the same, compiled: 2-3x faster, no sample arrays
+        depth = depth_compiled(verts, faces, frame, centre, radius, cell, grid)
+        return ShadowMaps(depth, frame, centre, radius, grid, compiled=True)
+    s_idx, s_h = _cells(frame, radius, grid, surface_samples(verts, faces.long(), cell / 2) - centre)
+    depth = torch.full((k * grid * grid,), -math.inf, dtype=verts.dtype, device=verts.device)
+    depth.scatter_reduce_(0, s_idx.reshape(-1), s_h.reshape(-1), reduce="amax")
+    return ShadowMaps(depth, frame, centre, radius, grid, compiled=False)
+
+
 def visibility(
     verts: torch.Tensor,
     faces: torch.Tensor,
@@ -75,45 +161,4 @@ def visibility(
 ) -> torch.Tensor:
     """``[N,K]`` float (0 or 1): whether ``points [N,3]`` (on the surface ``verts [V,3]``/``faces [F,3]``,
     with unit ``normals [N,3]`` for the bias) are lit from each far direction ``directions [K,3]``."""
-    dims: dict[str, int] = {}
-    check_tensor("verts", verts, "V,3", dims, dtype="float", finite=True)
-    check_tensor("faces", faces, "F,3", dims, dtype="int")
-    check_tensor("points", points, "N,3", dims, dtype="float", finite=True)
-    check_tensor("normals", normals, "N,3", dims, dtype="float")
-    check_tensor("directions", directions, "K,3", dims, dtype="float", finite=True)
-    if not isinstance(grid, int) or grid < 2:
-        raise MeshsplatError(f"grid: expected an integer >= 2, got {grid!r}")
-    verts, points, normals = verts.detach(), points.detach().to(verts), normals.detach().to(verts)
-    dirs = torch.nn.functional.normalize(directions.detach().to(verts), dim=-1)
-    lo, hi = verts.amin(0), verts.amax(0)
-    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2 * 1.001 + 1e-12
-    cell = 2 * radius / grid
-    rel = points - centre
-    # an orthonormal frame (a, b, w) per direction: (a, b) index the grid, w is the height towards the light
-    helper = torch.where(
-        dirs[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0]).to(verts), torch.tensor([0, 1.0, 0]).to(verts)
-    )
-    a = torch.nn.functional.normalize(torch.linalg.cross(helper, dirs), dim=-1)
-    b = torch.linalg.cross(dirs, a)
-    k = dirs.shape[0]
-    frame = torch.cat([a, b, dirs])  # [3K,3]: rows a_1..a_K, b_1..b_K, w_1..w_K
-    offset = (torch.arange(k, device=verts.device) * (grid * grid))[:, None]
-
-    def cells(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Cell index into the flat ``[K*grid*grid]`` depth and height, both ``[K,P]``, of points ``p [P,3]``."""
-        q = frame @ p.T  # [3K,P], each row contiguous
-        ij = q[: 2 * k].add_(radius).mul_(1.0 / cell).floor_().clamp_(0, grid - 1)
-        return (ij[:k] * grid).add_(ij[k:]).long().add_(offset), q[2 * k :]
-
-    if verts.device.type == "cpu" and numba_available():  # the same, compiled: 2-3x faster, no sample arrays
-        slope = (_BIAS_CELLS, _SLOPE_CELLS, _MAX_TAN)
-        return visibility_compiled(verts, faces, frame, centre, rel, normals, radius, cell, grid, slope)
-    s_idx, s_h = cells(surface_samples(verts, faces.long(), cell / 2) - centre)
-    depth = torch.full((k * grid * grid,), -math.inf, dtype=verts.dtype, device=verts.device)
-    depth.scatter_reduce_(0, s_idx.reshape(-1), s_h.reshape(-1), reduce="amax")
-    p_idx, p_h = cells(rel)
-    cos = (dirs @ normals.T).abs_().clamp_(1e-6, 1.0)  # [K,N]
-    tan = ((1 - cos * cos).clamp_min(0).sqrt() / cos).clamp_max(_MAX_TAN)
-    bias = cell * (_BIAS_CELLS + _SLOPE_CELLS * tan)
-    lit = p_h >= depth[p_idx] - bias
-    return lit.T.to(verts.dtype)
+    return shadow_maps(verts, faces, directions, grid).lit(points, normals)

@@ -50,7 +50,7 @@ from meshsplat.gaussians.params import EMBEDDING_STATE_KEYS, init_params, num_ga
 from meshsplat.gaussians.shading import Shading
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
 from meshsplat.io.images import float_to_uint8
-from meshsplat.mesh import TriMesh, bbox_diagonal
+from meshsplat.mesh import MeshPose, TriMesh, bbox_diagonal
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
@@ -80,6 +80,7 @@ __all__ = [
     "PROGRESS_WINDOW",
 ]
 
+_FRAME_CACHE_BYTES = 2 * 1024**3  # decoded training frames (and their posed meshes) kept in memory
 _LOGGED_PARTS = ("l1", "lpips", "scale", "mse", "dssim", "mask")  # loss parts in log.csv
 PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
@@ -173,6 +174,7 @@ class Trainer:
             # built now: nothing may draw random numbers after seeding or restoring the generators
             self.perceptual = make_perceptual_loss("alex").build(self.device)
         self._frame_cache: dict[int, tuple] = {}
+        self._pose_cache: dict[int, MeshPose] = {}  # training frames' posed meshes (not refined ones)
         self._cache_bytes = 0
         self.iteration = 0
         self.elapsed = 0.0
@@ -313,10 +315,27 @@ class Trainer:
             fr.vertices.to(dev, torch.float32),
         )
         size = sum(t.numel() * 4 for t in item if isinstance(t, torch.Tensor)) + 4 * (16 + 9)
-        if self._cache_bytes + size <= 2 * 1024**3:  # keep up to 2 GiB of decoded frames
+        if self._cache_bytes + size <= _FRAME_CACHE_BYTES:
             self._frame_cache[idx] = item
             self._cache_bytes += size
         return item
+
+    def _pose(self, idx: int, avatar: Avatar, verts: torch.Tensor) -> MeshPose:
+        """Training frame ``idx``'s ``MeshPose`` of its (fixed) ``verts [V,3]``: posed once, kept within the
+        frame cache's budget (posing the mesh is a few milliseconds of every iteration otherwise)."""
+        hit = self._pose_cache.get(idx)
+        if hit is not None:
+            return hit
+        pose = avatar.pose(verts)
+        size = sum(t.numel() * t.element_size() for t in (pose.vertex_normals, pose.vertex_quats, pose.area_ratio))
+        sh = self.shading
+        dirs = None if sh is None else sh.shadow_directions()
+        if sh is not None and dirs is not None:  # the shadow maps the pose will keep (float64 when compiled)
+            size += dirs.shape[0] * sh.grid**2 * 8
+        if self._cache_bytes + size <= _FRAME_CACHE_BYTES:
+            self._pose_cache[idx] = pose
+            self._cache_bytes += size
+        return pose
 
     def _next_index(self) -> int:
         if self.order_pos >= len(self.order):
@@ -343,11 +362,14 @@ class Trainer:
         """Render training frame ``idx`` on ``background [3]`` through ``Avatar.render`` (pose-refined
         vertices when refining). Returns (render, ground truth [H,W,3] composited on the same background)."""
         image, mask, camera, verts = self._frame(idx)
-        if self.refiner is not None:
-            row = int(self.dataset.frame_info(idx)["mesh"])
-            if self.refiner.refines(row):
-                verts = self.refiner.vertices(row)
-        out = self.avatar().render(verts, camera, background, backend=self.cfg.backend)
+        avatar = self.avatar()
+        row = int(self.dataset.frame_info(idx)["mesh"]) if self.refiner is not None else -1
+        posed: torch.Tensor | MeshPose
+        if self.refiner is not None and self.refiner.refines(row):
+            posed = self.refiner.vertices(row)  # changes every step: posed anew
+        else:
+            posed = self._pose(idx, avatar, verts)
+        out = avatar.render(posed, camera, background, backend=self.cfg.backend)
         return out, composite(image, mask, background)
 
     def _image_loss(
