@@ -10,9 +10,9 @@ sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false`
 and the LPIPS cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
 ``now`` = the defaults (``backend=auto``: numba on CPU when installed; LPIPS on the subject's box, every
 second iteration), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
-``--lpips-every`` (default none), ``now_torch_maps`` = ``now`` with the key light's shadow maps in pure
-torch (``mesh.visibility`` told numba is missing while its trainer steps; the rasterizer stays numba): the
-baseline of the compiled maps. Per thread count, every trainer is warmed up, then timed in
+``--lpips-every`` (default none). (A variant ``now_torch_maps`` timed the key light's shadow maps in pure
+torch against the compiled ones; since the trainer keeps each training frame's maps, they are built once per
+frame and that variant was dropped.) Per thread count, every trainer is warmed up, then timed in
 alternating blocks so a change of the machine's load hits all alike. An iteration with LPIPS costs
 more than one without: besides the median and mean time per iteration, ``cycle_median_s`` is the
 median over aligned groups of lcm(k) consecutive iterations of their mean
@@ -42,10 +42,9 @@ VARIANTS = {
     "before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"],
     "numba_crop": ["loss.lpips_every=1"],
     "now": [],
-    "now_torch_maps": [],
 }
-TORCH_MAPS = {"before", "now_torch_maps"}  # variants whose shadow maps are built by the torch path
-CADENCES = {"before": 1, "numba_crop": 1, "now": 2, "now_torch_maps": 2}  # loss.lpips_every of each variant
+TORCH_MAPS = {"before"}  # variants whose shadow maps are built by the torch path
+CADENCES = {"before": 1, "numba_crop": 1, "now": 2}  # loss.lpips_every of each variant
 
 
 def main() -> None:
