@@ -205,7 +205,7 @@ class LPIPS(nn.Module):
         self.requires_grad_(False)
         self.eval()
         # channels-last (NHWC) weights and inputs: oneDNN's convolutions skip their layout
-        # reorders, about 25% off a forward + backward on CPU (bench/train_speed.py)
+        # reorders, about 25% off a forward + backward on CPU (docs/rendering.md, "Training on CPU")
         for conv in [*self.convs, *self.lins]:
             conv.weight.data = conv.weight.data.contiguous(memory_format=torch.channels_last)
 
