@@ -10,7 +10,7 @@ PKG = Path(__file__).resolve().parents[1] / "src" / "meshsplat"
 
 LAYERS = [
     ("errors",),
-    ("_checks", "_typing", "_device", "_numba", "paths", "plausible"),
+    ("_checks", "_mkl", "_typing", "_device", "_numba", "paths", "plausible"),
     ("io", "metrics"),
     ("camera", "drivers"),
     ("mesh",),

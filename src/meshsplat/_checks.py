@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from meshsplat import _mkl  # noqa: F401  (sets up MKL's vector math before any threaded call)
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["check_tensor", "check_finite", "check_same_device"]
