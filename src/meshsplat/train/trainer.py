@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from meshsplat._device import resolve_device
+from meshsplat._numba import numba_available
 from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
@@ -503,6 +504,11 @@ class Trainer:
         return row
 
     # ---- loop ------------------------------------------------------------------------
+    def _compiles_cpu_kernels(self) -> bool:
+        """Whether steps render with numba's compiled kernels, whose first use in a process loads them (or, on
+        a fresh install, compiles them for about half a minute): CPU, backend auto or numba, numba present."""
+        return self.device.type == "cpu" and self.cfg.backend in ("auto", "numba") and numba_available()
+
     def train(self, until: int | None = None) -> Path:
         """Train up to iteration ``until`` (default ``config.iterations``); returns the run dir."""
         cfg = self.cfg
@@ -518,6 +524,10 @@ class Trainer:
             from tqdm import tqdm
 
             bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
+            if self.iteration < end and self._compiles_cpu_kernels():
+                bar.set_postfix_str(
+                    "first step: loading the compiled CPU kernels (the first run after an install compiles them, ~30 s)"
+                )
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
         ckpt: Path | None = None
