@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import ctypes
 import subprocess
 import sys
@@ -34,3 +35,58 @@ def test_importing_the_checks_sets_up_vector_math_on_this_thread():
     assert after_math != untouched, "VML's mode no longer tells whether it was set up: revisit this test"
     assert _vml_mode_after("import meshsplat._checks") == after_math
     assert _vml_mode_after("import meshsplat.mesh.geometry") == after_math
+
+
+PKG = Path(__file__).resolve().parents[1] / "src" / "meshsplat"
+EXEMPT = {"meshsplat._mkl", "meshsplat._checks", "meshsplat._device", "meshsplat._typing"}  # no tensor maths
+
+
+def _module_level(body: list[ast.stmt]):
+    """Statements that run at import: the body, and the bodies of module-level if/try blocks."""
+    for node in body:
+        yield node
+        if isinstance(node, ast.If | ast.Try):
+            for block in (
+                node.body,
+                node.orelse,
+                getattr(node, "finalbody", []),
+                *[h.body for h in getattr(node, "handlers", [])],
+            ):
+                yield from _module_level(block)
+
+
+def _graph() -> tuple[dict[str, set[str]], set[str]]:
+    """Each package module -> the package modules it imports when imported; the modules importing torch."""
+    files = {".".join(p.relative_to(PKG.parent).with_suffix("").parts).removesuffix(".__init__"): p
+             for p in PKG.rglob("*.py")}  # fmt: skip
+    edges: dict[str, set[str]] = {}
+    uses_torch: set[str] = set()
+    for name, path in files.items():
+        parents = {".".join(name.split(".")[:k]) for k in range(1, name.count(".") + 1)}
+        out = set(parents)
+        for node in _module_level(ast.parse(path.read_text()).body):
+            if isinstance(node, ast.Import):
+                out |= {a.name for a in node.names if a.name.startswith("meshsplat")}
+                if any(a.name == "torch" for a in node.names):
+                    uses_torch.add(name)
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("meshsplat") and not node.level:
+                out.add(node.module)
+                out |= {f"{node.module}.{a.name}" for a in node.names if f"{node.module}.{a.name}" in files}
+        edges[name] = {m for m in out if m in files and m != name}
+    return edges, uses_torch
+
+
+def test_every_module_that_imports_torch_imports_the_set_up():
+    edges, uses_torch = _graph()
+    missing = []
+    for name in sorted(uses_torch - EXEMPT):
+        seen, todo = set(), [name]
+        while todo:
+            m = todo.pop()
+            if m not in seen:
+                seen.add(m)
+                todo.extend(edges.get(m, ()))
+        if "meshsplat._mkl" not in seen:
+            missing.append(name)
+    assert len(uses_torch) > 50
+    assert not missing, f"import meshsplat._checks (or _mkl) in: {missing}"
