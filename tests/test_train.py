@@ -131,6 +131,24 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path, extra):
     assert [r["loss"] for r in full.history[10:]] == [r["loss"] for r in res.history]
 
 
+def test_resume_on_another_thread_count_says_it_is_not_bit_exact(tiny_dataset, tmp_path):
+    """The checkpoint records torch's thread count: a resume on another count (sums split differently) says
+    so among the changes on resume, and the same count says nothing."""
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        Trainer(small_config(tiny_dataset, tmp_path / "run", 2)).train()
+        same = Trainer(small_config(tiny_dataset, tmp_path / "run", 3), resume=True)
+        assert not any("torch threads" in n for n in same.resume_notes)
+        torch.set_num_threads(2)
+        other = Trainer(small_config(tiny_dataset, tmp_path / "run", 3), resume=True)
+        assert "torch threads: 1 -> 2 (not bit-identical to an uninterrupted run; --threads 1 keeps it so)" in (
+            other.resume_notes
+        )
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
     on = ["loss.crop_to_subject=true", "loss.lpips_every=1", "checkpoint_every=5"]

@@ -6,9 +6,9 @@ Configuration precedence: the preset, then --config FILE (or RUN/config.json wit
 --set KEY=VALUE overrides, then flags. --set takes several pairs; put it after the dataset:
   meshsplat train DATA --out RUN --set strategy.refine_every=200 walk.enabled=false
 A preset named with --resume must be the run's (the resume check refuses another one).
---resume continues bit for bit from the newest checkpoint in RUN/checkpoints; it refuses unreadable
-checkpoints and config changes other than paths, device/backend, logging/checkpoint cadence and
---iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
+--resume continues bit for bit from the newest checkpoint in RUN/checkpoints (on the run's torch thread
+count: another one is noted, and --threads N keeps it); it refuses unreadable checkpoints and config
+changes other than paths, device/backend, logging/checkpoint cadence and --iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
 checkpoint_every_s seconds (default 900).
 --nproc N trains with N processes (torch.distributed: gloo on CPU, NCCL on CUDA), each rendering its
 share of every batch (needs --set batch_size=N or more); the same command also runs under torchrun.

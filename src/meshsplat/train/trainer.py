@@ -194,6 +194,12 @@ class Trainer:
         if loaded is not None:
             old = upgrade_config_dict(loaded[1].get("config"), lambda: self.dataset.largest_image_side(self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
+            before, now = loaded[1].get("torch_threads"), torch.get_num_threads()
+            if isinstance(before, int) and before != now:  # sums split differently: the same run to rounding only
+                self.resume_notes.append(
+                    f"torch threads: {before} -> {now} (not bit-identical to an uninterrupted run; "
+                    f"--threads {before} keeps it so)"
+                )
             try:
                 self._restore(loaded[1])
             except MeshsplatError:
@@ -652,6 +658,7 @@ class Trainer:
             "data_order": {"order": self.order.clone(), "pos": self.order_pos},
             "pose_refine": None if self.refiner is None else self.refiner.state_dict(),
             "shading_optimizer": None if self.shading_opt is None else self.shading_opt.state_dict(),
+            "torch_threads": torch.get_num_threads(),  # a resume on another count matches only to rounding
         }
 
     def save_checkpoint(self) -> Path:
