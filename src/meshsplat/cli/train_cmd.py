@@ -204,6 +204,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"held-out metrics (test frames, one background; docs/quality.md): meshsplat eval {run_dir}")
         return 0
     trainer = Trainer(cfg, resume=args.resume)
+    try:
+        return _train_and_report(trainer, cfg, args)
+    finally:
+        trainer.dp.close()  # under torchrun: leave the process group before exiting
+
+
+def _train_and_report(trainer: Trainer, cfg: TrainConfig, args: argparse.Namespace) -> int:
     if not trainer.dp.is_main:  # under torchrun: rank 0 writes and reports
         trainer.train()
         return 0

@@ -15,6 +15,7 @@ set. Without it ``DataParallel.single()`` does nothing at all, so one process tr
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import timedelta
@@ -25,6 +26,28 @@ import torch.distributed as dist
 from meshsplat.errors import MeshsplatError
 
 __all__ = ["DataParallel", "env_world_size"]
+
+SETTLE_TIMEOUT_S = 5.0
+
+
+def _cpp_refs(tensor: torch.Tensor) -> int:
+    """References to ``tensor``'s C++ object (torch's private ``_use_count``; 0 on a build without it,
+    which turns ``_settle`` off)."""
+    count = getattr(tensor, "_use_count", None)
+    return int(count()) if count is not None else 0
+
+
+def _settle(tensor: torch.Tensor, use_count: int) -> None:
+    """Wait (releasing the GIL) until a gloo worker thread has dropped its references to ``tensor``.
+
+    gloo frees a finished collective's work on its own thread after ``wait()`` returns, and dropping a
+    Python-made tensor there takes the GIL. If that happens while the interpreter shuts down, the thread
+    is killed in the middle of C++ code and the process aborts ("terminate called without an active
+    exception"): what a worker did about once in 80 finished runs right after its last all-reduce.
+    """
+    deadline = time.monotonic() + SETTLE_TIMEOUT_S
+    while _cpp_refs(tensor) > use_count and time.monotonic() < deadline:
+        time.sleep(0)
 
 
 def env_world_size() -> int:
@@ -76,6 +99,14 @@ class DataParallel:
     def active(self) -> bool:
         return self.world > 1
 
+    def _all_reduce(self, tensor: torch.Tensor, op: dist.ReduceOp.RedOpType = dist.ReduceOp.SUM) -> None:
+        """``dist.all_reduce`` in place that returns only once the process group holds no reference to
+        ``tensor`` (on CPU; NCCL frees its work later, on its watchdog thread)."""
+        use_count = _cpp_refs(tensor)
+        dist.all_reduce(tensor, op=op)
+        if tensor.device.type == "cpu":
+            _settle(tensor, use_count)
+
     def share(self, n: int) -> list[int]:
         """This rank's positions in a batch of ``n`` images."""
         return list(range(self.rank, n, self.world))
@@ -94,12 +125,12 @@ class DataParallel:
             return
         dev = tensors[0].device
         present = torch.tensor([t.grad is not None for t in tensors], dtype=torch.float32, device=dev)
-        dist.all_reduce(present, op=dist.ReduceOp.MAX)
+        self._all_reduce(present, op=dist.ReduceOp.MAX)
         live = [t for t, p in zip(tensors, present.tolist(), strict=True) if p > 0]
         if not live:
             return
         flat = torch.cat([(t.grad if t.grad is not None else torch.zeros_like(t)).reshape(-1) for t in live])
-        dist.all_reduce(flat)
+        self._all_reduce(flat)
         at = 0
         for t in live:
             n = t.numel()
@@ -111,7 +142,7 @@ class DataParallel:
         if not self.active:
             return values
         out = values.to(self.device, copy=True)
-        dist.all_reduce(out)
+        self._all_reduce(out)
         return out.to(values.device)
 
     def reduce_statistics(self, grad2d: torch.Tensor, count: torch.Tensor, radii: torch.Tensor) -> None:
@@ -119,16 +150,16 @@ class DataParallel:
         (screen radii) over ranks."""
         if not self.active:
             return
-        dist.all_reduce(grad2d)
-        dist.all_reduce(count)
-        dist.all_reduce(radii, op=dist.ReduceOp.MAX)
+        self._all_reduce(grad2d)
+        self._all_reduce(count)
+        self._all_reduce(radii, op=dist.ReduceOp.MAX)
 
     def check_same(self, what: str, value: int) -> None:
         """Every rank must hold the same ``value`` (e.g. the number of Gaussians); one clear error if not."""
         if not self.active:
             return
         t = torch.tensor([value, -value], dtype=torch.float64, device=self.device)
-        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        self._all_reduce(t, op=dist.ReduceOp.MAX)
         if int(t[0]) != value or int(-t[1]) != value:
             raise MeshsplatError(f"rank {self.rank}: {what} differs between processes ({value} here); please report")
 
