@@ -159,10 +159,31 @@ def _mesh_coverage(verts, faces, cam, s: int = 2):
     return frags.mask.float().view(cam.height, s, cam.width, s).mean((1, 3))[..., None]
 
 
-def _score(run: Path, data: Path, ref: Path) -> dict:
+_FITTED: dict = {}
+
+
+def _fitted_poses(run: Path, loaded, ds, steps: int, lr: float) -> dict:
+    """Driving meshes of ``ds``'s held-out frames fitted to their images for ``steps`` steps with the run's
+    avatar frozen (``meshsplat eval --fit-poses``); empty for 0 steps. Kept per run for the picture."""
+    if not steps:
+        return {}
+    key = (str(run), steps, lr)
+    if key not in _FITTED:
+        import torch
+
+        from meshsplat.eval.fit_poses import fit_test_poses
+
+        ids = [i for split in ds.split_names if split != "train" for i in ds.split(split)]
+        mdir = loaded.model_dir()
+        _FITTED[key] = fit_test_poses(loaded.avatar, ds, ids, steps, lr, str(mdir) if mdir else None, torch.ones(3))
+    return _FITTED[key]
+
+
+def _score(run: Path, data: Path, ref: Path, fit_poses: int = 0, fit_lr: float = 1e-3) -> dict:
     """Per split of ``data``: mean metrics over its frames and the error budget (summed squared error per
     region), against the images and masks of the same frames in ``ref`` (the low-noise references; may
-    be ``data`` itself)."""
+    be ``data`` itself). ``fit_poses`` > 0: held-out frames are scored in poses fitted for that many steps
+    to the capture's own test images, the avatar frozen (as ``meshsplat eval --fit-poses``)."""
     import torch
 
     from meshsplat.data import open_dataset
@@ -178,6 +199,8 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
     ds, refs = loaded.open_dataset(data), open_dataset(ref)
     by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     white, black = torch.ones(3), torch.zeros(3)
+    fitted = _fitted_poses(run, loaded, ds, fit_poses, fit_lr)
+    ds = ds.with_meshes(fitted)
     lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
     out = {}
     for split in [s for s in ds.split_names if s != "train"]:
@@ -211,12 +234,16 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
         total = sum(sse.values()) or 1.0
         mean = {k: sum(r[k] for r in rows if r[k] is not None) / len(rows) for k in rows[0]}
         out[split] = {**mean, **{f"share_{r}": sse[r] / total for r in BUDGET_REGIONS}, "frames": len(rows)}
+        out[split]["fitted_pose_frames"] = sum(int(ds.frame_info(i)["mesh"]) in fitted for i in ds.split(split))
     return out
 
 
-def _picture(runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: int = 2) -> None:
+def _picture(
+    runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: int = 2, fit_poses: int = 0, fit_lr: float = 1e-3
+) -> None:
     """Per held-out frame (``frames`` of each test split): reference | each run | the last run's squared
-    error on black, silhouette band in red, interior in green (brighter = larger), as a PNG."""
+    error on black, silhouette band in red, interior in green (brighter = larger), as a PNG. Held-out
+    frames in fitted poses with ``fit_poses`` (as ``_score``)."""
     import numpy as np
     import torch
     from PIL import Image
@@ -228,6 +255,10 @@ def _picture(runs: dict[str, Path], data: Path, ref: Path, out: Path, frames: in
 
     loaded = {name: load_run(r) for name, r in runs.items()}
     sets = {name: lr.open_dataset(data) for name, lr in loaded.items()}  # each run's refined poses, if any
+    sets = {
+        name: ds.with_meshes(_fitted_poses(runs[name], loaded[name], ds, fit_poses, fit_lr))
+        for name, ds in sets.items()
+    }
     ds, refs = open_dataset(data), open_dataset(ref)
     by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     rows = []
@@ -302,6 +333,14 @@ def main() -> None:
         "--picture", default=None, help="PNG per capture: reference | variants | error budget (name gets -<capture>)"
     )
     ap.add_argument("--seed", type=int, default=0, help="training seed; not 0: rows and runs named VARIANT_sSEED")
+    ap.add_argument(
+        "--fit-poses",
+        type=int,
+        default=0,
+        help="score held-out frames in poses fitted to their own images for this many steps (as meshsplat eval "
+        "--fit-poses; captures with body-model parameters: smpl)",
+    )
+    ap.add_argument("--fit-poses-lr", type=float, default=1e-3)
     args = ap.parse_args()
     if args.tiny:
         args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.n_init = 32, 4, 2, 30, 4, 500
@@ -323,6 +362,7 @@ def main() -> None:
     work = Path(args.work or f"runs/bench-{args.name}")
     out = results_path(args.name)
     rows: dict = {}
+    previous = json.loads(out.read_text()) if out.exists() else {}  # this run rewrites it as it goes
     for cap in args.captures:
         t0 = time.perf_counter()
         data = _capture(cap, args, work)
@@ -353,15 +393,15 @@ def main() -> None:
             finished = trainer.iteration >= cfg.iterations
             trainer.train()
             train_s = time.perf_counter() - t0
-            if finished and out.exists():  # a rerun only scores again: keep the training time measured before
-                before = json.loads(out.read_text()).get("captures", {}).get(cap, {}).get("runs", {}).get(name, {})
+            if finished:  # a rerun only scores again: keep the training time measured before
+                before = previous.get("captures", {}).get(cap, {}).get("runs", {}).get(name, {})
                 train_s = before.get("train_s", train_s)
             rows[cap]["runs"][name] = {
                 "preset": preset,
                 "overrides": overrides,
                 "train_s": train_s,
                 "gaussians": trainer.num_gaussians,
-                "splits": _score(run, data, ref),
+                "splits": _score(run, data, ref, args.fit_poses if _model_dir(cap, work) else 0, args.fit_poses_lr),
             }
             print(f"[{cap}/{name}] trained in {train_s:.0f} s", flush=True)
             out.write_text(
@@ -372,7 +412,10 @@ def main() -> None:
             pic = Path(args.picture)
             pic = pic.with_name(f"{pic.stem}-{cap}{pic.suffix}")
             names = [v if args.seed == 0 else f"{v}_s{args.seed}" for v in args.variants]
-            _picture({n: work / f"{cap}-{args.renderer}-{n}" for n in names}, data, ref, pic)
+            steps = args.fit_poses if _model_dir(cap, work) else 0
+            _picture(
+                {n: work / f"{cap}-{args.renderer}-{n}" for n in names}, data, ref, pic, 2, steps, args.fit_poses_lr
+            )
             print(f"[{cap}] picture: {pic}")
 
     print(f"\n{args.renderer} captures, {args.iters} iterations, {args.resolution}px, {args.spp} spp")

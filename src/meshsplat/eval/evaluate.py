@@ -26,6 +26,7 @@ import torch
 
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
+from meshsplat.eval.fit_poses import fit_test_poses
 from meshsplat.eval.report import write_report
 from meshsplat.gaussians import Avatar
 from meshsplat.metrics import lpips, lpips_available, psnr, ssim
@@ -57,6 +58,14 @@ def _pick(n: int, k: int) -> list[int]:
     return sorted({round(x) for x in np.linspace(0, n - 1, min(k, n))})
 
 
+def _split_ids(dataset: AvatarDataset, name: str, max_frames: int | None) -> list[int]:
+    """The frames of split ``name`` evaluated: all, or ``max_frames`` spread over it."""
+    ids = dataset.split(name)
+    if max_frames is not None and len(ids) > max_frames:
+        ids = [ids[i] for i in _pick(len(ids), max_frames)]
+    return ids
+
+
 @torch.no_grad()
 def evaluate_avatar(
     avatar: Avatar,
@@ -68,12 +77,14 @@ def evaluate_avatar(
     samples_per_split: int = 3,
     backend: str = "auto",
     progress: bool = False,
+    fitted_rows: frozenset[int] = frozenset(),
 ) -> tuple[dict, dict]:
     """Metrics of ``avatar`` on ``dataset`` (an ``AvatarDataset``).
 
     Returns ``(results, samples)``: ``results["splits"][name]`` holds means and a ``frames`` list;
     ``samples[name]`` is a list of ``(label, gt [H,W,3], render [H,W,3])`` for the report.
-    ``splits`` defaults to every split except ``"train"``.
+    ``splits`` defaults to every split except ``"train"``. ``fitted_rows``: mesh rows whose poses were fitted
+    to the test images (:func:`fit_test_poses`), marked ``fitted_pose`` per frame.
     """
     names = [s for s in dataset.split_names if s != "train"] if splits is None else list(splits)
     unknown = [s for s in names if s not in dataset.split_names]
@@ -100,12 +111,10 @@ def evaluate_avatar(
     if progress:
         from tqdm import tqdm
 
-        total = sum(len(dataset.split(s)[:max_frames_per_split]) for s in names)
+        total = sum(len(_split_ids(dataset, s, max_frames_per_split)) for s in names)
         bar = tqdm(total=total, desc="eval", dynamic_ncols=True)
     for name in names:
-        ids = dataset.split(name)
-        if max_frames_per_split is not None and len(ids) > max_frames_per_split:
-            ids = [ids[i] for i in _pick(len(ids), max_frames_per_split)]
+        ids = _split_ids(dataset, name, max_frames_per_split)
         keep = set(_pick(len(ids), samples_per_split))
         frames: list[dict[str, Any]] = []
         samples[name] = []
@@ -128,7 +137,9 @@ def evaluate_avatar(
                 "camera_id": fr.camera_id,
                 "clip": fr.clip,
                 "time": fr.time,
-                "refined_pose": int(dataset.frame_info(i)["mesh"]) in dataset.replaced_meshes,
+                "refined_pose": (row := int(dataset.frame_info(i)["mesh"])) in dataset.replaced_meshes
+                and row not in fitted_rows,
+                "fitted_pose": row in fitted_rows,
                 "psnr": _finite(float(psnr(img, gt))),
                 "ssim": float(ssim(img, gt)),
                 "lpips": float(lpips(img, gt, net=net)) if use_lpips else None,
@@ -191,6 +202,8 @@ def evaluate_run(
     downscale: float | None = None,
     allow_older_checkpoint: bool = False,
     refined_poses: bool = True,
+    fit_poses: int = 0,
+    fit_poses_lr: float = 1e-3,
 ) -> dict:
     """Evaluate the newest checkpoint of ``run_dir`` on the test splits; writes ``metrics.json`` (+ report).
 
@@ -200,7 +213,10 @@ def evaluate_run(
     ``data_downscale``, the size it was trained at). ``allow_older_checkpoint``: when the newest checkpoint
     is unreadable, evaluate the newest readable one (with a note) instead of refusing. ``refined_poses``:
     frames of the run's own capture whose poses training refined (held-out views of training frames) are
-    rendered in the refined pose (``LoadedRun.refined_meshes``); held-out frames keep the tracker's poses.
+    rendered in the refined pose (``LoadedRun.refined_meshes``); held-out frames keep the tracker's poses,
+    unless ``fit_poses`` > 0: their poses are then fitted to their own images for that many steps of rate
+    ``fit_poses_lr`` with the avatar frozen (:func:`fit_test_poses`; the protocol of papers on monocular
+    body captures, scoring appearance without the tracker's pose error).
     Returns the dict written to ``metrics.json`` (paths of written files under ``"files"``).
     """
     run = load_run(run_dir, device, allow_older=allow_older_checkpoint)
@@ -211,6 +227,16 @@ def evaluate_run(
         )
     else:
         ds, ds_path = dataset, dataset.root
+    fitted: dict[int, np.ndarray] = {}
+    if fit_poses:
+        names = [s for s in ds.split_names if s != "train"] if splits is None else list(splits)
+        ids = [i for name in names if name in ds.split_names for i in _split_ids(ds, name, max_frames_per_split)]
+        bg = background_color(background)
+        mdir = run.model_dir()
+        fitted = fit_test_poses(
+            run.avatar, ds, ids, fit_poses, fit_poses_lr, str(mdir) if mdir else None, bg, backend, progress=progress
+        )
+        ds = ds.with_meshes(fitted)
     results, samples = evaluate_avatar(
         run.avatar,
         ds,
@@ -221,6 +247,7 @@ def evaluate_run(
         samples_per_split if report else 0,
         backend,
         progress,
+        frozenset(fitted),
     )
     out = Path(out_dir) if out_dir is not None else run.folder.eval_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -232,6 +259,9 @@ def evaluate_run(
         "downscale": ds.downscale,
         # frames rendered in the poses training refined (held-out views of training frames)
         "refined_pose_frames": sum(f["refined_pose"] for sp in results["splits"].values() for f in sp["frames"]),
+        # held-out frames whose poses were fitted to their own images (0: the tracker's poses)
+        "fitted_pose_frames": sum(f["fitted_pose"] for sp in results["splits"].values() for f in sp["frames"]),
+        "fit_poses": {"steps": int(fit_poses), "lr": float(fit_poses_lr)} if fit_poses else None,
         **results,
     }
     if ds.meta.get("attribution"):
