@@ -2,8 +2,8 @@
 
 A held-out frame's driving mesh comes from the tracker, so its score mixes two errors: the avatar's
 appearance and the tracker's pose. Papers that evaluate on PeopleSnapshot-style captures (Anim-NeRF,
-InstantAvatar, SplattingAvatar) fit the test poses to the test images first, with the avatar frozen,
-and score appearance alone. ``fit_test_poses`` does that: for each mesh row seen by the evaluated
+InstantAvatar) fit the test poses to the test images first, with the model frozen, and score
+appearance alone. ``fit_test_poses`` does that: for each mesh row seen by the evaluated
 frames and by no training frame, offsets on its per-frame parameters (as training's pose refinement)
 are optimised with Adam on the L1 error of all that row's images. It uses the test images, so its
 numbers are not comparable with tracked-pose ones; ``meshsplat eval`` says which it ran.
@@ -71,7 +71,7 @@ def fit_test_poses(
     if not groups:
         return {}
     dev = avatar.device
-    bg = (torch.ones(3) if background is None else background).to(dev)
+    bg = torch.ones(3) if background is None else background.cpu()
     frozen = {k: v.requires_grad for k, v in avatar.params.items()}
     fitted: dict[int, np.ndarray] = {}
     bar = None
@@ -82,20 +82,22 @@ def fit_test_poses(
     try:
         for v in avatar.params.values():
             v.requires_grad_(False)
+        ids_all = [i for frames in groups.values() for i in frames]
+        refiner = PoseRefiner(dataset, ids_all, params, lr, model_dir, dev)  # one offset row per mesh row
+        shots: dict[int, list] = {}
         for row, frames in groups.items():
-            refiner = PoseRefiner(dataset, frames, params, lr, model_dir, dev)
-            shots = []
+            shots[row] = []
             for i in frames:
                 fr = dataset[i]
-                fbg = bg if fr.mask is not None else torch.zeros(3, device=dev)
-                gt = composite(fr.image.to(dev), None if fr.mask is None else fr.mask.to(dev), fbg)
-                shots.append((fr.camera, fbg, gt))
-            for _ in range(steps):
+                fbg = bg if fr.mask is not None else torch.zeros(3)
+                shots[row].append((fr.camera, fbg.to(dev), composite(fr.image, fr.mask, fbg)))  # kept on the CPU
+        for _ in range(steps):
+            for row, views in shots.items():  # rows are independent: one backward each bounds the memory
                 with torch.enable_grad():
                     verts = refiner.vertices(row)
                     errors = [
-                        (avatar.render(verts, cam, fbg, backend=backend).image - gt).abs().mean()
-                        for cam, fbg, gt in shots
+                        (avatar.render(verts, cam, fbg, backend=backend).image - gt.to(dev)).abs().mean()
+                        for cam, fbg, gt in views
                     ]
                     loss = torch.stack(errors).sum()
                     if not torch.isfinite(loss):
@@ -104,11 +106,11 @@ def fit_test_poses(
                             "use a lower learning rate (--fit-poses-lr)"
                         )
                     loss.backward()
-                refiner.step()
                 if bar is not None:
                     bar.update(1)
-            with torch.no_grad():
-                fitted[row] = refiner.vertices(row).cpu().numpy()
+            refiner.step()  # Adam is per element: the same as a step per row
+        with torch.no_grad():
+            fitted = {row: refiner.vertices(row).cpu().numpy() for row in groups}
     finally:
         for k, v in avatar.params.items():
             v.requires_grad_(frozen[k])
