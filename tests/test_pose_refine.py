@@ -10,7 +10,8 @@ import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.eval import evaluate_run
-from meshsplat.run_folder import TRACKED_POSES_FLAG, load_run
+from meshsplat.io import load_checkpoint
+from meshsplat.run_folder import TRACKED_POSES_FLAG, RunFolder, load_run
 from meshsplat.synth import synthesize
 from meshsplat.train import TrainConfig, Trainer, apply_overrides
 
@@ -267,3 +268,64 @@ def test_with_meshes_holds_only_the_replaced_rows_and_drives_with_them(noisy_smp
     assert again.replaced_meshes == {1, 2} and other.replaced_meshes == {1}
     drv = again.driver()
     assert torch.equal(drv.vertices(1), torch.from_numpy(v)) and torch.equal(drv.vertices(0), ds.driver().vertices(0))
+
+
+def _training_error(trainer) -> float:
+    """Sum over training frames of the L1 error in their refined poses (what the polish minimises)."""
+    white = torch.ones(3)
+    with torch.no_grad():
+        return sum(
+            float((o.image - g).abs().mean()) for o, g in (trainer.render_frame(i, white) for i in trainer.train_ids)
+        )
+
+
+def test_polishing_fits_the_training_poses_once_at_the_end(noisy_smpl, standin_model_dir, tmp_path):
+    """``pose_refine.polish_steps``: after the last iteration the refined poses alone are fitted to the
+    training images (the avatar unchanged), saved with the run, and not fitted again on a resume."""
+    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100"]
+    plain = Trainer(_short(noisy_smpl, tmp_path / "plain", *sets))
+    plain.train()
+    polished = Trainer(_short(noisy_smpl, tmp_path / "polished", *sets, "pose_refine.polish_steps=8"))
+    polished.train()
+    for k in plain.params:  # the same avatar: the polish changes the poses only
+        assert torch.equal(plain.params[k].detach(), polished.params[k].detach()), k
+    assert polished.refiner.polished and not plain.refiner.polished
+    moved = sum(float((a - plain.refiner.offsets[k]).detach().abs().sum()) for k, a in polished.refiner.offsets.items())
+    assert moved > 0
+    assert _training_error(polished) < _training_error(plain)
+    state = load_checkpoint(RunFolder(tmp_path / "polished").checkpoints()[-1][1])
+    assert state["pose_refine"]["polished"] and state["iteration"] == 2
+    with np.load(tmp_path / "polished" / "refined_params.npz") as z:
+        np.testing.assert_allclose(z["body_pose"], polished.refiner.refined_params()["body_pose"])
+    again = Trainer(_short(noisy_smpl, tmp_path / "polished", *sets, "pose_refine.polish_steps=8"), resume=True)
+    assert not again.polish_due
+    again.train()
+    for k, v in again.refiner.offsets.items():
+        assert torch.equal(v.detach(), polished.refiner.offsets[k].detach()), k
+
+
+def test_a_resumed_run_polishes_as_the_uninterrupted_one(noisy_smpl, standin_model_dir, tmp_path):
+    import shutil
+
+    def cfg(out):
+        c = _short(
+            noisy_smpl, out, f"model_dir={standin_model_dir}", "checkpoint_every=2", "pose_refine.polish_steps=3"
+        )
+        c.iterations = 4
+        return c
+
+    full = Trainer(cfg(tmp_path / "full"))
+    full.train()
+    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000002.pt", tmp_path / "resumed" / "checkpoints")
+    resumed = Trainer(cfg(tmp_path / "resumed"), resume=True)
+    assert not resumed.refiner.polished
+    resumed.train()
+    for k, v in full.refiner.offsets.items():
+        assert torch.equal(v.detach(), resumed.refiner.offsets[k].detach()), k
+
+
+def test_polish_settings_are_checked():
+    for bad in ("pose_refine.polish_steps=-1", "pose_refine.polish_lr=0"):
+        with pytest.raises(MeshsplatError, match="polish"):
+            apply_overrides(TrainConfig(), [bad]).validate()

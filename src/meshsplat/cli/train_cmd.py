@@ -226,7 +226,7 @@ def _train_and_report(trainer: Trainer, cfg: TrainConfig, args: argparse.Namespa
         print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
     if trainer.pose_refine_note:
         print(trainer.pose_refine_note)
-    if trainer.iteration >= cfg.iterations:
+    if trainer.iteration >= cfg.iterations and not trainer.polish_due:
         print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
         return 0
     if cfg.data_downscale != 1:

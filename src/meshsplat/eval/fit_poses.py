@@ -72,48 +72,33 @@ def fit_test_poses(
         return {}
     dev = avatar.device
     bg = torch.ones(3) if background is None else background.cpu()
-    frozen = {k: v.requires_grad for k, v in avatar.params.items()}
-    fitted: dict[int, np.ndarray] = {}
+    refiner = PoseRefiner(dataset, [i for f in groups.values() for i in f], params, lr, model_dir, dev)
+    shots: dict[int, list] = {}
+    for row, frames in groups.items():
+        shots[row] = []
+        for i in frames:
+            fr = dataset[i]
+            fbg = bg if fr.mask is not None else torch.zeros(3)
+            shots[row].append((fr.camera, fbg.to(dev), composite(fr.image, fr.mask, fbg)))  # kept on the CPU
+
+    def row_error(row: int) -> torch.Tensor:
+        verts = refiner.vertices(row)
+        errors = [
+            (avatar.render(verts, cam, fbg, backend=backend).image - gt.to(dev)).abs().mean()
+            for cam, fbg, gt in shots[row]
+        ]
+        return torch.stack(errors).sum()
+
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(groups) * steps, desc="fit poses", dynamic_ncols=True)
+        bar = tqdm(total=steps, desc="fit poses", dynamic_ncols=True)
     try:
-        for v in avatar.params.values():
-            v.requires_grad_(False)
-        ids_all = [i for frames in groups.values() for i in frames]
-        refiner = PoseRefiner(dataset, ids_all, params, lr, model_dir, dev)  # one offset row per mesh row
-        shots: dict[int, list] = {}
-        for row, frames in groups.items():
-            shots[row] = []
-            for i in frames:
-                fr = dataset[i]
-                fbg = bg if fr.mask is not None else torch.zeros(3)
-                shots[row].append((fr.camera, fbg.to(dev), composite(fr.image, fr.mask, fbg)))  # kept on the CPU
-        for _ in range(steps):
-            for row, views in shots.items():  # rows are independent: one backward each bounds the memory
-                with torch.enable_grad():
-                    verts = refiner.vertices(row)
-                    errors = [
-                        (avatar.render(verts, cam, fbg, backend=backend).image - gt.to(dev)).abs().mean()
-                        for cam, fbg, gt in views
-                    ]
-                    loss = torch.stack(errors).sum()
-                    if not torch.isfinite(loss):
-                        raise MeshsplatError(
-                            f"fit poses: the image error of mesh row {row} became {float(loss)}; "
-                            "use a lower learning rate (--fit-poses-lr)"
-                        )
-                    loss.backward()
-                if bar is not None:
-                    bar.update(1)
-            refiner.step()  # Adam is per element: the same as a step per row
-        with torch.no_grad():
-            fitted = {row: refiner.vertices(row).cpu().numpy() for row in groups}
+        refiner.fit(row_error, steps, lr, on_step=None if bar is None else lambda: bar.update(1))
     finally:
-        for k, v in avatar.params.items():
-            v.requires_grad_(frozen[k])
         if bar is not None:
             bar.close()
+    with torch.no_grad():
+        fitted = {row: refiner.vertices(row).cpu().numpy() for row in groups}
     return fitted

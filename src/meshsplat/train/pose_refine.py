@@ -9,6 +9,7 @@ stay fixed, so the canonical mesh does not change. Test frames keep the tracker'
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,7 @@ class PoseRefiner:
         self.shared = {k: as_t(v) for k, v in params.items() if k not in per_frame}
         self.offsets = {k: torch.nn.Parameter(torch.zeros_like(self.rows[k])) for k in self.names}
         self.optimizer = torch.optim.Adam(list(self.offsets.values()), lr=lr, eps=1e-15)
+        self.polished = False  # fit once more after training (``fit``), the avatar frozen
 
     def refines(self, mesh_row: int) -> bool:
         return mesh_row in self.row_of
@@ -76,6 +78,39 @@ class PoseRefiner:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
+    def fit(
+        self,
+        row_error: Callable[[int], torch.Tensor],
+        steps: int,
+        lr: float,
+        on_step: Callable[[], None] | None = None,
+    ) -> None:
+        """``steps`` Adam steps (rate ``lr``, an optimizer of their own) on the offsets of every row,
+        minimising the sum over rows of ``row_error(row)``: a scalar computed from :meth:`vertices` of that
+        row (e.g. an avatar's image error there). Gradients reach the offsets only, so the avatar stays as it
+        is; one backward per row bounds the memory to one row's renders. ``on_step`` runs after each step."""
+        offsets = list(self.offsets.values())
+        opt = torch.optim.Adam(offsets, lr=lr, eps=1e-15)
+        for _ in range(steps):
+            grads = [torch.zeros_like(o) for o in offsets]
+            for row in self.row_of:
+                with torch.enable_grad():
+                    err = row_error(row)
+                    if not torch.isfinite(err):
+                        raise MeshsplatError(
+                            f"pose fit: the image error of mesh row {row} became {float(err)}; use a lower rate"
+                        )
+                    parts = torch.autograd.grad(err, offsets, allow_unused=True)
+                for g, d in zip(grads, parts, strict=True):
+                    if d is not None:
+                        g += d
+            for o, g in zip(offsets, grads, strict=True):
+                o.grad = g
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            if on_step is not None:
+                on_step()
+
     def offset_norms(self) -> dict[str, float]:
         """Mean absolute offset per parameter name (for logs and tests)."""
         return {k: float(v.detach().abs().mean()) for k, v in self.offsets.items()}
@@ -92,6 +127,7 @@ class PoseRefiner:
         return {
             "offsets": {k: v.detach().cpu() for k, v in self.offsets.items()},
             "optimizer": self.optimizer.state_dict(),
+            "polished": self.polished,
         }
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
@@ -109,3 +145,4 @@ class PoseRefiner:
                     )
                 self.offsets[k].copy_(v)
         self.optimizer.load_state_dict(st["optimizer"])
+        self.polished = bool(st.get("polished", False))

@@ -35,6 +35,7 @@ import random
 import signal
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -541,6 +542,8 @@ class Trainer:
             with StopOnSignal() as stop:
                 while self.iteration < end:
                     row = self.step()
+                    if self.refiner is not None:
+                        self.refiner.polished = False  # the poses moved with the avatar: fit them again at the end
                     it = self.iteration
                     self.elapsed = time.perf_counter() - t0
                     row["time_s"] = self.elapsed
@@ -571,10 +574,59 @@ class Trainer:
                             f"loss {loss_mean:.4f}, {self.train_psnr_label} {self.recent_train_psnr:.2f} dB, "
                             f"{row['n_gaussians']} Gaussians"
                         )
+                if self.polish_due:
+                    steps = cfg.pose_refine.polish_steps
+                    if bar is not None:
+                        bar.set_postfix_str(f"fitting the training poses, the avatar frozen ({steps} steps)")
+
+                    def check_stop() -> None:  # one process decides alone: no vote between steps
+                        if stop.signum is not None and not self.dp.active:
+                            raise TrainingInterrupted(
+                                f"stopped by {signal_name(stop.signum)} while fitting the training poses after "
+                                f"iteration {self.iteration}; the checkpoint of that iteration is intact: "
+                                "continue with --resume",
+                                stop.signum,
+                                ckpt,
+                            )
+
+                    self.polish_poses(on_step=check_stop)
+                    if main:
+                        ckpt = self.save_checkpoint()
         finally:
             if bar is not None:
                 bar.close()
         return self.folder.root
+
+    @property
+    def polish_due(self) -> bool:
+        """Whether training is at its end with refined poses still to fit once more (``pose_refine.polish_steps``)."""
+        return (
+            self.refiner is not None
+            and self.cfg.pose_refine.polish_steps > 0
+            and not self.refiner.polished
+            and self.iteration >= self.cfg.iterations
+        )
+
+    def polish_poses(self, on_step: Callable[[], None] | None = None) -> None:
+        """Fit the refined training poses for ``pose_refine.polish_steps`` more steps with the avatar frozen:
+        the L1 error of every training image rendered in its row's pose (on white; frames without a mask on
+        black), a backward per mesh row and step (``PoseRefiner.fit``)."""
+        assert self.refiner is not None
+        frames: dict[int, list[int]] = {}
+        for i in self.train_ids:
+            frames.setdefault(int(self.dataset.frame_info(i)["mesh"]), []).append(i)
+        white, black = torch.ones(3, device=self.device), torch.zeros(3, device=self.device)
+
+        def row_error(row: int) -> torch.Tensor:
+            errors = []
+            for i in frames[row]:
+                out, gt = self.render_frame(i, white if self._frame(i)[1] is not None else black)
+                errors.append((out.image - gt).abs().mean())
+            return torch.stack(errors).sum()
+
+        pr = self.cfg.pose_refine
+        self.refiner.fit(row_error, pr.polish_steps, pr.polish_lr, on_step)
+        self.refiner.polished = True
 
     @property
     def num_gaussians(self) -> int:
