@@ -228,13 +228,16 @@ def test_train_command_says_what_it_decided(noisy_smpl, standin_model_dir, tmp_p
     assert not json.loads((tmp_path / "b" / "config.json").read_text())["pose_refine"]["auto"]
 
 
-def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_path):
+@pytest.mark.parametrize("polish", [0, 3], ids=["refined", "polished_at_the_end"])
+def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_path, polish):
     """A run "killed" after its checkpoint at 3 of 6 iterations resumes to the same avatar, pose offsets and
-    refined poses as the run that went through (the offsets and their Adam state travel in the checkpoint)."""
+    refined poses as the run that went through (the offsets and their Adam state travel in the checkpoint);
+    with ``pose_refine.polish_steps`` the resumed run fits its poses at the end as the other did."""
     import shutil
 
     def cfg(out):
-        c = _short(noisy_smpl, out, f"model_dir={standin_model_dir}", "checkpoint_every=3", "pose_refine.lr=1e-2")
+        sets = [f"model_dir={standin_model_dir}", "checkpoint_every=3", "pose_refine.lr=1e-2"]
+        c = _short(noisy_smpl, out, *sets, f"pose_refine.polish_steps={polish}")
         c.iterations = 6
         return c
 
@@ -243,8 +246,9 @@ def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_
     (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000003.pt", tmp_path / "resumed" / "checkpoints")
     resumed = Trainer(cfg(tmp_path / "resumed"), resume=True)
-    assert resumed.iteration == 3
+    assert resumed.iteration == 3 and not resumed.refiner.polished
     resumed.train()
+    assert resumed.refiner.polished == full.refiner.polished == bool(polish)
     for k in full.params:
         assert torch.equal(full.params[k].detach(), resumed.params[k].detach()), k
     for k, v in full.refiner.offsets.items():
@@ -302,27 +306,6 @@ def test_polishing_fits_the_training_poses_once_at_the_end(noisy_smpl, standin_m
     again.train()
     for k, v in again.refiner.offsets.items():
         assert torch.equal(v.detach(), polished.refiner.offsets[k].detach()), k
-
-
-def test_a_resumed_run_polishes_as_the_uninterrupted_one(noisy_smpl, standin_model_dir, tmp_path):
-    import shutil
-
-    def cfg(out):
-        c = _short(
-            noisy_smpl, out, f"model_dir={standin_model_dir}", "checkpoint_every=2", "pose_refine.polish_steps=3"
-        )
-        c.iterations = 4
-        return c
-
-    full = Trainer(cfg(tmp_path / "full"))
-    full.train()
-    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
-    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000002.pt", tmp_path / "resumed" / "checkpoints")
-    resumed = Trainer(cfg(tmp_path / "resumed"), resume=True)
-    assert not resumed.refiner.polished
-    resumed.train()
-    for k, v in full.refiner.offsets.items():
-        assert torch.equal(v.detach(), resumed.refiner.offsets[k].detach()), k
 
 
 def test_polish_settings_are_checked():
