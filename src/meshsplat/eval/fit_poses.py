@@ -20,12 +20,13 @@ from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.render.background import composite
+from meshsplat.train.config import PoseRefineConfig
 from meshsplat.train.pose_refine import PoseRefiner
 
 __all__ = ["FIT_PARAMS", "fit_test_poses", "rows_to_fit"]
 
 # what training's pose refinement offsets by default (those the capture's model has are used)
-FIT_PARAMS = "global_orient,body_pose,transl,neck_pose,jaw_pose,expression"
+FIT_PARAMS = PoseRefineConfig().params
 
 
 def rows_to_fit(dataset: AvatarDataset, ids: Sequence[int]) -> dict[int, list[int]]:
