@@ -72,7 +72,12 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     # the two halves of config version 9's change, each alone (today's preset has grid 96 and 12 degrees)
     "default_g96s8": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=8"]),
     "default_g64s12": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=12"]),
-    "default_v8": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=8"]),  # config version 8's
+    "default_v8": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=8", "loss.lambda_albedo=0"]),
+    # config version 9's default (no albedo prior; the rows named default_g96s12 were trained as it); the prior's weight
+    "default_v9": ("quality", ["loss.lambda_albedo=0"]),
+    "default_albedo0.05": ("quality", ["loss.lambda_albedo=0.05"]),
+    "default_albedo0.1": ("quality", ["loss.lambda_albedo=0.1"]),  # today's default, in a folder of its own
+    "default_albedo0.2": ("quality", ["loss.lambda_albedo=0.2"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {

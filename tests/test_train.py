@@ -216,7 +216,8 @@ def test_lpips_every_skips_the_perceptual_net_and_resumes_bit_exact(tmp_path):
     assert full.history[2]["lpips"] > 0 and full.history[2]["dssim"] > 0
     for r, d in zip(full.history, due, strict=True):  # 3x the weights when due, the rest alone otherwise
         perceptual = 3 * (0.01 * r["lpips"] + 0.2 * r["dssim"]) if d else 0.0
-        assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual, rel=1e-5)
+        albedo = 0.1 * r["albedo"]  # the albedo prior (loss.lambda_albedo), every iteration
+        assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual + albedo, rel=1e-5)
     with open(tmp_path / "full" / "log.csv", newline="") as fh:
         log = list(csv.DictReader(fh))
     assert [r["lpips"] == "" for r in log] == [it % 3 != 0 for it in range(1, 11)]  # empty: not computed
@@ -258,7 +259,8 @@ def _image_loss_before_lpips_every(self, out, gt, mask):
 
 def test_lpips_every_1_is_bit_identical_to_the_loss_before_it(tmp_path, monkeypatch):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
-    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1", "loss.lpips_every=1"]
+    # the reference predates the albedo prior too: off
+    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1", "loss.lpips_every=1", "loss.lambda_albedo=0"]
     now = Trainer(small_config(ds, tmp_path / "now", 8, extra))
     now.train()
     monkeypatch.setattr(Trainer, "_image_loss", _image_loss_before_lpips_every)

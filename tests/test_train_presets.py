@@ -84,6 +84,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "optim.lr_shading=0.005 (the quality preset's: 0.05)",
         "model.occlusion_key_soft=0.0 (the quality preset's: 12.0)",
         "model.occlusion_grid=64 (the quality preset's: 96)",
+        "loss.lambda_albedo=0.0 (the quality preset's: 0.1)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -92,7 +93,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
 
 def test_version_1_defaults_are_the_paper_preset():
     paper = preset_config("paper").to_dict()
-    # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_8_DEFAULTS): the first value a
+    # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_9_DEFAULTS): the first value a
     # key had, before its default first changed, is the paper's; a later table holds a later default
     tables = [getattr(config_module, f"VERSION_{v}_DEFAULTS") for v in range(1, CONFIG_VERSION)]
     seen: set[str] = set()
@@ -100,7 +101,7 @@ def test_version_1_defaults_are_the_paper_preset():
         first = {k: v for k, v in table.items() if k not in seen}
         assert {k: paper[k.split(".")[0]][k.split(".")[1]] for k in first} == first
         seen |= set(table)
-    assert tables[-1]["model.occlusion_key_soft"] == 8.0  # changed twice: 0, then 8, then 12
+    assert config_module.VERSION_8_DEFAULTS["model.occlusion_key_soft"] == 8.0  # changed twice: 0, 8, then 12
 
 
 # The demo's TrainConfig before training presets existed (hand-coded from demo.py of that time): the defaults
@@ -116,6 +117,7 @@ _OLD_DEFAULTS = [
     "optim.lr_shading=5e-3",
     "model.occlusion_key_soft=0",
     "model.occlusion_grid=64",
+    "loss.lambda_albedo=0",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -129,6 +131,7 @@ _OLD_QUALITY = [
     "optim.lr_shading=5e-2",  # since config version 7
     "model.occlusion_key_soft=12",  # 8 since config version 8, 12 since 9
     "model.occlusion_grid=96",  # since config version 9
+    "loss.lambda_albedo=0.1",  # since config version 10
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -174,7 +177,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 9)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 10)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -231,6 +234,7 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (6, "optim.lr_shading", 5e-3, 0.05),  # before optim.lr_shading was 5e-2
         (7, "model.occlusion_key_soft", 0.0, 4.0),  # before the key's shadow was soft
         (8, "model.occlusion_grid", 64, 128),  # before the shadow maps had 96 cells a side
+        (9, "loss.lambda_albedo", 0.0, 0.5),  # before the albedo prior
         (8, "model.occlusion_key_soft", 8.0, 4.0),  # before the key's disk was 12 degrees
     ],
 )
@@ -262,7 +266,7 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 10}, r"^config: format version 10 is newer than this meshsplat reads \(9\); update meshsplat"),
+        ({"version": 11}, r"^config: format version 11 is newer than this meshsplat reads \(10\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

@@ -47,6 +47,7 @@ from meshsplat._numba import numba_available
 from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
+from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
 from meshsplat.gaussians.params import EMBEDDING_STATE_KEYS, init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
@@ -56,6 +57,7 @@ from meshsplat.mesh import MeshPose, TriMesh, bbox_diagonal
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder
+from meshsplat.train.albedo_prior import REFRESH_EVERY, albedo_neighbours, albedo_smoothness
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_crop
@@ -83,7 +85,7 @@ __all__ = [
 ]
 
 _FRAME_CACHE_BYTES = 2 * 1024**3  # decoded training frames (and their posed meshes) kept in memory
-_LOGGED_PARTS = ("l1", "lpips", "scale", "mse", "dssim", "mask")  # loss parts in log.csv
+_LOGGED_PARTS = ("l1", "lpips", "scale", "mse", "dssim", "mask", "albedo")  # loss parts in log.csv
 PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
 LOG_COLUMNS = (
@@ -101,6 +103,7 @@ LOG_COLUMNS = (
     "lr_d",
     "time_s",
     "mask",
+    "albedo",  # the albedo prior's value (loss.lambda_albedo), unweighted
 )
 
 
@@ -185,6 +188,8 @@ class Trainer:
         self.recent: deque[tuple[float, float]] = deque(maxlen=PROGRESS_WINDOW)  # (loss, psnr) per iteration
         self.shading: Shading | None = None
         self.shading_opt: torch.optim.Adam | None = None
+        self.albedo_nb: torch.Tensor | None = None  # the albedo prior's neighbours [N,k] (loss.lambda_albedo)
+        self.albedo_nb_iteration = 0  # the iteration that searched them
 
         self.resume_notes: list[str] = []
         loaded = None
@@ -406,7 +411,24 @@ class Trainer:
             mask_l1 = (out.alpha - mask).abs().mean()
             loss = loss + L.lambda_mask * mask_l1
             parts["mask"] = mask_l1.detach()
+        if L.lambda_albedo and self.shading is not None:
+            prior = albedo_smoothness(self.params["sh0"], self._albedo_neighbours())
+            loss = loss + L.lambda_albedo * prior
+            parts["albedo"] = prior.detach()
         return loss, parts
+
+    def _albedo_neighbours(self) -> torch.Tensor:
+        """Each Gaussian's nearest others on the canonical mesh ``[N,k]`` for the albedo prior: searched again
+        every ``REFRESH_EVERY`` iterations and whenever the count changed (kept in checkpoints, so a resumed
+        run uses the same ones)."""
+        n, it = num_gaussians(self.params), self.iteration
+        nb = self.albedo_nb
+        if nb is None or nb.shape[0] != n or (it % REFRESH_EVERY == 1 and self.albedo_nb_iteration != it):
+            uv = effective_uv(self.params, self.clamp_to_face)
+            self.albedo_nb = albedo_neighbours(self.mesh.vertices, self.mesh.faces, self.params["face"], uv)
+            self.albedo_nb_iteration = it
+        assert self.albedo_nb is not None
+        return self.albedo_nb
 
     @property
     def perceptual_due(self) -> bool:
@@ -710,6 +732,9 @@ class Trainer:
             "data_order": {"order": self.order.clone(), "pos": self.order_pos},
             "pose_refine": None if self.refiner is None else self.refiner.state_dict(),
             "shading_optimizer": None if self.shading_opt is None else self.shading_opt.state_dict(),
+            "albedo_prior": None
+            if self.albedo_nb is None
+            else {"neighbours": self.albedo_nb.cpu(), "iteration": self.albedo_nb_iteration},
             "torch_threads": torch.get_num_threads(),  # a resume on another count matches only to rounding
         }
 
@@ -787,6 +812,22 @@ class Trainer:
         self.order_pos = int(st["data_order"]["pos"])
         self.iteration = int(st["iteration"])
         self.elapsed = float(st.get("elapsed_s", 0.0))
+        # absent before the albedo prior existed: searched at the next step. Saved after a densification they
+        # still index the Gaussians before it: the next step searches again, as the uninterrupted run did
+        prior = st.get("albedo_prior")
+        if prior is not None:
+            nb = prior["neighbours"]
+            if (
+                not isinstance(nb, torch.Tensor)
+                or nb.dtype != torch.long
+                or nb.ndim != 2
+                or (nb.numel() and not 0 <= int(nb.min()) <= int(nb.max()) < nb.shape[0])
+            ):
+                raise MeshsplatError(
+                    "checkpoint: its albedo prior's neighbours are not indices of its Gaussians (a damaged file); "
+                    "resume from an earlier checkpoint or start a new run"
+                )
+            self.albedo_nb, self.albedo_nb_iteration = nb.to(dev), int(prior["iteration"])
 
 
 def train(config: TrainConfig, resume: bool = False) -> Path:

@@ -1,0 +1,59 @@
+"""A prior on a shaded avatar's albedo: nearby Gaussians of one colour share one albedo.
+
+With shading on, a Gaussian's colour is an albedo times the learned light. The albedo is learned fast and per
+Gaussian, so it can keep part of the light: on the path-traced robot (one uniform paint) the trained albedo
+followed the key light each Gaussian received in the training frames, 2.7-fold, and a new pose that lights a
+part the training clip kept in shadow rendered it too dark (docs/quality.md). The prior
+
+    L = mean_i,k  w_ik |a_i - a_nb(i,k)|,   w_ik = exp(-|c_i - c_nb(i,k)|^2 / CHROMA_SIGMA^2)
+
+over each Gaussian's ``NEIGHBOURS`` nearest neighbours on the canonical mesh (albedo ``a [N,3]``, chromaticity
+``c = a / sum(a)``, the weights without gradient) pulls neighbours of one hue to one albedo. Light changes
+brightness, not hue, so the light the albedo kept must move into the lighting; a change of hue (a painted edge,
+a texture) keeps a small weight and stays sharp. L1 keeps the remaining edges sharp too.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from meshsplat.embedding import surface_points
+from meshsplat.gaussians.params import SH_C0
+
+__all__ = ["NEIGHBOURS", "CHROMA_SIGMA", "REFRESH_EVERY", "albedo_neighbours", "albedo_smoothness"]
+
+NEIGHBOURS = 8  # nearest Gaussians each one is compared with
+CHROMA_SIGMA = 0.05  # chromaticity difference at which a neighbour's weight falls to 1/e
+REFRESH_EVERY = 100  # training iterations between neighbour searches (and whenever the count changes)
+
+
+def albedo_neighbours(verts: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Indices ``[N,NEIGHBOURS]`` of each Gaussian's nearest others by their surface points on the mesh ``verts
+    [V,3]``, ``faces [F,3]`` (embedding ``face [N]``, ``uv [N,2]``), nearest first; fewer Gaussians than that:
+    all others, repeated. Exact (a k-d tree), deterministic."""
+    from scipy.spatial import cKDTree
+
+    n = int(face.shape[0])
+    if n < 2:
+        return torch.zeros(n, 0, dtype=torch.long, device=face.device)
+    pts = surface_points(verts.detach(), faces, face, uv.detach()).double().cpu().numpy()
+    k = min(NEIGHBOURS + 1, n)
+    _, idx = cKDTree(pts).query(pts, k=k)
+    idx = np.asarray(idx, np.int64).reshape(n, k)
+    others = idx != np.arange(n)[:, None]  # itself (usually first; elsewhere or absent where points coincide)
+    others &= np.cumsum(others, axis=1) <= k - 1  # the k-1 nearest others of each row
+    nb = idx[others].reshape(n, k - 1)[:, np.arange(NEIGHBOURS) % (k - 1)]  # repeated when k - 1 < NEIGHBOURS
+    return torch.from_numpy(np.ascontiguousarray(nb)).to(face.device)
+
+
+def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """The prior's value (a scalar) for the albedo of ``sh0 [N,1,3]`` (its DC band) and ``neighbours [N,k]``."""
+    if neighbours.numel() == 0:
+        return sh0.sum() * 0.0
+    a = sh0[:, 0] * SH_C0 + 0.5  # [N,3]
+    with torch.no_grad():
+        c = a.detach().clamp_min(1e-4)
+        chroma = c / c.sum(-1, keepdim=True)
+        w = torch.exp(-((chroma[:, None] - chroma[neighbours]) ** 2).sum(-1) / CHROMA_SIGMA**2)  # [N,k]
+    return (w[..., None] * (a[:, None] - a[neighbours]).abs()).mean()

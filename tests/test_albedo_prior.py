@@ -1,0 +1,135 @@
+"""The albedo prior (loss.lambda_albedo): neighbours, the prior's value and gradient, training and resume."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+import trimesh
+
+import meshsplat.train.trainer as trainer_module
+from meshsplat.embedding import surface_points
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians import rgb_to_sh0
+from meshsplat.io.checkpoint import load_checkpoint
+from meshsplat.train import Trainer
+from meshsplat.train.albedo_prior import NEIGHBOURS, albedo_neighbours, albedo_smoothness
+from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
+
+
+def _sphere_embedding(n: int, seed: int = 0):
+    m = trimesh.creation.icosphere(subdivisions=2)
+    verts, faces = torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces).long()
+    g = torch.Generator().manual_seed(seed)
+    face = torch.randint(0, faces.shape[0], (n,), generator=g)
+    uv = torch.rand(n, 2, generator=g) * 0.5  # u + v <= 1: inside the triangle
+    return verts, faces, face, uv
+
+
+def test_neighbours_are_the_nearest_others_on_the_mesh():
+    verts, faces, face, uv = _sphere_embedding(300)
+    nb = albedo_neighbours(verts, faces, face, uv)
+    assert nb.shape == (300, NEIGHBOURS) and nb.dtype == torch.long
+    pts = surface_points(verts, faces, face, uv).double()
+    d = torch.cdist(pts, pts)
+    d.fill_diagonal_(float("inf"))
+    brute = d.topk(NEIGHBOURS, largest=False).indices
+    assert torch.equal(nb, brute)  # nearest first, the same order
+    assert not (nb == torch.arange(300)[:, None]).any()
+    assert torch.equal(nb, albedo_neighbours(verts, faces, face, uv))  # deterministic
+
+
+def test_neighbours_of_coincident_and_few_gaussians():
+    verts, faces, face, uv = _sphere_embedding(40)
+    face, uv = torch.cat([face, face[:5]]), torch.cat([uv, uv[:5]])  # 5 Gaussians at the same points as 5 others
+    nb = albedo_neighbours(verts, faces, face, uv)
+    assert not (nb == torch.arange(45)[:, None]).any()  # never itself, even where a twin sits at distance 0
+    assert torch.equal(nb[:5, 0], torch.arange(40, 45)) and torch.equal(nb[40:, 0], torch.arange(5))
+    three = albedo_neighbours(verts, faces, face[:3], uv[:3])
+    assert three.shape == (3, NEIGHBOURS)
+    for i in range(3):
+        assert set(three[i].tolist()) == {0, 1, 2} - {i}
+    assert albedo_neighbours(verts, faces, face[:1], uv[:1]).shape == (1, 0)
+    assert albedo_smoothness(rgb_to_sh0(torch.rand(1, 3))[:, None], torch.zeros(1, 0, dtype=torch.long)) == 0
+
+
+def test_the_prior_pulls_one_hue_together_and_leaves_a_change_of_hue_alone():
+    orange = torch.tensor([0.6, 0.3, 0.04])
+    nb = torch.tensor([[1], [0], [3], [2]])  # pairs (0, 1) and (2, 3)
+    # 0, 1: one orange in light and in shadow (one hue, another brightness); 2, 3: orange next to blue
+    rgb = torch.stack([orange, 0.4 * orange, orange, torch.tensor([0.1, 0.2, 0.6])])
+    sh0 = rgb_to_sh0(rgb)[:, None].requires_grad_(True)
+    value = albedo_smoothness(sh0, nb)
+    (grad,) = torch.autograd.grad(value, sh0)
+    same, edge = grad[:2, 0].abs().sum(), grad[2:, 0].abs().sum()
+    assert same > 1e3 * edge  # the hue edge keeps a weight of exp(-|dc|^2 / sigma^2), here ~1e-12
+    assert (grad[0, 0] > 0).all() and (grad[1, 0] < 0).all()  # the bright one darker, the dark one brighter
+    one = rgb_to_sh0(orange.expand(4, 3))[:, None]
+    assert float(albedo_smoothness(one, nb)) == 0.0
+
+
+def test_the_prior_has_the_gradient_of_its_value():
+    verts, faces, face, uv = _sphere_embedding(30, seed=2)
+    nb = albedo_neighbours(verts, faces, face, uv)
+    g = torch.Generator().manual_seed(3)
+    # one hue in several brightnesses: the weights are 1 there and flat (they carry no gradient by design)
+    rgb = torch.tensor([0.6, 0.3, 0.05]) * (0.5 + torch.rand(30, 1, generator=g))
+    sh0 = rgb_to_sh0(rgb).double()[:, None].requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda s: albedo_smoothness(s, nb), (sh0,), eps=1e-7, atol=1e-6)
+
+
+def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny_dataset, tmp_path, monkeypatch):  # noqa: F811
+    monkeypatch.setattr(trainer_module, "REFRESH_EVERY", 3)  # neighbours searched again within the run
+    seen: list[int] = []
+    search = trainer_module.albedo_neighbours
+
+    def counted(*args):
+        nb = search(*args)
+        seen.append(int(nb.shape[0]))
+        return nb
+
+    monkeypatch.setattr(trainer_module, "albedo_neighbours", counted)
+    extra = ("loss.lambda_albedo=0.5", "checkpoint_every=4")
+    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, extra))
+    assert full.cfg.model.shading == "sh2"
+    full.train()
+    assert len(seen) >= 7  # every third iteration, and when densification changed the count
+    # resume from every checkpoint: some written just after a densification, whose neighbours still index the
+    # Gaussians before it (searched again at the next step, as in the full run), some not
+    stale = [
+        it
+        for it in (4, 8, 12, 16)
+        if (st := load_checkpoint(tmp_path / "full" / "checkpoints" / f"ckpt_{it:08d}.pt"))["albedo_prior"][
+            "neighbours"
+        ].shape[0]
+        != st["avatar"]["params"]["sh0"].shape[0]
+    ]
+    assert stale and stale != [4, 8, 12, 16], stale  # both kinds are resumed below
+    for start in (4, 8, 12, 16):
+        run = tmp_path / f"resumed{start}"
+        (run / "checkpoints").mkdir(parents=True)
+        shutil.copy(tmp_path / "full" / "checkpoints" / f"ckpt_{start:08d}.pt", run / "checkpoints")
+        res = Trainer(small_config(tiny_dataset, run, 20, extra), resume=True)
+        assert res.albedo_nb is not None and res.iteration == start
+        res.train()
+        for k in full.params:
+            assert torch.equal(full.params[k].detach(), res.params[k].detach()), (start, k)
+        assert torch.equal(full.albedo_nb, res.albedo_nb)
+    # without the prior the same run trains to other colours
+    off = Trainer(small_config(tiny_dataset, tmp_path / "off", 20, ("loss.lambda_albedo=0",)))
+    off.train()
+    assert off.albedo_nb is None and not torch.equal(off.params["sh0"], full.params["sh0"])
+
+
+def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_dataset, tmp_path):  # noqa: F811
+    cfg = small_config(tiny_dataset, tmp_path / "run", 10)
+    Trainer(cfg).train()
+    path = tmp_path / "run" / "checkpoints" / "ckpt_00000010.pt"
+    doc = torch.load(path, weights_only=True)
+    prior = doc["state"]["albedo_prior"]
+    assert prior["neighbours"].shape[1] == NEIGHBOURS
+    prior["neighbours"][3, 2] = prior["neighbours"].shape[0]  # past the last Gaussian
+    torch.save(doc, path)
+    with pytest.raises(MeshsplatError, match=r"^checkpoint: its albedo prior's neighbours are not indices of its"):
+        Trainer(cfg, resume=True)
