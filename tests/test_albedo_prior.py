@@ -51,7 +51,7 @@ def test_neighbours_of_coincident_and_few_gaussians():
     for i in range(3):
         assert set(three[i].tolist()) == {0, 1, 2} - {i}
     assert albedo_neighbours(verts, faces, face[:1], uv[:1]).shape == (1, 0)
-    assert albedo_smoothness(rgb_to_sh0(torch.rand(1, 3))[:, None], torch.zeros(1, 0, dtype=torch.long)) == 0
+    assert albedo_smoothness(rgb_to_sh0(torch.rand(1, 3)), torch.zeros(1, 0, dtype=torch.long)) == 0
 
 
 def test_the_prior_pulls_one_hue_together_and_leaves_a_change_of_hue_alone():
@@ -59,13 +59,13 @@ def test_the_prior_pulls_one_hue_together_and_leaves_a_change_of_hue_alone():
     nb = torch.tensor([[1], [0], [3], [2]])  # pairs (0, 1) and (2, 3)
     # 0, 1: one orange in light and in shadow (one hue, another brightness); 2, 3: orange next to blue
     rgb = torch.stack([orange, 0.4 * orange, orange, torch.tensor([0.1, 0.2, 0.6])])
-    sh0 = rgb_to_sh0(rgb)[:, None].requires_grad_(True)
+    sh0 = rgb_to_sh0(rgb).requires_grad_(True)
     value = albedo_smoothness(sh0, nb)
     (grad,) = torch.autograd.grad(value, sh0)
     same, edge = grad[:2, 0].abs().sum(), grad[2:, 0].abs().sum()
     assert same > 1e3 * edge  # the hue edge keeps a weight of exp(-|dc|^2 / sigma^2), here ~1e-12
     assert (grad[0, 0] > 0).all() and (grad[1, 0] < 0).all()  # the bright one darker, the dark one brighter
-    one = rgb_to_sh0(orange.expand(4, 3))[:, None]
+    one = rgb_to_sh0(orange.expand(4, 3))
     assert float(albedo_smoothness(one, nb)) == 0.0
 
 
@@ -75,8 +75,30 @@ def test_the_prior_has_the_gradient_of_its_value():
     g = torch.Generator().manual_seed(3)
     # one hue in several brightnesses: the weights are 1 there and flat (they carry no gradient by design)
     rgb = torch.tensor([0.6, 0.3, 0.05]) * (0.5 + torch.rand(30, 1, generator=g))
-    sh0 = rgb_to_sh0(rgb).double()[:, None].requires_grad_(True)
+    sh0 = rgb_to_sh0(rgb).double().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda s: albedo_smoothness(s, nb), (sh0,), eps=1e-7, atol=1e-6)
+
+
+def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads():
+    """A gather's backward that scatters with atomics (``a[neighbours]``) sums in another order on each call
+    with 2 threads; the prior must not (training runs repeat to the last digit)."""
+    g = torch.Generator().manual_seed(5)
+    n = 12_000
+    sh0 = rgb_to_sh0(torch.rand(n, 3, generator=g))
+    nb = torch.randint(0, n, (n, NEIGHBOURS), generator=g)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        results = []
+        for _ in range(6):
+            x = sh0.clone().requires_grad_(True)
+            value = albedo_smoothness(x, nb)
+            (grad,) = torch.autograd.grad(value, x)
+            results.append((value.detach(), grad))
+    finally:
+        torch.set_num_threads(threads)
+    for value, grad in results[1:]:
+        assert torch.equal(value, results[0][0]) and torch.equal(grad, results[0][1])
 
 
 def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny_dataset, tmp_path, monkeypatch):  # noqa: F811

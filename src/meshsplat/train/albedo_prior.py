@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from meshsplat.embedding import surface_points
+from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0
 
 __all__ = ["NEIGHBOURS", "CHROMA_SIGMA", "REFRESH_EVERY", "albedo_neighbours", "albedo_smoothness"]
@@ -49,11 +50,19 @@ def albedo_neighbours(verts: torch.Tensor, faces: torch.Tensor, face: torch.Tens
 
 def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
     """The prior's value (a scalar) for the albedo of ``sh0 [N,1,3]`` (its DC band) and ``neighbours [N,k]``."""
+    if sh0.ndim != 3 or sh0.shape[1:] != (1, 3) or neighbours.ndim != 2 or neighbours.shape[0] != sh0.shape[0]:
+        raise MeshsplatError(
+            f"albedo_smoothness: expected sh0 [N,1,3] and neighbours [N,k], got {list(sh0.shape)}, "
+            f"{list(neighbours.shape)}"
+        )
     if neighbours.numel() == 0:
         return sh0.sum() * 0.0
     a = sh0[:, 0] * SH_C0 + 0.5  # [N,3]
+    # index_select, not a[neighbours]: the latter's backward scatters with atomics on CPU (not bit-reproducible)
+    a_nb = a.index_select(0, neighbours.reshape(-1)).view(*neighbours.shape, 3)  # [N,k,3]
     with torch.no_grad():
         c = a.detach().clamp_min(1e-4)
         chroma = c / c.sum(-1, keepdim=True)
-        w = torch.exp(-((chroma[:, None] - chroma[neighbours]) ** 2).sum(-1) / CHROMA_SIGMA**2)  # [N,k]
-    return (w[..., None] * (a[:, None] - a[neighbours]).abs()).mean()
+        c_nb = chroma.index_select(0, neighbours.reshape(-1)).view(*neighbours.shape, 3)
+        w = torch.exp(-((chroma[:, None] - c_nb) ** 2).sum(-1) / CHROMA_SIGMA**2)  # [N,k]
+    return (w[..., None] * (a[:, None] - a_nb).abs()).mean()
