@@ -148,3 +148,29 @@ def test_face_areas_match_sampling_density(assets):
     assert bool(torch.isfinite(mu).all() and torch.isfinite(n).all())
     big = face_areas(mesh.vertices, mesh.faces).argmax()
     assert int((face == big).sum()) > 0
+
+
+def test_gradients_to_the_posed_vertices_repeat_bit_for_bit_on_several_threads():
+    """Pose refinement sends gradients through embed and pose_frame to the posed vertices. A gather whose
+    backward scatters with atomics (``values[faces[face]]``) sums in another order on every call with 2
+    threads, so two trainings of one capture drifted apart; the gathers must sum in a fixed order."""
+    m = trimesh.creation.icosphere(subdivisions=4)
+    mesh = TriMesh(torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces))
+    g = torch.Generator().manual_seed(0)
+    n = 40_000
+    face = torch.randint(0, mesh.num_faces, (n,), generator=g)
+    uv, weights = torch.rand(n, 2, generator=g) * 0.5, torch.rand(n, 3, generator=g)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = []
+        for _ in range(5):
+            verts = (mesh.vertices * 1.1).requires_grad_(True)
+            pose = MeshPose.from_vertices(mesh, verts)
+            means, normals = embed(pose, face, uv, torch.zeros(n))
+            delta_q, factor = pose_frame(pose, face, uv)
+            loss = ((means + normals + delta_q[:, :3]) * weights).sum() + factor.sum()
+            grads.append(torch.autograd.grad(loss, verts)[0])
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(grads[0], gr) for gr in grads[1:])

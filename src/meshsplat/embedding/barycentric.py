@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["barycentric_weights", "interpolate", "surface_points", "project_uv_to_triangle"]
+__all__ = ["barycentric_weights", "gather_rows", "interpolate", "surface_points", "project_uv_to_triangle"]
 
 
 def barycentric_weights(uv: torch.Tensor) -> torch.Tensor:
@@ -16,9 +16,16 @@ def barycentric_weights(uv: torch.Tensor) -> torch.Tensor:
     return torch.cat([uv, 1.0 - uv.sum(-1, keepdim=True)], dim=-1)
 
 
+def gather_rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``values[index]`` for ``values [V,...]`` and any long ``index`` -> ``[*index.shape, ...]``, through
+    ``index_select``: its backward sums in a fixed order, where ``values[index]``'s scatters with atomics on
+    CPU and is not bit-reproducible on several threads (pose refinement's gradients reach the vertices)."""
+    return values.index_select(0, index.reshape(-1)).view(*index.shape, *values.shape[1:])
+
+
 def interpolate(values: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Blend per-vertex ``values [V,C]`` at the points ``(face [N], weights [N,3])`` -> ``[N,C]``."""
-    corners = values[faces[face]]  # [N,3,C]
+    corners = gather_rows(values, faces[face])  # [N,3,C]
     return (weights.unsqueeze(-1).to(corners.dtype) * corners).sum(-2)
 
 

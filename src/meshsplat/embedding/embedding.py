@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from meshsplat._checks import check_tensor
-from meshsplat.embedding.barycentric import barycentric_weights, interpolate
+from meshsplat.embedding.barycentric import barycentric_weights, gather_rows, interpolate
 from meshsplat.errors import MeshsplatError
 from meshsplat.mesh.geometry import safe_normalize
 from meshsplat.mesh.pose import MeshPose
@@ -59,10 +59,10 @@ def pose_frame(
     if scale_mode not in SCALE_MODES:
         raise MeshsplatError(f"scale_mode: expected one of {SCALE_MODES}, got {scale_mode!r}")
     w = barycentric_weights(uv)
-    q = pose.vertex_quats[pose.faces[face]]  # [N,3,4]
+    q = gather_rows(pose.vertex_quats, pose.faces[face])  # [N,3,4]
     sign = torch.where((q * q[:, :1]).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
     delta_q = quat_normalize((w.unsqueeze(-1).to(q.dtype) * sign * q).sum(-2), eps=1e-12)
-    ratio = pose.area_ratio[face].unsqueeze(-1)
+    ratio = gather_rows(pose.area_ratio, face).unsqueeze(-1)
     if scale_mode == "area":
         factor = ratio
     elif scale_mode == "sqrt_area":
