@@ -1,6 +1,12 @@
 """Embeddings (face, uv, d) on a mesh: placement, sampling, walking, projection."""
 
-from meshsplat.embedding.barycentric import barycentric_weights, interpolate, project_uv_to_triangle, surface_points
+from meshsplat.embedding.barycentric import (
+    barycentric_weights,
+    gather_rows,
+    interpolate,
+    project_uv_to_triangle,
+    surface_points,
+)
 from meshsplat.embedding.embedding import SCALE_MODES, embed, pose_frame
 from meshsplat.embedding.project import closest_point_on_triangles, project_to_surface
 from meshsplat.embedding.sampling import sample_surface
@@ -12,6 +18,7 @@ __all__ = [
     "barycentric_weights",
     "interpolate",
     "surface_points",
+    "gather_rows",
     "project_uv_to_triangle",
     "SCALE_MODES",
     "sample_surface",

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from meshsplat.embedding import surface_points
+from meshsplat.embedding import gather_rows, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0
 
@@ -58,11 +58,10 @@ def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tens
     if neighbours.numel() == 0:
         return sh0.sum() * 0.0
     a = sh0[:, 0] * SH_C0 + 0.5  # [N,3]
-    # index_select, not a[neighbours]: the latter's backward scatters with atomics on CPU (not bit-reproducible)
-    a_nb = a.index_select(0, neighbours.reshape(-1)).view(*neighbours.shape, 3)  # [N,k,3]
+    a_nb = gather_rows(a, neighbours)  # [N,k,3]; not a[neighbours], whose backward is not bit-reproducible
     with torch.no_grad():
         c = a.detach().clamp_min(1e-4)
         chroma = c / c.sum(-1, keepdim=True)
-        c_nb = chroma.index_select(0, neighbours.reshape(-1)).view(*neighbours.shape, 3)
+        c_nb = gather_rows(chroma, neighbours)
         w = torch.exp(-((chroma[:, None] - c_nb) ** 2).sum(-1) / CHROMA_SIGMA**2)  # [N,k]
     return (w[..., None] * (a[:, None] - a_nb).abs()).mean()
