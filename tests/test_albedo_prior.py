@@ -14,7 +14,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import rgb_to_sh0
 from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.train import Trainer
-from meshsplat.train.albedo_prior import NEIGHBOURS, albedo_neighbours, albedo_smoothness
+from meshsplat.train.albedo_prior import MAX_REACH, NEIGHBOURS, albedo_neighbours, albedo_smoothness, neighbour_ranks
 from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
@@ -38,6 +38,25 @@ def test_neighbours_are_the_nearest_others_on_the_mesh():
     assert torch.equal(nb, brute)  # nearest first, the same order
     assert not (nb == torch.arange(300)[:, None]).any()
     assert torch.equal(nb, albedo_neighbours(verts, faces, face, uv))  # deterministic
+
+
+def test_a_reach_adds_farther_neighbours_spread_by_rank():
+    verts, faces, face, uv = _sphere_embedding(300)
+    assert neighbour_ranks(NEIGHBOURS).tolist() == list(range(1, NEIGHBOURS + 1))
+    assert neighbour_ranks(64).tolist() == list(range(1, 9)) + [9, 17, 25, 33, 40, 48, 56, 64]
+    nb = albedo_neighbours(verts, faces, face, uv, 64)
+    assert nb.shape == (300, 2 * NEIGHBOURS)
+    pts = surface_points(verts, faces, face, uv).double()
+    d = torch.cdist(pts, pts)
+    d.fill_diagonal_(float("inf"))
+    order = d.argsort(dim=1)  # by rank: column r - 1 is the r-th nearest other
+    assert torch.equal(nb, order[:, torch.from_numpy(neighbour_ranks(64)) - 1])
+    assert torch.equal(nb[:, :NEIGHBOURS], albedo_neighbours(verts, faces, face, uv))  # the nearest, as reach 8
+    for bad in (NEIGHBOURS - 1, MAX_REACH + 1):
+        with pytest.raises(MeshsplatError, match=rf"^albedo prior: reach must be in 8\.\.{MAX_REACH}, got {bad}$"):
+            albedo_neighbours(verts, faces, face, uv, bad)
+    few = albedo_neighbours(verts, faces, face[:20], uv[:20], 64)  # fewer Gaussians than the reach: repeats
+    assert few.shape == (20, 2 * NEIGHBOURS) and not (few == torch.arange(20)[:, None]).any()
 
 
 def test_neighbours_of_coincident_and_few_gaussians():
@@ -150,7 +169,7 @@ def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_datase
     path = tmp_path / "run" / "checkpoints" / "ckpt_00000010.pt"
     doc = torch.load(path, weights_only=True)
     prior = doc["state"]["albedo_prior"]
-    assert prior["neighbours"].shape[1] == NEIGHBOURS
+    assert prior["neighbours"].shape[1] == 2 * NEIGHBOURS  # the nearest and as many farther (loss.albedo_reach)
     prior["neighbours"][3, 2] = prior["neighbours"].shape[0]  # past the last Gaussian
     torch.save(doc, path)
     with pytest.raises(MeshsplatError, match=r"^checkpoint: its albedo prior's neighbours are not indices of its"):

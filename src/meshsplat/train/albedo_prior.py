@@ -7,10 +7,14 @@ part the training clip kept in shadow rendered it too dark (docs/quality.md). Th
 
     L = mean_i,k  w_ik |a_i - a_nb(i,k)|,   w_ik = exp(-|c_i - c_nb(i,k)|^2 / CHROMA_SIGMA^2)
 
-over each Gaussian's ``NEIGHBOURS`` nearest neighbours on the canonical mesh (albedo ``a [N,3]``, chromaticity
-``c = a / sum(a)``, the weights without gradient) pulls neighbours of one hue to one albedo. Light changes
-brightness, not hue, so the light the albedo kept must move into the lighting; a change of hue (a painted edge,
-a texture) keeps a small weight and stays sharp. L1 keeps the remaining edges sharp too.
+over each Gaussian's neighbours on the canonical mesh (albedo ``a [N,3]``, chromaticity ``c = a / sum(a)``, the
+weights without gradient) pulls neighbours of one hue to one albedo. Light changes brightness, not hue, so the
+light the albedo kept must move into the lighting; a change of hue (a painted edge, a texture) keeps a small
+weight and stays sharp. L1 keeps the remaining edges sharp too.
+
+The neighbours are the ``NEIGHBOURS`` nearest and, with a ``reach`` above that, ``NEIGHBOURS`` more spread
+evenly by rank over the ``reach`` nearest: the far ones carry the albedo across a region in fewer steps (a part
+the training frames kept in shadow, or saw little, takes the albedo of the lit paint around it).
 """
 
 from __future__ import annotations
@@ -22,29 +26,47 @@ from meshsplat.embedding import gather_rows, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0
 
-__all__ = ["NEIGHBOURS", "CHROMA_SIGMA", "REFRESH_EVERY", "albedo_neighbours", "albedo_smoothness"]
+__all__ = ["NEIGHBOURS", "CHROMA_SIGMA", "REFRESH_EVERY", "MAX_REACH", "albedo_neighbours", "albedo_smoothness"]
 
-NEIGHBOURS = 8  # nearest Gaussians each one is compared with
+NEIGHBOURS = 8  # nearest Gaussians each one is compared with (and as many farther ones, with a reach)
+MAX_REACH = 1024  # the largest reach (neighbour rank) a search may ask for
 CHROMA_SIGMA = 0.05  # chromaticity difference at which a neighbour's weight falls to 1/e
 REFRESH_EVERY = 100  # training iterations between neighbour searches (and whenever the count changes)
 
 
-def albedo_neighbours(verts: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Indices ``[N,NEIGHBOURS]`` of each Gaussian's nearest others by their surface points on the mesh ``verts
-    [V,3]``, ``faces [F,3]`` (embedding ``face [N]``, ``uv [N,2]``), nearest first; fewer Gaussians than that:
-    all others, repeated. Exact (a k-d tree), deterministic."""
+def neighbour_ranks(reach: int) -> np.ndarray:
+    """The ranks (1: the nearest other) of the neighbours a search with ``reach`` keeps, ``[NEIGHBOURS]`` or
+    ``[2 * NEIGHBOURS]``: 1..NEIGHBOURS, then for ``reach > NEIGHBOURS`` as many more spread evenly over
+    ``NEIGHBOURS+1 .. reach`` (repeats where that range is shorter)."""
+    if not NEIGHBOURS <= reach <= MAX_REACH:
+        raise MeshsplatError(f"albedo prior: reach must be in {NEIGHBOURS}..{MAX_REACH}, got {reach}")
+    near = np.arange(1, NEIGHBOURS + 1)
+    if reach == NEIGHBOURS:
+        return near
+    far = np.linspace(NEIGHBOURS + 1, reach, NEIGHBOURS).round().astype(np.int64)
+    return np.concatenate([near, far])
+
+
+def albedo_neighbours(
+    verts: torch.Tensor, faces: torch.Tensor, face: torch.Tensor, uv: torch.Tensor, reach: int = NEIGHBOURS
+) -> torch.Tensor:
+    """Indices ``[N,k]`` of each Gaussian's neighbours by their surface points on the mesh ``verts [V,3]``,
+    ``faces [F,3]`` (embedding ``face [N]``, ``uv [N,2]``): the others of ranks :func:`neighbour_ranks` ``(reach)``,
+    nearest first (``k`` = ``NEIGHBOURS``, twice that with ``reach > NEIGHBOURS``). Fewer Gaussians than a rank:
+    the others, repeated. Exact (a k-d tree), deterministic."""
     from scipy.spatial import cKDTree
 
+    ranks = neighbour_ranks(reach)
     n = int(face.shape[0])
     if n < 2:
         return torch.zeros(n, 0, dtype=torch.long, device=face.device)
     pts = surface_points(verts.detach(), faces, face, uv.detach()).double().cpu().numpy()
-    k = min(NEIGHBOURS + 1, n)
+    k = min(int(ranks[-1]) + 1, n)
     _, idx = cKDTree(pts).query(pts, k=k)
     idx = np.asarray(idx, np.int64).reshape(n, k)
     others = idx != np.arange(n)[:, None]  # itself (usually first; elsewhere or absent where points coincide)
     others &= np.cumsum(others, axis=1) <= k - 1  # the k-1 nearest others of each row
-    nb = idx[others].reshape(n, k - 1)[:, np.arange(NEIGHBOURS) % (k - 1)]  # repeated when k - 1 < NEIGHBOURS
+    nb = idx[others].reshape(n, k - 1)[:, (ranks - 1) % (k - 1)]  # repeated past k - 1
     return torch.from_numpy(np.ascontiguousarray(nb)).to(face.device)
 
 

@@ -16,7 +16,8 @@ a version-3 dict before ``loss.lpips_every`` was 2 (``VERSION_3_DEFAULTS``), a v
 was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` was 5e-2 (``VERSION_6_DEFAULTS``),
 a version-7 dict before ``model.occlusion_key_soft`` was 8 (``VERSION_7_DEFAULTS``), a version-8 dict before
 ``model.occlusion_grid`` was 96 and ``model.occlusion_key_soft`` 12 (``VERSION_8_DEFAULTS``), a version-9 dict
-before ``loss.lambda_albedo`` was 0.1 (``VERSION_9_DEFAULTS``).
+before ``loss.lambda_albedo`` was 0.1 (``VERSION_9_DEFAULTS``), a version-10 dict before ``loss.albedo_reach`` was 64
+(``VERSION_10_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -39,6 +40,7 @@ from meshsplat.gaussians.compose import SH_FRAMES
 from meshsplat.gaussians.shading import OCCLUSION_MODES, SHADING_MODES, SHADING_NORMALS, SPECULAR_MODES
 from meshsplat.io.json_file import read_json_object
 from meshsplat.render import BACKENDS, BACKGROUNDS
+from meshsplat.train.albedo_prior import MAX_REACH, NEIGHBOURS
 from meshsplat.train.strategy.default import DensifyStrategy
 
 __all__ = [
@@ -68,6 +70,7 @@ __all__ = [
     "VERSION_7_DEFAULTS",
     "VERSION_8_DEFAULTS",
     "VERSION_9_DEFAULTS",
+    "VERSION_10_DEFAULTS",
     "config_version",
 ]
 
@@ -89,7 +92,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 8: model.occlusion_key_soft 8 by default (docs/quality.md, "Soft key shadows").
 # 9: model.occlusion_grid 96 and model.occlusion_key_soft 12 by default (docs/quality.md, "Finer key shadow maps").
 # 10: loss.lambda_albedo 0.1 by default (docs/quality.md, "An albedo prior").
-CONFIG_VERSION = 10
+# 11: loss.albedo_reach 64 by default (docs/quality.md, "The albedo prior's reach").
+CONFIG_VERSION = 11
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -109,6 +113,8 @@ VERSION_7_DEFAULTS = {"model.occlusion_key_soft": 0.0}
 VERSION_8_DEFAULTS = {"model.occlusion_grid": 64, "model.occlusion_key_soft": 8.0}
 # Keys whose default changed since version 9, with their version-9 value (older dicts get them too).
 VERSION_9_DEFAULTS = {"loss.lambda_albedo": 0.0}
+# Keys whose default changed since version 10, with their version-10 value (older dicts get them too).
+VERSION_10_DEFAULTS = {"loss.albedo_reach": 8}
 
 
 @dataclass
@@ -193,6 +199,9 @@ class LossConfig:
     # Shaded avatars: weight of the albedo prior (meshsplat.train.albedo_prior): nearby Gaussians of one hue share
     # one albedo, so the light moves out of the albedo into the lighting. 0: off (the paper; before config version 10).
     lambda_albedo: float = 0.1
+    # The albedo prior's neighbours: each Gaussian's 8 nearest, and with a reach above 8 another 8 spread evenly by
+    # rank over its `albedo_reach` nearest (meshsplat.train.albedo_prior). 8: the nearest only (config version 10).
+    albedo_reach: int = 64
 
 
 # Densification hyperparameters are the fields of the Strategy itself (as gsplat's DefaultStrategy).
@@ -322,6 +331,10 @@ class TrainConfig:
             ),
             (self.loss.lambda_mask >= 0, "loss.lambda_mask must be >= 0"),
             (self.loss.lambda_albedo >= 0, "loss.lambda_albedo must be >= 0"),
+            (
+                NEIGHBOURS <= self.loss.albedo_reach <= MAX_REACH,
+                f"loss.albedo_reach must be in {NEIGHBOURS}..{MAX_REACH}",
+            ),
             (0 <= self.loss.crop_margin <= 1, "loss.crop_margin must be in [0, 1] (a fraction of the image side)"),
             (self.loss.lpips_every >= 1, "loss.lpips_every must be >= 1 (1 = LPIPS on every iteration)"),
             (0 < self.model.init_opacity < 1, "model.init_opacity must be in (0, 1)"),
@@ -538,7 +551,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3),
     versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0), versions 1 to 8 each
     ``VERSION_8_DEFAULTS`` key (``model.occlusion_grid``: 64, ``model.occlusion_key_soft``: 8), versions 1 to 9
-    each ``VERSION_9_DEFAULTS`` key (``loss.lambda_albedo``: 0).
+    each ``VERSION_9_DEFAULTS`` key (``loss.lambda_albedo``: 0), versions 1 to 10 each ``VERSION_10_DEFAULTS`` key
+    (``loss.albedo_reach``: 8).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -569,6 +583,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_8_DEFAULTS)
     if version <= 9:
         d = _with_defaults(d, VERSION_9_DEFAULTS)
+    if version <= 10:
+        d = _with_defaults(d, VERSION_10_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

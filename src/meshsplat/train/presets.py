@@ -7,11 +7,12 @@
               poses refined when the capture has SMPL/SMPL-X/FLAME parameters (pose_refine.auto), the lighting
               learned at lr 5e-2 (optim.lr_shading), the key light's shadow soft (a 12-degree area light,
               model.occlusion_key_soft) on 96-cell shadow maps (model.occlusion_grid), and a prior that gives
-              nearby Gaussians of one hue one albedo (loss.lambda_albedo); measured
+              nearby Gaussians of one hue one albedo (loss.lambda_albedo), reaching 64 neighbours out
+              (loss.albedo_reach); measured
               in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
               first frame, the paper's learning rates (lr_shading the old 5e-3, a hard key on 64-cell
-              maps and no albedo prior, all unused without shading),
+              maps and no albedo prior (reach 8), all unused without shading),
               LPIPS on the full frame every iteration, on the same 30k-iteration schedule
 
 Both set the same keys, so applying a preset's overrides to any config gives that preset's model
@@ -44,6 +45,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "model.occlusion_key_soft=12",
         "model.occlusion_grid=96",
         "loss.lambda_albedo=0.1",
+        "loss.albedo_reach=64",
     ),
     "paper": (
         "model.shading=none",
@@ -57,6 +59,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "model.occlusion_key_soft=0",
         "model.occlusion_grid=64",
         "loss.lambda_albedo=0",
+        "loss.albedo_reach=8",
     ),
 }
 DEFAULT_PRESET = "quality"

@@ -418,14 +418,16 @@ class Trainer:
         return loss, parts
 
     def _albedo_neighbours(self) -> torch.Tensor:
-        """Each Gaussian's nearest others on the canonical mesh ``[N,k]`` for the albedo prior: searched again
-        every ``REFRESH_EVERY`` iterations and whenever the count changed (kept in checkpoints, so a resumed
-        run uses the same ones)."""
+        """Each Gaussian's neighbours on the canonical mesh ``[N,k]`` for the albedo prior (``loss.albedo_reach``):
+        searched again every ``REFRESH_EVERY`` iterations and whenever the count changed (kept in checkpoints, so
+        a resumed run uses the same ones)."""
         n, it = num_gaussians(self.params), self.iteration
         nb = self.albedo_nb
         if nb is None or nb.shape[0] != n or (it % REFRESH_EVERY == 1 and self.albedo_nb_iteration != it):
             uv = effective_uv(self.params, self.clamp_to_face)
-            self.albedo_nb = albedo_neighbours(self.mesh.vertices, self.mesh.faces, self.params["face"], uv)
+            self.albedo_nb = albedo_neighbours(
+                self.mesh.vertices, self.mesh.faces, self.params["face"], uv, self.cfg.loss.albedo_reach
+            )
             self.albedo_nb_iteration = it
         assert self.albedo_nb is not None
         return self.albedo_nb
