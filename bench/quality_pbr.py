@@ -78,6 +78,13 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_albedo0.05": ("quality", ["loss.lambda_albedo=0.05"]),
     "default_albedo0.1": ("quality", ["loss.lambda_albedo=0.1"]),  # today's default, in a folder of its own
     "default_albedo0.2": ("quality", ["loss.lambda_albedo=0.2"]),
+    "default_albedo0.3": ("quality", ["loss.lambda_albedo=0.3"]),
+    "default_albedo0.4": ("quality", ["loss.lambda_albedo=0.4"]),
+    # config version 10's default (the albedo prior's 8 nearest neighbours only)
+    "default_reach8": ("quality", ["loss.albedo_reach=8"]),
+    "default_reach32": ("quality", ["loss.albedo_reach=32"]),
+    "default_reach128": ("quality", ["loss.albedo_reach=128"]),
+    "default_reach256": ("quality", ["loss.albedo_reach=256"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
