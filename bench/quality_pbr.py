@@ -85,6 +85,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_reach32": ("quality", ["loss.albedo_reach=32"]),
     "default_reach128": ("quality", ["loss.albedo_reach=128"]),
     "default_reach256": ("quality", ["loss.albedo_reach=256"]),
+    # a lower densification threshold (more Gaussians where the gradient is)
+    "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
+    "default_dens5e-5": ("quality", ["strategy.grow_grad2d=5e-5"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
