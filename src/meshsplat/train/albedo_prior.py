@@ -26,7 +26,15 @@ from meshsplat.embedding import gather_rows, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0
 
-__all__ = ["NEIGHBOURS", "CHROMA_SIGMA", "REFRESH_EVERY", "MAX_REACH", "albedo_neighbours", "albedo_smoothness"]
+__all__ = [
+    "NEIGHBOURS",
+    "CHROMA_SIGMA",
+    "REFRESH_EVERY",
+    "MAX_REACH",
+    "neighbour_ranks",
+    "albedo_neighbours",
+    "albedo_smoothness",
+]
 
 NEIGHBOURS = 8  # nearest Gaussians each one is compared with (and as many farther ones, with a reach)
 MAX_REACH = 1024  # the largest reach (neighbour rank) a search may ask for
