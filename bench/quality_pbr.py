@@ -88,6 +88,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     # a lower densification threshold (more Gaussians where the gradient is)
     "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
     "default_dens5e-5": ("quality", ["strategy.grow_grad2d=5e-5"]),
+    # D-SSIM in the loss (3DGS's 0.2)
+    "default_ssim0.2": ("quality", ["loss.lambda_ssim=0.2"]),
+    "default_ssim0.2_dens3e-4": ("quality", ["loss.lambda_ssim=0.2", "strategy.grow_grad2d=3e-4"]),
 }
 ALL = {**VARIANTS, **EXTRA}
 CAPTURES = {
