@@ -7,7 +7,7 @@
 Times, interleaved and in the same process (median of --repeats), the neighbour search
 (``albedo_neighbours``: a k-d tree over the Gaussians' surface points, once every ``REFRESH_EVERY``
 iterations in training) and the prior's value and gradient (``albedo_smoothness`` forward and backward,
-every iteration), for Gaussians spread over a bundled glTF's rest mesh with random albedos. The
+every iteration; numba's compiled kernels, the default on CPU, and the torch path, the baseline), for Gaussians spread over a bundled glTF's rest mesh with random albedos. The
 per-iteration share is the prior plus a search spread over ``REFRESH_EVERY`` iterations.
 Saves bench/results/<name>-<host>.json.
 """
@@ -37,6 +37,7 @@ def main() -> None:
 
     import torch
 
+    from meshsplat._numba import numba_available
     from meshsplat.drivers import GltfDriver
     from meshsplat.embedding import sample_surface
     from meshsplat.mesh import TriMesh
@@ -53,36 +54,49 @@ def main() -> None:
     def search(reach: int) -> torch.Tensor:
         return albedo_neighbours(mesh.vertices, mesh.faces, face, uv, reach)
 
-    def prior(nb: torch.Tensor) -> None:
+    compiled = numba_available()
+
+    def prior(nb: torch.Tensor, fast: bool) -> None:
         sh0.grad = None
-        albedo_smoothness(sh0, nb).backward()
+        albedo_smoothness(sh0, nb, compiled=fast).backward()
 
     neighbours = {r: search(r) for r in args.reach}  # also warms up
-    times: dict[str, list[float]] = {f"{k}{r}": [] for r in args.reach for k in ("search", "prior")}
+    for r in args.reach:
+        prior(neighbours[r], compiled)  # compiles (or loads) the kernels
+    times: dict[str, list[float]] = {f"{k}{r}": [] for r in args.reach for k in ("search", "prior", "torch")}
     for _ in range(args.repeats):
         for r in args.reach:  # interleaved
             t0 = time.perf_counter()
             search(r)
             t1 = time.perf_counter()
-            prior(neighbours[r])
+            prior(neighbours[r], compiled)
             t2 = time.perf_counter()
+            prior(neighbours[r], False)
+            t3 = time.perf_counter()
             times[f"search{r}"].append((t1 - t0) * 1e3)
             times[f"prior{r}"].append((t2 - t1) * 1e3)
+            times[f"torch{r}"].append((t3 - t2) * 1e3)
 
     rows = []
-    print(f"{args.gaussians} Gaussians on {args.asset}, {args.threads} threads, median of {args.repeats} (ms)")
-    print(f"{'reach':>5} {'neighbours':>10} {'search':>8} {'prior+grad':>10} {'per iteration':>13}")
+    path = "numba" if compiled else "torch (numba not available)"
+    print(
+        f"{args.gaussians} Gaussians on {args.asset}, {args.threads} threads, median of {args.repeats} (ms); prior: {path}"
+    )
+    print(f"{'reach':>5} {'neighbours':>10} {'search':>8} {'prior+grad':>10} {'torch path':>10} {'per iteration':>13}")
     for r in args.reach:
         s, p = statistics.median(times[f"search{r}"]), statistics.median(times[f"prior{r}"])
+        t = statistics.median(times[f"torch{r}"])
         row = {
             "reach": r,
             "neighbours": int(neighbours[r].shape[1]),
             "search_ms": s,
             "prior_ms": p,
+            "prior_path": "numba" if compiled else "torch",
+            "prior_torch_ms": t,
             "per_iteration_ms": p + s / REFRESH_EVERY,
         }
         rows.append(row)
-        print(f"{r:>5} {row['neighbours']:>10} {s:>8.1f} {p:>10.2f} {row['per_iteration_ms']:>13.2f}")
+        print(f"{r:>5} {row['neighbours']:>10} {s:>8.1f} {p:>10.2f} {t:>10.2f} {row['per_iteration_ms']:>13.2f}")
     out = results_path(args.name)
     out.write_text(json.dumps({"machine": machine_info(), "args": vars(args), "rows": rows}, indent=2) + "\n")
     print(f"saved {out}")

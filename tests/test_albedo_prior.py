@@ -9,6 +9,7 @@ import torch
 import trimesh
 
 import meshsplat.train.trainer as trainer_module
+from meshsplat._numba import numba_available
 from meshsplat.embedding import surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import rgb_to_sh0
@@ -16,6 +17,9 @@ from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.train import Trainer
 from meshsplat.train.albedo_prior import MAX_REACH, NEIGHBOURS, albedo_neighbours, albedo_smoothness, neighbour_ranks
 from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
+
+needs_numba = pytest.mark.skipif(not numba_available(), reason="the compiled prior needs numba (the fast extra)")
+PATHS = [pytest.param(False, id="torch"), pytest.param(True, id="numba", marks=needs_numba)]
 
 
 def _sphere_embedding(n: int, seed: int = 0):
@@ -73,32 +77,58 @@ def test_neighbours_of_coincident_and_few_gaussians():
     assert albedo_smoothness(rgb_to_sh0(torch.rand(1, 3)), torch.zeros(1, 0, dtype=torch.long)) == 0
 
 
-def test_the_prior_pulls_one_hue_together_and_leaves_a_change_of_hue_alone():
+@pytest.mark.parametrize("compiled", PATHS)
+def test_the_prior_pulls_one_hue_together_and_leaves_a_change_of_hue_alone(compiled):
     orange = torch.tensor([0.6, 0.3, 0.04])
     nb = torch.tensor([[1], [0], [3], [2]])  # pairs (0, 1) and (2, 3)
     # 0, 1: one orange in light and in shadow (one hue, another brightness); 2, 3: orange next to blue
     rgb = torch.stack([orange, 0.4 * orange, orange, torch.tensor([0.1, 0.2, 0.6])])
     sh0 = rgb_to_sh0(rgb).requires_grad_(True)
-    value = albedo_smoothness(sh0, nb)
+    value = albedo_smoothness(sh0, nb, compiled=compiled)
     (grad,) = torch.autograd.grad(value, sh0)
     same, edge = grad[:2, 0].abs().sum(), grad[2:, 0].abs().sum()
     assert same > 1e3 * edge  # the hue edge keeps a weight of exp(-|dc|^2 / sigma^2), here ~1e-12
     assert (grad[0, 0] > 0).all() and (grad[1, 0] < 0).all()  # the bright one darker, the dark one brighter
     one = rgb_to_sh0(orange.expand(4, 3))
-    assert float(albedo_smoothness(one, nb)) == 0.0
+    assert float(albedo_smoothness(one, nb, compiled=compiled)) == 0.0
 
 
-def test_the_prior_has_the_gradient_of_its_value():
+@pytest.mark.parametrize("compiled", PATHS)
+def test_the_prior_has_the_gradient_of_its_value(compiled):
     verts, faces, face, uv = _sphere_embedding(30, seed=2)
     nb = albedo_neighbours(verts, faces, face, uv)
     g = torch.Generator().manual_seed(3)
     # one hue in several brightnesses: the weights are 1 there and flat (they carry no gradient by design)
     rgb = torch.tensor([0.6, 0.3, 0.05]) * (0.5 + torch.rand(30, 1, generator=g))
     sh0 = rgb_to_sh0(rgb).double().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda s: albedo_smoothness(s, nb), (sh0,), eps=1e-7, atol=1e-6)
+    assert torch.autograd.gradcheck(lambda s: albedo_smoothness(s, nb, compiled=compiled), (sh0,), eps=1e-7, atol=1e-6)
 
 
-def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads():
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_compiled_prior_equals_the_torch_path(dtype):
+    g = torch.Generator().manual_seed(7)
+    n = 2000
+    rgb = torch.rand(n, 3, generator=g, dtype=dtype)
+    rgb[: n // 2] = torch.tensor([0.6, 0.3, 0.05], dtype=dtype) * (0.3 + rgb[: n // 2, :1])  # one hue: weights near 1
+    rgb[:10] = rgb[10:20]  # equal albedos: abs's gradient is 0 there on both paths
+    sh0 = rgb_to_sh0(rgb)
+    nb = torch.randint(0, n, (n, 2 * NEIGHBOURS), generator=g)
+    nb[:10, 0] = torch.arange(10, 20)
+    out = []
+    for compiled in (False, True):
+        x = sh0.clone().requires_grad_(True)
+        value = albedo_smoothness(x, nb, compiled=compiled)
+        (grad,) = torch.autograd.grad(value, x)
+        assert value.dtype == dtype and grad.dtype == dtype
+        out.append((value.detach(), grad))
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    torch.testing.assert_close(out[1][0], out[0][0], rtol=tol, atol=0)
+    torch.testing.assert_close(out[1][1], out[0][1], rtol=tol, atol=tol * float(out[0][1].abs().max()))
+
+
+@pytest.mark.parametrize("compiled", PATHS)
+def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads(compiled):
     """A gather's backward that scatters with atomics (``a[neighbours]``) sums in another order on each call
     with 2 threads; the prior must not (training runs repeat to the last digit)."""
     g = torch.Generator().manual_seed(5)
@@ -106,16 +136,18 @@ def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads():
     sh0 = rgb_to_sh0(torch.rand(n, 3, generator=g))
     nb = torch.randint(0, n, (n, NEIGHBOURS), generator=g)
     threads = torch.get_num_threads()
-    torch.set_num_threads(2)
     try:
         results = []
-        for _ in range(6):
+        for k in range(6):
+            torch.set_num_threads(2 if k < 5 else 1)  # the compiled path is the same on any thread count
             x = sh0.clone().requires_grad_(True)
-            value = albedo_smoothness(x, nb)
+            value = albedo_smoothness(x, nb, compiled=compiled)
             (grad,) = torch.autograd.grad(value, x)
             results.append((value.detach(), grad))
     finally:
         torch.set_num_threads(threads)
+    if not compiled:
+        results.pop()  # the torch path's sums are split by thread
     for value, grad in results[1:]:
         assert torch.equal(value, results[0][0]) and torch.equal(grad, results[0][1])
 

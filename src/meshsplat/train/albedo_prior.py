@@ -22,9 +22,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from meshsplat._numba import numba_available
 from meshsplat.embedding import gather_rows, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.params import SH_C0
+from meshsplat.train._albedo_prior_numba import albedo_smoothness_compiled
 
 __all__ = [
     "NEIGHBOURS",
@@ -78,8 +80,11 @@ def albedo_neighbours(
     return torch.from_numpy(np.ascontiguousarray(nb)).to(face.device)
 
 
-def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-    """The prior's value (a scalar) for the albedo of ``sh0 [N,1,3]`` (its DC band) and ``neighbours [N,k]``."""
+def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor, compiled: bool | None = None) -> torch.Tensor:
+    """The prior's value (a scalar) for the albedo of ``sh0 [N,1,3]`` (its DC band) and ``neighbours [N,k]``.
+
+    ``compiled`` (default: on CPU when numba is available) computes it and its gradient with numba's kernels,
+    2-3x faster than the torch path (``bench/albedo_prior_cost.py``); both agree to float rounding."""
     if sh0.ndim != 3 or sh0.shape[1:] != (1, 3) or neighbours.ndim != 2 or neighbours.shape[0] != sh0.shape[0]:
         raise MeshsplatError(
             f"albedo_smoothness: expected sh0 [N,1,3] and neighbours [N,k], got {list(sh0.shape)}, "
@@ -88,6 +93,10 @@ def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tens
     if neighbours.numel() == 0:
         return sh0.sum() * 0.0
     a = sh0[:, 0] * SH_C0 + 0.5  # [N,3]
+    if compiled is None:
+        compiled = sh0.device.type == "cpu" and numba_available()
+    if compiled:
+        return albedo_smoothness_compiled(a, neighbours, CHROMA_SIGMA)
     a_nb = gather_rows(a, neighbours)  # [N,k,3]; not a[neighbours], whose backward is not bit-reproducible
     with torch.no_grad():
         c = a.detach().clamp_min(1e-4)
