@@ -85,8 +85,10 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_reach32": ("quality", ["loss.albedo_reach=32"]),
     "default_reach128": ("quality", ["loss.albedo_reach=128"]),
     "default_reach256": ("quality", ["loss.albedo_reach=256"]),
-    # a lower densification threshold (more Gaussians where the gradient is)
+    # a lower densification threshold (more Gaussians where the gradient is); 1e-4 is the default since config
+    # version 12, so the variants above (each today's default with one key changed) densify at 1e-4 from then on
     "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
+    "default_v11": ("quality", ["strategy.grow_grad2d=2e-4"]),  # config version 11's default
     "default_dens5e-5": ("quality", ["strategy.grow_grad2d=5e-5"]),
     # D-SSIM in the loss (3DGS's 0.2)
     "default_ssim0.2": ("quality", ["loss.lambda_ssim=0.2"]),

@@ -86,6 +86,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "model.occlusion_grid=64 (the quality preset's: 96)",
         "loss.lambda_albedo=0.0 (the quality preset's: 0.1)",
         "loss.albedo_reach=8 (the quality preset's: 64)",
+        "strategy.grow_grad2d=0.0002 (the quality preset's: 0.0001)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -120,6 +121,7 @@ _OLD_DEFAULTS = [
     "model.occlusion_grid=64",
     "loss.lambda_albedo=0",
     "loss.albedo_reach=8",
+    "strategy.grow_grad2d=2e-4",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -135,6 +137,7 @@ _OLD_QUALITY = [
     "model.occlusion_grid=96",  # since config version 9
     "loss.lambda_albedo=0.1",  # since config version 10
     "loss.albedo_reach=64",  # since config version 11
+    "strategy.grow_grad2d=1e-4",  # since config version 12
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -180,7 +183,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 11)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 12)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -239,6 +242,7 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (8, "model.occlusion_grid", 64, 128),  # before the shadow maps had 96 cells a side
         (9, "loss.lambda_albedo", 0.0, 0.5),  # before the albedo prior
         (10, "loss.albedo_reach", 8, 32),  # before the albedo prior reached past the nearest 8
+        (11, "strategy.grow_grad2d", 2e-4, 3e-4),  # before densification's threshold was 1e-4
         (8, "model.occlusion_key_soft", 8.0, 4.0),  # before the key's disk was 12 degrees
     ],
 )
@@ -270,7 +274,7 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 12}, r"^config: format version 12 is newer than this meshsplat reads \(11\); update meshsplat"),
+        ({"version": 13}, r"^config: format version 13 is newer than this meshsplat reads \(12\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

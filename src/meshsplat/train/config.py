@@ -17,7 +17,7 @@ was on (``VERSION_5_DEFAULTS``), a version-6 dict before ``optim.lr_shading`` wa
 a version-7 dict before ``model.occlusion_key_soft`` was 8 (``VERSION_7_DEFAULTS``), a version-8 dict before
 ``model.occlusion_grid`` was 96 and ``model.occlusion_key_soft`` 12 (``VERSION_8_DEFAULTS``), a version-9 dict
 before ``loss.lambda_albedo`` was 0.1 (``VERSION_9_DEFAULTS``), a version-10 dict before ``loss.albedo_reach`` was 64
-(``VERSION_10_DEFAULTS``).
+(``VERSION_10_DEFAULTS``), a version-11 dict before ``strategy.grow_grad2d`` was 1e-4 (``VERSION_11_DEFAULTS``).
 A dict without a version is version 1, written by an older meshsplat: when the defaults were the
 paper's (``VERSION_1_DEFAULTS``), with the strategy keys ``refine_start`` / ``refine_stop`` (now
 gsplat's ``refine_start_iter`` / ``refine_stop_iter``) and ``prune_scale2d`` in pixels (now a
@@ -71,6 +71,7 @@ __all__ = [
     "VERSION_8_DEFAULTS",
     "VERSION_9_DEFAULTS",
     "VERSION_10_DEFAULTS",
+    "VERSION_11_DEFAULTS",
     "config_version",
 ]
 
@@ -93,7 +94,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 9: model.occlusion_grid 96 and model.occlusion_key_soft 12 by default (docs/quality.md, "Finer key shadow maps").
 # 10: loss.lambda_albedo 0.1 by default (docs/quality.md, "An albedo prior").
 # 11: loss.albedo_reach 64 by default (docs/quality.md, "The albedo prior's reach").
-CONFIG_VERSION = 11
+# 12: strategy.grow_grad2d 1e-4 by default (docs/quality.md, "More Gaussians: a lower densification threshold").
+CONFIG_VERSION = 12
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -115,6 +117,8 @@ VERSION_8_DEFAULTS = {"model.occlusion_grid": 64, "model.occlusion_key_soft": 8.
 VERSION_9_DEFAULTS = {"loss.lambda_albedo": 0.0}
 # Keys whose default changed since version 10, with their version-10 value (older dicts get them too).
 VERSION_10_DEFAULTS = {"loss.albedo_reach": 8}
+# Keys whose default changed since version 11, with their version-11 value (older dicts get them too).
+VERSION_11_DEFAULTS = {"strategy.grow_grad2d": 2e-4}
 
 
 @dataclass
@@ -552,7 +556,7 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0), versions 1 to 8 each
     ``VERSION_8_DEFAULTS`` key (``model.occlusion_grid``: 64, ``model.occlusion_key_soft``: 8), versions 1 to 9
     each ``VERSION_9_DEFAULTS`` key (``loss.lambda_albedo``: 0), versions 1 to 10 each ``VERSION_10_DEFAULTS`` key
-    (``loss.albedo_reach``: 8).
+    (``loss.albedo_reach``: 8), versions 1 to 11 each ``VERSION_11_DEFAULTS`` key (``strategy.grow_grad2d``: 2e-4).
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -585,6 +589,8 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         d = _with_defaults(d, VERSION_9_DEFAULTS)
     if version <= 10:
         d = _with_defaults(d, VERSION_10_DEFAULTS)
+    if version <= 11:
+        d = _with_defaults(d, VERSION_11_DEFAULTS)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])

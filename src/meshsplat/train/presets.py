@@ -8,16 +8,18 @@
               learned at lr 5e-2 (optim.lr_shading), the key light's shadow soft (a 12-degree area light,
               model.occlusion_key_soft) on 96-cell shadow maps (model.occlusion_grid), and a prior that gives
               nearby Gaussians of one hue one albedo (loss.lambda_albedo), reaching 64 neighbours out
-              (loss.albedo_reach); measured
+              (loss.albedo_reach), and densification at half the paper's gradient threshold
+              (strategy.grow_grad2d 1e-4); measured
               in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
               first frame, the paper's learning rates (lr_shading the old 5e-3, a hard key on 64-cell
               maps and no albedo prior (reach 8), all unused without shading),
-              LPIPS on the full frame every iteration, on the same 30k-iteration schedule
+              LPIPS on the full frame every iteration, densification at the gradient threshold 2e-4, on the
+              same 30k-iteration schedule
 
 Both set the same keys, so applying a preset's overrides to any config gives that preset's model
 (``meshsplat train --resume --preset NAME`` relies on it: the resume check then refuses a preset
-other than the run's). Schedules (iterations, densification) are not part of a preset.
+other than the run's). Schedules (iterations, when densification runs) are not part of a preset.
 
     from meshsplat.train import preset_config, train
     cfg = preset_config("paper")
@@ -46,6 +48,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "model.occlusion_grid=96",
         "loss.lambda_albedo=0.1",
         "loss.albedo_reach=64",
+        "strategy.grow_grad2d=1e-4",
     ),
     "paper": (
         "model.shading=none",
@@ -60,6 +63,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "model.occlusion_grid=64",
         "loss.lambda_albedo=0",
         "loss.albedo_reach=8",
+        "strategy.grow_grad2d=2e-4",
     ),
 }
 DEFAULT_PRESET = "quality"
