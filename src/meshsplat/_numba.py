@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from functools import lru_cache
+from typing import Any
 
-__all__ = ["numba_available", "numba_threads", "NO_NUMBA_ENV"]
+__all__ = ["numba_available", "numba_threads", "njit_parallel", "NO_NUMBA_ENV"]
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
 
@@ -47,3 +48,14 @@ def numba_threads() -> Iterator[None]:
     finally:
         if torch.get_num_threads() != n:
             torch.set_num_threads(n)
+
+
+def njit_parallel(namespace: dict[str, Any], *kernels: Callable[..., Any]) -> tuple[Any, ...]:
+    """The plain-Python ``kernels`` wrapped by ``numba.njit(parallel=True)`` (cached on disk, no fastmath), after
+    binding ``_prange`` in their module's ``namespace`` (its ``globals()``) to ``numba.prange``: the kernels are
+    written with ``for i in _prange(n)``, which runs as a plain loop until then. Imports numba."""
+    import numba
+
+    namespace["_prange"] = numba.prange
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    return tuple(par(k) for k in kernels)

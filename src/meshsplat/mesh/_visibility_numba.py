@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import numba_threads
+from meshsplat._numba import njit_parallel, numba_threads
 
 _prange: Any = range  # rebound to numba.prange when the kernel is compiled
 _BLOCK = 4096  # samples per block (96 KiB of float64 points)
@@ -99,12 +99,7 @@ def _lit_kernel(
 
 @lru_cache(maxsize=1)
 def _kernel() -> Any:
-    global _prange
-    import numba
-
-    _prange = numba.prange
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return par(_depth_kernel), par(_lit_kernel)
+    return njit_parallel(globals(), _depth_kernel, _lit_kernel)
 
 
 def depth_compiled(

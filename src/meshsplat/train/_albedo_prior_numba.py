@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import numba_threads
+from meshsplat._numba import njit_parallel, numba_threads
 
 _prange: Any = range  # rebound to numba.prange when the kernels are compiled
 
@@ -66,12 +66,7 @@ def _backward_kernel(a, nb, w, scale):  # pragma: no cover - compiled
 
 @lru_cache(maxsize=1)
 def _kernels() -> Any:
-    global _prange
-    import numba
-
-    _prange = numba.prange
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return par(_forward_kernel), par(_backward_kernel)
+    return njit_parallel(globals(), _forward_kernel, _backward_kernel)
 
 
 class _AlbedoPrior(torch.autograd.Function):
