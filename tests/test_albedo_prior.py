@@ -128,6 +128,15 @@ def test_the_compiled_prior_equals_the_torch_path(dtype):
 
 
 @pytest.mark.parametrize("compiled", PATHS)
+def test_neighbours_out_of_range_are_refused_in_one_line(compiled):
+    sh0 = rgb_to_sh0(torch.rand(5, 3))
+    for bad in (5, -1):
+        nb = torch.tensor([[1], [2], [3], [4], [bad]])
+        with pytest.raises(MeshsplatError, match=r"neighbour indices must be in 0\.\.4"):
+            albedo_smoothness(sh0, nb, compiled=compiled)
+
+
+@pytest.mark.parametrize("compiled", PATHS)
 def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads(compiled):
     """A gather's backward that scatters with atomics (``a[neighbours]``) sums in another order on each call
     with 2 threads; the prior must not (training runs repeat to the last digit)."""

@@ -92,6 +92,9 @@ def albedo_smoothness(sh0: torch.Tensor, neighbours: torch.Tensor, compiled: boo
         )
     if neighbours.numel() == 0:
         return sh0.sum() * 0.0
+    lo, hi = int(neighbours.min()), int(neighbours.max())
+    if lo < 0 or hi >= sh0.shape[0]:  # the compiled path does not check its reads
+        raise MeshsplatError(f"albedo_smoothness: neighbour indices must be in 0..{sh0.shape[0] - 1}, got {lo}..{hi}")
     a = sh0[:, 0] * SH_C0 + 0.5  # [N,3]
     if compiled is None:
         compiled = sh0.device.type == "cpu" and numba_available()
