@@ -72,7 +72,7 @@ def albedo_neighbours(
         return torch.zeros(n, 0, dtype=torch.long, device=face.device)
     pts = surface_points(verts.detach(), faces, face, uv.detach()).double().cpu().numpy()
     k = min(int(ranks[-1]) + 1, n)
-    _, idx = cKDTree(pts).query(pts, k=k)
+    _, idx = cKDTree(pts).query(pts, k=k, workers=max(1, torch.get_num_threads()))  # per point: thread-count free
     idx = np.asarray(idx, np.int64).reshape(n, k)
     others = idx != np.arange(n)[:, None]  # itself (usually first; elsewhere or absent where points coincide)
     others &= np.cumsum(others, axis=1) <= k - 1  # the k-1 nearest others of each row
