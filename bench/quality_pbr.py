@@ -89,6 +89,20 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     # version 12, so the variants above (each today's default with one key changed) densify at 1e-4 from then on
     "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
     "default_v11": ("quality", ["strategy.grow_grad2d=2e-4"]),  # config version 11's default
+    # config version 4's default, the one issue 26 started from: every key changed since set back
+    "default_v4": (
+        "quality",
+        [
+            "model.occlusion=none",
+            "pose_refine.auto=false",
+            "optim.lr_shading=5e-3",
+            "model.occlusion_key_soft=0",
+            "model.occlusion_grid=64",
+            "loss.lambda_albedo=0",
+            "loss.albedo_reach=8",
+            "strategy.grow_grad2d=2e-4",
+        ],
+    ),
     "default_dens5e-5": ("quality", ["strategy.grow_grad2d=5e-5"]),
     # D-SSIM in the loss (3DGS's 0.2)
     "default_ssim0.2": ("quality", ["loss.lambda_ssim=0.2"]),
