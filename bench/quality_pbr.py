@@ -36,7 +36,18 @@ from dataclasses import replace
 from pathlib import Path
 
 from _machine import machine_info, results_path
+from meshsplat.train import config as train_config
 from quality import VARIANTS
+
+
+def version_defaults(version: int) -> list[str]:
+    """Overrides giving config ``version``'s default: each key whose default changed since, at its value then
+    (for a key changed twice, the earliest table's)."""
+    values: dict = {}
+    for v in range(train_config.CONFIG_VERSION - 1, version - 1, -1):
+        values.update(getattr(train_config, f"VERSION_{v}_DEFAULTS"))
+    return [f"{k}={str(val).lower() if isinstance(val, bool) else val}" for k, val in values.items()]
+
 
 EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_mask": ("quality", ["loss.lambda_mask=0.1"]),
@@ -90,19 +101,7 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
     "default_v11": ("quality", ["strategy.grow_grad2d=2e-4"]),  # config version 11's default
     # config version 4's default, the one issue 26 started from: every key changed since set back
-    "default_v4": (
-        "quality",
-        [
-            "model.occlusion=none",
-            "pose_refine.auto=false",
-            "optim.lr_shading=5e-3",
-            "model.occlusion_key_soft=0",
-            "model.occlusion_grid=64",
-            "loss.lambda_albedo=0",
-            "loss.albedo_reach=8",
-            "strategy.grow_grad2d=2e-4",
-        ],
-    ),
+    "default_v4": ("quality", version_defaults(4)),
     "default_dens5e-5": ("quality", ["strategy.grow_grad2d=5e-5"]),
     # D-SSIM in the loss (3DGS's 0.2)
     "default_ssim0.2": ("quality", ["loss.lambda_ssim=0.2"]),
