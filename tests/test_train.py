@@ -217,7 +217,8 @@ def test_lpips_every_skips_the_perceptual_net_and_resumes_bit_exact(tmp_path):
     for r, d in zip(full.history, due, strict=True):  # 3x the weights when due, the rest alone otherwise
         perceptual = 3 * (0.01 * r["lpips"] + 0.2 * r["dssim"]) if d else 0.0
         albedo = 0.1 * r["albedo"]  # the albedo prior (loss.lambda_albedo), every iteration
-        assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual + albedo, rel=1e-5)
+        mask = 0.1 * r["mask"]  # the mask loss (loss.lambda_mask), every iteration
+        assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual + albedo + mask, rel=1e-5)
     with open(tmp_path / "full" / "log.csv", newline="") as fh:
         log = list(csv.DictReader(fh))
     assert [r["lpips"] == "" for r in log] == [it % 3 != 0 for it in range(1, 11)]  # empty: not computed

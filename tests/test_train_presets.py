@@ -87,6 +87,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "loss.lambda_albedo=0.0 (the quality preset's: 0.1)",
         "loss.albedo_reach=8 (the quality preset's: 64)",
         "strategy.grow_grad2d=0.0002 (the quality preset's: 0.0001)",
+        "loss.lambda_mask=0.0 (the quality preset's: 0.1)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -98,6 +99,7 @@ def test_version_1_defaults_are_the_paper_preset():
     # every version's table of changed defaults (VERSION_1_DEFAULTS ... VERSION_9_DEFAULTS): the first value a
     # key had, before its default first changed, is the paper's; a later table holds a later default
     tables = [getattr(config_module, f"VERSION_{v}_DEFAULTS") for v in range(1, CONFIG_VERSION)]
+    assert list(config_module._VERSION_DEFAULTS) == tables  # the upgrade applies each, in order
     seen: set[str] = set()
     for table in tables:
         first = {k: v for k, v in table.items() if k not in seen}
@@ -122,6 +124,7 @@ _OLD_DEFAULTS = [
     "loss.lambda_albedo=0",
     "loss.albedo_reach=8",
     "strategy.grow_grad2d=2e-4",
+    "loss.lambda_mask=0",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -138,6 +141,7 @@ _OLD_QUALITY = [
     "loss.lambda_albedo=0.1",  # since config version 10
     "loss.albedo_reach=64",  # since config version 11
     "strategy.grow_grad2d=1e-4",  # since config version 12
+    "loss.lambda_mask=0.1",  # since config version 13
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -183,7 +187,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 12)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 13)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -243,6 +247,7 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (9, "loss.lambda_albedo", 0.0, 0.5),  # before the albedo prior
         (10, "loss.albedo_reach", 8, 32),  # before the albedo prior reached past the nearest 8
         (11, "strategy.grow_grad2d", 2e-4, 3e-4),  # before densification's threshold was 1e-4
+        (12, "loss.lambda_mask", 0.0, 0.3),  # before the mask loss
         (8, "model.occlusion_key_soft", 8.0, 4.0),  # before the key's disk was 12 degrees
     ],
 )
@@ -274,7 +279,7 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 13}, r"^config: format version 13 is newer than this meshsplat reads \(12\); update meshsplat"),
+        ({"version": 14}, r"^config: format version 14 is newer than this meshsplat reads \(13\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

@@ -95,7 +95,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 10: loss.lambda_albedo 0.1 by default (docs/quality.md, "An albedo prior").
 # 11: loss.albedo_reach 64 by default (docs/quality.md, "The albedo prior's reach").
 # 12: strategy.grow_grad2d 1e-4 by default (docs/quality.md, "More Gaussians: a lower densification threshold").
-CONFIG_VERSION = 12
+# 13: loss.lambda_mask 0.1 by default (docs/quality.md, "The silhouette in the loss").
+CONFIG_VERSION = 13
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -119,6 +120,23 @@ VERSION_9_DEFAULTS = {"loss.lambda_albedo": 0.0}
 VERSION_10_DEFAULTS = {"loss.albedo_reach": 8}
 # Keys whose default changed since version 11, with their version-11 value (older dicts get them too).
 VERSION_11_DEFAULTS = {"strategy.grow_grad2d": 2e-4}
+# Keys whose default changed since version 12, with their version-12 value (older dicts get them too).
+VERSION_12_DEFAULTS = {"loss.lambda_mask": 0.0}
+# One table per version before today's (tests/test_train_presets.py checks the count).
+_VERSION_DEFAULTS: tuple[dict[str, Any], ...] = (
+    VERSION_1_DEFAULTS,
+    VERSION_2_DEFAULTS,
+    VERSION_3_DEFAULTS,
+    VERSION_4_DEFAULTS,
+    VERSION_5_DEFAULTS,
+    VERSION_6_DEFAULTS,
+    VERSION_7_DEFAULTS,
+    VERSION_8_DEFAULTS,
+    VERSION_9_DEFAULTS,
+    VERSION_10_DEFAULTS,
+    VERSION_11_DEFAULTS,
+    VERSION_12_DEFAULTS,
+)
 
 
 @dataclass
@@ -192,7 +210,9 @@ class LossConfig:
     scale_ratio: float = 10.0  # T_r: thin when largest / smallest > this
     lambda_mse: float = 0.0
     lambda_ssim: float = 0.0
-    lambda_mask: float = 0.0  # L1 between the rendered alpha and the ground-truth mask (frames with masks)
+    # L1 between the rendered alpha and the ground-truth mask (frames with masks). 0: off (the paper; before
+    # config version 13)
+    lambda_mask: float = 0.1
     # LPIPS and D-SSIM on the box around the subject (mask bbox union rendered-alpha bbox, plus crop_margin,
     # sides rounded up to multiples of 32 px), times its area share; L1/MSE stay full-frame. The paper (preset): false.
     crop_to_subject: bool = True
@@ -548,15 +568,10 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
 
     Version 1 (no "version" field; older meshsplat, whose defaults were the paper's): each key of
     ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
-    version (or an older partial file) keeps its meaning under today's defaults. Versions 1 and 2
-    likewise get each ``VERSION_2_DEFAULTS`` key they do not set (``loss.crop_to_subject``: false), and
-    versions 1 to 3 each ``VERSION_3_DEFAULTS`` key (``loss.lpips_every``: 1), versions 1 to 4 each
-    ``VERSION_4_DEFAULTS`` key (``model.occlusion``: none), versions 1 to 5 each ``VERSION_5_DEFAULTS`` key
-    (``pose_refine.auto``: false), versions 1 to 6 each ``VERSION_6_DEFAULTS`` key (``optim.lr_shading``: 5e-3),
-    versions 1 to 7 each ``VERSION_7_DEFAULTS`` key (``model.occlusion_key_soft``: 0), versions 1 to 8 each
-    ``VERSION_8_DEFAULTS`` key (``model.occlusion_grid``: 64, ``model.occlusion_key_soft``: 8), versions 1 to 9
-    each ``VERSION_9_DEFAULTS`` key (``loss.lambda_albedo``: 0), versions 1 to 10 each ``VERSION_10_DEFAULTS`` key
-    (``loss.albedo_reach``: 8), versions 1 to 11 each ``VERSION_11_DEFAULTS`` key (``strategy.grow_grad2d``: 2e-4).
+    version (or an older partial file) keeps its meaning under today's defaults. Likewise a dict of
+    version v or older gets each key of ``VERSION_v_DEFAULTS`` it does not set (versions 1 and 2:
+    ``loss.crop_to_subject`` false; ... versions 1 to 12: ``loss.lambda_mask`` 0), the earliest
+    table's value for a key changed twice.
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become
     ``refine_start_iter`` / ``refine_stop_iter``, and its ``prune_scale2d`` (then in pixels) becomes
@@ -569,28 +584,9 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
         return d
     version = config_version(d)
     d = {k: v for k, v in d.items() if k not in ("format", "version")}
-    if version == 1:
-        d = _with_defaults(d, VERSION_1_DEFAULTS)
-    if version <= 2:
-        d = _with_defaults(d, VERSION_2_DEFAULTS)
-    if version <= 3:
-        d = _with_defaults(d, VERSION_3_DEFAULTS)
-    if version <= 4:
-        d = _with_defaults(d, VERSION_4_DEFAULTS)
-    if version <= 5:
-        d = _with_defaults(d, VERSION_5_DEFAULTS)
-    if version <= 6:
-        d = _with_defaults(d, VERSION_6_DEFAULTS)
-    if version <= 7:
-        d = _with_defaults(d, VERSION_7_DEFAULTS)
-    if version <= 8:
-        d = _with_defaults(d, VERSION_8_DEFAULTS)
-    if version <= 9:
-        d = _with_defaults(d, VERSION_9_DEFAULTS)
-    if version <= 10:
-        d = _with_defaults(d, VERSION_10_DEFAULTS)
-    if version <= 11:
-        d = _with_defaults(d, VERSION_11_DEFAULTS)
+    for v, table in enumerate(_VERSION_DEFAULTS, start=1):
+        if version <= v:  # written before table v's keys changed: the earliest table's value wins
+            d = _with_defaults(d, table)
     if not is_legacy_config(d) or version > 1:
         return d
     st = dict(d["strategy"])
