@@ -51,8 +51,9 @@ def version_defaults(version: int) -> list[str]:
 
 
 EXTRA: dict[str, tuple[str, list[str]]] = {
-    "default_mask": ("quality", ["loss.lambda_mask=0.1"]),  # today's default since config version 13
+    "default_mask": ("quality", ["loss.lambda_mask=0.1"]),  # the default's value since config version 13
     "default_v12": ("quality", version_defaults(12)),  # config version 12's default (no mask loss)
+    "default_v13": ("quality", version_defaults(13)),  # config version 13's default (offsets unbounded)
     "default_aa": ("quality", ["model.antialiased=true"]),
     "default_sh1tri": ("quality", ["model.sh_degree=1", "model.sh_frame=triangle"]),
     "default_axis": ("quality", ["model.shading_normal=axis"]),

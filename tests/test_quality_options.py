@@ -164,11 +164,26 @@ def test_config_switches_validate():
         "model.sh_frame=camera",
         "model.init_color_frames=0",
         "loss.lambda_mask=-1",
+        "model.max_offset=-0.1",
     ):
         from meshsplat.train import apply_overrides
 
         with pytest.raises(MeshsplatError):
             apply_overrides(TrainConfig(), [bad]).validate()
+
+
+def test_max_offset_keeps_gaussians_near_their_triangle(tiny_dataset, tmp_path):  # noqa: F811
+    # a fast embedding moves the offsets d along the normal; the bound holds them after every step
+    fast = ["optim.lr_embedding=1e-2", "optim.lr_embedding_final=1e-2"]
+    free = Trainer(small_config(tiny_dataset, tmp_path / "free", 12, [*fast, "model.max_offset=0"]))
+    free.train()
+    bound = 2e-3 * free.extent
+    assert float(free.params["d"].detach().abs().max()) > bound  # unbounded, some leave the band
+    held = Trainer(small_config(tiny_dataset, tmp_path / "held", 12, [*fast, "model.max_offset=2e-3"]))
+    held.train()
+    reach = float(held.params["d"].detach().abs().max())
+    assert reach <= bound * (1 + 1e-6)  # float32
+    assert reach == pytest.approx(bound)  # the bound is reached, not avoided
 
 
 def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811

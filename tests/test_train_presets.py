@@ -88,6 +88,7 @@ def test_presets_set_the_same_keys_and_differ_only_there():
         "loss.albedo_reach=8 (the quality preset's: 64)",
         "strategy.grow_grad2d=0.0002 (the quality preset's: 0.0001)",
         "loss.lambda_mask=0.0 (the quality preset's: 0.1)",
+        "model.max_offset=0.0 (the quality preset's: 0.15)",
     ]
     assert preset_differences(preset_config("paper"), "paper") == []
     with pytest.raises(MeshsplatError, match="preset: expected one of quality, paper, got 'best'"):
@@ -125,6 +126,7 @@ _OLD_DEFAULTS = [
     "loss.albedo_reach=8",
     "strategy.grow_grad2d=2e-4",
     "loss.lambda_mask=0",
+    "model.max_offset=0",
 ]
 # plus the LPIPS crop, on in the quality preset since config version 3, and LPIPS every second iteration (4)
 _OLD_QUALITY = [
@@ -142,6 +144,7 @@ _OLD_QUALITY = [
     "loss.albedo_reach=64",  # since config version 11
     "strategy.grow_grad2d=1e-4",  # since config version 12
     "loss.lambda_mask=0.1",  # since config version 13
+    "model.max_offset=0.15",  # since config version 14
 ]
 _OLD_SCHEDULES = {
     "default": [
@@ -187,7 +190,7 @@ def test_config_json_carries_its_format_version(tmp_path):
     cfg = apply_overrides(preset_config("paper"), ["seed=4"])
     cfg.to_json(tmp_path / "config.json")
     doc = json.loads((tmp_path / "config.json").read_text())
-    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 13)
+    assert (doc["format"], doc["version"]) == (CONFIG_FORMAT, CONFIG_VERSION) == ("meshsplat-train-config", 14)
     assert load_config(tmp_path / "config.json") == cfg
     assert load_config(tmp_path / "config.json", base=preset_config("quality")) == cfg  # full: the base is unused
     # a partial file of this version sits over the base (default: the quality preset)
@@ -248,6 +251,7 @@ def test_version_2_config_keeps_the_full_frame_loss(tmp_path):
         (10, "loss.albedo_reach", 8, 32),  # before the albedo prior reached past the nearest 8
         (11, "strategy.grow_grad2d", 2e-4, 3e-4),  # before densification's threshold was 1e-4
         (12, "loss.lambda_mask", 0.0, 0.3),  # before the mask loss
+        (13, "model.max_offset", 0.0, 0.3),  # before offsets were bounded
         (8, "model.occlusion_key_soft", 8.0, 4.0),  # before the key's disk was 12 degrees
     ],
 )
@@ -279,7 +283,7 @@ def test_older_config_keeps_the_default_it_was_written_with(tmp_path, version, k
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"version": 14}, r"^config: format version 14 is newer than this meshsplat reads \(13\); update meshsplat"),
+        ({"version": 15}, r"^config: format version 15 is newer than this meshsplat reads \(14\); update meshsplat"),
         ({"version": "2"}, "version must be a positive integer, got '2'"),
         ({"version": 0}, "version must be a positive integer"),
         ({"version": True}, "version must be a positive integer"),

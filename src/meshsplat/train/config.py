@@ -96,7 +96,8 @@ CONFIG_FORMAT = "meshsplat-train-config"  # the "format" field of config.json
 # 11: loss.albedo_reach 64 by default (docs/quality.md, "The albedo prior's reach").
 # 12: strategy.grow_grad2d 1e-4 by default (docs/quality.md, "More Gaussians: a lower densification threshold").
 # 13: loss.lambda_mask 0.1 by default (docs/quality.md, "The silhouette in the loss").
-CONFIG_VERSION = 13
+# 14: model.max_offset 0.15 by default (docs/quality.md, "Gaussians kept near their triangle").
+CONFIG_VERSION = 14
 # Keys whose default changed since version 1, with their version-1 value: a version-1 dict that does not
 # set one of them meant this value (frozen history: never edit; the `paper` preset sets the same values).
 VERSION_1_DEFAULTS = {"model.shading": "none", "model.init_color_frames": 1, "optim.lr_color": 2.5e-3}
@@ -122,6 +123,8 @@ VERSION_10_DEFAULTS = {"loss.albedo_reach": 8}
 VERSION_11_DEFAULTS = {"strategy.grow_grad2d": 2e-4}
 # Keys whose default changed since version 12, with their version-12 value (older dicts get them too).
 VERSION_12_DEFAULTS = {"loss.lambda_mask": 0.0}
+# Keys whose default changed since version 13, with their version-13 value (older dicts get them too).
+VERSION_13_DEFAULTS = {"model.max_offset": 0.0}
 # One table per version before today's (tests/test_train_presets.py checks the count).
 _VERSION_DEFAULTS: tuple[dict[str, Any], ...] = (
     VERSION_1_DEFAULTS,
@@ -136,6 +139,7 @@ _VERSION_DEFAULTS: tuple[dict[str, Any], ...] = (
     VERSION_10_DEFAULTS,
     VERSION_11_DEFAULTS,
     VERSION_12_DEFAULTS,
+    VERSION_13_DEFAULTS,
 )
 
 
@@ -150,6 +154,9 @@ class ModelConfig:
     init_color: str = "image"  # INIT_COLORS: "image": colour from the first training frame; "grey"
     init_knn: int = 3  # initial isotropic scale = mean distance to this many nearest neighbours
     freeze_embedding: bool = False  # ablation: (duv, d) not optimised, Gaussians stay at (face, uv, 0)
+    # relative: |d| (the offset along the normal) kept <= this x extent after every step; 0: unbounded (the paper;
+    # before config version 14)
+    max_offset: float = 0.15
     # Colour initialisation from several frames ("image" only): average over this many training frames,
     # spread over the sequence, of the pixel each point projects to where it faces the camera inside the mask.
     # The paper's: 1 (the first frame's colour; the `paper` preset).
@@ -330,6 +337,7 @@ class TrainConfig:
             (self.model.scale_mode in SCALE_MODES, f"model.scale_mode: {'|'.join(SCALE_MODES)}"),
             (self.model.init_color in INIT_COLORS, f"model.init_color: {'|'.join(INIT_COLORS)}"),
             (self.model.init_color_frames >= 1, "model.init_color_frames must be >= 1"),
+            (self.model.max_offset >= 0, "model.max_offset must be >= 0 (0: unbounded)"),
             (self.model.shading in SHADING_MODES, f"model.shading: {'|'.join(SHADING_MODES)}"),
             (self.model.shading_normal in SHADING_NORMALS, f"model.shading_normal: {'|'.join(SHADING_NORMALS)}"),
             (self.model.sh_frame in SH_FRAMES, f"model.sh_frame: {'|'.join(SH_FRAMES)}"),
@@ -570,7 +578,7 @@ def upgrade_config_dict(d: Any, image_size: int | typing.Callable[[], int] | Non
     ``VERSION_1_DEFAULTS`` the dict does not set gets its version-1 value, so a run of an older
     version (or an older partial file) keeps its meaning under today's defaults. Likewise a dict of
     version v or older gets each key of ``VERSION_v_DEFAULTS`` it does not set (versions 1 and 2:
-    ``loss.crop_to_subject`` false; ... versions 1 to 12: ``loss.lambda_mask`` 0), the earliest
+    ``loss.crop_to_subject`` false; ... versions 1 to 13: ``model.max_offset`` 0), the earliest
     table's value for a key changed twice.
 
     A version-1 dict may also hold the strategy keys ``refine_start`` or ``refine_stop``. They become

@@ -9,13 +9,14 @@
               model.occlusion_key_soft) on 96-cell shadow maps (model.occlusion_grid), and a prior that gives
               nearby Gaussians of one hue one albedo (loss.lambda_albedo), reaching 64 neighbours out
               (loss.albedo_reach), and densification at half the paper's gradient threshold
-              (strategy.grow_grad2d 1e-4), and the rendered alpha held to the mask (loss.lambda_mask); measured
+              (strategy.grow_grad2d 1e-4), and the rendered alpha held to the mask (loss.lambda_mask), and
+              Gaussians kept within 0.15 extents of their triangle along its normal (model.max_offset); measured
               in docs/quality.md (bench/quality.py, bench/loss_crop.py, bench/quality_pbr.py)
     paper     the published method (SplattingAvatar, CVPR 2024): one colour per Gaussian from the
               first frame, the paper's learning rates (lr_shading the old 5e-3, a hard key on 64-cell
               maps and no albedo prior (reach 8), all unused without shading),
               LPIPS on the full frame every iteration, densification at the gradient threshold 2e-4, no mask
-              loss, on the same 30k-iteration schedule
+              loss, offsets unbounded, on the same 30k-iteration schedule
 
 Both set the same keys, so applying a preset's overrides to any config gives that preset's model
 (``meshsplat train --resume --preset NAME`` relies on it: the resume check then refuses a preset
@@ -50,6 +51,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.albedo_reach=64",
         "strategy.grow_grad2d=1e-4",
         "loss.lambda_mask=0.1",
+        "model.max_offset=0.15",
     ),
     "paper": (
         "model.shading=none",
@@ -66,6 +68,7 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "loss.albedo_reach=8",
         "strategy.grow_grad2d=2e-4",
         "loss.lambda_mask=0",
+        "model.max_offset=0",
     ),
 }
 DEFAULT_PRESET = "quality"

@@ -483,6 +483,10 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if cfg.model.max_offset > 0:  # Gaussians stay near their triangle (a projection, like the lighting's)
+            with torch.no_grad():
+                bound = cfg.model.max_offset * self.extent
+                self.params["d"].clamp_(-bound, bound)
         if self.shading_opt is not None:
             self.shading_opt.step()
             self.shading_opt.zero_grad(set_to_none=True)
