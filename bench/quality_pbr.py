@@ -113,10 +113,6 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_lremb2x": ("quality", ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6"]),
     "default_lrscale1e-2": ("quality", ["optim.lr_scale=1e-2"]),
     "default_every50": ("quality", ["strategy.refine_every=50"]),
-    "default_lremb2x_mask0.05": (
-        "quality",
-        ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6", "loss.lambda_mask=0.05"],
-    ),
     "default_lremb4x": ("quality", ["optim.lr_embedding=6.4e-4", "optim.lr_embedding_final=6.4e-6"]),
     "default_mask0.3": ("quality", ["loss.lambda_mask=0.3"]),
     "default_lremb2x_mask": (
