@@ -5,11 +5,18 @@ parameters (``global_orient``, ``body_pose``, ``transl``, FLAME's ``jaw_pose``/`
 whichever the dataset's model has) get an offset that starts at zero and is optimised with the
 avatar, through the differentiable body model. Shared parameters (``betas``, ``static_offset``)
 stay fixed, so the canonical mesh does not change. Test frames keep the tracker's parameters.
+
+The optimizer is a lazy (sparse) Adam: every mesh row has its own moments and its own step count, and
+an iteration updates only the rows of the frames in its batch (``step(rows)``). A row's offsets thus
+follow exactly the Adam trajectory they would have with that frame alone; a frame not drawn does not
+move. (One Adam over all rows, stepped every iteration, kept moving every other frame on stale momentum:
+7 mm of drift on exactly tracked poses, issue 44.) Every data-parallel rank draws the whole batch, so
+every rank steps the same rows with the same all-reduced gradients.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -18,7 +25,10 @@ import torch
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["PoseRefiner"]
+__all__ = ["PoseRefiner", "ADAM_BETAS", "ADAM_EPS"]
+
+ADAM_BETAS = (0.9, 0.999)  # torch.optim.Adam's defaults
+ADAM_EPS = 1e-15  # as the avatar's optimizers
 
 
 class PoseRefiner:
@@ -54,7 +64,10 @@ class PoseRefiner:
         self.rows = {k: as_t(params[k][rows]) for k in per_frame if k in params}  # [R, k]
         self.shared = {k: as_t(v) for k, v in params.items() if k not in per_frame}
         self.offsets = {k: torch.nn.Parameter(torch.zeros_like(self.rows[k])) for k in self.names}
-        self.optimizer = torch.optim.Adam(list(self.offsets.values()), lr=lr, eps=1e-15)
+        self.lr = lr
+        self.exp_avg = {k: torch.zeros_like(v) for k, v in self.rows.items() if k in self.offsets}  # [R, k]
+        self.exp_avg_sq = {k: torch.zeros_like(v) for k, v in self.exp_avg.items()}  # [R, k]
+        self.steps = [0] * len(rows)  # Adam steps taken by each row
         self.polished = False  # fit once more after training (``fit``), the avatar frozen
 
     def refines(self, mesh_row: int) -> bool:
@@ -74,9 +87,28 @@ class PoseRefiner:
         """Posed vertices ``[V,3]`` of a training mesh row with its current offsets (differentiable)."""
         return self.model.forward(self.params_of(mesh_row)).vertices[0]
 
-    def step(self) -> None:
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+    def step(self, mesh_rows: Iterable[int]) -> None:
+        """One Adam step (``torch.optim.Adam``'s arithmetic, betas 0.9/0.999, eps 1e-15) for each refined row
+        of ``mesh_rows`` (the batch's frames; a row drawn twice steps once, on its summed gradient), with that
+        row's own moments and step count; every other row, and its state, stays as it is. Clears the gradients."""
+        b1, b2, eps = ADAM_BETAS[0], ADAM_BETAS[1], ADAM_EPS
+        with torch.no_grad():
+            for row in sorted({int(r) for r in mesh_rows if int(r) in self.row_of}):
+                j = self.row_of[row]
+                self.steps[j] += 1
+                n = self.steps[j]
+                step_size = self.lr / (1 - b1**n)
+                bias2_sqrt = (1 - b2**n) ** 0.5
+                for k, off in self.offsets.items():
+                    if off.grad is None:
+                        continue
+                    g, m, v = off.grad[j], self.exp_avg[k][j], self.exp_avg_sq[k][j]
+                    m.lerp_(g, 1 - b1)
+                    v.mul_(b2).addcmul_(g, g, value=1 - b2)
+                    denom = (v.sqrt() / bias2_sqrt).add_(eps)
+                    off.data[j].addcdiv_(m, denom, value=-step_size)
+        for off in self.offsets.values():
+            off.grad = None
 
     def fit(
         self,
@@ -126,7 +158,9 @@ class PoseRefiner:
     def state_dict(self) -> dict[str, Any]:
         return {
             "offsets": {k: v.detach().cpu() for k, v in self.offsets.items()},
-            "optimizer": self.optimizer.state_dict(),
+            "exp_avg": {k: v.cpu() for k, v in self.exp_avg.items()},
+            "exp_avg_sq": {k: v.cpu() for k, v in self.exp_avg_sq.items()},
+            "steps": torch.tensor(self.steps, dtype=torch.int64),
             "polished": self.polished,
         }
 
@@ -144,5 +178,19 @@ class PoseRefiner:
                         f"{list(self.offsets[k].shape)} (different dataset?)"
                     )
                 self.offsets[k].copy_(v)
-        self.optimizer.load_state_dict(st["optimizer"])
+            if "steps" not in st:  # a checkpoint of the one-Adam-for-all-rows refiner (before issue 44)
+                raise MeshsplatError(
+                    "checkpoint: its pose refinement state is from an older meshsplat (one optimizer for all "
+                    "frames); finish that run with the version that started it, or start a new run"
+                )
+            for k in self.exp_avg:
+                self.exp_avg[k].copy_(st["exp_avg"][k])
+                self.exp_avg_sq[k].copy_(st["exp_avg_sq"][k])
+            steps = [int(n) for n in st["steps"].tolist()]
+            if len(steps) != len(self.steps):
+                raise MeshsplatError(
+                    f"checkpoint: pose refinement steps for {len(steps)} rows, expected {len(self.steps)} "
+                    "(different dataset?)"
+                )
+            self.steps = steps
         self.polished = bool(st.get("polished", False))

@@ -493,8 +493,8 @@ class Trainer:
             if self.shading is not None:
                 self.shading.project()
                 self._align_key(it)
-        if self.refiner is not None:
-            self.refiner.step()
+        if self.refiner is not None:  # the batch's rows only: a frame not drawn keeps its pose and its Adam state
+            self.refiner.step(int(self.dataset.frame_info(i)["mesh"]) for i in batch)
         self.strategy.step_post_backward(
             self.params,
             self.optimizers,
