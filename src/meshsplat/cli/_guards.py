@@ -10,10 +10,11 @@ pixel plus up to 1.5 GB for its band of (pixel, Gaussian) pairs; the synth raste
 from __future__ import annotations
 
 import os
-import resource
+import warnings
 from pathlib import Path
 
-from meshsplat.errors import MeshsplatError, os_error_text
+from meshsplat.cli._memory import available_memory
+from meshsplat.errors import MeshsplatError, MeshsplatWarning, os_error_text
 
 __all__ = [
     "LIMITS",
@@ -67,27 +68,6 @@ def check_range(name: str, value, limit: str | None = None) -> None:
         )
 
 
-def available_memory() -> int | None:
-    """Bytes this process may still allocate: MemAvailable, capped by an address-space limit."""
-    avail = None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft != resource.RLIM_INFINITY:
-        try:
-            with open("/proc/self/statm") as fh:
-                used = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
-        except (OSError, ValueError):
-            used = 0
-        avail = soft - used if avail is None else min(avail, soft - used)
-    return avail
-
-
 def _gb(n: float) -> str:
     return f"{n / 1e9:.1f} GB"
 
@@ -95,7 +75,15 @@ def _gb(n: float) -> str:
 def check_memory(what: str, needed: float, advice: str) -> None:
     """Refuse a request whose estimated memory does not fit in what is available."""
     avail = available_memory()
-    if avail is not None and needed > _MEMORY_HEADROOM * avail:
+    if avail is None:
+        warnings.warn(
+            f"could not read how much memory this system has free, so {what} (about {_gb(needed)}) is not "
+            "checked against it",
+            MeshsplatWarning,
+            stacklevel=2,
+        )
+        return
+    if needed > _MEMORY_HEADROOM * avail:
         raise MeshsplatError(f"{what} needs about {_gb(needed)} of memory but only {_gb(avail)} is available; {advice}")
 
 
@@ -128,7 +116,8 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out") -> Path:
         raise MeshsplatError(f"{flag} {p}: {probe} is a file, so no folder can be made below it")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
         try:  # access() alone cannot tell a read-only file system from a permission problem
-            ro = bool(os.statvfs(probe).f_flag & os.ST_RDONLY)
+            statvfs = getattr(os, "statvfs", None)  # POSIX only
+            ro = statvfs is not None and bool(statvfs(probe).f_flag & os.ST_RDONLY)
         except OSError as exc:
             raise MeshsplatError(f"{flag} {p}: {os_error_text(exc)}") from None
         why = "is on a read-only file system" if ro else "is not writable for this user"

@@ -1,7 +1,9 @@
 """`meshsplat` command line: one module per subcommand under meshsplat.cli.
 
 Each subcommand module defines ``add_arguments(parser)`` and ``run(args) -> int``
-and a one-line docstring used as its help. User errors (MeshsplatError,
+and a docstring whose first paragraph is its help. A command whose module fails to import is listed
+with its error and, when run, says why in one line (``--debug``, before or after the command: the
+traceback), never vanishes. User errors (MeshsplatError,
 missing files) print one clear line and exit 2, never a traceback. meshsplat's own warnings
 (``MeshsplatWarning``) print as one ``note:`` line each, once per command, without the file and line
 they were raised at; other packages' warnings print as Python prints them.
@@ -18,6 +20,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
+from meshsplat import __version__
 from meshsplat.errors import MeshsplatError, MeshsplatWarning, os_error_text
 
 # name -> module under meshsplat.cli (imported only when that command runs, or for --help)
@@ -31,11 +34,23 @@ COMMANDS = {
     "demo": "demo_cmd",
     "view": "view_cmd",
     "batch": "batch_cmd",
+    "completion": "completion_cmd",
 }
+DEBUG_HELP = "show full tracebacks (before or after the command)"
 
 
 def _load(name: str):
     return importlib.import_module(f"meshsplat.cli.{COMMANDS[name]}")
+
+
+def _summary(doc: str | None) -> str | None:
+    """A command's one-line help: the first paragraph of its module docstring, on one line."""
+    first = (doc or "").strip().split("\n\n")[0]
+    return " ".join(first.split()) or None
+
+
+def _import_error(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -44,7 +59,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         description="Mesh-embedded Gaussian avatars.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks")
+    parser.add_argument("--version", action="version", version=f"meshsplat {__version__}")
+    parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         if only is not None and name != only:
@@ -52,15 +68,17 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             continue
         try:
             mod = _load(name)
-        except ModuleNotFoundError:
+        except Exception as exc:  # noqa: BLE001 - listed with its error; running it reports the error
+            sub.add_parser(name, help=f"(cannot load: {_import_error(exc)})")
             continue
-        doc = (mod.__doc__ or "").strip().splitlines()
         p = sub.add_parser(
             name,
-            help=doc[0] if doc else None,
+            help=_summary(mod.__doc__),
             description=(mod.__doc__ or "").strip(),
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
+        # after the subcommand too; SUPPRESS keeps the value given before it
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=DEBUG_HELP)
         mod.add_arguments(p)
     return parser
 
@@ -68,6 +86,18 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if a in COMMANDS), None)
+    if command is not None:
+        try:
+            _load(command)
+        except Exception as exc:
+            if "--debug" in argv:
+                raise
+            print(
+                f"meshsplat {command}: error: the command could not be loaded ({_import_error(exc)}); "
+                "reinstall meshsplat with the extras this command needs (--debug shows the traceback)",
+                file=sys.stderr,
+            )
+            return 2
     parser = build_parser(only=command if command and "-h" not in argv and "--help" not in argv else None)
     args = parser.parse_args(argv)
     if not args.command:

@@ -50,7 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--masks", choices=("png", "npy"), default=None, help="mask files for --format peoplesnapshot (default png)"
     )
-    parser.add_argument("--rig", choices=RIGS, default="monocular-turn")
+    parser.add_argument(
+        "--rig",
+        choices=RIGS,
+        default="monocular-turn",
+        help="cameras: one fixed camera and a turning subject (monocular-turn, default), a camera circling "
+        "the subject (orbit), or several fixed cameras (multiview)",
+    )
     parser.add_argument("--frames", type=int, default=60, help="training time steps (per camera)")
     parser.add_argument("--resolution", type=int, default=256, help="square image size in pixels")
     parser.add_argument("--clip", default=None, help="training clip (default: the clip with the most motion)")

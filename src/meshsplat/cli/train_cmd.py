@@ -92,7 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(several after one --set, or repeated; put --set after the dataset)",
     )
     add_render_options(parser, device=None, backend=False, background=False)
-    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument(
+        "--seed", type=int, default=None, help="random seed (the config's seed key; same seed, same run)"
+    )
     parser.add_argument(
         "--nproc",
         type=int,
