@@ -10,6 +10,12 @@ Layout (written by ``meshsplat.train``, read by eval, export, render, view and t
     RUN/source_map.npz                    copied from a synthesized dataset (``meshsplat.data.source_map``)
     RUN/eval/                             ``meshsplat eval`` (metrics.json, report)
     RUN/export/                           ``meshsplat export``
+    RUN/run.json                          the run's identity: the capture it trains (path, summary), recipe digest
+    RUN/train.lock                        while training: the lock holding the trainer's PID (``io.folder_lock``)
+
+A run folder is owned (:func:`check_training_target`): training refuses a capture folder, a non-empty
+folder that is not a run, and a run that another process is training right now; a resumed run refuses
+another capture than the one in its ``run.json`` (:func:`identity_differences`).
 
 Layer: just below ``train`` (it imports io, gaussians and data, never train), so the trainer writes
 through :class:`RunFolder` and everything above reads through :func:`load_run`. Wherever a run is
@@ -18,6 +24,7 @@ asked for, a checkpoint file inside it (``RUN/checkpoints/ckpt_*.pt``) may be gi
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,15 +35,26 @@ import torch
 
 from meshsplat._device import resolve_device
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats import open_capture, reader_options
+from meshsplat.data.formats import FORMAT_NAMES, format_module, open_capture, reader_options
 from meshsplat.data.source_map import FILE_NAME as SOURCE_MAP_NAME
 from meshsplat.data.source_map import SourceMap, read_source_map
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.io.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+from meshsplat.io.folder_lock import held_by_parent, holder_text, lock_holder
 from meshsplat.io.json_file import read_json_object
 
-__all__ = ["RunFolder", "LoadedRun", "load_run", "load_avatar", "ALLOW_OLDER_FLAG", "TRACKED_POSES_FLAG"]
+__all__ = [
+    "RunFolder",
+    "LoadedRun",
+    "load_run",
+    "load_avatar",
+    "ALLOW_OLDER_FLAG",
+    "TRACKED_POSES_FLAG",
+    "check_training_target",
+    "capture_identity",
+    "identity_differences",
+]
 
 ALLOW_OLDER_FLAG = "--allow-older-checkpoint"  # the command-line spelling of ``allow_older``
 TRACKED_POSES_FLAG = "--tracked-poses"  # the command-line spelling of ``refined_poses=False``
@@ -61,6 +79,8 @@ class RunFolder:
     REFINED_PARAMS = "refined_params.npz"
     EVAL = "eval"
     EXPORT = "export"
+    IDENTITY = "run.json"
+    LOCK = "train.lock"
 
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
@@ -107,6 +127,29 @@ class RunFolder:
     @property
     def export_dir(self) -> Path:
         return self.root / self.EXPORT
+
+    @property
+    def identity_path(self) -> Path:
+        return self.root / self.IDENTITY
+
+    @property
+    def lock_path(self) -> Path:
+        return self.root / self.LOCK
+
+    def is_run(self) -> bool:
+        """Whether ``root`` holds a training run: its ``run.json``, checkpoints, or a ``config.json`` that is a
+        training config (a capture's or another tool's config.json is not)."""
+        if self.identity_path.is_file() or self.checkpoints() or list_checkpoints(self.root):
+            return True
+        try:
+            cfg = read_json_object(self.config_path) if self.config_path.is_file() else None
+        except MeshsplatError:
+            return False
+        return isinstance(cfg, dict) and {"data", "out", "iterations", "model"} <= set(cfg)
+
+    def identity(self) -> dict[str, Any] | None:
+        """``RUN/run.json`` as a dict (None when absent: runs written before it existed)."""
+        return read_json_object(self.identity_path) if self.identity_path.is_file() else None
 
     def checkpoint_path(self, iteration: int) -> Path:
         """``RUN/checkpoints/ckpt_<iteration:08d>.pt``."""
@@ -372,3 +415,113 @@ def load_run(run: str | Path, device: str | torch.device | None = "cpu", allow_o
     if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 0):
         raise MeshsplatError(f"{ckpt}: 'iteration' must be a non-negative integer, got {it!r}")
     return LoadedRun(folder, Path(ckpt), int(it) if it is not None else None, avatar, config)
+
+
+def check_training_target(out: str | Path, data: str | Path | None = None) -> None:
+    """Refuse, in one line, a training ``--out`` that would overwrite what is not the run's own: the capture
+    ``data`` itself or any capture folder, a non-empty folder that is not a run (:meth:`RunFolder.is_run`),
+    or a run another process is training right now (its ``train.lock``; the ``--nproc`` launcher of this
+    process does not count). A new or empty folder passes; nothing is created."""
+    run = RunFolder(out)
+    root = run.root
+    if not root.exists():
+        return
+    if not root.is_dir():
+        raise MeshsplatError(f"--out {root} is an existing file; give a run folder (new, empty, or a run to resume)")
+    if data is not None and Path(data).exists() and root.resolve() == Path(data).resolve():
+        raise MeshsplatError(
+            f"--out {root} is the capture being trained: the run would overwrite its files; give a separate "
+            "run folder, e.g. runs/NAME"
+        )
+    layout = next((name for name in FORMAT_NAMES if format_module(name).detect(root)), None)
+    if layout is not None:
+        raise MeshsplatError(
+            f"--out {root} holds a capture ({layout} layout): the run would overwrite its files; give a "
+            "separate run folder, e.g. runs/NAME"
+        )
+    entries = sorted(p.name for p in root.iterdir())
+    if entries and not run.is_run():
+        shown = ", ".join(entries[:4]) + (f" and {len(entries) - 4} more" if len(entries) > 4 else "")
+        raise MeshsplatError(
+            f"--out {root} is not empty and is not a training run (it holds {shown}); give a new or empty "
+            "folder, or a run folder to resume"
+        )
+    holder = lock_holder(run.lock_path)
+    if holder is not None and not held_by_parent(holder):
+        raise MeshsplatError(
+            f"--out {root} is being trained right now by {holder_text(holder)}; wait for it to finish or stop "
+            "it (Ctrl-C or SIGTERM write a checkpoint), then --resume; or choose another --out"
+        )
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def capture_identity(dataset: AvatarDataset) -> dict[str, Any]:
+    """What tells one capture from another, for ``RUN/run.json``: the mesh topology (faces digest, vertex
+    count), the rest mesh's bounding box and centroid, and the cameras (ids digest, count, image sizes, mean
+    centre and focal length). Compared with a tolerance by :func:`identity_differences` (a capture that was
+    moved, or read on another thread count, is the same capture)."""
+    cano = dataset.canonical_vertices.double().numpy()
+    faces = dataset.faces.numpy().astype(np.int64)
+    ids = sorted(dataset.camera_ids)
+    cams = [dataset.camera(c) for c in ids]
+    centres = np.array([c.center.double().numpy() for c in cams]) if cams else np.zeros((0, 3))
+    focal = np.array([[float(c.K[0, 0]), float(c.K[1, 1])] for c in cams]) if cams else np.zeros((0, 2))
+    return {
+        "faces": _digest(faces),
+        "vertices": int(cano.shape[0]),
+        "bbox": [cano.min(0).tolist(), cano.max(0).tolist()] if len(cano) else [],
+        "centroid": cano.mean(0).tolist() if len(cano) else [],
+        "cameras": len(ids),
+        "camera_ids": hashlib.sha256("\n".join(ids).encode()).hexdigest()[:16],
+        "image_sizes": sorted({f"{c.width}x{c.height}" for c in cams}),
+        "camera_centre": centres.mean(0).tolist() if len(centres) else [],
+        "focal": focal.mean(0).tolist() if len(focal) else [],
+    }
+
+
+def identity_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """What differs between two :func:`capture_identity` dicts (empty: the same capture). Lengths compare to
+    1e-3 of the rest mesh's size, focal lengths to 1e-3 relative; keys missing from either are skipped."""
+    size = 1.0
+    try:
+        lo, hi = np.asarray(new["bbox"][0], float), np.asarray(new["bbox"][1], float)
+        size = max(float(np.linalg.norm(hi - lo)), 1e-9)
+    except (KeyError, IndexError, TypeError, ValueError):
+        pass
+    tolerance = {"bbox": 1e-3 * size, "centroid": 1e-3 * size, "camera_centre": 1e-3 * size}
+    names = {
+        "faces": "mesh topology",
+        "vertices": "vertex count",
+        "bbox": "rest mesh size",
+        "centroid": "rest mesh position",
+        "cameras": "camera count",
+        "camera_ids": "camera names",
+        "image_sizes": "image sizes",
+        "camera_centre": "camera positions",
+        "focal": "focal lengths",
+    }
+    out = []
+    for key, label in names.items():
+        if key not in old or key not in new:
+            continue
+        a, b = old[key], new[key]
+        if key in tolerance or key == "focal":
+            try:
+                x, y = np.asarray(a, float), np.asarray(b, float)
+                tol = tolerance.get(key, 1e-3 * float(np.abs(y).max(initial=1.0)))
+                same = x.shape == y.shape and bool(np.all(np.abs(x - y) <= tol))
+            except (TypeError, ValueError):
+                same = False
+        else:
+            same = a == b
+        if not same:
+            out.append(label)
+    return out

@@ -32,7 +32,7 @@ from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.data.formats import detect_format, format_module, open_capture, reader_options
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
-from meshsplat.run_folder import RunFolder
+from meshsplat.run_folder import RunFolder, check_training_target
 from meshsplat.train.config import TrainConfig, apply_overrides, load_config
 from meshsplat.train.launch import launch
 from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
@@ -186,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
     check_output_dir(args.out)
+    check_training_target(args.out, args.dataset)  # a capture, a foreign folder or a run in training: refused
     check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
     apply_threads(args)
@@ -194,8 +195,8 @@ def run(args: argparse.Namespace) -> int:
     cfg.data_format = fmt
     n = max(cfg.model.n_init, min(cfg.strategy.max_gaussians, 4 * cfg.model.n_init))
     check_memory(
-        f"training with model.n_init={cfg.model.n_init}",
-        2e8 + 1200.0 * n,
+        f"training with model.n_init={cfg.model.n_init}" + (f" in {args.nproc} processes" if args.nproc > 1 else ""),
+        (2e8 + 1200.0 * n) * max(1, args.nproc),
         "lower model.n_init / strategy.max_gaussians",
     )
     if args.nproc != 1:

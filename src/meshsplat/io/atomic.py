@@ -2,13 +2,17 @@
 
 A full disk or a killed process leaves either the previous file or none, never a truncated one (the
 temporary file is removed on failure). Used by checkpoints, exports and the viewer bundle.
+
+The temporary file is created with mode 0666 less the user's umask, as ``open()`` would, so the file in
+place is as readable as any other the user writes (0644 under umask 022; ``tempfile.mkstemp`` would
+leave 0600, unreadable to a web server or a group).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
@@ -16,6 +20,19 @@ from typing import IO
 __all__ = ["atomic_write", "write_bytes_atomic", "write_text_atomic", "write_with", "fsync_dir", "TMP_SUFFIX"]
 
 TMP_SUFFIX = ".tmp"
+
+
+def _create_temp(folder: Path, prefix: str, suffix: str) -> tuple[int, str]:
+    """A new file ``folder/prefix<random>suffix`` opened for writing: (descriptor, path). Like
+    ``tempfile.mkstemp`` (exclusive creation, no symlink followed) but with the user's umask."""
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        name = os.path.join(folder, f"{prefix}{secrets.token_hex(6)}{suffix}")
+        try:
+            return os.open(name, flags, 0o666), name
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name in {folder} after 100 tries")
 
 
 def fsync_dir(folder: str | os.PathLike) -> None:
@@ -39,7 +56,7 @@ def atomic_write(path: str | os.PathLike, fsync: bool = True) -> Iterator[IO[byt
     disk: OSError) the temporary file is removed and the error propagates, ``path`` untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
+    fd, tmp = _create_temp(path.parent, f".{path.name}.", TMP_SUFFIX)
     try:
         with os.fdopen(fd, "wb") as fh:
             yield fh
@@ -72,7 +89,7 @@ def write_with(path: str | os.PathLike, writer: Callable[[Path], object], fsync:
     atomically; the temporary file is removed when ``writer`` fails."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix or TMP_SUFFIX)
+    fd, name = _create_temp(path.parent, f".{path.name}.", path.suffix or TMP_SUFFIX)
     os.close(fd)
     tmp = Path(name)
     try:

@@ -34,9 +34,11 @@ def synth_capture(
     """
     if format not in FORMAT_NAMES:
         raise MeshsplatError(f"format: {format!r} is not one of {', '.join(FORMAT_NAMES)}")
+    out = empty_or_new_folder(out, overwrite)  # an existing capture (or anything else) only with overwrite
+    if native_dir is not None:
+        empty_or_new_folder(native_dir, overwrite)
     if format == "native":
         return synthesize(asset, out, overwrite=overwrite, **generate_options)
-    out = empty_or_new_folder(out, overwrite)
     try:
         module = format_module(format)
         writer = module.write

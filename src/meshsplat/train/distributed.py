@@ -10,6 +10,9 @@ writes the run folder (config, log, previews, checkpoints).
 A process group is joined when the environment names one (``WORLD_SIZE`` > 1, with ``RANK``,
 ``MASTER_ADDR``, ``MASTER_PORT``, ``LOCAL_RANK``): what ``torchrun`` and ``meshsplat.train.launch``
 set. Without it ``DataParallel.single()`` does nothing at all, so one process trains as before.
+A ``WORLD_SIZE`` > 1 that no launcher set (torchrun sets ``TORCHELASTIC_RUN_ID``, ``--nproc`` sets
+``LAUNCHER_VAR``; processes started some other way set ``LAUNCHER_VAR=manual``) is refused in one line: left
+over in a shell, it would make a plain ``train`` wait for peers that never come.
 """
 
 from __future__ import annotations
@@ -25,9 +28,12 @@ import torch.distributed as dist
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["DataParallel", "env_world_size"]
+__all__ = ["DataParallel", "env_world_size", "check_launcher", "LAUNCHER_VAR"]
 
 SETTLE_TIMEOUT_S = 5.0
+LAUNCHER_VAR = "MESHSPLAT_LAUNCHER"  # set by ``train --nproc`` for its workers (or by hand: ``manual``)
+_TORCHRUN_VAR = "TORCHELASTIC_RUN_ID"
+_GROUP_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
 
 def _cpp_refs(tensor: torch.Tensor) -> int:
@@ -58,6 +64,18 @@ def env_world_size() -> int:
         raise MeshsplatError(f"WORLD_SIZE={os.environ['WORLD_SIZE']!r} is not a number of processes") from None
 
 
+def check_launcher() -> None:
+    """Refuse a process group named by the environment that no launcher started (see the module docstring)."""
+    if env_world_size() <= 1 or os.environ.get(_TORCHRUN_VAR) or os.environ.get(LAUNCHER_VAR):
+        return
+    found = " ".join(f"{k}={os.environ[k]}" for k in _GROUP_VARS if k in os.environ)
+    raise MeshsplatError(
+        f"the environment names a process group ({found}) but neither torchrun nor train --nproc started this "
+        f"process: left over from an earlier launch? unset them (env -u {' -u '.join(_GROUP_VARS)} meshsplat ...), "
+        f"or set {LAUNCHER_VAR}=manual when you start the processes yourself"
+    )
+
+
 @dataclass
 class DataParallel:
     """This process's place in the job: ``rank`` of ``world`` processes; collectives run on ``device``
@@ -78,6 +96,7 @@ class DataParallel:
         world = env_world_size()
         if world <= 1:
             return cls.single(), device
+        check_launcher()
         if device.type == "cuda":
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)

@@ -7,10 +7,17 @@ process group (``meshsplat.train.distributed``). When a worker fails or is kille
 stopped and one ``MeshsplatError`` names the worker, how it ended and the newest checkpoint (written
 by rank 0 only at iteration boundaries, atomically, so it is intact): ``--resume`` continues from it,
 with the same or another number of processes.
+
+The launcher holds the run's lock (``RUN/train.lock``) for its workers, so a second training into the same
+folder is refused. At most one process per CPU core this process may use. SIGTERM (or SIGHUP) to the
+launcher is passed on to every worker, which checkpoint and stop together as on Ctrl-C; a worker whose
+launcher dies is sent SIGTERM by the kernel (Linux), so none is left training alone.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import json
 import os
 import signal
@@ -22,12 +29,14 @@ import time
 from pathlib import Path
 
 from meshsplat.errors import MeshsplatError
-from meshsplat.run_folder import RunFolder
+from meshsplat.io.folder_lock import FolderLock
+from meshsplat.run_folder import RunFolder, check_training_target
 from meshsplat.train.config import TrainConfig
+from meshsplat.train.distributed import LAUNCHER_VAR
 from meshsplat.train.resume import TrainingInterrupted, signal_name
 from meshsplat.train.trainer import Trainer
 
-__all__ = ["launch", "free_port", "worker_main"]
+__all__ = ["launch", "free_port", "worker_main", "usable_cores"]
 
 STOP_GRACE_S = 10.0  # after one worker fails, the others get this long to exit before SIGKILL
 EXIT_INTERRUPTED = 130  # a worker stopped by SIGINT/SIGTERM after its checkpoint
@@ -38,6 +47,19 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _die_with_parent() -> None:  # runs in the child before exec (Linux: PR_SET_PDEATHSIG)
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None).prctl(1, signal.SIGTERM)
 
 
 def _how(code: int) -> str:
@@ -54,8 +76,18 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
             f"--nproc {nproc} needs batch_size >= {nproc} (each process renders its share of every batch); "
             f"add --set batch_size={nproc}"
         )
+    cores = usable_cores()
+    if nproc > cores:
+        raise MeshsplatError(
+            f"--nproc {nproc} is more processes than the {cores} CPU core(s) this process may use; "
+            f"use --nproc {cores} or fewer"
+        )
+    check_training_target(config.out, config.data)
     run = RunFolder(config.out)
-    with tempfile.TemporaryDirectory(prefix="meshsplat-launch-") as tmp:
+    with (
+        FolderLock(run.lock_path, f"the run {run.root}"),
+        tempfile.TemporaryDirectory(prefix="meshsplat-launch-") as tmp,
+    ):
         cfg_path = Path(tmp) / "config.json"
         config.to_json(cfg_path)
         port = free_port()
@@ -69,13 +101,14 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
                 LOCAL_WORLD_SIZE=str(nproc),
                 MASTER_ADDR="127.0.0.1",
                 MASTER_PORT=str(port),
+                **{LAUNCHER_VAR: "nproc"},
             )
             env.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // nproc)))  # no oversubscription
             # numba's own thread pool: its OpenMP layer, beside torch's OpenMP runtime and gloo's threads, made
             # about one worker in six abort at exit ("terminate called without an active exception")
             env.setdefault("NUMBA_THREADING_LAYER", "workqueue")
             cmd = [sys.executable, "-m", "meshsplat.train.launch", str(cfg_path)] + (["--resume"] if resume else [])
-            procs.append(subprocess.Popen(cmd, env=env))
+            procs.append(subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent))
         failed = _wait(procs, poll_s)
     if failed is None:
         return run.root
@@ -91,9 +124,21 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
 
 
 def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | None:
-    """Wait for every worker; on the first failure stop the rest. Returns (rank, exit code) of it or None."""
+    """Wait for every worker; on the first failure stop the rest. Returns (rank, exit code) of it or None.
+    SIGTERM/SIGHUP to this process are passed on to every worker, then all are waited for (they checkpoint)."""
+    forwarded: list[int] = []
+
+    def forward(signum: int, frame: object) -> None:
+        forwarded.append(signum)
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+
+    old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGHUP)}
     try:
         while True:
+            if forwarded:
+                raise KeyboardInterrupt
             codes = [p.poll() for p in procs]
             bad = [(r, c) for r, c in enumerate(codes) if c not in (None, 0)]
             if bad:
@@ -106,6 +151,9 @@ def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | Non
         for p in procs:
             p.wait()
         return next(((r, c) for r, p in enumerate(procs) if (c := p.returncode) != 0), None)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def _cause_first(rank_code: tuple[int, int]) -> tuple[bool, bool, int]:

@@ -30,6 +30,8 @@ illumination itself.
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 import math
 import random
 import signal
@@ -51,12 +53,14 @@ from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
 from meshsplat.gaussians.params import EMBEDDING_STATE_KEYS, init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
+from meshsplat.io.atomic import write_text_atomic
 from meshsplat.io.checkpoint import remove_stray_tmp, save_checkpoint
+from meshsplat.io.folder_lock import FolderLock
 from meshsplat.io.images import float_to_uint8
 from meshsplat.mesh import MeshPose, TriMesh, bbox_diagonal
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
-from meshsplat.run_folder import RunFolder
+from meshsplat.run_folder import RunFolder, capture_identity, check_training_target, identity_differences
 from meshsplat.train.albedo_prior import REFRESH_EVERY, albedo_neighbours, albedo_smoothness
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
 from meshsplat.train.distributed import DataParallel
@@ -64,6 +68,7 @@ from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_cr
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
+    SAFE_CHANGES,
     StopOnSignal,
     TrainingInterrupted,
     capture_rng,
@@ -147,6 +152,8 @@ class Trainer:
         self.folder = RunFolder(self.cfg.out)
         self.dp, self.device = DataParallel.from_env(resolve_device(self.cfg.device))
         self.dp.check_batch(self.cfg.batch_size)
+        if self.dp.is_main:  # a capture, a foreign folder or a run in training is refused before any work
+            check_training_target(self.cfg.out, self.cfg.data)
         if not self.dp.is_main:
             self.cfg.progress = False
         self.dataset = open_capture(
@@ -198,6 +205,7 @@ class Trainer:
         else:
             refuse_existing_run(self.folder)
         if loaded is not None:
+            self._check_same_capture()
             old = upgrade_config_dict(loaded[1].get("config"), lambda: self.dataset.largest_image_side(self.train_ids))
             self.resume_notes = check_resume_config(old, self.cfg.to_dict(), loaded[0])
             before, now = loaded[1].get("torch_threads"), torch.get_num_threads()
@@ -549,11 +557,22 @@ class Trainer:
         cfg = self.cfg
         end = cfg.iterations if until is None else min(int(until), cfg.iterations)
         main = self.dp.is_main  # the one process that writes the run folder
-        if main:
-            self.folder.root.mkdir(parents=True, exist_ok=True)
-            cfg.to_json(self.folder.config_path)
-            self._open_log()
-            remove_stray_tmp(self.folder.checkpoint_dir)
+        lock = FolderLock(self.folder.lock_path, f"the run {self.folder.root}", parent_ok=True)
+        if main:  # one training per run folder (the --nproc launcher holds it for its workers)
+            lock.acquire()
+        try:
+            if main:
+                self.folder.root.mkdir(parents=True, exist_ok=True)
+                cfg.to_json(self.folder.config_path)
+                self._write_identity()
+                self._open_log()
+                remove_stray_tmp(self.folder.checkpoint_dir)
+            return self._train(end, main)
+        finally:
+            lock.release()
+
+    def _train(self, end: int, main: bool) -> Path:
+        cfg = self.cfg
         bar = None
         if cfg.progress:
             from tqdm import tqdm
@@ -624,6 +643,33 @@ class Trainer:
             if bar is not None:
                 bar.close()
         return self.folder.root
+
+    def _check_same_capture(self) -> None:
+        """On resume: the capture is the one the run was trained on (``RUN/run.json``; runs without it pass)."""
+        old = self.folder.identity()
+        if not isinstance(old, dict) or not isinstance(old.get("capture"), dict):
+            return
+        differ = identity_differences(old["capture"], capture_identity(self.dataset))
+        if differ:
+            raise MeshsplatError(
+                f"cannot resume {self.folder.root}: it was trained on {old.get('data', 'another capture')}, and "
+                f"{self.cfg.data} is another capture ({', '.join(differ)} differ); resume with the run's own "
+                "capture, or train this one into a new --out"
+            )
+
+    def _write_identity(self) -> None:
+        """``RUN/run.json``: the capture this run trains and a digest of its recipe (every config key but
+        those a resume may change); kept on resume."""
+        if self.resumed_from is not None and self.folder.identity_path.is_file():
+            return
+        recipe = {k: v for k, v in self.cfg.to_dict().items() if k not in SAFE_CHANGES}
+        record = {
+            "data": self.cfg.data,
+            "data_format": self.dataset.format_name,
+            "capture": capture_identity(self.dataset),
+            "recipe": hashlib.sha256(json.dumps(recipe, sort_keys=True, default=str).encode()).hexdigest()[:16],
+        }
+        write_text_atomic(self.folder.identity_path, json.dumps(record, indent=1) + "\n")
 
     @property
     def polish_due(self) -> bool:

@@ -1,0 +1,131 @@
+"""An exclusive lock on a folder while a process writes it (``RUN/train.lock`` while training).
+
+The lock is an ``flock`` on a small file holding the owner's PID, host and start time: the kernel releases
+it when the owner exits, however it ends (a killed process leaves no stale lock; the file it leaves
+behind is not a lock). :func:`lock_holder` tells who holds it without waiting; :class:`FolderLock`
+takes it or refuses in one line naming the holder. A worker started by the holder (``train --nproc``:
+the launcher holds the lock for its workers) may pass ``parent_ok``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+from meshsplat.errors import MeshsplatError, os_error_text
+
+__all__ = ["FolderLock", "lock_holder", "holder_text"]
+
+
+def _read(fd: int) -> dict[str, Any]:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        data = json.loads(os.read(fd, 4096).decode("utf-8", "replace") or "{}")
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def lock_holder(path: str | os.PathLike) -> dict[str, Any] | None:
+    """``{"pid", "host", "started"}`` (as far as written) of the process holding the lock ``path``; None when
+    nobody does (no file, or a file left by a process that has ended)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _read(fd)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def holder_text(holder: dict[str, Any]) -> str:
+    """``process 1234 on host, since 14:02:11`` from :func:`lock_holder`'s dict."""
+    pid = holder.get("pid", "?")
+    host = f" on {holder['host']}" if holder.get("host") else ""
+    started = holder.get("started")
+    since = (
+        f", since {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(started))}" if isinstance(started, float) else ""
+    )
+    return f"process {pid}{host}{since}"
+
+
+def held_by_parent(holder: dict[str, Any] | None) -> bool:
+    """Whether ``holder`` is this process's parent on this host (the ``--nproc`` launcher of a worker)."""
+    return holder is not None and holder.get("pid") == os.getppid() and holder.get("host") == socket.gethostname()
+
+
+class FolderLock:
+    """``with FolderLock(path, what):`` holds the lock ``path`` (created with its folder) for the block.
+
+    ``acquire`` refuses in one MeshsplatError naming the holder and ``what`` is locked when another process
+    holds it; with ``parent_ok`` the holder being this process's parent counts as held (nothing is taken).
+    ``release`` removes the file and unlocks.
+    """
+
+    def __init__(self, path: str | os.PathLike, what: str, parent_ok: bool = False) -> None:
+        self.path, self.what, self.parent_ok = Path(path), what, parent_ok
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def acquire(self) -> FolderLock:
+        if self._fd is not None:
+            return self
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            for _ in range(20):  # the holder may remove the file between our open and flock: try the new one
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    holder = _read(fd)
+                    os.close(fd)
+                    if self.parent_ok and held_by_parent(holder):
+                        return self
+                    raise MeshsplatError(
+                        f"{self.what} is in use right now by {holder_text(holder)} (lock {self.path}); wait for it "
+                        "to finish or stop it, or choose another folder"
+                    ) from None
+                try:
+                    same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+                except FileNotFoundError:
+                    same = False
+                if not same:
+                    os.close(fd)
+                    continue
+                os.ftruncate(fd, 0)
+                record = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
+                os.write(fd, (json.dumps(record) + "\n").encode())
+                self._fd = fd
+                return self
+        except OSError as exc:
+            raise MeshsplatError(f"cannot lock {self.what}: {os_error_text(exc)}") from None
+        raise MeshsplatError(f"cannot lock {self.what}: {self.path} keeps being replaced; try again")
+
+    def release(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)  # while still locked: nobody locks the old file after this
+        os.close(fd)
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
