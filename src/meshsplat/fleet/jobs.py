@@ -6,12 +6,17 @@ mapping with the keys of ``JOB_KEYS`` (``data`` required; the defaults' keys app
 overrides), ``#`` starts a comment. Relative capture paths are relative to the jobs file's folder.
 Names (default: the capture folder's name) must be unique: each job writes ``DIR/NAME/``.
 
-A file that cannot be read at all is one MeshsplatError; a job with a bad key or value becomes a failed
-job with its one-line reason (``Job.problem``) and the others still run.
+A file that cannot be read at all is one MeshsplatError (also one over ``MAX_FILE_BYTES``, a YAML file
+whose aliases expand past ``MAX_NODES`` values, nesting deeper than ``MAX_DEPTH``, an unclosed quote in a
+text file); a job with a bad key or value becomes a failed job with its one-line reason (``Job.problem``)
+and the others still run. Values are taken as written, never coerced: ``eval: "false"`` or
+``iterations: 2.9`` are problems, not ``True`` and ``2``. ``Job.spec()`` is the digest of everything a job
+asks for: a finished job whose entry was edited since is run again (``runner.finished_result``).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shlex
@@ -24,7 +29,11 @@ from meshsplat.export import SPLAT_FORMATS
 from meshsplat.train.config import TrainConfig, apply_overrides
 from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config
 
-__all__ = ["Job", "JOB_KEYS", "read_jobs", "job_config"]
+__all__ = ["Job", "JOB_KEYS", "read_jobs", "job_config", "MAX_FILE_BYTES", "MAX_NODES", "MAX_DEPTH"]
+
+MAX_FILE_BYTES = 16 * 2**20  # a jobs file of 10,000 jobs is well under 2 MB
+MAX_NODES = 1_000_000  # values in the file once YAML aliases are expanded
+MAX_DEPTH = 64  # nesting of lists and mappings (a job needs 3)
 
 # key -> meaning (docs/scale-out.md lists them)
 JOB_KEYS = {
@@ -63,6 +72,11 @@ class Job:
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
+    def spec(self) -> str:
+        """Digest of everything the job asks for (every field but ``problem``): equal specs, same job."""
+        d = {k: v for k, v in self.to_dict().items() if k != "problem"}
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
 
 def job_config(job: Job, run_dir: str | Path) -> TrainConfig:
     """The job's ``TrainConfig``, training into ``run_dir``."""
@@ -74,28 +88,103 @@ def job_config(job: Job, run_dir: str | Path) -> TrainConfig:
     return cfg.validate()
 
 
-def _load(path: Path) -> Any:
-    text = path.read_text()
-    if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml  # optional: comes with the [ray] extra
+def _yaml_size(node: Any, path: Path) -> None:
+    """Refuse a YAML document whose aliases expand past ``MAX_NODES`` values or that nests deeper than
+    ``MAX_DEPTH`` (an alias bomb is a few lines that expand to billions), before anything is built."""
+    count = 0
+    stack = [(node, 1)]
+    while stack:
+        n, depth = stack.pop()
+        count += 1
+        if count > MAX_NODES:
+            raise MeshsplatError(
+                f"{path}: more than {MAX_NODES:,} values once its YAML aliases (*name) are expanded; "
+                "write the jobs out, or use fewer aliases"
+            )
+        if depth > MAX_DEPTH:
+            raise MeshsplatError(f"{path}: nested deeper than {MAX_DEPTH} levels; a jobs file needs 3")
+        value = getattr(n, "value", None)
+        if isinstance(value, list):
+            for item in value:
+                if isinstance(item, tuple):  # a mapping's (key, value)
+                    stack.extend((x, depth + 1) for x in item)
+                else:
+                    stack.append((item, depth + 1))
 
+
+def _depth(doc: Any, path: Path) -> None:
+    stack = [(doc, 1)]
+    while stack:
+        v, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise MeshsplatError(f"{path}: nested deeper than {MAX_DEPTH} levels; a jobs file needs 3")
+        if isinstance(v, dict):
+            stack.extend((x, depth + 1) for x in v.values())
+        elif isinstance(v, list):
+            stack.extend((x, depth + 1) for x in v)
+
+
+def _load(path: Path) -> Any:
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise MeshsplatError(f"{path}: {size / 2**20:.0f} MB is not a jobs file (at most {MAX_FILE_BYTES // 2**20} MB)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise MeshsplatError(f"{path}: not UTF-8 text (byte {exc.start}); save the jobs file as UTF-8") from None
+    if path.suffix.lower() in (".yaml", ".yml"):
         try:
+            import yaml  # optional: comes with the [ray] extra
+        except ImportError:
+            raise MeshsplatError(f"{path}: reading YAML needs pyyaml: pip install 'meshsplat[ray]'") from None
+        try:
+            for node in yaml.compose_all(text, Loader=yaml.SafeLoader):
+                if node is not None:
+                    _yaml_size(node, path)
             return yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise MeshsplatError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        except RecursionError:
+            raise MeshsplatError(f"{path}: nested too deeply; a jobs file needs 3 levels") from None
     if path.suffix.lower() == ".json":
         try:
-            return json.loads(text)
+            doc = json.loads(text)
         except json.JSONDecodeError as exc:
             raise MeshsplatError(f"{path}: not valid JSON ({exc})") from None
+        except RecursionError:
+            raise MeshsplatError(f"{path}: nested too deeply; a jobs file needs 3 levels") from None
+        _depth(doc, path)
+        return doc
     if path.suffix.lower() == ".txt":
         jobs = []
-        for line in text.splitlines():
-            words = shlex.split(line, comments=True)
+        for number, line in enumerate(text.splitlines(), 1):
+            try:
+                words = shlex.split(line, comments=True)
+            except ValueError as exc:  # "No closing quotation", "No escaped character"
+                raise MeshsplatError(f"{path}:{number}: {exc} in {line.strip()[:80]!r}; close the quote") from None
             if words:
                 jobs.append({"data": words[0], "set": words[1:]})
         return jobs
     raise MeshsplatError(f"{path}: a jobs file is .yaml, .yml, .json or .txt")
+
+
+def _typed(key: str, value: Any, kind: str) -> Any:
+    """``value`` of job key ``key`` as written, or ValueError naming what was expected (no coercion)."""
+    if kind == "str" and isinstance(value, str):
+        return value
+    if kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind == "bool" and isinstance(value, bool):
+        return value
+    if kind == "strs" and isinstance(value, list) and all(isinstance(x, str) for x in value):
+        return list(value)
+    want = {
+        "str": "text",
+        "int": "a whole number",
+        "bool": "true or false (unquoted)",
+        "strs": "a list of text items",
+    }[kind]
+    raise ValueError(f"{key}: expected {want}, got {value!r}")
 
 
 def _job(entry: Any, defaults: dict[str, Any], base: Path, index: int) -> Job:
@@ -103,26 +192,34 @@ def _job(entry: Any, defaults: dict[str, Any], base: Path, index: int) -> Job:
         entry = {"data": entry}
     if not isinstance(entry, dict) or not entry.get("data"):
         return Job(f"job{index + 1}", "", problem=f"job {index + 1}: expected a capture path or a mapping with 'data'")
-    d = {**defaults, **entry, "set": [*defaults.get("set", []), *entry.get("set", [])]}
-    data = Path(str(d["data"])).expanduser()
+    label = f"job{index + 1}"
+    if not isinstance(entry.get("data"), str):
+        return Job(label, "", problem=f"job {index + 1}: data: expected a capture path, got {entry['data']!r}")
+    sets = [defaults.get("set", []), entry.get("set", [])]
+    if not all(isinstance(s, list) for s in sets):
+        return Job(label, "", problem=f"job {index + 1}: set: expected a list of KEY=VALUE items")
+    d = {**defaults, **entry, "set": [*sets[0], *sets[1]]}
+    data = Path(d["data"]).expanduser()
     data = data if data.is_absolute() else base / data
-    name = str(d.get("name") or data.name)
+    name = d.get("name") or data.name
+    if not isinstance(name, str):
+        return Job(label, str(data), problem=f"job {index + 1}: name: expected text, got {name!r}")
     job = Job(name, str(data))
-    unknown = sorted(set(d) - set(JOB_KEYS))
+    unknown = sorted(str(k) for k in set(d) - set(JOB_KEYS))
     if unknown:
         job.problem = f"unknown key(s) {', '.join(unknown)}; a job takes {', '.join(JOB_KEYS)}"
         return job
     try:
         for key in ("preset", "format", "model_dir", "device"):
             if key in d:
-                setattr(job, key, str(d[key]))
+                setattr(job, key, _typed(key, d[key], "str"))
         for key in ("iterations", "threads"):
             if key in d and d[key] is not None:
-                setattr(job, key, int(d[key]))
-        job.set = [str(s) for s in d["set"]]
-        job.eval = bool(d.get("eval", True))
-        job.export = [str(f) for f in d.get("export", ["ply"])]
-    except (TypeError, ValueError) as exc:
+                setattr(job, key, _typed(key, d[key], "int"))
+        job.set = _typed("set", d["set"], "strs")
+        job.eval = _typed("eval", d.get("eval", True), "bool")
+        job.export = _typed("export", d.get("export", ["ply"]), "strs")
+    except ValueError as exc:
         job.problem = f"bad value ({exc})"
         return job
     if not _NAME.match(job.name):

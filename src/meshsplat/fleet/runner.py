@@ -2,9 +2,11 @@
 
 ``DIR/NAME/`` holds ``run/`` (the training run), ``export/``, ``attempts.jsonl`` (one line per attempt:
 pid, host, start time, iteration resumed from) and ``result.json`` (``RESULT_KEYS``; status ``ok`` or
-``failed`` with a one-line ``reason``). A job whose ``result.json`` says ``ok`` is finished: running it
-again returns that result. Anything else trains on from the newest checkpoint (bit-exact resume), so a
-worker lost mid-run costs only the iterations since that checkpoint.
+``failed`` with a one-line ``reason``, and the job's ``spec``). A job whose ``result.json`` says ``ok`` for
+the same spec is finished: running it again returns that result. Anything else trains on from the newest
+checkpoint (bit-exact resume), so a worker lost mid-run costs only the iterations since that checkpoint; a
+job edited since (another spec) resumes its run where the change allows (more iterations, evaluation or
+export switched on), and otherwise fails naming the change (its run is never overwritten).
 """
 
 from __future__ import annotations
@@ -51,14 +53,18 @@ def _result_path(out: Path, name: str) -> Path:
     return out / name / "result.json"
 
 
-def finished_result(out: str | Path, name: str) -> dict[str, Any] | None:
-    """The stored result of job ``name`` when it finished ``ok`` (else None)."""
-    path = _result_path(Path(out), name)
+def _stored_result(out: Path, name: str) -> dict[str, Any] | None:
     try:
-        res = json.loads(path.read_text())
-    except (OSError, ValueError):
+        res = json.loads(_result_path(out, name).read_text())
+    except (OSError, ValueError, RecursionError):
         return None
-    return res if isinstance(res, dict) and res.get("status") == "ok" else None
+    return res if isinstance(res, dict) else None
+
+
+def finished_result(out: str | Path, job: Job) -> dict[str, Any] | None:
+    """The stored result of ``job`` when it finished ``ok`` with the same spec (``Job.spec``; else None)."""
+    res = _stored_result(Path(out), job.name)
+    return res if res is not None and res.get("status") == "ok" and res.get("spec") == job.spec() else None
 
 
 def failed_result(job: Job, reason: str, attempts: int = 0) -> dict[str, Any]:
@@ -89,11 +95,13 @@ def run_job(job: Job, out: str | Path) -> dict[str, Any]:
     """Run ``job`` into ``out/NAME`` (see the module docstring); returns its result row. Bad input and
     failures are a ``failed`` row with the reason, never an exception (the fleet goes on)."""
     out = Path(out)
-    done = finished_result(out, job.name)
-    if done is not None:
-        return done
     if job.problem:
         return failed_result(job, job.problem)
+    done = finished_result(out, job)
+    if done is not None:
+        return done
+    before = _stored_result(out, job.name)
+    edited = before is not None and before.get("spec") not in (None, job.spec())
     folder = out / job.name
     folder.mkdir(parents=True, exist_ok=True)
     log = folder / "attempts.jsonl"
@@ -123,10 +131,14 @@ def run_job(job: Job, out: str | Path) -> dict[str, Any]:
             export_avatar(load_avatar(trainer.folder.root), folder / "export", job.data, trainer.iteration, job.export)
             row["export_s"] = round(time.perf_counter() - t1, 3)
     except MeshsplatError as exc:
-        row = failed_result(job, str(exc))
+        why = str(exc)
+        if edited and why.startswith("cannot resume"):
+            why = f"the job was edited since its run was trained, and {why}; or give the edited job another name"
+        row = failed_result(job, why)
     except (OSError, MemoryError, RuntimeError, ValueError) as exc:
         row = failed_result(job, f"{type(exc).__name__}: {exc}")
     row["attempts"] = _attempts(log)
     row["total_s"] = round(time.perf_counter() - t0, 3)
+    row["spec"] = job.spec()
     write_text_atomic(_result_path(out, job.name), json.dumps(row, indent=1) + "\n")
     return row

@@ -1,6 +1,6 @@
 """An exclusive lock on a folder while a process writes it (``RUN/train.lock`` while training).
 
-The lock is an ``flock`` on a small file holding the owner's PID, host and start time: the kernel releases
+The lock is an ``flock`` (Windows: ``msvcrt.locking`` of a byte past the record) on a small file holding the owner's PID, host and start time: the kernel releases
 it when the owner exits, however it ends (a killed process leaves no stale lock; the file it leaves
 behind is not a lock). :func:`lock_holder` tells who holds it without waiting; :class:`FolderLock`
 takes it or refuses in one line naming the holder. A worker started by the holder (``train --nproc``:
@@ -10,7 +10,6 @@ the launcher holds the lock for its workers) may pass ``parent_ok``.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import socket
@@ -20,7 +19,40 @@ from typing import Any
 
 from meshsplat.errors import MeshsplatError, os_error_text
 
-__all__ = ["FolderLock", "lock_holder", "holder_text"]
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None  # type: ignore[assignment]
+    import msvcrt
+
+__all__ = ["FolderLock", "lock_holder", "holder_text", "held_by_parent"]
+
+_WIN_LOCK_AT = 1 << 20  # Windows locks a byte range: one far past the record, so the record stays readable
+
+
+def _try_lock(fd: int, shared: bool = False) -> bool:
+    """Lock ``fd`` without waiting; False when another holds it."""
+    try:
+        if fcntl is not None:
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+        else:
+            os.lseek(fd, _WIN_LOCK_AT, os.SEEK_SET)
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+    except (BlockingIOError, PermissionError):
+        return False
+    except OSError:
+        if fcntl is None:  # msvcrt says "deadlock avoided" (EDEADLOCK) when the byte is locked
+            return False
+        raise
+    return True
+
+
+def _unlock(fd: int) -> None:
+    if fcntl is not None:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    else:
+        os.lseek(fd, _WIN_LOCK_AT, os.SEEK_SET)
+        msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
 
 
 def _read(fd: int) -> dict[str, Any]:
@@ -40,11 +72,9 @@ def lock_holder(path: str | os.PathLike) -> dict[str, Any] | None:
     except OSError:
         return None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
+        if not _try_lock(fd, shared=True):
             return _read(fd)
-        fcntl.flock(fd, fcntl.LOCK_UN)
+        _unlock(fd)
         return None
     finally:
         os.close(fd)
@@ -89,9 +119,7 @@ class FolderLock:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             for _ in range(20):  # the holder may remove the file between our open and flock: try the new one
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except BlockingIOError:
+                if not _try_lock(fd):
                     holder = _read(fd)
                     os.close(fd)
                     if self.parent_ok and held_by_parent(holder):
@@ -99,7 +127,7 @@ class FolderLock:
                     raise MeshsplatError(
                         f"{self.what} is in use right now by {holder_text(holder)} (lock {self.path}); wait for it "
                         "to finish or stop it, or choose another folder"
-                    ) from None
+                    )
                 try:
                     same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
                 except FileNotFoundError:
@@ -108,6 +136,7 @@ class FolderLock:
                     os.close(fd)
                     continue
                 os.ftruncate(fd, 0)
+                os.lseek(fd, 0, os.SEEK_SET)
                 record = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
                 os.write(fd, (json.dumps(record) + "\n").encode())
                 self._fd = fd
@@ -121,7 +150,14 @@ class FolderLock:
         if fd is None:
             return
         with contextlib.suppress(OSError):
-            os.unlink(self.path)  # while still locked: nobody locks the old file after this
+            os.unlink(self.path)  # while still locked (POSIX): nobody locks the old file after this
+        if fcntl is None:  # Windows removes no open file: unlock, close, then remove
+            with contextlib.suppress(OSError):
+                _unlock(fd)
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)
+            return
         os.close(fd)
 
     def __enter__(self) -> FolderLock:

@@ -108,7 +108,7 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
             # about one worker in six abort at exit ("terminate called without an active exception")
             env.setdefault("NUMBA_THREADING_LAYER", "workqueue")
             cmd = [sys.executable, "-m", "meshsplat.train.launch", str(cfg_path)] + (["--resume"] if resume else [])
-            procs.append(subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent))
+            procs.append(subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent if os.name == "posix" else None))
         failed = _wait(procs, poll_s)
     if failed is None:
         return run.root
@@ -134,7 +134,8 @@ def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | Non
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
 
-    old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGHUP)}
+    passed_on = [signal.SIGTERM] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])
+    old = {s: signal.signal(s, forward) for s in passed_on}
     try:
         while True:
             if forwarded:
