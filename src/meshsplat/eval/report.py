@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_report", "read_log", "plot_samples", "plot_curves", "ERROR_VMAX"]
+__all__ = ["write_report", "read_log", "plot_samples", "plot_curves", "loss_curves", "LOSS_TERM_LABELS", "ERROR_VMAX"]
 
 ERROR_VMAX = 0.25  # heat-map scale: mean absolute RGB error 0 .. ERROR_VMAX
 
@@ -27,23 +27,22 @@ def _plt():
 
 
 def read_log(path: str | Path) -> dict[str, np.ndarray]:
-    """Numeric columns of ``RUN/log.csv`` (rows that do not parse are skipped); empty when missing."""
+    """Numeric columns of ``RUN/log.csv`` (rows that do not parse are skipped; an empty cell, a term not
+    computed on that iteration, is nan; columns with no value are left out); empty when missing."""
     path = Path(path)
     if not path.is_file():
         return {}
-    cols: dict[str, list[float]] = {}
+    rows: list[dict[str, float]] = []
     with open(path, newline="") as fh:
         for row in csv.DictReader(fh):
             try:
                 vals = {k: float(v) for k, v in row.items() if k and v not in (None, "")}
             except ValueError:
                 continue
-            if "iteration" not in vals:
-                continue
-            for k, v in vals.items():
-                cols.setdefault(k, []).append(v)
-    n = len(cols.get("iteration", []))
-    return {k: np.asarray(v) for k, v in cols.items() if len(v) == n}
+            if "iteration" in vals:
+                rows.append(vals)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    return {k: np.asarray([r.get(k, np.nan) for r in rows]) for k in keys}
 
 
 def plot_samples(samples: list, path: str | Path, title: str = "") -> Path:
@@ -88,23 +87,61 @@ def plot_samples(samples: list, path: str | Path, title: str = "") -> Path:
     return path
 
 
+# log.csv's loss terms as the curves name them (unweighted values; "loss" is the weighted sum minimised)
+LOSS_TERM_LABELS = {
+    "l1": "L1",
+    "mse": "MSE",
+    "lpips": "LPIPS",
+    "dssim": "D-SSIM",
+    "scale": "scale (rel. to mesh)",
+    "mask": "mask L1",
+    "albedo": "albedo prior",
+}
+
+
+def _smooth(ax, it: np.ndarray, y: np.ndarray, color: str, label: str | None) -> None:
+    """The raw curve faint, a moving average over ~5% of the rows on top (nan rows left out)."""
+    ok = np.isfinite(y)
+    it, y = it[ok], y[ok]
+    if len(y) == 0:
+        return
+    ax.plot(it, y, lw=0.8, color=color, alpha=0.35 if len(y) > 20 else 1.0, label=None if len(y) > 20 else label)
+    if len(y) > 20:
+        k = max(2, len(y) // 20)
+        ax.plot(it[k - 1 :], np.convolve(y, np.ones(k) / k, mode="valid"), lw=1.5, color=color, label=label)
+
+
+def loss_curves(log: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+    """The loss panel's curves ``[(column, label)]``: the total, then each term the run computed (not
+    all zero or empty); empty when the log has no loss column."""
+    if "loss" not in log:
+        return []
+    terms = [(k, label) for k, label in LOSS_TERM_LABELS.items() if k in log and bool(np.nan_to_num(log[k]).any())]
+    return [("loss", "total"), *terms]
+
+
 def plot_curves(log: dict[str, np.ndarray], path: str | Path) -> Path | None:
-    """Loss, training PSNR and #Gaussians vs iteration; None when the log holds no rows."""
+    """The training loss and each of its terms (labelled; a term such as the scale regulariser, zero until
+    Gaussians grow past its threshold, shows as its own curve), training PSNR and #Gaussians vs iteration;
+    None when the log holds no rows."""
     if not log or len(log.get("iteration", [])) == 0:
         return None
     plt = _plt()
     it = log["iteration"]
-    panels = [("loss", "loss", True), ("psnr", "train PSNR (dB)", False), ("n_gaussians", "#Gaussians", False)]
-    panels = [p for p in panels if p[0] in log]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
+    terms = [col for col, _ in loss_curves(log)[1:]]
+    panels = [("loss", "loss (total) and its terms, unweighted", True)] if "loss" in log else []
+    panels += [p for p in (("psnr", "train PSNR (dB)", False), ("n_gaussians", "#Gaussians", False)) if p[0] in log]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + (1.0 if terms else 0.0), 3.2), squeeze=False)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, (key, label, logy) in zip(axes[0], panels, strict=True):
-        y = log[key]
-        ax.plot(it, y, lw=0.8, color="tab:blue", alpha=0.45 if len(y) > 20 else 1.0)
-        if len(y) > 20:  # moving average over ~5% of the rows
-            k = max(2, len(y) // 20)
-            ax.plot(it[k - 1 :], np.convolve(y, np.ones(k) / k, mode="valid"), lw=1.5, color="tab:blue")
-        if logy and bool((y > 0).all()):
-            ax.set_yscale("log")
+        curves: list[tuple[str, str | None]] = [*loss_curves(log)] if key == "loss" else [(key, None)]
+        for i, (col, name) in enumerate(curves):
+            _smooth(ax, it, log[col], colors[i % len(colors)], name)
+        values = np.concatenate([log[c][np.isfinite(log[c])] for c, _ in curves])
+        if logy and bool((values > 0).any()):
+            ax.set_yscale("log", nonpositive="mask")  # a term at zero (not yet active) leaves a gap
+        if key == "loss" and terms:
+            ax.legend(fontsize=7, loc="best")
         ax.set_xlabel("iteration")
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)

@@ -35,6 +35,7 @@ import json
 import math
 import random
 import signal
+import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -65,6 +66,7 @@ from meshsplat.train.albedo_prior import REFRESH_EVERY, albedo_neighbours, albed
 from meshsplat.train.config import TrainConfig, is_legacy_config, upgrade_config_dict
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.losses import avatar_loss, make_perceptual_loss, subject_crop
+from meshsplat.train.monitor import PROGRESS_FORMAT, TensorBoardMonitor, learning_rates, progress_postfix
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers
 from meshsplat.train.pose_refine import PoseRefiner
 from meshsplat.train.resume import (
@@ -195,6 +197,7 @@ class Trainer:
         self.recent: deque[tuple[float, float]] = deque(maxlen=PROGRESS_WINDOW)  # (loss, psnr) per iteration
         self.shading: Shading | None = None
         self.shading_opt: torch.optim.Adam | None = None
+        self.monitor: TensorBoardMonitor | None = None  # RUN/tensorboard/ while training (train.monitor)
         self.albedo_nb: torch.Tensor | None = None  # the albedo prior's neighbours [N,k] (loss.lambda_albedo)
         self.albedo_nb_iteration = 0  # the iteration that searched them
 
@@ -567,8 +570,12 @@ class Trainer:
                 self._write_identity()
                 self._open_log()
                 remove_stray_tmp(self.folder.checkpoint_dir)
+                self.monitor = TensorBoardMonitor.open(self.folder.root, self.iteration)
             return self._train(end, main)
         finally:
+            if self.monitor is not None:
+                self.monitor.close()
+                self.monitor = None
             lock.release()
 
     def _train(self, end: int, main: bool) -> Path:
@@ -577,11 +584,12 @@ class Trainer:
         if cfg.progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True)
+            print(f"progress: loss, {self.train_psnr_label}, Gaussians (G)", file=sys.stderr)
             if self.iteration < end and self._compiles_cpu_kernels():
-                bar.set_postfix_str(
-                    "first step: loading the compiled CPU kernels (the first run after an install compiles them, ~30 s)"
+                print(
+                    "first step: loading the compiled CPU kernels (after an install: compiling, ~30 s)", file=sys.stderr
                 )
+            bar = tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True, bar_format=PROGRESS_FORMAT)
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
         ckpt: Path | None = None
@@ -618,8 +626,7 @@ class Trainer:
                         bar.update(1)
                         loss_mean = sum(x[0] for x in self.recent) / len(self.recent)
                         bar.set_postfix_str(
-                            f"loss {loss_mean:.4f}, {self.train_psnr_label} {self.recent_train_psnr:.2f} dB, "
-                            f"{row['n_gaussians']} Gaussians"
+                            progress_postfix(loss_mean, self.recent_train_psnr, int(row["n_gaussians"]))
                         )
                 if self.polish_due:
                     steps = cfg.pose_refine.polish_steps
@@ -742,6 +749,8 @@ class Trainer:
         self.history.append(row)
         with open(self.folder.log_path, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=LOG_COLUMNS).writerow({k: _cell(row[k]) for k in LOG_COLUMNS})
+        if self.monitor is not None:
+            self.monitor.scalars(row, learning_rates(self.optimizers))
 
     @torch.no_grad()
     def save_preview(self, idx: int | None = None) -> Path:
@@ -755,6 +764,8 @@ class Trainer:
         path = self.folder.preview_path(self.iteration)
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(img).save(path)
+        if self.monitor is not None:
+            self.monitor.preview(img, self.iteration)
         return path
 
     def avatar(self) -> Avatar:
