@@ -21,7 +21,7 @@ LAYERS = [
     ("run_folder",),
     ("train",),
     ("synth", "eval", "export", "animate"),
-    ("demo", "viewer"),
+    ("demo", "viewer", "track"),
     ("pipeline", "fleet"),
     ("cli",),
 ]

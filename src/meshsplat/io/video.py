@@ -1,6 +1,11 @@
-"""Frames to MP4 (imageio + imageio-ffmpeg, imported lazily) and to numbered PNGs.
+"""Video files in and out (imageio-ffmpeg, imported lazily), and numbered PNGs.
 
-Frames are ``[H,W,3]`` (or ``[H,W,4]``/``[H,W,1]``) arrays or tensors, float in ``[0, 1]``
+Reading (:func:`probe_video`, :func:`read_video_frames`): MP4/MOV/WebM/MKV/AVI as phones and cameras
+write them; ffmpeg applies the rotation metadata (a portrait phone clip comes out upright), ``fps``
+resamples by timestamps (variable frame rate included), ``max_side`` scales large frames down before
+they reach Python. Frames come out as uint8 ``[H,W,3]``.
+
+Writing: frames are ``[H,W,3]`` (or ``[H,W,4]``/``[H,W,1]``) arrays or tensors, float in ``[0, 1]``
 or uint8. When the MP4 cannot be written (no ffmpeg), :func:`write_video` says why and
 writes PNGs instead.
 """
@@ -8,10 +13,11 @@ writes PNGs instead.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import shutil
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +28,16 @@ from PIL import Image
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.images import float_to_uint8
 
-__all__ = ["to_uint8", "write_png_frames", "write_mp4", "write_video", "VideoResult"]
+__all__ = [
+    "to_uint8",
+    "write_png_frames",
+    "write_mp4",
+    "write_video",
+    "VideoResult",
+    "VideoInfo",
+    "probe_video",
+    "read_video_frames",
+]
 
 
 def to_uint8(frame: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -157,3 +172,104 @@ def write_video(
             stacklevel=2,
         )
     return result
+
+
+@dataclass
+class VideoInfo:
+    """What :func:`probe_video` found: the frame size as read (after rotation, before ``max_side``),
+    ``fps`` (nominal), ``duration`` (seconds), ``rotated`` (the file asked for a quarter turn)."""
+
+    path: Path
+    width: int
+    height: int
+    fps: float
+    duration: float
+    rotated: bool
+
+    @property
+    def frames(self) -> int:
+        """The nominal frame count, ``fps * duration``."""
+        return max(1, round(self.fps * self.duration))
+
+
+def _ffmpeg_reader(path: Path, input_params: list[str], output_params: list[str]):
+    """imageio-ffmpeg's frame generator, started; ``(generator, meta)``."""
+    try:
+        import imageio_ffmpeg
+    except ImportError as exc:
+        raise MeshsplatError(f"reading a video needs imageio-ffmpeg (pip install 'meshsplat[video]'): {exc}") from None
+    import logging
+
+    logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)  # its "size differs" note is the rotation
+    gen = imageio_ffmpeg.read_frames(str(path), input_params=input_params, output_params=output_params)
+    try:
+        meta = next(gen)
+    except (OSError, RuntimeError, StopIteration, IndexError, AttributeError) as exc:
+        gen.close()
+        text = " ".join(str(exc).split())[-200:]
+        raise MeshsplatError(
+            f"{path}: not a video ffmpeg can read ({type(exc).__name__}: {text}); give an MP4, MOV, WebM or MKV file"
+        ) from None
+    return gen, meta
+
+
+def _video_path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise MeshsplatError(f"video not found: {p}")
+    if not p.is_file():
+        raise MeshsplatError(f"{p}: not a file (a video file: MP4, MOV, WebM or MKV)")
+    if p.stat().st_size == 0:
+        raise MeshsplatError(f"{p}: the file is empty; give a video file")
+    return p
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Size, frame rate and duration of a video file, without decoding more than its first frame."""
+    p = _video_path(path)
+    gen, meta = _ffmpeg_reader(p, [], [])
+    gen.close()
+    w, h = (int(x) for x in meta["size"])
+    sw, sh = (int(x) for x in meta.get("source_size", meta["size"]))
+    fps = float(meta.get("fps") or 0.0)
+    if not (w > 0 and h > 0 and math.isfinite(fps) and fps > 0):
+        raise MeshsplatError(f"{p}: ffmpeg reports no usable video stream ({w}x{h} at {fps} fps)")
+    duration = float(meta.get("duration") or 0.0)
+    return VideoInfo(p, w, h, fps, duration, rotated=(w, h) == (sh, sw) and w != h)
+
+
+def read_video_frames(
+    path: str | os.PathLike,
+    fps: float | None = None,
+    start: float = 0.0,
+    seconds: float | None = None,
+    max_side: int | None = None,
+) -> Iterator[np.ndarray]:
+    """The frames of a video as uint8 ``[H,W,3]``, one at a time (rotation applied).
+
+    ``fps`` resamples to that rate by timestamps (None: every frame as stored), ``start``/``seconds``
+    cut a time range, ``max_side`` scales frames whose longer side is larger down to it (aspect kept).
+    """
+    p = _video_path(path)
+    for name, v in (("fps", fps), ("seconds", seconds)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise MeshsplatError(f"{name}: expected a positive number, got {v}")
+    if not (math.isfinite(start) and start >= 0):
+        raise MeshsplatError(f"start: expected seconds >= 0, got {start}")
+    inp = ["-ss", f"{start:.6f}"] if start > 0 else []
+    filters = [f"fps={fps:g}"] if fps is not None else []
+    if max_side is not None:
+        m = int(max_side)
+        # longer side to at most m, even sizes (yuv decoders), aspect kept
+        filters.append(f"scale='if(gt(iw,ih),min({m},iw),-2)':'if(gt(iw,ih),-2,min({m},ih))'")
+    out = (["-vf", ",".join(filters)] if filters else []) + (["-t", f"{seconds:.6f}"] if seconds else [])
+    gen, meta = _ffmpeg_reader(p, inp, out)
+    w, h = (int(x) for x in meta["size"])
+    n = w * h * 3
+    try:
+        for buf in gen:
+            if len(buf) != n:
+                break
+            yield np.frombuffer(buf, np.uint8).reshape(h, w, 3)
+    finally:
+        gen.close()
