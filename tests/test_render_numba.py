@@ -7,18 +7,28 @@ test_render_api.py.
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 
 from meshsplat.render import api as render_api
 from meshsplat.render import rasterize
 from meshsplat.render.backends import numba_available
+from meshsplat.render.backends.numba_cpu import KERNEL_ENV, KERNELS
 from test_render_parity import PARAMS, _gradcheck_scene, _loss, _with_grad, random_scene
 
 numba = pytest.importorskip("numba")
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is switched off (MESHSPLAT_NO_NUMBA=1)")
 
 GRAD_NAMES = PARAMS + ("backgrounds",)
+
+
+@pytest.fixture(params=KERNELS, autouse=True)
+def kernel(request, monkeypatch):
+    """Every test here runs with both compositing kernels: pixels in SIMD lanes (the default) and the scalar one."""
+    monkeypatch.setenv(KERNEL_ENV, request.param)
+    return request.param
 
 
 def _run(scene, backend, render_mode="RGB", seed=1):
@@ -36,6 +46,7 @@ def _assert_parity(scene, render_mode="RGB", img_tol=1e-5, grad_rtol=1e-4, proj_
     a, ga = _run(scene, "torch", render_mode)
     b, gb = _run(scene, "numba", render_mode)
     assert b.meta["backend"] == "numba"
+    assert b.meta["kernel"] == (os.environ.get(KERNEL_ENV) or "lanes")
     ca, cb = a.colors.detach(), b.colors.detach()
     scale = torch.ones(ca.shape[-1], dtype=ca.dtype)
     if render_mode == "RGB+ED":

@@ -23,6 +23,10 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
    opacities and colours in intersection order afterwards (serial). No atomics, no per-thread buffers:
    the result is bit-identical for any thread count and scheduling.
 
+Steps 2 and 3 run by default with the 16 pixels of a tile row in SIMD lanes (``numba_lanes``: the same
+lists, thresholds and stop, transmittance in the input dtype, ``exp`` inlined as a polynomial for float32);
+the scalar kernels here are the reference and the fallback, forced with ``MESHSPLAT_RASTER_KERNEL=scalar``.
+
 Tiles are handed to the threads as combs (every n-th tile to each of n threads): numba gives each thread one
 contiguous share of a ``prange``, and an avatar's work is not spread evenly over the image's rows.
 
@@ -34,6 +38,7 @@ to this file, or numba's user cache directory when that is read-only). The threa
 from __future__ import annotations
 
 import math
+import os
 from functools import lru_cache
 from typing import Any, NamedTuple
 
@@ -43,15 +48,17 @@ import torch
 from meshsplat._numba import numba_threads
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import ALPHA_MAX, ALPHA_THRESHOLD, MAX_EXTEND, PIXEL_CENTER, TRANSMITTANCE_MIN
-from meshsplat.render.backends import numba_available, numba_projection
+from meshsplat.render.backends import numba_available, numba_lanes, numba_projection
 from meshsplat.render.backends.numba_projection import project_numba
 from meshsplat.render.backends.torch_ref import render_output
 from meshsplat.render.projection import Projection, project_gaussians
 from meshsplat.render.types import RenderOutput
 
-__all__ = ["rasterize_numba", "TILE_SIZE", "warm_up"]
+__all__ = ["rasterize_numba", "TILE_SIZE", "warm_up", "compositing_kernel", "KERNEL_ENV", "KERNELS"]
 
-TILE_SIZE = 16
+TILE_SIZE = numba_lanes.LANES  # the lane kernels put one tile row in the SIMD lanes
+KERNEL_ENV = "MESHSPLAT_RASTER_KERNEL"  # "scalar": the scalar compositing kernels; "lanes" or unset: SIMD lanes
+KERNELS = ("lanes", "scalar")
 _SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint, as torch_ref (the alpha test is exact)
 # columns of an entry's record (float64; the projection's values kept exactly, then the colours)
 _MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
@@ -383,6 +390,8 @@ class _Kernels(NamedTuple):
     scatter: Any
     project: Any
     project_backward: Any
+    forward_lanes: Any
+    backward_lanes: Any
 
 
 @lru_cache(maxsize=1)
@@ -398,7 +407,20 @@ def _kernels() -> _Kernels:
     _spans = ser(_spans_py)
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
     proj, proj_bwd = numba_projection.compile_kernels(numba)
-    return _Kernels(ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd)
+    fwd_lanes, bwd_lanes = numba_lanes.compile_kernels(numba)
+    return _Kernels(
+        ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd,
+        fwd_lanes, bwd_lanes,
+    )  # fmt: skip
+
+
+def compositing_kernel() -> str:
+    """Which compositing kernels a render uses now: ``"lanes"`` (the default: pixels in SIMD lanes) or ``"scalar"``
+    (``MESHSPLAT_RASTER_KERNEL=scalar``, the reference). Read at every render."""
+    value = os.environ.get(KERNEL_ENV, "").strip().lower() or "lanes"
+    if value not in KERNELS:
+        raise MeshsplatError(f"{KERNEL_ENV}={value!r} is not one of {', '.join(KERNELS)} (or unset)")
+    return value
 
 
 def _tile_order(n_tiles: int) -> np.ndarray:
@@ -436,6 +458,7 @@ class _Geometry:
         self.consts = np.array([0.5, ALPHA_MAX, ALPHA_THRESHOLD], dtype=np_dt)
         self.t_final: np.ndarray | None = None
         self.n_contrib: np.ndarray | None = None
+        self.kernel = compositing_kernel()  # forward and backward use the same kind
 
     def bin(self, opacities: torch.Tensor, colors: torch.Tensor) -> None:
         """Entry records (footprints, the projection's values, colours ``[N,D]`` or ``[C,N,D]``) and tile lists."""
@@ -468,13 +491,18 @@ class _Composite(torch.autograd.Function):
         C, H, W, D = geo.n_cams, geo.height, geo.width, colors.shape[-1]
         geo.bin(opacities, colors)
         bgv = _bg_array(bg, C, D, colors.dtype)
+        k = _kernels()
         with numba_threads():
-            out, t_final, n_contrib = _kernels().forward(*geo.args(bgv))
+            if geo.kernel == "lanes":  # alpha as the sum of the weights: exact near 0, where 1 - T is not in float32
+                out, t_final, n_contrib, alpha_np = k.forward_lanes(*geo.args(bgv))
+            else:
+                out, t_final, n_contrib = k.forward(*geo.args(bgv))
+                alpha_np = (1.0 - t_final).astype(out.dtype)
         geo.t_final, geo.n_contrib = t_final, n_contrib
         ctx.geo, ctx.has_bg, ctx.col_shape, ctx.dtype = geo, bg is not None, tuple(colors.shape), colors.dtype
         ctx.save_for_backward(bg if bg is not None else torch.empty(0))
         img = torch.from_numpy(out).reshape(C, H, W, D)
-        alpha = torch.from_numpy((1.0 - t_final).astype(out.dtype)).reshape(C, H, W, 1)
+        alpha = torch.from_numpy(alpha_np).reshape(C, H, W, 1)
         return img, alpha
 
     @staticmethod
@@ -489,7 +517,7 @@ class _Composite(torch.autograd.Function):
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
         with numba_threads():
-            rows = k.backward(
+            rows = (k.backward_lanes if geo.kernel == "lanes" else k.backward)(
                 *geo.args(bgv),
                 g_out.detach().contiguous().numpy(),
                 g_alpha.detach().contiguous().numpy(),
@@ -513,7 +541,8 @@ class _Composite(torch.autograd.Function):
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) the kernels for float32 and float64 now."""
+    """Compile (or load from numba's on-disk cache) the kernels for float32 and float64 now (the compositing
+    kernels that :func:`compositing_kernel` picks)."""
     for dt in (torch.float32, torch.float64):
         means = torch.tensor([[0.0, 0.0, 2.0]], dtype=dt, requires_grad=True)
         out = rasterize_numba(
@@ -578,4 +607,5 @@ def rasterize_numba(
     img, alpha = _Composite.apply(means2d, proj.conics, opacities, cols, bg, geo)
     out = render_output(proj, means2d, C, W, H, img, alpha, render_mode, "numba")
     out.meta["n_isects"] = int(geo.isect.shape[0])  # (tile, Gaussian) intersections
+    out.meta["kernel"] = geo.kernel
     return out
