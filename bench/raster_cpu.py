@@ -1,16 +1,22 @@
-"""CPU rasterizer benchmark: the compiled numba backend vs the torch backend, forward + backward.
+"""CPU rasterizer benchmark: the compiled numba backend (compositing with pixels in SIMD lanes, the default, and
+the scalar kernels, ``MESHSPLAT_RASTER_KERNEL=scalar``) vs the torch backend, forward + backward.
 
 Cases (one camera, avatar-like upper-body framing): 10k Gaussians @ 256x256, 50k @ 512x512,
-200k @ 1080x1080 (``--quick``: the first only).
+200k @ 1080x1080, 500k @ 512x512 (``--quick``: the first only).
 
-Time: median over repeats of forward, backward and forward + backward (after one warm-up run).
+Time: median over repeats of forward, backward and forward + backward (after one warm-up run), wall clock and
+CPU time of the process (``time.process_time``); with ``--rounds R`` every (case, variant) child runs R times,
+the variants interleaved within each round, and the median over the rounds' medians is reported. Work: pixel
+visits, the pixels of the entries' exact footprints in the tiles they touch that the scalar forward walks (from
+``raster_cpu_stages.py``'s count), so "ns / visit" = forward + backward CPU time over visits.
 Memory: each (case, backend) runs in a fresh subprocess; peak = resource.getrusage ru_maxrss after the
 runs minus the RSS just before the first render (scene built, numba kernels already loaded from the
 on-disk cache, so compilation memory is not counted), i.e. the extra resident memory the renderer needed.
 Compile time: a child with an empty NUMBA_CACHE_DIR times ``warm_up()`` (float32 + float64 kernels,
 cold compile), a second child with the same directory times it again (kernels loaded from the cache).
 
-    python bench/raster_cpu.py [--quick] [--cases 0,1] [--threads N] [--repeats R] [--no-compile] [--out PATH]
+    python bench/raster_cpu.py [--quick] [--cases 0,1] [--threads N] [--repeats R] [--rounds R] [--no-compile]
+                               [--out PATH]
 """
 
 from __future__ import annotations
@@ -26,8 +32,8 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-CASES = [(10_000, 256), (50_000, 512), (200_000, 1080)]
-BACKENDS = ("numba", "torch")
+CASES = [(10_000, 256), (50_000, 512), (200_000, 1080), (500_000, 512)]
+VARIANTS = ("numba", "numba-scalar", "torch")  # numba: the default (lanes) compositing kernels
 
 
 def _rss_mib() -> float:
@@ -41,9 +47,35 @@ def _maxrss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_case(n: int, size: int, repeats: int, backend: str, threads: int) -> dict:
+def _pixel_visits(scene: dict) -> int:
+    """Footprint pixels the scalar forward walks (``raster_cpu_stages._count_visits``) for a scene's one camera."""
+    import numba
+
+    from meshsplat.render.backends import numba_cpu as nc
+    from raster_cpu_stages import _count_visits
+
+    k = nc._kernels()
+    s = scene
+    size = s["width"]
+    with nc.numba_threads():
+        proj = nc.project_numba(
+            (k.project, k.project_backward), nc.numba_threads, s["means"], s["quats"], s["scales"], s["opacities"],
+            s["viewmats"], s["Ks"], size, s["height"], 0.01, 1e10,
+        )  # fmt: skip
+    geo = nc._Geometry(proj, s["means"].shape[0], True, size, s["height"], nc.TILE_SIZE)
+    geo.bin(s["opacities"], s["colors"])
+    counts = numba.njit(_count_visits)(
+        geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, s["height"], nc.TILE_SIZE, geo.tiles_x
+    )
+    return int(counts[0])
+
+
+def run_case(n: int, size: int, repeats: int, variant: str, threads: int) -> dict:
     """Runs in the child process."""
     import torch
+
+    backend = "numba" if variant.startswith("numba") else "torch"
+    os.environ["MESHSPLAT_RASTER_KERNEL"] = "scalar" if variant == "numba-scalar" else "lanes"
 
     if threads:
         torch.set_num_threads(threads)
@@ -58,25 +90,31 @@ def run_case(n: int, size: int, repeats: int, backend: str, threads: int) -> dic
     names = ("means", "quats", "scales", "opacities", "colors", "backgrounds")
     params = {k: (v.clone().requires_grad_(True) if k in names else v) for k, v in scene.items()}
     base_rss = _rss_mib()
-    fwd, bwd, total = [], [], []
+    fwd, bwd, total, cpu = [], [], [], []
     for i in range(repeats + 1):
         for p in params.values():
             if isinstance(p, torch.Tensor):
                 p.grad = None
+        c0 = time.process_time()
         t0 = time.perf_counter()
         out = rasterize(**params, backend=backend)
         loss = (out.colors - 0.5).abs().mean() + out.alphas.mean()
         t1 = time.perf_counter()
         loss.backward()
         t2 = time.perf_counter()
+        c2 = time.process_time()
         if i > 0:  # the first run is a warm-up
             fwd.append(t1 - t0)
             bwd.append(t2 - t1)
             total.append(t2 - t0)
+            cpu.append(c2 - c0)
     return {
         "gaussians": n,
         "size": size,
-        "backend": backend,
+        "backend": variant,
+        "kernel": out.meta.get("kernel", ""),
+        "fwd_bwd_cpu_s": statistics.median(cpu),
+        "pixel_visits": _pixel_visits(scene) if backend == "numba" else 0,
         "fwd_s": statistics.median(fwd),
         "bwd_s": statistics.median(bwd),
         "fwd_bwd_s": statistics.median(total),
@@ -126,6 +164,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default="", help="comma-separated indices into the cases (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch (and so numba) threads (0: torch default)")
     ap.add_argument("--repeats", type=int, default=0, help="timed runs per case (default 7, --quick 3)")
+    ap.add_argument("--rounds", type=int, default=1, help="children per (case, variant), variants interleaved")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -145,15 +185,35 @@ def main(argv=None) -> int:
         cases = [CASES[int(i)] for i in args.cases.split(",")]
     compile_info = None if args.no_compile else measure_compile()
     _child(["--compile-child"])  # fill the default on-disk cache the cases load from
-    rows = [_child(["--child", f"{n},{s},{repeats},{b},{args.threads}"]) for n, s in cases for b in BACKENDS]
-
-    print(f"{'case':>14} {'backend':>7} {'fwd s':>8} {'bwd s':>8} {'fwd+bwd s':>10} {'peak MiB':>9} {'speed-up':>9}")
+    variants = args.variants.split(",")
+    rows = []
+    for n, s in cases:
+        runs: dict[str, list[dict]] = {v: [] for v in variants}
+        for rnd in range(args.rounds):  # interleaved; every other round in reverse order
+            for v in variants if rnd % 2 == 0 else variants[::-1]:
+                runs[v].append(_child(["--child", f"{n},{s},{repeats},{v},{args.threads}"]))
+        for rs in runs.values():
+            row = dict(rs[0])
+            for key in ("fwd_s", "bwd_s", "fwd_bwd_s", "fwd_bwd_cpu_s", "peak_extra_mib"):
+                row[key] = statistics.median(r[key] for r in rs)
+            row["rounds_fwd_bwd_s"] = [r["fwd_bwd_s"] for r in rs]
+            rows.append(row)
+    visits = {(r["gaussians"], r["size"]): r["pixel_visits"] for r in rows if r["pixel_visits"]}
     for r in rows:
-        ref = next(x for x in rows if x["backend"] == "torch" and x["size"] == r["size"])
-        speed = ref["fwd_bwd_s"] / r["fwd_bwd_s"]
+        r["pixel_visits"] = visits.get((r["gaussians"], r["size"]), 0)
+
+    print(
+        f"{'case':>14} {'variant':>12} {'fwd s':>8} {'bwd s':>8} {'fwd+bwd s':>10} {'cpu s':>8} {'ns/visit':>9} "
+        f"{'peak MiB':>9} {'vs torch':>9}"
+    )
+    for r in rows:
+        ref = next((x for x in rows if x["backend"] == "torch" and x["size"] == r["size"]
+                    and x["gaussians"] == r["gaussians"]), None)  # fmt: skip
+        speed = f"{ref['fwd_bwd_s'] / r['fwd_bwd_s']:8.2f}x" if ref else "       -"
+        ns = 1e9 * r["fwd_bwd_cpu_s"] / r["pixel_visits"] if r["pixel_visits"] else float("nan")
         print(
-            f"{r['gaussians']:>7}@{r['size']:<6} {r['backend']:>7} {r['fwd_s']:>8.3f} {r['bwd_s']:>8.3f} "
-            f"{r['fwd_bwd_s']:>10.3f} {r['peak_extra_mib']:>9.0f} {speed:>8.2f}x"
+            f"{r['gaussians']:>7}@{r['size']:<6} {r['backend']:>12} {r['fwd_s']:>8.3f} {r['bwd_s']:>8.3f} "
+            f"{r['fwd_bwd_s']:>10.3f} {r['fwd_bwd_cpu_s']:>8.3f} {ns:>9.1f} {r['peak_extra_mib']:>9.0f} {speed}"
         )
     if compile_info:
         print(
@@ -173,6 +233,7 @@ def main(argv=None) -> int:
                 "machine": info,
                 "quick": args.quick,
                 "repeats": repeats,
+                "rounds": args.rounds,
                 "compile": compile_info,
                 "memory_method": "ru_maxrss delta in a fresh subprocess per (case, backend), kernels preloaded",
                 "results": rows,
