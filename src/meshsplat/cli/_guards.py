@@ -53,6 +53,7 @@ LIMITS = {
     "view --port": (1, 65535, ""),
     "eval --max-frames": (1, 1_000_000, "frames"),
     "train --iters": (1, 10_000_000, "iterations"),
+    "train --minutes": (0.1, 525_600.0, "minutes"),
 }
 _MEMORY_HEADROOM = 0.9  # refuse what needs more than this share of the available memory
 

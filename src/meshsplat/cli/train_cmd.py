@@ -33,6 +33,7 @@ from meshsplat.data.formats import detect_format, format_module, open_capture, r
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import RunFolder, check_training_target
+from meshsplat.train.budget import plan_budget
 from meshsplat.train.config import TrainConfig, apply_overrides, load_config
 from meshsplat.train.launch import launch
 from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
@@ -73,7 +74,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", required=True, help="run directory")
     add_downscale_option(parser, "1, or data_downscale of --config (stored in RUN/config.json; eval reads it)")
-    parser.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
+    schedule = parser.add_mutually_exclusive_group()
+    schedule.add_argument("--iters", type=int, default=None, help="total iterations (default 30000)")
+    schedule.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="a time budget: measures this machine on a few iterations, then scales the schedule (iterations, "
+        "densification, checkpoints) to end within N minutes, and says what it chose; docs/config.md",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     parser.add_argument(
         "--preset",
@@ -199,6 +208,15 @@ def run(args: argparse.Namespace) -> int:
         (2e8 + 1200.0 * n) * max(1, args.nproc),
         "lower model.n_init / strategy.max_gaussians",
     )
+    if args.minutes is not None:
+        check_range("--minutes", args.minutes, "train --minutes")
+        if args.resume or args.nproc != 1:
+            raise MeshsplatError(
+                "--minutes plans a new run in one process; a resumed run keeps its schedule (give --iters to "
+                "change it), and --nproc needs --iters"
+            )
+        cfg, budget = plan_budget(cfg, args.minutes)
+        print(budget.summary())
     if args.nproc != 1:
         copy_source_map(cfg.data, cfg.out)
         print(f"training with {args.nproc} processes, batch_size {cfg.batch_size}")
