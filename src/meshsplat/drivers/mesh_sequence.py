@@ -26,6 +26,7 @@ import torch
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import npz_keys, read_npz
+from meshsplat.io.images import open_image
 from meshsplat.io.json_file import read_json_object
 from meshsplat.io.obj import read_obj
 from meshsplat.io.ply_mesh import read_ply_mesh
@@ -182,10 +183,8 @@ def _read_frame(q: Path, with_uvs: bool):
 
 
 def _read_texture(path: Path) -> np.ndarray:
-    from PIL import Image
-
     try:
-        with Image.open(path) as im:
+        with open_image(path) as im:  # the size checked before decoding
             return np.array(im.convert("RGB"), dtype=np.uint8)
     except (OSError, ValueError) as exc:
         raise MeshsplatError(f"{path}: cannot decode the texture ({exc}) ({FRAMES_LAYOUT})") from None

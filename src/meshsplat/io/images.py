@@ -1,9 +1,14 @@
-"""Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding, float images to uint8."""
+"""Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding, float images to uint8.
+
+Every decode first reads the size from the file's header and refuses an image over ``MAX_PIXELS`` in one
+line (a 20000 x 20000 PNG of a few kB would take 1.6 GB decoded, and more as floats).
+"""
 
 from __future__ import annotations
 
 import struct
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -11,7 +16,20 @@ import torch
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["png_size", "read_png", "png_max", "write_png", "image_size", "read_image", "float_to_uint8"]
+__all__ = [
+    "png_size",
+    "read_png",
+    "png_max",
+    "write_png",
+    "image_size",
+    "read_image",
+    "float_to_uint8",
+    "MAX_PIXELS",
+    "check_pixels",
+    "open_image",
+]
+
+MAX_PIXELS = 8192 * 8192  # the largest image any command renders; a 6000 x 4000 photo is 24 M
 
 _SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -29,14 +47,37 @@ def png_size(path: Path) -> tuple[int, int]:
 _WIDE_GREY = ("I;16", "I;16B", "I;16L", "I")  # Pillow's modes for 16-bit grey PNGs
 
 
+def check_pixels(path: Path, width: int, height: int) -> None:
+    """Refuse an image of more than ``MAX_PIXELS`` (from its header, before decoding)."""
+    if int(width) * int(height) > MAX_PIXELS:
+        raise MeshsplatError(
+            f"{path}: {width} x {height} pixels is larger than meshsplat decodes (at most {MAX_PIXELS / 1e6:.0f} "
+            "million pixels, e.g. 8192 x 8192); downscale the image first"
+        )
+
+
+def open_image(path: Path) -> Any:
+    """PIL's lazy open (header only), the size checked; PIL's own decompression-bomb refusal as one line."""
+    from PIL import Image
+
+    try:
+        im = Image.open(path)
+    except Image.DecompressionBombError as exc:
+        raise MeshsplatError(f"{path}: larger than meshsplat decodes ({exc}); downscale the image first") from None
+    try:
+        check_pixels(path, *im.size)
+    except MeshsplatError:
+        im.close()
+        raise
+    return im
+
+
 def read_png(path: Path, channels: int) -> np.ndarray:
     """Decode to ``[H, W, channels]`` (1 = grey, 3 = RGB): uint8, or uint16 for 16-bit grey files
     (their full range; converting them to 8 bits would clip). Divide by :func:`png_max` for [0, 1].
     16-bit RGB files are read at 8 bits (Pillow keeps the high byte: scaled, not clipped)."""
-    from PIL import Image
-
     try:
-        with Image.open(path) as im:
+        with open_image(path) as im:
             if im.mode in _WIDE_GREY:
                 arr = np.array(im, dtype=np.int64)
                 if arr.min() < 0 or arr.max() > 65535:
@@ -67,18 +108,18 @@ def image_size(path: Path) -> tuple[int, int]:
     try:
         with Image.open(path) as im:
             return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError as exc:
+        raise MeshsplatError(f"{path}: larger than meshsplat decodes ({exc}); downscale the image first") from None
     except (OSError, ValueError) as exc:
         raise MeshsplatError(f"{path}: not an image ({exc})") from None
 
 
 def read_image(path: Path, channels: int) -> np.ndarray:
     """Decode a PNG/JPEG/... to uint8 ``[H, W, channels]`` (1 grey, 3 RGB, 4 RGBA; missing alpha = 255)."""
-    from PIL import Image
-
     if channels != 4:
         return read_png(path, channels)
     try:
-        with Image.open(path) as im:
+        with open_image(path) as im:
             arr = np.array(im.convert("RGBA"), dtype=np.uint8)
     except (OSError, ValueError) as exc:
         raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None

@@ -393,6 +393,7 @@ class TrainConfig:
                 f"height), as gsplat), got {self.strategy.prune_scale2d}: a pixel value? divide it by the image size",
             ),
             (self.iterations <= MAX_ITERATIONS, f"iterations must be <= {MAX_ITERATIONS:,}"),
+            (-(2**63) <= self.seed <= 2**63 - 3, f"seed must fit in 63 bits (|seed| < 9.2e18), got {self.seed}"),
             (
                 self.model.n_init <= MAX_GAUSSIANS and self.strategy.max_gaussians <= MAX_GAUSSIANS,
                 f"model.n_init and strategy.max_gaussians must be <= {MAX_GAUSSIANS:,}",
@@ -486,7 +487,12 @@ def _coerce(value: Any, tp: Any, key: str):
                 raise ValueError
             if isinstance(value, bool):
                 raise ValueError
-            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+            if isinstance(value, str) and "e" in value.lower():  # 3e4 is a whole number; 2.5e0 and 1e999 are not
+                f = float(value)
+                if not math.isfinite(f) or not f.is_integer():
+                    raise ValueError
+                return int(f)
+            return int(value)
         if tp is float:
             if isinstance(value, bool):
                 raise ValueError
@@ -498,7 +504,7 @@ def _coerce(value: Any, tp: Any, key: str):
             return str(value)
     except MeshsplatError:
         raise
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise MeshsplatError(f"config: {key} expects {tp.__name__}, got {value!r}") from None
     return value
 

@@ -212,7 +212,7 @@ def has_alpha(path: Path) -> bool:
     try:
         with Image.open(path) as im:
             return im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
-    except (OSError, ValueError):
+    except (OSError, ValueError, Image.DecompressionBombError):
         return False
 
 
