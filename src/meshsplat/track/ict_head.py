@@ -27,7 +27,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from meshsplat.drivers.blendshape import axis_angle_to_matrix
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npz
 from meshsplat.paths import asset
@@ -40,6 +39,8 @@ __all__ = [
     "NUM_LANDMARKS",
     "EYE_LOOK_RANGE",
     "gaze_matrices",
+    "rotation_matrix",
+    "with_eye_look",
     "eye_look_weights",
 ]
 
@@ -112,7 +113,7 @@ class IctHead:
                 turned = torch.einsum("tij,tvj->tvi", gm[:, eye], v[:, sel] - c) + c
                 v = v.clone()
                 v[:, sel] = turned
-        R = axis_angle_to_matrix(rotations)
+        R = rotation_matrix(rotations)
         return torch.einsum("tij,tvj->tvi", R, v - pivot) + pivot + translations[:, None]
 
     def landmarks(self, vertices: torch.Tensor) -> torch.Tensor:
@@ -127,6 +128,18 @@ class IctHead:
         corners = self.faces[self.landmark_face]
         uniq, inv = torch.unique(corners.reshape(-1), return_inverse=True)
         return uniq, inv.reshape(-1, 3)
+
+
+def rotation_matrix(aa: torch.Tensor) -> torch.Tensor:
+    """Rodrigues ``aa [...,3]`` -> ``[...,3,3]`` with a gradient at zero (``drivers.blendshape.
+    axis_angle_to_matrix`` normalises the axis, which leaves a fit starting at zero rotation stuck)."""
+    theta2 = aa.pow(2).sum(-1, keepdim=True)[..., None]
+    theta = (theta2 + 1e-12).sqrt()
+    x, y, z = aa.unbind(-1)
+    o = torch.zeros_like(x)
+    Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(aa.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(Kx)
+    return eye + torch.sin(theta) / theta * Kx + (1 - torch.cos(theta)) / (theta * theta) * (Kx @ Kx)
 
 
 def gaze_matrices(gaze: torch.Tensor) -> torch.Tensor:
