@@ -7,6 +7,7 @@ the one validation path of every reader) and then hands out frames lazily.
 from __future__ import annotations
 
 import copy
+import warnings
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -19,9 +20,9 @@ from meshsplat.camera import Camera, capture_front, capture_up
 from meshsplat.data.downscale import check_downscale, downscale_frame, downscaled_size, scale_intrinsics
 from meshsplat.drivers.base import SequenceDriver
 from meshsplat.drivers.body_models import BodyModel, model_from_record
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import read_npy
-from meshsplat.io.images import png_max, read_image
+from meshsplat.io.images import MASK_READINGS, png_max, read_image, read_mask
 
 __all__ = ["Frame", "AvatarDataset", "MASK_KINDS", "DROP_FLAG"]
 
@@ -283,8 +284,11 @@ class AvatarDataset:
             return None
         if kind == "npy":
             return torch.from_numpy(_read_npy_mask(self.root / rec["mask"]))
-        arr = read_image(self.root / rec["mask"], 1)
-        return torch.from_numpy(arr.astype(np.float32)).div_(png_max(arr))
+        mask, how = read_mask(self.root / rec["mask"])  # alpha mattes, 0/1 label maps, grey; EXIF upright
+        if how != "grey":  # say what was understood (one message per folder)
+            folder = (self.root / rec["mask"]).parent
+            warnings.warn(f"{folder}: masks read from {MASK_READINGS[how]}", MeshsplatWarning, stacklevel=2)
+        return torch.from_numpy(mask)
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):

@@ -22,7 +22,7 @@ from meshsplat.data.dataset import DROP_FLAG, MASK_KINDS, AvatarDataset, _read_n
 from meshsplat.data.writer import FORMAT_NAME, FORMAT_VERSION
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.arrays import array_error_text, read_npy, read_npz
-from meshsplat.io.images import image_size, read_image
+from meshsplat.io.images import image_size, read_image, read_mask
 from meshsplat.plausible import focal_problem, parameter_problems
 
 __all__ = ["open_dataset", "build_dataset", "Problems", "inside_capture", "outside_allowed", "ALLOW_OUTSIDE_ENV"]
@@ -611,7 +611,7 @@ def _check_frame_files(
         elif kind == "npy":
             m = _read_npy_mask(root / rec["mask"])
         else:
-            m = read_image(root / rec["mask"], 1)
+            m = read_mask(root / rec["mask"])[0]  # as training reads it (alpha mattes, 0/1 label maps)
     except MeshsplatError as exc:
         problems.add(where, str(exc))
         return

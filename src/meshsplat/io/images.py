@@ -1,7 +1,11 @@
 """Image files: header-only size query, decoding PNG/JPEG/..., fast PNG encoding, float images to uint8.
 
 Every decode first reads the size from the file's header and refuses an image over ``MAX_PIXELS`` in one
-line (a 20000 x 20000 PNG of a few kB would take 1.6 GB decoded, and more as floats).
+line (a 20000 x 20000 PNG of a few kB would take 1.6 GB decoded, and more as floats). JPEG and WebP files
+are turned upright by their EXIF orientation (what a phone records; sizes too; Pillow turns TIFF files
+itself), PNG files are taken as stored. :func:`read_mask` is the one mask reader: a matte in an alpha channel (an RGBA cut-out,
+or a white image with the matte in its alpha), a 0/1 label map, 0/255 or grey levels, 8 or 16 bits,
+and it says which it found.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ __all__ = [
     "MAX_PIXELS",
     "check_pixels",
     "open_image",
+    "read_mask",
+    "MASK_READINGS",
 ]
 
 MAX_PIXELS = 8192 * 8192  # the largest image any command renders; a 6000 x 4000 photo is 24 M
@@ -72,12 +78,27 @@ def open_image(path: Path) -> Any:
     return im
 
 
+_EXIF_ORIENTATION = 0x0112
+_SWAPS_SIDES = (5, 6, 7, 8)  # the EXIF orientations that turn the image by 90 degrees
+_ORIENTED = ("JPEG", "MPO", "WEBP")  # formats whose EXIF orientation Pillow leaves to the reader
+
+
+def _upright(im: Any) -> Any:
+    """``im`` turned by its EXIF orientation (JPEG, WebP; a PNG is taken as stored, as :func:`png_size` reads it)."""
+    if im.format not in _ORIENTED:
+        return im
+    from PIL import ImageOps
+
+    return ImageOps.exif_transpose(im)
+
+
 def read_png(path: Path, channels: int) -> np.ndarray:
     """Decode to ``[H, W, channels]`` (1 = grey, 3 = RGB): uint8, or uint16 for 16-bit grey files
     (their full range; converting them to 8 bits would clip). Divide by :func:`png_max` for [0, 1].
     16-bit RGB files are read at 8 bits (Pillow keeps the high byte: scaled, not clipped)."""
     try:
-        with open_image(path) as im:
+        with open_image(path) as raw:
+            im = _upright(raw)
             if im.mode in _WIDE_GREY:
                 arr = np.array(im, dtype=np.int64)
                 if arr.min() < 0 or arr.max() > 65535:
@@ -107,7 +128,9 @@ def image_size(path: Path) -> tuple[int, int]:
 
     try:
         with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
+            w, h = int(im.size[0]), int(im.size[1])
+            turned = im.format in _ORIENTED and im.getexif().get(_EXIF_ORIENTATION) in _SWAPS_SIDES
+            return (h, w) if turned else (w, h)
     except Image.DecompressionBombError as exc:
         raise MeshsplatError(f"{path}: larger than meshsplat decodes ({exc}); downscale the image first") from None
     except (OSError, ValueError) as exc:
@@ -120,10 +143,40 @@ def read_image(path: Path, channels: int) -> np.ndarray:
         return read_png(path, channels)
     try:
         with open_image(path) as im:
-            arr = np.array(im.convert("RGBA"), dtype=np.uint8)
+            arr = np.array(_upright(im).convert("RGBA"), dtype=np.uint8)
     except (OSError, ValueError) as exc:
         raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
     return arr
+
+
+MASK_READINGS = {
+    "alpha": "the alpha channel (a cut-out or a matte in alpha)",
+    "labels": "a 0/1 label map (1 = subject)",
+    "grey": "grey levels (0 = background, full scale = subject)",
+}
+
+
+def read_mask(path: Path) -> tuple[np.ndarray, str]:
+    """A mask file as float32 ``[H, W, 1]`` in [0, 1] and which of ``MASK_READINGS`` it was read as.
+
+    An image with an alpha channel that is not uniform is read from its alpha (an RGBA cut-out of the
+    subject, or a white image whose alpha is the matte: its colour says nothing); else its grey levels
+    (colour images by luminance; 16-bit grey at full range). Grey values all in {0, 1} are a label map
+    (1 = subject), not a nearly black mask."""
+    try:
+        with open_image(path) as raw:
+            im = _upright(raw)
+            bands = im.getbands()
+            if "A" in bands or "transparency" in im.info:
+                alpha = np.array(im.convert("RGBA"), dtype=np.uint8)[..., 3]
+                if alpha.min() != alpha.max():
+                    return (alpha.astype(np.float32) / 255.0)[..., None], "alpha"
+    except (OSError, ValueError) as exc:
+        raise MeshsplatError(f"{path}: cannot decode image ({exc})") from None
+    grey = read_png(path, 1)
+    if grey.max() == 1:
+        return grey.astype(np.float32), "labels"
+    return grey.astype(np.float32) / png_max(grey), "grey"
 
 
 def write_png(path: Path, img: np.ndarray, compress_level: int = 3) -> None:
