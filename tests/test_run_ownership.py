@@ -194,3 +194,46 @@ def test_nproc_beyond_the_cores_is_refused_before_starting_anything(capture, tmp
     with pytest.raises(MeshsplatError, match=rf"--nproc {n} is more processes than the {n - 1} CPU core"):
         launch(cfg, n)
     assert not (tmp_path / "run").exists()
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(x) for x in path.read_text().split()] if path.exists() else []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker processes through /proc")
+def test_sigterm_to_the_nproc_launcher_reaches_every_worker_and_a_second_training_is_refused(capture, tmp_path):
+    run = tmp_path / "run"
+    args = [str(capture), "--out", str(run), "--iters", "100000", "--no-progress", "--device", "cpu", "--nproc", "2"]
+    sets = ["batch_size=2", "loss.lambda_lpips=0", "backend=torch", "model.n_init=200", "checkpoint_every=2"]
+    sets += ["keep_checkpoints=2", "preview_every=100000", "strategy.max_gaussians=500"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1] / "src") + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, "-m", "meshsplat.cli.main", "train"]
+    parent = subprocess.Popen([*cmd, *args, "--set", *sets], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not RunFolder(run).checkpoints() and time.monotonic() < deadline and parent.poll() is None:
+            time.sleep(0.05)
+        workers = _children(parent.pid)
+        assert len(workers) == 2 and RunFolder(run).checkpoints(), "the job should be training"
+        second = subprocess.run(
+            [*cmd, *[a for a in args if a not in ("--nproc", "2")], "--resume", "--set", *sets],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert second.returncode == 2
+        assert f"being trained right now by process {parent.pid}" in second.stderr.strip().splitlines()[-1]
+        parent.send_signal(signal.SIGTERM)  # the launcher alone, as a scheduler or `kill PID` does
+        _, err = parent.communicate(timeout=120)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    assert parent.returncode != 0 and "Traceback" not in err
+    assert "stopped by a signal" in err and "--resume" in err, err
+    for w in workers:  # every worker ended (no orphan trains on)
+        assert not Path(f"/proc/{w}").exists() or "Z" in Path(f"/proc/{w}/stat").read_text().split()[2]
+    assert lock_holder(RunFolder(run).lock_path) is None

@@ -440,7 +440,8 @@ def check_training_target(out: str | Path, data: str | Path | None = None) -> No
             "separate run folder, e.g. runs/NAME"
         )
     entries = sorted(p.name for p in root.iterdir())
-    if entries and not run.is_run():
+    early = {RunFolder.LOCK, SOURCE_MAP_NAME}  # what a run holds before its config.json (a launcher's lock)
+    if set(entries) - early and not run.is_run():
         shown = ", ".join(entries[:4]) + (f" and {len(entries) - 4} more" if len(entries) > 4 else "")
         raise MeshsplatError(
             f"--out {root} is not empty and is not a training run (it holds {shown}); give a new or empty "
