@@ -2,9 +2,10 @@
 
 One camera, ``avatar_scene`` (default 50k Gaussians @ 512², as ``raster_cpu.py``'s middle case). Stages:
 projection forward and backward (compiled), geometry (the depth ``argsort`` and entry order), binning (entry
-records and tile lists), compositing forward, compositing backward (per-intersection gradient rows), and the
-scatter of those rows. Time: minimum and median over repeats, wall clock (``--threads 1`` on a shared machine:
-the least disturbed). Work: intersections, footprint pixels visited (forward), of which at already finished
+records and tile lists), compositing forward, compositing backward (per-intersection gradient rows; both with
+the lanes kernels, the default, and the scalar ones), and the scatter of those rows. Time: minimum and median
+over repeats, CPU time of the process (``--threads 1`` on a shared machine: the least disturbed); shares are of
+the default pipeline (lanes). Work: intersections, footprint pixels visited (forward), of which at already finished
 pixels and below the 1/255 alpha threshold, contributions per pixel.
 
     python bench/raster_cpu_stages.py [--gaussians N] [--size S] [--threads T] [--repeats R] [--out PATH]
@@ -76,9 +77,9 @@ def _timed(fn, repeats: int) -> tuple[float, float]:
     fn()
     ts = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         fn()
-        ts.append(time.perf_counter() - t0)
+        ts.append(time.process_time() - t0)
     return min(ts), statistics.median(ts)
 
 
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
     cams = [sc[x].double().contiguous().numpy() for x in ("viewmats", "Ks")]
     rng = np.random.default_rng(0)
     stages: dict[str, tuple[float, float]] = {}
-    with nc._threads():
+    with nc.numba_threads():
         proj_args = (*arrs, *cams, float(size), float(size), 0.01, 1e10)
         stages["projection forward"] = _timed(lambda: k.project(*proj_args), args.repeats)
         m2, con, depth, radii, vis = k.project(*proj_args)
@@ -122,23 +123,26 @@ def main(argv=None) -> int:
         geo = nc._Geometry(proj, n, True, size, size, 16)
         stages["binning"] = _timed(lambda: geo.bin(sc["opacities"], sc["colors"]), args.repeats)
         bg = sc["backgrounds"].numpy()
-        stages["compositing forward"] = _timed(lambda: k.forward(*geo.args(bg)), args.repeats)
+        stages["compositing forward (scalar)"] = _timed(lambda: k.forward(*geo.args(bg)), args.repeats)
+        stages["compositing forward (lanes)"] = _timed(lambda: k.forward_lanes(*geo.args(bg)), args.repeats)
         _, t_final, n_contrib = k.forward(*geo.args(bg))
         g_out = rng.standard_normal((size * size, 3)).astype(np.float32)
         g_alpha = rng.standard_normal(size * size).astype(np.float32)
         bwd = (*geo.args(bg), g_out, g_alpha, t_final, n_contrib)
-        stages["compositing backward"] = _timed(lambda: k.backward(*bwd), args.repeats)
+        stages["compositing backward (scalar)"] = _timed(lambda: k.backward(*bwd), args.repeats)
+        stages["compositing backward (lanes)"] = _timed(lambda: k.backward_lanes(*bwd), args.repeats)
         rows = k.backward(*bwd)
         stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1), args.repeats)
     count = numba.njit(_count_visits)
     visited, at_done, below, contributed, n_rows = (
         int(x) for x in count(geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, size, 16, geo.tiles_x)
     )
-    total = sum(m for m, _ in stages.values())
+    total = sum(m for name, (m, _) in stages.items() if "(scalar)" not in name)
     print(f"{n} Gaussians @ {size}², {args.threads} thread(s)")
-    print(f"{'stage':>26} {'min ms':>8} {'median ms':>10} {'share':>6}")
+    print(f"{'stage':>30} {'min ms':>8} {'median ms':>10} {'share':>6}")
     for name, (lo, med) in stages.items():
-        print(f"{name:>26} {lo * 1e3:8.1f} {med * 1e3:10.1f} {lo / total:6.1%}")
+        share = "" if "(scalar)" in name else f"{lo / total:6.1%}"
+        print(f"{name:>30} {lo * 1e3:8.1f} {med * 1e3:10.1f} {share}")
     n_isect = int(geo.isect.shape[0])
     work = {
         "visible": int(vis.sum()),

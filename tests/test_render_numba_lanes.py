@@ -104,3 +104,24 @@ def test_lane_loops_compile_to_vector_code():
     with nc.numba_threads():
         report = nl.vector_report(geo.args(bg))
     assert report["ymm"] + report["zmm"] >= 30, report
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_radix_depth_order_matches_torch_stable_argsort(dtype):
+    """The entry order (camera, then depth, ties by Gaussian index) from the radix sort of the depths' bits is
+    torch's stable argsort's, with ties, -0 beside +0, negative depths and empty cameras."""
+    k = nc._kernels()
+    g = torch.Generator().manual_seed(0)
+    for n in (0, 1, 7, 3000):
+        depths = torch.rand(3, n, generator=g, dtype=dtype) * 5 + 0.01
+        if n > 10:
+            depths[:, : n // 3] = depths[:, n // 3 : 2 * (n // 3)]  # ties
+            depths[0, 5], depths[0, 6], depths[1, 3] = -0.0, 0.0, -1.5
+        visible = torch.rand(3, n, generator=g) < 0.7
+        visible[2] = False
+        key = torch.where(visible, depths, torch.full_like(depths, float("inf")))
+        order = torch.argsort(key, dim=1, stable=True)
+        want = (order + torch.arange(3)[:, None] * n)[visible.gather(1, order)].numpy()
+        d = depths.numpy()
+        got = k.depth_order(nc._depth_keys(d), visible.numpy(), 8 * d.itemsize)
+        np.testing.assert_array_equal(got, want)

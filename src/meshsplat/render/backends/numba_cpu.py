@@ -144,6 +144,66 @@ def _bin_kernel(
     return rec, rflat, tile_ptr, isect
 
 
+def _depth_order_kernel(keys, visible, nbits):  # pragma: no cover - compiled
+    """The visible entries ``[M]`` (camera * N + Gaussian) in compositing order: camera, then ``keys [C,N]``
+    (uint64, ordered as the depths), ties by Gaussian index. A stable LSD radix sort, 8 bits a pass over the
+    low ``nbits`` bits, skipping passes where every key has the same digit (the exponent's high bits)."""
+    n_cams, n = keys.shape[0], keys.shape[1]
+    m = 0
+    for c in range(n_cams):
+        for i in range(n):
+            m += visible[c, i]
+    flat = np.empty(m, np.int64)
+    tmp = np.empty(m, np.int64)
+    kb = np.empty(m, np.uint64)
+    kt = np.empty(m, np.uint64)
+    hist = np.empty(257, np.int64)
+    pos = 0
+    for c in range(n_cams):
+        cnt = 0
+        for i in range(n):
+            if visible[c, i]:
+                flat[pos + cnt] = c * n + i
+                kb[pos + cnt] = keys[c, i]
+                cnt += 1
+        src, dst = flat[pos : pos + cnt], tmp[pos : pos + cnt]
+        ksrc, kdst = kb[pos : pos + cnt], kt[pos : pos + cnt]
+        in_tmp = False
+        for shift in range(0, nbits, 8):
+            sh = np.uint64(shift)
+            hist[:] = 0
+            for j in range(cnt):
+                hist[np.int64((ksrc[j] >> sh) & np.uint64(255)) + 1] += 1
+            if hist[1:].max() == cnt:  # one digit for all: the pass would not move anything
+                continue
+            for d in range(256):
+                hist[d + 1] += hist[d]
+            for j in range(cnt):
+                d = np.int64((ksrc[j] >> sh) & np.uint64(255))
+                o = hist[d]
+                dst[o] = src[j]
+                kdst[o] = ksrc[j]
+                hist[d] = o + 1
+            src, dst = dst, src
+            ksrc, kdst = kdst, ksrc
+            in_tmp = not in_tmp
+        if in_tmp:
+            flat[pos : pos + cnt] = src
+        pos += cnt
+    return flat
+
+
+def _depth_keys(depths: np.ndarray) -> np.ndarray:
+    """uint64 keys ``[C,N]`` whose unsigned order is the float order of ``depths`` (float32 or float64; -0 as +0)."""
+    d = depths + depths.dtype.type(0.0)  # -0.0 -> +0.0: torch's sort treats them as equal
+    if d.dtype == np.float32:
+        b32 = d.view(np.int32)
+        k32 = (b32 ^ ((b32 >> 31) & np.int32(0x7FFFFFFF))).view(np.uint32) ^ np.uint32(0x80000000)
+        return k32.astype(np.uint64)
+    b64 = d.view(np.int64)
+    return (b64 ^ ((b64 >> 63) & np.int64(0x7FFFFFFFFFFFFFFF))).view(np.uint64) ^ np.uint64(1 << 63)
+
+
 def _spans_py(rec, e, ya, yb, lo, hi, span):  # pragma: no cover - compiled
     """Columns ``span[y - ya] = (x0, x1)`` of rows ya..yb inside entry e's ``alpha >= 1/255`` ellipse, clipped
     to [lo, hi] (the torch backend's ``_row_spans`` arithmetic, float64; x1 < x0: empty). One pass over the
@@ -392,6 +452,7 @@ class _Kernels(NamedTuple):
     project_backward: Any
     forward_lanes: Any
     backward_lanes: Any
+    depth_order: Any
 
 
 @lru_cache(maxsize=1)
@@ -410,7 +471,7 @@ def _kernels() -> _Kernels:
     fwd_lanes, bwd_lanes = numba_lanes.compile_kernels(numba)
     return _Kernels(
         ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd,
-        fwd_lanes, bwd_lanes,
+        fwd_lanes, bwd_lanes, ser(_depth_order_kernel),
     )  # fmt: skip
 
 
@@ -444,11 +505,10 @@ class _Geometry:
         self.width, self.height, self.n_cams, self.tile, self.n_gauss = width, height, n_cams, tile, n_gauss
         self.tiles_x = -(-width // tile)
         self.tiles_y = -(-height // tile)
-        with torch.no_grad():
-            key = torch.where(proj.visible, proj.depths.detach(), torch.full_like(proj.depths, float("inf")))
-            order = torch.argsort(key, dim=1, stable=True)
-            flat = (order + torch.arange(n_cams)[:, None] * n_gauss)[proj.visible.gather(1, order)]
-        self.flat = flat.numpy()  # [M] entry -> camera * N + Gaussian
+        depths = proj.depths.detach().contiguous().numpy()
+        visible = proj.visible.contiguous().numpy()
+        # [M] entry -> camera * N + Gaussian: a radix sort of the depths' bits (torch's stable argsort's order)
+        self.flat = _kernels().depth_order(_depth_keys(depths), visible, 8 * depths.itemsize)
         self.col_row = self.flat % max(n_gauss, 1) if shared_colors else self.flat
         self.m2 = proj.means2d.detach().reshape(-1, 2).contiguous().numpy()
         self.con = proj.conics.detach().reshape(-1, 3).contiguous().numpy()

@@ -6,7 +6,9 @@ conic, opacity-aware radii, culling), evaluated per (camera, Gaussian) in float6
 input dtype, so float32 outputs agree with the torch version to rounding. Backward is the hand-derived
 chain rule of the same steps; camera matrices get no gradient here (the numba backend hands projection
 to torch when ``viewmats`` or ``Ks`` require grad). Both kernels run in parallel over Gaussians, each
-Gaussian summing its cameras in camera order: bit-identical for any thread count.
+Gaussian summing its cameras in camera order: bit-identical for any thread count. The parallel loops run
+over blocks of ``_BLOCK`` Gaussians, each block allocating its scratch matrices once (an allocation per
+Gaussian cost about as much as its arithmetic).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from meshsplat.render.projection import Projection
 __all__ = ["project_numba"]
 
 _prange: Any = range  # rebound to numba.prange when the kernels are compiled
+_BLOCK = 256  # Gaussians per block of the parallel loops (scratch arrays allocated once per block)
 
 
 def _project_kernel(means, quats, scales, opac, viewmats, ks, width, height, near, far):  # pragma: no cover
@@ -35,59 +38,69 @@ def _project_kernel(means, quats, scales, opac, viewmats, ks, width, height, nea
     depth = np.zeros((n_cams, n), np.float64)
     radii = np.zeros((n_cams, n, 2), np.int32)
     vis = np.zeros((n_cams, n), np.bool_)
-    for i in _prange(n):
-        rot = _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+    for blk in _prange((n + _BLOCK - 1) // _BLOCK):
+        rot = np.empty((3, 3), np.float64)
         sig = np.empty((3, 3), np.float64)  # R S S^T R^T
-        for r in range(3):
-            for c in range(3):
-                acc = 0.0
-                for k in range(3):
-                    sk = np.float64(scales[i, k])
-                    acc += rot[r, k] * sk * sk * rot[c, k]
-                sig[r, c] = acc
-        op = np.float64(opac[i])
-        ext = min(math.sqrt(2.0 * math.log(max(op, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), MAX_EXTEND)
-        for cam in range(n_cams):
-            w = viewmats[cam]
-            x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
-            y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
-            z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
-            if not (near <= z <= far):
-                continue
-            fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
-            tx, ty, _, _ = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
-            rz = 1.0 / z
-            j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
-            a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
-            a += EPS2D
-            c += EPS2D
-            det = a * c - b * b
-            if not (det > 0.0) or op < ALPHA_THRESHOLD:
-                continue
-            rx = math.ceil(ext * math.sqrt(max(a, 0.0)))
-            ry = math.ceil(ext * math.sqrt(max(c, 0.0)))
-            mx = fx * x * rz + cx
-            my = fy * y * rz + cy
-            if not (rx > 0 or ry > 0) or mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
-                continue
-            vis[cam, i] = True
-            radii[cam, i, 0], radii[cam, i, 1] = int(rx), int(ry)
-            m2[cam, i, 0], m2[cam, i, 1] = mx, my
-            con[cam, i, 0], con[cam, i, 1], con[cam, i, 2] = c / det, -b / det, a / det
-            depth[cam, i] = z
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            _project_one(means, quats, scales, opac, viewmats, ks, width, height, near, far, i, rot, sig, m2, con,
+                         depth, radii, vis)  # fmt: skip
     return m2, con, depth, radii, vis
 
 
-def _quat_rotation_py(qw, qx, qy, qz):  # pragma: no cover - compiled
-    """Rotation matrix [3,3] float64 of a quaternion (wxyz, normalised with norm clamped at 1e-12)."""
+def _project_one_py(
+    means, quats, scales, opac, viewmats, ks, width, height, near, far, i, rot, sig, m2, con, depth, radii, vis
+):  # pragma: no cover - compiled
+    """Gaussian i of :func:`_project_kernel` (``rot``, ``sig``: scratch [3,3])."""
+    n_cams = viewmats.shape[0]
+    _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], rot)
+    for r in range(3):
+        for c in range(3):
+            acc = 0.0
+            for k in range(3):
+                sk = np.float64(scales[i, k])
+                acc += rot[r, k] * sk * sk * rot[c, k]
+            sig[r, c] = acc
+    op = np.float64(opac[i])
+    ext = min(math.sqrt(2.0 * math.log(max(op, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), MAX_EXTEND)
+    for cam in range(n_cams):
+        w = viewmats[cam]
+        x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
+        y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
+        z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
+        if not (near <= z <= far):
+            continue
+        fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
+        tx, ty, _, _ = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+        rz = 1.0 / z
+        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+        a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+        a += EPS2D
+        c += EPS2D
+        det = a * c - b * b
+        if not (det > 0.0) or op < ALPHA_THRESHOLD:
+            continue
+        rx = math.ceil(ext * math.sqrt(max(a, 0.0)))
+        ry = math.ceil(ext * math.sqrt(max(c, 0.0)))
+        mx = fx * x * rz + cx
+        my = fy * y * rz + cy
+        if not (rx > 0 or ry > 0) or mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
+            continue
+        vis[cam, i] = True
+        radii[cam, i, 0], radii[cam, i, 1] = int(rx), int(ry)
+        m2[cam, i, 0], m2[cam, i, 1] = mx, my
+        con[cam, i, 0], con[cam, i, 1], con[cam, i, 2] = c / det, -b / det, a / det
+        depth[cam, i] = z
+
+
+def _quat_rotation_py(qw, qx, qy, qz, r):  # pragma: no cover - compiled
+    """Writes the rotation matrix [3,3] float64 of a quaternion (wxyz, normalised with norm clamped at 1e-12)
+    into ``r``."""
     w, x, y, z = np.float64(qw), np.float64(qx), np.float64(qy), np.float64(qz)
     nrm = max(math.sqrt(w * w + x * x + y * y + z * z), 1e-12)
     w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
-    r = np.empty((3, 3), np.float64)
     r[0, 0], r[0, 1], r[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
     r[1, 0], r[1, 1], r[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
     r[2, 0], r[2, 1], r[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
-    return r
 
 
 def _clamped_xy_py(x, y, z, fx, fy, cx, cy, width, height):  # pragma: no cover - compiled
@@ -121,6 +134,7 @@ def _screen_cov_py(w, sig, j00, j02, j11, j12):  # pragma: no cover - compiled
 
 
 _quat_rotation: Any = _quat_rotation_py
+_project_one: Any = _project_one_py
 _clamped_xy: Any = _clamped_xy_py
 _screen_cov: Any = _screen_cov_py
 
@@ -129,104 +143,139 @@ def _project_backward_kernel(
     means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth
 ):  # pragma: no cover - compiled
     """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64 from the gradients of the visible outputs."""
-    n_cams, n = viewmats.shape[0], means.shape[0]
+    n = means.shape[0]
     g_means = np.zeros((n, 3), np.float64)
     g_quats = np.zeros((n, 4), np.float64)
     g_scales = np.zeros((n, 3), np.float64)
-    for i in _prange(n):
-        rot = _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
-        s = np.empty(3, np.float64)
+    for blk in _prange((n + _BLOCK - 1) // _BLOCK):
+        rot, sig, g_sig = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
+        s_c, g_rot = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
+        s, gm, js0, js1 = np.empty(3, np.float64), np.empty(3, np.float64), np.empty(3), np.empty(3)
+        t = np.empty((2, 3), np.float64)
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            _backward_one(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, i,
+                          rot, sig, g_sig, s_c, g_rot, s, gm, js0, js1, t, g_means, g_quats, g_scales)  # fmt: skip
+    return g_means, g_quats, g_scales
+
+
+def _backward_one_py(
+    means,
+    quats,
+    scales,
+    viewmats,
+    ks,
+    width,
+    height,
+    vis,
+    v_m2,
+    v_con,
+    v_depth,
+    i,
+    rot,
+    sig,
+    g_sig,
+    s_c,
+    g_rot,
+    s,
+    gm,
+    js0,
+    js1,
+    t,
+    g_means,
+    g_quats,
+    g_scales,
+):  # pragma: no cover - compiled
+    """Gaussian i of :func:`_project_backward_kernel` (the arrays after ``i``: scratch, overwritten)."""
+    n_cams = viewmats.shape[0]
+    _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], rot)
+    for k in range(3):
+        s[k] = np.float64(scales[i, k])
+    for r in range(3):
+        for c in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += rot[r, k] * s[k] * s[k] * rot[c, k]
+            sig[r, c] = acc
+    g_sig[:, :] = 0.0  # summed over cameras
+    gm[:] = 0.0
+    for cam in range(n_cams):
+        if not vis[cam, i]:
+            continue
+        w = viewmats[cam]
+        x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
+        y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
+        z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
+        fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
+        tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+        rz = 1.0 / z
+        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+        a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+        a += EPS2D
+        c += EPS2D
+        det = a * c - b * b
+        # conic (c, -b, a) / det -> (a, b, c)
+        va_c, vb_c, vc_c = np.float64(v_con[cam, i, 0]), np.float64(v_con[cam, i, 1]), np.float64(v_con[cam, i, 2])
+        d2 = det * det
+        ga = (-c * c * va_c + b * c * vb_c - b * b * vc_c) / d2
+        gb = (2.0 * b * c * va_c - (a * c + b * b) * vb_c + 2.0 * a * b * vc_c) / d2
+        gc = (-b * b * va_c + a * b * vb_c - a * a * vc_c) / d2
+        # screen covariance G (symmetric) = [[ga, gb/2], [gb/2, gc]]; with T = J W: g_sig += T^T G T
         for k in range(3):
-            s[k] = np.float64(scales[i, k])
-        sig = np.empty((3, 3), np.float64)
+            t[0, k] = j00 * w[0, k] + j02 * w[2, k]
+            t[1, k] = j11 * w[1, k] + j12 * w[2, k]
+        g01 = 0.5 * gb
         for r in range(3):
-            for c in range(3):
+            for q in range(3):
+                g_sig[r, q] += t[0, r] * (ga * t[0, q] + g01 * t[1, q]) + t[1, r] * (g01 * t[0, q] + gc * t[1, q])
+        # d/dJ of J S J^T with S = W Σ W^T: 2 G J S; only J00, J02, J11, J12 are variables
+        for r in range(3):
+            for q in range(3):
                 acc = 0.0
                 for k in range(3):
-                    acc += rot[r, k] * s[k] * s[k] * rot[c, k]
-                sig[r, c] = acc
-        g_sig = np.zeros((3, 3), np.float64)  # summed over cameras
-        gm = np.zeros(3, np.float64)
-        for cam in range(n_cams):
-            if not vis[cam, i]:
-                continue
-            w = viewmats[cam]
-            x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
-            y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
-            z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
-            fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
-            tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
-            rz = 1.0 / z
-            j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
-            a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
-            a += EPS2D
-            c += EPS2D
-            det = a * c - b * b
-            # conic (c, -b, a) / det -> (a, b, c)
-            va_c, vb_c, vc_c = np.float64(v_con[cam, i, 0]), np.float64(v_con[cam, i, 1]), np.float64(v_con[cam, i, 2])
-            d2 = det * det
-            ga = (-c * c * va_c + b * c * vb_c - b * b * vc_c) / d2
-            gb = (2.0 * b * c * va_c - (a * c + b * b) * vb_c + 2.0 * a * b * vc_c) / d2
-            gc = (-b * b * va_c + a * b * vb_c - a * a * vc_c) / d2
-            # screen covariance G (symmetric) = [[ga, gb/2], [gb/2, gc]]; with T = J W: g_sig += T^T G T
-            t = np.empty((2, 3), np.float64)
-            for k in range(3):
-                t[0, k] = j00 * w[0, k] + j02 * w[2, k]
-                t[1, k] = j11 * w[1, k] + j12 * w[2, k]
-            g01 = 0.5 * gb
-            for r in range(3):
-                for q in range(3):
-                    g_sig[r, q] += t[0, r] * (ga * t[0, q] + g01 * t[1, q]) + t[1, r] * (g01 * t[0, q] + gc * t[1, q])
-            # d/dJ of J S J^T with S = W Σ W^T: 2 G J S; only J00, J02, J11, J12 are variables
-            s_c = np.empty((3, 3), np.float64)
-            for r in range(3):
-                for q in range(3):
-                    acc = 0.0
-                    for k in range(3):
-                        for m in range(3):
-                            acc += w[r, k] * sig[k, m] * w[q, m]
-                    s_c[r, q] = acc
-            js0 = np.empty(3, np.float64)  # row 0 of J S
-            js1 = np.empty(3, np.float64)
-            for k in range(3):
-                js0[k] = j00 * s_c[0, k] + j02 * s_c[2, k]
-                js1[k] = j11 * s_c[1, k] + j12 * s_c[2, k]
-            # (G J S)[r, k] = G[r,0] js0[k] + G[r,1] js1[k]
-            v_j00 = 2.0 * (ga * js0[0] + g01 * js1[0])
-            v_j02 = 2.0 * (ga * js0[2] + g01 * js1[2])
-            v_j11 = 2.0 * (g01 * js0[1] + gc * js1[1])
-            v_j12 = 2.0 * (g01 * js0[2] + gc * js1[2])
-            vmx, vmy = np.float64(v_m2[cam, i, 0]), np.float64(v_m2[cam, i, 1])
-            v_rz = fx * v_j00 + fy * v_j11 - 2.0 * fx * tx * rz * v_j02 - 2.0 * fy * ty * rz * v_j12
-            v_rz += fx * x * vmx + fy * y * vmy
-            v_tx = -fx * rz * rz * v_j02
-            v_ty = -fy * rz * rz * v_j12
-            vx = fx * rz * vmx
-            vy = fy * rz * vmy
-            vz = -rz * rz * v_rz + np.float64(v_depth[cam, i])
-            if clamp_x:
-                vz += (tx / z) * v_tx
-            else:
-                vx += v_tx
-            if clamp_y:
-                vz += (ty / z) * v_ty
-            else:
-                vy += v_ty
-            for k in range(3):
-                gm[k] += w[0, k] * vx + w[1, k] * vy + w[2, k] * vz
+                    for m in range(3):
+                        acc += w[r, k] * sig[k, m] * w[q, m]
+                s_c[r, q] = acc
+        # js0, js1: rows 0 and 1 of J S
         for k in range(3):
-            g_means[i, k] = gm[k]
-        # Σ = M M^T, M = R diag(s): dM = 2 g_sig M (g_sig symmetric)
-        g_rot = np.empty((3, 3), np.float64)
-        for r in range(3):
-            for k in range(3):
-                gmk = 0.0
-                for q in range(3):
-                    gmk += (g_sig[r, q] + g_sig[q, r]) * rot[q, k] * s[k]
-                g_rot[r, k] = gmk * s[k]
-                g_scales[i, k] += gmk * rot[r, k]
-        _quat_backward(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], g_rot, g_quats[i])
-    return g_means, g_quats, g_scales
+            js0[k] = j00 * s_c[0, k] + j02 * s_c[2, k]
+            js1[k] = j11 * s_c[1, k] + j12 * s_c[2, k]
+        # (G J S)[r, k] = G[r,0] js0[k] + G[r,1] js1[k]
+        v_j00 = 2.0 * (ga * js0[0] + g01 * js1[0])
+        v_j02 = 2.0 * (ga * js0[2] + g01 * js1[2])
+        v_j11 = 2.0 * (g01 * js0[1] + gc * js1[1])
+        v_j12 = 2.0 * (g01 * js0[2] + gc * js1[2])
+        vmx, vmy = np.float64(v_m2[cam, i, 0]), np.float64(v_m2[cam, i, 1])
+        v_rz = fx * v_j00 + fy * v_j11 - 2.0 * fx * tx * rz * v_j02 - 2.0 * fy * ty * rz * v_j12
+        v_rz += fx * x * vmx + fy * y * vmy
+        v_tx = -fx * rz * rz * v_j02
+        v_ty = -fy * rz * rz * v_j12
+        vx = fx * rz * vmx
+        vy = fy * rz * vmy
+        vz = -rz * rz * v_rz + np.float64(v_depth[cam, i])
+        if clamp_x:
+            vz += (tx / z) * v_tx
+        else:
+            vx += v_tx
+        if clamp_y:
+            vz += (ty / z) * v_ty
+        else:
+            vy += v_ty
+        for k in range(3):
+            gm[k] += w[0, k] * vx + w[1, k] * vy + w[2, k] * vz
+    for k in range(3):
+        g_means[i, k] = gm[k]
+    # Σ = M M^T, M = R diag(s): dM = 2 g_sig M (g_sig symmetric)
+    for r in range(3):
+        for k in range(3):
+            gmk = 0.0
+            for q in range(3):
+                gmk += (g_sig[r, q] + g_sig[q, r]) * rot[q, k] * s[k]
+            g_rot[r, k] = gmk * s[k]
+            g_scales[i, k] += gmk * rot[r, k]
+    _quat_backward(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], g_rot, g_quats[i])
+
+
+_backward_one: Any = _backward_one_py
 
 
 def _quat_backward_py(qw, qx, qy, qz, g, out):  # pragma: no cover - compiled
@@ -257,13 +306,16 @@ _quat_backward: Any = _quat_backward_py
 
 def compile_kernels(numba: Any) -> tuple[Any, Any]:
     """Wrap the kernels with ``numba`` (called once by the numba backend's kernel loader)."""
-    global _prange, _quat_rotation, _clamped_xy, _screen_cov, _quat_backward
+    global _prange, _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _project_one, _backward_one
     _prange = numba.prange
     helper = numba.njit(cache=True, fastmath=False, nogil=True)
     _quat_rotation = helper(_quat_rotation_py)
     _clamped_xy = helper(_clamped_xy_py)
     _screen_cov = helper(_screen_cov_py)
     _quat_backward = helper(_quat_backward_py)
+    inline = numba.njit(cache=True, fastmath=False, nogil=True, inline="always")
+    _project_one = inline(_project_one_py)
+    _backward_one = inline(_backward_one_py)
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
     return par(_project_kernel), par(_project_backward_kernel)
 
