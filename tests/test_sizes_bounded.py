@@ -5,6 +5,7 @@ exactly."""
 from __future__ import annotations
 
 import io
+import json
 import re
 import struct
 import tracemalloc
@@ -120,3 +121,24 @@ def test_numbers_that_do_not_fit_are_one_line(override, message):
 def test_whole_numbers_written_with_an_exponent_still_read():
     cfg = apply_overrides(TrainConfig(), ["iterations=3e4", "seed=12"]).validate()
     assert (cfg.iterations, cfg.seed) == (30000, 12)
+
+
+def test_synth_poses_again_instead_of_keeping_every_pose_and_writes_the_same_capture(tmp_path, monkeypatch):
+    """A long capture (``--frames 20000``) no longer keeps every posed mesh between planning and rendering
+    (12 GB at 64 px before): past ``_POSE_CACHE_BYTES`` the poses are computed again, to the same bytes."""
+    from meshsplat.synth import generate, synthesize
+
+    opts = {"frames": 5, "resolution": 24, "test_views": 1, "test_frames": 2, "progress": False}
+    kept = synthesize("CesiumMan", tmp_path / "kept", **opts)
+    monkeypatch.setattr(generate, "_POSE_CACHE_BYTES", 0)
+    posed_again = synthesize("CesiumMan", tmp_path / "again", **opts)
+    files = sorted(p.relative_to(kept) for p in kept.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(posed_again) for p in posed_again.rglob("*") if p.is_file())
+    for rel in files:
+        if rel.name == "manifest.json":
+            a, b = (json.loads((root / rel).read_text()) for root in (kept, posed_again))
+            for m in (a, b):
+                m["meta"].pop("seconds", None), m["meta"].pop("seconds_per_frame", None)
+            assert a == b
+        else:
+            assert (kept / rel).read_bytes() == (posed_again / rel).read_bytes(), rel

@@ -34,6 +34,7 @@ __all__ = ["synthesize", "render_view", "clip_motion", "RIGS", "RENDERERS", "Sho
 
 RIGS = ("monocular-turn", "orbit", "multiview")
 _LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
+_POSE_CACHE_BYTES = 256 * 2**20  # posed meshes kept between planning and rendering; more are posed again
 
 
 @dataclass
@@ -444,17 +445,35 @@ def _generate(
         drive, weld_group, smap = _model_mesh(source, int(driver_smooth), driver_decimate)
     else:
         drive, weld_group, smap = _driving_mesh(source, int(driver_smooth), driver_decimate)
-    poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+    times: dict[tuple, float] = {}  # (clip, rounded time) -> time, in shot order
     for s in shots:
-        key = (s.clip, round(s.time, 9))
-        if key not in poses:
-            poses[key] = (source.pose(s.clip, s.time), drive.pose(s.clip, s.time))
-    allv = torch.cat([p[0] for p in poses.values()]).numpy().astype(np.float64)
-    lo, hi = allv.min(0), allv.max(0)
+        times.setdefault((s.clip, round(s.time, 9)), s.time)
+    # every pose kept while small; a long capture poses again when rendering (memory bounded in --frames)
+    per_pose = 12 * (int(source.rest().shape[0]) + int(drive.rest().shape[0]))
+    poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+    keep = len(times) * per_pose <= _POSE_CACHE_BYTES
+
+    def pose_of(key: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+        hit = poses.get(key)
+        if hit is not None:
+            return hit
+        both = (source.pose(key[0], times[key]), drive.pose(key[0], times[key]))
+        if not keep:
+            poses.clear()  # the latest alone (the cameras of one time step share it)
+        poses[key] = both
+        return both
+
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for key in times:
+        v = pose_of(key)[0].numpy().astype(np.float64)
+        lo, hi = np.minimum(lo, v.min(0)), np.maximum(hi, v.max(0))
     pivot = np.array([(lo[0] + hi[0]) / 2, 0.0, (lo[2] + hi[2]) / 2])
     center = np.array([pivot[0], (lo[1] + hi[1]) / 2, pivot[2]])
     half_h = (hi[1] - lo[1]) / 2
-    radius = float(np.linalg.norm((allv - pivot)[:, [0, 2]], axis=1).max())
+    radius = max(
+        float(np.linalg.norm((pose_of(key)[0].numpy().astype(np.float64) - pivot)[:, [0, 2]], axis=1).max())
+        for key in times
+    )
     half_fov = math.radians(fov_deg) / 2
     distance = 1.1 * max(half_h, radius) / math.tan(half_fov) + 0.5 * radius
     K = intrinsics(resolution, resolution, fov_deg)
@@ -514,7 +533,7 @@ def _generate(
     mesh_ids: dict[tuple, int] = {}
     mesh_params: list[dict] = []
     for k, s in enumerate(shots):
-        rv, dv = poses[(s.clip, round(s.time, 9))]
+        rv, dv = pose_of((s.clip, round(s.time, 9)))
         mkey = (s.clip, round(s.time, 9), round(s.yaw, 9))
         if mkey not in mesh_ids:
             if is_model and pose_noise > 0:
