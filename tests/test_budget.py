@@ -11,7 +11,7 @@ import pytest
 from meshsplat.cli.main import main
 from meshsplat.errors import MeshsplatError
 from meshsplat.train import TrainConfig
-from meshsplat.train.budget import GROWTH_MARGIN, KEPT_KEYS, MIN_ITERATIONS, SCALED_KEYS, plan_budget, scale_schedule
+from meshsplat.train.budget import KEPT_KEYS, MIN_ITERATIONS, SCALED_KEYS, plan_budget, planned_seconds, scale_schedule
 from test_downscale import _capture
 
 
@@ -44,9 +44,11 @@ def test_a_budget_is_measured_on_this_machine_and_fits_the_iterations(tmp_path):
     cfg = TrainConfig(data=str(root), out=str(tmp_path / "run"), device="cpu", progress=False)
     cfg.model.n_init = 200
     scaled, budget = plan_budget(cfg, 2.0)
-    assert budget.iteration_s > 0 and budget.setup_s >= 0
-    expected = int((2.0 * 60 - budget.setup_s) / (budget.iteration_s * GROWTH_MARGIN))
-    assert budget.iterations == min(expected, cfg.iterations) >= MIN_ITERATIONS
+    m = budget.measured
+    assert m.iteration_s > 0 and m.frame_s > 0 and m.setup_s >= 0 and m.frames == 4  # 6 frames, 4 for training
+    assert budget.planned_s == planned_seconds(m, budget.iterations) <= 2.0 * 60
+    assert planned_seconds(m, budget.iterations + 1) > 2.0 * 60  # the most that fit
+    assert MIN_ITERATIONS <= budget.iterations < 30_000
     assert scaled.iterations == budget.iterations and budget.factor == pytest.approx(budget.iterations / 30_000)
     assert scaled.strategy.refine_stop_iter == round(15_000 * budget.factor)
     assert not (tmp_path / "run").exists()  # the probe trained in a temporary folder
@@ -63,7 +65,7 @@ def test_the_cli_says_what_it_chose_and_the_run_keeps_it(tmp_path, capsys):
     assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0", "iterations=60"]) == 0
     out = capsys.readouterr().out
     line = next(x for x in out.splitlines() if x.startswith("budget 2 min: measured"))
-    assert "training 60 iterations (the full schedule fits)" in line
+    assert "training 60 iterations (the full schedule fits; planned " in line
     assert json.loads((run / "config.json").read_text())["iterations"] == 60
     assert "iteration 60," in out
     with pytest.raises(SystemExit):  # argparse: one of the two

@@ -1,9 +1,10 @@
 """A training budget a person can say: ``meshsplat train DATA --minutes N``.
 
 The schedule is fitted to the time and the machine: a throwaway trainer (in a temporary folder) measures
-this capture's setup and a few iterations on this machine, and the iterations that fit are the budget,
-less the setup, over the measured time per iteration times ``GROWTH_MARGIN`` (densification adds
-Gaussians, so later iterations cost more than the first ones). At most the configured schedule
+this capture's setup, a few iterations and reading a frame on this machine, and the iterations that fit
+are the budget, less the setup and reading each training frame once (the trainer keeps them), over the
+measured time per iteration times ``GROWTH_MARGIN`` (densification adds Gaussians, so later iterations
+cost more than the first ones). At most the configured schedule
 (``iterations``, 30,000 by default), at least ``MIN_ITERATIONS``.
 
 The schedule's positions scale with it, in proportion to ``iterations``: ``SCALED_KEYS`` (when
@@ -33,7 +34,9 @@ __all__ = [
     "GROWTH_MARGIN",
     "MIN_ITERATIONS",
     "Budget",
+    "Measurement",
     "measure_iteration",
+    "planned_seconds",
     "scale_schedule",
     "plan_budget",
 ]
@@ -53,29 +56,9 @@ KEPT_KEYS = (
     "loss.lpips_every",
     "model.occlusion_key_iter",
 )
-PROBE_ITERATIONS = 4  # timed after one warm-up iteration (even: LPIPS every second iteration is averaged)
+PROBE_ITERATIONS = 6  # timed after one warm-up iteration (even: LPIPS every second iteration is averaged)
 GROWTH_MARGIN = 1.5  # later iterations hold more Gaussians than the measured first ones
 MIN_ITERATIONS = 50
-
-
-@dataclasses.dataclass(frozen=True)
-class Budget:
-    """What ``plan_budget`` chose, and why."""
-
-    minutes: float
-    setup_s: float  # opening the capture and initialising, measured
-    iteration_s: float  # one iteration at the start, measured
-    iterations: int
-    factor: float  # iterations / the configured schedule's
-    overrides: tuple[str, ...]  # the schedule as --set pairs (iterations first)
-
-    def summary(self) -> str:
-        fitted = "the full schedule fits" if self.factor >= 1 else f"the schedule scaled by {self.factor:.3g}"
-        return (
-            f"budget {self.minutes:g} min: measured {self.iteration_s:.3g} s an iteration and {self.setup_s:.0f} s "
-            f"of setup on this machine; training {self.iterations:,} iterations ({fitted}), the same as "
-            f"--iters {self.iterations} --set {' '.join(self.overrides[1:])}"
-        )
 
 
 def _get(cfg: TrainConfig, key: str) -> int:
@@ -85,10 +68,20 @@ def _get(cfg: TrainConfig, key: str) -> int:
     return int(node)  # type: ignore[call-overload]
 
 
-def measure_iteration(cfg: TrainConfig, iterations: int = PROBE_ITERATIONS) -> tuple[float, float]:
-    """``(setup seconds, seconds per iteration)`` of ``cfg`` on this machine, measured by a trainer that
-    writes to a temporary folder (removed after): setup is construction plus the first iteration (compiled
-    kernels load, caches fill) less one iteration; then ``iterations`` are timed."""
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """What a probe measured on this machine, in seconds."""
+
+    setup_s: float  # constructing the trainer (capture, initialisation) and the first iteration, less one
+    iteration_s: float  # an iteration on a frame already read (the frame cache warm)
+    frame_s: float  # reading a training frame the first time (decoding its image and mask)
+    frames: int  # training frames: each is read once, then kept
+
+
+def measure_iteration(cfg: TrainConfig, iterations: int = PROBE_ITERATIONS) -> Measurement:
+    """Time ``cfg`` on this machine with a trainer that writes to a temporary folder (removed after): its
+    setup, ``iterations`` timed iterations, and reading a frame (``dataset[i]``, uncached), which the timed
+    iterations did for each new frame they drew and the run does once per frame."""
     with tempfile.TemporaryDirectory(prefix="meshsplat-budget-") as tmp:
         probe = dataclasses.replace(cfg, out=str(Path(tmp) / "probe"), progress=False)
         t0 = time.perf_counter()
@@ -96,9 +89,44 @@ def measure_iteration(cfg: TrainConfig, iterations: int = PROBE_ITERATIONS) -> t
         trainer.train(until=1)
         t1 = time.perf_counter()
         trainer.train(until=1 + iterations)
-        per_iteration = (time.perf_counter() - t1) / iterations
+        t2 = time.perf_counter()
+        ids, fresh = trainer.train_ids[-2:], trainer.dataset.with_meshes({})  # a copy, its frame cache empty
+        for idx in ids:
+            fresh[idx]
+        frame_s = (time.perf_counter() - t2) / len(ids)
         trainer.dp.close()
-    return max(0.0, t1 - t0 - per_iteration), per_iteration
+    frames = len(trainer.train_ids)
+    first_visits = min(iterations, max(frames - 1, 0))  # the first epoch draws each frame once
+    probe_s = (t2 - t1) / iterations
+    iteration_s = max(probe_s - frame_s * first_visits / iterations, 0.25 * probe_s)
+    return Measurement(max(0.0, t1 - t0 - probe_s), iteration_s, frame_s, frames)
+
+
+def planned_seconds(m: Measurement, iterations: int) -> float:
+    """The planned wall time of ``iterations``: setup, each frame read once, iterations with the margin."""
+    return m.setup_s + min(iterations, m.frames) * m.frame_s + iterations * m.iteration_s * GROWTH_MARGIN
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """What ``plan_budget`` chose, and why."""
+
+    minutes: float
+    measured: Measurement
+    iterations: int
+    factor: float  # iterations / the configured schedule's
+    overrides: tuple[str, ...]  # the schedule as --set pairs (iterations first)
+    planned_s: float  # the wall time planned for the run (with the margin)
+
+    def summary(self) -> str:
+        m = self.measured
+        fitted = "the full schedule fits" if self.factor >= 1 else f"the schedule scaled by {self.factor:.3g}"
+        return (
+            f"budget {self.minutes:g} min: measured {m.iteration_s:.3g} s an iteration, {m.frame_s:.2g} s to read "
+            f"a frame and {m.setup_s:.0f} s of setup on this machine; training {self.iterations:,} iterations "
+            f"({fitted}; planned {self.planned_s / 60:.1f} min), the same as --iters {self.iterations} --set "
+            + " ".join(self.overrides[1:])
+        )
 
 
 def scale_schedule(cfg: TrainConfig, iterations: int) -> tuple[TrainConfig, tuple[str, ...]]:
@@ -117,17 +145,20 @@ def plan_budget(cfg: TrainConfig, minutes: float) -> tuple[TrainConfig, Budget]:
     """The config whose schedule fits ``minutes`` of wall time on this machine (see the module's notes)."""
     if not minutes == minutes or minutes <= 0:  # NaN too
         raise MeshsplatError(f"--minutes: expected a positive number of minutes, got {minutes:g}")
-    setup_s, iteration_s = measure_iteration(cfg)
-    available = minutes * 60.0 - setup_s  # the real run's setup, as measured
-    fits = int(available / (iteration_s * GROWTH_MARGIN)) if available > 0 else 0
+    m = measure_iteration(cfg)
+    budget_s = minutes * 60.0
+    per = m.iteration_s * GROWTH_MARGIN
+    fits = int((budget_s - m.setup_s - m.frames * m.frame_s) / per)  # every frame read
+    if fits < m.frames:  # fewer iterations than frames: each reads a new one
+        fits = int((budget_s - m.setup_s) / (per + m.frame_s))
     if fits < MIN_ITERATIONS:
-        need = (setup_s + MIN_ITERATIONS * iteration_s * GROWTH_MARGIN) / 60.0
+        need = planned_seconds(m, MIN_ITERATIONS) / 60.0
         raise MeshsplatError(
-            f"--minutes {minutes:g}: too short on this machine (setup {setup_s:.0f} s, {iteration_s:.3g} s an "
+            f"--minutes {minutes:g}: too short on this machine (setup {m.setup_s:.0f} s, {m.iteration_s:.3g} s an "
             f"iteration); {MIN_ITERATIONS} iterations need about {need:.1f} min; give more minutes or lower "
             "the image size (--downscale) or model.n_init"
         )
     iterations = min(fits, cfg.iterations)
     scaled, pairs = scale_schedule(cfg, iterations)
-    budget = Budget(minutes, setup_s, iteration_s, iterations, iterations / cfg.iterations, pairs)
+    budget = Budget(minutes, m, iterations, iterations / cfg.iterations, pairs, planned_seconds(m, iterations))
     return scaled, budget
