@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -111,7 +112,9 @@ def test_a_few_bad_frames_are_listed_and_dropped_with_the_flag(capture, standin_
         m = np.zeros((H, W), np.uint8)
         m[:8, :8] = 255
         Image.fromarray(m).save(capture / "masks" / f"mask_{idx:04d}.png")
-    with pytest.raises(MeshsplatError, match=r"2 of 8 frames .*off the mask: frames 3\u20134\).*--drop-bad-frames"):
+    with pytest.raises(
+        MeshsplatError, match=r"2 of 8 frames .*off the mask: image_0003.png, image_0004.png\).*--drop-bad-frames"
+    ):
         ps.read(capture, model_dir=standin_model_dir)
     with pytest.warns(UserWarning, match="left out 2 of 8 frames"):
         ds = open_capture(capture, model_dir=standin_model_dir, drop_bad_frames=True)
@@ -131,8 +134,44 @@ def test_a_few_bad_frames_are_listed_and_dropped_with_the_flag(capture, standin_
     argv = ["import", str(capture), "--out", str(out), "--model-dir", str(standin_model_dir), "--drop-bad-frames"]
     assert main(argv) == 0
     notes = [line for line in capsys.readouterr().err.splitlines() if "left out" in line]
-    assert len(notes) == 1 and notes[0].startswith("note: ") and "frames 3\u20134" in notes[0]
+    assert len(notes) == 1 and notes[0].startswith("note: ") and "image_0003.png, image_0004.png" in notes[0]
     assert len(open_capture(out)) == 6
+
+
+def test_every_frame_is_checked_against_its_mask(tmp_path, standin_model_dir):
+    """40 frames, three badly tracked ones spread over them (a sample of 32 missed such frames): all three
+    are named by their image."""
+    cap = _upright_capture(tmp_path / "cap40", standin_model_dir, n=40)
+    for idx in (1, 20, 38):
+        m = np.zeros((H, W), np.uint8)
+        m[:8, :8] = 255
+        Image.fromarray(m).save(cap / "masks" / f"mask_{idx:04d}.png")
+    with pytest.raises(MeshsplatError) as err:
+        ps.read(cap, model_dir=standin_model_dir)
+    msg = str(err.value)
+    assert "3 of 40 frames" in msg and "image_0001.png, image_0020.png, image_0038.png" in msg and "\n" not in msg
+
+
+def test_an_empty_mask_is_refused_naming_the_flag_and_dropped_with_it(capture, standin_model_dir):
+    """A frame whose subject left the view (empty mask): refused in one line that says how to leave it out;
+    with ``--drop-bad-frames`` left out like a badly tracked one."""
+    Image.fromarray(np.zeros((H, W), np.uint8)).save(capture / "masks" / "mask_0005.png")
+    with pytest.raises(MeshsplatError) as err:
+        ps.read(capture, model_dir=standin_model_dir)
+    msg = str(err.value)
+    assert "empty mask" in msg and "left the view" in msg and "--drop-bad-frames" in msg
+    with pytest.warns(UserWarning, match=r"left out 1 of 8 frames \(empty mask, the subject left the view: image_0005"):
+        ds = ps.read(capture, model_dir=standin_model_dir, drop_bad_frames=True)
+    assert len(ds) == 7 and ds.dropped_frames == ["image_0005"]
+
+
+def test_the_front_is_the_camera_side_also_in_a_y_up_world():
+    """A +y-up world whose camera looks along +z sees the subject from -z: that is its front (not +z)."""
+    from meshsplat.camera import capture_front
+
+    for eye, want in (([0.0, 0.3, -4.0], [0.0, 0.0, -1.0]), ([0.0, 0.3, 4.0], [0.0, 0.0, 1.0])):
+        vm = look_at(np.array(eye), [0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
+        np.testing.assert_allclose(capture_front(vm, [0.0, 0.0, 0.0], [0.0, 1.0, 0.0]), want, atol=1e-9)
 
 
 def test_group_ids():
@@ -232,3 +271,43 @@ def test_view_default_camera_is_upright_from_the_front(capture, standin_model_di
     assert _project(vm, head[None])[0, 1] < _project(vm, feet[None])[0, 1]
     # from the front: the subject's left (+x of the body, +x of this world) on the image right
     assert _project(vm, np.array([[1.0, 0, 0]]))[0, 0] > _project(vm, np.array([[-1.0, 0, 0]]))[0, 0]
+
+
+def test_a_k_written_for_a_larger_image_is_refused_saying_it_was_not_scaled(capture, standin_model_dir):
+    big = K.copy()
+    big[:2] *= 2  # K of the 2x larger original, images downscaled without it
+    np.savez(capture / "cameras.npz", intrinsic=big, extrinsic=EXTRINSIC, height=np.array(H), width=np.array(W))
+    with pytest.raises(MeshsplatError) as err:
+        ps.read(capture, model_dir=standin_model_dir)
+    msg = str(err.value)
+    assert re.search(r"K looks written for a \d+x\d+ image \(2 times larger\)", msg), msg
+    assert "not scaled with the images" in msg and "multiply its first two rows by 0.5" in msg
+
+
+def test_a_mislabelled_known_subject_folder_is_not_told_about_a_config_json(tmp_path, standin_model_dir):
+    """A folder named after a published subject but holding another capture: the split-relative poses do
+    not match that subject's ranges; the message names the ranges the folder name chose, and the way out."""
+    from _peoplesnapshot import make_capture
+
+    root = make_capture(tmp_path / "male-3-casual", n=6)
+    (root / "config.json").unlink()
+    (root / "poses").mkdir()
+    z = dict(betas=np.zeros((1, 10)), global_orient=np.zeros((3, 3)), body_pose=np.zeros((3, 69)))
+    np.savez(root / "poses" / "anim_nerf_train.npz", transl=np.zeros((3, 3)), **z)
+    with pytest.raises(MeshsplatError) as err:
+        ps.read(root, model_dir=standin_model_dir)
+    msg = str(err.value)
+    assert "anim_nerf_train.npz" in msg and "InstantAvatar's male-3-casual ranges" in msg
+    assert "in config.json" not in msg and "rename it, or add a config.json" in msg
+
+
+def test_no_progress_still_says_which_rule_chose_the_splits(tmp_path, standin_model_dir, capsys):
+    from _peoplesnapshot import make_capture
+
+    root = make_capture(tmp_path / "my-subject", n=6)
+    (root / "config.json").unlink()
+    args = ["train", str(root), "--out", str(tmp_path / "run"), "--iters", "1", "--no-progress", "--device", "cpu"]
+    args += ["--model-dir", str(standin_model_dir), "--gender", "neutral", "--no-refine-pose"]
+    assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("splits from no config.json: the last 20%") == 1

@@ -209,12 +209,10 @@ def capture_up(viewmats: Sequence[ArrayLike], snap_deg: float = 30.0) -> np.ndar
 
 
 def capture_front(viewmat: ArrayLike, center: ArrayLike, up: ArrayLike) -> np.ndarray:
-    """Front ``[3]`` for orbit cameras (azimuth 0): +z in a +y-up world (the glTF front, as synthesized
-    captures use it), else the direction from ``center`` (the subject) to the camera ``viewmat``, level
-    with ``up`` (a monocular capture's subject faces its camera)."""
+    """Front ``[3]`` for orbit cameras (azimuth 0): the direction from ``center`` (the subject) to the camera
+    ``viewmat``, level with ``up`` (a capture's subject faces its camera), whatever the world's axes (a
+    +y-up world may have its camera on either side; synthesized captures put it on +z, their front)."""
     u = np.asarray(up, np.float64).reshape(3)
-    if np.allclose(u, [0.0, 1.0, 0.0]):
-        return np.array([0.0, 0.0, 1.0])
     d = camera_center(viewmat) - np.asarray(center, np.float64).reshape(3)
     return orbit_basis(u, d)[2]
 

@@ -245,6 +245,8 @@ def _train_and_report(trainer: Trainer, cfg: TrainConfig, args: argparse.Namespa
             )
     elif args.resume:
         print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
+    if trainer.split_note:  # also with --no-progress: it says which frames are held out
+        print(trainer.split_note)
     if trainer.pose_refine_note:
         print(trainer.pose_refine_note)
     if trainer.iteration >= cfg.iterations and not trainer.polish_due:

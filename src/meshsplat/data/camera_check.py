@@ -4,12 +4,13 @@ Every reader ends in ``build_dataset``, which calls :func:`check_cameras`. The r
 
 - every frame: at least half of the mesh's vertices (a subsample of at most ``MAX_VERTICES``) in front of
   the camera and at least ``MIN_VISIBLE`` of them projecting inside the image (geometry only, no decoding);
-- a sample of frames (``SAMPLE_FRAMES`` spread over the capture, every camera at least once): at least
+- every frame with a mask, against it: at least
   ``MIN_ON_MASK`` of the visible vertices (when ``MIN_MASK_POINTS`` or more are visible) on the frame's
   mask (pooled to a grid of about 64 cells a side, dilated one cell), and no
   other camera convention fitting clearly better (rolled by 180 degrees: the overlap with the projection
-  turned about the principal point exceeds the overlap as is by ``CLEARLY_BETTER``). A camera with a
-  failing sample frame has all its frames checked against their masks, so the failing ones are listed.
+  turned about the principal point exceeds the overlap as is by ``CLEARLY_BETTER``). A badly tracked frame
+  anywhere in the capture is found (a sample of 32 frames missed them); the cost is a mask decode and a
+  pooling per frame (``bench/badinput.py``).
 - a camera failing on at least ``BROKEN_SHARE`` of its checked frames is a wrong camera: the capture is
   refused, naming the convention mix-up that makes it fit (y and z flipped, rolled by 180 degrees,
   camera-to-world given for world-to-camera, an OpenGL camera-to-world); fewer failing frames are bad
@@ -32,7 +33,6 @@ __all__ = [
     "CameraCheck",
     "check_cameras",
     "group_ids",
-    "SAMPLE_FRAMES",
     "MAX_VERTICES",
     "MIN_VISIBLE",
     "MIN_ON_MASK",
@@ -41,7 +41,6 @@ __all__ = [
     "CLEARLY_BETTER",
 ]
 
-SAMPLE_FRAMES = 32  # frames whose masks are read when nothing fails
 MAX_VERTICES = 512  # vertices projected per frame (an even subsample of larger meshes)
 MIN_IN_FRONT = 0.5  # share of the vertices in front of the camera
 MIN_VISIBLE = 0.1  # share of the vertices in front and inside the image
@@ -49,6 +48,7 @@ MIN_ON_MASK = 0.5  # share of the visible vertices on the (dilated) mask
 MIN_MASK_POINTS = 16  # fewer visible vertices than this say nothing about the overlap: geometry only
 BROKEN_SHARE = 0.8  # a camera failing on this share of its checked frames is wrong, not its frames
 CLEARLY_BETTER = 0.25  # another convention beating "as is" on the mask by this much means "as is" is wrong
+PROBE_FRAMES = 8  # frames of a wrong camera on which the convention fixes are tried
 _GRID = 64  # masks are pooled to about this many cells along their longer side, then dilated one cell
 
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -152,9 +152,8 @@ def check_cameras(
     frames: Sequence[tuple[str, int]],
     vertices: np.ndarray,
     load_mask: Callable[[int], np.ndarray | None],
-    sample: int = SAMPLE_FRAMES,
 ) -> CameraCheck:
-    """Check every frame's camera against its mesh (and a sample's masks); see the module's rule.
+    """Check every frame's camera against its mesh and its mask; see the module's rule.
 
     ``cameras``: id -> ``(K [3,3], viewmat [4,4], width, height)``; ``frames``: ``(camera id, mesh row)``
     per frame; ``vertices [T,V,3]`` (a memory map is fine: a subsample of columns is read);
@@ -168,34 +167,31 @@ def check_cameras(
     by_cam: dict[str, list[int]] = {}
     for i, (cid, _) in enumerate(frames):
         by_cam.setdefault(cid, []).append(i)
-    grids: dict[int, tuple[np.ndarray, int] | None] = {}
+    grids: dict[int, tuple[np.ndarray, int] | None] = {}  # kept for the frames a diagnosis probes only
 
     def grid(i: int):
-        if i not in grids:
-            mask = load_mask(i)
-            grids[i] = None if mask is None else _mask_grid(mask)
-            report.masks_read += mask is not None
-        return grids[i]
+        if i in grids:
+            return grids[i]
+        mask = load_mask(i)
+        g = None if mask is None else _mask_grid(mask)
+        report.masks_read += mask is not None
+        if i in probe:
+            grids[i] = g
+        return g
 
-    per_cam = max(1, sample // max(len(by_cam), 1))
     for cid, ids in by_cam.items():
         K, vm, w, h = cameras[cid]
+        probe = _spread(ids, PROBE_FRAMES)
         fails: dict[int, str] = {}
-        for i in ids:  # geometry of every frame
+        for i in ids:  # geometry, then the mask, of every frame
             s = _score(vm, K, w, h, sub[frames[i][1]], None)
             if not s.ok:
                 fails[i] = s.why()
-        checked = set(ids)
-        sampled = [i for i in _spread(ids, per_cam) if i not in fails]
-        with_masks = [i for i in sampled if _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails)]
-        if with_masks:  # something is off: every frame of this camera against its mask, to list them
-            for i in ids:
-                if i not in fails and i not in sampled:
-                    _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails)
-        report.checked += len(checked)
-        if len(fails) >= max(1, BROKEN_SHARE * len(checked)):
-            probe = _spread(ids, max(per_cam, 8))
-            report.wrong[cid] = _diagnose(cid, fails, len(checked), vm, K, w, h, probe, frames, sub, grid)
+            else:
+                _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails)
+        report.checked += len(ids)
+        if len(fails) >= max(1, BROKEN_SHARE * len(ids)):
+            report.wrong[cid] = _diagnose(cid, fails, len(ids), vm, K, w, h, probe, frames, sub, grid)
         else:
             report.bad_frames.update(fails)
     return report

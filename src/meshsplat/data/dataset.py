@@ -144,8 +144,8 @@ class AvatarDataset:
 
     @property
     def front(self) -> torch.Tensor:
-        """Where orbit cameras start (azimuth 0) ``[3]``: +z in a +y-up world, else the first frame's
-        camera side of the subject (``camera.capture_front``)."""
+        """Where orbit cameras start (azimuth 0) ``[3]``: the first frame's camera side of the subject, level
+        (``camera.capture_front``)."""
         rec = self._frames[0]
         center = np.asarray(self._mesh(rec["mesh"]), np.float64).mean(0)
         return torch.from_numpy(capture_front(self._cameras[str(rec["camera"])][1], center, self.up.double())).float()

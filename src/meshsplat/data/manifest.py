@@ -159,6 +159,19 @@ class Problems:
             raise MeshsplatError(msg)
 
 
+def _unscaled_hint(K: np.ndarray, w: int, h: int) -> str:
+    """When ``K``'s principal point is the centre of an image larger than ``w x h`` by one factor: say that K
+    looks written for that image and was not scaled with the images ("" otherwise)."""
+    sx, sy = 2 * float(K[0, 2]) / w, 2 * float(K[1, 2]) / h
+    if min(sx, sy) < 1.2 or abs(sx / sy - 1) > 0.1:
+        return ""
+    s = (sx + sy) / 2
+    return (
+        f"; K looks written for a {2 * K[0, 2]:.0f}x{2 * K[1, 2]:.0f} image ({s:.2g} times larger): it was not "
+        f"scaled with the images, multiply its first two rows by {1 / s:.2g} (or give the full-size images)"
+    )
+
+
 def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, np.ndarray] | None:
     where = f"camera {cid!r}"
     if not isinstance(cam, dict):
@@ -194,7 +207,10 @@ def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, 
         problems.add(where, f"non-positive image size {w}x{h}")
         ok = False
     elif not (0 < K[0, 2] < w and 0 < K[1, 2] < h):
-        problems.add(where, f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {w}x{h} image")
+        problems.add(
+            where,
+            f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {w}x{h} image" + _unscaled_hint(K, w, h),
+        )
         ok = False
     R = vm[:3, :3]
     if not np.allclose(vm[3], [0, 0, 0, 1], atol=1e-6):
@@ -428,6 +444,7 @@ def build_dataset(
             cameras[str(cid)] = (ok[0], ok[1], int(cam["width"]), int(cam["height"]))
 
     names = set()
+    empty: list[int] = []  # frames whose mask is empty (left out with drop_bad_frames)
     for i, rec in enumerate(frames):
         name = rec.get("name", str(i)) if isinstance(rec, dict) else str(i)
         where = f"frame {i} ({name!r})"
@@ -462,7 +479,8 @@ def build_dataset(
             problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
         cam = (cams_in or {}).get(cid)
         size = (cam.get("width"), cam.get("height")) if isinstance(cam, dict) and cid in cameras else None
-        _check_frame_files(root, rec, where, size, check_masks, problems, allow_outside)
+        if _check_frame_files(root, rec, where, size, check_masks, problems, allow_outside, drop_bad_frames):
+            empty.append(i)
     splits = manifest.get("splits")
     if splits is None:
         splits = {}
@@ -499,16 +517,29 @@ def build_dataset(
         driver_params=driver_params,
         format_name=format_name,
     )
-    return _check_at_the_door(ds, drop_bad_frames, check_masks)
+    return _check_at_the_door(ds, drop_bad_frames, check_masks, set(empty))
 
 
-def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: bool) -> AvatarDataset:
-    """Cameras against meshes (and, ``with_masks``, masks; ``camera_check``): refuse wrong cameras, refuse
-    or drop bad frames."""
+EMPTY_MASK = "empty mask, the subject left the view"
+LISTED_NAMES = 8  # image names listed per reason in a refusal, then how many more
+
+
+def _names(frames: list[dict], ids: list[int]) -> str:
+    """The image names of frames ``ids`` (at most ``LISTED_NAMES``, then how many more)."""
+    shown = ", ".join(Path(str(frames[i]["image"])).name for i in ids[:LISTED_NAMES])
+    return shown + (f" and {len(ids) - LISTED_NAMES} more" if len(ids) > LISTED_NAMES else "")
+
+
+def _check_at_the_door(
+    ds: AvatarDataset, drop_bad_frames: bool, with_masks: bool, empty: set[int] | None = None
+) -> AvatarDataset:
+    """Cameras against meshes (and, ``with_masks``, every frame's mask; ``camera_check``): refuse wrong
+    cameras, refuse or drop bad frames (with ``empty``: the frames whose mask is empty, dropped too)."""
     frames = ds._frames
+    empty = empty or set()
 
     def load_mask(i: int) -> np.ndarray | None:
-        m = ds._load_mask(frames[i]) if with_masks else None
+        m = ds._load_mask(frames[i]) if with_masks and i not in empty else None
         return None if m is None else m.numpy()
 
     found = check_cameras(ds._cameras, [(str(r["camera"]), int(r["mesh"])) for r in frames], ds._verts, load_mask)
@@ -516,13 +547,14 @@ def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: boo
         raise MeshsplatError(
             f"{ds.root}: wrong camera{'s' if len(found.wrong) > 1 else ''}: " + "; ".join(found.wrong.values())
         )
+    found.bad_frames.update(dict.fromkeys(empty, EMPTY_MASK))
     if not found.bad_frames:
         return ds
     bad = sorted(found.bad_frames)
     reasons: dict[str, list[int]] = {}
     for i in bad:
         reasons.setdefault(found.bad_frames[i], []).append(i)
-    listed = "; ".join(f"{why}: frames {group_ids(ids)}" for why, ids in reasons.items())
+    listed = "; ".join(f"{why}: {_names(frames, ids)}" for why, ids in reasons.items())
     if not drop_bad_frames:
         raise MeshsplatError(
             f"{ds.root}: {len(bad)} of {len(frames)} frames do not show the subject where their camera "
@@ -560,24 +592,32 @@ def _check_at_the_door(ds: AvatarDataset, drop_bad_frames: bool, with_masks: boo
 
 
 def _check_frame_files(
-    root: Path, rec: dict, where: str, size, check_masks: bool, problems: Problems, allow_outside: bool
-) -> None:
-    """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty."""
+    root: Path,
+    rec: dict,
+    where: str,
+    size,
+    check_masks: bool,
+    problems: Problems,
+    allow_outside: bool,
+    empty_ok: bool = False,
+) -> bool:
+    """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty.
+    Returns whether the mask is empty and ``empty_ok`` (the frame is then left out, not a problem)."""
     kind = rec.get("mask_kind", "png")
     if kind not in MASK_KINDS:
         problems.add(where, f"mask_kind {kind!r} is not one of {list(MASK_KINDS)}")
-        return
+        return False
     checks = [("image", rec.get("image"))]
     if rec.get("mask") is not None and kind != "alpha":
         checks.append(("mask", rec["mask"]))
     for what, value in checks:
         rel = inside_capture(root, value, f"{what} path", where, problems, allow_outside)
         if rel is None:
-            return
+            return False
         p = root / rel
         if not p.is_file():
             problems.add(where, f"{what} file {rel} is missing")
-            return
+            return False
         try:
             if what == "mask" and kind == "npy":
                 arr = read_npy(p, "mask array", mmap=True)
@@ -592,28 +632,35 @@ def _check_frame_files(
             problems.add(
                 where, f"{what} file {rel} is not a readable {'array' if kind == 'npy' and what == 'mask' else 'image'}"
             )
-            return
+            return False
         if size is not None and wh != size:
             problems.add(
                 where,
                 f"{what} size mismatch: {rel} is {wh[0]}x{wh[1]} but camera {rec['camera']!r} says {size[0]}x{size[1]}",
             )
-            return
+            return False
     if not check_masks or not (rec.get("mask") or kind == "alpha"):
-        return
+        return False
     try:
         if kind == "alpha":
             img = read_image(root / rec["image"], 4)
             m = img[..., 3]
             if (m == 255).all():
                 problems.add(where, f"mask_kind 'alpha' but {rec['image']} has no alpha channel (or it is all opaque)")
-                return
+                return False
         elif kind == "npy":
             m = _read_npy_mask(root / rec["mask"])
         else:
             m = read_mask(root / rec["mask"])[0]  # as training reads it (alpha mattes, 0/1 label maps)
     except MeshsplatError as exc:
         problems.add(where, str(exc))
-        return
+        return False
     if float(m.max()) == 0:
-        problems.add(where, f"empty mask {rec.get('mask') or rec['image']} (no foreground pixel)")
+        if empty_ok:
+            return True
+        problems.add(
+            where,
+            f"empty mask {rec.get('mask') or rec['image']} (no foreground pixel; the subject left the view? "
+            f"leave such frames out with {DROP_FLAG})",
+        )
+    return False

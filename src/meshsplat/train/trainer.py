@@ -167,8 +167,8 @@ class Trainer:
             **reader_options(self.cfg.data_gender, self.cfg.data_shape),
         )
         rule = self.dataset.meta.get("split_rule")
-        if rule and self.cfg.progress:
-            print(f"{self.cfg.data}: splits from {rule}")
+        # which rule chose the splits (a reader's guess, e.g. without config.json): the command prints it
+        self.split_note = f"{self.cfg.data}: splits from {rule}" if rule else None
         self.train_ids = list(self.dataset.split("train"))
         if not self.train_ids:
             raise MeshsplatError(f"{self.cfg.data}: the 'train' split is empty")

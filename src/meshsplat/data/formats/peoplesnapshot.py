@@ -119,7 +119,7 @@ def read(
         ranges = _default_ranges(root)
     splits_in_use = [s for s in SPLIT_NAMES if s in ranges]
     refined = {
-        s: _read_refined(root / "poses" / f"anim_nerf_{s}.npz", len(ranges[s]), problems)
+        s: _read_refined(root / "poses" / f"anim_nerf_{s}.npz", len(ranges[s]), problems, split_rule)
         for s in splits_in_use
         if placeable and (root / "poses" / f"anim_nerf_{s}.npz").is_file()
     }
@@ -401,7 +401,9 @@ def _read_poses(root: Path, problems: Problems) -> dict | None:
     return {"betas": betas, "global_orient": go, "body_pose": bp, "transl": transl}
 
 
-def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
+def _read_refined(path: Path, n: int, problems: Problems, rule: str = "config.json") -> dict | None:
+    """A split's ``anim_nerf_<split>.npz`` with ``n`` rows, the split's frame count under ``rule`` (config.json
+    or a known subject's ranges)."""
     where = f"poses/{path.name}"
     z = _npz(path, problems)
     if z is None:
@@ -417,10 +419,15 @@ def _read_refined(path: Path, n: int, problems: Problems) -> dict | None:
         return None
     counts = {k: len(cast(np.ndarray, out[k])) for k in PER_FRAME}
     if len(set(counts.values())) > 1 or counts["transl"] != n:
+        why = (
+            "config.json"
+            if rule == "config.json"
+            else f"{rule}, chosen by the folder name: is the folder another subject? rename it, or add a "
+            "config.json with its gender and train/val/test ranges"
+        )
         problems.add(
             where,
-            f"rows {counts} do not match the {n} frames of its split in config.json "
-            "(rows are split-relative positions)",
+            f"rows {counts} do not match the {n} frames of its split in {why} (rows are split-relative positions)",
         )
         return None
     return out
