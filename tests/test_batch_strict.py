@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import pytest
 
@@ -153,3 +155,44 @@ def test_a_ray_client_address_without_the_client_is_one_line(tmp_path):
     assert [r["status"] for r in table] == ["failed"] and table[0]["reason"].startswith(
         "not run: cannot start or reach"
     )
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_batch_promptly_and_the_same_command_resumes(tmp_path):
+    pytest.importorskip("ray")
+    from meshsplat.io import load_checkpoint
+    from meshsplat.run_folder import RunFolder
+
+    make_tiny_dataset(tmp_path / "cap")
+    job = {"data": "cap", "iterations": 100_000, "device": "cpu", "eval": False, "export": []}
+    job["set"] = ["model.n_init=100", "backend=torch", "checkpoint_every=2", "loss.lambda_lpips=0"]
+    (tmp_path / "jobs.json").write_text(json.dumps([job]))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1] / "src"), env.get("PYTHONPATH", "")])
+    cmd = [sys.executable, "-m", "meshsplat.cli.main", "batch", str(tmp_path / "jobs.json"), "--out"]
+    cmd += [str(tmp_path / "out"), "--workers", "1", "--no-progress"]
+    driver = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = RunFolder(tmp_path / "out" / "cap" / "run")
+    try:
+        deadline = time.monotonic() + 240
+        while not run.checkpoints() and time.monotonic() < deadline and driver.poll() is None:
+            time.sleep(0.1)
+        assert run.checkpoints(), "the job should be training"
+        t0 = time.monotonic()
+        driver.send_signal(signal.SIGINT)
+        _, err = driver.communicate(timeout=120)
+        assert time.monotonic() - t0 < 60  # not after the job's 100,000 iterations
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    assert driver.returncode != 0 and "Traceback" not in err, err
+    (row,) = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert row["status"] == "failed" and row["reason"].startswith("interrupted (Ctrl-C)")
+    stopped_at = load_checkpoint(run.checkpoints()[-1][1])["iteration"]  # intact
+    assert 0 < stopped_at < 100_000
+    job["iterations"] = stopped_at + 2  # edited: the same run goes on to the new end
+    (tmp_path / "jobs.json").write_text(json.dumps([job]))
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    (row,) = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert row["status"] == "ok" and row["iterations"] == stopped_at + 2
