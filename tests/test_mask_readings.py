@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from meshsplat.data import open_dataset
-from meshsplat.errors import MeshsplatWarning
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.images import image_size, read_image, read_mask
 from test_train import make_tiny_dataset
 
@@ -147,3 +147,28 @@ def test_a_capture_with_masks_in_any_encoding_opens_with_the_same_masks(tmp_path
         np.testing.assert_allclose(m[..., 0].numpy(), expected[i], atol=1e-6)
         if encoding != "labels01":
             np.testing.assert_allclose(m.numpy(), ref[i].mask.numpy(), atol=1e-6)
+
+
+def test_inverted_masks_are_named_as_such_not_as_a_wrong_camera(tmp_path):
+    root = make_tiny_dataset(tmp_path / "ref")
+    inverted = shutil.copytree(root, tmp_path / "inverted")
+    manifest = json.loads((inverted / "manifest.json").read_text())
+    for rec in manifest["frames"]:
+        m = np.array(Image.open(inverted / rec["mask"]).convert("L"))
+        Image.fromarray(255 - m).save(inverted / rec["mask"])
+    with pytest.raises(MeshsplatError) as info:
+        open_dataset(inverted)
+    text = str(info.value)
+    assert "masks of camera 'cam0' look inverted on 6 of 6 frames" in text and "invert them" in text, text
+    assert "does not see the subject" not in text
+    open_dataset(root)  # the right masks pass
+
+
+def test_one_inverted_mask_is_a_bad_frame_named_as_inverted(tmp_path):
+    root = shutil.copytree(make_tiny_dataset(tmp_path / "ref"), tmp_path / "one")
+    rec = json.loads((root / "manifest.json").read_text())["frames"][2]
+    m = np.array(Image.open(root / rec["mask"]).convert("L"))
+    Image.fromarray(255 - m).save(root / rec["mask"])
+    with pytest.raises(MeshsplatError, match=r"the mask looks inverted") as info:
+        open_dataset(root)
+    assert rec["image"] in str(info.value) or rec["name"] in str(info.value)

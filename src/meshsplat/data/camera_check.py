@@ -129,10 +129,26 @@ def _score(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray, gri
     return _Score(float(front.sum()) / n, float(inside.sum()) / n, on_mask)
 
 
+INVERTED = "the mask looks inverted (the subject black on white)"
+
+
+def _inverted(vm: np.ndarray, K, w, h, verts, grid) -> bool:
+    """Whether the mask covers most of the image while the mesh lands mostly off it: a mask with subject
+    and background swapped (the camera may be right)."""
+    g, cell = grid
+    if g.mean() <= 0.5:
+        return False
+    flipped = F.max_pool2d(torch.from_numpy(~g).float()[None, None], 3, 1, padding=1)[0, 0].numpy() > 0
+    s = _score(vm, K, w, h, verts, (flipped, cell))
+    return s.on_mask is not None and s.on_mask >= MIN_ON_MASK
+
+
 def _fails(vm: np.ndarray, K, w, h, verts, grid) -> str | None:
     """Why the frame fails as is (None when it passes): its own score, or the roll fitting clearly better."""
     s = _score(vm, K, w, h, verts, grid)
     if not s.ok:
+        if s.on_mask is not None and s.on_mask < MIN_ON_MASK and _inverted(vm, K, w, h, verts, grid):
+            return INVERTED
         return s.why()
     if s.on_mask is not None:
         r = _score(_ROLL @ vm, K, w, h, verts, grid)
@@ -209,6 +225,11 @@ def _diagnose(cid, fails, n_checked, vm, K, w, h, probe, frames, sub, grid) -> s
     for why in fails.values():
         reasons[why] = reasons.get(why, 0) + 1
     main = max(reasons, key=lambda r: reasons[r])
+    if main == INVERTED:  # the masks are wrong, not the camera
+        return (
+            f"the masks of camera {cid!r} look inverted on {reasons[main]} of {n_checked} frames (the subject black "
+            "on white, the mesh landing on the black): invert them, white = subject"
+        )
     what = f"camera {cid!r} does not see the subject on {len(fails)} of {n_checked} frames ({main})"
     for meaning, fix in _FIXES:
         try:
