@@ -142,3 +142,17 @@ def test_synth_poses_again_instead_of_keeping_every_pose_and_writes_the_same_cap
             assert a == b
         else:
             assert (kept / rel).read_bytes() == (posed_again / rel).read_bytes(), rel
+
+
+def test_deeply_nested_json_is_one_line(tmp_path):
+    from meshsplat.data import open_dataset
+    from meshsplat.io.json_file import read_json_object
+
+    deep = "[" * 200_000 + "]" * 200_000
+    (tmp_path / "cameras.json").write_text(deep)
+    with pytest.raises(MeshsplatError, match=r"cameras\.json: nested too deeply"):
+        read_json_object(tmp_path / "cameras.json")
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "manifest.json").write_text('{"frames": ' + deep + "}")
+    with pytest.raises(MeshsplatError, match=r"manifest\.json: nested too deeply"):
+        open_dataset(tmp_path / "ds")

@@ -307,6 +307,8 @@ def open_dataset(
         manifest = json.loads(mpath.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise MeshsplatError(f"{mpath}: invalid JSON ({exc})") from None
+    except RecursionError:
+        raise MeshsplatError(f"{mpath}: nested too deeply to be a dataset manifest") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise MeshsplatError(f"{mpath}: 'format' must be {FORMAT_NAME!r}")
     if not _is_int(manifest.get("version")) or manifest.get("version") != FORMAT_VERSION:

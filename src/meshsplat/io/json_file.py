@@ -21,6 +21,8 @@ def read_json_object(path: str | os.PathLike, expected: str = "a JSON object") -
         data = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
         raise MeshsplatError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:  # thousands of nested [ or {: no file meshsplat reads nests like that
+        raise MeshsplatError(f"{path}: nested too deeply to be {expected}") from None
     if not isinstance(data, dict):
         raise MeshsplatError(f"{path}: expected {expected}, got {type(data).__name__}")
     return data
