@@ -18,7 +18,7 @@ from typing import Any
 from meshsplat.errors import MeshsplatError
 from meshsplat.fleet.jobs import Job, read_jobs
 from meshsplat.fleet.report import summary_line, write_results
-from meshsplat.fleet.runner import failed_result, finished_result, run_job
+from meshsplat.fleet.runner import RESULT_KEYS, failed_result, finished_result, run_job
 
 __all__ = ["run_batch", "INTERRUPTED"]
 
@@ -76,7 +76,7 @@ def run_batch(
             rows.setdefault(i, failed_result(job, why))
         write_results(out, [rows[i] for i in range(len(jobs)) if i in rows])
         raise
-    ordered = [rows[i] for i in range(len(jobs)) if i in rows]
+    ordered = [{k: rows[i].get(k) for k in RESULT_KEYS} for i in range(len(jobs)) if i in rows]  # as the table
     write_results(out, ordered)
     return ordered
 
