@@ -253,7 +253,7 @@ def test_commands_name_no_checkout_paths():
 # match its README command, so the table cannot silently go stale.
 README_SUBSTITUTIONS: dict[str, list[tuple[str, str]]] = {
     "synth": [("--frames 100 --resolution 512", "--frames 8 --resolution 32 --threads 1")],
-    "train": [("--out runs/cesium", "--out runs/cesium --iters 4 --threads 1 --no-progress --set model.n_init=300")],
+    "train": [("--minutes 10", "--iters 4 --threads 1 --no-progress --set model.n_init=300")],
     "eval": [("runs/cesium", "runs/cesium --threads 1 --no-progress")],
     "render": [("--out renders/", "--out renders/ --seconds 0.2 --threads 1 --no-progress")],
     "export": [],
@@ -270,8 +270,11 @@ README_OUTPUTS = {
 
 
 def readme_chain() -> list[str]:
-    """The README's fenced ``meshsplat`` commands of the chain, in order, with ``README_SUBSTITUTIONS`` applied."""
-    cmds = [c.text for c in fenced_commands((ROOT / "README.md").read_text(), "README.md")]
+    """The fenced ``meshsplat`` commands of the README's "Command line" section, the chain, in order, with
+    ``README_SUBSTITUTIONS`` applied."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("\n## Command line\n", 1)[1].split("\n## ", 1)[0]
+    cmds = [c.text for c in fenced_commands(section, "README.md")]
     chain = []
     for name, subs in README_SUBSTITUTIONS.items():
         found = [c for c in cmds if shlex.split(c)[1] == name]
