@@ -25,6 +25,7 @@ from meshsplat.errors import MeshsplatError, MeshsplatWarning, os_error_text
 
 # name -> module under meshsplat.cli (imported only when that command runs, or for --help)
 COMMANDS = {
+    "track": "track_cmd",
     "synth": "synth_cmd",
     "import": "import_cmd",
     "train": "train_cmd",

@@ -196,16 +196,24 @@ class BlendshapeDriver:
 
 
 def read_weights(weights: _Rows | str | Path, names: Sequence[str]) -> np.ndarray:
-    """Blend-shape weights ``[T,K]`` (K = ``len(names)``) from an array, a ``.npy``, or a ``.json`` holding
-    ``[[...], ...]`` or ``{"names": [...], "weights": [[...], ...]}`` (columns matched to ``names``,
-    the others 0)."""
+    """Blend-shape weights ``[T,K]`` (K = ``len(names)``) from an array, a ``.npy``, a ``.json`` holding
+    ``[[...], ...]`` or ``{"names": [...], "weights": [[...], ...]}``, or an ``.npz`` with ``weights`` and
+    ``names`` (a tracked capture's ``head_fit.npz``, or the capture folder holding it); named columns are
+    matched to ``names``, the others 0."""
     names = list(names)
     if isinstance(weights, (str, Path)):
         p = resolve_input(weights)
+        if p.is_dir() and (p / "head_fit.npz").is_file():
+            p = p / "head_fit.npz"
         if not p.is_file():
             raise MeshsplatError(f"weights file not found: {p}")
         if p.suffix.lower() == ".json":
             w = _weights_json(p, names)
+        elif p.suffix.lower() == ".npz":
+            d = read_npz(p, "blend-shape weights .npz (weights [T,K], names [K])")
+            if "weights" not in d or "names" not in d:
+                raise MeshsplatError(f"{p}: expected the keys 'weights' [T,K] and 'names' [K], got {sorted(d)}")
+            w = _named_columns(p, np.asarray(d["weights"], np.float32), [str(n) for n in d["names"]], names)
         else:
             a = read_npy(p, "blend-shape weights [T,K]")
             if a.dtype.kind not in "fiub":
@@ -236,7 +244,11 @@ def _weights_json(p: Path, names: list[str]) -> np.ndarray:
     w = np.asarray(doc["weights"], np.float32)
     if "names" not in doc:
         return w
-    cols = [str(s) for s in doc["names"]]
+    return _named_columns(p, w, [str(s) for s in doc["names"]], names)
+
+
+def _named_columns(p: Path, w: np.ndarray, cols: list[str], names: list[str]) -> np.ndarray:
+    """``w [T,len(cols)]`` with columns named ``cols`` -> ``[T,len(names)]`` (unnamed shapes 0)."""
     unknown = [c for c in cols if c not in names]
     if unknown:
         raise MeshsplatError(f"{p}: unknown blend-shape names {unknown[:5]}")

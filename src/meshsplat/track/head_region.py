@@ -1,10 +1,12 @@
 """Where the head is in a frame: the crop each capture image is cut from, and the head region that
-restricts a person matte to head, hair and neck.
+restricts a person matte to what the head model and its Gaussians can cover.
 
 Both are built from the face's forehead-chin axis (so a tilted head gets a tilted region) and its size
 ``s`` (forehead-to-chin length in pixels): the crop is a square of side ``CROP_SIDE * s`` centred
-between forehead and chin, the same side in every frame of a clip; the region is an ellipse around the
-skull and hair (``HAIR_*``) joined with a band for the neck below the chin (``NECK_*``), feathered.
+between forehead and chin, the same side in every frame of a clip. The region is the fitted head mesh's
+silhouette (face, ears, neck down to where the mesh ends: :func:`mesh_silhouette`) joined with an
+ellipse around skull and hair (``HAIR_*``, feathered: :func:`hair_region`); the person matte outside it
+(shoulders, a ponytail below the neck) is left out of the capture's mask.
 """
 
 from __future__ import annotations
@@ -15,11 +17,10 @@ import numpy as np
 
 from meshsplat.track.face_track import CHIN, FOREHEAD
 
-__all__ = ["Crop", "clip_crops", "head_region", "crop_frame", "CROP_SIDE"]
+__all__ = ["Crop", "clip_crops", "hair_region", "mesh_silhouette", "crop_frame", "CROP_SIDE"]
 
 CROP_SIDE = 2.6  # crop side in face sizes: hair above the forehead and the neck below the chin fit in
-HAIR_UP, HAIR_ALONG, HAIR_ACROSS = 0.15, 1.05, 0.95  # ellipse centre shift (up) and semi-axes, face sizes
-NECK_DOWN, NECK_HALF_WIDTH = 0.75, 0.5  # neck band below the chin: length and half width, face sizes
+HAIR_UP, HAIR_ALONG, HAIR_ACROSS = 0.25, 0.95, 0.95  # ellipse centre shift (up) and semi-axes, face sizes
 FEATHER = 0.06  # soft edge width, face sizes
 
 
@@ -93,22 +94,30 @@ def crop_frame(frame: np.ndarray, crop: Crop) -> np.ndarray:
     return out
 
 
-def head_region(landmarks: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Soft head region ``[height, width]`` in [0, 1] for one face ``[478,3]`` in these pixel
-    coordinates: skull, hair and ears in an ellipse around the face, and the neck below the chin."""
+def hair_region(landmarks: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Soft region ``[height, width]`` in [0, 1] of skull, hair and ears for one face ``[478,3]`` in these
+    pixel coordinates: an ellipse around the face, shifted up, tilted with it."""
     mid, up, s = _axis(landmarks)
     right = np.array([-up[1], up[0]])
     ys, xs = np.mgrid[0:height, 0:width]
     p = np.stack([xs + 0.5, ys + 0.5], -1) - mid
     along, across = p @ up, p @ right
-    f = FEATHER * s
-    # ellipse: signed distance approximated by the scaled radius
     r = np.sqrt(((along - HAIR_UP * s) / (HAIR_ALONG * s)) ** 2 + (across / (HAIR_ACROSS * s)) ** 2)
-    ellipse = np.clip((1 - r) * HAIR_ACROSS * s / f + 0.5, 0, 1)
-    chin = -0.5 * s  # the chin lies half a face size below the midpoint
-    neck = np.minimum(
-        np.clip((along - (chin - NECK_DOWN * s)) / f + 0.5, 0, 1),
-        np.clip((NECK_HALF_WIDTH * s - np.abs(across)) / f + 0.5, 0, 1),
-    )
-    neck = np.minimum(neck, np.clip((0.2 * s - along) / f + 0.5, 0, 1))  # up to just above the chin
-    return np.maximum(ellipse, neck).astype(np.float32)
+    # the scaled radius as a signed distance (exact on the minor axis), feathered over FEATHER * s
+    return np.clip((1 - r) * HAIR_ACROSS / FEATHER + 0.5, 0, 1).astype(np.float32)
+
+
+def mesh_silhouette(points: np.ndarray, size: int, radius: float) -> np.ndarray:
+    """Where a dense mesh covers a ``size x size`` image: its projected vertices ``[N,2]`` (pixels) as
+    discs of ``radius`` pixels, holes filled; ``[size,size]`` float32 in {0, 1}."""
+    from scipy import ndimage
+
+    img = np.zeros((size, size), bool)
+    p = np.floor(points).astype(np.int64)
+    inside = (p[:, 0] >= 0) & (p[:, 0] < size) & (p[:, 1] >= 0) & (p[:, 1] < size)
+    img[p[inside, 1], p[inside, 0]] = True
+    r = max(1, int(np.ceil(radius)))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = xx**2 + yy**2 <= radius**2 + 0.5
+    img = ndimage.binary_closing(ndimage.binary_dilation(img, disc), disc, iterations=2, border_value=0)
+    return ndimage.gaussian_filter(ndimage.binary_fill_holes(img).astype(np.float32), 0.7)
