@@ -14,10 +14,11 @@ import json
 import os
 import socket
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
-from meshsplat.errors import MeshsplatError, os_error_text
+from meshsplat.errors import MeshsplatError, MeshsplatWarning, os_error_text
 
 try:
     import fcntl
@@ -30,8 +31,12 @@ __all__ = ["FolderLock", "lock_holder", "holder_text", "held_by_parent"]
 _WIN_LOCK_AT = 1 << 20  # Windows locks a byte range: one far past the record, so the record stays readable
 
 
+class _NoLocks(OSError):
+    """The file system refuses locks (some network file systems)."""
+
+
 def _try_lock(fd: int, shared: bool = False) -> bool:
-    """Lock ``fd`` without waiting; False when another holds it."""
+    """Lock ``fd`` without waiting; False when another holds it; ``_NoLocks`` where locks are not supported."""
     try:
         if fcntl is not None:
             fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
@@ -40,10 +45,10 @@ def _try_lock(fd: int, shared: bool = False) -> bool:
             msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
     except (BlockingIOError, PermissionError):
         return False
-    except OSError:
+    except OSError as exc:
         if fcntl is None:  # msvcrt says "deadlock avoided" (EDEADLOCK) when the byte is locked
             return False
-        raise
+        raise _NoLocks(exc.errno, exc.strerror) from None
     return True
 
 
@@ -75,6 +80,8 @@ def lock_holder(path: str | os.PathLike) -> dict[str, Any] | None:
         if not _try_lock(fd, shared=True):
             return _read(fd)
         _unlock(fd)
+        return None
+    except _NoLocks:
         return None
     finally:
         os.close(fd)
@@ -119,7 +126,18 @@ class FolderLock:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             for _ in range(20):  # the holder may remove the file between our open and flock: try the new one
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-                if not _try_lock(fd):
+                try:
+                    locked = _try_lock(fd)
+                except _NoLocks as exc:
+                    os.close(fd)
+                    warnings.warn(
+                        f"{self.path.parent}: this file system does not lock files ({exc.strerror}); nothing stops "
+                        f"a second process writing {self.what} at the same time",
+                        MeshsplatWarning,
+                        stacklevel=2,
+                    )
+                    return self
+                if not locked:
                     holder = _read(fd)
                     os.close(fd)
                     if self.parent_ok and held_by_parent(holder):
