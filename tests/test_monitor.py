@@ -64,6 +64,18 @@ def test_tensorboard_shows_every_term_psnr_gaussians_learning_rates_and_previews
     assert [s for s, *_ in events["preview"]] == [3, 6]
 
 
+def test_the_train_command_says_where_to_watch(tmp_path, capsys):
+    pytest.importorskip("tensorboard", reason="the [monitor] extra (tensorboard) is not installed")
+    from meshsplat.cli.main import main
+
+    root = _capture(tmp_path / "cap")
+    args = ["train", str(root), "--out", str(tmp_path / "run"), "--iters", "2", "--device", "cpu"]
+    assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
+    err = capsys.readouterr().err
+    assert f"watch it live: tensorboard --logdir {tmp_path / 'run' / MONITOR_DIR}" in err
+    assert any((tmp_path / "run" / MONITOR_DIR).glob("events.out.tfevents.*"))
+
+
 def test_training_without_tensorboard_writes_no_events(tmp_path):
     """The monitor is optional: when torch's writer cannot be imported the run trains the same."""
     from meshsplat.train.monitor import TensorBoardMonitor, tensorboard_available

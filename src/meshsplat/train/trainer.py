@@ -585,6 +585,8 @@ class Trainer:
             from tqdm import tqdm
 
             print(f"progress: loss, {self.train_psnr_label}, Gaussians (G)", file=sys.stderr)
+            if self.monitor is not None:
+                print(f"watch it live: tensorboard --logdir {self.monitor.log_dir}", file=sys.stderr)
             if self.iteration < end and self._compiles_cpu_kernels():
                 print(
                     "first step: loading the compiled CPU kernels (after an install: compiling, ~30 s)", file=sys.stderr
