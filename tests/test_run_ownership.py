@@ -237,3 +237,39 @@ def test_sigterm_to_the_nproc_launcher_reaches_every_worker_and_a_second_trainin
     for w in workers:  # every worker ended (no orphan trains on)
         assert not Path(f"/proc/{w}").exists() or "Z" in Path(f"/proc/{w}/stat").read_text().split()[2]
     assert lock_holder(RunFolder(run).lock_path) is None
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_workers_of_a_killed_launcher_stop_instead_of_training_on(capture, tmp_path):
+    run = tmp_path / "run"
+    args = [str(capture), "--out", str(run), "--iters", "100000", "--no-progress", "--device", "cpu", "--nproc", "2"]
+    sets = ["batch_size=2", "loss.lambda_lpips=0", "backend=torch", "model.n_init=200", "checkpoint_every=2"]
+    sets += ["keep_checkpoints=2", "preview_every=100000", "strategy.max_gaussians=500"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1] / "src") + os.pathsep + env.get("PYTHONPATH", "")
+    parent = subprocess.Popen(
+        [sys.executable, "-m", "meshsplat.cli.main", "train", *args, "--set", *sets],
+        env=env,
+        stderr=subprocess.DEVNULL,
+    )
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 300
+        while not RunFolder(run).checkpoints() and time.monotonic() < deadline and parent.poll() is None:
+            time.sleep(0.05)
+        workers = _children(parent.pid)
+        assert len(workers) == 2, "the job should be training"
+        parent.send_signal(signal.SIGKILL)  # no chance to pass anything on: the kernel tells the workers
+        parent.wait()
+        deadline = time.monotonic() + 60
+        alive = workers
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.2)
+            alive = [w for w in workers if Path(f"/proc/{w}").exists()]
+        assert not alive, f"workers {alive} went on training without their launcher"
+    finally:
+        for w in workers:
+            if Path(f"/proc/{w}").exists():
+                os.kill(w, signal.SIGKILL)
+    assert lock_holder(RunFolder(run).lock_path) is None
