@@ -76,3 +76,9 @@ def test_the_cli_says_what_it_chose_and_the_run_keeps_it(tmp_path, capsys):
     args[args.index("2")] = "0"
     assert main(args) == 2
     assert "--minutes: expected 0.1..525600 minutes, got 0" in capsys.readouterr().err
+
+
+def test_a_budget_is_refused_in_a_process_group(tmp_path, monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(MeshsplatError, match=r"--minutes: this process is one of 2 \(WORLD_SIZE\).* --iters"):
+        plan_budget(TrainConfig(data=str(tmp_path), out=str(tmp_path / "run")), 5.0)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.train.config import TrainConfig, apply_overrides
+from meshsplat.train.distributed import env_world_size
 from meshsplat.train.trainer import Trainer
 
 __all__ = [
@@ -145,6 +146,11 @@ def plan_budget(cfg: TrainConfig, minutes: float) -> tuple[TrainConfig, Budget]:
     """The config whose schedule fits ``minutes`` of wall time on this machine (see the module's notes)."""
     if not minutes == minutes or minutes <= 0:  # NaN too
         raise MeshsplatError(f"--minutes: expected a positive number of minutes, got {minutes:g}")
+    if env_world_size() > 1:  # each process would measure, and plan, a schedule of its own
+        raise MeshsplatError(
+            f"--minutes: this process is one of {env_world_size()} (WORLD_SIZE); a time budget plans one process's "
+            "run: give the schedule with --iters (and --set) instead"
+        )
     m = measure_iteration(cfg)
     budget_s = minutes * 60.0
     per = m.iteration_s * GROWTH_MARGIN
