@@ -156,3 +156,21 @@ def test_deeply_nested_json_is_one_line(tmp_path):
     (tmp_path / "ds" / "manifest.json").write_text('{"frames": ' + deep + "}")
     with pytest.raises(MeshsplatError, match=r"manifest\.json: nested too deeply"):
         open_dataset(tmp_path / "ds")
+
+
+def test_the_dataset_writer_streams_meshes_to_the_bytes_np_save_writes(tmp_path):
+    from meshsplat.data.writer import DatasetWriter
+
+    rng = np.random.default_rng(3)
+    canonical = rng.normal(size=(7, 3)).astype(np.float32)
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6]])
+    meshes = [canonical + rng.normal(scale=0.1, size=(7, 3)).astype(np.float32) for _ in range(5)]
+    w = DatasetWriter(tmp_path / "ds", canonical, faces)
+    w.add_camera("c", np.array([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]), np.eye(4), 16, 16)
+    for m in meshes:
+        w.add_frame(np.zeros((16, 16, 3), np.uint8), "c", vertices=m)
+    w.add_frame(np.zeros((16, 16, 3), np.uint8), "c", mesh=2)  # a shared mesh adds no row
+    w.close()
+    np.save(tmp_path / "ref.npy", np.stack(meshes).astype(np.float32))
+    assert (tmp_path / "ds" / "vertices.npy").read_bytes() == (tmp_path / "ref.npy").read_bytes()
+    assert not (tmp_path / "ds" / ".vertices.npy.partial").exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
@@ -20,6 +21,9 @@ __all__ = ["DatasetWriter", "write_dataset", "FORMAT_NAME", "FORMAT_VERSION"]
 
 FORMAT_NAME = "meshsplat-dataset"
 FORMAT_VERSION = 1
+
+
+_MESHES_PARTIAL = ".vertices.npy.partial"  # posed meshes as they are added (raw float32 rows), until close()
 
 
 def _np(x, dtype=np.float32) -> np.ndarray:
@@ -60,7 +64,8 @@ class DatasetWriter:
         self.backdrop = None if backdrop is None else [float(x) for x in backdrop]
         self.cameras: dict[str, dict] = {}
         self.frames: list[dict] = []
-        self.meshes: list[np.ndarray] = []
+        self._mesh_count = 0  # posed meshes streamed to _MESHES_PARTIAL (memory bounded in their number)
+        self._mesh_file: Any = None
         self.splits: dict[str, list[int]] = {}
         self.driver: dict | None = None
         self.driver_params: dict[str, np.ndarray] | None = None
@@ -129,8 +134,11 @@ class DatasetWriter:
         v = _np(vertices)
         if v.shape != self.canonical.shape:
             raise MeshsplatError(f"vertices: expected shape {list(self.canonical.shape)}, got {list(v.shape)}")
-        self.meshes.append(v)
-        return len(self.meshes) - 1
+        if self._mesh_file is None:
+            self._mesh_file = open(self.root / _MESHES_PARTIAL, "wb")  # noqa: SIM115 - closed in close()
+        self._mesh_file.write(np.ascontiguousarray(v, "<f4").tobytes())
+        self._mesh_count += 1
+        return self._mesh_count - 1
 
     def add_frame(
         self,
@@ -154,8 +162,8 @@ class DatasetWriter:
         if mesh is None:
             assert vertices is not None  # exactly one of the two, checked above
             mesh = self.add_mesh(vertices)
-        elif not 0 <= mesh < len(self.meshes):
-            raise MeshsplatError(f"mesh: index {mesh} out of range (have {len(self.meshes)})")
+        elif not 0 <= mesh < self._mesh_count:
+            raise MeshsplatError(f"mesh: index {mesh} out of range (have {self._mesh_count})")
         index = len(self.frames)
         name = name or f"{index:06d}"
         img = float_to_uint8(image)
@@ -189,7 +197,7 @@ class DatasetWriter:
         if not self.frames:
             raise MeshsplatError("DatasetWriter: no frames were added")
         np.savez(self.root / "canonical.npz", vertices=self.canonical, faces=self.faces)
-        np.save(self.root / "vertices.npy", np.stack(self.meshes).astype(np.float32))
+        self._write_meshes()
         splits = dict(self.splits)
         splits.setdefault("train", list(range(len(self.frames))))
         manifest = {
@@ -208,11 +216,11 @@ class DatasetWriter:
             manifest["backdrop"] = self.backdrop
         if self.driver is not None and self.driver_params is not None:
             per_frame = self.driver.get(
-                "per_frame", [k for k, v in self.driver_params.items() if v.ndim == 2 and len(v) == len(self.meshes)]
+                "per_frame", [k for k, v in self.driver_params.items() if v.ndim == 2 and len(v) == self._mesh_count]
             )
-            bad = [k for k in per_frame if len(self.driver_params[k]) != len(self.meshes)]
+            bad = [k for k in per_frame if len(self.driver_params[k]) != self._mesh_count]
             if bad:
-                raise MeshsplatError(f"driver params {bad}: expected one row per mesh ({len(self.meshes)})")
+                raise MeshsplatError(f"driver params {bad}: expected one row per mesh ({self._mesh_count})")
             self.driver["per_frame"] = list(per_frame)
             # cast: the savez stub would match a keyword array against allow_pickle
             np.savez(self.root / "driver_params.npz", **cast("dict[str, Any]", self.driver_params))
@@ -225,6 +233,20 @@ class DatasetWriter:
         os.replace(tmp, self.root / "manifest.json")
         return self.root
 
+    def _write_meshes(self) -> None:
+        """``vertices.npy [T,V,3]`` float32 from the streamed rows (the bytes ``np.save`` writes), a chunk at a time."""
+        if self._mesh_file is not None:
+            self._mesh_file.close()
+            self._mesh_file = None
+        partial = self.root / _MESHES_PARTIAL
+        shape = (self._mesh_count, *self.canonical.shape)
+        with open(self.root / "vertices.npy", "wb") as out:
+            np.lib.format.write_array_header_1_0(out, {"descr": "<f4", "fortran_order": False, "shape": shape})
+            if self._mesh_count:
+                with open(partial, "rb") as rows:
+                    shutil.copyfileobj(rows, out, 16 * 2**20)
+        partial.unlink(missing_ok=True)
+
     def __enter__(self) -> DatasetWriter:
         return self
 
@@ -233,6 +255,10 @@ class DatasetWriter:
     ) -> None:
         if exc_type is None:
             self.close()
+        elif self._mesh_file is not None:  # a failed write leaves no half-streamed meshes behind
+            self._mesh_file.close()
+            self._mesh_file = None
+            (self.root / _MESHES_PARTIAL).unlink(missing_ok=True)
 
 
 def write_dataset(
