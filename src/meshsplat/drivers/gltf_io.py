@@ -81,7 +81,9 @@ class GltfFile:
             data = self.buffer(bv.buffer)
             start = (bv.byteOffset or 0) + (acc.byteOffset or 0)
             stride = bv.byteStride or dt.itemsize * n
-            out = np.ndarray((acc.count, n), dt, buffer=data, offset=start, strides=(stride, dt.itemsize)).copy()
+            out: np.ndarray = np.ndarray(
+                (acc.count, n), dt, buffer=data, offset=start, strides=(stride, dt.itemsize)
+            ).copy()
         else:
             out = np.zeros((acc.count, n), dt)
         sp = acc.sparse
