@@ -153,8 +153,12 @@ def test_short_clip_needs_an_identity(head, fitted):
     ):
         fit_head(lms, W, H, head=head)
     # with the identity of a longer fit of the same person it fits
-    fit = fit_head(lms, W, H, identity=fitted[1].identity, head=head)
+    steps = []
+    fit = fit_head(
+        lms, W, H, identity=fitted[1].identity, head=head, iterations=200, progress=lambda i, n: steps.append((i, n))
+    )
     assert float(fit.error_px.max()) < 1.5
+    assert steps[0] == (1, 300) and steps[-1] == (300, 300) and len(steps) == 300
 
 
 def test_bad_landmarks_are_one_line(head):
@@ -166,6 +170,8 @@ def test_bad_landmarks_are_one_line(head):
         fit_head(bad, W, H, head=head)
     with pytest.raises(MeshsplatError, match="width: expected a positive integer"):
         fit_head(np.zeros((12, 478, 2)), 0, H, head=head)
+    with pytest.raises(MeshsplatError, match="iterations: expected a positive integer"):
+        fit_head(np.zeros((12, 478, 2)), W, H, head=head, iterations=0)
 
 
 def test_a_wrong_focal_length_moves_the_head_not_the_fit(head):

@@ -18,6 +18,9 @@ API::
     fit.error_px [T]     mean landmark reprojection error per frame (pixels), fit.landmark_error_px [T,478]
     fit.focal            the focal length used (pixels)
 
+Options: ``fps`` (scales the smoothing), ``focal`` (pixels), ``identity`` (a previous fit's, kept fixed),
+``smoothing``, ``iterations``, ``progress(step, total)`` (a callback per optimizer step).
+
 World coordinates are the ICT model's (cm, +y up, +z out of the face); the camera sits at the origin
 looking along -z (``viewmat = diag(1,-1,-1,1)``), so a frontal head has a rotation near zero and
 ``BlendshapeDriver(fit.neutral, fit.faces, deltas, weights=fit.weights, rotations=fit.rotations,
@@ -42,6 +45,7 @@ wrong focal length mostly changes the distance, which the fit absorbs. Principal
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -177,13 +181,15 @@ def fit_head(
     smoothing: float = 1.0,
     iterations: int = 300,
     head: IctHead | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> HeadFit:
     """Fit the ICT head to ``landmarks [T,478,2|3]`` (pixels) of ``width`` x ``height`` frames.
 
     ``focal`` (pixels) defaults to :func:`focal_from_fov` (60 degrees diagonal); ``identity [V,3]`` (a
     previous fit's ``identity``) is kept fixed instead of fitted, which also lets clips shorter than
     ``MIN_FRAMES_FOR_IDENTITY`` frames be fitted; ``smoothing`` scales the temporal smoothing (0: none);
-    ``iterations`` of the joint stage (the pose-only stage runs half as many)."""
+    ``iterations`` of the joint stage (the pose-only stage runs half as many); ``progress(step, total)``
+    is called after each optimizer step (a progress bar)."""
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise MeshsplatError(f"{name}: expected a positive integer (pixels), got {value!r}")
@@ -202,11 +208,14 @@ def fit_head(
     f = focal_from_fov(int(width), int(height)) if focal is None else float(focal)
     if not (math.isfinite(f) and f > 0):
         raise MeshsplatError(f"focal: expected a positive number of pixels, got {focal!r}")
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise MeshsplatError(f"iterations: expected a positive integer, got {iterations!r}")
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise MeshsplatError(f"fps: expected a positive frame rate, got {fps!r}")
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     with torch.enable_grad():
-        params = _optimize(head, obs, K, identity, smoothing * ((30.0 if fps is None else fps) / 30.0) ** 2, iterations)
+        smooth = smoothing * ((30.0 if fps is None else fps) / 30.0) ** 2
+        params = _optimize(head, obs, K, identity, smooth, iterations, progress)
     identity_t, weights, gaze, rot, trans, err = params
     return HeadFit(head, identity_t, weights, gaze, rot, trans, K, int(width), int(height), err.mean(1), err)
 
@@ -253,7 +262,13 @@ class _Landmarks:
 
 
 def _optimize(
-    head: IctHead, obs: torch.Tensor, K: torch.Tensor, identity: torch.Tensor | None, smooth: float, iterations: int
+    head: IctHead,
+    obs: torch.Tensor,
+    K: torch.Tensor,
+    identity: torch.Tensor | None,
+    smooth: float,
+    iterations: int,
+    progress: Callable[[int, int], None] | None,
 ) -> tuple[torch.Tensor, ...]:
     T, E = obs.shape[0], len(head.names)
     sub = _Landmarks(head)
@@ -296,6 +311,9 @@ def _optimize(
                 loss = loss + 0.05 * coeffs.pow(2).sum()
         return loss
 
+    rigid_steps = max(iterations // 2, 1)
+    done = [0]
+
     def run(tensors: list[tuple[torch.Tensor, float]], steps: int, stage: int) -> None:
         opt = torch.optim.Adam([{"params": [x], "lr": lr} for x, lr in tensors])
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 0.1 ** (i / max(steps, 1)))
@@ -307,8 +325,11 @@ def _optimize(
             with torch.no_grad():
                 w_free.clamp_(0, 1)
                 gaze.clamp_(-0.8, 0.8)
+            done[0] += 1
+            if progress is not None:
+                progress(done[0], rigid_steps + iterations)
 
-    run([(rot, 0.05), (trans, 1.0)], max(iterations // 2, 1), 0)
+    run([(rot, 0.05), (trans, 1.0)], rigid_steps, 0)
     run(
         [(rot, 0.02), (trans, 0.3), (w_free, 0.05), (gaze, 0.03)] + ([(coeffs, 0.05)] if identity is None else []),
         iterations,
