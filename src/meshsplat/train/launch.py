@@ -25,6 +25,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -135,7 +136,8 @@ def _wait(procs: list[subprocess.Popen], poll_s: float) -> tuple[int, int] | Non
                 p.send_signal(signal.SIGTERM)
 
     passed_on = [signal.SIGTERM] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])
-    old = {s: signal.signal(s, forward) for s in passed_on}
+    main_thread = threading.current_thread() is threading.main_thread()  # handlers can be set there only
+    old = {s: signal.signal(s, forward) for s in passed_on} if main_thread else {}
     try:
         while True:
             if forwarded:
