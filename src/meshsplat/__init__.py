@@ -78,6 +78,7 @@ _SUBMODULES = (
     "animate",
     "demo",
     "viewer",
+    "track",
     "pipeline",
     "fleet",
     "cli",
