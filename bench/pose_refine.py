@@ -1,15 +1,19 @@
-"""Pose refinement on a capture whose tracked parameters are wrong by a known amount.
+"""Pose refinement on an exactly tracked capture and on a noisy one, in one run (issue 44).
 
-    python bench/pose_refine.py                 # demo sizes: 256 px, 1500 iterations per run
-    python bench/pose_refine.py --preset tiny   # seconds, to check the script
+    python bench/pose_refine.py                      # demo sizes: 256 px, 100 frames, 1500 iterations a run
+    python bench/pose_refine.py --preset tiny        # seconds, to check the script
+    python bench/pose_refine.py --resolution 128 --frames 40 --iters 600   # what fits a shared 2-core box
 
-A synthetic SMPL capture (stand-in body model, AIST++ dance, one camera) is trained three times with
-the same schedule and seed: with the true parameters; with the training frames' parameters perturbed
-by Gaussian noise (``--pose-noise`` radians on every joint and the global orientation, ``--transl-noise``
-of the body height on the translation), as a tracker would leave them; and the perturbed capture
-with ``--refine-pose``. Test frames keep their true parameters. Prints PSNR/SSIM/LPIPS on the held-out
-frames (full image and in the mask) and the parameter error before/after refinement; saves
-bench/results/pose_refine-<host>.json.
+Two synthetic SMPL captures (stand-in body model, AIST++ dance, one turning camera, ``meshsplat synth``):
+``exact``, whose stored (tracked) parameters are the ones the images show, and ``noisy``, the same capture
+with ``--pose-noise`` (every joint's tracked rotation off by that many radians, the images exact). Each is
+trained three times with the demo's schedule and seed: refinement ``off``; the ``old`` refiner (one Adam
+over every training frame's offsets, stepped every iteration: frames not drawn move on stale momentum, the
+refiner before issue 44, rebuilt here); and the ``new`` one (``PoseRefiner``: a lazy per-frame Adam).
+Prints PSNR/SSIM in full and in the mask on the training frames (in their refined poses, as ``eval`` and
+``render --split train`` use them), held-out views of training frames (refined poses) and held-out frames
+(tracked poses); and, on the exact capture, how far the refined training meshes ended from the true ones.
+Saves bench/results/pose_refine-<host>.json and a bar chart next to it.
 """
 
 from __future__ import annotations
@@ -22,63 +26,87 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from _machine import machine_info, results_path
 
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")
+SPLITS = ("train", "test_views", "test_frames")
+OLD_LR = 3e-4  # the old refiner's default rate
 
 
-def perturb(native: Path, out: Path, models: Path, pose_noise: float, transl_noise: float, seed: int = 0) -> dict:
-    """Copy ``native`` to ``out`` with the training frames' SMPL parameters perturbed (meshes re-posed)."""
-    import torch
+class StaleAdamRefiner:
+    """The refiner before issue 44: one ``torch.optim.Adam`` over all rows' offsets, stepped every iteration
+    (rows not in the batch keep moving on their old moments). Wraps a ``PoseRefiner``; bench-only."""
 
-    from meshsplat.data import open_dataset
-    from meshsplat.drivers.body_models import BodyModel
+    def __init__(self, new) -> None:
+        self.__dict__.update(new.__dict__)
+        self._new = new
+        self.optimizer = torch.optim.Adam(list(new.offsets.values()), lr=new.lr, eps=1e-15)
 
-    if out.exists():
-        shutil.rmtree(out)
-    shutil.copytree(native, out)
-    ds = open_dataset(out)
-    rows = sorted({int(ds.frame_info(i)["mesh"]) for i in ds.split("train")})
-    params = {k: v.copy() for k, v in ds.driver_params.items()}
-    rng = np.random.default_rng(seed)
-    height = float(np.ptp(ds.canonical_vertices.numpy()[:, 1]))
-    for k, sigma in (("global_orient", pose_noise), ("body_pose", pose_noise), ("transl", transl_noise * height)):
-        params[k][rows] += rng.normal(0.0, sigma, size=params[k][rows].shape).astype(np.float32)
-    info = ds.driver_info
-    model = BodyModel(info["type"], models, gender=info.get("gender", "neutral"))
-    verts = np.load(out / "vertices.npy")
-    with torch.no_grad():
-        sub = {k: (v[rows] if k in ds.per_frame_param_names else v) for k, v in params.items()}
-        verts[rows] = model.forward(sub).vertices.numpy()
-    np.save(out / "vertices.npy", verts)
-    np.savez(out / info["params"], **params)
-    return {"rows": rows, "params": params}
+    def step(self, mesh_rows) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def __getattr__(self, name):
+        return getattr(type(self._new), name).__get__(self)
 
 
-def param_error(a: dict, b: dict, rows: list[int]) -> dict:
-    """Mean absolute difference per parameter over ``rows`` (radians / model units)."""
-    return {k: float(np.abs(a[k][rows] - b[k][rows]).mean()) for k in ("global_orient", "body_pose", "transl")}
+def mesh_drift(run: Path) -> dict:
+    """Distance per vertex between the refined training meshes and the stored (here: true) ones."""
+    from meshsplat.run_folder import load_run
+
+    lr = load_run(run, "cpu")
+    tracked, refined = lr.open_dataset(refined_poses=False), lr.open_dataset()
+    d = []
+    for i in tracked.split("train"):
+        d.append((refined.vertices(i) - tracked.vertices(i)).norm(dim=-1))
+    dist = torch.stack(d)
+    return {"mean_mm": 1000 * float(dist.mean()), "max_mm": 1000 * float(dist.max())}
+
+
+def chart(rows: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharey=True)
+    for ax, case in zip(axes, ("exact", "noisy"), strict=True):
+        if case not in rows:
+            continue
+        variants = list(rows[case])
+        width = 0.8 / len(variants)
+        for k, v in enumerate(variants):
+            vals = [rows[case][v]["splits"].get(s, {}).get("psnr_mask") or 0.0 for s in SPLITS]
+            ax.bar(np.arange(len(SPLITS)) + (k - (len(variants) - 1) / 2) * width, vals, width, label=v)
+        ax.set_xticks(range(len(SPLITS)), SPLITS)
+        ax.set_title(f"{case} poses")
+        ax.set_ylabel("PSNR in mask (dB)")
+        lo = min(rows[case][v]["splits"][s]["psnr_mask"] for v in variants for s in SPLITS)
+        ax.set_ylim(lo - 2, None)
+    axes[0].legend(title="refinement", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=80)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="default", choices=["default", "tiny"])
     ap.add_argument("--iters", type=int, default=None)
+    ap.add_argument("--resolution", type=int, default=None)
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--n-init", type=int, default=None)
     ap.add_argument("--pose-noise", type=float, default=0.05, help="radians (default 0.05 = 2.9 deg)")
-    ap.add_argument("--transl-noise", type=float, default=0.01, help="fraction of the body height")
-    ap.add_argument("--lr", type=float, default=None, help="pose_refine.lr (default: the config's)")
+    ap.add_argument(
+        "--new-lrs", type=float, nargs="*", default=[], help="also the new refiner at these pose_refine.lr (new_lr<x>)"
+    )
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
-    ap.add_argument(
-        "--variants",
-        nargs="*",
-        default=["true", "perturbed", "perturbed+refine"],
-        choices=["true", "perturbed", "perturbed+refine"],
-    )
+    ap.add_argument("--cases", nargs="*", default=["exact", "noisy"], choices=["exact", "noisy"])
+    ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "new"])
     args = ap.parse_args()
 
-    from meshsplat.data import open_dataset
     from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.synth import synthesize
@@ -86,80 +114,77 @@ def main() -> None:
     from meshsplat.train import Trainer
 
     preset = PRESETS[args.preset]
-    if args.iters:
-        preset = replace(preset, iterations=args.iters)
+    for field, value in (("iterations", args.iters), ("resolution", args.resolution), ("frames", args.frames)):
+        if value:
+            preset = replace(preset, **{field: value})
+    if args.n_init:
+        preset = replace(preset, n_init=args.n_init)
     work = Path(args.work)
     models = work / "models"
     if not (models / "smpl").is_dir():
         write_standin_models(models, kinds=("smpl",))
-    native = work / "true"
-    if not (native / "manifest.json").is_file():
-        synthesize(
-            "smpl",
-            native,
-            rig="monocular-turn",
-            frames=preset.frames,
-            resolution=preset.resolution,
-            test_views=0,
-            model_dir=models,
-            overwrite=True,
-        )
-    noisy = work / "perturbed"
-    pert = perturb(native, noisy, models, args.pose_noise, args.transl_noise)
-    true_params = open_dataset(native).driver_params
-
-    rows = {}
-    variants = {"true": (native, False), "perturbed": (noisy, False), "perturbed+refine": (noisy, True)}
-    variants = {k: v for k, v in variants.items() if k in args.variants}
-    for name, (data, refine) in variants.items():
-        run = work / f"run_{name}"
-        if run.exists():
-            shutil.rmtree(run)
-        extra = ["pose_refine.enabled=true"] if refine else []
-        if refine and args.lr:
-            extra.append(f"pose_refine.lr={args.lr}")
-        cfg = demo_train_config(data, run, preset, extra, progress=False)
-        cfg.model_dir = str(models)
-        t0 = time.perf_counter()
-        trainer = Trainer(cfg)
-        trainer.train()
-        train_s = time.perf_counter() - t0
-        m = evaluate_run(run, report=False)
-        rec = {
-            "train_s": train_s,
-            "gaussians": trainer.num_gaussians,
-            "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
-        }
-        if refine:
-            refined = dict(np.load(run / "refined_params.npz"))
-            order = {int(r): j for j, r in enumerate(refined["mesh_rows"])}
-            full = {k: pert["params"][k].copy() for k in ("global_orient", "body_pose", "transl")}
-            for k in full:
-                for r, j in order.items():
-                    full[k][r] = refined[k][j]
-            rec["param_error_after"] = param_error(full, true_params, pert["rows"])
-        rows[name] = rec
-        print(f"[{name}] trained in {train_s:.0f} s", flush=True)
-    before = param_error(pert["params"], true_params, pert["rows"])
+    rows: dict = {}
+    for case in args.cases:
+        data = work / f"{case}-{preset.resolution}-{preset.frames}"
+        if not (data / "manifest.json").is_file():
+            synthesize(
+                "smpl",
+                data,
+                rig="monocular-turn",
+                frames=preset.frames,
+                resolution=preset.resolution,
+                test_views=1,
+                model_dir=models,
+                pose_noise=args.pose_noise if case == "noisy" else 0.0,
+                overwrite=True,
+            )
+        rows[case] = {}
+        for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs]:
+            run = work / f"run_{case}_{variant}"
+            if run.exists():
+                shutil.rmtree(run)
+            extra = ["pose_refine.auto=false"] if variant == "off" else ["pose_refine.enabled=true"]
+            if variant == "old":
+                extra.append(f"pose_refine.lr={OLD_LR}")
+            elif variant.startswith("new_lr"):
+                extra.append(f"pose_refine.lr={variant[len('new_lr') :]}")
+            cfg = demo_train_config(data, run, preset, extra, progress=False)
+            cfg.model_dir = str(models)
+            t0 = time.perf_counter()
+            trainer = Trainer(cfg)
+            if variant == "old":
+                trainer.refiner = StaleAdamRefiner(trainer.refiner)  # type: ignore[assignment]
+            trainer.train()
+            train_s = time.perf_counter() - t0
+            m = evaluate_run(run, splits=list(SPLITS), report=False, lpips_net=None, device="cpu")
+            rec: dict = {
+                "train_s": train_s,
+                "gaussians": trainer.num_gaussians,
+                "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
+            }
+            if variant != "off" and case == "exact":
+                rec["mesh_drift"] = mesh_drift(run)
+            rows[case][variant] = rec
+            print(f"[{case}/{variant}] trained in {train_s:.0f} s", flush=True)
 
     f = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
     print(
-        f"\npose refinement, {args.preset} preset ({preset.iterations} iterations, {preset.resolution} px), "
-        f"noise {args.pose_noise} rad / {args.transl_noise} x height"
+        f"\npose refinement, {preset.iterations} iterations, {preset.resolution} px, {preset.frames} frames, "
+        f"noisy case {args.pose_noise} rad"
     )
-    print(f"{'variant':<18}{'split':<13}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>8}{'PSNRm':>8}{'SSIMm':>8}{'LPIPSm':>8}")
-    for name, r in rows.items():
-        for s, m in r["splits"].items():
-            print(
-                f"{name:<18}{s:<13}{f(m['psnr'], 2):>8}{f(m['ssim'], 4):>8}{f(m['lpips'], 4):>8}"
-                f"{f(m['psnr_mask'], 2):>8}{f(m['ssim_mask'], 4):>8}{f(m['lpips_mask'], 4):>8}"
-            )
-    print("mean |param - true| on training frames: before " + json.dumps({k: round(v, 5) for k, v in before.items()}))
-    if "perturbed+refine" in rows:
-        print(
-            "                                        after  "
-            + json.dumps({k: round(v, 5) for k, v in rows["perturbed+refine"]["param_error_after"].items()})
-        )
+    print(f"{'case':<7}{'refiner':<9}{'split':<13}{'PSNR':>8}{'SSIM':>8}{'PSNRm':>8}{'SSIMm':>8}  drift mm")
+    for case, variants in rows.items():
+        for name, r in variants.items():
+            drift = r.get("mesh_drift")
+            for s in SPLITS:
+                m = r["splits"].get(s)
+                if m is None:
+                    continue
+                extra = f"  {drift['mean_mm']:.2f} (max {drift['max_mm']:.2f})" if drift and s == "train" else ""
+                print(
+                    f"{case:<7}{name:<9}{s:<13}{f(m['psnr'], 2):>8}{f(m['ssim'], 4):>8}"
+                    f"{f(m['psnr_mask'], 2):>8}{f(m['ssim_mask'], 4):>8}{extra}"
+                )
     out = results_path(args.name or ("pose_refine" if args.preset == "default" else f"pose_refine-{args.preset}"))
     out.write_text(
         json.dumps(
@@ -167,15 +192,20 @@ def main() -> None:
                 "machine": machine_info(),
                 "preset": args.preset,
                 "iterations": preset.iterations,
+                "resolution": preset.resolution,
+                "frames": preset.frames,
+                "n_init": preset.n_init,
                 "pose_noise_rad": args.pose_noise,
-                "transl_noise_height": args.transl_noise,
-                "param_error_before": before,
-                "variants": rows,
+                "lr_new_extra": args.new_lrs,
+                "lr_old": OLD_LR,
+                "cases": rows,
             },
             indent=2,
         )
         + "\n"
     )
+    if {"off", "old", "new"} <= set(args.variants):
+        chart(rows, out.with_suffix(".png"))
     print(f"saved {out}")
 
 
