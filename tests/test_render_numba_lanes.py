@@ -38,20 +38,23 @@ def _geometry(scene):
     return k, geo, s["backgrounds"].contiguous().numpy()
 
 
+@pytest.mark.parametrize("n_colors", [1, 4])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_lanes_match_the_scalar_kernels(dtype):
+def test_lanes_match_the_scalar_kernels(dtype, n_colors):
     """Same contribution lists (list position after each pixel's last splat), image and final T to rounding, every
-    per-intersection gradient row to 1e-5 (float32) / 1e-12 (float64) of its column's largest entry."""
+    per-intersection gradient row to 1e-5 (float32) / 1e-12 (float64) of its column's largest entry; fewer and
+    more colour channels than the 3 the lane loop sums itself."""
     scene = random_scene(n=400, seed=8, dtype=dtype, width=83, height=57)
-    scene["colors"] = torch.rand(3, 400, 4, generator=torch.Generator().manual_seed(3), dtype=dtype)  # D = 4
-    scene["backgrounds"] = torch.rand(3, 4, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    g = torch.Generator().manual_seed(3)
+    scene["colors"] = torch.rand(3, 400, n_colors, generator=g, dtype=dtype)
+    scene["backgrounds"] = torch.rand(3, n_colors, generator=g, dtype=dtype)
     k, geo, bg = _geometry(scene)
     with nc.numba_threads():
         out_s, tf_s, nc_s = k.forward(*geo.args(bg))
         out_l, tf_l, nc_l, alpha_l = k.forward_lanes(*geo.args(bg))
         rng = np.random.default_rng(0)
         n_pix = tf_s.shape[0]
-        g_col = rng.standard_normal((n_pix, 4)).astype(out_s.dtype)
+        g_col = rng.standard_normal((n_pix, n_colors)).astype(out_s.dtype)
         g_alpha = rng.standard_normal(n_pix).astype(out_s.dtype)
         rows_s = k.backward(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
         rows_l = k.backward_lanes(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)

@@ -24,6 +24,7 @@ CPU and numba exposes no per-function switch to 512. The scalar kernels' pixel l
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -305,8 +306,10 @@ def _f32_from_bits_py(i):  # pragma: no cover - replaced by an intrinsic when co
 _f32_from_bits: Any = _f32_from_bits_py
 
 
+@lru_cache(maxsize=1)
 def compile_kernels(numba: Any) -> tuple[Any, Any]:
-    """The forward and backward lane kernels wrapped by ``numba.njit(parallel=True)`` (cached on disk)."""
+    """The forward and backward lane kernels wrapped by ``numba.njit(parallel=True)`` (cached on disk); registers
+    the float32 ``exp`` once."""
     global _prange, _f32_from_bits
     from llvmlite import ir
     from numba.core import types
