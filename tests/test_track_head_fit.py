@@ -84,6 +84,10 @@ def fitted(head):
     return truth, fit
 
 
+def fit_landmarks(head, fitted):
+    return _landmarks(head, *fitted[0])[..., :2]
+
+
 def test_fit_recovers_pose_expressions_gaze(head, fitted):
     (_, w, gaze, rot, _), fit = fitted
     assert fit.weights.shape == (T, 57) and fit.names == head.names
@@ -113,6 +117,9 @@ def test_fit_vertices_match_the_camera(head, fitted):
     t = T // 2
     v = fit.vertices(t)
     assert v.shape == head.neutral.shape and torch.allclose(v, fit.vertices()[t], atol=1e-4)
+    # the reported error is that of the returned head (the fit poses the landmarks alone, about another pivot)
+    err = (fit.project(head.landmarks(fit.vertices())) - fit_landmarks(head, fitted)).norm(dim=-1)
+    assert torch.allclose(err, fit.landmark_error_px, atol=1e-3)
     truth = head.pose(identity, w[t : t + 1], gaze[t : t + 1], rot[t : t + 1], trans[t : t + 1])[0]
     # the whole head (mouth, back of the head) lands where the truth does, in pixels
     px, _ = cam.project(v)
@@ -158,6 +165,8 @@ def test_short_clip_needs_an_identity(head, fitted):
         lms, W, H, identity=fitted[1].identity, head=head, iterations=200, progress=lambda i, n: steps.append((i, n))
     )
     assert float(fit.error_px.max()) < 1.5
+    err = (fit.project(head.landmarks(fit.vertices())) - lms[..., :2]).norm(dim=-1)
+    assert torch.allclose(err, fit.landmark_error_px, atol=1e-3)
     assert steps[0] == (1, 300) and steps[-1] == (300, 300) and len(steps) == 300
 
 

@@ -237,7 +237,6 @@ class _Landmarks:
         self.neutral = blend(head.neutral)
         self.deltas = blend(head.deltas).reshape(len(head.names), -1)  # [E,L*3]
         on_eye = [torch.isin(tri, e).all(1) for e in head.eye_vertices]
-        self.eye = torch.where(on_eye[0], 0, torch.where(on_eye[1], 1, -1))  # [L]: which eyeball, -1 none
         self.eye_ids = [torch.nonzero(m).reshape(-1) for m in on_eye]
         self.eye_basis = torch.stack([basis[e].mean(0) for e in head.eye_vertices])  # [2,19]
         self.eye_centers = head.eye_centers
@@ -292,6 +291,8 @@ def _optimize(
     else:  # a given identity: its least-squares coefficients stand in for the subset; fixed
         coeffs = torch.linalg.lstsq(basis, identity).solution.detach()
         sub.neutral = head.landmarks(head.neutral + identity) - sub.basis @ coeffs
+        eye_mean = torch.stack([identity[e].mean(0) for e in head.eye_vertices])
+        sub.eye_centers = head.eye_centers + eye_mean - sub.eye_basis @ coeffs
     w_free = torch.zeros(T, len(free), requires_grad=True)
     gaze = torch.zeros(T, 2, 2, requires_grad=True)
 
@@ -338,10 +339,10 @@ def _optimize(
     with torch.no_grad():
         ident = basis @ coeffs if identity is None else identity.clone()
         # the fit turned the head about the neutral's pivot; HeadFit (and BlendshapeDriver) about the
-        # fitted rest's: t' = t + (R - I)(p - p')
+        # fitted rest's p': R (v - p) + p + t = R (v - p') + p' + t' with t' = t + (R - I)(p' - p)
         p, p2 = sub.pivot, head.pivot(head.neutral + ident)
         R = rotation_matrix(rot)
-        t2 = trans + torch.einsum("tij,j->ti", R - torch.eye(3), p - p2)
+        t2 = trans + torch.einsum("tij,j->ti", R - torch.eye(3), p2 - p)
         w = with_eye_look(weights(), gaze, head.eye_look)
         err = (_project(sub.points(coeffs, weights(), gaze, rot, trans), K) - obs).norm(dim=-1)  # [T,L]
         return ident, w, gaze.detach().clone(), rot.detach().clone(), t2.detach(), err
