@@ -101,6 +101,7 @@ def main() -> None:
     ap.add_argument(
         "--new-lrs", type=float, nargs="*", default=[], help="also the new refiner at these pose_refine.lr (new_lr<x>)"
     )
+    ap.add_argument("--prior", type=float, default=None, help="pose_refine.prior of the new refiner variants")
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
     ap.add_argument("--cases", nargs="*", default=["exact", "noisy"], choices=["exact", "noisy"])
@@ -148,6 +149,8 @@ def main() -> None:
                 extra.append(f"pose_refine.lr={OLD_LR}")
             elif variant.startswith("new_lr"):
                 extra.append(f"pose_refine.lr={variant[len('new_lr') :]}")
+            if variant.startswith("new") and args.prior is not None:
+                extra.append(f"pose_refine.prior={args.prior}")
             cfg = demo_train_config(data, run, preset, extra, progress=False)
             cfg.model_dir = str(models)
             t0 = time.perf_counter()
@@ -197,6 +200,7 @@ def main() -> None:
                 "n_init": preset.n_init,
                 "pose_noise_rad": args.pose_noise,
                 "lr_new_extra": args.new_lrs,
+                "prior_new": args.prior,
                 "lr_old": OLD_LR,
                 "cases": rows,
             },

@@ -264,6 +264,9 @@ class PoseRefineConfig:
     auto: bool = True
     lr: float = 3e-4  # bench/pose_refine.py: 3e-4 best of 3e-4, 1e-3, 5e-3 (diverges) at the demo budget
     params: str = "global_orient,body_pose,transl,neck_pose,jaw_pose,expression"
+    # weight of a pull of each offset towards zero (its gradient gains prior * offset): keeps a pose where its
+    # images say nothing (e.g. depth in a monocular capture); 0: none (bench/reports/pose_refine.md)
+    prior: float = 0.0
     # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen, on the
     # training images (docs/quality.md, "the training poses, fitted the same way after training"); 0: none
     polish_steps: int = 0
@@ -379,6 +382,7 @@ class TrainConfig:
             (self.strategy.split_n >= 1, "strategy.split_n must be >= 1"),
             (self.checkpoint_every >= 1 and self.keep_checkpoints >= 1, "checkpoint_every/keep_checkpoints >= 1"),
             (self.pose_refine.lr > 0, "pose_refine.lr must be > 0"),
+            (self.pose_refine.prior >= 0, "pose_refine.prior must be >= 0"),
             (0 <= self.pose_refine.polish_steps <= 100_000, "pose_refine.polish_steps must be in [0, 100000]"),
             (self.pose_refine.polish_lr > 0, "pose_refine.polish_lr must be > 0"),
             (self.checkpoint_every_s > 0, "checkpoint_every_s must be > 0"),

@@ -42,6 +42,7 @@ class PoseRefiner:
         lr: float,
         model_dir: str | None,
         device: torch.device,
+        prior: float = 0.0,
     ) -> None:
         if dataset.driver_info is None or dataset.driver_params is None:
             raise MeshsplatError(
@@ -65,6 +66,7 @@ class PoseRefiner:
         self.shared = {k: as_t(v) for k, v in params.items() if k not in per_frame}
         self.offsets = {k: torch.nn.Parameter(torch.zeros_like(self.rows[k])) for k in self.names}
         self.lr = lr
+        self.prior = prior  # gradient + prior * offset: a pull towards the tracked parameters
         self.exp_avg = {k: torch.zeros_like(v) for k, v in self.rows.items() if k in self.offsets}  # [R, k]
         self.exp_avg_sq = {k: torch.zeros_like(v) for k, v in self.exp_avg.items()}  # [R, k]
         self.steps = [0] * len(rows)  # Adam steps taken by each row
@@ -90,7 +92,8 @@ class PoseRefiner:
     def step(self, mesh_rows: Iterable[int]) -> None:
         """One Adam step (``torch.optim.Adam``'s arithmetic, betas 0.9/0.999, eps 1e-15) for each refined row
         of ``mesh_rows`` (the batch's frames; a row drawn twice steps once, on its summed gradient), with that
-        row's own moments and step count; every other row, and its state, stays as it is. Clears the gradients."""
+        row's own moments and step count; every other row, and its state, stays as it is. With ``prior`` the
+        gradient gains ``prior * offset`` (an L2 pull towards the tracked parameters). Clears the gradients."""
         b1, b2, eps = ADAM_BETAS[0], ADAM_BETAS[1], ADAM_EPS
         with torch.no_grad():
             for row in sorted({int(r) for r in mesh_rows if int(r) in self.row_of}):
@@ -103,6 +106,8 @@ class PoseRefiner:
                     if off.grad is None:
                         continue
                     g, m, v = off.grad[j], self.exp_avg[k][j], self.exp_avg_sq[k][j]
+                    if self.prior:
+                        g = g + self.prior * off.data[j]
                     m.lerp_(g, 1 - b1)
                     v.mul_(b2).addcmul_(g, g, value=1 - b2)
                     denom = (v.sqrt() / bias2_sqrt).add_(eps)

@@ -242,7 +242,13 @@ class Trainer:
             return None, None
         try:
             refiner = PoseRefiner(
-                self.dataset, self.train_ids, pr.params, pr.lr * self.lr_factor, self.cfg.model_dir or None, self.device
+                self.dataset,
+                self.train_ids,
+                pr.params,
+                pr.lr * self.lr_factor,
+                self.cfg.model_dir or None,
+                self.device,
+                prior=pr.prior,
             )
         except MeshsplatError as exc:
             if pr.enabled:
