@@ -185,12 +185,7 @@ def track_head(
 
     t0 = _time.perf_counter()
     keep = np.nonzero(track.found)[0]
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # hundreds of small steps: more threads only wait on each other (10x slower under load)
-    try:
-        fit: HeadFit = fit_head(track.landmarks[keep], track.width, track.height, fps=fps)
-    finally:
-        torch.set_num_threads(threads)
+    fit: HeadFit = fit_head(track.landmarks[keep], track.width, track.height, fps=fps)
     seconds["fit"] = _time.perf_counter() - t0
 
     t0 = _time.perf_counter()
