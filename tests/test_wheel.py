@@ -47,6 +47,7 @@ def test_wheel_carries_assets_viewer_and_licences(wheel):
         "assets/licenses/CC-BY-4.0.txt",
         "assets/licenses/CC0-1.0.txt",
         "assets/licenses/ICT-FaceKit-MIT.txt",
+        "assets/ict_facekit/ict_mediapipe_landmarks.npz",
         "viewer/static/index.html",
         "viewer/static/viewer.js",
         "py.typed",
