@@ -9,7 +9,7 @@ import pytest
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.video import probe_video, read_video_frames, write_mp4
-from meshsplat.track.head_region import Crop, crop_frame
+from meshsplat.track.head_region import Crop, crop_frame, crop_inside
 
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
 
@@ -104,3 +104,10 @@ def test_crop_frame_samples_the_box():
     # outside the frame is black
     edge = crop_frame(frame, Crop(x0=-50.0, y0=0.0, side=100.0, size=50))
     assert edge[:, :24].max() == 0 and edge[:, 27:].min() > 0  # crop columns 0-24 lie left of the frame
+
+
+def test_crop_inside_marks_the_frame():
+    """The black margin of a crop that leaves the frame is never part of a matte."""
+    inside = crop_inside(300, 400, Crop(x0=-50.0, y0=250.0, side=100.0, size=50))
+    assert inside[:, :24].max() == 0 and inside[:24, 26:].min() == 1  # left of the frame; inside it
+    assert inside[26:].max() == 0  # below the frame's last row (y >= 300)

@@ -33,7 +33,7 @@ from meshsplat.io.video import VideoInfo, probe_video, read_video_frames
 from meshsplat.synth.driving import weld
 from meshsplat.track.face_track import FaceTrack, track_faces
 from meshsplat.track.head_fit import HeadFit, fit_head
-from meshsplat.track.head_region import clip_crops, crop_frame, hair_region, mesh_silhouette
+from meshsplat.track.head_region import clip_crops, crop_frame, crop_inside, hair_region, mesh_silhouette
 from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
 from meshsplat.track.mediapipe_models import FaceMesh, PersonSegmenter
 
@@ -240,8 +240,10 @@ def _write_capture(
             lm_crop = lm[j].copy()
             lm_crop[:, :2] = crop.to_crop(lm_crop[:, :2])
             Kc = crop.K(fit.K.numpy())
-            matte = person * np.maximum(
-                hair_region(lm_crop, s.size, s.size), _silhouette(verts[j][index], faces, Kc, s.size)
+            matte = (
+                person
+                * crop_inside(frame.shape[0], frame.shape[1], crop)
+                * np.maximum(hair_region(lm_crop, s.size, s.size), _silhouette(verts[j][index], faces, Kc, s.size))
             )
             cid = writer.add_camera(f"{j:06d}", Kc, viewmat, s.size, s.size)
             writer.add_frame(

@@ -17,7 +17,7 @@ import numpy as np
 
 from meshsplat.track.face_track import CHIN, FOREHEAD
 
-__all__ = ["Crop", "clip_crops", "hair_region", "mesh_silhouette", "crop_frame", "CROP_SIDE"]
+__all__ = ["Crop", "clip_crops", "hair_region", "mesh_silhouette", "crop_frame", "crop_inside", "CROP_SIDE"]
 
 CROP_SIDE = 2.6  # crop side in face sizes: hair above the forehead and the neck below the chin fit in
 HAIR_UP, HAIR_ALONG, HAIR_ACROSS = 0.25, 0.95, 0.95  # ellipse centre shift (up) and semi-axes, face sizes
@@ -92,6 +92,12 @@ def crop_frame(frame: np.ndarray, crop: Crop) -> np.ndarray:
         )
     )
     return out
+
+
+def crop_inside(height: int, width: int, crop: Crop) -> np.ndarray:
+    """``[size,size]`` float32 in [0, 1]: the part of the crop that lies inside a ``height x width`` frame
+    (:func:`crop_frame` fills the rest with black, which no matte may count as the subject)."""
+    return crop_frame(np.full((height, width), 255, np.uint8), crop).astype(np.float32) / 255
 
 
 def hair_region(landmarks: np.ndarray, width: int, height: int) -> np.ndarray:
