@@ -101,6 +101,7 @@ def main() -> None:
     ap.add_argument(
         "--new-lrs", type=float, nargs="*", default=[], help="also the new refiner at these pose_refine.lr (new_lr<x>)"
     )
+    ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
     ap.add_argument("--prior", type=float, default=None, help="pose_refine.prior of the new refiner variants")
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
@@ -153,6 +154,8 @@ def main() -> None:
                 extra.append(f"pose_refine.prior={args.prior}")
             cfg = demo_train_config(data, run, preset, extra, progress=False)
             cfg.model_dir = str(models)
+            if args.seed is not None:
+                cfg.seed = args.seed
             t0 = time.perf_counter()
             trainer = Trainer(cfg)
             if variant == "old":
@@ -201,6 +204,7 @@ def main() -> None:
                 "pose_noise_rad": args.pose_noise,
                 "lr_new_extra": args.new_lrs,
                 "prior_new": args.prior,
+                "seed": args.seed,
                 "lr_old": OLD_LR,
                 "cases": rows,
             },
