@@ -129,7 +129,10 @@ def test_file_arguments_accept_bundled_names(tmp_path, monkeypatch):
 
 
 def test_one_version_number():
-    """The version is written once (``meshsplat.__version__``); the changelog's newest entry names it."""
+    """The version is written once (``meshsplat.__version__``); the changelog's newest released entry names
+    it (an ``## Unreleased`` section may sit above it, for what lands before the next release)."""
     assert 'dynamic = ["version"]' in (ROOT / "pyproject.toml").read_text()
-    newest = re.search(r"^## (\S+)", (ROOT / "CHANGELOG.md").read_text(), re.M)
-    assert newest and newest.group(1) == meshsplat.__version__
+    headings = re.findall(r"^## (\S+)", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    released = headings[1:] if headings[:1] == ["Unreleased"] else headings
+    assert "Unreleased" not in released, "only one Unreleased section, at the top"
+    assert released and released[0] == meshsplat.__version__
