@@ -8,7 +8,11 @@ Every reader ends in ``build_dataset``, which calls :func:`check_cameras`. The r
   ``MIN_ON_MASK`` of the visible vertices (when ``MIN_MASK_POINTS`` or more are visible) on the frame's
   mask (pooled to a grid of about 64 cells a side, dilated one cell), and no
   other camera convention fitting clearly better (rolled by 180 degrees: the overlap with the projection
-  turned about the principal point exceeds the overlap as is by ``CLEARLY_BETTER``). A badly tracked frame
+  turned about the principal point exceeds the overlap as is by ``CLEARLY_BETTER``). With the faces, the
+  mask is also compared the other way (:func:`_within`): a frame whose vertices miss the mask (occlusion)
+  or lie mostly outside the image (a close-up) passes when the mask lies within the projected silhouette
+  (``MIN_WITHIN``), its outline on the silhouette's (``MIN_OUTLINE``) and no shrunk projection
+  (``SMALLER``) fits clearly better; the roll must then hold more of the mask to win. A badly tracked frame
   anywhere in the capture is found (a sample of 32 frames missed them); the cost is a mask decode and a
   pooling per frame (``bench/badinput.py``).
 - a camera failing on at least ``BROKEN_SHARE`` of its checked frames is a wrong camera: the capture is
@@ -39,6 +43,8 @@ __all__ = [
     "MIN_MASK_POINTS",
     "BROKEN_SHARE",
     "CLEARLY_BETTER",
+    "MIN_WITHIN",
+    "MIN_OUTLINE",
 ]
 
 MAX_VERTICES = 512  # vertices projected per frame (an even subsample of larger meshes)
@@ -48,7 +54,12 @@ MIN_ON_MASK = 0.5  # share of the visible vertices on the (dilated) mask
 MIN_MASK_POINTS = 16  # fewer visible vertices than this say nothing about the overlap: geometry only
 BROKEN_SHARE = 0.8  # a camera failing on this share of its checked frames is wrong, not its frames
 CLEARLY_BETTER = 0.25  # another convention beating "as is" on the mask by this much means "as is" is wrong
+MIN_WITHIN = 0.9  # share of the mask's cells on the projected mesh: the mask is the visible part of the subject
+MIN_OUTLINE = 0.75  # ... and share of its outline on the projection's outline (not a projection larger than it)
+# the projection shrunk by these factors must not fit clearly better (a focal length or distance off)
+SMALLER = (0.8, 0.6, 0.45)
 PROBE_FRAMES = 8  # frames of a wrong camera on which the convention fixes are tried
+_RASTER_CHUNK = 1 << 20  # (triangle, sample) pairs tested at a time when a silhouette is rasterized
 _GRID = 64  # masks are pooled to about this many cells along their longer side, then dilated one cell
 
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -102,27 +113,101 @@ class CameraCheck:
         return not self.wrong and not self.bad_frames
 
 
-def _mask_grid(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    """Mask ``[H,W]`` or ``[H,W,1]`` -> (pooled and dilated boolean grid, cell size in pixels)."""
+def _mask_grid(mask: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+    """Mask ``[H,W]`` or ``[H,W,1]`` -> (pooled and dilated boolean grid, cell size in pixels, pooled grid)."""
     m = torch.from_numpy(np.ascontiguousarray(np.asarray(mask, np.float32).reshape(mask.shape[0], mask.shape[1])))
     cell = max(1, math.ceil(max(m.shape) / _GRID))
     g = F.max_pool2d((m > 0.5).float()[None, None], cell, cell, ceil_mode=True)
-    g = F.max_pool2d(g, 3, 1, padding=1)
-    return g[0, 0].numpy() > 0, cell
+    d = F.max_pool2d(g, 3, 1, padding=1)
+    return d[0, 0].numpy() > 0, cell, g[0, 0].numpy() > 0
 
 
-def _score(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray, grid) -> _Score:
+def _project(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray):
+    """(u, v, in front, inside the image) of ``verts [N,3]``."""
     p = verts @ vm[:3, :3].T + vm[:3, 3]
     z = p[:, 2]
     front = z > 1e-9
     zs = np.where(front, z, 1.0)
     u = K[0, 0] * p[:, 0] / zs + K[0, 1] * p[:, 1] / zs + K[0, 2]
     v = K[1, 1] * p[:, 1] / zs + K[1, 2]
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return u, v, front, front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+
+
+def _silhouette(vm: np.ndarray, K, w, h, verts: np.ndarray, faces: np.ndarray, shape, cell: int) -> np.ndarray:
+    """The mesh's projection on the mask grid ``shape`` (cells of ``cell`` pixels), pooled as the mask is: a
+    cell is in when a triangle covers one of its samples (up to 4 x 4 at pixel centres; triangles with a
+    corner behind the camera are left out) or it holds a vertex. ``verts [V,3]``, ``faces [F,3]``."""
+    u, v, front, inside = _project(vm, K, w, h, verts)
+    gh, gw = shape
+    sub = min(cell, 4)  # samples per cell side
+    step = cell / sub  # pixels between samples
+    out = np.zeros((gh * sub, gw * sub), bool)
+    f = faces[front[faces].all(1)]
+    tri = np.stack([u[f], v[f]], -1) / step - 0.5  # [F,3,2] in samples, sample centres on integers
+    lo = np.maximum(np.ceil(tri.min(1)), 0).astype(np.int64)
+    hi = np.minimum(np.floor(tri.max(1)), [gw * sub - 1, gh * sub - 1]).astype(np.int64)
+    keep = (hi >= lo).all(1)
+    tri, lo, hi = tri[keep], lo[keep], hi[keep]
+    count = (hi[:, 0] - lo[:, 0] + 1) * (hi[:, 1] - lo[:, 1] + 1)
+    csum = np.cumsum(count)
+    start = 0
+    while start < len(tri):  # candidate (triangle, sample) pairs inside each bounding box, about 1M at a time
+        base = int(csum[start - 1]) if start else 0
+        stop = max(start + 1, int(np.searchsorted(csum, base + _RASTER_CHUNK, side="right")))
+        t, a, b, n = tri[start:stop], lo[start:stop], hi[start:stop], count[start:stop]
+        bw = b[:, 0] - a[:, 0] + 1
+        k = np.repeat(np.arange(len(t)), n)
+        off = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        cx, cy = a[k, 0] + off % bw[k], a[k, 1] + off // bw[k]
+        p0, p1, p2 = t[k, 0], t[k, 1], t[k, 2]
+        e0 = (p1[:, 0] - cx) * (p2[:, 1] - cy) - (p1[:, 1] - cy) * (p2[:, 0] - cx)
+        e1 = (p2[:, 0] - cx) * (p0[:, 1] - cy) - (p2[:, 1] - cy) * (p0[:, 0] - cx)
+        e2 = (p0[:, 0] - cx) * (p1[:, 1] - cy) - (p0[:, 1] - cy) * (p1[:, 0] - cx)
+        hit = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+        out[cy[hit], cx[hit]] = True
+        start = stop
+    cells = out.reshape(gh, sub, gw, sub).any(axis=(1, 3))
+    cells[
+        np.clip((v[inside] // cell).astype(np.int64), 0, gh - 1),
+        np.clip((u[inside] // cell).astype(np.int64), 0, gw - 1),
+    ] = True
+    return cells
+
+
+def _dilate(a: np.ndarray) -> np.ndarray:
+    return F.max_pool2d(torch.from_numpy(a).float()[None, None], 3, 1, padding=1)[0, 0].numpy() > 0
+
+
+def _outline(a: np.ndarray) -> np.ndarray:
+    """The cells of ``a`` with a cell outside it among their 8 neighbours, the grid's border left out (the
+    image edge cuts a close-up; that is no outline of the subject)."""
+    inner = ~_dilate(~a)
+    out = a & ~inner
+    out[0, :] = out[-1, :] = out[:, 0] = out[:, -1] = False
+    return out
+
+
+def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) -> tuple[float, float]:
+    """How the mask lies in the mesh's projection (``mesh``: every vertex ``[V,3]`` and the faces ``[F,3]``,
+    :func:`_silhouette`): (share of the mask's cells the projection covers, share of the mask's outline on
+    the projection's outline). Both near 1 when the mask is a part of the projected silhouette cut only by
+    occluders or the image edge; a projection larger than the subject holds the mask with its outline
+    inside. (0, 0) for an empty mask."""
+    _, cell, raw = grid
+    if not raw.any():
+        return 0.0, 0.0
+    sil = _silhouette(vm, K, w, h, mesh[0], mesh[1], raw.shape, cell)
+    m_out = _outline(raw)
+    on_outline = float(_dilate(_outline(sil))[m_out].mean()) if m_out.any() else 1.0
+    return float(_dilate(sil)[raw].mean()), on_outline
+
+
+def _score(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray, grid) -> _Score:
+    u, v, front, inside = _project(vm, K, w, h, verts)
     n = max(len(verts), 1)
     on_mask = None
     if grid is not None and int(inside.sum()) >= MIN_MASK_POINTS:
-        g, cell = grid
+        g, cell = grid[0], grid[1]
         cu = np.clip((u[inside] // cell).astype(np.int64), 0, g.shape[1] - 1)
         cv = np.clip((v[inside] // cell).astype(np.int64), 0, g.shape[0] - 1)
         on_mask = float(g[cv, cu].mean())
@@ -135,7 +220,7 @@ INVERTED = "the mask looks inverted (the subject black on white)"
 def _inverted(vm: np.ndarray, K, w, h, verts, grid) -> bool:
     """Whether the mask covers most of the image while the mesh lands mostly off it: a mask with subject
     and background swapped (the camera may be right)."""
-    g, cell = grid
+    g, cell = grid[0], grid[1]
     if g.mean() <= 0.5:
         return False
     flipped = F.max_pool2d(torch.from_numpy(~g).float()[None, None], 3, 1, padding=1)[0, 0].numpy() > 0
@@ -143,18 +228,62 @@ def _inverted(vm: np.ndarray, K, w, h, verts, grid) -> bool:
     return s.on_mask is not None and s.on_mask >= MIN_ON_MASK
 
 
-def _fails(vm: np.ndarray, K, w, h, verts, grid) -> str | None:
-    """Why the frame fails as is (None when it passes): its own score, or the roll fitting clearly better."""
+def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | None = None) -> str | None:
+    """Why the frame fails as is (None when it passes): its own score, or the roll fitting clearly better.
+
+    With ``mesh()`` (the frame's every vertex and the faces) the mask is also compared the other way
+    (:func:`_within`): a frame whose vertices miss the mask (occlusion) or lie mostly outside the image (a
+    close-up) passes when the mask lies within the projected silhouette (``MIN_WITHIN``) and its outline
+    on the silhouette's (``MIN_OUTLINE``: cut only by occluders and the image edge, so a projection larger
+    than the subject does not pass); the roll wins only when it holds more of the mask and fits clearly
+    better on both counts together."""
     s = _score(vm, K, w, h, verts, grid)
+    if s.in_front < MIN_IN_FRONT or grid is None:
+        return None if s.ok else s.why()
+    held: tuple[float, float] | None = None  # _within as is, computed when needed (a raster of the mesh)
     if not s.ok:
-        if s.on_mask is not None and s.on_mask < MIN_ON_MASK and _inverted(vm, K, w, h, verts, grid):
-            return INVERTED
-        return s.why()
+        if mesh is not None and s.visible > 0:
+            held = _within(vm, K, w, h, mesh(), grid)
+        if (
+            mesh is None
+            or held is None
+            or held[0] < MIN_WITHIN
+            or held[1] < MIN_OUTLINE
+            or _smaller_fits(vm, K, w, h, verts, grid, mesh(), s, held[1])
+        ):  # not within the projected silhouette: the mesh is where the subject is not
+            if s.on_mask is not None and s.on_mask < MIN_ON_MASK and _inverted(vm, K, w, h, verts, grid):
+                return INVERTED
+            return s.why()
     if s.on_mask is not None:
         r = _score(_ROLL @ vm, K, w, h, verts, grid)
-        if r.ok and r.on_mask is not None and r.on_mask >= s.on_mask + CLEARLY_BETTER:
+        if r.on_mask is None or r.visible < MIN_VISIBLE or r.on_mask <= s.on_mask:
+            return None
+        if mesh is None:
+            better = r.on_mask >= s.on_mask + CLEARLY_BETTER
+        else:
+            # what the projection as is holds of the mask is explained by it (what it misses may be occluded):
+            # the roll must hold more of the mask, and fit clearly better on both counts together
+            within = (held or _within(vm, K, w, h, mesh(), grid))[0]
+            r_within = _within(_ROLL @ vm, K, w, h, mesh(), grid)[0]
+            better = r_within > within and r.on_mask + r_within >= s.on_mask + within + CLEARLY_BETTER
+        if better:
             return "the mesh fits the mask much better turned by 180 degrees (camera rolled?)"
     return None
+
+
+def _smaller_fits(vm, K, w, h, verts, grid, mesh, s: _Score, outline: float) -> bool:
+    """Whether the projection shrunk about the principal point (``SMALLER``: a focal length or a distance
+    off) fits the mask clearly better than as is: a mask held by a projection larger than the subject."""
+    for k in SMALLER:
+        K2 = K.copy()
+        K2[:2, :2] *= k
+        r = _score(vm, K2, w, h, verts, grid)
+        if r.on_mask is None or (s.on_mask is not None and r.on_mask < s.on_mask + CLEARLY_BETTER):
+            continue
+        cover, line = _within(vm, K2, w, h, mesh, grid)
+        if cover >= MIN_WITHIN and line >= outline:
+            return True
+    return False
 
 
 def _spread(items: list[int], k: int) -> list[int]:
@@ -168,12 +297,14 @@ def check_cameras(
     frames: Sequence[tuple[str, int]],
     vertices: np.ndarray,
     load_mask: Callable[[int], np.ndarray | None],
+    faces: np.ndarray | None = None,
 ) -> CameraCheck:
     """Check every frame's camera against its mesh and its mask; see the module's rule.
 
     ``cameras``: id -> ``(K [3,3], viewmat [4,4], width, height)``; ``frames``: ``(camera id, mesh row)``
     per frame; ``vertices [T,V,3]`` (a memory map is fine: a subsample of columns is read);
-    ``load_mask(i)``: frame ``i``'s mask ``[H,W(,1)]`` in [0, 1], or None.
+    ``load_mask(i)``: frame ``i``'s mask ``[H,W(,1)]`` in [0, 1], or None; ``faces [F,3]`` (optional): the
+    mask is then also checked to lie within the projected silhouette (occlusion, close-ups).
     """
     report = CameraCheck()
     n_v = int(vertices.shape[1])
@@ -183,7 +314,13 @@ def check_cameras(
     by_cam: dict[str, list[int]] = {}
     for i, (cid, _) in enumerate(frames):
         by_cam.setdefault(cid, []).append(i)
-    grids: dict[int, tuple[np.ndarray, int] | None] = {}  # kept for the frames a diagnosis probes only
+    grids: dict[int, tuple[np.ndarray, int, np.ndarray] | None] = {}  # kept for the probed frames and the last one
+
+    def full(m: int) -> Callable[[], tuple[np.ndarray, np.ndarray]] | None:
+        """Mesh row ``m``'s every vertex and the faces, read when asked (None without faces)."""
+        if faces is None:
+            return None
+        return lambda: (np.asarray(vertices[m], np.float64), np.asarray(faces, np.int64))
 
     def grid(i: int):
         if i in grids:
@@ -191,8 +328,9 @@ def check_cameras(
         mask = load_mask(i)
         g = None if mask is None else _mask_grid(mask)
         report.masks_read += mask is not None
-        if i in probe:
-            grids[i] = g
+        for j in [j for j in grids if j not in probe]:  # at most one frame's grid besides the probed ones
+            del grids[j]
+        grids[i] = g
         return g
 
     for cid, ids in by_cam.items():
@@ -201,26 +339,27 @@ def check_cameras(
         fails: dict[int, str] = {}
         for i in ids:  # geometry, then the mask, of every frame
             s = _score(vm, K, w, h, sub[frames[i][1]], None)
-            if not s.ok:
-                fails[i] = s.why()
+            close_up = s.in_front >= MIN_IN_FRONT and s.visible > 0  # its mask may show it is a close-up
+            if s.ok or (close_up and grid(i) is not None):
+                _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails, full(frames[i][1]))
             else:
-                _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails)
+                fails[i] = s.why()
         report.checked += len(ids)
         if len(fails) >= max(1, BROKEN_SHARE * len(ids)):
-            report.wrong[cid] = _diagnose(cid, fails, len(ids), vm, K, w, h, probe, frames, sub, grid)
+            report.wrong[cid] = _diagnose(cid, fails, len(ids), vm, K, w, h, probe, frames, sub, grid, full)
         else:
             report.bad_frames.update(fails)
     return report
 
 
-def _mask_fail(i, vm, K, w, h, verts, g, fails: dict[int, str]) -> bool:
-    why = _fails(vm, K, w, h, verts, g)
+def _mask_fail(i, vm, K, w, h, verts, g, fails: dict[int, str], full=None) -> bool:
+    why = _fails(vm, K, w, h, verts, g, full)
     if why is not None:
         fails[i] = why
     return why is not None
 
 
-def _diagnose(cid, fails, n_checked, vm, K, w, h, probe, frames, sub, grid) -> str:
+def _diagnose(cid, fails, n_checked, vm, K, w, h, probe, frames, sub, grid, full) -> str:
     reasons: dict[str, int] = {}
     for why in fails.values():
         reasons[why] = reasons.get(why, 0) + 1
@@ -236,7 +375,7 @@ def _diagnose(cid, fails, n_checked, vm, K, w, h, probe, frames, sub, grid) -> s
             vm2 = fix(vm)
         except np.linalg.LinAlgError:
             continue
-        good = sum(_fails(vm2, K, w, h, sub[frames[i][1]], grid(i)) is None for i in probe)
+        good = sum(_fails(vm2, K, w, h, sub[frames[i][1]], grid(i), full(frames[i][1])) is None for i in probe)
         if good >= max(1, BROKEN_SHARE * len(probe)):
             return f"{what}: likely {meaning}, which fits {good} of {len(probe)} checked frames"
     return f"{what}: no common convention mix-up (y/z flip, 180-degree roll, inverse) fixes it"

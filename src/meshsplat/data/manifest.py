@@ -544,7 +544,9 @@ def _check_at_the_door(
         m = ds._load_mask(frames[i]) if with_masks and i not in empty else None
         return None if m is None else m.numpy()
 
-    found = check_cameras(ds._cameras, [(str(r["camera"]), int(r["mesh"])) for r in frames], ds._verts, load_mask)
+    found = check_cameras(
+        ds._cameras, [(str(r["camera"]), int(r["mesh"])) for r in frames], ds._verts, load_mask, ds.faces.numpy()
+    )
     if found.wrong:
         raise MeshsplatError(
             f"{ds.root}: wrong camera{'s' if len(found.wrong) > 1 else ''}: " + "; ".join(found.wrong.values())

@@ -1,0 +1,258 @@
+"""The camera check on legitimate unusual captures (data/camera_check.py): no false refusals.
+
+Each capture is rendered here with the project's own rasterizer (``synth.raster.rasterize_triangles``) from
+its own cameras, so every image and mask matches its camera: close-ups of the full-body CesiumMan (the
+mesh projects far outside the image), a partly occluded subject (the mask is the visible part only), the
+subject leaving the view (empty masks: refused naming those images, dropped exactly with the flag), a
+wide-angle camera, a portrait image, and combinations. Wrong cameras among them are still named.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from meshsplat.camera import intrinsics, look_at
+from meshsplat.data import open_dataset
+from meshsplat.data.writer import DatasetWriter
+from meshsplat.drivers import GltfDriver
+from meshsplat.errors import MeshsplatError
+from meshsplat.paths import assets_dir
+from meshsplat.synth.raster import rasterize_triangles
+
+UP = (0.0, 1.0, 0.0)  # CesiumMan stands along +y, about 1.45 high, facing +z
+ROLL = np.diag([-1.0, -1.0, 1.0, 1.0])
+FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@functools.cache
+def _body() -> tuple[np.ndarray, np.ndarray]:
+    """CesiumMan posed at 4 times of its walk: ``[4,V,3]`` vertices and ``[F,3]`` faces."""
+    d = GltfDriver(assets_dir() / "gltf" / "CesiumMan.glb")
+    verts = np.stack([d.vertices(t).numpy() for t in (0, 12, 24, 36)]).astype(np.float64)
+    return verts, d.faces.numpy()
+
+
+@dataclass
+class Shot:
+    """One frame: the camera (eye, target, field of view, size), the pose, and how the world differs."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fov: float = 40.0
+    size: tuple[int, int] = (64, 64)  # width, height
+    pose: int = 0
+    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the subject walked by this much
+    occluder: tuple[float, float, float, float] | None = None  # x0, y0, x1, y1 as image fractions
+    camera: str = "0"  # frames sharing a camera id share its K and viewmat (the first shot's)
+
+
+def _render(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, vm: np.ndarray, w: int, h: int):
+    """Image ``[H,W,3]`` in [0,1] (shaded by depth over white) and mask ``[H,W]`` of the mesh seen by (K, vm)."""
+    cam = verts @ vm[:3, :3].T + vm[:3, 3]
+    frags = rasterize_triangles(
+        torch.from_numpy(cam).float(), torch.from_numpy(faces), torch.from_numpy(K).float(), w, h
+    )
+    mask = frags.mask.numpy()
+    depth = np.where(mask, frags.depth.numpy(), 0.0)
+    shade = np.clip(0.8 - 0.2 * (depth - depth[mask].min() if mask.any() else depth), 0.2, 0.8)
+    img = np.where(mask[..., None], shade[..., None] * np.array([0.9, 0.6, 0.4]), 1.0)
+    return img, mask
+
+
+def write_capture(root, shots: list[Shot]) -> DatasetWriter:
+    """A native capture whose images and masks are the mesh rendered from each shot's camera."""
+    verts, faces = _body()
+    w = DatasetWriter(root, verts[0], faces)
+    cams: dict[str, tuple[np.ndarray, np.ndarray, int, int]] = {}
+    for i, s in enumerate(shots):
+        if s.camera not in cams:
+            K = intrinsics(s.size[0], s.size[1], s.fov)
+            vm = look_at(np.array(s.eye), np.array(s.target), up=UP)
+            cams[s.camera] = (K, vm, *s.size)
+            w.add_camera(s.camera, K, vm, *s.size)
+        K, vm, width, height = cams[s.camera]
+        v = verts[s.pose] + np.array(s.shift)
+        img, mask = _render(v, faces, K, vm, width, height)
+        if s.occluder is not None:  # something in front of the subject: the mask keeps the visible part
+            x0, y0, x1, y1 = s.occluder
+            cols = slice(round(x0 * width), round(x1 * width))
+            rows = slice(round(y0 * height), round(y1 * height))
+            mask[rows, cols] = False
+            img[rows, cols] = (0.2, 0.3, 0.2)
+        w.add_frame(img, s.camera, vertices=v, mask=mask.astype(np.float32), name=f"f{i:02d}")
+    return w
+
+
+def capture(root, shots: list[Shot]):
+    write_capture(root, shots).close()
+    return root
+
+
+def _names(shots_idx) -> list[str]:
+    return [f"f{i:02d}" for i in shots_idx]
+
+
+View = tuple[tuple[float, float, float], tuple[float, float, float]]  # eye, target
+
+# cameras on the subject's front (+z), at full-body, close-up and extreme close-up distances
+FULL: View = ((0.3, 0.8, 3.2), (0.0, 0.72, 0.0))
+TORSO: View = ((0.1, 1.15, 0.55), (0.0, 1.1, 0.0))  # chest and head: the legs far below the image
+HEAD: View = ((0.05, 1.35, 0.3), (0.0, 1.33, 0.0))  # the face fills the whole image
+BELLY: View = ((0.0, 0.9, 0.5), (0.0, 0.9, 0.0))  # under 10% of the mesh inside the image
+KNEES: View = ((0.0, 0.45, 0.45), (0.0, 0.42, 0.0))
+FEET: View = ((0.0, 0.12, 0.6), (0.0, 0.05, 0.15))  # the feet step in and out of the lower edge
+
+
+LEGIT = {
+    "close-up-torso": [Shot(*TORSO, pose=p) for p in range(4)],
+    "close-up-head": [Shot(*HEAD, pose=p) for p in range(4)],
+    "close-up-belly": [Shot(*BELLY, pose=p) for p in range(4)],
+    "close-up-knees": [Shot(*KNEES, pose=p) for p in range(4)],
+    "close-up-feet": [Shot(*FEET, pose=p) for p in range(4)],
+    "occluded-lower-body": [Shot(*FULL, pose=p, occluder=(0.0, 0.4, 1.0, 1.0)) for p in range(4)],
+    "occluded-middle": [Shot(*FULL, pose=p, occluder=(0.25, 0.2, 0.75, 0.8)) for p in range(4)],
+    "wide-angle": [Shot(eye=(0.0, 0.8, 1.6), target=(0.0, 0.7, 0.0), fov=100, pose=p) for p in range(4)],
+    "wide-angle-close-up": [Shot(*TORSO, fov=100, pose=p) for p in range(4)],
+    "portrait": [Shot(*FULL, size=(48, 96), pose=p) for p in range(4)],
+    "portrait-close-up-occluded": [
+        Shot(*TORSO, size=(48, 96), pose=p, occluder=(0.0, 0.0, 0.5, 0.6)) for p in range(4)
+    ],
+    "half-out-of-view": [Shot(*FULL, pose=p, shift=(0.35 * p, 0, 0)) for p in range(4)],
+    "three-cameras": [
+        Shot(*FULL, camera="full", pose=0),
+        Shot(*FULL, camera="full", pose=1),
+        Shot(*TORSO, camera="torso", pose=2),
+        Shot(*TORSO, camera="torso", pose=3, occluder=(0.5, 0.0, 1.0, 1.0)),
+        Shot(*HEAD, camera="head", size=(48, 96), pose=0),
+        Shot(*HEAD, camera="head", size=(48, 96), pose=2),
+    ],
+}
+
+
+@pytest.mark.parametrize("case", list(LEGIT))
+def test_a_legitimate_unusual_capture_opens(tmp_path, case):
+    shots = LEGIT[case]
+    ds = open_dataset(capture(tmp_path / case, shots))
+    assert len(ds) == len(shots) and ds.dropped_frames == []
+
+
+def test_each_case_is_what_it_says(tmp_path):
+    """The close-ups really project most of the mesh outside the image, the occluders really hide most of
+    the projected subject (so the cases test what they name)."""
+    verts, faces = _body()
+    outside = {"close-up-torso": 0.6, "close-up-head": 0.7, "close-up-belly": 0.9, "close-up-knees": 0.85}
+    for case, share in {**outside, "close-up-feet": 0.85}.items():
+        s = LEGIT[case][1]
+        K = intrinsics(s.size[0], s.size[1], s.fov)
+        vm = look_at(np.array(s.eye), np.array(s.target), up=UP)
+        p = verts[1] @ vm[:3, :3].T + vm[:3, 3]
+        uv = p[:, :2] / p[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
+        inside = (p[:, 2] > 0) & (uv >= 0).all(1) & (uv < s.size).all(1)
+        assert 1 - inside.mean() > share, (case, inside.mean())
+    s = LEGIT["occluded-lower-body"][0]
+    K = intrinsics(*s.size, s.fov)
+    _, full = _render(verts[0], faces, K, look_at(np.array(s.eye), np.array(s.target), up=UP), *s.size)
+    assert full[round(0.4 * s.size[1]) :].sum() > 0.5 * full.sum()
+
+
+def test_frames_whose_subject_left_the_view_are_named_and_dropped_exactly(tmp_path):
+    """The subject walks out of a fixed camera's view in frames 2 and 5 (empty masks), half out in 1."""
+    shifts = [0.0, 0.5, 4.0, 0.0, -0.3, -4.0, 0.2]
+    shots = [Shot(*FULL, pose=i % 4, shift=(x, 0.0, 0.0)) for i, x in enumerate(shifts)]
+    root = capture(tmp_path / "leaves", shots)
+    with pytest.raises(MeshsplatError) as err:
+        open_dataset(root)
+    msg = str(err.value)
+    assert msg.splitlines()[0].count("--drop-bad-frames") == 1  # the first line says how to leave them out
+    assert "empty mask masks/f02.png" in msg and "empty mask masks/f05.png" in msg and "f01" not in msg
+    with pytest.warns(UserWarning, match=r"left out 2 of 7 frames"):
+        ds = open_dataset(root, drop_bad_frames=True)
+    assert ds.dropped_frames == _names([2, 5])
+    assert [ds.frame_info(i)["name"] for i in range(len(ds))] == _names([0, 1, 3, 4, 6])
+
+
+def test_leaving_the_view_in_a_close_up_and_in_a_portrait(tmp_path):
+    shots = [
+        Shot(*TORSO, pose=p, shift=(x, 0.0, 0.0)) for p, x in zip([0, 1, 2, 3, 0], [0, 0.1, 3.0, -0.1, 0], strict=True)
+    ]
+    shots += [
+        Shot(*FULL, size=(48, 96), camera="p", pose=p, shift=(x, 0, 0))
+        for p, x in zip(range(4), [0, 5, 0, 0], strict=True)
+    ]
+    root = capture(tmp_path / "both", shots)
+    with pytest.raises(MeshsplatError) as err:
+        open_dataset(root)
+    assert "empty mask masks/f02.png" in str(err.value) and "empty mask masks/f06.png" in str(err.value)
+    with pytest.warns(UserWarning, match=r"left out 2 of 9 frames"):
+        ds = open_dataset(root, drop_bad_frames=True)
+    assert ds.dropped_frames == _names([2, 6])
+
+
+@pytest.mark.parametrize(
+    "case, wrong, match",
+    [
+        ("close-up-torso", ROLL, r"rolled by 180 degrees"),
+        ("occluded-lower-body", ROLL, r"rolled by 180 degrees"),
+        ("portrait", FLIP_YZ, r"y and z axes are flipped"),
+        ("wide-angle", FLIP_YZ, r"y and z axes are flipped"),
+    ],
+)
+def test_a_wrong_camera_among_unusual_right_ones_is_still_named(tmp_path, case, wrong, match):
+    """The images of a second camera are rendered right, then its viewmat is written in another convention:
+    refused naming that camera and the mix-up, with or without dropping frames."""
+    shots = list(LEGIT[case]) + [Shot((-2.0, 0.9, 2.4), FULL[1], camera="side", pose=p) for p in range(4)]
+    root = tmp_path / case
+    w = write_capture(root, shots)
+    w.cameras["side"]["viewmat"] = (wrong @ np.asarray(w.cameras["side"]["viewmat"])).tolist()
+    w.close()
+    for drop in (False, True):
+        with pytest.raises(MeshsplatError, match=r"wrong camera: camera 'side' does not see the subject") as err:
+            open_dataset(root, drop_bad_frames=drop)
+        assert err.match(match) and "\n" not in str(err.value) and "'0'" not in str(err.value)
+
+
+@pytest.mark.parametrize("case", ["close-up-torso", "occluded-middle", "portrait"])
+def test_a_wrong_camera_on_an_unusual_capture_is_refused(tmp_path, case):
+    """The whole capture's camera rolled by 180 degrees: a close-up, an occluded or a portrait capture does
+    not let it pass."""
+    root = tmp_path / case
+    w = write_capture(root, LEGIT[case])
+    w.cameras["0"]["viewmat"] = (ROLL @ np.asarray(w.cameras["0"]["viewmat"])).tolist()
+    w.close()
+    with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0'.*rolled by 180 degrees"):
+        open_dataset(root, drop_bad_frames=True)
+
+
+def test_a_badly_tracked_frame_in_an_occluded_capture_is_still_named(tmp_path):
+    """Occlusion is no excuse for a mask that shows the subject elsewhere: that frame is named."""
+    shots = [Shot(*FULL, pose=p % 4, occluder=(0.0, 0.5, 1.0, 1.0)) for p in range(6)]
+    root = tmp_path / "occ"
+    w = write_capture(root, shots)
+    w.close()
+    m = np.zeros((64, 64), np.uint8)
+    m[:12, :12] = 255  # the subject is not there
+    Image.fromarray(m).save(root / "masks" / "f03.png")
+    with pytest.raises(MeshsplatError, match=r"1 of 6 frames .*off the mask: f03\.png"):
+        open_dataset(root)
+    with pytest.warns(UserWarning, match="left out 1 of 6 frames"):
+        assert open_dataset(root, drop_bad_frames=True).dropped_frames == ["f03"]
+
+
+@pytest.mark.parametrize("case", ["portrait", "occluded-middle", "occluded-lower-body"])
+def test_a_projection_larger_than_the_subject_is_no_occlusion(tmp_path, case):
+    """A focal length 1.5 times too long puts the mask inside the projected silhouette, as occlusion does:
+    still refused (its outline is not the silhouette's, and the projection shrunk fits clearly better)."""
+    root = tmp_path / case
+    w = write_capture(root, LEGIT[case])
+    K = np.asarray(w.cameras["0"]["K"])
+    K[:2, :2] *= 1.5
+    w.cameras["0"]["K"] = K.tolist()
+    w.close()
+    with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0' does not see the subject on 4 of 4 frames"):
+        open_dataset(root, drop_bad_frames=True)
