@@ -77,11 +77,14 @@ class GltfSource:
         return GltfSource(self.driver.derive(src, faces, rest))
 
 
+ICT_HIDDEN_MATERIALS = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")  # ICT's transparent eye shells
+
+
 class BlendshapeSource:
     """ICT head with a procedural talking clip ``"talk"`` and a procedural skin texture."""
 
     attribution = "ICT FaceKit head (MIT, (c) 2020 USC Institute for Creative Technologies)"
-    _HIDDEN = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")  # transparent shells in ICT
+    _HIDDEN = ICT_HIDDEN_MATERIALS
     _COLORS: ClassVar[dict[str, tuple[float, float, float]]] = {
         "M_EyeLashes": (0.08, 0.06, 0.05),
         "M_GumsTongue": (0.75, 0.35, 0.35),

@@ -34,13 +34,13 @@ from meshsplat.synth.driving import weld
 from meshsplat.track.face_track import FaceTrack, track_faces
 from meshsplat.track.head_fit import HeadFit, fit_head
 from meshsplat.track.head_region import clip_crops, crop_frame, crop_inside, hair_region, mesh_silhouette
+from meshsplat.track.head_render import visible_faces
 from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
 from meshsplat.track.mediapipe_models import FaceMesh, PersonSegmenter
 
-__all__ = ["TrackSettings", "TrackResult", "track_head", "MIN_FRAMES", "HIDDEN_MATERIALS"]
+__all__ = ["TrackSettings", "TrackResult", "track_head", "MIN_FRAMES"]
 
 MIN_FRAMES = 10  # fewer frames with a face than this cannot pin an identity (and leave nothing to test)
-HIDDEN_MATERIALS = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")  # ICT's transparent eye shells
 TRACK_MAX_SIDE = 1920  # frames are tracked and cropped at most this large (4K is scaled down by ffmpeg)
 
 
@@ -106,9 +106,7 @@ def _check_found(track: FaceTrack, times: np.ndarray) -> list[str]:
 
 def _driving_mesh(head: IctHead, rest: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """``(source_index [Vd], faces [Fd,3])``: the head without its transparent shells, seams welded."""
-    hidden = [i for i, n in enumerate(head.material_names) if n in HIDDEN_MATERIALS]
-    keep = ~torch.isin(head.face_material, torch.tensor(hidden, dtype=torch.long))
-    faces = head.faces[keep].numpy()
+    faces = head.faces[visible_faces(head)].numpy()
     r = rest.numpy().astype(np.float64)
     probe = r + head.deltas[head.names.index("jawOpen")].numpy()  # lips and teeth part: not welded
     diag = float(np.linalg.norm(r.max(0) - r.min(0)))

@@ -13,11 +13,11 @@ import math
 import torch
 
 from meshsplat.synth.raster import Fragments, interpolate, lambert, rasterize_triangles, vertex_normals
+from meshsplat.synth.sources import ICT_HIDDEN_MATERIALS
 from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
 
 __all__ = ["head_colors", "visible_faces", "render_head"]
 
-_HIDDEN = ("M_EyeBlend", "M_EyeOcclusion", "M_LacrimalFluid")
 _IRIS_ANGLE = math.radians(38.0)  # half-angle of the iris seen from the eyeball centre
 _PUPIL_ANGLE = math.radians(14.0)
 _COLORS = {
@@ -69,7 +69,7 @@ def head_colors(head: IctHead) -> torch.Tensor:
 
 def visible_faces(head: IctHead) -> torch.Tensor:
     """Indices ``[F']`` of the faces drawn (all but the transparent eye shells)."""
-    hidden = torch.tensor([head.material_names.index(m) for m in _HIDDEN if m in head.material_names])
+    hidden = torch.tensor([head.material_names.index(m) for m in ICT_HIDDEN_MATERIALS if m in head.material_names])
     return torch.nonzero(~torch.isin(head.face_material, hidden)).reshape(-1)
 
 
