@@ -226,7 +226,7 @@ def main() -> None:
         cap_h, cap_l = work / "capture", work / "capture_landmarks"
         settings = TrackSettings(size=args.size, fps=args.fps, max_frames=args.max_frames, overwrite=True)
         t0 = time.perf_counter()
-        tr = track_head(video, cap_h, settings, say=lambda s: None)
+        tr = track_head(video, cap_h, settings)
         track_s = time.perf_counter() - t0
         write_landmark_capture(cap_h, cap_l)
         t_head = train(cap_h, work / "run_head", args.iters, args.threads)

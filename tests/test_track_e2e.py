@@ -36,7 +36,7 @@ def frames(head_clip):
 @pytest.fixture(scope="module")
 def capture(head_clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("cap") / "capture"
-    res = track_head(head_clip.path, out, TrackSettings(size=128), say=lambda s: None)
+    res = track_head(head_clip.path, out, TrackSettings(size=128))
     return out, res
 
 
@@ -98,7 +98,7 @@ def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path):
 def test_frames_without_a_face_are_left_out_and_named(frames, tmp_path):
     clip = [f if i not in (3, 4) else np.full_like(f, 128) for i, f in enumerate(frames)]
     path = write_mp4(clip, tmp_path / "gaps.mp4", fps=10)
-    res = track_head(path, tmp_path / "cap", TrackSettings(size=64), say=lambda s: None)
+    res = track_head(path, tmp_path / "cap", TrackSettings(size=64))
     assert res.dropped == ["0.30s", "0.40s"] and res.frames == FRAMES - 2
     assert any("no face in 2 frame(s)" in n for n in res.notes)
 
@@ -106,14 +106,14 @@ def test_frames_without_a_face_are_left_out_and_named(frames, tmp_path):
 def test_no_face_refused_in_one_line(frames, tmp_path):
     path = write_mp4([np.full_like(frames[0], 90)] * 12, tmp_path / "empty.mp4", fps=10)
     with pytest.raises(MeshsplatError, match="no face found in any of the 12 frames") as exc:
-        track_head(path, tmp_path / "cap", TrackSettings(size=64), say=lambda s: None)
+        track_head(path, tmp_path / "cap", TrackSettings(size=64))
     assert "\n" not in str(exc.value) and not (tmp_path / "cap" / "manifest.json").exists()
 
 
 def test_too_few_faces_refused(frames, tmp_path):
     path = write_mp4(frames[:6], tmp_path / "short.mp4", fps=10)
     with pytest.raises(MeshsplatError, match="a face in only 6 of 6 frames"):
-        track_head(path, tmp_path / "cap", TrackSettings(size=64), say=lambda s: None)
+        track_head(path, tmp_path / "cap", TrackSettings(size=64))
 
 
 def test_scene_cut_refused(frames):
@@ -156,7 +156,7 @@ def test_real_webcam_footage(tmp_path):
     from pathlib import Path
 
     video = Path(__file__).parent / "data" / "facemesh_input_2s.mp4"
-    res = track_head(video, tmp_path / "cap", TrackSettings(size=128), say=lambda s: None)
+    res = track_head(video, tmp_path / "cap", TrackSettings(size=128))
     assert res.frames == 30 and not res.dropped
     assert res.error_px < 4.0, res.error_px  # pixels of the 480x320 video
     ds = open_dataset(tmp_path / "cap")

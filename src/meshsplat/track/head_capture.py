@@ -116,7 +116,7 @@ def _driving_mesh(head: IctHead, rest: torch.Tensor) -> tuple[np.ndarray, np.nda
 
 def _silhouette(world: torch.Tensor, faces: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
     """Where the posed driving mesh ``world [V,3]`` covers the crop seen through ``K``."""
-    cam = world.numpy().astype(np.float64) * np.array([1.0, -1.0, -1.0])  # world -> camera (HEAD_CAMERA_VIEWMAT)
+    cam = world.numpy().astype(np.float64) @ HEAD_CAMERA_VIEWMAT[:3, :3].numpy().T  # the camera sits at the origin
     px = cam @ K.T
     px = px[:, :2] / np.maximum(px[:, 2:], 1e-9)
     edges = np.linalg.norm(px[faces[:, 0]] - px[faces[:, 1]], axis=1)
@@ -144,7 +144,6 @@ def track_head(
     video: str | Path,
     out: str | Path,
     settings: TrackSettings | None = None,
-    say: Callable[[str], None] = print,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> TrackResult:
     """Track the head in ``video`` and write a native capture to ``out`` (see the module docstring).
