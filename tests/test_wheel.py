@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import venv
@@ -51,11 +52,16 @@ def test_wheel_carries_assets_viewer_and_licences(wheel):
         "viewer/static/index.html",
         "viewer/static/viewer.js",
         "py.typed",
+        "docs/quality.md",  # the manual (setup.py copies docs/**/*.md): `meshsplat docs`
+        "docs/own-video.md",
+        "docs/formats/README.md",
     ):
         assert f"meshsplat/{rel}" in names, rel
     info = f"meshsplat-{meshsplat.__version__}.dist-info"
     assert {f"{info}/licenses/LICENSE", f"{info}/licenses/NOTICE"} <= names
     assert not any(n.startswith(("tests/", "bench/", "docs/")) for n in names)
+    meta = zipfile.ZipFile(wheel).read(f"{info}/METADATA").decode()
+    assert {"Homepage", "Documentation", "Issues"} <= set(re.findall(r"^Project-URL: (\w+),", meta, re.M)), meta
 
 
 @pytest.mark.slow
@@ -76,12 +82,17 @@ def test_wheel_installs_into_a_fresh_env_and_runs_the_tiny_demo(wheel, tmp_path)
         cwd=elsewhere,
     ).stdout.split()
     assert all(Path(w).is_relative_to(env_dir) for w in where), where  # not the checkout's sources
-    _run([str(env_dir / "bin" / "meshsplat"), "demo", "--preset", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
+    _run([str(env_dir / "bin" / "meshsplat"), "demo", "--recipe", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
     summary = json.loads((elsewhere / "X" / "summary.json").read_text())
     assert summary["iterations"] == 60 and summary["metrics"]["test_frames"]["psnr"] > 15.0
     page = elsewhere / "viewer"
     _run([str(env_dir / "bin" / "meshsplat"), "view", "X/run", "--out", str(page)], cwd=elsewhere)
     assert (page / "index.html").is_file()
+    # the manual the help texts name, from the installed package
+    page_path = _run([str(env_dir / "bin" / "meshsplat"), "docs", "docs/quality.md", "--path"], cwd=elsewhere)
+    assert Path(page_path.stdout.strip()).is_relative_to(env_dir), page_path.stdout
+    listing = _run([str(env_dir / "bin" / "meshsplat"), "docs"], cwd=elsewhere).stdout
+    assert "own-video" in listing and "config" in listing, listing
     # the extras resolve in the same environment without replacing its torch, and [smplx] really imports
     plan = _run(
         [str(py), "-m", "pip", "install", "--dry-run", f"meshsplat[cuda,smplx,video,dev] @ {wheel.as_uri()}"],

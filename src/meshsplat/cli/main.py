@@ -36,6 +36,7 @@ COMMANDS = {
     "view": "view_cmd",
     "batch": "batch_cmd",
     "completion": "completion_cmd",
+    "docs": "docs_cmd",
 }
 DEBUG_HELP = "show full tracebacks (before or after the command)"
 
@@ -57,7 +58,7 @@ def _import_error(exc: BaseException) -> str:
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="meshsplat",
-        description="Mesh-embedded Gaussian avatars.",
+        description="Mesh-embedded Gaussian avatars. The manual: `meshsplat docs` (the docs/*.md pages help texts name).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"meshsplat {__version__}")
