@@ -23,6 +23,8 @@ from typing import Any, TypeVar, cast
 import numpy as np
 import torch
 
+from meshsplat.drivers.anny_body import MODEL_TYPE as ANNY_TYPE
+from meshsplat.drivers.anny_body import load_anny_body
 from meshsplat.drivers.base import as_faces
 from meshsplat.drivers.model_files import read_model_file
 from meshsplat.errors import MeshsplatError
@@ -574,7 +576,10 @@ def model_from_record(
     record: dict, model_dir: Path | str | None = None, device: torch.device | str = "cpu"
 ) -> BodyModel:
     """The model a manifest's ``driver`` entry (``driver_record``) names, from the user's files in
-    ``model_dir`` (default ``$MESHSPLAT_MODEL_DIR``)."""
+    ``model_dir`` (default ``$MESHSPLAT_MODEL_DIR``); ``{"type": "anny"}`` (a body tracked by ``meshsplat
+    track --subject body``) needs no files: the compact Anny body (``drivers.anny_body``)."""
+    if record.get("type") == ANNY_TYPE:
+        return cast(BodyModel, load_anny_body(device))
     return BodyModel(
         record["type"],
         model_dir,
