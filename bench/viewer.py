@@ -84,7 +84,8 @@ def random_avatar(mesh: TriMesh, n: int, shaded: bool, seed: int = 0) -> Avatar:
 
 
 def cesium(frames: int):
-    from meshsplat.drivers import AnimationSource, GltfDriver, load_animation
+    from meshsplat.animation import AnimationSource, load_animation
+    from meshsplat.drivers import GltfDriver
 
     glb = assets_dir() / "gltf" / "CesiumMan.glb"
     drv = GltfDriver(glb, fps=25)

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
+from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.camera import orbit_camera, orbit_viewmat
 from meshsplat.cli import render_cmd
 from meshsplat.cli._options import animation_source, orbit_request
 from meshsplat.cli.main import build_parser, main
-from meshsplat.drivers import AnimationSource, BlendshapeDriver, load_animation
+from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
 from meshsplat.viewer import page_camera, read_viewer_bundle

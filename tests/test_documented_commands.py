@@ -22,9 +22,9 @@ from pathlib import Path
 
 import pytest
 
+from meshsplat.animation import ANIMATION_KINDS
 from meshsplat.cli._options import LEGACY_ANIMATION_FLAGS
 from meshsplat.cli.main import COMMANDS, build_parser, main
-from meshsplat.drivers import ANIMATION_KINDS
 from meshsplat.train import DEFAULT_PRESET, apply_overrides, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]

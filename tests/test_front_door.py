@@ -59,8 +59,8 @@ def test_the_front_door_is_the_curated_list():
         "Camera": "meshsplat.camera.Camera",
         "orbit_cameras": "meshsplat.camera.orbit_cameras",
         "render_animation": "meshsplat.animate.render_animation",
-        "AnimationSource": "meshsplat.drivers.animation.AnimationSource",
-        "load_animation": "meshsplat.drivers.animation.load_animation",
+        "AnimationSource": "meshsplat.animation.source.AnimationSource",
+        "load_animation": "meshsplat.animation.source.load_animation",
         "export_avatar": "meshsplat.export.export_avatar",
         "MeshsplatError": "meshsplat.errors.MeshsplatError",
     }

@@ -1,16 +1,18 @@
-"""The package's import layering (docs/architecture.md): each unit imports only units on lines above it.
+"""The package's import layering (docs/architecture.md): each unit imports only units on lines above it,
+and no module imports itself through others (no import circles).
 
-Imports under ``if TYPE_CHECKING:`` (annotations only) are not counted; function-local imports are.
+Every import counts: those under ``if TYPE_CHECKING:`` (annotations only) and function-local ones too.
 """
 
 import ast
+from collections.abc import Iterator
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "src" / "meshsplat"
 
 LAYERS = [
-    ("errors",),
-    ("_checks", "_mkl", "_typing", "_device", "_numba", "paths", "plausible"),
+    ("errors", "_mkl"),
+    ("_checks", "_typing", "_device", "_numba", "paths", "plausible"),
     ("io", "metrics"),
     ("camera", "drivers"),
     ("mesh",),
@@ -18,6 +20,7 @@ LAYERS = [
     ("render",),
     ("gaussians",),
     ("data",),
+    ("animation",),
     ("run_folder",),
     ("train",),
     ("synth", "eval", "export", "animate"),
@@ -33,19 +36,27 @@ def _unit(module: str) -> str:
     return parts[1] if len(parts) > 1 else "meshsplat"
 
 
-def _imports(tree: ast.AST):
-    """Imported meshsplat modules, skipping ``if TYPE_CHECKING:`` blocks."""
-    for node in ast.iter_child_nodes(tree):
-        if isinstance(node, ast.If) and getattr(node.test, "id", getattr(node.test, "attr", "")) == "TYPE_CHECKING":
-            continue
-        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("meshsplat.") and not node.level:
-            yield node.module, node.lineno
+def _imports(tree: ast.AST) -> Iterator[tuple[str, int]]:
+    """``(module, line)`` of every import of a meshsplat module, wherever it stands (``if TYPE_CHECKING:``
+    blocks and function bodies included); ``from meshsplat.x import y`` names ``meshsplat.x.y`` when
+    ``y`` is a module."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "meshsplat" and not node.level:
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                yield (sub if sub in MODULES else node.module), node.lineno
         elif isinstance(node, ast.Import):
             for a in node.names:
-                if a.name.startswith("meshsplat."):
+                if a.name.split(".")[0] == "meshsplat":
                     yield a.name, node.lineno
-        else:
-            yield from _imports(node)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PKG.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_module_name(p): p for p in PKG.rglob("*.py")}
 
 
 def test_every_unit_has_a_layer():
@@ -61,10 +72,63 @@ def test_imports_flow_one_way():
         if me not in RANK:
             continue
         for module, line in _imports(ast.parse(path.read_text())):
+            if module == "meshsplat":
+                continue  # the front door (``from meshsplat import __version__``) sits outside the lines
             other = _unit(module)
             if other != me and other in RANK and RANK[other] >= RANK[me]:
                 upward.append(f"{path.relative_to(PKG)}:{line} ({me}) imports {module} ({other})")
     assert not upward, "imports against the layering:\n" + "\n".join(upward)
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import each other, directly or through others (the strongly connected
+    components of more than one module, Tarjan's algorithm), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1 or v in graph.get(v, ()):
+                circles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return circles
+
+
+def test_import_circles_are_found():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e"}}
+    assert sorted(import_circles(graph)) == [["a", "b", "c"], ["e"]]
+    assert import_circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circles():
+    graph = {
+        me: {m for m, _ in _imports(ast.parse(path.read_text())) if m in MODULES and m != me}
+        for me, path in MODULES.items()
+    }
+    circles = import_circles(graph)
+    assert not circles, "modules importing each other:\n" + "\n".join(" <-> ".join(c) for c in circles)
 
 
 # Function-local imports of the package's own modules hide the import graph and leave nothing a cycle needs:

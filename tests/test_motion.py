@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from _body_fixtures import write_tiny_models
+from meshsplat.animation.motion import load_motion, motion_frame_rate, reenact
 from meshsplat.drivers.body_models import BodyModel, ParametricDriver, save_driver_params
-from meshsplat.drivers.motion import load_motion, motion_frame_rate, reenact
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 
 

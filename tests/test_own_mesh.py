@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from _creature import creature_frames, write_creature_frames, write_creature_npz
+from meshsplat.animation import AnimationSource, load_animation
+from meshsplat.animation.avatar_match import sequence_for_mesh
 from meshsplat.data import open_dataset
 from meshsplat.data.source_map import read_source_map
-from meshsplat.drivers import AnimationSource, load_animation
-from meshsplat.drivers.avatar_match import sequence_for_mesh
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params

@@ -18,11 +18,11 @@ import pytest
 
 from _head_captures import native_flame_dataset, tiny_flame, write_tiny_flame
 from _peoplesnapshot import make_capture
+from meshsplat.animation.motion import load_motion
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import format_module, open_capture
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.drivers.gltf import GltfDriver
-from meshsplat.drivers.motion import load_motion
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.paths import asset
 from meshsplat.plausible import focal_problem, parameter_problems, sequence_gaps, skinning_problem

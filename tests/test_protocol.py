@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from _peoplesnapshot import H, K, W, make_capture
+from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.camera import Camera
 from meshsplat.cli.main import main as cli_main
 from meshsplat.data.formats import open_capture
 from meshsplat.data.formats import peoplesnapshot as ps
-from meshsplat.drivers import AnimationSource, load_animation
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from meshsplat import animate, camera
-from meshsplat.drivers import AnimationSource, load_animation
-from meshsplat.drivers.avatar_match import sequence_for_mesh
+from meshsplat.animation import AnimationSource, load_animation
+from meshsplat.animation.avatar_match import sequence_for_mesh
 from meshsplat.errors import MeshsplatError
 from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 

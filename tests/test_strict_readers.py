@@ -16,12 +16,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from _head_captures import native_flame_dataset, write_tiny_flame
+from meshsplat.animation.motion import load_motion
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import format_module, open_capture
 from meshsplat.data.manifest import Problems
 from meshsplat.drivers.body_models import BodyModel
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
-from meshsplat.drivers.motion import load_motion
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy, read_npz
 from meshsplat.io.atomic import atomic_write, write_text_atomic, write_with

@@ -48,8 +48,8 @@ _FRONT_DOOR: dict[str, tuple[str, str]] = {
     "Avatar": ("meshsplat.gaussians.avatar", "Avatar"),
     "Camera": ("meshsplat.camera", "Camera"),
     "orbit_cameras": ("meshsplat.camera", "orbit_cameras"),
-    "AnimationSource": ("meshsplat.drivers.animation", "AnimationSource"),
-    "load_animation": ("meshsplat.drivers.animation", "load_animation"),
+    "AnimationSource": ("meshsplat.animation.source", "AnimationSource"),
+    "load_animation": ("meshsplat.animation.source", "load_animation"),
     "render_animation": ("meshsplat.animate", "render_animation"),
     "evaluate": ("meshsplat.eval.evaluate", "evaluate_run"),
     "export_avatar": ("meshsplat.export", "export_avatar"),
@@ -70,6 +70,7 @@ _SUBMODULES = (
     "render",
     "gaussians",
     "data",
+    "animation",
     "run_folder",
     "train",
     "synth",
@@ -108,9 +109,9 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from typing import Any
 
     from meshsplat.animate import render_animation
+    from meshsplat.animation.source import AnimationSource, load_animation
     from meshsplat.camera import Camera, orbit_cameras
     from meshsplat.data.formats import open_capture
-    from meshsplat.drivers.animation import AnimationSource, load_animation
     from meshsplat.eval.evaluate import evaluate_run as evaluate
     from meshsplat.export import export_avatar
     from meshsplat.gaussians.avatar import Avatar

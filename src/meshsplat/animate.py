@@ -5,8 +5,8 @@
     cams = orbit_cameras(anim.frames, 512, 512, orbit_deg=360)              # auto-framed
     render_animation(avatar, anim, cams, "out/")                            # out/frames/*.png, out/animation.mp4
 
-What drives the avatar, and how a driver is matched to its canonical mesh, is the drivers' business
-(:mod:`meshsplat.drivers.animation`, :mod:`meshsplat.drivers.avatar_match`); this module renders.
+What drives the avatar, and how a driver is matched to its canonical mesh, is the animation package's business
+(:mod:`meshsplat.animation.source`, :mod:`meshsplat.animation.avatar_match`); this module renders.
 Cameras follow the project convention (world->camera ``viewmat`` in OpenCV axes, world +y up).
 """
 
@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meshsplat.animation import Animation, AnimationSource, load_animation
 from meshsplat.camera import Camera, orbit_cameras
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.data.source_map import SourceMap
-from meshsplat.drivers.animation import Animation, AnimationSource, load_animation
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.io.video import to_uint8, write_png_frames, write_video
@@ -62,9 +62,9 @@ def render_animation(
 ) -> AnimationResult:
     """Render ``avatar`` at every frame of ``vertices`` to ``out_dir``.
 
-    ``vertices``: frames (each ``[V,3]``), a loaded :class:`~meshsplat.drivers.animation.Animation`, or an
-    :class:`~meshsplat.drivers.animation.AnimationSource` (loaded here with ``dataset`` and ``source_map``,
-    see :func:`~meshsplat.drivers.animation.load_animation`).
+    ``vertices``: frames (each ``[V,3]``), a loaded :class:`~meshsplat.animation.Animation`, or an
+    :class:`~meshsplat.animation.AnimationSource` (loaded here with ``dataset`` and ``source_map``,
+    see :func:`~meshsplat.animation.load_animation`).
     ``cameras``: one :class:`Camera` for all frames, one per frame, ``frame -> Camera``, or None: the
     animation's own per-frame cameras (a dataset split), else an orbit auto-framed on it (512x512).
     ``fps``: default the animation's (25 for plain frames).

@@ -25,7 +25,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -33,9 +32,6 @@ import torch
 from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
 from meshsplat.errors import MeshsplatError
-
-if TYPE_CHECKING:  # data sits above camera: annotation only
-    from meshsplat.data.dataset import AvatarDataset
 
 __all__ = [
     "Camera",
@@ -50,7 +46,6 @@ __all__ = [
     "orbit_camera",
     "orbit_viewmat",
     "ORBIT_KEYS",
-    "dataset_camera",
     "viewmat_from_opengl_c2w",
     "opengl_c2w_from_viewmat",
     "K_from_normalized",
@@ -329,12 +324,6 @@ def _point(name: str, p: ArrayLike) -> np.ndarray:
     if a.shape != (3,) or not np.isfinite(a).all():
         raise MeshsplatError(f"{name}: expected a finite point X,Y,Z, got {a.tolist()}")
     return a
-
-
-def dataset_camera(dataset: AvatarDataset, camera_id: str, size: tuple[int, int] | None = None) -> Camera:
-    """Camera ``camera_id`` of an ``AvatarDataset`` (optionally resized to ``size = (W, H)``)."""
-    cam = dataset.camera(camera_id)
-    return cam.resized(*size) if size is not None and tuple(size) != (cam.width, cam.height) else cam
 
 
 # ---------------------------------------------------------------- converters from other conventions

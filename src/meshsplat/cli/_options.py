@@ -15,9 +15,9 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
+from meshsplat.animation import ANIMATION_KINDS, AnimationSource
 from meshsplat.cli._guards import LIMITS, check_range
 from meshsplat.data.dataset import DROP_FLAG, AvatarDataset
-from meshsplat.drivers import ANIMATION_KINDS, AnimationSource
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import ALLOW_OLDER_FLAG, LoadedRun
 from meshsplat.viewer.bundle import page_camera
@@ -193,7 +193,7 @@ LEGACY_ANIMATION_FLAGS = {
 
 
 def add_animation_options(parser: argparse.ArgumentParser, legacy: tuple[str, ...] = ()) -> None:
-    """``--animation KIND [FILE]`` and its options (``meshsplat.drivers.AnimationSource``'s fields), and the
+    """``--animation KIND [FILE]`` and its options (``meshsplat.animation.AnimationSource``'s fields), and the
     ``legacy`` flags of ``LEGACY_ANIMATION_FLAGS`` the command took before."""
     parser.add_argument(
         "--animation",

@@ -1,6 +1,6 @@
 """Render a trained avatar in any animation to PNG frames and an MP4.
 
-Animation (the same words as `meshsplat view` and ``meshsplat.drivers.AnimationSource``):
+Animation (the same words as `meshsplat view` and ``meshsplat.animation.AnimationSource``):
   --animation dataset [--split NAME]      the capture's meshes (default); one split's with each frame's camera
   --animation gltf FILE [--clip NAME]     a glTF/GLB clip driving the avatar's mesh (any clip of the asset it
                                           was synthesized from), sampled at --fps for --seconds from --start
@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from meshsplat import animate, camera
+from meshsplat.animation import load_animation
 from meshsplat.camera import Camera
 from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.cli._options import (
@@ -52,7 +53,6 @@ from meshsplat.cli._options import (
 )
 from meshsplat.cli.threads import add_threads_argument, apply_threads
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.drivers import load_animation
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
 
@@ -84,7 +84,7 @@ def render_cameras(
     without camera flags), or the orbit of the page's camera language (``orbit_request``)."""
     req = orbit_request(args, *up_front())
     if req is None:
-        return camera.dataset_camera(dataset(), args.camera.split(":", 1)[1], size)
+        return dataset().camera(args.camera.split(":", 1)[1], size)
     flags = (args.camera, args.center, args.distance, args.elevation, args.azimuth, args.fov, args.up, args.front)
     if frame_cams is not None and args.orbit is None and all(f is None for f in flags):
         return [c.resized(*size) for c in frame_cams] if size else frame_cams

@@ -1,6 +1,6 @@
 """Write a self-contained WebGL viewer (open index.html in a browser) animating a trained avatar.
 
-Animation (the same words as `meshsplat render` and ``meshsplat.drivers.AnimationSource``):
+Animation (the same words as `meshsplat render` and ``meshsplat.animation.AnimationSource``):
   --animation dataset [--split NAME]      the capture's meshes (default: all stored frames in order)
   --animation gltf FILE [--clip NAME]     a glTF/GLB rig driving the avatar's mesh, LIVE: its skin, morph
                                           targets and clips ship in the page (clip picker, scrubbing, speed,
@@ -31,6 +31,7 @@ import http.server
 from pathlib import Path
 
 from meshsplat import camera
+from meshsplat.animation import load_animation
 from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range
 from meshsplat.cli._options import (
     add_animation_options,
@@ -43,7 +44,7 @@ from meshsplat.cli._options import (
     orbit_request,
     render_options,
 )
-from meshsplat.drivers import BlendshapeDriver, GltfDriver, load_animation
+from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
 from meshsplat.viewer import write_viewer_bundle
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     req = orbit_request(args, up, front)  # the orbit turns about the capture's up, from its front
     if req is None:
         assert ds is not None  # opened above for a dataset camera
-        cam: camera.Camera | dict = camera.dataset_camera(ds, args.camera.split(":", 1)[1])
+        cam: camera.Camera | dict = ds.camera(args.camera.split(":", 1)[1])
     else:
         cam = req
     live = source.kind in ("gltf", "blendshapes") and not args.bake

@@ -172,8 +172,9 @@ class AvatarDataset:
         """Manifest record of frame ``i`` (no image decoding)."""
         return dict(self._frames[self._index(i)])
 
-    def camera(self, camera_id: str | int) -> Camera:
-        """The camera ``camera_id`` (one of ``camera_ids``), float32 tensors on the CPU."""
+    def camera(self, camera_id: str | int, size: tuple[int, int] | None = None) -> Camera:
+        """The camera ``camera_id`` (one of ``camera_ids``), float32 tensors on the CPU; resized to
+        ``size = (W, H)`` when given."""
         if str(camera_id) not in self._cameras:
             ids = self.camera_ids
             shown = ", ".join(ids[:20]) + (" ..." if len(ids) > 20 else "")
@@ -182,7 +183,8 @@ class AvatarDataset:
         if self.downscale != 1:
             w2, h2 = downscaled_size(w, h, self.downscale)
             K, w, h = scale_intrinsics(K, w, h, w2, h2), w2, h2
-        return Camera(torch.from_numpy(vm.astype(np.float32)), torch.from_numpy(K.astype(np.float32)), w, h)
+        cam = Camera(torch.from_numpy(vm.astype(np.float32)), torch.from_numpy(K.astype(np.float32)), w, h)
+        return cam.resized(*size) if size is not None and tuple(size) != (w, h) else cam
 
     def frame_camera(self, i: int) -> Camera:
         """The camera of frame ``i`` without loading its image."""

@@ -6,7 +6,7 @@ motion: seams welded and vertices reordered, or the nearest vertex of a smoothed
 ``source_rest [Vs,3]`` and ``source_faces [Fs,3]`` (the asset's rest mesh in the dataset's y-up
 world), ``rotation [3,3]`` (asset axes -> world), ``exact`` (canonical rest equals the asset rest at
 ``source_index``), ``smooth`` and ``decimate``. With it, vertex sequences in the asset's own order
-and every clip of the asset drive the avatar (:mod:`meshsplat.drivers.avatar_match`).
+and every clip of the asset drive the avatar (:mod:`meshsplat.animation.avatar_match`).
 """
 
 from __future__ import annotations

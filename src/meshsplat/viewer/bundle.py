@@ -30,8 +30,9 @@ import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
+from meshsplat.animation import Animation
 from meshsplat.camera import Camera, intrinsics, orbit_basis, orbit_cameras, orbit_viewmat
-from meshsplat.drivers import Animation, BlendshapeDriver, GltfDriver
+from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar
 from meshsplat.gaussians.compose import effective_uv
@@ -379,7 +380,7 @@ def write_viewer_bundle(
     rig: GltfDriver | BlendshapeDriver | None = None,
 ) -> Path:
     """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array, a list of ``[V,3]``,
-    or an :class:`~meshsplat.drivers.animation.Animation` from ``load_animation``: its frames, or its driver
+    or an :class:`~meshsplat.animation.Animation` from ``load_animation``: its frames, or its driver
     live when loaded with ``live=True``) or, live, by ``rig``: a ``GltfDriver`` on the avatar's canonical vertices (e.g. from
     :func:`meshsplat.viewer.rig.avatar_driver`: its skin, morph targets and clips ship in the bundle)
     or a ``BlendshapeDriver`` on them (expressions as morph targets, its sequence a clip at ``fps``);
@@ -422,7 +423,7 @@ def write_viewer_bundle(
         if rig_vertices != mesh.num_vertices:
             raise MeshsplatError(
                 f"rig: drives {rig_vertices} vertices, the avatar's mesh has {mesh.num_vertices} "
-                "(load it with meshsplat.drivers.load_animation(source, avatar, live=True))"
+                "(load it with meshsplat.animation.load_animation(source, avatar, live=True))"
             )
         sections.update(rig_sections)
         if frames is None:  # frame the camera on samples of the default clip

@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.data.source_map import SourceMap
-from meshsplat.drivers import AnimationSource, GltfDriver, load_animation
+from meshsplat.drivers import GltfDriver
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar

@@ -18,30 +18,28 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any
 
 import numpy as np
 import torch
 
-from meshsplat.drivers.avatar_match import (
+from meshsplat.animation.avatar_match import (
     MAX_ANIMATION_FRAMES,
     blendshapes_for_mesh,
     check_frames,
     gltf_for_mesh,
     sequence_for_mesh,
 )
+from meshsplat.animation.motion import load_motion, reenact
+from meshsplat.camera import Camera
+from meshsplat.data.dataset import AvatarDataset
+from meshsplat.data.source_map import SourceMap
 from meshsplat.drivers.blendshape import BlendshapeDriver, read_weights
 from meshsplat.drivers.body_models import ParametricDriver, model_from_record, model_kind_for
 from meshsplat.drivers.gltf import GltfDriver
-from meshsplat.drivers.motion import load_motion, reenact
 from meshsplat.errors import MeshsplatError
-
-if TYPE_CHECKING:
-    from meshsplat.camera import Camera
-    from meshsplat.data.dataset import AvatarDataset
-    from meshsplat.data.source_map import SourceMap
-    from meshsplat.gaussians import Avatar
-    from meshsplat.mesh import TriMesh
+from meshsplat.gaussians import Avatar
+from meshsplat.mesh import TriMesh
 
 __all__ = ["ANIMATION_KINDS", "AnimationSource", "Animation", "load_animation", "TALKING_FRAMES"]
 
@@ -60,7 +58,7 @@ class AnimationSource:
     ``weights``: blendshapes: ``[T,K]`` (``.npy``, ``.json`` or an array; default a talking sequence of
     ``frames`` frames at ``fps``). ``fps``: glTF sampling and playback rate. ``seconds``, ``start``: glTF:
     how long (default the clip) from when. ``frames``: keep at most N frames. ``model_dir``: motion: the
-    SMPL/FLAME model files. ``align``: motion: "pose", "translation" or "none" (``drivers.motion.reenact``).
+    SMPL/FLAME model files. ``align``: motion: "pose", "translation" or "none" (``animation.motion.reenact``).
     """
 
     kind: str
@@ -148,13 +146,13 @@ def load_animation(
 
     ``dataset``: the avatar's capture (``run.open_dataset()``), needed by the dataset and motion kinds.
     ``source_map``: the run's or dataset's (``run.source_map()``), so that the asset the avatar was
-    synthesized from drives it whatever was done to its driving mesh (:mod:`meshsplat.drivers.avatar_match`).
+    synthesized from drives it whatever was done to its driving mesh (:mod:`meshsplat.animation.avatar_match`).
     Before any frame is posed, more than ``MAX_ANIMATION_FRAMES`` frames are refused and ``check(n)`` runs
     (the command line's memory estimate), so a huge motion is refused before it is allocated.
     """
     if not isinstance(source, AnimationSource):
         raise MeshsplatError(f"source: expected an AnimationSource, got {type(source).__name__}")
-    mesh = cast("TriMesh", getattr(avatar, "mesh", avatar))  # an Avatar's canonical mesh, or the mesh itself
+    mesh = avatar.mesh if isinstance(avatar, Avatar) else avatar
     kind, n = source.kind, source.frames
     if kind == "gltf":
         drv, to_world = gltf_for_mesh(mesh, source.file, source.clip, source.fps, source_map)
@@ -250,7 +248,7 @@ def _motion_frames(
     """A body/head motion file driving an avatar trained on SMPL/SMPL-X/FLAME-tracked data.
 
     ``source.file``: an SMPL ``.npz`` (``poses [S,72]``, ``trans [S,3]``), an SMPL-X/AMASS ``.npz``, an
-    IMavatar ``flame_params.json`` or a VHAP ``flame_param/`` folder (``drivers.motion.load_motion``).
+    IMavatar ``flame_params.json`` or a VHAP ``flame_param/`` folder (``animation.motion.load_motion``).
     Cross-identity reenactment: the avatar keeps its own shape (``betas``, ``static_offset`` from its
     capture) and takes the motion's pose and expression. A capture with per-frame meshes only (INSTA) on a
     standard topology (FLAME 5023, SMPL 6890, SMPL-X 10475 vertices) is posed by that model with its

@@ -16,23 +16,21 @@ import copy
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from meshsplat._checks import check_tensor
 from meshsplat._typing import ArrayLike
+from meshsplat.data.source_map import SourceMap
 from meshsplat.drivers.blendshape import BlendshapeDriver
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import read_mesh_sequence
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy
+from meshsplat.mesh import TriMesh
 from meshsplat.paths import resolve_input
-
-if TYPE_CHECKING:
-    from meshsplat.data.source_map import SourceMap
-    from meshsplat.mesh import TriMesh
 
 __all__ = [
     "MAX_ANIMATION_FRAMES",
