@@ -82,7 +82,7 @@ def test_wheel_installs_into_a_fresh_env_and_runs_the_tiny_demo(wheel, tmp_path)
         cwd=elsewhere,
     ).stdout.split()
     assert all(Path(w).is_relative_to(env_dir) for w in where), where  # not the checkout's sources
-    _run([str(env_dir / "bin" / "meshsplat"), "demo", "--recipe", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
+    _run([str(env_dir / "bin" / "meshsplat"), "demo", "--preset", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
     summary = json.loads((elsewhere / "X" / "summary.json").read_text())
     assert summary["iterations"] == 60 and summary["metrics"]["test_frames"]["psnr"] > 15.0
     page = elsewhere / "viewer"
