@@ -320,10 +320,7 @@ class AnnyBody:
         else:
             w = self.weights
         M, X = self.transforms(pose, joints)
-        # sum_j w_vj (M_j (v - c_j) + x_j) = (sum_j w_vj M_j) v + sum_j w_vj (x_j - M_j c_j)
-        A = torch.einsum("vj,tjab->tvab", w, M)
-        b = torch.einsum("vj,tja->tva", w, X - torch.einsum("tjab,jb->tja", M, joints))
-        out = torch.einsum("tvab,vb->tva", A, verts) + b
+        out = _skin(w, verts, M, X - torch.einsum("tjab,jb->tja", M, joints))
         if transl is not None:
             out, X = out + transl[:, None], X + transl[:, None]
         return out, X
@@ -331,9 +328,20 @@ class AnnyBody:
     def keypoints(
         self, pose: torch.Tensor, betas: torch.Tensor | None = None, transl: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The 23 keypoints ``[T,23,3]`` and joints ``[T,24,3]``, posing only the vertices they blend."""
-        v, X = self.pose(pose, betas, transl, self.keypoint_vertices)
-        return torch.einsum("ku,tuc->tkc", self.keypoint_blend, v), X
+        """The 23 keypoints ``[T,23,3]`` and joints ``[T,24,3]``. Skinning is linear, so each keypoint's
+        blend of skinned vertices is a blend of the bones' transforms: ``kp_k = sum_j M_j P_kj + S_kj b_j``
+        with ``P [23,24,3]``, ``S [23,24]`` from the rest vertices it blends (no per-vertex work per frame)."""
+        verts, joints = self.rest_shape(betas)
+        ids = self.keypoint_vertices
+        bw = self.keypoint_blend[:, :, None] * self.weights[ids][None]  # [23,U,24]
+        P = torch.einsum("kuj,uc->kjc", bw, verts[ids])
+        S = bw.sum(1)
+        M, X = self.transforms(pose, joints)
+        b = X - torch.einsum("tjab,jb->tja", M, joints)
+        kp = torch.einsum("tjab,kjb->tka", M, P) + torch.einsum("kj,tja->tka", S, b)
+        if transl is not None:
+            kp, X = kp + transl[:, None], X + transl[:, None]
+        return kp, X
 
     def full_pose(self, params: dict, T: int) -> torch.Tensor:
         go = self._frames(params, "global_orient", T, 3)
@@ -398,6 +406,17 @@ class AnnyBody:
         if problems:
             raise MeshsplatError("Anny parameters: " + "; ".join(problems))
         return T
+
+
+def _skin(w: torch.Tensor, verts: torch.Tensor, M: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Linear blend skinning ``[T,V,3]``: ``sum_j w_vj (M_j v + b_j)`` of weights ``w [V,J]``, rest
+    ``verts [V,3]``, bone rotations ``M [T,J,3,3]`` and offsets ``b [T,J,3]``, as two matrix products."""
+    V, J = w.shape
+    T = M.shape[0]
+    A = (w[:, :, None] * verts[:, None, :]).reshape(V, J * 3)  # [V, (j,b)]
+    Mr = M.permute(1, 3, 0, 2).reshape(J * 3, T * 3)  # [(j,b), (t,a)]
+    out = A @ Mr + w @ b.permute(1, 0, 2).reshape(J, T * 3)
+    return out.reshape(V, T, 3).permute(1, 0, 2)
 
 
 _LOADED: dict[tuple[str, str], AnnyBody] = {}

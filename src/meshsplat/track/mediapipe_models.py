@@ -15,9 +15,17 @@ import numpy as np
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["FaceMesh", "PersonSegmenter", "NUM_FACE_LANDMARKS", "load_mediapipe"]
+__all__ = [
+    "FaceMesh",
+    "PoseLandmarker",
+    "PersonSegmenter",
+    "NUM_FACE_LANDMARKS",
+    "NUM_POSE_LANDMARKS",
+    "load_mediapipe",
+]
 
 NUM_FACE_LANDMARKS = 478  # 468 face mesh points + 2 x 5 iris points
+NUM_POSE_LANDMARKS = 33  # BlazePose: face 0-10, arms 11-22, legs 23-32
 _INSTALL = "pip install 'meshsplat[track]' (mediapipe 0.10.21, Python 3.9-3.12)"
 
 
@@ -71,6 +79,49 @@ class FaceMesh:
         self._mesh.close()
 
     def __enter__(self) -> FaceMesh:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class PoseLandmarker:
+    """MediaPipe Pose (BlazePose, the "full" model inside the 0.10.21 wheel; the lite and heavy ones would
+    be downloaded, so ``model_complexity`` stays 1): one person per frame, the most prominent one, followed
+    from frame to frame in video mode."""
+
+    def __init__(self, video: bool = True, min_confidence: float = 0.5) -> None:
+        mp = load_mediapipe()
+        self._pose = mp.solutions.pose.Pose(
+            static_image_mode=not video,
+            model_complexity=1,
+            smooth_landmarks=video,
+            enable_segmentation=False,
+            min_detection_confidence=min_confidence,
+            min_tracking_confidence=min_confidence,
+        )
+
+    def __call__(self, frame: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``frame [H,W,3]`` uint8 RGB -> ``[(image [33,4], world [33,3])]`` (empty without a person):
+        x, y in pixels (pixel centres at +0.5), z in the same scale (relative depth), visibility in [0,1];
+        ``world`` in metres about the hips' midpoint (x right, y down, z away from the camera)."""
+        h, w = frame.shape[:2]
+        res = self._pose.process(np.ascontiguousarray(frame))
+        if res.pose_landmarks is None:
+            return []
+        lm = np.array([(p.x * w, p.y * h, p.z * w, p.visibility) for p in res.pose_landmarks.landmark], np.float32)
+        if res.pose_world_landmarks is None:
+            world = np.full((NUM_POSE_LANDMARKS, 3), np.nan, np.float32)
+        else:
+            world = np.array([(p.x, p.y, p.z) for p in res.pose_world_landmarks.landmark], np.float32)
+        if lm.shape[0] != NUM_POSE_LANDMARKS:
+            return []
+        return [(lm, world)]
+
+    def close(self) -> None:
+        self._pose.close()
+
+    def __enter__(self) -> PoseLandmarker:
         return self
 
     def __exit__(self, *exc: object) -> None:
