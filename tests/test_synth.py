@@ -14,8 +14,9 @@ from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.images import read_image
 from meshsplat.render.background import composite
-from meshsplat.synth import rasterize_triangles, synthesize
+from meshsplat.synth import SynthSpec, rasterize_triangles, synthesize
 from meshsplat.synth.driving import cluster_decimate, taubin_smooth, weld
+from meshsplat.synth.generate import synth_spec
 from meshsplat.synth.raster import sample_texture
 
 K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
@@ -196,3 +197,25 @@ def test_rendering_some_splits_again_gives_the_same_frames(assets, tmp_path):
         assert torch.equal(part[j].camera.viewmat, full[i].camera.viewmat)
     with pytest.raises(MeshsplatError, match="splits: expected some of"):
         synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "bad", splits=["test_clip"], **kw)
+
+
+def test_a_spec_and_its_keywords_make_one_capture(assets, tmp_path):
+    spec = SynthSpec(frames=2, resolution=16, test_frames=1, test_views=0)
+    a = synthesize(assets / "gltf" / "CesiumMan.glb", tmp_path / "a", spec)
+    b = synthesize(
+        assets / "gltf" / "CesiumMan.glb", tmp_path / "b", frames=2, resolution=16, test_frames=1, test_views=0
+    )
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for f in files:
+        if f.name != "manifest.json":  # its meta holds the seconds taken
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    # keywords override a spec; supersampling follows the resolution it ends with
+    assert synth_spec(spec, resolution=512).supersample_factor == 1 and spec.supersample_factor == 2
+    assert synth_spec(spec, supersample=3).supersample_factor == 3
+    with pytest.raises(TypeError, match="resolutoin"):
+        synth_spec(spec, resolutoin=64)
+    with pytest.raises(MeshsplatError, match="renderer: expected one of"):
+        SynthSpec(renderer="raytrace")
+    with pytest.raises(MeshsplatError, match="frames >= 1"):
+        SynthSpec(frames=0)

@@ -19,7 +19,7 @@ from meshsplat.data.formats import FORMAT_NAMES
 from meshsplat.errors import MeshsplatError
 from meshsplat.synth import contact_sheet
 from meshsplat.synth.capture import synth_capture
-from meshsplat.synth.generate import RENDERERS, RIGS
+from meshsplat.synth.generate import RENDERERS, RIGS, SynthSpec
 from meshsplat.synth.pbr import PbrSettings
 
 __all__ = ["add_arguments", "run"]
@@ -144,13 +144,7 @@ def run(args: argparse.Namespace) -> int:
         raise MeshsplatError("--contact-sheet needs --format native (or use --native-out and `meshsplat synth` output)")
     threads = apply_threads(args)
     write_options = {"masks": args.masks} if args.masks else {}
-    out = synth_capture(
-        args.asset,
-        args.out,
-        format=args.format,
-        native_dir=args.native_out,
-        overwrite=args.overwrite,
-        write_options=write_options,
+    spec = SynthSpec(
         rig=args.rig,
         frames=args.frames,
         resolution=args.resolution,
@@ -163,15 +157,24 @@ def run(args: argparse.Namespace) -> int:
         driver_smooth=args.driver_smooth,
         driver_decimate=args.driver_decimate,
         supersample=args.supersample,
-        progress=True,
         model_dir=args.model_dir,
         gender=args.gender,
         up=args.up,
-        threads=threads,
         renderer=args.renderer,
         pbr=PbrSettings(spp=args.spp, seed=args.seed, roughness=args.roughness),
         pose_noise=args.pose_noise,
         seed=args.seed,
+    )
+    out = synth_capture(
+        args.asset,
+        args.out,
+        format=args.format,
+        native_dir=args.native_out,
+        overwrite=args.overwrite,
+        write_options=write_options,
+        spec=spec,
+        progress=True,
+        threads=threads,
     )
     print(f"{args.format} capture written to {out}")
     if args.contact_sheet:

@@ -13,7 +13,7 @@ from meshsplat.data.manifest import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.out_folder import empty_or_new_folder
 from meshsplat.synth.body_source import MODEL_SOURCES
-from meshsplat.synth.generate import synthesize
+from meshsplat.synth.generate import SynthSpec, synthesize
 
 __all__ = ["synth_capture"]
 
@@ -25,9 +25,11 @@ def synth_capture(
     native_dir: Path | str | None = None,
     overwrite: bool = False,
     write_options: dict | None = None,
+    spec: SynthSpec | None = None,
     **generate_options: Any,
 ) -> Path:
-    """Render ``asset`` (see :func:`meshsplat.synth.synthesize`) and write it at ``out`` in ``format``.
+    """Render ``asset`` as ``spec`` says, ``generate_options`` as for :func:`meshsplat.synth.synthesize` (its
+    run options, or ``SynthSpec`` fields overriding ``spec``), and write it at ``out`` in ``format``.
 
     For a format other than ``native`` the native dataset goes to ``native_dir`` (kept) or a temporary
     folder (removed), and ``format_module(format).write(dataset, out, **write_options)`` converts it.
@@ -38,19 +40,19 @@ def synth_capture(
     if native_dir is not None:
         empty_or_new_folder(native_dir, overwrite)
     if format == "native":
-        return synthesize(asset, out, overwrite=overwrite, **generate_options)
+        return synthesize(asset, out, spec, overwrite=overwrite, **generate_options)
     try:
         module = format_module(format)
         writer = module.write
     except (ImportError, AttributeError):
         raise MeshsplatError(f"format {format!r}: this installation has no writer for it") from None
-    _check_fits(module, format, asset, str(generate_options.get("rig", "monocular-turn")))
+    _check_fits(module, format, asset, str(generate_options.get("rig", (spec or SynthSpec()).rig)))
     tmp = None
     if native_dir is None:
         tmp = tempfile.mkdtemp(prefix="meshsplat-synth-")
         native_dir = Path(tmp) / "native"
     try:
-        native = synthesize(asset, native_dir, overwrite=overwrite, **generate_options)
+        native = synthesize(asset, native_dir, spec, overwrite=overwrite, **generate_options)
         opts = dict(write_options or {})
         params = inspect.signature(writer).parameters
         if "overwrite" in params or any(p.kind == p.VAR_KEYWORD for p in params.values()):

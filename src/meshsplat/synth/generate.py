@@ -8,6 +8,7 @@ clip); ``test_views`` (cameras never used for training); ``test_clip`` (other cl
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time as _time
 from collections.abc import Callable, Sequence
@@ -30,7 +31,7 @@ from meshsplat.synth.raster import lambert, rasterize_triangles, sample_texture,
 from meshsplat.synth.sequence_source import up_rotation, with_up
 from meshsplat.synth.sources import load_source
 
-__all__ = ["synthesize", "render_view", "clip_motion", "RIGS", "RENDERERS", "Shot"]
+__all__ = ["synthesize", "SynthSpec", "synth_spec", "render_view", "clip_motion", "RIGS", "RENDERERS", "Shot"]
 
 RIGS = ("monocular-turn", "orbit", "multiview")
 _LIGHT = np.array([0.35, 0.75, 0.55]) / np.linalg.norm([0.35, 0.75, 0.55])
@@ -46,6 +47,92 @@ class Shot:
     yaw: float
     camera: str
     split: str
+
+
+@dataclass(frozen=True)
+class SynthSpec:
+    """What a synthetic capture holds: its cameras, which frames of which clips, the image size, how the
+    stored driving mesh differs from the rendered surface, and the renderer. Every field has a default, so
+    ``SynthSpec(frames=8, resolution=64)`` names only what changes; ``synthesize(asset, out, spec)`` renders it.
+    """
+
+    rig: str = "monocular-turn"
+    """Cameras (one of ``RIGS``): ``monocular-turn`` (one fixed camera, the subject turning about the vertical
+    while it animates, like PeopleSnapshot), ``orbit`` (a camera circling a subject that does not turn) or
+    ``multiview`` (a fixed ring of ``views`` cameras)."""
+    frames: int = 60
+    """Training time steps (per camera for ``multiview``), spread over the first ``train_fraction`` of the clip."""
+    resolution: int = 256
+    """Square image size in pixels (at least 8)."""
+    clip: str | None = None
+    """Training clip; None: the asset's preset, else the clip with the most motion (then the longest)."""
+    test_clips: Sequence[str] | None = None
+    """Clips of the novel-pose split ``test_clip``; None: the asset's preset, else up to two other moving clips."""
+    train_fraction: float = 0.7
+    """Leading part of the training clip used for training, in (0, 1]; the rest is the ``test_frames`` split."""
+    test_frames: int | None = None
+    """Frames per test clip and for the held-out end of the clip; None: ``max(2, frames // 4)``."""
+    test_views: int = 2
+    """Cameras never used for training (the ``test_views`` split)."""
+    test_view_frames: int | None = None
+    """Training poses each held-out camera sees; None: ``max(2, frames // 8)``."""
+    views: int = 8
+    """Cameras of the ``multiview`` ring (more than ``test_views``)."""
+    turns: float = 1.0
+    """``monocular-turn``: full turns of the subject over the training frames."""
+    driver_smooth: int = 0
+    """Taubin smoothing iterations applied to the stored driving mesh (not to the rendered surface)."""
+    driver_decimate: float | None = None
+    """Keep about this ratio of the driving mesh's vertices (vertex clustering); None or 1: all."""
+    supersample: int | None = None
+    """Anti-aliasing factor of images and masks (rasterizer only); None: 2 up to 384 px, else 1."""
+    background: Sequence[float] = (0.0, 0.0, 0.0)
+    """RGB in [0, 1] behind the subject."""
+    fov_deg: float = 30.0
+    """Field of view of every camera, in degrees."""
+    model_dir: Path | str | None = None
+    """Body/head models (``smpl``, ``smplx``, ``flame``): the folder of the model files; None:
+    ``$MESHSPLAT_MODEL_DIR``. Their parameters are stored as the dataset's driver."""
+    gender: str = "neutral"
+    """Body models: ``neutral``, ``male`` or ``female``."""
+    up: str | None = None
+    """The asset's up axis, ``"y"`` or ``"z"``; None: the asset's own, else y. A z-up asset is turned into
+    the y-up world."""
+    renderer: str = "lambert"
+    """``"lambert"`` (the fast rasterizer) or ``"pbr"`` (path traced with shadows and gloss,
+    :mod:`meshsplat.synth.pbr`, needs the ``[pbr]`` extra; its samples per pixel antialias)."""
+    pbr: PbrSettings | None = None
+    """Settings of the ``pbr`` renderer; None: ``PbrSettings()``."""
+    pose_noise: float = 0.0
+    """Body/head models: the stored (tracked) parameters and driving meshes get every joint rotation turned
+    by a random rotation of this many radians standard deviation per axis-angle component (0..1), while
+    the images show the exact pose, so pose refinement has an error to fix."""
+    seed: int = 0
+    """Seed of the pose noise."""
+    splits: Sequence[str] | None = None
+    """Render only the frames of these splits (same names, cameras, poses and per-frame sampler seeds as
+    the full capture; e.g. held-out frames again with more samples per pixel, as low-noise references);
+    None: all."""
+
+    def __post_init__(self) -> None:
+        if self.renderer not in RENDERERS:
+            raise MeshsplatError(f"renderer: expected one of {', '.join(RENDERERS)}, got {self.renderer!r}")
+        if self.frames < 1 or self.resolution < 8:
+            raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {self.frames}, {self.resolution}")
+        if not 0.0 <= self.pose_noise <= 1.0:
+            raise MeshsplatError(f"pose_noise: expected 0..1 radians, got {self.pose_noise}")
+        resolved = {
+            "pose_noise": float(self.pose_noise),
+            "seed": int(self.seed),
+            "splits": None if self.splits is None else [str(x) for x in self.splits],
+        }
+        for name, value in resolved.items():
+            object.__setattr__(self, name, value)
+
+    @property
+    def supersample_factor(self) -> int:
+        """``supersample``, or its default for ``resolution``: 2 up to 384 px, else 1."""
+        return int(self.supersample) if self.supersample else (2 if self.resolution <= 384 else 1)
 
 
 def render_view(
@@ -286,280 +373,314 @@ def _default_clips(source, clip, test_clips, train_fraction, say=None):
 def synthesize(
     asset: Path | str,
     out_dir: Path | str,
-    rig: str = "monocular-turn",
-    frames: int = 60,
-    resolution: int = 256,
-    clip: str | None = None,
-    test_clips: list[str] | None = None,
-    train_fraction: float = 0.7,
-    test_frames: int | None = None,
-    test_views: int = 2,
-    test_view_frames: int | None = None,
-    views: int = 8,
-    turns: float = 1.0,
-    driver_smooth: int = 0,
-    driver_decimate: float | None = None,
-    supersample: int | None = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    fov_deg: float = 30.0,
+    spec: SynthSpec | None = None,
+    *,
     overwrite: bool = False,
     progress: bool = False,
     threads: int | None = 1,
-    model_dir: Path | str | None = None,
-    gender: str = "neutral",
-    up: str | None = None,
     say: Callable[[str], object] | None = None,
-    renderer: str = "lambert",
-    pbr: PbrSettings | None = None,
-    pose_noise: float = 0.0,
-    seed: int = 0,
-    splits: Sequence[str] | None = None,
+    **fields: Any,
 ) -> Path:
-    """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``.
+    """Render ``asset`` (see :func:`meshsplat.synth.sources.load_source`) into a dataset at ``out_dir``, as
+    ``spec`` (a :class:`SynthSpec`; default ``SynthSpec()``) says; keyword ``fields`` of ``SynthSpec``
+    override it (``synthesize(a, out, frames=8)`` is ``synthesize(a, out, SynthSpec(frames=8))``).
 
-    ``frames`` training time steps (per camera for ``multiview``); ``test_frames`` (default frames//4)
-    per test clip and for the held-out end of the clip; ``test_views`` extra cameras seeing
-    ``test_view_frames`` (default frames//8) training poses. ``driver_smooth`` Taubin iterations and
-    ``driver_decimate`` vertex ratio make the stored driving mesh differ from the rendered surface.
-    ``supersample`` (default 2 up to 384 px, else 1) anti-aliases images and masks. ``threads``: torch
+    ``overwrite``: replace a dataset at ``out_dir``. ``progress``: print every 20 frames. ``threads``: torch
     CPU threads while rendering (1 is fastest for these small kernels on a busy machine; None = keep).
-    ``asset`` may also be a body/head model (``smpl``, ``smplx``, ``flame``) read from ``model_dir``
-    (default ``$MESHSPLAT_MODEL_DIR``) with ``gender``; its parameters are stored as the dataset's driver.
-    ``up``: the asset's up axis (``"y"``/``"z"``; default the asset's own, else y); a z-up asset is
-    turned into the y-up world. ``say``: callable told the choices made (default ``print`` when
-    ``progress``). ``renderer``: ``"lambert"`` (the fast rasterizer, default) or ``"pbr"`` (path traced
-    with shadows and gloss, :mod:`meshsplat.synth.pbr`, settings ``pbr``; needs the ``[pbr]`` extra;
-    ``supersample`` does not apply: the samples per pixel antialias). ``pose_noise``: for body/head
-    models, the stored (tracked) parameters and driving meshes get every joint rotation turned by a
-    random rotation of ``pose_noise`` radians standard deviation per axis-angle component (seeded by
-    ``seed``), while the images show the exact pose: pose refinement has an error to fix. The dataset keeps ``source_map.npz`` (asset vertex of each driving vertex, the
-    asset's rest mesh, the up rotation) so the asset's own animations drive the avatar later.
-    ``splits``: render only the frames of these splits (same names, cameras, poses and per-frame
-    sampler seeds as the full capture; e.g. a capture's held-out frames again with more samples per
-    pixel, as low-noise references); None: all. Returns the dataset folder.
+    ``say``: callable told the choices made (default ``print`` when ``progress``). The dataset keeps
+    ``source_map.npz`` (asset vertex of each driving vertex, the asset's rest mesh, the up rotation) so the
+    asset's own animations drive the avatar later. Returns the dataset folder.
     """
+    spec = synth_spec(spec, **fields)
     old_threads = torch.get_num_threads()
     if threads:
         torch.set_num_threads(int(threads))
     try:
         return _generate(
             asset,
-            out_dir,
-            rig,
-            frames,
-            resolution,
-            clip,
-            test_clips,
-            train_fraction,
-            test_frames,
-            test_views,
-            test_view_frames,
-            views,
-            turns,
-            driver_smooth,
-            driver_decimate,
-            supersample if supersample else (2 if resolution <= 384 else 1),
-            background,
-            fov_deg,
+            Path(out_dir),
+            spec,
             overwrite,
             progress,
-            model_dir,
-            gender,
-            up,
-            say if say is not None else (print if progress else None),
-            renderer,
-            pbr,
             threads,
-            float(pose_noise),
-            int(seed),
-            None if splits is None else [str(x) for x in splits],
+            say if say is not None else (print if progress else None),
         )
     finally:
         torch.set_num_threads(old_threads)
 
 
+def synth_spec(spec: SynthSpec | None = None, **fields: Any) -> SynthSpec:
+    """``spec`` (default ``SynthSpec()``) with ``fields`` replaced; an unknown field is a ``TypeError``."""
+    unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(SynthSpec)})
+    if unknown:
+        raise TypeError(f"unexpected synthesis option(s) {', '.join(unknown)}: see meshsplat.synth.SynthSpec")
+    return dataclasses.replace(spec or SynthSpec(), **fields)
+
+
 def _generate(
-    asset,
-    out_dir,
-    rig,
-    frames,
-    resolution,
-    clip,
-    test_clips,
-    train_fraction,
-    test_frames,
-    test_views,
-    test_view_frames,
-    views,
-    turns,
-    driver_smooth,
-    driver_decimate,
-    supersample,
-    background,
-    fov_deg,
-    overwrite,
-    progress,
-    model_dir=None,
-    gender="neutral",
-    up=None,
-    say=None,
-    renderer="lambert",
-    pbr_settings=None,
-    threads=None,
-    pose_noise=0.0,
-    seed=0,
-    splits=None,
+    asset: Path | str,
+    out: Path,
+    spec: SynthSpec,
+    overwrite: bool,
+    progress: bool,
+    threads: int | None,
+    say: Callable[[str], object] | None,
 ) -> Path:
-    if renderer not in RENDERERS:
-        raise MeshsplatError(f"renderer: expected one of {', '.join(RENDERERS)}, got {renderer!r}")
-    if frames < 1 or resolution < 8:
-        raise MeshsplatError(f"frames >= 1 and resolution >= 8 required, got {frames}, {resolution}")
+    """The capture in six steps: open the asset, plan the shots, derive the driving mesh, frame the
+    cameras, write the header (cameras, source map, meta), then render and write every shot."""
     t_start = _time.perf_counter()
-    source = load_source(asset, model_dir=model_dir, gender=gender)
+    src = _open_asset(asset, spec, say)
+    clips, shots, cams = _plan_capture(src, spec, say)
+    drive, weld_group, smap = _driving_for(src, spec)
+    poses = _Poses(src.source, drive, shots)
+    framing = _frame(poses, cams, spec)
+    tracer, render_record = _renderer(src, weld_group, framing, spec, threads)
+    meta = _meta(asset, src, drive, clips, spec, render_record)
+    writer = _open_writer(out, overwrite, drive, smap, src, cams, framing, spec, meta)
+    written, mesh_params = _render_shots(writer, shots, src, poses, framing, weld_group, tracer, spec, progress)
+    return _close(writer, written, mesh_params, src, spec, t_start)
+
+
+@dataclass
+class _Asset:
+    """The asset as rendered: ``source`` (in the +y-up world), ``is_model`` (a body/head model, whose
+    parameters become the dataset's driver), its up axis ``up`` and ``R_up [3,3]`` (asset -> world),
+    ``rest [V,3]`` float64 and ``size`` (the rest mesh's bounding-box diagonal)."""
+
+    source: Any
+    is_model: bool
+    up: str
+    R_up: np.ndarray
+    rest: np.ndarray
+    size: float
+
+
+def _open_asset(asset: Path | str, spec: SynthSpec, say: Callable[[str], object] | None) -> _Asset:
+    """Load the asset, check the options that depend on its kind, turn a z-up asset y-up."""
+    source = load_source(asset, model_dir=spec.model_dir, gender=spec.gender)
     is_model = hasattr(source, "placed_params")
-    if pose_noise and not is_model:
+    if spec.pose_noise and not is_model:
         raise MeshsplatError(
             "pose noise applies to body/head models (smpl, smplx, flame); for other assets use "
             "--driver-smooth / --driver-decimate"
         )
-    if not 0.0 <= pose_noise <= 1.0:
-        raise MeshsplatError(f"pose_noise: expected 0..1 radians, got {pose_noise}")
-    rng = np.random.default_rng(seed)
-    if is_model and up not in (None, "y"):
-        raise MeshsplatError(f"up: body/head models are y-up; --up {up} applies to glTF and mesh-sequence assets")
-    source, up_used, up_how = with_up(source, up)
-    R_up = up_rotation(up_used)
-    rest0 = source.rest().numpy().astype(np.float64)
-    size = bbox_diagonal(rest0)
+    if is_model and spec.up not in (None, "y"):
+        raise MeshsplatError(f"up: body/head models are y-up; --up {spec.up} applies to glTF and mesh-sequence assets")
+    source, up_used, up_how = with_up(source, spec.up)
+    rest = source.rest().numpy().astype(np.float64)
+    size = bbox_diagonal(rest)
     if say:
         say(f"up axis: {up_used} ({up_how}); mesh size {size:.4g} asset units (bounding-box diagonal)")
-    clips = _default_clips(source, clip, test_clips, train_fraction, say)
-    n_test = test_frames if test_frames is not None else max(2, frames // 4)
-    n_tv = test_view_frames if test_view_frames is not None else max(2, frames // 8)
-    shots, cams = _plan(rig, clips, frames, n_test, min(n_tv, frames), views, test_views, turns)
+    return _Asset(source, is_model, up_used, up_rotation(up_used), rest, size)
+
+
+def _plan_capture(src: _Asset, spec: SynthSpec, say: Callable[[str], object] | None) -> tuple[dict, list[Shot], dict]:
+    """``(clips, shots, cameras)``: the training and novel-pose clips, every frame to render, and each
+    camera's ``(azimuth, elevation)``; ``spec.splits`` must name some of the planned splits."""
+    clips = _default_clips(src.source, spec.clip, spec.test_clips, spec.train_fraction, say)
+    n_test = spec.test_frames if spec.test_frames is not None else max(2, spec.frames // 4)
+    n_tv = spec.test_view_frames if spec.test_view_frames is not None else max(2, spec.frames // 8)
+    shots, cams = _plan(
+        spec.rig, clips, spec.frames, n_test, min(n_tv, spec.frames), spec.views, spec.test_views, spec.turns
+    )
     planned = sorted({s.split for s in shots})
+    splits = spec.splits
     if splits is not None and (not splits or set(splits) - set(planned)):
         raise MeshsplatError(f"splits: expected some of {planned} (this capture's splits), got {list(splits)}")
+    return clips, shots, cams
 
-    if is_model:
-        drive, weld_group, smap = _model_mesh(source, int(driver_smooth), driver_decimate)
-    else:
-        drive, weld_group, smap = _driving_mesh(source, int(driver_smooth), driver_decimate)
-    times: dict[tuple, float] = {}  # (clip, rounded time) -> time, in shot order
-    for s in shots:
-        times.setdefault((s.clip, round(s.time, 9)), s.time)
-    # every pose kept while small; a long capture poses again when rendering (memory bounded in --frames)
-    per_pose = 12 * (int(source.rest().shape[0]) + int(drive.rest().shape[0]))
-    poses: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
-    keep = len(times) * per_pose <= _POSE_CACHE_BYTES
 
-    def pose_of(key: tuple) -> tuple[torch.Tensor, torch.Tensor]:
-        hit = poses.get(key)
+def _driving_for(src: _Asset, spec: SynthSpec) -> tuple[Any, torch.Tensor, dict]:
+    """``(driving source, render weld group, source map)``: a model drives itself, an asset through its
+    welded (and optionally smoothed or decimated) mesh."""
+    make = _model_mesh if src.is_model else _driving_mesh
+    return make(src.source, int(spec.driver_smooth), spec.driver_decimate)
+
+
+class _Poses:
+    """The rendered and driving vertices of each ``(clip, rounded time)`` the shots need (``times``, in shot
+    order), each posed once while all of them fit in ``_POSE_CACHE_BYTES``; a longer capture keeps the latest
+    only (the cameras of one time step share it), so memory stays bounded in the frame count."""
+
+    def __init__(self, source: Any, drive: Any, shots: list[Shot]) -> None:
+        self.source, self.drive = source, drive
+        self.times: dict[tuple, float] = {}
+        for s in shots:
+            self.times.setdefault((s.clip, round(s.time, 9)), s.time)
+        per_pose = 12 * (int(source.rest().shape[0]) + int(drive.rest().shape[0]))
+        self._keep = len(self.times) * per_pose <= _POSE_CACHE_BYTES
+        self._cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def __call__(self, key: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rendered [V,3], driving [Vd,3])`` vertices at ``key = (clip, round(time, 9))``."""
+        hit = self._cache.get(key)
         if hit is not None:
             return hit
-        both = (source.pose(key[0], times[key]), drive.pose(key[0], times[key]))
-        if not keep:
-            poses.clear()  # the latest alone (the cameras of one time step share it)
-        poses[key] = both
+        both = (self.source.pose(key[0], self.times[key]), self.drive.pose(key[0], self.times[key]))
+        if not self._keep:
+            self._cache.clear()
+        self._cache[key] = both
         return both
 
+
+@dataclass
+class _Framing:
+    """Where the cameras stand: the subject turns about the vertical through ``pivot [3]`` (the box centre's
+    x, z at y = 0); the cameras look at ``center [3]`` from far enough to see every pose (``extent``: the
+    box diagonal over all poses), with intrinsics ``K [3,3]`` and a world->camera ``viewmats`` entry per id."""
+
+    pivot: np.ndarray
+    center: np.ndarray
+    extent: float
+    K: np.ndarray
+    viewmats: dict[str, np.ndarray]
+
+
+def _frame(poses: _Poses, cams: dict[str, tuple[float, float]], spec: SynthSpec) -> _Framing:
+    """Frame every pose of the capture: the box over all rendered poses, the radius about the turning
+    axis, and a distance at which the ``fov_deg`` view holds both."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for key in times:
-        v = pose_of(key)[0].numpy().astype(np.float64)
+    for key in poses.times:
+        v = poses(key)[0].numpy().astype(np.float64)
         lo, hi = np.minimum(lo, v.min(0)), np.maximum(hi, v.max(0))
     pivot = np.array([(lo[0] + hi[0]) / 2, 0.0, (lo[2] + hi[2]) / 2])
     center = np.array([pivot[0], (lo[1] + hi[1]) / 2, pivot[2]])
     half_h = (hi[1] - lo[1]) / 2
     radius = max(
-        float(np.linalg.norm((pose_of(key)[0].numpy().astype(np.float64) - pivot)[:, [0, 2]], axis=1).max())
-        for key in times
+        float(np.linalg.norm((poses(key)[0].numpy().astype(np.float64) - pivot)[:, [0, 2]], axis=1).max())
+        for key in poses.times
     )
-    half_fov = math.radians(fov_deg) / 2
+    half_fov = math.radians(spec.fov_deg) / 2
     distance = 1.1 * max(half_h, radius) / math.tan(half_fov) + 0.5 * radius
-    K = intrinsics(resolution, resolution, fov_deg)
+    K = intrinsics(spec.resolution, spec.resolution, spec.fov_deg)
     viewmats = {cid: look_at(orbit_position(center, distance, az, el), center) for cid, (az, el) in cams.items()}
-    tracer = None
-    if renderer == "pbr":
-        settings = pbr_settings or PbrSettings()
-        tracer = PbrRenderer(source, weld_group, center, float(np.linalg.norm(hi - lo)), _LIGHT, settings, threads)
-        render_record = settings.record()
-    else:
-        render_record = {"name": "lambert", "ambient": 0.4, "supersample": supersample}
+    return _Framing(pivot, center, float(np.linalg.norm(hi - lo)), K, viewmats)
 
-    def place(v: torch.Tensor, yaw: float) -> torch.Tensor:
-        if yaw == 0.0:
-            return v
-        Ry = torch.from_numpy(yaw_matrix(yaw)).float()
-        p = torch.from_numpy(pivot).float()
-        return (v - p) @ Ry.T + p
 
-    out = Path(out_dir)
-    meta = {
+def _renderer(
+    src: _Asset, weld_group: torch.Tensor, framing: _Framing, spec: SynthSpec, threads: int | None
+) -> tuple[PbrRenderer | None, dict]:
+    """``(path tracer or None for the rasterizer, the renderer's record for the dataset's meta)``."""
+    if spec.renderer == "pbr":
+        settings = spec.pbr or PbrSettings()
+        tracer = PbrRenderer(src.source, weld_group, framing.center, framing.extent, _LIGHT, settings, threads)
+        return tracer, settings.record()
+    return None, {"name": "lambert", "ambient": 0.4, "supersample": spec.supersample_factor}
+
+
+def _meta(asset: Path | str, src: _Asset, drive: Any, clips: dict, spec: SynthSpec, render_record: dict) -> dict:
+    """The generator's record in the dataset's ``meta`` (what was rendered, and how)."""
+    return {
         "generator": "meshsplat.synth",
         "asset": str(asset),
-        "rig": rig,
-        "resolution": resolution,
+        "rig": spec.rig,
+        "resolution": spec.resolution,
         "train_clip": clips["train"][0],
         "train_time_range": [clips["train"][1][0], clips["train"][2]],
         "test_clips": [c for c, _ in clips["tests"]],
-        "driver_smooth": int(driver_smooth),
-        "driver_decimate": driver_decimate,
-        "render_vertices": int(source.rest().shape[0]),
+        "driver_smooth": int(spec.driver_smooth),
+        "driver_decimate": spec.driver_decimate,
+        "render_vertices": int(src.source.rest().shape[0]),
         "driver_vertices": int(drive.rest().shape[0]),
-        "pose_noise": pose_noise,
-        "seed": seed,
+        "pose_noise": spec.pose_noise,
+        "seed": spec.seed,
         "light_dir": _LIGHT.tolist(),
         "renderer": render_record,
-        "fov_deg": fov_deg,
-        "background": list(background),
+        "fov_deg": spec.fov_deg,
+        "background": list(spec.background),
         "up": [0, 1, 0],
-        "asset_up": up_used,
-        "mesh_size": size,
-        "attribution": getattr(source, "attribution", ""),
+        "asset_up": src.up,
+        "mesh_size": src.size,
+        "attribution": getattr(src.source, "attribution", ""),
     }
-    writer = DatasetWriter(out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta, backdrop=background)
+
+
+def _open_writer(
+    out: Path,
+    overwrite: bool,
+    drive: Any,
+    smap: dict,
+    src: _Asset,
+    cams: dict[str, tuple[float, float]],
+    framing: _Framing,
+    spec: SynthSpec,
+    meta: dict,
+) -> DatasetWriter:
+    """The dataset's header: the driving mesh at rest, the meta, the source map and every camera."""
+    writer = DatasetWriter(
+        out, drive.rest(), drive.faces, overwrite=overwrite, meta=meta, backdrop=list(spec.background)
+    )
     writer.set_source_map(
         smap["source_index"],
-        rest0,
-        source.faces,
-        R_up,
+        src.rest,
+        src.source.faces,
+        src.R_up,
         exact=smap["exact"],
-        smooth=int(driver_smooth),
-        decimate=driver_decimate,
+        smooth=int(spec.driver_smooth),
+        decimate=spec.driver_decimate,
     )
     for cid in cams:
-        writer.add_camera(cid, K, viewmats[cid], resolution, resolution)
+        writer.add_camera(cid, framing.K, framing.viewmats[cid], spec.resolution, spec.resolution)
+    return writer
+
+
+def _place(v: torch.Tensor, yaw: float, pivot: np.ndarray) -> torch.Tensor:
+    """Vertices ``v [V,3]`` turned by ``yaw`` about the vertical through ``pivot``."""
+    if yaw == 0.0:
+        return v
+    Ry = torch.from_numpy(yaw_matrix(yaw)).float()
+    p = torch.from_numpy(pivot).float()
+    return (v - p) @ Ry.T + p
+
+
+def _render_shots(
+    writer: DatasetWriter,
+    shots: list[Shot],
+    src: _Asset,
+    poses: _Poses,
+    framing: _Framing,
+    weld_group: torch.Tensor,
+    tracer: PbrRenderer | None,
+    spec: SynthSpec,
+    progress: bool,
+) -> tuple[dict[str, list[int]], list[dict]]:
+    """Write each shot's driving mesh (once per pose; a model's tracked parameters, with ``pose_noise`` the
+    perturbed ones) and, in ``spec.splits``, its image and mask. Returns ``(frame indices per split, the
+    model parameters of each stored mesh)``."""
+    rng = np.random.default_rng(spec.seed)
+    source, pivot, res = src.source, framing.pivot, spec.resolution
     written: dict[str, list[int]] = {}
     mesh_ids: dict[tuple, int] = {}
     mesh_params: list[dict] = []
     for k, s in enumerate(shots):
-        rv, dv = pose_of((s.clip, round(s.time, 9)))
+        rv, dv = poses((s.clip, round(s.time, 9)))
         mkey = (s.clip, round(s.time, 9), round(s.yaw, 9))
         if mkey not in mesh_ids:
-            if is_model and pose_noise > 0:
-                tracked = perturb_pose(source.placed_params(s.clip, s.time, s.yaw, pivot), pose_noise, rng)
+            if src.is_model and spec.pose_noise > 0:
+                tracked = perturb_pose(source.placed_params(s.clip, s.time, s.yaw, pivot), spec.pose_noise, rng)
                 mesh_ids[mkey] = writer.add_mesh(source.vertices_of(tracked))
                 mesh_params.append(tracked)
             else:
-                mesh_ids[mkey] = writer.add_mesh(place(dv, s.yaw))
-                if is_model:
+                mesh_ids[mkey] = writer.add_mesh(_place(dv, s.yaw, pivot))
+                if src.is_model:
                     mesh_params.append(source.placed_params(s.clip, s.time, s.yaw, pivot))
-        if splits is not None and s.split not in splits:
+        if spec.splits is not None and s.split not in spec.splits:
             continue  # not rendered; poses and seeds above stay those of the full capture
+        viewmat = framing.viewmats[s.camera]
         if tracer is not None:
-            rgb, alpha = tracer.render(place(rv, s.yaw), viewmats[s.camera], K, resolution, resolution, frame=k)
-            rgb = (rgb + (1 - alpha) * torch.tensor(background, dtype=torch.float32)).clamp(0, 1)
+            rgb, alpha = tracer.render(_place(rv, s.yaw, pivot), viewmat, framing.K, res, res, frame=k)
+            rgb = (rgb + (1 - alpha) * torch.tensor(spec.background, dtype=torch.float32)).clamp(0, 1)
         else:
             rgb, alpha = render_view(
                 source,
-                place(rv, s.yaw),
-                viewmats[s.camera],
-                K,
-                resolution,
-                resolution,
+                _place(rv, s.yaw, pivot),
+                viewmat,
+                framing.K,
+                res,
+                res,
                 weld_group,
-                background,
-                supersample,
+                spec.background,
+                spec.supersample_factor,
             )
         if float(alpha.max()) == 0.0:
             raise MeshsplatError(f"shot {k} ({s.split}, camera {s.camera}): subject not visible")
@@ -576,11 +697,24 @@ def _generate(
         written.setdefault(s.split, []).append(idx)
         if progress and (k + 1) % 20 == 0:
             print(f"  rendered {k + 1}/{len(shots)} frames", flush=True)
-    if splits is not None:
+    return written, mesh_params
+
+
+def _close(
+    writer: DatasetWriter,
+    written: dict[str, list[int]],
+    mesh_params: list[dict],
+    src: _Asset,
+    spec: SynthSpec,
+    t_start: float,
+) -> Path:
+    """Splits, a model's driver parameters and the timing into the dataset; close it and return its folder."""
+    if spec.splits is not None:
         written.setdefault("train", [])  # not rendered: an empty split, not "every frame" (the writer's default)
     for name, indices in written.items():
         writer.set_split(name, indices)
-    if is_model:
+    if src.is_model:
+        source = src.source
         per_frame = {k: np.stack([p[k] for p in mesh_params]) for k in mesh_params[0]}
         writer.set_driver({**source.driver_record(), "per_frame": sorted(per_frame)}, {**source.shared, **per_frame})
         writer.meta["model"] = {"type": source.kind, "gender": source.model.gender, "fps": source.fps}
