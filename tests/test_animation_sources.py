@@ -60,24 +60,6 @@ def test_render_and_view_read_an_animation_alike(kit, words):
         assert got["render"] == AnimationSource("dataset")
 
 
-def test_old_render_flags_translate_with_a_note(kit, capsys):
-    _, run, _ = kit
-    r = load_run(run)
-    for old, new in [
-        (["--gltf", "walk.glb", "--clip", "Walk"], ["--animation", "gltf", "walk.glb", "--clip", "Walk"]),
-        (["--vertices", "seq.npy"], ["--animation", "vertices", "seq.npy"]),
-        (["--blendshapes", "ict", "--weights", "w.npy"], ["--animation", "blendshapes", "ict", "--weights", "w.npy"]),
-        (["--dataset-split", "test_frames"], ["--animation", "dataset", "--split", "test_frames"]),
-    ]:
-        assert animation_source(_args("render", old), r, "render") == animation_source(
-            _args("render", new), r, "render"
-        )
-        note = capsys.readouterr().err
-        assert note.count("\n") == 1 and f"{old[0]} is now spelled --animation" in note
-    with pytest.raises(MeshsplatError, match="exclude each other"):
-        animation_source(_args("render", ["--gltf", "a.glb", "--animation", "vertices", "b.npy"]), r, "render")
-
-
 def test_animation_source_errors_name_the_fix():
     with pytest.raises(MeshsplatError, match="expected one of dataset, gltf"):
         AnimationSource("bvh", "x.bvh")

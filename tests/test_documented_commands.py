@@ -23,7 +23,6 @@ from pathlib import Path
 import pytest
 
 from meshsplat.animation import ANIMATION_KINDS
-from meshsplat.cli._options import LEGACY_ANIMATION_FLAGS
 from meshsplat.cli.main import COMMANDS, build_parser, main
 from meshsplat.train import DEFAULT_PRESET, apply_overrides, preset_config
 
@@ -199,9 +198,6 @@ def check_command(cmd: DocCommand) -> list[str]:
                     problems.append(f"train --set {ns.set}: {exc}")
             if name in ("render", "view") and ns.animation and ns.animation[0] not in ANIMATION_KINDS:
                 problems.append(f"{name} --animation: unknown kind {ns.animation[0]!r}")
-            old = [f for f in LEGACY_ANIMATION_FLAGS if getattr(ns, f[2:].replace("-", "_"), None) is not None]
-            if name in ("render", "view") and old:
-                problems.append(f"{name} {old[0]}: the old spelling; document --animation KIND FILE")
     return problems
 
 

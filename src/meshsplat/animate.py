@@ -89,8 +89,8 @@ def render_animation(
             raise MeshsplatError("vertices: the animation has no frames")
         cameras = orbit_cameras(seq, 512, 512)
     if isinstance(cameras, Camera):
-        cam_at = lambda i: cameras  # noqa: E731
-    elif callable(cameras):
+        cameras = [cameras] * len(seq)  # one camera for every frame
+    if callable(cameras):
         cam_at = cameras
     else:
         cam_list = list(cameras)

@@ -120,7 +120,10 @@ def _body_parts(z: dict, where: str) -> dict:
 
 def _body_params(parts: dict, kind: str) -> dict:
     S = len(parts["global_orient"])
-    zeros = lambda w: np.zeros((S, w), np.float32)  # noqa: E731
+
+    def zeros(w: int) -> np.ndarray:
+        return np.zeros((S, w), np.float32)
+
     out = {"global_orient": parts["global_orient"]}
     if kind == "smpl":
         out["body_pose"] = np.concatenate([parts["body21"], parts.get("smpl_hands", zeros(6))], 1)

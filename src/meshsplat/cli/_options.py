@@ -11,7 +11,6 @@ KIND [FILE]`` and its options, an ``AnimationSource``) and ``add_camera_options`
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +34,6 @@ __all__ = [
     "parse_size",
     "add_animation_options",
     "animation_source",
-    "LEGACY_ANIMATION_FLAGS",
     "add_camera_options",
     "orbit_request",
 ]
@@ -182,19 +180,8 @@ def render_options(args: argparse.Namespace) -> RenderOptions:
 
 
 # ---------------------------------------------------------------- one way to say an animation
-# the flags render took before --animation: flag -> kind (they keep working for one release, with a note)
-LEGACY_ANIMATION_FLAGS = {
-    "--gltf": "gltf",
-    "--vertices": "vertices",
-    "--blendshapes": "blendshapes",
-    "--motion": "motion",
-    "--dataset-split": "dataset",
-}
-
-
-def add_animation_options(parser: argparse.ArgumentParser, legacy: tuple[str, ...] = ()) -> None:
-    """``--animation KIND [FILE]`` and its options (``meshsplat.animation.AnimationSource``'s fields), and the
-    ``legacy`` flags of ``LEGACY_ANIMATION_FLAGS`` the command took before."""
+def add_animation_options(parser: argparse.ArgumentParser) -> None:
+    """``--animation KIND [FILE]`` and its options (``meshsplat.animation.AnimationSource``'s fields)."""
     parser.add_argument(
         "--animation",
         nargs="+",
@@ -219,42 +206,17 @@ def add_animation_options(parser: argparse.ArgumentParser, legacy: tuple[str, ..
         default=None,
         help="motion: SMPL/FLAME model files (default: the run's, then $MESHSPLAT_MODEL_DIR)",
     )
-    for flag in legacy:
-        kind = LEGACY_ANIMATION_FLAGS[flag]
-        new = "--animation dataset --split NAME" if kind == "dataset" else f"--animation {kind} FILE"
-        parser.add_argument(
-            flag, default=None, metavar="NAME" if kind == "dataset" else "FILE", help=f"old spelling of {new}"
-        )
 
 
 def animation_source(args: argparse.Namespace, run: LoadedRun, command: str) -> AnimationSource:
-    """The ``AnimationSource`` the flags describe (an old flag is translated, with a one-line note)."""
+    """The ``AnimationSource`` the flags describe."""
     check_range("--fps", args.fps, f"{command} --fps")
     if args.frames is not None:
         check_range("--frames", args.frames, "render frames")
     if args.seconds is not None:
         check_range("--seconds", args.seconds, "render --seconds")
         check_range("--fps x --seconds", args.fps * args.seconds, "render frames")
-    words = list(args.animation) if args.animation else None
-    split = args.split
-    old = [(f, getattr(args, f[2:].replace("-", "_"), None)) for f in LEGACY_ANIMATION_FLAGS]
-    old = [(f, v) for f, v in old if v is not None]
-    if len(old) > 1 or (old and words):
-        given = [f for f, _ in old] + (["--animation"] if words else [])
-        raise MeshsplatError(
-            f"{' and '.join(given)} exclude each other: say the animation once, --animation KIND [FILE]"
-        )
-    if old:
-        flag, value = old[0]
-        kind = LEGACY_ANIMATION_FLAGS[flag]
-        if kind == "dataset":
-            words, split = ["dataset"], value
-            new = f"--animation dataset --split {value}"
-        else:
-            words = [kind, value]
-            new = f"--animation {kind} {value}"
-        print(f"note: {flag} is now spelled {new}; the old flag goes in the next release", file=sys.stderr)
-    kind, *rest = words or ["dataset"]
+    kind, *rest = list(args.animation) if args.animation else ["dataset"]
     if kind not in ANIMATION_KINDS:
         raise MeshsplatError(f"--animation: expected one of {', '.join(ANIMATION_KINDS)}, got {kind!r}")
     if len(rest) > 1:
@@ -264,7 +226,7 @@ def animation_source(args: argparse.Namespace, run: LoadedRun, command: str) -> 
         kind,
         rest[0] if rest else None,
         clip=args.clip,
-        split=split,
+        split=args.split,
         weights=args.weights,
         fps=args.fps,
         seconds=args.seconds,

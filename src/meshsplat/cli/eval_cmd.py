@@ -99,7 +99,10 @@ def run(args: argparse.Namespace) -> int:
             else ""
         )
     )
-    fmt = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
+
+    def fmt(x: float | None, d: int) -> str:
+        return "-" if x is None else f"{x:.{d}f}"
+
     print(f"{'':<23}{'full image':^25}{'subject (in mask)':^25}")
     print(
         f"{'split':<16}{'frames':>7}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}{'ms/frame':>10}"

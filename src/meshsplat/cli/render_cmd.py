@@ -11,8 +11,7 @@ Animation (the same words as `meshsplat view` and ``meshsplat.animation.Animatio
                                           talking sequence of --frames (125) at --fps
   --animation motion FILE [--model-dir D] SMPL/SMPL-X motion .npz, IMavatar flame_params.json or a VHAP
                                           flame_param/ folder (avatars of SMPL/FLAME captures)
---frames N keeps the first N frames. The old flags --gltf, --vertices, --blendshapes, --motion and
---dataset-split still work for this release, with a note.
+--frames N keeps the first N frames.
 
 Camera (the same words as `meshsplat view` and the player page's camera): an orbit auto-framed on the
 animation, or --camera page:FOLDER (a viewer page's initial camera, to compare a render with the page),
@@ -40,7 +39,6 @@ from meshsplat.animation import load_animation
 from meshsplat.camera import Camera
 from meshsplat.cli._guards import animation_bytes, check_memory, check_output_dir, check_range, render_bytes
 from meshsplat.cli._options import (
-    LEGACY_ANIMATION_FLAGS,
     add_animation_options,
     add_camera_options,
     add_dataset_option,
@@ -62,7 +60,7 @@ __all__ = ["add_arguments", "run", "render_cameras"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder (frames/ and <name>.mp4)")
-    add_animation_options(parser, legacy=tuple(LEGACY_ANIMATION_FLAGS))
+    add_animation_options(parser)
     add_dataset_option(parser)
     add_camera_options(parser, orbit_turn=True)
     add_render_options(parser, size=True)

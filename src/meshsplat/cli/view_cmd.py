@@ -12,7 +12,7 @@ Animation (the same words as `meshsplat render` and ``meshsplat.animation.Animat
                                           also an ICT head trained from `meshsplat synth ict`) LIVE: one
                                           slider per expression, and --weights [T,K] or a procedural
                                           talking sequence (--frames, default 125, at --fps) as a clip
---frames N keeps the first N frames. --motion FILE (the old spelling) still works for this release.
+--frames N keeps the first N frames.
 Camera (the same words as `meshsplat render`): --camera page:FOLDER (another page's camera) or
 dataset:<camera_id>, and --center X,Y,Z --azimuth --elevation --distance --fov --up --front.
 The page works from file://; --serve also serves the folder on http://127.0.0.1:PORT until Ctrl-C.
@@ -55,7 +55,7 @@ __all__ = ["add_arguments", "run"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_argument(parser, dataset=False)
     parser.add_argument("--out", required=True, help="output folder for the viewer bundle")
-    add_animation_options(parser, legacy=("--motion",))
+    add_animation_options(parser)
     add_dataset_option(parser)
     add_camera_options(parser)
     parser.add_argument("--title", default=None, help="page title (default: the run folder's name)")

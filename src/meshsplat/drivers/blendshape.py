@@ -100,7 +100,10 @@ class BlendshapeDriver:
         lens = [len(x) for x in (weights, rotations, translations) if x is not None]
         t = lens[0] if lens else 1
         dims = {"T": t, "E": e}
-        as_t = lambda x: x.float() if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, np.float32))  # noqa: E731
+
+        def as_t(x: Any) -> torch.Tensor:
+            return x.float() if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, np.float32))
+
         self.weights = (
             check_tensor("weights", as_t(weights), "T,E", dims, finite=True)
             if weights is not None

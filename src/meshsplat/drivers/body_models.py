@@ -331,7 +331,10 @@ class BodyModel:
                 )
             nb, ex = 10, (10, min(S, 20))
         dev, f32 = self.device, torch.float32
-        t = lambda x: torch.as_tensor(np.ascontiguousarray(x, np.float32), device=dev)  # noqa: E731
+
+        def t(x: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(x, np.float32), device=dev)
+
         self.num_vertices, self.num_joints = V, J
         self.num_betas, self.num_expression = nb, ex[1] - ex[0]
         self.v_template = t(v)

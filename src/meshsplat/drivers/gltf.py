@@ -251,7 +251,10 @@ class GltfDriver:
         if nv == 0:
             raise MeshsplatError(f"{self.path}: no triangle meshes in the scene")
         k = max(x.shape[1] for x in pidx)
-        pad = lambda x, v: np.concatenate([x, np.full((len(x), k - x.shape[1]), v, x.dtype)], 1)  # noqa: E731
+
+        def pad(x: np.ndarray, v: float) -> np.ndarray:
+            return np.concatenate([x, np.full((len(x), k - x.shape[1]), v, x.dtype)], 1)
+
         self._pair_node = np.asarray(pairs_node, np.int64)
         self._pair_ibm = np.stack(pairs_ibm)
         self._rig = _Rig(

@@ -118,7 +118,7 @@ def read_npz(path: str | os.PathLike, what: str = "", limit: int = MAX_ARRAY_BYT
         for k in z.files:
             try:
                 out[k] = np.asarray(z[k])
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:  # noqa: BLE001 - every failure is one reported line
                 raise MeshsplatError(f"{label}: array {k!r} {array_error_text(exc)}") from None
     return out
 
@@ -131,7 +131,7 @@ def npz_keys(path: str | os.PathLike, what: str = "") -> list[str]:
         raise MeshsplatError(f"{label}: file not found")
     try:
         z = np.load(p, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - every failure is one reported line
         raise MeshsplatError(f"{label}: {array_error_text(exc)}") from None
     if not isinstance(z, np.lib.npyio.NpzFile):
         raise MeshsplatError(f"{label}: a single .npy array, not an .npz archive of named arrays")
@@ -161,7 +161,7 @@ def read_npy(path: str | os.PathLike, what: str = "", mmap: bool = False, limit:
         raise MeshsplatError(f"{label}: the array would take {_gb(nbytes)} of memory (at most {_gb(limit)})")
     try:
         a = np.load(p, mmap_mode="r" if mmap else None, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - every failure is one reported line
         raise MeshsplatError(f"{label}: {array_error_text(exc, '.npy array')}") from None
     if isinstance(a, np.lib.npyio.NpzFile):
         a.close()

@@ -16,6 +16,7 @@ __all__ = [
     "FOV_CLAMP_MARGIN",
     "DEPTH_ALPHA_MIN",
     "PIXEL_CENTER",
+    "SPAN_MARGIN",
 ]
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # a splat with alpha below this is skipped for that pixel
@@ -26,3 +27,4 @@ EPS2D = 0.3  # low-pass dilation added to the diagonal of every 2D covariance (p
 MAX_EXTEND = 3.33  # footprint half-size in sigmas (opacity-aware: min(3.33, sqrt(2 ln(255 o))))
 FOV_CLAMP_MARGIN = 0.3  # Jacobian clamps x/z, y/z to the frustum widened by 0.3 * tan(fov/2) per side
 DEPTH_ALPHA_MIN = 1e-10  # expected depth = accumulated depth / max(alpha, this)
+SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint's rows and columns (the alpha test is exact)

@@ -144,7 +144,10 @@ def _shape_fields(v, w, J, parents) -> np.ndarray:
     tails = np.stack([J[child.get(j, parents[j] if parents[j] >= 0 else j)] for j in dom])
     radial = v - bone_closest(v, heads, tails)
     zc = J[:, 2].mean()
-    g = lambda x, s: np.exp(-0.5 * (x / s) ** 2)  # noqa: E731
+
+    def g(x: np.ndarray, s: float) -> np.ndarray:
+        return np.exp(-0.5 * (x / s) ** 2)
+
     S = np.zeros((V, 3, 10))
     S[:, :, 0] = 0.03 * (v - np.array([0.0, foot_y, 0.0]))  # overall size, feet stay on the floor
     S[:, :, 1] = 0.12 * radial  # girth

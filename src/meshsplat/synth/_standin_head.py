@@ -106,7 +106,10 @@ def _shape_fields(v, part, J, n=300) -> np.ndarray:
     Eyeballs only translate (the mean of the field over each eye)."""
     c = v[part == 0].mean(0)
     r = v - c
-    g = lambda x, s: np.exp(-0.5 * np.sum(x**2, -1) / s**2)  # noqa: E731
+
+    def g(x: np.ndarray, s: float) -> np.ndarray:
+        return np.exp(-0.5 * np.sum(x**2, -1) / s**2)
+
     nose = v[np.argmax(v[:, 2] * (part == 0))]
     chin_y = J[2, 1] - 0.06
     S = np.zeros((len(v), 3, n))

@@ -218,7 +218,10 @@ def _plan(
     )
     if rig == "monocular-turn":
         cams["0"] = (0.0, math.radians(5))
-        yaw = lambda k, n: 2 * math.pi * turns * k / n  # noqa: E731
+
+        def yaw(k: float, n: int) -> float:
+            return 2 * math.pi * turns * k / n
+
         shots += [Shot(train_clip, tt, yaw(i, frames), "0", "train") for i, tt in enumerate(train_times)]
         shots += [
             Shot(train_clip, tt, yaw(j + 0.5, len(test_times)), "0", "test_frames") for j, tt in enumerate(test_times)

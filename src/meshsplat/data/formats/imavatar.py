@@ -62,11 +62,16 @@ DECA_SCALE = 4.0  # DECA/IMavatar scale FLAME's template, shape and pose blendsh
 NUM_SHAPE, NUM_EXPRESSION = 100, 50
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes <-> OpenCV camera axes
 _PER_FRAME = ["global_orient", "neck_pose", "jaw_pose", "leye_pose", "reye_pose", "expression"]
-_PLACEHOLDER_K = lambda w, h: K_from_focal(w, h, w / 2, h / 2)  # noqa: E731  (bad intrinsics: reported once)
+
 _HINT = (
     "world_mat must be an OpenGL-style world->camera matrix (camera looks down -z, as DECA writes it); "
     "check the capture's camera convention"
 )
+
+
+def _placeholder_K(w: float, h: float) -> np.ndarray:
+    """Intrinsics standing in for bad ones (reported once), so the rest of the capture is still checked."""
+    return K_from_focal(w, h, w / 2, h / 2)
 
 
 def detect(root: Path | str) -> bool:
@@ -209,7 +214,7 @@ def read(
     cameras, frames = {}, []
     for j, (name, rel, vm) in enumerate(zip(names, images, viewmats, strict=True)):
         cameras[name] = {
-            "K": (K if K is not None else _PLACEHOLDER_K(width, height)).tolist(),
+            "K": (K if K is not None else _placeholder_K(width, height)).tolist(),
             "viewmat": (vm if vm is not None else np.eye(4)).tolist(),
             "width": width,
             "height": height,

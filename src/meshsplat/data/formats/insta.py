@@ -65,8 +65,13 @@ def _files(root: Path) -> list[tuple[str | None, Path]]:
 
 
 def _camera(fr: dict, top: dict, convention: str):
-    get = lambda k: fr[k] if k in fr else top[k]  # noqa: E731
-    has = lambda k: k in fr or k in top  # noqa: E731
+
+    def get(k: str) -> Any:
+        return fr[k] if k in fr else top[k]
+
+    def has(k: str) -> bool:
+        return k in fr or k in top
+
     fx = float(get("fl_x") if has("fl_x") else get("fl_y"))
     fy = float(get("fl_y") if has("fl_y") else fx)
     w, h = int(get("w")), int(get("h"))

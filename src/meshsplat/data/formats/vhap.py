@@ -74,7 +74,10 @@ def detect(root: Path | str) -> bool:
 
 
 def _intrinsics(fr: dict, top: dict):
-    get = lambda k: fr[k] if k in fr else top[k]  # noqa: E731
+
+    def get(k: str) -> Any:
+        return fr[k] if k in fr else top[k]
+
     fx = float(get("fl_x") if ("fl_x" in fr or "fl_x" in top) else get("fl_y"))
     fy = float(get("fl_y") if ("fl_y" in fr or "fl_y" in top) else fx)
     w, h = int(get("w")), int(get("h"))
@@ -308,7 +311,10 @@ def _params(
                 f"{len(by_shape[common])}; every timestep needs the same shape",
             )
             return None
-    stack = lambda k: np.stack([p[k] for p in loaded])  # noqa: E731
+
+    def stack(k: str) -> np.ndarray:
+        return np.stack([p[k] for p in loaded])
+
     eyes = stack("eyes_pose")
     params = {
         "betas": fit_coeffs("shape", shape0, model.num_betas, problems),

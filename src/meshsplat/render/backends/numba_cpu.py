@@ -47,7 +47,14 @@ import torch
 
 from meshsplat._numba import numba_threads
 from meshsplat.errors import MeshsplatError
-from meshsplat.render._constants import ALPHA_MAX, ALPHA_THRESHOLD, MAX_EXTEND, PIXEL_CENTER, TRANSMITTANCE_MIN
+from meshsplat.render._constants import (
+    ALPHA_MAX,
+    ALPHA_THRESHOLD,
+    MAX_EXTEND,
+    PIXEL_CENTER,
+    SPAN_MARGIN,
+    TRANSMITTANCE_MIN,
+)
 from meshsplat.render.backends import numba_available, numba_lanes, numba_projection
 from meshsplat.render.backends.numba_projection import project_numba
 from meshsplat.render.backends.torch_ref import render_output
@@ -59,7 +66,6 @@ __all__ = ["rasterize_numba", "TILE_SIZE", "warm_up", "compositing_kernel", "KER
 TILE_SIZE = numba_lanes.LANES  # the lane kernels put one tile row in the SIMD lanes
 KERNEL_ENV = "MESHSPLAT_RASTER_KERNEL"  # "scalar": the scalar compositing kernels; "lanes" or unset: SIMD lanes
 KERNELS = ("lanes", "scalar")
-_SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint, as torch_ref (the alpha test is exact)
 # columns of an entry's record (float64; the projection's values kept exactly, then the colours)
 _MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
 
@@ -98,10 +104,10 @@ def _bin_kernel(
         ry = math.sqrt(2.0 * tau * a / det)
         rx = math.sqrt(2.0 * tau * c / det)
         foot[e, 0], foot[e, 1] = 2.0 * a * tau, det
-        y0 = max(np.ceil(my - ry - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
-        y1 = min(np.floor(my + ry - PIXEL_CENTER + _SPAN_MARGIN), height - 1.0)
-        x0 = max(np.ceil(mx - rx - PIXEL_CENTER - _SPAN_MARGIN), 0.0)
-        x1 = min(np.floor(mx + rx - PIXEL_CENTER + _SPAN_MARGIN), width - 1.0)
+        y0 = max(np.ceil(my - ry - PIXEL_CENTER - SPAN_MARGIN), 0.0)
+        y1 = min(np.floor(my + ry - PIXEL_CENTER + SPAN_MARGIN), height - 1.0)
+        x0 = max(np.ceil(mx - rx - PIXEL_CENTER - SPAN_MARGIN), 0.0)
+        x1 = min(np.floor(mx + rx - PIXEL_CENTER + SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
             foot[e, 2], foot[e, 3] = 0.0, -1.0
             rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
@@ -215,8 +221,8 @@ def _spans_py(rec, e, ya, yb, lo, hi, span):  # pragma: no cover - compiled
         disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
         dx_lo = (-b * dy - disc) / a
         dx_hi = (-b * dy + disc) / a
-        x0 = np.ceil(mx - dx_hi - PIXEL_CENTER - _SPAN_MARGIN)
-        x1 = np.floor(mx - dx_lo - PIXEL_CENTER + _SPAN_MARGIN)
+        x0 = np.ceil(mx - dx_hi - PIXEL_CENTER - SPAN_MARGIN)
+        x1 = np.floor(mx - dx_lo - PIXEL_CENTER + SPAN_MARGIN)
         if not (x0 <= x1):  # also NaN
             span[y - ya, 0], span[y - ya, 1] = lo, lo - 1
         else:

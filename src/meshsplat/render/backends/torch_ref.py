@@ -35,6 +35,7 @@ from meshsplat.render._constants import (
     LOG_TRANSMITTANCE_MIN,
     MAX_EXTEND,
     PIXEL_CENTER,
+    SPAN_MARGIN,
 )
 from meshsplat.render.projection import Projection, project_gaussians
 from meshsplat.render.types import RenderOutput
@@ -51,7 +52,6 @@ __all__ = [
 
 DEFAULT_PAIR_BUDGET = 2_000_000  # (pixel, Gaussian) candidate pairs per band
 DEFAULT_SAVED_PAIR_LIMIT = 16_000_000  # pairs kept for backward (~61 B each); later bands recompute
-_SPAN_MARGIN = 0.05  # pixels of slack on the closed-form footprint (the alpha test is exact)
 
 
 @dataclass
@@ -78,8 +78,8 @@ def _row_spans(m2: torch.Tensor, con: torch.Tensor, op: torch.Tensor, cam: torch
     tau = torch.log(op.double() / ALPHA_THRESHOLD).clamp(0.0, 0.5 * MAX_EXTEND**2)
     det = (a * c - b * b).clamp_min(1e-300)
     ry = torch.sqrt(2.0 * tau * a / det)
-    y0 = torch.ceil(my - ry - PIXEL_CENTER - _SPAN_MARGIN).clamp(0, H)
-    y1 = torch.floor(my + ry - PIXEL_CENTER + _SPAN_MARGIN).clamp(-1, H - 1)
+    y0 = torch.ceil(my - ry - PIXEL_CENTER - SPAN_MARGIN).clamp(0, H)
+    y1 = torch.floor(my + ry - PIXEL_CENTER + SPAN_MARGIN).clamp(-1, H - 1)
     nrows = (y1 - y0 + 1).clamp_min(0).long()
     total = int(nrows.sum())
     entry = torch.repeat_interleave(torch.arange(m2.shape[0], device=dev), nrows, output_size=total)
@@ -92,8 +92,8 @@ def _row_spans(m2: torch.Tensor, con: torch.Tensor, op: torch.Tensor, cam: torch
     disc = (two_a_tau - det * dy * dy).clamp_min(0.0).sqrt()
     dx_lo = (-b * dy - disc) / a
     dx_hi = (-b * dy + disc) / a
-    x0 = torch.ceil(mx - dx_hi - PIXEL_CENTER - _SPAN_MARGIN).clamp(0, W)
-    x1 = torch.floor(mx - dx_lo - PIXEL_CENTER + _SPAN_MARGIN).clamp(-1, W - 1)
+    x0 = torch.ceil(mx - dx_hi - PIXEL_CENTER - SPAN_MARGIN).clamp(0, W)
+    x1 = torch.floor(mx - dx_lo - PIXEL_CENTER + SPAN_MARGIN).clamp(-1, W - 1)
     w = x1 - x0 + 1
     keep = (w > 0).nonzero().squeeze(1)
     entry = entry.index_select(0, keep)
