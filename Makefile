@@ -9,9 +9,11 @@ PY  := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 
-# Independent readers of our splat exports (tests/test_splat_formats.py), from the npm registry.
+# Independent readers of our splat exports (tests/test_splat_formats.py), and the face landmarker that
+# `meshsplat view --webcam` copies beside the player page (tests/test_viewer_webcam.py), from the npm registry.
 NODE_TOOLS := .node-tools/node_modules/gltf-validator
-NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.10
+FACE_MESH := .node-tools/node_modules/@mediapipe/face_mesh
+NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.10 @mediapipe/face_mesh@0.4.1633559619
 
 .PHONY: venv test test-fast demo bench clean node-tools
 
@@ -27,7 +29,7 @@ $(STAMP): pyproject.toml Makefile
 	touch $(STAMP)
 
 node-tools:
-	@if command -v npm >/dev/null 2>&1 && [ ! -d $(NODE_TOOLS) ]; then \
+	@if command -v npm >/dev/null 2>&1 && { [ ! -d $(NODE_TOOLS) ] || [ ! -d $(FACE_MESH) ]; }; then \
 	  npm install -s --prefix .node-tools --no-audit --no-fund $(NODE_PACKAGES) || echo "npm install failed: Node reader checks will skip"; fi
 
 test: $(STAMP) node-tools

@@ -134,10 +134,17 @@ class Page:
 
 @contextlib.contextmanager
 def open_page(
-    url: str, width: int, height: int, chromium: str | None = None, mobile: bool = False, scale: float = 1.0
+    url: str,
+    width: int,
+    height: int,
+    chromium: str | None = None,
+    mobile: bool = False,
+    scale: float = 1.0,
+    fake_camera: Path | None = None,
 ) -> Iterator[Page]:
     """A headless Chromium showing ``url`` in a ``width`` x ``height`` viewport; ``mobile``: a phone
-    (touch screen, mobile viewport, device pixel ratio ``scale``). Closed on exit."""
+    (touch screen, mobile viewport, device pixel ratio ``scale``); ``fake_camera``: a ``.y4m`` video that
+    the page's camera plays (``getUserMedia`` granted without asking). Closed on exit."""
     chromium = chromium or find_chromium()
     if chromium is None:
         raise BrowserError("chromium is not installed")
@@ -152,8 +159,15 @@ def open_page(
         os.dup2(hi_r, 3)  # dup2 leaves the new descriptors inheritable
         os.dup2(hi_w, 4)
 
+    camera_flags = []
+    if fake_camera is not None:
+        camera_flags = [
+            "--use-fake-ui-for-media-stream",
+            "--use-fake-device-for-media-stream",
+            f"--use-file-for-fake-video-capture={fake_camera}",
+        ]
     proc = subprocess.Popen(
-        [chromium, *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}"],
+        [chromium, *FLAGS, *camera_flags, f"--user-data-dir={profile}", f"--window-size={width},{height}"],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

@@ -16,6 +16,7 @@ Animation (the same words as `meshsplat render` and ``meshsplat.animation.Animat
 Camera (the same words as `meshsplat render`): --camera page:FOLDER (another page's camera) or
 dataset:<camera_id>, and --center X,Y,Z --azimuth --elevation --distance --fov --up --front.
 The page works from file://; --serve also serves the folder on http://127.0.0.1:PORT until Ctrl-C.
+--webcam (live blend-shape heads): a webcam button; the face in the camera drives the head (served pages only).
 
 Examples:
   meshsplat view runs/demo --out out/viewer
@@ -47,7 +48,9 @@ from meshsplat.cli._options import (
 from meshsplat.drivers import BlendshapeDriver, GltfDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
+from meshsplat.track.ict_head import load_ict_head
 from meshsplat.viewer import write_viewer_bundle
+from meshsplat.viewer.webcam import webcam_model
 
 __all__ = ["add_arguments", "run"]
 
@@ -68,6 +71,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--bake", action="store_true", help="gltf / blendshapes: ship vertex frames (at --fps) instead of the live rig"
+    )
+    parser.add_argument(
+        "--webcam",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="FOLDER",
+        help="live blend-shape heads: add the webcam mode (the face in your camera drives the head, solved in "
+        "the page; open it with --serve). Copies the face landmarker (npm @mediapipe/face_mesh, ~10 MB) beside "
+        "the page from FOLDER (its package folder or an npm prefix; default $MESHSPLAT_NODE_TOOLS, .node-tools)",
     )
     parser.add_argument("--serve", action="store_true", help="serve the bundle on 127.0.0.1 after writing it")
     parser.add_argument("--port", type=int, default=8000, help="port for --serve (default 8000)")
@@ -123,6 +136,14 @@ def run(args: argparse.Namespace) -> int:
         what = f"live blendshapes, {len(anim.driver.names)} expressions, {anim.driver.num_frames}-frame sequence"
     else:
         what = f"{len(anim.vertex_frames())} frames"
+    webcam = None
+    if args.webcam is not None:
+        if not isinstance(anim.driver, (GltfDriver, BlendshapeDriver)):
+            raise MeshsplatError(
+                "--webcam: needs a live blend-shape head (--animation blendshapes without --bake, or a glTF rig "
+                "with ARKit-named morph targets)"
+            )
+        webcam = webcam_model(load_ict_head())
     index = write_viewer_bundle(
         r.avatar,
         anim,
@@ -131,12 +152,16 @@ def run(args: argparse.Namespace) -> int:
         vertex_encoding=args.vertex_encoding,
         background=opts.background or "white",
         camera=cam,
+        webcam=webcam,
+        landmarker=args.webcam or None,
     )
     size = sum(p.stat().st_size for p in index.parent.iterdir() if p.is_file())
     print(
         f"viewer: {index} ({source.describe()}: {what}, {r.avatar.num_gaussians} Gaussians, "
         f"{index.stat().st_size / 1e6:.1f} MB page, {size / 1e6:.1f} MB folder)"
     )
+    if webcam is not None:
+        print("  webcam mode: serve the folder (--serve) and press webcam; the face is processed in the page only")
     print(f"  open file://{index.resolve()}")
     if args.serve:
         _serve(index.parent, args.port)

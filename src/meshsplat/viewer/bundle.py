@@ -41,6 +41,7 @@ from meshsplat.gaussians.shading import KEY_STAGES
 from meshsplat.io.atomic import write_bytes_atomic, write_text_atomic
 from meshsplat.io.json_file import read_json_object
 from meshsplat.viewer.rig import bundle_rig, rig_preview_frames
+from meshsplat.viewer.webcam import copy_landmarker, find_landmarker
 
 __all__ = [
     "write_viewer_bundle",
@@ -378,6 +379,8 @@ def write_viewer_bundle(
     vertex_encoding: str = "int16",
     background: str = "white",
     rig: GltfDriver | BlendshapeDriver | None = None,
+    webcam: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None,
+    landmarker: str | Path | None = None,
 ) -> Path:
     """Write the viewer for ``avatar`` animated by ``frames`` (``[T,V,3]`` tensor/array, a list of ``[V,3]``,
     or an :class:`~meshsplat.animation.Animation` from ``load_animation``: its frames, or its driver
@@ -389,7 +392,10 @@ def write_viewer_bundle(
     ``camera``: None (orbit auto-framed on the animation, 800x800, 30° fov), a dict overriding
     ``width, height, azimuth_deg, elevation_deg, fov_deg, distance, center, up, front`` (the orbit turns
     about ``up``, default +y, from ``front``, default +z; a capture's: ``dataset.up``, ``dataset.front``), or an
-    ``camera.Camera`` (turned into an orbit; roll is dropped). ``vertex_encoding``: "int16"
+    ``camera.Camera`` (turned into an orbit; roll is dropped). ``webcam``: the landmark model of
+    :func:`meshsplat.viewer.webcam.webcam_model` (a live rig with morph targets of its ARKit names
+    needed): the page gets a webcam mode, and the face landmarker (``@mediapipe/face_mesh``, found by
+    :func:`~meshsplat.viewer.webcam.find_landmarker` from ``landmarker``) is copied beside it. ``vertex_encoding``: "int16"
     (per-axis step over the animation's box, error <= step/2) or "float32". ``fps``: frame rate of
     ``frames`` (default the Animation's, else 25; with a glTF rig unused; with a blendshape rig the rate of
     its sequence). Returns ``index.html``.
@@ -440,6 +446,12 @@ def write_viewer_bundle(
     sh_rest = _sh_rest(avatar)
     if sh_rest is not None:
         sections["sh_rest"] = sh_rest
+    webcam_header = None
+    landmarker_dir = None
+    if webcam is not None:
+        webcam_header = _webcam_targets(webcam[1], driver)
+        landmarker_dir = find_landmarker(landmarker)
+        sections.update(webcam[0])
     blob, layout = _pack(sections)
     header = {
         "format": "meshsplat-viewer",
@@ -457,6 +469,7 @@ def write_viewer_bundle(
         "background": background,
         "camera": _camera_from(camera, verts),
         "driver": driver,
+        **({"webcam": webcam_header} if webcam_header is not None else {}),
         "sections": layout,
     }
     out = Path(out_dir)
@@ -478,9 +491,32 @@ def write_viewer_bundle(
     write_bytes_atomic(out / "avatar.bin", blob)
     write_text_atomic(out / "avatar.json", header_json + "\n")
     write_text_atomic(out / "viewer.js", viewer_js)
+    if landmarker_dir is not None:
+        copy_landmarker(landmarker_dir, out)
     index = out / "index.html"
     write_text_atomic(index, page)
     return index
+
+
+def _webcam_targets(model: dict[str, Any], driver: dict[str, Any]) -> dict[str, Any]:
+    """The webcam model's header plus ``targets``: the rig's morph weight index of each of its shapes
+    (-1 where the avatar has no target of that name)."""
+    if driver.get("kind") != "gltf" or not driver.get("morph_groups"):
+        raise MeshsplatError(
+            "webcam: needs a live blend-shape head (--animation blendshapes, or a glTF rig with ARKit-named "
+            "morph targets), not vertex frames"
+        )
+    index: dict[str, int] = {}
+    for g in driver["morph_groups"]:
+        for m, name in enumerate(g["names"]):
+            index.setdefault(str(name), g["weight_base"] + m)
+    targets = [int(index.get(n, -1)) for n in model["names"]]
+    if all(t < 0 for t in targets):
+        raise MeshsplatError(
+            "webcam: the avatar's morph targets have none of the ARKit names the face solve gives "
+            f"({', '.join(model['names'][:4])}, ...)"
+        )
+    return {**model, "targets": targets}
 
 
 def _fill_template(template: str, values: dict[str, str]) -> str:

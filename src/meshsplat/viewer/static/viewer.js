@@ -86,6 +86,7 @@ export function decodeBundle(header, bytes) {
   b.canoAreas = cf.areas;
   b.driver = header.driver || { kind: "frames" };
   if (b.driver.kind === "gltf") b.rig = decodeRig(b.driver, arr);
+  b.webcam = header.webcam ? decodeWebcam(header.webcam, arr) : null;
   return b;
 }
 
@@ -175,10 +176,11 @@ function mul4(a, ao, b, bo, out, oo) {
 
 /**
  * Rig state of clip `clip` (index) at `time` seconds (clamped to the clip), with morph weights
- * `override` (Float64Array [num_morph_weights], NaN = from the clip) applied last:
+ * `override` (Float64Array [num_morph_weights], NaN = from the clip) applied last, and `pose`
+ * ({node, rotation: xyzw} or undefined) replacing that node's rotation:
  * { pairs: Float32Array [P*12] (rows 0..2 of world[pair_node] @ inverse bind), weights: Float32Array }.
  */
-export function evalRig(rig, clip, time, override, out) {
+export function evalRig(rig, clip, time, override, out, pose) {
   const N = rig.nodes, local = Float64Array.from(rig.rest), world = new Float64Array(16 * N);
   const trs = new Map(), weights = Float64Array.from(rig.defaultWeights);
   const c = clip === null || clip === undefined ? null : rig.clips[clip];
@@ -197,8 +199,13 @@ export function evalRig(rig, clip, time, override, out) {
       }
       trs.get(ch.node)[["translation", "rotation", "scale"].indexOf(ch.path)] = v;
     }
-    for (const [i, [t, r, s]] of trs) trsMatrix(t, r, s, local, 16 * i);
   }
+  if (pose) { // a node's rotation (xyzw) set last (the webcam's head pose)
+    const o = 10 * pose.node;
+    if (!trs.has(pose.node)) trs.set(pose.node, [rig.trs.slice(o, o + 3), rig.trs.slice(o + 3, o + 7), rig.trs.slice(o + 7, o + 10)]);
+    trs.get(pose.node)[1] = pose.rotation;
+  }
+  for (const [i, [t, r, s]] of trs) trsMatrix(t, r, s, local, 16 * i);
   if (override) for (let i = 0; i < weights.length; i++) if (!Number.isNaN(override[i])) weights[i] = override[i];
   for (const i of rig.order) {
     const p = rig.parent[i];
@@ -1322,9 +1329,335 @@ export class FramePoser {
   }
 
   /** {rig} of clip index `clip` at `time` s with morph weight overrides (NaN = from the clip). */
-  rig(clip, time, override) {
-    this.rigState = evalRig(this.b.rig, clip, time, override, this.rigState);
+  rig(clip, time, override, pose) {
+    this.rigState = evalRig(this.b.rig, clip, time, override, this.rigState, pose);
     return { rig: this.rigState };
+  }
+}
+
+// ------------------------------------------------------------------ webcam: face landmarks -> ARKit weights and head pose
+// The page's webcam mode (docs/viewer.md): MediaPipe's 478 face landmarks of a frame (pixels) -> the
+// expression weights and head pose of the ICT head the tracker fits (meshsplat.track.head_fit), with
+// the identity at the ICT neutral and the gaze at rest. The model is the head's blend-shape basis
+// restricted to the landmarks (meshsplat.viewer.webcam.webcam_model): point_l(w) = neutral_l +
+// sum_e w_e delta_e,l, posed as R (point - pivot) + pivot + t, seen by a camera at the origin looking
+// along -z (world +y up: OpenCV axes are (x, -y, -z)) with focal length from a 60° diagonal field of view.
+// Loss, as fit_head's per-frame terms: sum of Huber(3) of the reprojection residuals in units of 1/100
+// of the landmarks' spread, + 0.5 sum w (w in [0, 1]), + `smooth` x (30 |w - w'|² + 100 |rot - rot'|² +
+// 0.3 |t - t'|²) towards the previous frame's solution. Gauss-Newton (Levenberg-Marquardt damped,
+// iteratively reweighted for the Huber loss) with an active set for the bounds.
+
+/** Landmark model of a bundle's `header.webcam` and its sections. */
+export function decodeWebcam(h, arr) {
+  const L = h.landmarks, E = h.names.length;
+  return { L, E, names: h.names, used: Uint32Array.from(h.used), pivot: Float64Array.from(h.pivot),
+           fovDiag: h.diagonal_fov_deg, neutral: Float64Array.from(arr.webcam_neutral),
+           deltas: Float64Array.from(arr.webcam_deltas), landmarker: h.landmarker };
+}
+
+/** Row-major 3x3 rotation of axis-angle `a` (Rodrigues). */
+export function axisAngleMatrix(a) {
+  const th = Math.hypot(a[0], a[1], a[2]);
+  if (th < 1e-12) return [1, -a[2], a[1], a[2], 1, -a[0], -a[1], a[0], 1];
+  const x = a[0] / th, y = a[1] / th, z = a[2] / th, c = Math.cos(th), s = Math.sin(th), C = 1 - c;
+  return [c + x * x * C, x * y * C - z * s, x * z * C + y * s,
+          y * x * C + z * s, c + y * y * C, y * z * C - x * s,
+          z * x * C - y * s, z * y * C + x * s, c + z * z * C];
+}
+
+/** Axis-angle [3] of a row-major 3x3 rotation. */
+export function matrixAxisAngle(R) {
+  const c = Math.max(-1, Math.min(1, (R[0] + R[4] + R[8] - 1) / 2)), th = Math.acos(c);
+  const v = [R[7] - R[5], R[2] - R[6], R[3] - R[1]];
+  if (th < 1e-6) return [v[0] / 2, v[1] / 2, v[2] / 2];
+  if (Math.PI - th < 1e-4) { // near a half turn: the axis from the symmetric part
+    const d = [R[0], R[4], R[8]], k = d.indexOf(Math.max(...d));
+    const ax = [0, 0, 0];
+    ax[k] = Math.sqrt(Math.max((d[k] + 1) / 2, 0));
+    for (let j = 0; j < 3; j++) if (j !== k) ax[j] = (R[3 * k + j] + R[3 * j + k]) / (4 * ax[k]);
+    return ax.map((x) => x * th);
+  }
+  const s = th / (2 * Math.sin(th));
+  return [v[0] * s, v[1] * s, v[2] * s];
+}
+
+function mat3Mul(A, B) {
+  const o = new Array(9);
+  for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) o[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+  return o;
+}
+
+/** Focal length (pixels) of a `width` x `height` frame with the model's diagonal field of view (head_fit.focal_from_fov). */
+export function webcamFocal(m, width, height) { return 0.5 * Math.hypot(width, height) / Math.tan(m.fovDiag * Math.PI / 360); }
+
+/**
+ * Solve one frame. `obs`: [L*2] landmark pixels (x right, y down, in a `width` x `height` frame);
+ * `prev`: the previous frame's result (warm start and temporal prior) or null. Options: `smooth`
+ * (temporal prior weight, 0 = none), `iterations`, `focal` (pixels). Returns
+ * { R [9] row-major, rot [3] axis-angle, t [3], w Float64Array [E] in [0, 1], cost, iterations, errorPx }.
+ */
+export function solveFace(m, obs, width, height, prev = null, opts = {}) {
+  const L = m.L, E = m.E, U = m.used, n = 6 + E, f = opts.focal || webcamFocal(m, width, height);
+  const cx = width / 2, cy = height / 2, smooth = opts.smooth || 0, delta = 3;
+  // residual unit: 1/100 of the landmarks' RMS spread in the image
+  let mx = 0, my = 0;
+  for (let l = 0; l < L; l++) { mx += obs[2 * l]; my += obs[2 * l + 1]; }
+  mx /= L; my /= L;
+  let s2 = 0;
+  for (let l = 0; l < L; l++) s2 += (obs[2 * l] - mx) ** 2 + (obs[2 * l + 1] - my) ** 2;
+  const spread2d = Math.sqrt(s2 / L), unit = spread2d / 100;
+  let R, t, w = new Float64Array(E);
+  if (prev) { R = prev.R.slice(); t = prev.t.slice(); w.set(prev.w); } else {
+    // frontal, at the distance where the neutral's landmarks have the observed spread (as fit_head)
+    let ax = 0, ay = 0, az = 0;
+    for (let l = 0; l < L; l++) { ax += m.neutral[3 * l]; ay += m.neutral[3 * l + 1]; az += m.neutral[3 * l + 2]; }
+    ax /= L; ay /= L; az /= L;
+    let s3 = 0;
+    for (let l = 0; l < L; l++) s3 += (m.neutral[3 * l] - ax) ** 2 + (m.neutral[3 * l + 1] - ay) ** 2;
+    const z0 = f * Math.sqrt(s3 / L) / spread2d;
+    R = [1, 0, 0, 0, 1, 0, 0, 0, 1];
+    t = [(mx - cx) * z0 / f - ax, -(my - cy) * z0 / f - ay, -z0 - az];
+  }
+  const p0 = prev ? { RT: [0, 3, 6, 1, 4, 7, 2, 5, 8].map((i) => prev.R[i]), t: prev.t, w: prev.w } : null;
+  const q = new Float64Array(3 * L), H = new Float64Array(n * n), g = new Float64Array(n), row = new Float64Array(n);
+  const piv = m.pivot, D = m.deltas, N0 = m.neutral, LL = 3 * L;
+  // cost (and, with `grad`, the Gauss-Newton normal equations) at R, t, w
+  const evaluate = (R, t, w, grad) => {
+    for (let i = 0; i < LL; i++) q[i] = N0[i];
+    for (let e = 0; e < E; e++) {
+      const we = w[e];
+      if (we !== 0) { const o = e * LL; for (let i = 0; i < LL; i++) q[i] += we * D[o + i]; }
+    }
+    if (grad) { H.fill(0); g.fill(0); }
+    let cost = 0, err = 0;
+    for (let k = 0; k < U.length; k++) {
+      const l = U[k], o = 3 * l;
+      const a0 = q[o] - piv[0], a1 = q[o + 1] - piv[1], a2 = q[o + 2] - piv[2];
+      const r0 = R[0] * a0 + R[1] * a1 + R[2] * a2, r1 = R[3] * a0 + R[4] * a1 + R[5] * a2, r2 = R[6] * a0 + R[7] * a1 + R[8] * a2;
+      const px = r0 + piv[0] + t[0], py = r1 + piv[1] + t[1], pz = r2 + piv[2] + t[2];
+      const zc = Math.max(-pz, 1e-3), xc = px, yc = -py;
+      const u = f * xc / zc + cx, v = f * yc / zc + cy;
+      const ru = (u - obs[2 * l]) / unit, rv = (v - obs[2 * l + 1]) / unit;
+      err += Math.hypot(u - obs[2 * l], v - obs[2 * l + 1]);
+      for (const [r, isU] of [[ru, true], [rv, false]]) {
+        const ar = Math.abs(r);
+        cost += ar <= delta ? 0.5 * r * r : delta * (ar - 0.5 * delta);
+        if (!grad) continue;
+        const om = ar <= delta ? 1 : delta / ar; // IRLS weight of the Huber loss
+        // d(residual)/d(world point), in residual units
+        const gx = isU ? f / zc / unit : 0, gy = isU ? 0 : -f / zc / unit, gz = (isU ? f * xc : f * yc) / (zc * zc) / unit;
+        // rotation (left increment): (R a) x grad; translation: grad; weights: (R^T grad) . delta_e,l
+        row[0] = r1 * gz - r2 * gy; row[1] = r2 * gx - r0 * gz; row[2] = r0 * gy - r1 * gx;
+        row[3] = gx; row[4] = gy; row[5] = gz;
+        const h0 = R[0] * gx + R[3] * gy + R[6] * gz, h1 = R[1] * gx + R[4] * gy + R[7] * gz, h2 = R[2] * gx + R[5] * gy + R[8] * gz;
+        for (let e = 0; e < E; e++) { const d = e * LL + o; row[6 + e] = h0 * D[d] + h1 * D[d + 1] + h2 * D[d + 2]; }
+        for (let i = 0; i < n; i++) {
+          const ri = om * row[i];
+          if (ri === 0) continue;
+          g[i] += ri * r;
+          const Hi = i * n;
+          for (let j = i; j < n; j++) H[Hi + j] += ri * row[j];
+        }
+      }
+    }
+    for (let e = 0; e < E; e++) cost += 0.5 * w[e];
+    if (grad) for (let e = 0; e < E; e++) g[6 + e] += 0.5;
+    if (p0 && smooth > 0) {
+      const rot = matrixAxisAngle(mat3Mul(R, p0.RT)); // the turn since the previous frame
+      for (let k = 0; k < 3; k++) {
+        cost += smooth * (100 * rot[k] ** 2 + 0.3 * (t[k] - p0.t[k]) ** 2);
+        if (grad) { g[k] += 2 * smooth * 100 * rot[k]; H[k * n + k] += 2 * smooth * 100; g[3 + k] += 2 * smooth * 0.3 * (t[k] - p0.t[k]); H[(3 + k) * n + 3 + k] += 2 * smooth * 0.3; }
+      }
+      for (let e = 0; e < E; e++) {
+        cost += smooth * 30 * (w[e] - p0.w[e]) ** 2;
+        if (grad) { g[6 + e] += 2 * smooth * 30 * (w[e] - p0.w[e]); H[(6 + e) * n + 6 + e] += 2 * smooth * 30; }
+      }
+    }
+    if (grad) for (let i = 0; i < n; i++) for (let j = 0; j < i; j++) H[i * n + j] = H[j * n + i];
+    return { cost, errorPx: err / U.length };
+  };
+  const iterations = opts.iterations || (prev ? 5 : 40);
+  const poseOnly = prev ? 0 : Math.floor(iterations / 3); // a cold start finds the pose first
+  let cur = evaluate(R, t, w, true), lambda = 1e-3, it = 0;
+  const A = new Float64Array(n * n), bvec = new Float64Array(n), idx = new Int32Array(n);
+  for (; it < iterations; it++) {
+    // free variables: the pose, and the weights not held at a bound by their gradient
+    let k = 0;
+    for (let i = 0; i < n; i++) {
+      if (i >= 6 && (it < poseOnly || (w[i - 6] <= 0 && g[i] > 0) || (w[i - 6] >= 1 && g[i] < 0))) continue;
+      idx[k++] = i;
+    }
+    let accepted = false;
+    for (let tries = 0; tries < 6 && !accepted; tries++) {
+      for (let a = 0; a < k; a++) {
+        for (let c = 0; c < k; c++) A[a * k + c] = H[idx[a] * n + idx[c]];
+        A[a * k + a] += lambda * (H[idx[a] * n + idx[a]] + 1e-9);
+        bvec[a] = -g[idx[a]];
+      }
+      const step = choleskySolve(A, bvec, k);
+      if (!step) { lambda *= 10; continue; }
+      // the pose is always free: step[0..2] turn R (left increment), step[3..5] move t
+      const R2 = mat3Mul(axisAngleMatrix([step[0], step[1], step[2]]), R), t2 = [t[0] + step[3], t[1] + step[4], t[2] + step[5]];
+      const w2 = Float64Array.from(w);
+      for (let a = 6; a < k; a++) w2[idx[a] - 6] = Math.min(1, Math.max(0, w[idx[a] - 6] + step[a]));
+      const trial = evaluate(R2, t2, w2, false);
+      if (trial.cost <= cur.cost) {
+        const rel = (cur.cost - trial.cost) / Math.max(cur.cost, 1e-12);
+        R = R2; t = t2; w = w2; lambda = Math.max(lambda * 0.3, 1e-7); accepted = true;
+        cur = evaluate(R, t, w, true);
+        if (rel < 1e-7 && it >= poseOnly) it = iterations; // converged
+      } else lambda *= 10;
+    }
+    if (!accepted) break;
+  }
+  return { R, rot: matrixAxisAngle(R), t, w, cost: cur.cost, errorPx: cur.errorPx, iterations: Math.min(it, iterations) };
+}
+
+/** Solution x of the symmetric positive definite system A x = b (k x k, row-major; A is overwritten), or null. */
+function choleskySolve(A, b, k) {
+  for (let j = 0; j < k; j++) {
+    let s = A[j * k + j];
+    for (let p = 0; p < j; p++) s -= A[j * k + p] ** 2;
+    if (!(s > 0)) return null;
+    const d = Math.sqrt(s);
+    A[j * k + j] = d;
+    for (let i = j + 1; i < k; i++) {
+      let v = A[i * k + j];
+      for (let p = 0; p < j; p++) v -= A[i * k + p] * A[j * k + p];
+      A[i * k + j] = v / d;
+    }
+  }
+  const x = new Float64Array(k);
+  for (let i = 0; i < k; i++) { let v = b[i]; for (let p = 0; p < i; p++) v -= A[i * k + p] * x[p]; x[i] = v / A[i * k + i]; }
+  for (let i = k - 1; i >= 0; i--) { let v = x[i]; for (let p = i + 1; p < k; p++) v -= A[p * k + i] * x[p]; x[i] = v / A[i * k + i]; }
+  return x;
+}
+
+/** Quaternion xyzw of a row-major 3x3 rotation. */
+export function matrixQuaternion(R) {
+  const tr = R[0] + R[4] + R[8];
+  let x, y, z, w;
+  if (tr > 0) { const s = 2 * Math.sqrt(tr + 1); w = s / 4; x = (R[7] - R[5]) / s; y = (R[2] - R[6]) / s; z = (R[3] - R[1]) / s; }
+  else if (R[0] > R[4] && R[0] > R[8]) { const s = 2 * Math.sqrt(1 + R[0] - R[4] - R[8]); w = (R[7] - R[5]) / s; x = s / 4; y = (R[1] + R[3]) / s; z = (R[2] + R[6]) / s; }
+  else if (R[4] > R[8]) { const s = 2 * Math.sqrt(1 + R[4] - R[0] - R[8]); w = (R[2] - R[6]) / s; x = (R[1] + R[3]) / s; y = s / 4; z = (R[5] + R[7]) / s; }
+  else { const s = 2 * Math.sqrt(1 + R[8] - R[0] - R[4]); w = (R[3] - R[1]) / s; x = (R[2] + R[6]) / s; y = (R[5] + R[7]) / s; z = s / 4; }
+  return [x, y, z, w];
+}
+
+/** Why the camera could not be opened, in words (a getUserMedia error). */
+export function cameraErrorText(err) {
+  const name = err && err.name;
+  if (name === "NotAllowedError" || name === "SecurityError") return "camera access was refused: allow the camera for this page (the icon in the address bar) and press webcam again";
+  if (name === "NotFoundError" || name === "OverconstrainedError") return "no camera found: plug one in (or free it) and press webcam again";
+  if (name === "NotReadableError" || name === "AbortError") return "the camera is busy (another program or tab is using it) or failed to start";
+  return `the camera could not be opened (${name || "error"}: ${err && err.message ? err.message : err})`;
+}
+
+/**
+ * The page's webcam mode: the camera's frames -> MediaPipe face landmarks (the @mediapipe/face_mesh
+ * files beside the page; nothing is sent anywhere) -> solveFace -> the avatar's morph weights and head
+ * rotation (smoothed). `onPose(weights or null, rotation xyzw or null, frameTime)` is called per solved frame.
+ */
+export class WebcamDriver {
+  constructor(doc, b, onPose, onStatus) {
+    this.doc = doc; this.b = b; this.onPose = onPose; this.onStatus = onStatus;
+    this.running = false; this.stream = null; this.mesh = null; this.prev = null; this.smoothW = null; this.smoothR = null;
+    this.neutral = null; this.lastRaw = null; this.alpha = 0.6;
+    this.stats = { frames: 0, solveMs: [], landmarkMs: [], latencyMs: [], startedAt: 0, lost: 0, weights: [] };
+  }
+
+  async loadLandmarker() {
+    const folder = this.b.webcam.landmarker.folder, win = this.doc.defaultView;
+    if (!win.FaceMesh) {
+      await new Promise((resolve, reject) => {
+        const s = this.doc.createElement("script");
+        s.src = `${folder}/face_mesh.js`;
+        s.onload = resolve;
+        s.onerror = () => reject(new Error(`the face landmarker (${folder}/face_mesh.js) is missing beside this page: write it again with meshsplat view --webcam`));
+        this.doc.head.appendChild(s);
+      });
+    }
+    const mesh = new win.FaceMesh({ locateFile: (f) => `${folder}/${f}` });
+    mesh.setOptions({ maxNumFaces: 1, refineLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
+    mesh.onResults((r) => this.results(r));
+    await mesh.initialize();
+    return mesh;
+  }
+
+  async start(video) {
+    const nav = this.doc.defaultView.navigator;
+    if (this.doc.location && this.doc.location.protocol === "file:") {
+      throw new Error("webcam mode needs the page served over http (a browser keeps a file:// page from loading the face model): run meshsplat view ... --webcam --serve, then open http://127.0.0.1:8000/");
+    }
+    if (!nav.mediaDevices || !nav.mediaDevices.getUserMedia) {
+      throw new Error("this browser gives no camera to this page (no navigator.mediaDevices: the page must come from http://127.0.0.1, localhost or https)");
+    }
+    this.onStatus("asking for the camera…");
+    try {
+      this.stream = await nav.mediaDevices.getUserMedia({ video: { width: { ideal: 640 }, height: { ideal: 480 }, facingMode: "user" }, audio: false });
+    } catch (err) { throw new Error(cameraErrorText(err)); }
+    video.srcObject = this.stream;
+    await video.play();
+    this.onStatus("loading the face model (on this machine; nothing leaves it)…");
+    if (!this.mesh) this.mesh = await this.loadLandmarker();
+    this.video = video; this.running = true; this.prev = null; this.stats.startedAt = performance.now();
+    this.onStatus("looking for a face…");
+    this.loop();
+  }
+
+  // one landmark pass per new camera frame (requestVideoFrameCallback), each after the last one's results;
+  // every pass waits for a frame callback, so the page's own frames keep drawing in between
+  loop() {
+    const v = this.video, next = () => {
+      if (!this.running) return;
+      if (v.requestVideoFrameCallback) v.requestVideoFrameCallback(step); else requestAnimationFrame(step);
+    };
+    const step = async () => {
+      if (!this.running) return;
+      if (v.readyState >= 2 && v.videoWidth > 0) {
+        this.frameIn = performance.now();
+        try { await this.mesh.send({ image: v }); } catch (err) {
+          this.onStatus(`face landmarker failed: ${err.message || err}`); this.stop(); return;
+        }
+      }
+      next();
+    };
+    next();
+  }
+
+  results(r) {
+    if (!this.running) return;
+    const t1 = performance.now(), m = this.b.webcam, faces = r.multiFaceLandmarks;
+    this.stats.landmarkMs.push(t1 - this.frameIn);
+    if (!faces || !faces.length || faces[0].length !== m.L) {
+      this.stats.lost++; this.prev = null; this.onStatus("no face in view"); return;
+    }
+    const W = this.video.videoWidth, H = this.video.videoHeight, obs = new Float64Array(2 * m.L);
+    faces[0].forEach((p, l) => { obs[2 * l] = p.x * W; obs[2 * l + 1] = p.y * H; });
+    const sol = solveFace(m, obs, W, H, this.prev, { smooth: this.prev ? 0.1 : 0 });
+    this.prev = sol;
+    this.lastRaw = sol.w;
+    let w = sol.w;
+    if (this.neutral) w = w.map((x, e) => Math.min(1, Math.max(0, (x - this.neutral[e]) / Math.max(1 - this.neutral[e], 1e-3))));
+    const a = this.alpha; // exponential smoothing of what is shown
+    this.smoothW = this.smoothW ? this.smoothW.map((x, e) => x + a * (w[e] - x)) : Float64Array.from(w);
+    const rot = sol.rot;
+    this.smoothR = this.smoothR ? this.smoothR.map((x, k) => x + a * (rot[k] - x)) : rot.slice();
+    const solveMs = performance.now() - t1;
+    this.stats.solveMs.push(solveMs); this.stats.frames++;
+    this.stats.weights.push({ t: this.frameIn, w: Array.from(sol.w), rot: sol.rot, err: sol.errorPx });
+    for (const k of ["solveMs", "landmarkMs", "latencyMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
+    this.onPose(this.smoothW, matrixQuaternion(axisAngleMatrix(this.smoothR)), this.frameIn);
+    this.onStatus(`${this.stats.frames} frames · landmarks ${(t1 - this.frameIn).toFixed(0)} ms · solve ${solveMs.toFixed(1)} ms · error ${sol.errorPx.toFixed(1)} px`);
+  }
+
+  /** The current raw weights become the neutral face (subtracted from then on). */
+  calibrate() { if (this.lastRaw) this.neutral = Float64Array.from(this.lastRaw); }
+
+  stop() {
+    this.running = false;
+    if (this.stream) for (const t of this.stream.getTracks()) t.stop();
+    this.stream = null; this.prev = null; this.smoothW = null; this.smoothR = null;
   }
 }
 
@@ -1429,6 +1762,35 @@ export function startViewer(doc) {
       });
     }
   }
+  // webcam mode (bundles written with --webcam): the face in the camera drives the morph targets of
+  // the solve's ARKit names and, for a blend-shape head, the head node's rotation
+  const cam_ = { driver: null, weights: null, rotation: null, frameIn: null, key: 0 };
+  if (live && b.webcam) {
+    const btn = $("webcam"), panel = $("campanel"), status = $("camstatus"), video = $("camvideo");
+    btn.hidden = false;
+    const say = (text, bad) => { status.textContent = text; status.classList.toggle("bad", !!bad); };
+    const targets = header.webcam.targets;
+    const headNode = b.driver.source === "blendshapes" ? 0 : null;
+    const stop = () => {
+      if (cam_.driver) cam_.driver.stop();
+      cam_.weights = null; cam_.rotation = null; cam_.frameIn = null;
+      panel.hidden = true; btn.textContent = "webcam"; btn.setAttribute("aria-pressed", "false");
+    };
+    btn.onclick = async () => {
+      if (cam_.driver && cam_.driver.running) { stop(); return; }
+      panel.hidden = false; btn.textContent = "stop webcam"; btn.setAttribute("aria-pressed", "true");
+      cam_.driver = cam_.driver || new WebcamDriver(doc, b, (w, q, frameIn) => {
+        const over = new Float64Array(b.rig.defaultWeights.length); // untracked morphs at 0
+        targets.forEach((i, e) => { if (i >= 0) over[i] = w[e]; });
+        cam_.weights = over; cam_.rotation = headNode === null ? null : { node: headNode, rotation: q };
+        cam_.frameIn = frameIn; cam_.key++;
+      }, (text) => say(text));
+      state.playing = false; syncUi();
+      try { await cam_.driver.start(video); } catch (err) { cam_.driver.stop(); say(String(err.message || err), true); btn.textContent = "webcam"; }
+    };
+    $("camstop").onclick = stop;
+    $("camneutral").onclick = () => cam_.driver && cam_.driver.calibrate();
+  }
   const syncUi = () => {
     if (live) { slider.max = String(clipLength()); slider.value = String(state.time); }
     else { slider.max = String(b.T - 1); slider.value = String(state.frame); }
@@ -1511,7 +1873,7 @@ export function startViewer(doc) {
     if (lastDraw) renderer.draw(...lastDraw);
     return out;
   };
-  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get floatTarget() { return renderer.floatTarget; },
+  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get webcam() { return cam_.driver; }, get floatTarget() { return renderer.floatTarget; },
                             get shadowWorker() { return mapper ? mapper.inWorker : null; } };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
@@ -1536,10 +1898,15 @@ export function startViewer(doc) {
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
     const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
     const K = intrinsics(w, h, cam0.fov_deg);
-    const poseKey = live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
+    const webcamOn = cam_.weights !== null;
+    const poseKey = webcamOn ? `webcam|${cam_.key}` : live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
                          : String(state.frame);
     if (poseKey !== state.poseKey) {
-      if (live) {
+      if (webcamOn) {
+        pose = poser.rig(null, 0, cam_.weights, cam_.rotation || undefined);
+        renderer.setRig(pose.rig);
+        for (const [i, s] of morphSliders) s.value = String(cam_.weights[i]);
+      } else if (live) {
         pose = poser.rig(clips.length ? state.clip : null, (clips.length ? clips[state.clip].start : 0) + state.time, state.weights);
         renderer.setRig(pose.rig);
         for (const [i, s] of morphSliders) if (Number.isNaN(state.weights[i])) s.value = String(pose.rig.weights[i]);
@@ -1566,6 +1933,9 @@ export function startViewer(doc) {
       lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
       renderer.draw(...lastDraw);
       state.drawnKey = drawKey;
+      if (webcamOn && cam_.frameIn !== null && cam_.driver) { // frame in -> avatar drawn
+        cam_.driver.stats.latencyMs.push(performance.now() - cam_.frameIn); cam_.frameIn = null;
+      }
       mainMs = performance.now() - t0;
       record(timings.main, mainMs);
     }
