@@ -251,6 +251,7 @@ class AnnyBody:
             _rest_turns(np.asarray(arrays["joints"], np.float64)), device=self.device
         ).float()
         self.parents = list(PARENTS)
+        self._levels, self._parent_of, self._order = _tree_levels(self.parents, self.device)
         self.num_vertices = int(self.template.shape[0])
         self.num_joints = len(JOINTS)
         self.param_shapes = {"betas": self.num_betas, "global_orient": 3, "body_pose": 69, "transl": 3}
@@ -264,6 +265,10 @@ class AnnyBody:
         blend.scatter_(1, col, torch.gather(self.keypoint_weights, 1, top))
         self.keypoint_vertices = used
         self.keypoint_blend = blend / blend.sum(1, keepdim=True)  # [23,U]
+        bw = self.keypoint_blend[:, :, None] * self.weights[used][None]  # [23,U,24]
+        self._kp_S = bw.sum(1)  # [23,24]
+        self._kp_P = torch.einsum("kuj,uc->kjc", bw, self.template[used])  # [23,24,3]
+        self._kp_Pdirs = torch.einsum("kuj,iuc->ikjc", bw, self.shapedirs[:, used])  # [6,23,24,3]
 
     def __repr__(self) -> str:
         return f"AnnyBody(V={self.num_vertices}, J={self.num_joints}, betas={self.num_betas}, cache={self.path})"
@@ -290,20 +295,17 @@ class AnnyBody:
     # ------------------------------------------------------------ posing
     def transforms(self, pose: torch.Tensor, joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-bone rotations ``[T,24,3,3]`` (rest turn included) and posed joint centres ``[T,24,3]`` of
-        axis-angle ``pose [T,24,3]`` about rest ``joints [24,3]`` (no translation)."""
+        axis-angle ``pose [T,24,3]`` about rest ``joints [24,3]`` (no translation). The chain is walked a
+        tree level at a time (9 levels), each level one batched product."""
         R = axis_angle_to_matrix(pose)
-        G: list[torch.Tensor] = []
-        M: list[torch.Tensor] = []
-        X: list[torch.Tensor] = []
-        for j, p in enumerate(self.parents):
-            if p < 0:
-                G.append(R[:, j])
-                X.append(joints[j].expand(pose.shape[0], 3))
-            else:
-                G.append(G[p] @ R[:, j])
-                X.append(X[p] + M[p] @ (joints[j] - joints[p]))
-            M.append(G[j] @ self.rest_turn[j])
-        return torch.stack(M, 1), torch.stack(X, 1)
+        T = pose.shape[0]
+        G, M, X = R[:, :1], (R[:, :1] @ self.rest_turn[:1]), joints[:1].expand(T, 1, 3)
+        for idx, par in self._levels:  # par: positions of the parents among the joints done so far
+            Gl = G[:, par] @ R[:, idx]
+            Xl = X[:, par] + torch.einsum("tjab,jb->tja", M[:, par], joints[idx] - joints[self._parent_of[idx]])
+            G, X = torch.cat([G, Gl], 1), torch.cat([X, Xl], 1)
+            M = torch.cat([M, Gl @ self.rest_turn[idx]], 1)
+        return M[:, self._order], X[:, self._order]
 
     def pose(
         self,
@@ -331,11 +333,11 @@ class AnnyBody:
         """The 23 keypoints ``[T,23,3]`` and joints ``[T,24,3]``. Skinning is linear, so each keypoint's
         blend of skinned vertices is a blend of the bones' transforms: ``kp_k = sum_j M_j P_kj + S_kj b_j``
         with ``P [23,24,3]``, ``S [23,24]`` from the rest vertices it blends (no per-vertex work per frame)."""
-        verts, joints = self.rest_shape(betas)
-        ids = self.keypoint_vertices
-        bw = self.keypoint_blend[:, :, None] * self.weights[ids][None]  # [23,U,24]
-        P = torch.einsum("kuj,uc->kjc", bw, verts[ids])
-        S = bw.sum(1)
+        P, S, joints = self._kp_P, self._kp_S, self.joints_rest
+        if betas is not None:
+            b_ = self._tensor(betas).reshape(-1)[: self.num_betas]
+            P = P + torch.einsum("i,ikjc->kjc", b_, self._kp_Pdirs[: len(b_)])
+            joints = joints + torch.einsum("i,ijc->jc", b_, self.joint_dirs[: len(b_)])
         M, X = self.transforms(pose, joints)
         b = X - torch.einsum("tjab,jb->tja", M, joints)
         kp = torch.einsum("tjab,kjb->tka", M, P) + torch.einsum("kj,tja->tka", S, b)
@@ -406,6 +408,27 @@ class AnnyBody:
         if problems:
             raise MeshsplatError("Anny parameters: " + "; ".join(problems))
         return T
+
+
+def _tree_levels(
+    parents: list[int], device: torch.device
+) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor, torch.Tensor]:
+    """The joints below the root grouped by depth: per level ``(joint ids, their parents' positions in the
+    order joints are computed)``, each joint's parent, and the order that puts the computed joints back."""
+    depth = [0] * len(parents)
+    for j, p in enumerate(parents):
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    done = [0]
+    levels = []
+    for d in range(1, max(depth) + 1):
+        idx = [j for j in range(len(parents)) if depth[j] == d]
+        levels.append(
+            (torch.tensor(idx, device=device), torch.tensor([done.index(parents[j]) for j in idx], device=device))
+        )
+        done += idx
+    parent_of = torch.tensor([max(p, 0) for p in parents], device=device)
+    order = torch.tensor([done.index(j) for j in range(len(parents))], device=device)
+    return levels, parent_of, order
 
 
 def _skin(w: torch.Tensor, verts: torch.Tensor, M: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -103,10 +103,12 @@ def track_body(
     out: str | Path,
     settings: TrackSettings | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    iterations: int = 300,
 ) -> TrackResult:
     """Track the body in ``video`` and write a native capture to ``out`` (see the module docstring).
 
-    ``progress(stage, done, total)`` reports frames as they go (stages ``landmarks``, ``fit``, ``frames``).
+    ``progress(stage, done, total)`` reports frames as they go (stages ``landmarks``, ``fit``, ``frames``);
+    ``iterations``: the fit's (:func:`meshsplat.track.body_fit.fit_body`).
     """
     s = settings or TrackSettings()
     s.check()
@@ -163,7 +165,7 @@ def track_body(
     fit_tick = (lambda i, n: progress("fit", i, n)) if progress else None
     fit = fit_body(
         track.landmarks[keep], track.world[keep], track.width, track.height, fps=fps, mattes=np.stack(small),
-        body=body, progress=fit_tick,
+        body=body, progress=fit_tick, iterations=iterations,
     )  # fmt: skip
     seconds["fit"] = _time.perf_counter() - t0
 

@@ -3,8 +3,8 @@
 :func:`track_bodies` runs MediaPipe Pose (one person per frame: the most prominent, followed from frame
 to frame in video mode) on every frame. Frames without a person, or with the torso (both shoulders and
 both hips) out of view, are listed (the capture leaves them out). A jump of the torso larger than its
-own size from one frame to the next, or a change of its size by more than 1.67x, is a scene cut, which
-is refused (a capture is one shot of one person). MediaPipe sometimes swaps the left and right limbs of
+own size from one frame to the next (or across a gap of up to ``CUT_GAP`` frames without a person), or a
+change of its size by more than 1.67x, is a scene cut, which is refused (a capture is one shot of one person). MediaPipe sometimes swaps the left and right limbs of
 a person seen from the back or the side: a frame whose limbs sit much closer to the previous frame's
 with left and right exchanged is swapped back (and counted in the notes).
 """
@@ -22,6 +22,7 @@ __all__ = ["BodyTrack", "track_bodies", "torso_box", "SWAP", "TORSO", "MIN_VISIB
 
 NOSE, L_SHOULDER, R_SHOULDER, L_HIP, R_HIP = 0, 11, 12, 23, 24
 TORSO = (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
+CUT_GAP = 3  # frames: a jump across a gap this short is still a cut
 MIN_VISIBILITY = 0.5  # a landmark counts as seen (MediaPipe's visibility: in view and not occluded)
 # MediaPipe's left/right pairs (eyes, ears, mouth, arms, hands, legs, feet)
 _PAIRS = [(1, 4), (2, 5), (3, 6), (7, 8), (9, 10)] + [(a, a + 1) for a in range(11, 33, 2)]
@@ -105,7 +106,9 @@ def track_bodies(
             lm, world, sw = _unswap(lm, world, last_lm if i == last_i + 1 else None)
             swapped.append(sw)
             box = torso_box(lm)
-            if last is not None and i == last_i + 1 and box[1] > 0:
+            # MediaPipe Pose often finds nobody in the first frame after a cut: a gap of up to CUT_GAP
+            # frames still compares with the last frame seen
+            if last is not None and i - last_i <= CUT_GAP and box[1] > 0:
                 jump = float(np.linalg.norm(box[0] - last[0]))
                 if jump > max(box[1], last[1]) or not 0.6 < box[1] / max(last[1], 1e-6) < 1.67:
                     raise MeshsplatError(
