@@ -231,6 +231,8 @@ def _write_capture(
         {"type": MODEL_TYPE, "anny_version": ANNY_VERSION, "per_frame": ["global_orient", "body_pose", "transl"]},
         params,
     )
+    from scipy import ndimage
+
     pos = {int(k): j for j, k in enumerate(keep)}
     outside = np.zeros(len(keep), np.float32)
     with PersonSegmenter() as seg:
@@ -247,7 +249,7 @@ def _write_capture(
             radius = max(1.0, float(np.percentile(edges, 90)))
             sil = mesh_silhouette(p, s.size, radius)
             grow = MATTE_MARGIN * height_m * crop.scale * float(K[0, 0]) / max(float(-verts[j][:, 2].mean()), 1e-3)
-            region = mesh_silhouette(p, s.size, radius + grow)
+            region = (ndimage.distance_transform_edt(sil < 0.5) <= grow).astype(np.float32)
             matte = person * region
             outside[j] = float((person * (1 - sil)).sum() / max(person.sum(), 1e-6))
             cid = writer.add_camera(f"{j:06d}", crop.K(K), viewmat, s.size, s.size)
