@@ -1,4 +1,4 @@
-"""What the albedo prior (loss.lambda_albedo) costs a training iteration, by its reach (loss.albedo_reach).
+"""What the albedo prior (albedo_prior.weight) costs a training iteration, by its reach (albedo_prior.reach).
 
     python bench/albedo_prior_cost.py                  # 12k Gaussians on RobotExpressive, reach 8 / 64
     python bench/albedo_prior_cost.py --reach 8 32 64 128

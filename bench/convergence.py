@@ -2,7 +2,7 @@
 
     python bench/convergence.py                      # demo capture (CesiumMan 256 px), paper schedule, 30k
     python bench/convergence.py --iters 3000         # a shorter curve
-    python bench/convergence.py --preset tiny --iters 200 --points 50 100 200   # seconds, to check
+    python bench/convergence.py --recipe tiny --iters 200 --points 50 100 200   # seconds, to check
 
 Trains ONE run of a training preset (``--train-preset``, default ``paper``: the paper-faithful model)
 on the TrainConfig schedule (the 30k-iteration densification schedule, opacity reset, lr decay to
@@ -82,7 +82,7 @@ def plot(doc: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default="default", help="demo preset whose dataset is used")
+    ap.add_argument("--recipe", default="default", help="demo preset whose dataset is used")
     ap.add_argument("--iters", type=int, default=30_000)
     ap.add_argument("--points", type=int, nargs="*", default=list(DEFAULT_POINTS))
     ap.add_argument("--frames", type=int, default=4, help="held-out frames per split at each point")
@@ -90,7 +90,7 @@ def main() -> None:
         "--train-preset",
         default="paper",
         choices=("paper", "quality"),
-        help="training preset (meshsplat.train.presets; default paper)",
+        help="training preset (meshsplat.train.recipes; default paper)",
     )
     ap.add_argument("--set", nargs="*", default=[], help="TrainConfig overrides key=value")
     ap.add_argument("--work", default="runs/bench-convergence")
@@ -111,13 +111,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from meshsplat.data import open_dataset
-    from meshsplat.demo import PRESETS, _generate
-    from meshsplat.train import Trainer, apply_overrides, preset_config
+    from meshsplat.demo import RECIPES, _generate
+    from meshsplat.train import Trainer, apply_overrides, recipe_config
 
-    preset = PRESETS[args.preset]
+    preset = RECIPES[args.preset]
     data = _generate(Path(args.data), preset, progress=False)
     ckpt_every = max(1, min(1000, args.iters // 10))
-    cfg = preset_config(args.train_preset)
+    cfg = recipe_config(args.train_preset)
     cfg.data, cfg.out, cfg.iterations, cfg.progress = str(data), str(Path(args.work) / "run"), args.iters, False
     cfg.log_every, cfg.preview_every, cfg.checkpoint_every, cfg.keep_checkpoints = 100, 10**9, ckpt_every, 2
     cfg.model.n_init = preset.n_init

@@ -1,4 +1,4 @@
-"""What shading with occlusion (model.occlusion=directions, key) costs per frame, on the CesiumMan mesh.
+"""What shading with occlusion (shading.occlusion=directions, key) costs per frame, on the CesiumMan mesh.
 
     python bench/occlusion_cost.py                 # 10k Gaussians, 256 px, 16/32 directions x 32/64 cells
     python bench/occlusion_cost.py --asset RobotExpressive   # another bundled glTF (longer triangles)
@@ -71,11 +71,11 @@ def main() -> None:
     for k in (16, 32):
         for g in (32, 64):
             settings[f"occl K={k} grid={g}"] = (k, g, 0, 0.0)
-    settings["key, rings (7)"] = (16, 64, 1, 0.0)  # model.occlusion=key while it narrows the direction
-    settings["key (1 light)"] = (16, 64, KEY_STAGES, 0.0)  # model.occlusion=key once aligned, a hard shadow
-    settings["key soft (12 maps)"] = (16, 64, KEY_STAGES, 8.0)  # aligned, model.occlusion_key_soft=8
+    settings["key, rings (7)"] = (16, 64, 1, 0.0)  # shading.occlusion=key while it narrows the direction
+    settings["key (1 light)"] = (16, 64, KEY_STAGES, 0.0)  # shading.occlusion=key once aligned, a hard shadow
+    settings["key soft (12 maps)"] = (16, 64, KEY_STAGES, 8.0)  # aligned, shading.key_soft=8
     settings["key soft, grid 64, torch maps"] = (16, 64, KEY_STAGES, 8.0)
-    settings["key soft, grid 96"] = (16, 96, KEY_STAGES, 8.0)  # finer maps (model.occlusion_grid)
+    settings["key soft, grid 96"] = (16, 96, KEY_STAGES, 8.0)  # finer maps (shading.grid)
     settings["key soft, grid 96, torch maps"] = (16, 96, KEY_STAGES, 8.0)
     settings["key soft, grid 128"] = (16, 128, KEY_STAGES, 8.0)
     avatars = {}

@@ -1,7 +1,7 @@
 """Pose refinement on an exactly tracked capture and on a noisy one, in one run (issue 44).
 
     python bench/pose_refine.py                      # demo sizes: 256 px, 100 frames, 1500 iterations a run
-    python bench/pose_refine.py --preset tiny        # seconds, to check the script
+    python bench/pose_refine.py --recipe tiny        # seconds, to check the script
     python bench/pose_refine.py --resolution 128 --frames 40 --iters 600   # what fits a shared 2-core box
 
 Two synthetic SMPL captures (stand-in body model, AIST++ dance, one turning camera, ``meshsplat synth``):
@@ -92,7 +92,7 @@ def chart(rows: dict, out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default="default", choices=["default", "tiny"])
+    ap.add_argument("--recipe", default="default", choices=["default", "tiny"])
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--resolution", type=int, default=None)
     ap.add_argument("--frames", type=int, default=None)
@@ -109,13 +109,13 @@ def main() -> None:
     ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "new"])
     args = ap.parse_args()
 
-    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.demo import RECIPES, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
 
-    preset = PRESETS[args.preset]
+    preset = RECIPES[args.preset]
     for field, value in (("iterations", args.iters), ("resolution", args.resolution), ("frames", args.frames)):
         if value:
             preset = replace(preset, **{field: value})

@@ -45,7 +45,7 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.demo import RECIPES, demo_train_config
     from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
@@ -64,7 +64,7 @@ def main() -> None:
             pose_noise=args.pose_noise,
             threads=args.threads,
         )
-    sizes = replace(PRESETS["default"], iterations=args.iters, n_init=args.n_init, overrides=_schedule(args.iters))
+    sizes = replace(RECIPES["default"], iterations=args.iters, n_init=args.n_init, overrides=_schedule(args.iters))
     runs: dict[str, list[float]] = {"off": [], "on": []}
     notes: dict[str, str | None] = {}
     for rep in range(args.repeats):

@@ -1,7 +1,7 @@
 """Quality of the method's variants and options on one capture, in one run (same data, seed, schedule).
 
     python bench/quality.py                                 # demo: CesiumMan 256px, 1500 iterations each
-    python bench/quality.py --preset tiny                   # seconds, to check the script
+    python bench/quality.py --recipe tiny                   # seconds, to check the script
     python bench/quality.py --resolution 128 --iters 400 --variants paper shading   # quick screening
     python bench/quality.py --asset RobotExpressive --variants paper default        # novel poses (test_clip:
                                                             # Walking -> Wave, Dance)
@@ -52,11 +52,11 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "scale_area": ("paper", ["model.scale_mode=area"]),
     "unfold": ("paper", ["walk.mode=unfold"]),
     "shading": ("paper", ["model.shading=sh2"]),
-    "shading_axis": ("paper", ["model.shading=sh2", "model.shading_normal=axis"]),
+    "shading_axis": ("paper", ["model.shading=sh2", "shading.normal=axis"]),
     "sh1_world": ("paper", ["model.sh_degree=1"]),
     "sh1_triangle": ("paper", ["model.sh_degree=1", "model.sh_frame=triangle"]),
     "init_multi": ("paper", ["model.init_color_frames=8"]),
-    "mask_loss": ("paper", ["loss.lambda_mask=0.1"]),
+    "mask_loss": ("paper", ["mask_loss.weight=0.1"]),
     "antialiased": ("paper", ["model.antialiased=true"]),
     "dens_low": ("paper", ["strategy.grow_grad2d=1e-4"]),
     "lr_color": ("paper", ["optim.lr_color=1e-2"]),
@@ -96,7 +96,7 @@ def _dataset(args, preset, work: Path) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default="default")
+    ap.add_argument("--recipe", default="default")
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--resolution", type=int, default=None, help="override the preset's image size")
     ap.add_argument("--frames", type=int, default=None, help="override the preset's training frames")
@@ -116,12 +116,12 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.demo import RECIPES, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.train import Trainer
 
     torch.set_num_threads(args.threads)
-    preset = PRESETS[args.preset]
+    preset = RECIPES[args.preset]
     if args.iters:
         preset = replace(preset, iterations=args.iters)
     if args.resolution:
@@ -134,7 +134,7 @@ def main() -> None:
     rows = {}
     for name in args.variants:
         train_preset, overrides = VARIANTS[name]
-        cfg = demo_train_config(data, work / name, preset, overrides + args.set, progress=False, preset=train_preset)
+        cfg = demo_train_config(data, work / name, preset, overrides + args.set, progress=False, recipe=train_preset)
         c0 = time.process_time()
         t0 = time.perf_counter()
         trainer = Trainer(cfg, resume=True)

@@ -51,54 +51,54 @@ def version_defaults(version: int) -> list[str]:
 
 
 EXTRA: dict[str, tuple[str, list[str]]] = {
-    "default_mask": ("quality", ["loss.lambda_mask=0.1"]),  # the default's value since config version 13
+    "default_mask": ("quality", ["mask_loss.weight=0.1"]),  # the default's value since config version 13
     "default_v12": ("quality", version_defaults(12)),  # config version 12's default (no mask loss)
     "default_v13": ("quality", version_defaults(13)),  # config version 13's default (offsets unbounded)
     "default_aa": ("quality", ["model.antialiased=true"]),
     "default_sh1tri": ("quality", ["model.sh_degree=1", "model.sh_frame=triangle"]),
-    "default_axis": ("quality", ["model.shading_normal=axis"]),
-    "default_occl": ("quality", ["model.occlusion=directions"]),
-    "default_spec": ("quality", ["model.specular=sh2"]),
-    "default_spec_occl": ("quality", ["model.specular=sh2", "model.occlusion=directions"]),
-    "default_key": ("quality", ["model.occlusion=key"]),
-    # the default before model.occlusion=key and pose_refine.auto
-    "default_nokey": ("quality", ["model.occlusion=none", "pose_refine.auto=false"]),
+    "default_axis": ("quality", ["shading.normal=axis"]),
+    "default_occl": ("quality", ["shading.occlusion=directions"]),
+    "default_spec": ("quality", ["shading.specular=sh2"]),
+    "default_spec_occl": ("quality", ["shading.specular=sh2", "shading.occlusion=directions"]),
+    "default_key": ("quality", ["shading.occlusion=key"]),
+    # the default before shading.occlusion=key and pose_refine.auto
+    "default_nokey": ("quality", ["shading.occlusion=none", "pose_refine.auto=false"]),
     "default_norefine": ("quality", ["pose_refine.auto=false"]),  # the key light without pose refinement
-    "default_key150": ("quality", ["model.occlusion_key_iter=150"]),  # a shorter search
-    "default_key_spec": ("quality", ["model.occlusion=key", "model.specular=sh2"]),
+    "default_key150": ("quality", ["shading.key_iter=150"]),  # a shorter search
+    "default_key_spec": ("quality", ["shading.occlusion=key", "shading.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
     "default_lrdecay3e-4": ("quality", ["optim.lr_color_final=3e-4"]),
     # the lighting's learning rate; 5e-3 was the default before config version 7, 5e-2 is the default now
-    "default_lr5e-3": ("quality", ["optim.lr_shading=5e-3"]),
-    "default_lrsh2e-2": ("quality", ["optim.lr_shading=2e-2"]),
-    "default_lrsh5e-2": ("quality", ["optim.lr_shading=5e-2"]),
+    "default_lr5e-3": ("quality", ["shading.lr=5e-3"]),
+    "default_lrsh2e-2": ("quality", ["shading.lr=2e-2"]),
+    "default_lrsh5e-2": ("quality", ["shading.lr=5e-2"]),
     # the key's shadow: hard (one map) up to config version 7, soft (8 degrees) since 8. quality_pbr_*_soft8*-vm.json
     # compare default_lrsh5e-2, trained while it meant the hard key (default_hard today), with default_lrsh5e-2_soft8
-    "default_hard": ("quality", ["model.occlusion_key_soft=0"]),
-    "default_lrsh5e-2_soft8": ("quality", ["optim.lr_shading=5e-2", "model.occlusion_key_soft=8"]),
-    "default_lrsh1e-1": ("quality", ["optim.lr_shading=1e-1"]),
-    "default_soft4": ("quality", ["model.occlusion_key_soft=4"]),  # the soft key's radius
-    "default_soft12": ("quality", ["model.occlusion_key_soft=12"]),
-    "default_grid96": ("quality", ["model.occlusion_grid=96"]),  # finer shadow maps
-    "default_grid128": ("quality", ["model.occlusion_grid=128"]),
-    "default_soft16": ("quality", ["model.occlusion_key_soft=16"]),
-    "default_g96s12": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=12"]),
+    "default_hard": ("quality", ["shading.key_soft=0"]),
+    "default_lrsh5e-2_soft8": ("quality", ["shading.lr=5e-2", "shading.key_soft=8"]),
+    "default_lrsh1e-1": ("quality", ["shading.lr=1e-1"]),
+    "default_soft4": ("quality", ["shading.key_soft=4"]),  # the soft key's radius
+    "default_soft12": ("quality", ["shading.key_soft=12"]),
+    "default_grid96": ("quality", ["shading.grid=96"]),  # finer shadow maps
+    "default_grid128": ("quality", ["shading.grid=128"]),
+    "default_soft16": ("quality", ["shading.key_soft=16"]),
+    "default_g96s12": ("quality", ["shading.grid=96", "shading.key_soft=12"]),
     # the two halves of config version 9's change, each alone (today's preset has grid 96 and 12 degrees)
-    "default_g96s8": ("quality", ["model.occlusion_grid=96", "model.occlusion_key_soft=8"]),
-    "default_g64s12": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=12"]),
-    "default_v8": ("quality", ["model.occlusion_grid=64", "model.occlusion_key_soft=8", "loss.lambda_albedo=0"]),
+    "default_g96s8": ("quality", ["shading.grid=96", "shading.key_soft=8"]),
+    "default_g64s12": ("quality", ["shading.grid=64", "shading.key_soft=12"]),
+    "default_v8": ("quality", ["shading.grid=64", "shading.key_soft=8", "albedo_prior.weight=0"]),
     # config version 9's default (no albedo prior; the rows named default_g96s12 were trained as it); the prior's weight
-    "default_v9": ("quality", ["loss.lambda_albedo=0"]),
-    "default_albedo0.05": ("quality", ["loss.lambda_albedo=0.05"]),
-    "default_albedo0.1": ("quality", ["loss.lambda_albedo=0.1"]),  # today's default, in a folder of its own
-    "default_albedo0.2": ("quality", ["loss.lambda_albedo=0.2"]),
-    "default_albedo0.3": ("quality", ["loss.lambda_albedo=0.3"]),
-    "default_albedo0.4": ("quality", ["loss.lambda_albedo=0.4"]),
+    "default_v9": ("quality", ["albedo_prior.weight=0"]),
+    "default_albedo0.05": ("quality", ["albedo_prior.weight=0.05"]),
+    "default_albedo0.1": ("quality", ["albedo_prior.weight=0.1"]),  # today's default, in a folder of its own
+    "default_albedo0.2": ("quality", ["albedo_prior.weight=0.2"]),
+    "default_albedo0.3": ("quality", ["albedo_prior.weight=0.3"]),
+    "default_albedo0.4": ("quality", ["albedo_prior.weight=0.4"]),
     # config version 10's default (the albedo prior's 8 nearest neighbours only)
-    "default_reach8": ("quality", ["loss.albedo_reach=8"]),
-    "default_reach32": ("quality", ["loss.albedo_reach=32"]),
-    "default_reach128": ("quality", ["loss.albedo_reach=128"]),
-    "default_reach256": ("quality", ["loss.albedo_reach=256"]),
+    "default_reach8": ("quality", ["albedo_prior.reach=8"]),
+    "default_reach32": ("quality", ["albedo_prior.reach=32"]),
+    "default_reach128": ("quality", ["albedo_prior.reach=128"]),
+    "default_reach256": ("quality", ["albedo_prior.reach=256"]),
     # a lower densification threshold (more Gaussians where the gradient is); 1e-4 is the default since config
     # version 12, so the variants above (each today's default with one key changed) densify at 1e-4 from then on
     "default_dens1e-4": ("quality", ["strategy.grow_grad2d=1e-4"]),
@@ -114,14 +114,14 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_lrscale1e-2": ("quality", ["optim.lr_scale=1e-2"]),
     "default_every50": ("quality", ["strategy.refine_every=50"]),
     "default_lremb4x": ("quality", ["optim.lr_embedding=6.4e-4", "optim.lr_embedding_final=6.4e-6"]),
-    "default_mask0.3": ("quality", ["loss.lambda_mask=0.3"]),
+    "default_mask0.3": ("quality", ["mask_loss.weight=0.3"]),
     "default_lremb2x_mask": (
         "quality",
-        ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6", "loss.lambda_mask=0.1"],
+        ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6", "mask_loss.weight=0.1"],
     ),
     "default_lremb2x_mask_scale": (
         "quality",
-        ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6", "loss.lambda_mask=0.1", "optim.lr_scale=1e-2"],
+        ["optim.lr_embedding=3.2e-4", "optim.lr_embedding_final=3.2e-6", "mask_loss.weight=0.1", "optim.lr_scale=1e-2"],
     ),
 }
 ALL = {**VARIANTS, **EXTRA}
@@ -400,12 +400,12 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.demo import RECIPES, demo_train_config
     from meshsplat.train import Trainer
 
     torch.set_num_threads(args.threads)
     sizes = replace(
-        PRESETS["default"],
+        RECIPES["default"],
         frames=args.frames,
         resolution=args.resolution,
         iterations=args.iters,
@@ -440,7 +440,7 @@ def main() -> None:
             if _model_dir(cap, work) is not None:
                 overrides.append(f"model_dir={_model_dir(cap, work)}")
             run = work / f"{cap}-{args.renderer}-{name}"
-            cfg = demo_train_config(data, run, sizes, overrides, progress=False, preset=preset)
+            cfg = demo_train_config(data, run, sizes, overrides, progress=False, recipe=preset)
             t0 = time.perf_counter()
             trainer = Trainer(cfg, resume=True)
             finished = trainer.iteration >= cfg.iterations

@@ -45,7 +45,7 @@ from meshsplat.metrics.ssim import ssim
 from meshsplat.metrics.subject import subject_box
 from meshsplat.run_folder import load_avatar
 from meshsplat.track.head_capture import TrackSettings, track_head
-from meshsplat.train import DEFAULT_PRESET, Trainer, apply_overrides, preset_config
+from meshsplat.train import DEFAULT_RECIPE, Trainer, apply_overrides, recipe_config
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")
 NOSE_TIP = 1  # MediaPipe landmark on the nose tip
@@ -125,7 +125,7 @@ def write_landmark_capture(capture: Path, out: Path) -> Path:
 
 def train(capture: Path, out: Path, iters: int, threads: int) -> float:
     torch.set_num_threads(threads)
-    cfg = preset_config(DEFAULT_PRESET)
+    cfg = recipe_config(DEFAULT_RECIPE)
     cfg.data, cfg.out, cfg.iterations, cfg.progress = str(capture), str(out), iters, False
     cfg.model.n_init = 10_000
     cfg = apply_overrides(

@@ -31,7 +31,7 @@ from meshsplat.render.backends import numba_available
 from meshsplat.render.backends.numba_cpu import warm_up
 from meshsplat.synth import synthesize
 from meshsplat.synth.standin_models import write_standin_models
-from meshsplat.train import Trainer, preset_config
+from meshsplat.train import Trainer, recipe_config
 from meshsplat.train.config import apply_overrides
 
 VARIANTS = {"before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"], "now": []}
@@ -82,7 +82,7 @@ def main() -> None:
     out = results_path(args.name)
     record = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
     for name in args.variants:
-        cfg = preset_config()
+        cfg = recipe_config()
         cfg.data, cfg.out, cfg.model_dir = str(data), str(work / f"{name}{args.iters}"), str(models)
         cfg.iterations, cfg.model.n_init, cfg.progress, cfg.seed = args.iters, args.n_init, False, 0
         cfg = apply_overrides(cfg, _schedule(args.iters) + VARIANTS[name]).validate()

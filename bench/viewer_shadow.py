@@ -1,11 +1,11 @@
-"""Cost of the web player's key-light shadow (model.occlusion=key): the page's per-pose height maps
+"""Cost of the web player's key-light shadow (shading.occlusion=key): the page's per-pose height maps
 (``keyShadowMap`` in viewer.js, CPU) under Node, and in a real headless browser (Chromium, SwiftShader
 WebGL2) the page's own timers while playing, with the same avatar without the key light as the same-run
 baseline.
 
 Node: meshes of 4.7k to 52k triangles (CesiumMan, a UV sphere, CesiumMan subdivided once, the ICT
 FaceKit head), each posed in 8 frames (CesiumMan: its walk; the others: a twist), a hard key at grid 64
-and 128 and a soft key (``model.occlusion_key_soft``: 12 maps) at grid 64 and 96 (the default since
+and 128 and a soft key (``shading.key_soft``: 12 maps) at grid 64 and 96 (the default since
 config version 9); ``keyShadowMap`` timed 5 times per frame after 3 warm-up calls; medians over all
 calls; the surface sample count it scatters per map. Browser: 20k Gaussians on CesiumMan (vertex frames and live glTF) and on the ICT head (vertex
 frames), no key / hard / soft at grid 64 / soft at grid 96 (``soft96``, the default since config
@@ -43,7 +43,7 @@ from viewer import SIZE, cesium, live_rig, random_avatar
 
 ROOT = Path(__file__).resolve().parents[1]
 VIEWER_JS = ROOT / "src" / "meshsplat" / "viewer" / "static" / "viewer.js"
-SOFT_DEG = 8.0  # the soft key's angular radius (model.occlusion_key_soft): KEY_SOFT_SAMPLES maps per pose
+SOFT_DEG = 8.0  # the soft key's angular radius (shading.key_soft): KEY_SOFT_SAMPLES maps per pose
 
 
 def key_shading(grid: int, soft: float = 0.0) -> Shading:

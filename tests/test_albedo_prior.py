@@ -1,4 +1,4 @@
-"""The albedo prior (loss.lambda_albedo): neighbours, the prior's value and gradient, training and resume."""
+"""The albedo prior (albedo_prior.weight): neighbours, the prior's value and gradient, training and resume."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 import trimesh
 
-import meshsplat.train.trainer as trainer_module
+import meshsplat.train.components.albedo_prior as trainer_module
 from meshsplat._numba import numba_available
 from meshsplat.embedding import surface_points
 from meshsplat.errors import MeshsplatError
@@ -172,9 +172,9 @@ def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny
         return nb
 
     monkeypatch.setattr(trainer_module, "albedo_neighbours", counted)
-    extra = ("loss.lambda_albedo=0.5", "checkpoint_every=4")
+    extra = ("albedo_prior.weight=0.5", "checkpoint_every=4")
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, extra))
-    assert full.cfg.model.shading == "sh2"
+    assert full.cfg.shading.enabled
     full.train()
     assert len(seen) >= 7  # every third iteration, and when densification changed the count
     # resume from every checkpoint: some written just after a densification, whose neighbours still index the
@@ -182,9 +182,9 @@ def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny
     stale = [
         it
         for it in (4, 8, 12, 16)
-        if (st := load_checkpoint(tmp_path / "full" / "checkpoints" / f"ckpt_{it:08d}.pt"))["albedo_prior"][
-            "neighbours"
-        ].shape[0]
+        if (st := load_checkpoint(tmp_path / "full" / "checkpoints" / f"ckpt_{it:08d}.pt"))["components"][
+            "albedo_prior"
+        ]["neighbours"].shape[0]
         != st["avatar"]["params"]["sh0"].shape[0]
     ]
     assert stale and stale != [4, 8, 12, 16], stale  # both kinds are resumed below
@@ -193,15 +193,15 @@ def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny
         (run / "checkpoints").mkdir(parents=True)
         shutil.copy(tmp_path / "full" / "checkpoints" / f"ckpt_{start:08d}.pt", run / "checkpoints")
         res = Trainer(small_config(tiny_dataset, run, 20, extra), resume=True)
-        assert res.albedo_nb is not None and res.iteration == start
+        assert res.component("albedo_prior").neighbours is not None and res.iteration == start
         res.train()
         for k in full.params:
             assert torch.equal(full.params[k].detach(), res.params[k].detach()), (start, k)
-        assert torch.equal(full.albedo_nb, res.albedo_nb)
+        assert torch.equal(full.component("albedo_prior").neighbours, res.component("albedo_prior").neighbours)
     # without the prior the same run trains to other colours
-    off = Trainer(small_config(tiny_dataset, tmp_path / "off", 20, ("loss.lambda_albedo=0",)))
+    off = Trainer(small_config(tiny_dataset, tmp_path / "off", 20, ("albedo_prior.weight=0",)))
     off.train()
-    assert off.albedo_nb is None and not torch.equal(off.params["sh0"], full.params["sh0"])
+    assert off.component("albedo_prior").neighbours is None and not torch.equal(off.params["sh0"], full.params["sh0"])
 
 
 def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_dataset, tmp_path):  # noqa: F811
@@ -209,8 +209,8 @@ def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_datase
     Trainer(cfg).train()
     path = tmp_path / "run" / "checkpoints" / "ckpt_00000010.pt"
     doc = torch.load(path, weights_only=True)
-    prior = doc["state"]["albedo_prior"]
-    assert prior["neighbours"].shape[1] == 2 * NEIGHBOURS  # the nearest and as many farther (loss.albedo_reach)
+    prior = doc["state"]["components"]["albedo_prior"]
+    assert prior["neighbours"].shape[1] == 2 * NEIGHBOURS  # the nearest and as many farther (albedo_prior.reach)
     prior["neighbours"][3, 2] = prior["neighbours"].shape[0]  # past the last Gaussian
     torch.save(doc, path)
     with pytest.raises(MeshsplatError, match=r"^checkpoint: its albedo prior's neighbours are not indices of its"):

@@ -18,18 +18,18 @@ def test_yaml_json_and_text_say_the_same(tmp_path):
     pytest.importorskip("yaml")
     (tmp_path / "y.yaml").write_text(
         "defaults:\n  iterations: 50\n  set: [model.n_init=300]\n"
-        "jobs:\n  - data: caps/a\n  - {data: caps/b, name: bee, set: [seed=3], preset: paper}\n"
+        "jobs:\n  - data: caps/a\n  - {data: caps/b, name: bee, set: [seed=3], recipe: paper}\n"
     )
     doc = {"defaults": {"iterations": 50, "set": ["model.n_init=300"]}}
-    doc["jobs"] = [{"data": "caps/a"}, {"data": "caps/b", "name": "bee", "set": ["seed=3"], "preset": "paper"}]
+    doc["jobs"] = [{"data": "caps/a"}, {"data": "caps/b", "name": "bee", "set": ["seed=3"], "recipe": "paper"}]
     (tmp_path / "j.json").write_text(json.dumps(doc))
     y, j = read_jobs(tmp_path / "y.yaml"), read_jobs(tmp_path / "j.json")
     assert [x.to_dict() for x in y] == [x.to_dict() for x in j]
     a, b = y
     assert (a.name, a.data, a.iterations, a.set) == ("a", str(tmp_path / "caps/a"), 50, ["model.n_init=300"])
-    assert (b.name, b.preset, b.set) == ("bee", "paper", ["model.n_init=300", "seed=3"])
+    assert (b.name, b.recipe, b.set) == ("bee", "paper", ["model.n_init=300", "seed=3"])
     cfg = job_config(b, tmp_path / "run")
-    assert (cfg.seed, cfg.model.n_init, cfg.iterations, cfg.model.shading) == (3, 300, 50, "none")  # paper preset
+    assert (cfg.seed, cfg.model.n_init, cfg.iterations, cfg.shading.enabled) == (3, 300, 50, False)  # paper recipe
     (tmp_path / "t.txt").write_text("# captures\ncaps/a model.n_init=300\n\ncaps/b seed=3  # the second\n")
     t = read_jobs(tmp_path / "t.txt")
     assert [(x.name, x.set) for x in t] == [("a", ["model.n_init=300"]), ("b", ["seed=3"])]

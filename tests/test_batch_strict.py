@@ -38,7 +38,7 @@ def _jobs(tmp_path, entries, name="jobs.json"):
         ({"set": "seed=3"}, "set: expected a list of KEY=VALUE items"),
         ({"set": ["seed=3", 4]}, "set: expected a list of text items"),
         ({"export": "ply"}, "export: expected a list of text items, got 'ply'"),
-        ({"preset": ["paper"]}, "preset: expected text"),
+        ({"recipe": ["paper"]}, "recipe: expected text"),
         ({"name": 7}, "name: expected text, got 7"),
         ({"data": 5}, "data: expected a capture path, got 5"),
     ],

@@ -12,6 +12,7 @@ from meshsplat.cli.main import main
 from meshsplat.errors import MeshsplatError
 from meshsplat.train import TrainConfig
 from meshsplat.train.budget import KEPT_KEYS, MIN_ITERATIONS, SCALED_KEYS, plan_budget, planned_seconds, scale_schedule
+from meshsplat.train.recipes import recipe_config
 from test_downscale import _capture
 
 
@@ -23,7 +24,7 @@ def _value(cfg: TrainConfig, key: str) -> int:
 
 
 def test_scaling_moves_the_schedule_positions_and_keeps_the_rates():
-    cfg = TrainConfig()
+    cfg = recipe_config("quality")
     cfg.optim.lr_delay_steps = 0  # off stays off
     scaled, pairs = scale_schedule(cfg, 1500)
     assert scaled.iterations == 1500 and pairs[0] == "iterations=1500"
@@ -41,7 +42,7 @@ def test_scaling_moves_the_schedule_positions_and_keeps_the_rates():
 
 def test_a_budget_is_measured_on_this_machine_and_fits_the_iterations(tmp_path):
     root = _capture(tmp_path / "cap")
-    cfg = TrainConfig(data=str(root), out=str(tmp_path / "run"), device="cpu", progress=False)
+    cfg = recipe_config("quality", data=str(root), out=str(tmp_path / "run"), device="cpu", progress=False)
     cfg.model.n_init = 200
     scaled, budget = plan_budget(cfg, 2.0)
     m = budget.measured
@@ -81,4 +82,4 @@ def test_the_cli_says_what_it_chose_and_the_run_keeps_it(tmp_path, capsys):
 def test_a_budget_is_refused_in_a_process_group(tmp_path, monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(MeshsplatError, match=r"--minutes: this process is one of 2 \(WORLD_SIZE\).* --iters"):
-        plan_budget(TrainConfig(data=str(tmp_path), out=str(tmp_path / "run")), 5.0)
+        plan_budget(recipe_config("quality", data=str(tmp_path), out=str(tmp_path / "run")), 5.0)

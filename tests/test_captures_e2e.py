@@ -18,7 +18,7 @@ TINY = [
     "--iters",
     "30",
     "--no-progress",
-    "--preset",
+    "--recipe",
     "paper",
     "--set",
     "model.n_init=800",

@@ -179,8 +179,8 @@ def test_bash_completion_completes_commands_options_and_choices(capsys):
     assert "complete -o default -F _meshsplat meshsplat" in script
     assert _complete(script, "meshsplat", "exp") == ["export"]
     assert _complete(script, "meshsplat", "--ver") == ["--version"]
-    assert _complete(script, "meshsplat", "train", "--pre") == ["--preset"]
-    assert sorted(_complete(script, "meshsplat", "--debug", "train", "--preset", "")) == ["paper", "quality"]
+    assert _complete(script, "meshsplat", "train", "--rec") == ["--recipe"]
+    assert sorted(_complete(script, "meshsplat", "--debug", "train", "--recipe", "")) == ["paper", "quality"]
     assert _complete(script, "meshsplat", "completion", "") == ["bash", "zsh"]
     assert _complete(script, "meshsplat", "train", "data/") == []  # arguments: the shell's file names
     assert main(["completion", "zsh"]) == 0

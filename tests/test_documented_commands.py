@@ -24,7 +24,7 @@ import pytest
 
 from meshsplat.animation import ANIMATION_KINDS
 from meshsplat.cli.main import COMMANDS, build_parser, main
-from meshsplat.train import DEFAULT_PRESET, apply_overrides, preset_config
+from meshsplat.train import DEFAULT_RECIPE, apply_overrides, recipe_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -193,7 +193,7 @@ def check_command(cmd: DocCommand) -> list[str]:
                 continue
             if name == "train":
                 try:
-                    apply_overrides(preset_config(ns.preset or DEFAULT_PRESET), ns.set).validate()
+                    apply_overrides(recipe_config(ns.recipe or DEFAULT_RECIPE), ns.set).validate()
                 except ValueError as exc:
                     problems.append(f"train --set {ns.set}: {exc}")
             if name in ("render", "view") and ns.animation and ns.animation[0] not in ANIMATION_KINDS:

@@ -17,7 +17,8 @@ from meshsplat.eval.fit_poses import fit_test_poses, rows_to_fit
 from meshsplat.render.background import composite
 from meshsplat.run_folder import load_run
 from meshsplat.synth import synthesize
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
+from meshsplat.train.recipes import recipe_config
 
 SHOTS = dict(frames=6, resolution=48, test_frames=2, test_views=1, test_view_frames=2, threads=None)
 
@@ -34,9 +35,9 @@ def captures(tmp_path_factory, standin_model_dir):
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, captures, standin_model_dir):
     out = tmp_path_factory.mktemp("runs") / "run"
-    cfg = TrainConfig(data=str(captures[1]), out=str(out), iterations=60, device="cpu", backend="torch")
+    cfg = recipe_config("quality", data=str(captures[1]), out=str(out), iterations=60, device="cpu", backend="torch")
     sets = ["progress=false", "model.n_init=1500", "loss.lambda_lpips=0", "checkpoint_every=60"]
-    sets += ["preview_every=1000", "pose_refine.auto=false", f"model_dir={standin_model_dir}"]
+    sets += ["preview_every=1000", "pose_refine.enabled=false", f"model_dir={standin_model_dir}"]
     Trainer(apply_overrides(cfg, sets)).train()
     return out
 

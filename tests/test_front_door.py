@@ -104,29 +104,29 @@ def test_import_meshsplat_stays_light():
     assert out.strip() == "[] ['meshsplat', 'meshsplat.errors']"
 
 
-def test_train_avatar_presets_and_overrides(tiny_dataset, tmp_path):  # noqa: F811
+def test_train_avatar_recipes_and_overrides(tiny_dataset, tmp_path):  # noqa: F811
     fast = ["model.n_init=200", "checkpoint_every=2", "preview_every=2", "log_every=1", "backend=torch"]
     run = ms.train_avatar(tiny_dataset, tmp_path / "q", iterations=2, overrides=fast, device="cpu", progress=False)
     assert run == (tmp_path / "q").resolve() and (run / "checkpoints" / "ckpt_00000002.pt").is_file()
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["model"]["shading"] == "sh2" and cfg["model"]["n_init"] == 200  # the quality preset, then overrides
+    assert cfg["shading"]["enabled"] and cfg["model"]["n_init"] == 200  # the quality recipe, then overrides
     assert ms.load_run(run).iteration == 2
     paper = ms.train_avatar(
-        tiny_dataset, tmp_path / "p", preset="paper", iterations=1, overrides=fast, device="cpu", progress=False
+        tiny_dataset, tmp_path / "p", recipe="paper", iterations=1, overrides=fast, device="cpu", progress=False
     )
-    assert json.loads((paper / "config.json").read_text())["model"]["shading"] == "none"
+    assert not json.loads((paper / "config.json").read_text())["shading"]["enabled"]
     base = ms.TrainConfig(data=str(tiny_dataset), out=str(tmp_path / "c"), iterations=1, device="cpu", progress=False)
     from_config = ms.train_avatar(config=base, overrides=fast)
-    assert json.loads((from_config / "config.json").read_text())["model"]["shading"] == base.model.shading
+    assert json.loads((from_config / "config.json").read_text())["shading"]["enabled"] == base.shading.enabled
     assert base.model.n_init != 200  # the caller's config is not modified
 
 
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        ({"preset": "fastest"}, "preset: expected one of quality, paper, got 'fastest'"),
+        ({"recipe": "fastest"}, "recipe: expected one of quality, paper, got 'fastest'"),
         ({"config": "cfg.json"}, "config: expected a TrainConfig, got str"),
-        ({"preset": "paper", "config": ms.TrainConfig()}, "give a preset or a config, not both"),
+        ({"recipe": "paper", "config": ms.TrainConfig()}, "give a recipe or a config, not both"),
         ({"overrides": "model.n_init=5"}, "overrides: expected a list"),
         ({"dataset": None}, "dataset: no capture to train on"),
         ({"dataset": "no/such/folder"}, "dataset not found: no/such/folder"),

@@ -1,4 +1,4 @@
-"""The key light (``model.occlusion=key``): candidate lights collapse into one shadowed key light."""
+"""The key light (``shading.occlusion=key``): candidate lights collapse into one shadowed key light."""
 
 from __future__ import annotations
 
@@ -13,11 +13,12 @@ from meshsplat.gaussians import Avatar, compose, init_params
 from meshsplat.gaussians.shading import KEY_CONE_DEG, KEY_RING, KEY_RINGS_DEG, KEY_STAGES, Shading, sh9_basis
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
+from meshsplat.train.recipes import recipe_config
 from test_quality_options import _sphere
 from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
-KEY = ["model.occlusion=key", "model.occlusion_directions=8", "model.occlusion_grid=32", "model.occlusion_key_iter=4"]
+KEY = ["shading.occlusion=key", "shading.directions=8", "shading.grid=32", "shading.key_iter=4"]
 
 
 def _candidates() -> tuple[Shading, int, int, int]:
@@ -145,10 +146,10 @@ def test_export_keeps_the_key(tmp_path):
 
 
 def test_config_validates_the_key_iteration():
-    cfg = apply_overrides(TrainConfig(), KEY).validate()
-    assert (cfg.model.occlusion, cfg.model.occlusion_key_iter) == ("key", 4)
-    with pytest.raises(MeshsplatError, match="occlusion_key_iter"):
-        apply_overrides(TrainConfig(), ["model.occlusion_key_iter=0"]).validate()
+    cfg = apply_overrides(recipe_config("quality"), KEY).validate()
+    assert (cfg.shading.occlusion, cfg.shading.key_iter) == ("key", 4)
+    with pytest.raises(MeshsplatError, match=r"shading\.key_iter"):
+        apply_overrides(recipe_config("quality"), ["shading.key_iter=0"]).validate()
 
 
 def test_trainer_aligns_once_and_resumes_exactly_across_it(tiny_dataset, tmp_path):  # noqa: F811
@@ -177,7 +178,7 @@ def test_trainer_aligns_once_and_resumes_exactly_across_it(tiny_dataset, tmp_pat
 
 
 def test_a_short_run_aligns_at_its_last_iteration(tiny_dataset, tmp_path):  # noqa: F811
-    cfg = small_config(tiny_dataset, tmp_path / "short", 6, [*KEY, "model.occlusion_key_iter=300"])
+    cfg = small_config(tiny_dataset, tmp_path / "short", 6, [*KEY, "shading.key_iter=300"])
     t = Trainer(cfg)
     t.train()
     assert t.shading is not None and t.shading.key_aligned
@@ -192,11 +193,11 @@ def test_training_frames_are_posed_once_and_render_as_their_vertices(tiny_datase
     bg = torch.tensor([0.3, 0.5, 0.7])
     idx = t.train_ids[0]
     out, _ = t.render_frame(idx, bg)
-    pose = t._pose_cache[idx]
+    pose = t.frames._poses[idx]
     maps = pose._shadows
     again, _ = t.render_frame(idx, bg)
-    assert t._pose_cache[idx] is pose and pose._shadows is maps and maps is not None
-    _, _, camera, verts = t._frame(idx)
+    assert t.frames._poses[idx] is pose and pose._shadows is maps and maps is not None
+    _, _, camera, verts = t.frames.frame(idx)
     want = t.avatar().render(verts, camera, bg, backend=t.cfg.backend)
     for got in (out, again):
         assert torch.equal(got.image, want.image) and torch.equal(got.alpha, want.alpha)
@@ -306,17 +307,15 @@ def test_a_soft_key_round_trips_and_validates(tmp_path):
             _soft_key(bad)
     with pytest.raises(MeshsplatError, match="needs occlusion='key'"):
         Shading(occlusion="directions", directions=8, key_soft=8.0)
-    with pytest.raises(MeshsplatError, match="occlusion_key_soft"):
-        apply_overrides(TrainConfig(), ["model.occlusion_key_soft=90"]).validate()
+    with pytest.raises(MeshsplatError, match=r"shading\.key_soft"):
+        apply_overrides(recipe_config("quality"), ["shading.key_soft=90"]).validate()
 
 
 def test_the_trainer_builds_a_soft_key_only_for_occlusion_key(tiny_dataset, tmp_path):  # noqa: F811
-    t = Trainer(small_config(tiny_dataset, tmp_path / "soft", 12, [*KEY, "model.occlusion_key_soft=6"]))
+    t = Trainer(small_config(tiny_dataset, tmp_path / "soft", 12, [*KEY, "shading.key_soft=6"]))
     t.train()
     assert t.shading is not None and t.shading.soft_key and t.shading.key_soft == 6.0
     av = load_avatar(tmp_path / "soft")
     assert av.shading is not None and av.shading.key_soft == 6.0
-    off = Trainer(
-        small_config(tiny_dataset, tmp_path / "none", 2, ["model.occlusion=none", "model.occlusion_key_soft=6"])
-    )
+    off = Trainer(small_config(tiny_dataset, tmp_path / "none", 2, ["shading.occlusion=none", "shading.key_soft=6"]))
     assert off.shading is not None and off.shading.occlusion == "none"

@@ -12,9 +12,10 @@ import pytest
 from tqdm import tqdm
 
 from meshsplat.eval.report import loss_curves, plot_curves, read_log
-from meshsplat.train import TrainConfig
 from meshsplat.train.monitor import LOSS_TERMS, MONITOR_DIR, PROGRESS_FORMAT, progress_postfix
-from meshsplat.train.trainer import LOG_COLUMNS, Trainer
+from meshsplat.train.recipes import recipe_config
+from meshsplat.train.run_log import LOG_COLUMNS
+from meshsplat.train.trainer import Trainer
 from test_downscale import _capture
 
 
@@ -32,10 +33,12 @@ def _events(log_dir: Path) -> dict[str, list]:
 def test_tensorboard_shows_every_term_psnr_gaussians_learning_rates_and_previews(tmp_path):
     pytest.importorskip("tensorboard", reason="the [monitor] extra (tensorboard) is not installed")
     root = _capture(tmp_path / "cap")
-    cfg = TrainConfig(data=str(root), out=str(tmp_path / "run"), iterations=6, device="cpu", progress=False)
+    cfg = recipe_config(
+        "quality", data=str(root), out=str(tmp_path / "run"), iterations=6, device="cpu", progress=False
+    )
     cfg.model.n_init = 100
     cfg.loss.lambda_lpips = 0.0
-    cfg.loss.lambda_mask = 0.1
+    cfg.mask_loss.weight = 0.1
     cfg.log_every = 1
     cfg.preview_every = 3
     cfg.checkpoint_every = 4

@@ -1,4 +1,4 @@
-"""Shading with occlusion from the posed driving mesh (model.occlusion=directions; docs/quality.md)."""
+"""Shading with occlusion from the posed driving mesh (shading.occlusion=directions; docs/quality.md)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,13 @@ from meshsplat.gaussians.shading import Shading, sh9_basis
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.mesh.visibility import visibility
 from meshsplat.run_folder import load_avatar
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
+from meshsplat.train.recipes import recipe_config
 from test_quality_options import _lit_from_x, _sphere
 from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 from test_visibility import box
 
-OCCL = ["model.occlusion=directions", "model.occlusion_directions=8", "model.occlusion_grid=32"]
+OCCL = ["shading.occlusion=directions", "shading.directions=8", "shading.grid=32"]
 
 
 def _occluded(light: float = 0.0, k: int = 16) -> Shading:
@@ -142,28 +143,27 @@ def test_export_round_trip(tmp_path):
 
 def test_the_player_refuses_an_occluded_avatar(tmp_path):
     """Lights from fixed directions: refused in one line (the player shades one aligned key light,
-    model.occlusion=key; tests/test_viewer.py)."""
+    shading.occlusion=key; tests/test_viewer.py)."""
     from meshsplat.viewer.bundle import write_viewer_bundle
 
     mesh = _sphere()
     av = Avatar(mesh, init_params(mesh, 50, generator=torch.Generator().manual_seed(0)), shading=_occluded(0.1))
-    with pytest.raises(MeshsplatError, match=r"model\.occlusion=directions.*shades model\.occlusion=key"):
+    with pytest.raises(MeshsplatError, match=r"shading\.occlusion=directions.*shades shading\.occlusion=key"):
         write_viewer_bundle(av, mesh.vertices[None].numpy(), tmp_path / "v")
     assert not (tmp_path / "v").exists()
 
 
 def test_config_keys_validate():
-    cfg = apply_overrides(TrainConfig(), OCCL).validate()
-    assert (cfg.model.occlusion, cfg.model.occlusion_directions, cfg.model.occlusion_grid) == ("directions", 8, 32)
-    assert TrainConfig().model.occlusion == "key"  # the quality preset's
+    cfg = apply_overrides(recipe_config("quality"), OCCL).validate()
+    assert (cfg.shading.occlusion, cfg.shading.directions, cfg.shading.grid) == ("directions", 8, 32)
+    assert recipe_config("quality").shading.occlusion == "key"  # the quality preset's
     for bad in (
-        ["model.occlusion=rays"],
-        ["model.occlusion=directions", "model.shading=none"],
-        ["model.occlusion_directions=0"],
-        ["model.occlusion_grid=4"],
+        ["shading.occlusion=rays"],
+        ["shading.directions=0"],
+        ["shading.grid=4"],
     ):
-        with pytest.raises(MeshsplatError, match="occlusion"):
-            apply_overrides(TrainConfig(), bad).validate()
+        with pytest.raises(MeshsplatError, match="shading"):
+            apply_overrides(recipe_config("quality"), bad).validate()
 
 
 def test_trainer_learns_the_lights_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811

@@ -21,6 +21,7 @@ from meshsplat.gaussians.params import init_params
 from meshsplat.mesh import TriMesh
 from meshsplat.synth import synthesize
 from meshsplat.synth.sources import load_source
+from meshsplat.train.recipes import recipe_config
 from test_eval_kit import make_dataset, make_run
 
 TINY = dict(frames=4, resolution=32, test_views=1, test_frames=2, test_view_frames=1, supersample=1)
@@ -327,7 +328,7 @@ def test_up_axis_choice_and_message(creature, tmp_path, capsys):
 
 
 def test_scale_log_is_relative_to_mesh_size(tmp_path):
-    from meshsplat.train import TrainConfig, Trainer
+    from meshsplat.train import Trainer
     from test_eval_kit import make_avatar
 
     logs = []
@@ -343,7 +344,9 @@ def test_scale_log_is_relative_to_mesh_size(tmp_path):
             z = dict(np.load(ds / "canonical.npz"))
             np.savez(ds / "canonical.npz", vertices=z["vertices"] * unit, faces=z["faces"])
             np.save(ds / "vertices.npy", np.load(ds / "vertices.npy") * unit)
-        cfg = TrainConfig(data=str(ds), out=str(tmp_path / f"run{unit:g}"), iterations=3, device="cpu", progress=False)
+        cfg = recipe_config(
+            "quality", data=str(ds), out=str(tmp_path / f"run{unit:g}"), iterations=3, device="cpu", progress=False
+        )
         cfg.model.n_init = 200
         cfg.loss.lambda_lpips = 0.0
         cfg.loss.scale_max, cfg.loss.scale_ratio = 1e-6, 1.0  # every Gaussian counts: the regulariser is non-zero

@@ -13,7 +13,8 @@ from meshsplat.eval import evaluate_run
 from meshsplat.io import load_checkpoint
 from meshsplat.run_folder import TRACKED_POSES_FLAG, RunFolder, load_run
 from meshsplat.synth import synthesize
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
+from meshsplat.train.recipes import recipe_config
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +40,7 @@ def noisy_smpl(tmp_path_factory, standin_model_dir):
 @pytest.fixture(scope="module")
 def refined_run(tmp_path_factory, noisy_smpl, standin_model_dir):
     out = tmp_path_factory.mktemp("runs") / "refined"
-    cfg = TrainConfig(data=str(noisy_smpl), out=str(out), iterations=12, device="cpu", backend="torch")
+    cfg = recipe_config("quality", data=str(noisy_smpl), out=str(out), iterations=12, device="cpu", backend="torch")
     cfg = apply_overrides(
         cfg,
         [
@@ -49,6 +50,7 @@ def refined_run(tmp_path_factory, noisy_smpl, standin_model_dir):
             "checkpoint_every=12",
             "preview_every=100",
             "pose_refine.enabled=true",
+            "pose_refine.required=true",
             "pose_refine.lr=1e-2",
             f"model_dir={standin_model_dir}",
         ],
@@ -64,7 +66,7 @@ def _rows(ds, split):
 
 def test_training_moves_the_poses_and_saves_them(refined_run, noisy_smpl):
     out, trainer = refined_run
-    assert all(v > 0 for v in trainer.refiner.offset_norms().values())
+    assert all(v > 0 for v in trainer.component("pose_refine").refiner.offset_norms().values())
     with np.load(out / "refined_params.npz", allow_pickle=False) as z:
         rows = set(z["mesh_rows"].tolist())
     assert rows == _rows(trainer.dataset, "train")
@@ -82,7 +84,7 @@ def test_a_run_hands_eval_its_refined_training_poses(refined_run):
     for i in tracked.split("test_views"):
         row = int(tracked.frame_info(i)["mesh"])
         with torch.no_grad():
-            want = trainer.refiner.vertices(row).float()
+            want = trainer.component("pose_refine").refiner.vertices(row).float()
         torch.testing.assert_close(refined.vertices(i), want, atol=1e-5, rtol=0)
         assert float((refined.vertices(i) - tracked.vertices(i)).abs().max()) > 1e-4
     for i in tracked.split("test_frames"):
@@ -172,7 +174,7 @@ def test_eval_command_names_refined_frames_and_takes_tracked_poses(refined_run, 
 
 
 def _short(data, out, *extra):
-    cfg = TrainConfig(data=str(data), out=str(out), iterations=2, device="cpu", backend="torch")
+    cfg = recipe_config("quality", data=str(data), out=str(out), iterations=2, device="cpu", backend="torch")
     return apply_overrides(
         cfg, ["progress=false", "model.n_init=100", "loss.lambda_lpips=0", "checkpoint_every=2", *extra]
     )
@@ -183,15 +185,23 @@ def test_the_default_refines_a_body_model_capture_when_it_finds_the_model_files(
 ):
     monkeypatch.delenv("MESHSPLAT_MODEL_DIR", raising=False)
     on = Trainer(_short(noisy_smpl, tmp_path / "on", f"model_dir={standin_model_dir}"))
-    assert on.refiner is not None and on.pose_refine_note.startswith("pose refinement on: ")
-    assert "SMPL" in on.pose_refine_note and "of 6 training meshes" in on.pose_refine_note
+    assert on.component("pose_refine") is not None and on.notes[0].startswith("pose refinement on: ")
+    assert "SMPL" in on.notes[0] and "of 6 training meshes" in on.notes[0]
     off = Trainer(_short(noisy_smpl, tmp_path / "off", f"model_dir={tmp_path / 'nothing'}"))
-    assert off.refiner is None and off.pose_refine_note.startswith("pose refinement off, ")
-    assert "--model-dir" in off.pose_refine_note and "\n" not in off.pose_refine_note
+    assert off.component("pose_refine") is None and off.notes[0].startswith("pose refinement off, ")
+    assert "--model-dir" in off.notes[0] and "\n" not in off.notes[0]
     # asked for explicitly, missing model files are an error, as before
     with pytest.raises(MeshsplatError):
-        Trainer(_short(noisy_smpl, tmp_path / "on2", "pose_refine.enabled=true", f"model_dir={tmp_path / 'none'}"))
-    assert Trainer(_short(noisy_smpl, tmp_path / "no", "pose_refine.auto=false")).refiner is None
+        Trainer(
+            _short(
+                noisy_smpl,
+                tmp_path / "on2",
+                "pose_refine.enabled=true",
+                "pose_refine.required=true",
+                f"model_dir={tmp_path / 'none'}",
+            )
+        )
+    assert Trainer(_short(noisy_smpl, tmp_path / "no", "pose_refine.enabled=false")).component("pose_refine") is None
 
 
 def test_a_mesh_capture_trains_without_refinement_and_without_a_note(noisy_smpl, tmp_path):
@@ -203,9 +213,9 @@ def test_a_mesh_capture_trains_without_refinement_and_without_a_note(noisy_smpl,
     doc.pop("driver", None)
     (plain / "manifest.json").write_text(json.dumps(doc))
     t = Trainer(_short(plain, tmp_path / "run"))
-    assert t.refiner is None and t.pose_refine_note is None
+    assert t.component("pose_refine") is None and t.notes == []
     with pytest.raises(MeshsplatError, match="no body/head model parameters"):
-        Trainer(_short(plain, tmp_path / "run2", "pose_refine.enabled=true"))
+        Trainer(_short(plain, tmp_path / "run2", "pose_refine.enabled=true", "pose_refine.required=true"))
 
 
 def test_resuming_a_refined_run_without_the_model_files_is_refused(noisy_smpl, standin_model_dir, tmp_path):
@@ -214,7 +224,7 @@ def test_resuming_a_refined_run_without_the_model_files_is_refused(noisy_smpl, s
     cfg = _short(noisy_smpl, out, f"model_dir={tmp_path / 'gone'}")
     with pytest.raises(MeshsplatError) as err:
         Trainer(cfg, resume=True)
-    assert "trained with pose refinement" in str(err.value) and "\n" not in str(err.value)
+    assert "trained with pose_refine" in str(err.value) and "\n" not in str(err.value)
 
 
 def test_train_command_says_what_it_decided(noisy_smpl, standin_model_dir, tmp_path, capsys):
@@ -225,7 +235,7 @@ def test_train_command_says_what_it_decided(noisy_smpl, standin_model_dir, tmp_p
     assert "pose refinement on: " in capsys.readouterr().out
     assert main([*args, "--out", str(tmp_path / "b"), "--model-dir", str(standin_model_dir), "--no-refine-pose"]) == 0
     assert "pose refinement" not in capsys.readouterr().out
-    assert not json.loads((tmp_path / "b" / "config.json").read_text())["pose_refine"]["auto"]
+    assert not json.loads((tmp_path / "b" / "config.json").read_text())["pose_refine"]["enabled"]
 
 
 @pytest.mark.parametrize("polish", [0, 3], ids=["refined", "polished_at_the_end"])
@@ -246,14 +256,18 @@ def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_
     (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000003.pt", tmp_path / "resumed" / "checkpoints")
     resumed = Trainer(cfg(tmp_path / "resumed"), resume=True)
-    assert resumed.iteration == 3 and not resumed.refiner.polished
+    assert resumed.iteration == 3 and not resumed.component("pose_refine").refiner.polished
     resumed.train()
-    assert resumed.refiner.polished == full.refiner.polished == bool(polish)
+    assert (
+        resumed.component("pose_refine").refiner.polished
+        == full.component("pose_refine").refiner.polished
+        == bool(polish)
+    )
     for k in full.params:
         assert torch.equal(full.params[k].detach(), resumed.params[k].detach()), k
-    for k, v in full.refiner.offsets.items():
-        assert torch.equal(v.detach(), resumed.refiner.offsets[k].detach()), k
-    assert float(sum(v.detach().abs().sum() for v in full.refiner.offsets.values())) > 0
+    for k, v in full.component("pose_refine").refiner.offsets.items():
+        assert torch.equal(v.detach(), resumed.component("pose_refine").refiner.offsets[k].detach()), k
+    assert float(sum(v.detach().abs().sum() for v in full.component("pose_refine").refiner.offsets.values())) > 0
     with (
         np.load(tmp_path / "full" / "refined_params.npz") as a,
         np.load(tmp_path / "resumed" / "refined_params.npz") as b,
@@ -293,25 +307,30 @@ def test_polishing_fits_the_training_poses_once_at_the_end(noisy_smpl, standin_m
     polished.train()
     for k in plain.params:  # the same avatar: the polish changes the poses only
         assert torch.equal(plain.params[k].detach(), polished.params[k].detach()), k
-    assert polished.refiner.polished and not plain.refiner.polished
-    moved = sum(float((a - plain.refiner.offsets[k]).detach().abs().sum()) for k, a in polished.refiner.offsets.items())
+    assert polished.component("pose_refine").refiner.polished and not plain.component("pose_refine").refiner.polished
+    moved = sum(
+        float((a - plain.component("pose_refine").refiner.offsets[k]).detach().abs().sum())
+        for k, a in polished.component("pose_refine").refiner.offsets.items()
+    )
     assert moved > 0
     assert _training_error(polished) < _training_error(plain)
     state = load_checkpoint(RunFolder(tmp_path / "polished").checkpoints()[-1][1])
-    assert state["pose_refine"]["polished"] and state["iteration"] == 2
+    assert state["components"]["pose_refine"]["polished"] and state["iteration"] == 2
     with np.load(tmp_path / "polished" / "refined_params.npz") as z:
-        np.testing.assert_allclose(z["body_pose"], polished.refiner.refined_params()["body_pose"])
+        np.testing.assert_allclose(
+            z["body_pose"], polished.component("pose_refine").refiner.refined_params()["body_pose"]
+        )
     again = Trainer(_short(noisy_smpl, tmp_path / "polished", *sets, "pose_refine.polish_steps=8"), resume=True)
-    assert not again.polish_due
+    assert not again.finishing
     again.train()
-    for k, v in again.refiner.offsets.items():
-        assert torch.equal(v.detach(), polished.refiner.offsets[k].detach()), k
+    for k, v in again.component("pose_refine").refiner.offsets.items():
+        assert torch.equal(v.detach(), polished.component("pose_refine").refiner.offsets[k].detach()), k
 
 
 def test_polish_settings_are_checked():
     for bad in ("pose_refine.polish_steps=-1", "pose_refine.polish_lr=0"):
         with pytest.raises(MeshsplatError, match="polish"):
-            apply_overrides(TrainConfig(), [bad]).validate()
+            apply_overrides(recipe_config("quality"), [bad]).validate()
 
 
 # ---- the lazy per-frame Adam (issue 44) -----------------------------------------------------------------
@@ -410,9 +429,9 @@ def test_training_moves_only_the_frames_it_drew(noisy_smpl, standin_model_dir, t
     t = Trainer(_short(noisy_smpl, tmp_path / "run", f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2"))
     t.cfg.iterations = 3
     t.train()
-    steps = t.refiner.steps
+    steps = t.component("pose_refine").refiner.steps
     assert sum(steps) == 3 and 0 in steps
-    for k, v in t.refiner.offsets.items():
+    for k, v in t.component("pose_refine").refiner.offsets.items():
         for j, n in enumerate(steps):
             assert (float(v.detach()[j].abs().max()) == 0) == (n == 0), (k, j)
 
@@ -438,8 +457,8 @@ def test_two_processes_refine_as_one_process_with_the_same_batch(noisy_smpl, sta
     one = Trainer(cfg(tmp_path / "one"))
     one.train()
     launch(cfg(tmp_path / "two"), nproc=2)
-    a = load_checkpoint(RunFolder(tmp_path / "one").checkpoints()[-1][1])["pose_refine"]
-    b = load_checkpoint(RunFolder(tmp_path / "two").checkpoints()[-1][1])["pose_refine"]
+    a = load_checkpoint(RunFolder(tmp_path / "one").checkpoints()[-1][1])["components"]["pose_refine"]
+    b = load_checkpoint(RunFolder(tmp_path / "two").checkpoints()[-1][1])["components"]["pose_refine"]
     assert torch.equal(a["steps"], b["steps"]) and 0 < int(a["steps"].sum()) <= 6
     for k, v in a["offsets"].items():
         assert float(v.abs().max()) > 0
@@ -464,4 +483,4 @@ def test_the_prior_pulls_an_offset_its_images_do_not_hold_back_to_the_tracked_po
     assert 0.05 > sizes[0] > sizes[1] > sizes[2]
     assert bool((ref.offsets["body_pose"].detach()[ref.row_of[b]] == torch.tensor(0.05)).all())
     with pytest.raises(MeshsplatError, match="prior"):
-        apply_overrides(TrainConfig(), ["pose_refine.prior=-1"]).validate()
+        apply_overrides(recipe_config("quality"), ["pose_refine.prior=-1"]).validate()

@@ -13,7 +13,8 @@ from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
 from meshsplat.gaussians.shading import Shading, sh9_basis, shading_normals
 from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
-from meshsplat.train import TrainConfig, Trainer
+from meshsplat.train import Trainer
+from meshsplat.train.recipes import recipe_config
 from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
@@ -159,27 +160,27 @@ def test_export_ships_illumination_and_bakes_the_ply(tmp_path):
 
 def test_config_switches_validate():
     for bad in (
-        "model.shading=phong",
-        "model.shading_normal=face",
+        "shading.occlusion=phong",
+        "shading.normal=face",
         "model.sh_frame=camera",
         "model.init_color_frames=0",
-        "loss.lambda_mask=-1",
-        "model.max_offset=-0.1",
+        "mask_loss.weight=-1",
+        "offset_bound.max_offset=-0.1",
     ):
         from meshsplat.train import apply_overrides
 
         with pytest.raises(MeshsplatError):
-            apply_overrides(TrainConfig(), [bad]).validate()
+            apply_overrides(recipe_config("quality"), [bad]).validate()
 
 
 def test_max_offset_keeps_gaussians_near_their_triangle(tiny_dataset, tmp_path):  # noqa: F811
     # a fast embedding moves the offsets d along the normal; the bound holds them after every step
     fast = ["optim.lr_embedding=1e-2", "optim.lr_embedding_final=1e-2"]
-    free = Trainer(small_config(tiny_dataset, tmp_path / "free", 12, [*fast, "model.max_offset=0"]))
+    free = Trainer(small_config(tiny_dataset, tmp_path / "free", 12, [*fast, "offset_bound.enabled=false"]))
     free.train()
     bound = 2e-3 * free.extent
     assert float(free.params["d"].detach().abs().max()) > bound  # unbounded, some leave the band
-    held = Trainer(small_config(tiny_dataset, tmp_path / "held", 12, [*fast, "model.max_offset=2e-3"]))
+    held = Trainer(small_config(tiny_dataset, tmp_path / "held", 12, [*fast, "offset_bound.max_offset=2e-3"]))
     held.train()
     reach = float(held.params["d"].detach().abs().max())
     assert reach <= bound * (1 + 1e-6)  # float32
@@ -190,12 +191,12 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     import shutil
 
     opts = [
-        "model.shading=sh2",
+        "shading.enabled=true",
         "model.init_color_frames=3",
         "model.sh_degree=1",
         "model.sh_frame=triangle",
         "model.antialiased=true",
-        "loss.lambda_mask=0.1",
+        "mask_loss.weight=0.1",
     ]
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, opts))
     assert full.shading is not None
@@ -214,7 +215,7 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
     for k in full.params:
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
     with pytest.raises(MeshsplatError, match="shading"):
-        Trainer(small_config(tiny_dataset, tmp_path / "res", 30, ["model.shading=none"]), resume=True)
+        Trainer(small_config(tiny_dataset, tmp_path / "res", 30, ["shading.enabled=false"]), resume=True)
 
 
 def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # noqa: F811

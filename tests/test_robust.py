@@ -20,8 +20,9 @@ from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
 from meshsplat.run_folder import load_run
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.config import load_config
+from meshsplat.train.recipes import recipe_config
 from test_train import make_tiny_dataset, small_config
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
@@ -239,7 +240,7 @@ def test_checkpoint_holding_code_is_refused_plainly(tmp_path):
 )
 def test_config_refuses_non_finite_negative_and_absurd_values(override):
     with pytest.raises(MeshsplatError, match=override.split("=")[0].split(".")[-1]):
-        apply_overrides(TrainConfig(), [override]).validate()
+        apply_overrides(recipe_config("quality"), [override]).validate()
 
 
 def test_config_file_with_nan_is_refused(tmp_path):

@@ -18,7 +18,8 @@ import pytest
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.arrays import read_npy, read_npz
 from meshsplat.io.images import MAX_PIXELS, image_size, read_image
-from meshsplat.train.config import TrainConfig, apply_overrides
+from meshsplat.train.config import apply_overrides
+from meshsplat.train.recipes import recipe_config
 
 
 def _npy_bytes(shape, dtype, payload: bytes) -> bytes:
@@ -115,11 +116,11 @@ def test_an_image_at_the_limit_still_decodes_exactly(tmp_path):
 )
 def test_numbers_that_do_not_fit_are_one_line(override, message):
     with pytest.raises(MeshsplatError, match=re.escape(message)):
-        apply_overrides(TrainConfig(), [override]).validate()
+        apply_overrides(recipe_config("quality"), [override]).validate()
 
 
 def test_whole_numbers_written_with_an_exponent_still_read():
-    cfg = apply_overrides(TrainConfig(), ["iterations=3e4", "seed=12"]).validate()
+    cfg = apply_overrides(recipe_config("quality"), ["iterations=3e4", "seed=12"]).validate()
     assert (cfg.iterations, cfg.seed) == (30000, 12)
 
 

@@ -1,4 +1,4 @@
-"""The additive specular term of the posed normal (model.specular=sh2; docs/quality.md)."""
+"""The additive specular term of the posed normal (shading.specular=sh2; docs/quality.md)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,12 @@ from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
 from meshsplat.gaussians.shading import Shading, sh9_basis
 from meshsplat.mesh import MeshPose
 from meshsplat.run_folder import load_avatar
-from meshsplat.train import TrainConfig, Trainer, apply_overrides
+from meshsplat.train import Trainer, apply_overrides
+from meshsplat.train.recipes import recipe_config
 from test_quality_options import _lit_from_x, _sphere
 from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
-SPEC = ["model.specular=sh2"]
+SPEC = ["shading.specular=sh2"]
 
 
 def _specular(scale: float = 0.0, occlusion: str = "none") -> Shading:
@@ -138,11 +139,11 @@ def test_the_bundle_carries_the_specular(tmp_path):
 
 
 def test_config_keys_validate():
-    assert apply_overrides(TrainConfig(), SPEC).validate().model.specular == "sh2"
-    assert TrainConfig().model.specular == "none"
-    for bad in (["model.specular=phong"], ["model.specular=sh2", "model.shading=none", "model.occlusion=none"]):
+    assert apply_overrides(recipe_config("quality"), SPEC).validate().shading.specular == "sh2"
+    assert recipe_config("quality").shading.specular == "none"
+    for bad in (["shading.specular=phong"],):
         with pytest.raises(MeshsplatError, match="specular"):
-            apply_overrides(TrainConfig(), bad).validate()
+            apply_overrides(recipe_config("quality"), bad).validate()
 
 
 def test_trainer_learns_the_specular_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811

@@ -16,8 +16,9 @@ from meshsplat.gaussians import Avatar, init_params, rgb_to_sh0
 from meshsplat.mesh import TriMesh
 from meshsplat.metrics.lpips_net import get_lpips
 from meshsplat.run_folder import load_avatar
-from meshsplat.train import LOG_COLUMNS, TrainConfig, Trainer, apply_overrides, load_config
+from meshsplat.train import LOG_COLUMNS, TrainConfig, Trainer, apply_overrides
 from meshsplat.train.losses import avatar_loss, subject_crop
+from meshsplat.train.recipes import recipe_config
 
 W = H = 32
 VIEWMAT = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]])  # at z=4 looking at 0
@@ -71,8 +72,8 @@ def make_tiny_dataset(root, size=W):
 
 
 def small_config(data, out, iterations, extra=()):
-    cfg = TrainConfig(
-        data=str(data), out=str(out), iterations=iterations, device="cpu", backend="torch", progress=False
+    cfg = recipe_config(
+        "quality", data=str(data), out=str(out), iterations=iterations, device="cpu", backend="torch", progress=False
     )
     return apply_overrides(
         cfg,
@@ -153,7 +154,7 @@ def test_crop_to_subject_trains_and_resumes_bit_exact(tmp_path):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
     on = ["loss.crop_to_subject=true", "loss.lpips_every=1", "checkpoint_every=5"]
     full = Trainer(small_config(ds, tmp_path / "full", 10, on))
-    _, mask, _, _ = full._frame(full.train_ids[0])
+    _, mask, _, _ = full.frames.frame(full.train_ids[0])
     box = subject_crop(mask, None, full.cfg.loss.crop_margin)
     assert box is not None and box.area_fraction < 0.5  # the crop really is a crop here
     full.train()
@@ -216,8 +217,8 @@ def test_lpips_every_skips_the_perceptual_net_and_resumes_bit_exact(tmp_path):
     assert full.history[2]["lpips"] > 0 and full.history[2]["dssim"] > 0
     for r, d in zip(full.history, due, strict=True):  # 3x the weights when due, the rest alone otherwise
         perceptual = 3 * (0.01 * r["lpips"] + 0.2 * r["dssim"]) if d else 0.0
-        albedo = 0.1 * r["albedo"]  # the albedo prior (loss.lambda_albedo), every iteration
-        mask = 0.1 * r["mask"]  # the mask loss (loss.lambda_mask), every iteration
+        albedo = 0.1 * r["albedo"]  # the albedo prior (albedo_prior.weight), every iteration
+        mask = 0.1 * r["mask"]  # the mask loss (mask_loss.weight), every iteration
         assert r["loss"] == pytest.approx(r["l1"] + r["scale"] + perceptual + albedo + mask, rel=1e-5)
     with open(tmp_path / "full" / "log.csv", newline="") as fh:
         log = list(csv.DictReader(fh))
@@ -251,9 +252,9 @@ def _image_loss_before_lpips_every(self, out, gt, mask):
         perceptual=self.perceptual,
         crop=crop,
     )
-    if L.lambda_mask and mask is not None:
+    if self.cfg.mask_loss.enabled and mask is not None:
         mask_l1 = (out.alpha - mask).abs().mean()
-        loss = loss + L.lambda_mask * mask_l1
+        loss = loss + self.cfg.mask_loss.weight * mask_l1
         parts["mask"] = mask_l1.detach()
     return loss, parts
 
@@ -261,7 +262,7 @@ def _image_loss_before_lpips_every(self, out, gt, mask):
 def test_lpips_every_1_is_bit_identical_to_the_loss_before_it(tmp_path, monkeypatch):
     ds = make_tiny_dataset(tmp_path / "ds96", size=96)
     # the reference predates the albedo prior too: off
-    extra = ["loss.lambda_ssim=0.2", "loss.lambda_mask=0.1", "loss.lpips_every=1", "loss.lambda_albedo=0"]
+    extra = ["loss.lambda_ssim=0.2", "mask_loss.weight=0.1", "loss.lpips_every=1", "albedo_prior.weight=0"]
     now = Trainer(small_config(ds, tmp_path / "now", 8, extra))
     now.train()
     monkeypatch.setattr(Trainer, "_image_loss", _image_loss_before_lpips_every)
@@ -271,33 +272,6 @@ def test_lpips_every_1_is_bit_identical_to_the_loss_before_it(tmp_path, monkeypa
         assert torch.equal(now.params[k].detach(), old.params[k].detach()), k
     drop = lambda rows: [{k: v for k, v in r.items() if k != "time_s"} for r in rows]  # noqa: E731
     assert drop(now.history) == drop(old.history)
-
-
-def test_older_run_folder_resumes_bit_exact(tiny_dataset, tmp_path):
-    """A run written before the gsplat names (refine_start/refine_stop, prune_scale2d and the state's radii
-    in pixels) resumes exactly as the same run written today, with the screen-size prune acting."""
-    from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
-
-    # opacity reset at 6: the screen-size prune acts at 12 on radii gathered since 8 (the checkpoint's)
-    extra = ("strategy.reset_every=6", "strategy.prune_scale2d=0.0625")  # 2 px of the 32 px images
-    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, extra))
-    full.train()
-    st = load_checkpoint(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt")
-    old = st["config"]["strategy"]
-    old["refine_start"], old["refine_stop"] = old.pop("refine_start_iter"), old.pop("refine_stop_iter")
-    old["prune_scale2d"] = 2.0
-    st["strategy_state"]["radii"] = st["strategy_state"]["radii"] * 32
-    (tmp_path / "old" / "checkpoints").mkdir(parents=True)
-    save_checkpoint(tmp_path / "old" / "checkpoints" / "ckpt_00000010.pt", st)
-    legacy = dict(st["config"], data=str(tiny_dataset), out=str(tmp_path / "old"), iterations=20)
-    (tmp_path / "old" / "config.json").write_text(json.dumps(legacy))
-    cfg = load_config(tmp_path / "old" / "config.json", image_size=32)
-    assert cfg.strategy.prune_scale2d == 0.0625 and cfg.strategy.refine_start_iter == 4
-    res = Trainer(cfg, resume=True)
-    res.train()
-    for k in full.params:
-        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
-    assert torch.equal(full.strategy_state["radii"], res.strategy_state["radii"])
 
 
 @pytest.mark.slow

@@ -9,17 +9,58 @@ import pytest
 import torch
 
 from meshsplat.errors import MeshsplatError
+from meshsplat.train.components import COMPONENTS
 from meshsplat.train.config import OptimConfig, TrainConfig, apply_overrides, load_config
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers, expon_lr
+from meshsplat.train.recipes import recipe_config, recipe_differences
 
 
-def test_defaults_are_the_quality_preset_on_the_papers_schedule():
+def test_defaults_are_the_published_method_and_every_component_is_off():
     c = TrainConfig()
-    assert (c.model.shading, c.model.init_color_frames, c.optim.lr_color) == ("sh2", 8, 1e-2)
+    assert (c.model.init_color_frames, c.optim.lr_color, c.strategy.grow_grad2d) == (1, 2.5e-3, 2e-4)
+    assert (c.loss.crop_to_subject, c.loss.lpips_every, c.recipe) == (False, 1, "paper")
     assert c.iterations == 30_000 and c.model.n_init == 10_000 and c.model.sh_degree == 0
     s = c.strategy
     assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every, s.reset_every) == (600, 15_000, 100, 3000)
-    # the paper's values are the paper preset's (tests/test_train_presets.py)
+    assert not any(getattr(c, comp.name).enabled for comp, _ in COMPONENTS)
+    assert TrainConfig() == recipe_config("paper")
+
+
+def test_a_partial_yaml_config_changes_only_its_keys_over_the_recipe(tmp_path):
+    (tmp_path / "mine.yaml").write_text("strategy:\n  max_gaussians: 5000\nmask_loss:\n  weight: 0.3\n")
+    cfg = load_config(tmp_path / "mine.yaml", base=recipe_config("quality"))
+    want = apply_overrides(recipe_config("quality"), ["strategy.max_gaussians=5000", "mask_loss.weight=0.3"])
+    assert cfg == want and cfg.recipe == "quality" and cfg.shading.enabled
+    assert recipe_differences(cfg) == [
+        "strategy.max_gaussians=5000 (recipe: 150000)",
+        "mask_loss.weight=0.3 (recipe: 0.1)",
+    ]
+    (tmp_path / "paper.yml").write_text("recipe: paper\n")  # a file may name its recipe
+    assert load_config(tmp_path / "paper.yml").recipe == "paper"
+    (tmp_path / "empty.yaml").write_text("")
+    assert load_config(tmp_path / "empty.yaml") == TrainConfig()
+    (tmp_path / "bad.yaml").write_text("model: [1, 2\n")
+    with pytest.raises(MeshsplatError, match=r"bad.yaml: not valid YAML"):
+        load_config(tmp_path / "bad.yaml")
+    (tmp_path / "code.yaml").write_text("model: !!python/object/apply:os.system ['echo no']\n")
+    with pytest.raises(MeshsplatError, match="not valid YAML"):  # safe loading: plain data only
+        load_config(tmp_path / "code.yaml")
+    (tmp_path / "list.yaml").write_text("- 1\n")
+    with pytest.raises(MeshsplatError, match="expected a training config"):
+        load_config(tmp_path / "list.yaml")
+
+
+def test_config_files_of_another_format_or_version_are_refused_in_one_line(tmp_path):
+    for doc, match in [
+        ({"format": "meshsplat-train-config", "version": 14}, "pre-release meshsplat"),
+        ({"format": "something-else"}, "is not a training config"),
+        ({"format": "meshsplat-config", "version": 2}, "newer than this meshsplat"),
+        ({"version": "1"}, "positive integer"),
+    ]:
+        with pytest.raises(MeshsplatError, match=match):
+            TrainConfig.from_dict(doc)
+    TrainConfig().to_json(tmp_path / "c.json")
+    assert json.loads((tmp_path / "c.json").read_text())["format"] == "meshsplat-config"
 
 
 def test_json_roundtrip(tmp_path):
@@ -54,11 +95,7 @@ def test_json_roundtrip(tmp_path):
         ("loss.lambda_l1=abc", "expects float"),
         ("strategy", "key=value"),
         ("model=3", "unknown key"),
-        (
-            "strategy.refine_start=5",
-            r"strategy.refine_start was renamed to strategy.refine_start_iter \(gsplat's name\)",
-        ),
-        ("strategy.refine_stop=5", "renamed to strategy.refine_stop_iter"),
+        ("strategy.refine_start=5", "unknown key"),
         ("strategy.prune_scale2d=20", "fraction of the image size"),
         ("backend=vulkan", "backend: auto"),
         ("loss.lpips_every=0", r"^config: loss\.lpips_every must be >= 1 \(1 = LPIPS on every iteration\)$"),
@@ -69,38 +106,6 @@ def test_json_roundtrip(tmp_path):
 def test_override_errors(item, match):
     with pytest.raises(MeshsplatError, match=match):
         apply_overrides(TrainConfig(), [item]).validate()
-
-
-def _old_config(**strategy) -> dict:
-    """A config.json as older versions wrote it (strategy keys before gsplat's names, prune_scale2d in px)."""
-    d = TrainConfig().to_dict()
-    st = d["strategy"]
-    st["refine_start"], st["refine_stop"] = st.pop("refine_start_iter"), st.pop("refine_stop_iter")
-    st["prune_scale2d"] = 20.0
-    st.update(strategy)
-    return d
-
-
-def test_old_run_config_is_upgraded(tmp_path):
-    # the demo's schedule (opacity reset after refine_stop): the pixel threshold never acted, no size needed
-    demo = _old_config(refine_start=300, refine_stop=1200, reset_every=100000)
-    (tmp_path / "config.json").write_text(json.dumps(demo))
-    c = load_config(tmp_path / "config.json")
-    assert (c.strategy.refine_start_iter, c.strategy.refine_stop_iter) == (300, 1200)
-    assert c.strategy.prune_scale2d == TrainConfig().strategy.prune_scale2d
-    # the prune acts (reset 3000 < stop 15000): pixels / image size, the size asked only then
-    asked = []
-    c = TrainConfig.from_dict(_old_config(), image_size=lambda: asked.append(1) or 256)
-    assert c.strategy.prune_scale2d == 20.0 / 256 and asked == [1] and c.strategy.refine_start_iter == 600
-    TrainConfig.from_dict(demo, image_size=lambda: asked.append(2) or 256)
-    assert asked == [1]
-    with pytest.raises(MeshsplatError, match=r"prune_scale2d=20.0 is in pixels.*20/256"):
-        TrainConfig.from_dict(_old_config())
-    both = _old_config()
-    both["strategy"]["refine_start_iter"] = 5
-    with pytest.raises(MeshsplatError, match=r"both strategy.refine_start"):
-        TrainConfig.from_dict(both, image_size=256)
-    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()  # today's dicts pass unchanged
 
 
 def test_validate_and_bad_files(tmp_path):
@@ -150,15 +155,16 @@ def test_embedding_lrs_scale_with_mesh_and_decay():
 
 
 def test_colour_lr_decay_hits_both_ends_and_none_keeps_todays_lrs(tmp_path):
-    lrs = base_learning_rates(OptimConfig(), extent=2.0, mean_edge=0.05)
-    today = LrSchedule(OptimConfig(), lrs, max_steps=1000)
+    base = OptimConfig(lr_color=1e-2)  # the quality recipe's
+    lrs = base_learning_rates(base, extent=2.0, mean_edge=0.05)
+    today = LrSchedule(base, lrs, max_steps=1000)
     assert OptimConfig().lr_color_final is None
     for step in (0, 1, 500, 1000, 1200):  # None: every key as before (colour constant, embedding decays)
         for key in lrs:
-            ratio = OptimConfig().lr_embedding_final / OptimConfig().lr_embedding
+            ratio = base.lr_embedding_final / base.lr_embedding
             want = lrs[key] if key not in ("duv", "d") else expon_lr(step, lrs[key], lrs[key] * ratio, 1000)
             assert today.lr(key, step) == want, (key, step)
-    cfg = OptimConfig(lr_color_final=1e-3)
+    cfg = OptimConfig(lr_color=1e-2, lr_color_final=1e-3)
     sched = LrSchedule(cfg, lrs, max_steps=1000)
     assert sched.lr("sh0", 0) == pytest.approx(1e-2) and sched.lr("sh0", 1000) == pytest.approx(1e-3)
     assert sched.lr("sh0", 500) == pytest.approx(math.sqrt(1e-2 * 1e-3))  # log-linear

@@ -21,6 +21,7 @@ from meshsplat.run_folder import RunFolder
 from meshsplat.train import Trainer
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.launch import _wait, free_port, launch
+from meshsplat.train.recipes import recipe_config
 from test_train import make_tiny_dataset, small_config
 
 BATCH = [
@@ -54,9 +55,8 @@ def _params(run: Path) -> dict[str, torch.Tensor]:
 
 
 def test_batch_one_is_the_default_and_batches_are_checked(tiny, tmp_path):
-    from meshsplat.train import TrainConfig
 
-    assert TrainConfig().batch_size == 1
+    assert recipe_config("quality").batch_size == 1
     with pytest.raises(MeshsplatError, match="batch_size"):
         Trainer(small_config(tiny, tmp_path / "r", 2, ["batch_size=0"]))
     with pytest.raises(MeshsplatError, match="batch_size=2"):

@@ -693,7 +693,7 @@ def shaded_avatar(
 ) -> Avatar:
     """The test avatar with pose-dependent shading: a strongly directional learned irradiance (key light
     from +x+y, coloured) and view-dependent SH bands in the triangle frame; ``specular``: plus an added
-    highlight from -x+z (model.specular=sh2), negative in places."""
+    highlight from -x+z (shading.specular=sh2), negative in places."""
     av = make_avatar(n=n, sh_degree=sh_degree)
     coeffs = torch.zeros(9, 3)
     coeffs[0] = torch.tensor([2.2, 2.0, 1.8])
@@ -897,7 +897,7 @@ def test_browser_phone_gestures_and_space_bar(tmp_path):
         assert page.evaluate("window.meshsplatViewer.state.white") is True  # the background did not toggle
 
 
-# ---------------------------------------------------------------- the key light's shadow (model.occlusion=key)
+# ---------------------------------------------------------------- the key light's shadow (shading.occlusion=key)
 KEY_DIR = (1.0, 0.25, 0.1)  # the light: from +x, where the smaller sphere shades the larger one
 
 
@@ -932,7 +932,7 @@ def key_avatar(
 
 def key_shading(direction, grid: int = 64, normal: str = "phong", specular: bool = False, soft: float = 0.0) -> Shading:
     """A low ambient ``sh2`` irradiance (a little more from above) plus an aligned, bright key light from
-    ``direction`` (model.occlusion=key after its last stage; ``soft``: its angular radius, degrees);
+    ``direction`` (shading.occlusion=key after its last stage; ``soft``: its angular radius, degrees);
     ``specular``: plus an added SH2 term. With
     albedos up to 0.8 and opacities 0.8 the colours stay below 1 / opacity, so that even the page's 8-bit
     fallback (which clamps each splat's premultiplied colour at 1) would not clamp them."""
@@ -1182,7 +1182,7 @@ def test_browser_live_gltf_key_shadow_matches_rasterizer(tmp_path):
 
 
 def test_view_cli_key_light_run(tmp_path, capsys):
-    """`meshsplat view` of a run trained with model.occlusion=key: the checkpoint's aligned key light
+    """`meshsplat view` of a run trained with shading.occlusion=key: the checkpoint's aligned key light
     reaches the page's header; a run saved before the key was aligned is a one-line error."""
     from meshsplat.cli.main import main
 
@@ -1202,4 +1202,4 @@ def test_view_cli_key_light_run(tmp_path, capsys):
     capsys.readouterr()
     assert main(["view", str(run2), "--out", str(tmp_path / "v2"), *argv[2:]]) == 2
     err = capsys.readouterr().err
-    assert "model.occlusion=key" in err and "not aligned" in err
+    assert "shading.occlusion=key" in err and "not aligned" in err

@@ -35,7 +35,7 @@ from meshsplat.export import export_avatar
 from meshsplat.paths import asset
 from meshsplat.run_folder import RunFolder, load_avatar
 from meshsplat.synth import contact_sheet, synthesize
-from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_overrides, preset_config
+from meshsplat.train import DEFAULT_RECIPE, TrainConfig, Trainer, apply_overrides, recipe_config
 
 __all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames"]
 
@@ -43,7 +43,7 @@ __all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous
 @dataclass(frozen=True)
 class DemoPreset:
     """Sizes of one demo run. ``overrides`` are TrainConfig ``key=value`` overrides (its schedule);
-    the model comes from a training preset (``meshsplat.train.presets``)."""
+    the model comes from a training recipe (``meshsplat.train.recipes``)."""
 
     frames: int
     resolution: int
@@ -104,11 +104,11 @@ def demo_train_config(
     sizes: DemoPreset,
     extra: list[str] | None = None,
     progress: bool = True,
-    preset: str = DEFAULT_PRESET,
+    recipe: str = DEFAULT_RECIPE,
 ) -> TrainConfig:
-    """The TrainConfig the demo trains with: the model of training preset ``preset`` (``quality``,
+    """The TrainConfig the demo trains with: the model of training recipe ``recipe`` (``quality``,
     or ``paper``: the published method), the schedule of ``sizes``, then ``extra`` (bench variants)."""
-    cfg = preset_config(preset)
+    cfg = recipe_config(recipe)
     cfg.data, cfg.out, cfg.device, cfg.progress = str(data), str(out), "auto", progress
     cfg.iterations, cfg.model.n_init = sizes.iterations, sizes.n_init
     return apply_overrides(cfg, list(sizes.overrides) + list(extra or [])).validate()

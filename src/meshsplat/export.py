@@ -92,11 +92,11 @@ _SHADING_README = """Shading: this avatar was trained with pose-dependent shadin
     0.315392*(3z^2-1), 1.092548*xz, 0.546274*(x^2-y^2)), n = the posed Phong normal ("phong")
     or the Gaussian's shortest posed axis facing the same side ("axis"), per meta.shading.normal.
     {ply} has the shading BAKED for the canonical pose (its f_dc is albedo * E(canonical normal)).
-    With meta.shading.occlusion (model.occlusion=directions), E also holds lights from fixed
+    With meta.shading.occlusion (shading.occlusion=directions), E also holds lights from fixed
     directions shadowed by the posed mesh (see meta.shading.colour); the PLY bakes those of the
-    canonical pose. model.occlusion=key: the same with one direction, the key light, once
+    canonical pose. shading.occlusion=key: the same with one direction, the key light, once
     meta.shading.occlusion.aligned; with soft_deg > 0 its V is the mean over directions within
-    soft_deg degrees of it (an area light's soft shadow). With meta.shading.specular (model.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
+    soft_deg degrees of it (an area light's soft shadow). With meta.shading.specular (shading.specular=sh2), sum_k specular.coeffs[k] * Y_k(n)
     is ADDED after the albedo multiply (not clamped); the PLY bakes it too.
 
 """
@@ -225,7 +225,7 @@ def export_avatar(
                 "light": occ["light"].tolist(),
                 **{
                     k: occ[k] for k in ("candidates", "stage", "aligned", "soft_deg") if k in occ
-                },  # model.occlusion=key
+                },  # shading.occlusion=key
             }
             shading_meta["colour"] = (
                 "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "

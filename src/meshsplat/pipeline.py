@@ -3,7 +3,7 @@
     run_dir = meshsplat.train_avatar("data/cesium", "runs/cesium", iterations=2000)
     run_dir = meshsplat.train_avatar(config=TrainConfig(data="data/cesium", out="runs/x"))
 
-A preset is a named model (``meshsplat.train.presets``: ``quality``, the default, or ``paper``);
+A recipe is a named training setup (``meshsplat.train.recipes``: ``quality``, the default, or ``paper``);
 ``overrides`` (the same strings as ``meshsplat train --set``) apply after it. Like ``meshsplat train``,
 the run keeps the dataset's ``source_map.npz`` so the run alone can be animated by its source asset.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
-from meshsplat.train import DEFAULT_PRESET, TrainConfig, Trainer, apply_overrides, preset_config
+from meshsplat.train import DEFAULT_RECIPE, TrainConfig, Trainer, apply_overrides, recipe_config
 
 __all__ = ["train_avatar"]
 
@@ -24,7 +24,7 @@ def train_avatar(
     dataset: str | Path | None = None,
     out: str | Path | None = None,
     *,
-    preset: str | None = None,
+    recipe: str | None = None,
     iterations: int | None = None,
     overrides: Sequence[str] = (),
     config: TrainConfig | None = None,
@@ -35,7 +35,7 @@ def train_avatar(
     """Train an avatar on the capture ``dataset`` (any layout ``open_capture`` reads) into the run folder
     ``out``; returns the run folder (read it back with ``load_run`` / ``load_avatar``).
 
-    The config is ``config`` if given, else ``TrainConfig()`` with the overrides of ``preset`` (default
+    The config is ``config`` if given, else the recipe: the overrides of ``recipe`` (default
     ``"quality"``; giving both is an error). Then ``dataset``, ``out``, ``overrides`` (``section.key=value``
     strings), ``iterations``, ``device`` and ``progress`` replace what they name when given. ``resume``
     continues the run in ``out`` from its newest checkpoint; without it a folder holding a run is refused.
@@ -45,11 +45,11 @@ def train_avatar(
     if config is not None:
         if not isinstance(config, TrainConfig):
             raise MeshsplatError(f"config: expected a TrainConfig, got {type(config).__name__}")
-        if preset is not None:
-            raise MeshsplatError("give a preset or a config, not both (a config already says everything)")
+        if recipe is not None:
+            raise MeshsplatError("give a recipe or a config, not both (a config already says everything)")
         cfg = TrainConfig.from_dict(config.to_dict())
     else:
-        cfg = preset_config(DEFAULT_PRESET if preset is None else preset)
+        cfg = recipe_config(DEFAULT_RECIPE if recipe is None else recipe)
     if dataset is not None:
         cfg.data = str(dataset)
     if out is not None:

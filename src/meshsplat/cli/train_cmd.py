@@ -1,11 +1,11 @@
 """Train a mesh-embedded Gaussian avatar on a dataset (writes RUN/{config.json,checkpoints,log.csv,previews}).
 
-Presets (--preset): quality (default: pose-dependent shading, colours from 8 frames, colour lr 1e-2)
-or paper (the published method: one colour per Gaussian from the first frame); docs/config.md.
-Configuration precedence: the preset, then --config FILE (or RUN/config.json with --resume), then
---set KEY=VALUE overrides, then flags. --set takes several pairs; put it after the dataset:
+Recipes (--recipe): quality (default: the published method plus the components shading, albedo_prior,
+mask_loss, offset_bound and pose_refine) or paper (the published method); docs/config.md.
+Configuration precedence: the recipe, then --config FILE (JSON or YAML, full or partial; or RUN/config.json
+with --resume), then --set KEY=VALUE overrides, then flags. train prints what differs from the recipe. --set takes several pairs; put it after the dataset:
   meshsplat train DATA --out RUN --set strategy.refine_every=200 walk.enabled=false
-A preset named with --resume must be the run's (the resume check refuses another one).
+A recipe named with --resume must be the run's (the resume check refuses another one).
 --resume continues bit for bit from the newest checkpoint in RUN/checkpoints (on the run's torch thread
 count: another one is noted, and --threads N keeps it); it refuses unreadable checkpoints and config
 changes other than paths, device/backend, logging/checkpoint cadence and --iters. Ctrl-C or SIGTERM write a checkpoint before stopping; checkpoints are also written every
@@ -29,14 +29,15 @@ from meshsplat.cli._options import (
     render_options,
 )
 from meshsplat.cli.threads import add_threads_argument, apply_threads
-from meshsplat.data.formats import detect_format, format_module, open_capture, reader_options
+from meshsplat.data.formats import detect_format, format_module
 from meshsplat.data.source_map import copy_source_map
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.json_file import read_config_file
 from meshsplat.run_folder import RunFolder, check_training_target
 from meshsplat.train.budget import plan_budget
-from meshsplat.train.config import TrainConfig, apply_overrides, load_config
+from meshsplat.train.config import TrainConfig, apply_overrides, config_dict, load_config
 from meshsplat.train.launch import launch
-from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_differences, preset_overrides
+from meshsplat.train.recipes import DEFAULT_RECIPE, RECIPES, recipe_config, recipe_differences, recipe_overrides
 from meshsplat.train.trainer import Trainer
 
 __all__ = ["add_arguments", "run", "build_config"]
@@ -66,11 +67,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--refine-pose",
         action="store_true",
         help="optimise the tracker's per-frame pose/expression parameters of the training frames; the default "
-        "(pose_refine.auto) already does when the capture has SMPL/SMPL-X/FLAME parameters and the model files "
+        "(pose_refine.enabled) already does when the capture has SMPL/SMPL-X/FLAME parameters and the model files "
         "are found; with this flag a capture without them is refused",
     )
     refine.add_argument(
-        "--no-refine-pose", action="store_true", help="keep the tracker's poses (pose_refine.auto=false)"
+        "--no-refine-pose", action="store_true", help="keep the tracker's poses (pose_refine.enabled=false)"
     )
     parser.add_argument("--out", required=True, help="run directory")
     add_downscale_option(parser, "1, or data_downscale of --config (stored in RUN/config.json; eval reads it)")
@@ -85,12 +86,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     parser.add_argument(
-        "--preset",
-        choices=tuple(PRESETS),
+        "--recipe",
+        choices=tuple(RECIPES),
         default=None,
-        help=f"model preset (default {DEFAULT_PRESET}; paper: the published method); docs/config.md",
+        help=f"training recipe (default {DEFAULT_RECIPE}; paper: the published method); docs/config.md",
     )
-    parser.add_argument("--config", default=None, help="JSON config file (full or partial TrainConfig) over the preset")
+    parser.add_argument(
+        "--config",
+        default=None,
+        help="config file, JSON or YAML (.yaml/.yml), full or partial: its keys over the recipe "
+        "(a file may name its recipe: recipe: paper)",
+    )
     parser.add_argument(
         "--set",
         nargs="+",
@@ -137,30 +143,19 @@ class _SetAction(argparse.Action):
 
 
 def build_config(args: argparse.Namespace) -> TrainConfig:
-    """TrainConfig from the preset, the config file, --set overrides and flags (in that order)."""
+    """TrainConfig from the recipe, the config file, --set overrides and flags (in that order)."""
     out = Path(args.out)
     run = RunFolder(out)
     opts = render_options(args)
-
-    def image_size() -> int:  # asked only to convert an older config's pixel threshold
-        opts = reader_options(args.gender, args.shape)
-        return open_capture(
-            args.dataset,
-            format=args.format,
-            model_dir=args.model_dir,
-            drop_bad_frames=args.drop_bad_frames,
-            **opts,
-        ).largest_image_side()
-
-    preset = args.preset or DEFAULT_PRESET
-    cfg = preset_config(preset)
     config_file = args.config or (run.config_path if args.resume and run.config_path.is_file() else None)
+    named = config_dict(read_config_file(config_file)).get("recipe") if config_file else None
+    if args.config and args.recipe and named not in (None, args.recipe):
+        raise MeshsplatError(f"--recipe {args.recipe} and {args.config} (recipe: {named}) differ; keep one")
+    cfg = recipe_config(args.recipe or (str(named) if named is not None else DEFAULT_RECIPE))
     if config_file:
-        cfg = load_config(config_file, image_size, base=cfg)
-        if args.resume and args.preset:  # compared with the checkpoint's config by the resume check
-            cfg = apply_overrides(cfg, list(preset_overrides(args.preset)))
-        elif not args.resume and preset_differences(cfg, preset):
-            print(f"note: {config_file} sets {', '.join(preset_differences(cfg, preset))}")
+        cfg = load_config(config_file, base=cfg)
+        if args.resume and args.recipe:  # compared with the checkpoint's config by the resume check
+            cfg = apply_overrides(cfg, list(recipe_overrides(args.recipe)))
     cfg = apply_overrides(cfg, args.set)
     cfg.data = str(args.dataset)
     if args.format is not None:
@@ -172,9 +167,9 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     if args.shape is not None:
         cfg.data_shape = args.shape
     if args.refine_pose:
-        cfg.pose_refine.enabled = True
+        cfg.pose_refine.enabled = cfg.pose_refine.required = True
     if args.no_refine_pose:
-        cfg.pose_refine.enabled = cfg.pose_refine.auto = False
+        cfg.pose_refine.enabled = False
     if args.drop_bad_frames:
         cfg.drop_bad_frames = True
     if args.downscale is not None:
@@ -191,6 +186,18 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     return cfg.validate()
 
 
+def recipe_summary(cfg: TrainConfig, shown: int = 6) -> str:
+    """A few lines: the recipe and the keys this run sets otherwise (every key is in RUN/config.json)."""
+    diffs = recipe_differences(cfg)
+    head = f"recipe {cfg.recipe}" + (f", {len(diffs)} key(s) set otherwise:" if diffs else " as it is")
+    more = (
+        [f"  ... and {len(diffs) - shown} more (all keys: {RunFolder(cfg.out).config_path})"]
+        if len(diffs) > shown
+        else []
+    )
+    return "\n".join([head, *(f"  {d}" for d in diffs[:shown]), *more])
+
+
 def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).exists():
         raise MeshsplatError(f"dataset not found: {args.dataset}")
@@ -198,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
     check_training_target(args.out, args.dataset)  # a capture, a foreign folder or a run in training: refused
     check_range("--iters", args.iters, "train --iters")
     cfg = build_config(args)
+    if not args.resume:
+        print(recipe_summary(cfg))
     apply_threads(args)
     fmt = cfg.data_format or detect_format(cfg.data)
     print(f"{cfg.data}: {format_module(fmt).DESCRIPTION} ({fmt})" + ("" if cfg.data_format else ", detected"))
@@ -247,9 +256,9 @@ def _train_and_report(trainer: Trainer, cfg: TrainConfig, args: argparse.Namespa
         print(f"no checkpoint in {RunFolder(cfg.out).checkpoint_dir}: starting a new run")
     if trainer.split_note:  # also with --no-progress: it says which frames are held out
         print(trainer.split_note)
-    if trainer.pose_refine_note:
-        print(trainer.pose_refine_note)
-    if trainer.iteration >= cfg.iterations and not trainer.polish_due:
+    for note in trainer.notes:
+        print(note)
+    if trainer.iteration >= cfg.iterations and not trainer.finishing:
         print(f"already at iteration {trainer.iteration} >= {cfg.iterations}; nothing to do")
         return 0
     if cfg.data_downscale != 1:

@@ -20,7 +20,7 @@ from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
 from meshsplat.render.background import composite
-from meshsplat.train.config import PoseRefineConfig
+from meshsplat.train.components import PoseRefineConfig
 from meshsplat.train.pose_refine import PoseRefiner
 
 __all__ = ["FIT_PARAMS", "fit_test_poses", "rows_to_fit"]

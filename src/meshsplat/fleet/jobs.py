@@ -27,7 +27,7 @@ from typing import Any
 from meshsplat.errors import MeshsplatError
 from meshsplat.export import SPLAT_FORMATS
 from meshsplat.train.config import TrainConfig, apply_overrides
-from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config
+from meshsplat.train.recipes import DEFAULT_RECIPE, RECIPES, recipe_config
 
 __all__ = ["Job", "JOB_KEYS", "read_jobs", "job_config", "MAX_FILE_BYTES", "MAX_NODES", "MAX_DEPTH"]
 
@@ -39,7 +39,7 @@ MAX_DEPTH = 64  # nesting of lists and mappings (a job needs 3)
 JOB_KEYS = {
     "name": "folder name under --out (default: the capture folder's name)",
     "data": "capture folder (any layout meshsplat train reads)",
-    "preset": "training preset (quality | paper)",
+    "recipe": "training recipe (quality | paper)",
     "iterations": "training iterations",
     "set": "list of config overrides KEY=VALUE (as meshsplat train --set)",
     "format": "capture layout (default: detect)",
@@ -58,7 +58,7 @@ class Job:
 
     name: str
     data: str
-    preset: str = DEFAULT_PRESET
+    recipe: str = DEFAULT_RECIPE
     iterations: int | None = None
     set: list[str] = field(default_factory=list)
     format: str = ""
@@ -80,7 +80,7 @@ class Job:
 
 def job_config(job: Job, run_dir: str | Path) -> TrainConfig:
     """The job's ``TrainConfig``, training into ``run_dir``."""
-    cfg = apply_overrides(preset_config(job.preset), list(job.set))
+    cfg = apply_overrides(recipe_config(job.recipe), list(job.set))
     cfg.data, cfg.out, cfg.progress = job.data, str(run_dir), False
     cfg.data_format, cfg.model_dir, cfg.device = job.format, job.model_dir, job.device
     if job.iterations is not None:
@@ -210,7 +210,7 @@ def _job(entry: Any, defaults: dict[str, Any], base: Path, index: int) -> Job:
         job.problem = f"unknown key(s) {', '.join(unknown)}; a job takes {', '.join(JOB_KEYS)}"
         return job
     try:
-        for key in ("preset", "format", "model_dir", "device"):
+        for key in ("recipe", "format", "model_dir", "device"):
             if key in d:
                 setattr(job, key, _typed(key, d[key], "str"))
         for key in ("iterations", "threads"):
@@ -224,8 +224,8 @@ def _job(entry: Any, defaults: dict[str, Any], base: Path, index: int) -> Job:
         return job
     if not _NAME.match(job.name):
         job.problem = f"name {job.name!r}: letters, digits, '.', '_', '-' only"
-    elif job.preset not in PRESETS:
-        job.problem = f"preset {job.preset!r}: expected one of {', '.join(PRESETS)}"
+    elif job.recipe not in RECIPES:
+        job.problem = f"recipe {job.recipe!r}: expected one of {', '.join(RECIPES)}"
     elif bad := [f for f in job.export if f not in SPLAT_FORMATS]:
         job.problem = f"export {bad}: expected some of {', '.join(SPLAT_FORMATS)}"
     elif job.threads < 1:

@@ -69,7 +69,7 @@ __all__ = [
 
 SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
 SHADING_NORMALS = ("phong", "axis")
-# model.occlusion: off | lights from fixed directions, shadowed by the mesh | one key light found among them
+# shading.occlusion: off | lights from fixed directions, shadowed by the mesh | one key light found among them
 OCCLUSION_MODES = ("none", "directions", "key")
 KEY_CONE_DEG = 70.0  # align_key: candidate lights this close to the strongest one merge into the key
 KEY_RINGS_DEG = (25.0, 10.0)  # align_key: the rings of new candidates around the estimate, stage by stage
@@ -78,7 +78,7 @@ KEY_STAGES = 1 + len(KEY_RINGS_DEG)  # align_key calls until one key light is le
 KEY_SOFT_SAMPLES = 12  # key_soft > 0: shadow-map directions spread over the key light's disk
 # the clamped cosine max(0, n . w) in SH2: A_l * Y_lm(w) per band l (Ramamoorthi & Hanrahan)
 _CLAMPED_COS_BANDS = (math.pi, 2 * math.pi / 3, 2 * math.pi / 3, 2 * math.pi / 3) + (math.pi / 4,) * 5
-SPECULAR_MODES = ("none", "sh2")  # model.specular: off | an added (not albedo-multiplied) SH2 term of the normal
+SPECULAR_MODES = ("none", "sh2")  # shading.specular: off | an added (not albedo-multiplied) SH2 term of the normal
 _Y00 = 0.28209479177387814
 
 

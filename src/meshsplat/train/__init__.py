@@ -1,10 +1,13 @@
 """Training: config dataclasses, optimizers and lr schedule, densification strategy, Trainer.
 
-Losses live in ``meshsplat.train.losses``. ``TrainConfig()`` is the ``quality`` preset;
-``preset_config("paper")`` the published method (``meshsplat.train.presets``). Python API::
+Losses live in ``meshsplat.train.losses``; the features beyond the paper in ``meshsplat.train.components``.
+``TrainConfig()`` is the published method; ``recipe_config("quality")`` the default of ``meshsplat train``
+(``meshsplat.train.recipes``). Python API::
 
-    from meshsplat.train import TrainConfig, train
-    run_dir = train(TrainConfig(data="path/to/dataset", out="runs/x", iterations=2000))
+    from meshsplat.train import recipe_config, train
+    cfg = recipe_config("quality")
+    cfg.data, cfg.out, cfg.iterations = "path/to/dataset", "runs/x", 2000
+    run_dir = train(cfg)
 """
 
 from meshsplat.train.config import (
@@ -18,9 +21,10 @@ from meshsplat.train.config import (
     load_config,
 )
 from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimizers, expon_lr
-from meshsplat.train.presets import DEFAULT_PRESET, PRESETS, preset_config, preset_overrides
+from meshsplat.train.recipes import DEFAULT_RECIPE, RECIPES, recipe_config, recipe_overrides
+from meshsplat.train.run_log import LOG_COLUMNS
 from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
-from meshsplat.train.trainer import LOG_COLUMNS, Trainer, mesh_extent, train
+from meshsplat.train.trainer import Trainer, mesh_extent, train
 
 __all__ = [
     "TrainConfig",
@@ -41,8 +45,8 @@ __all__ = [
     "train",
     "mesh_extent",
     "LOG_COLUMNS",
-    "PRESETS",
-    "DEFAULT_PRESET",
-    "preset_config",
-    "preset_overrides",
+    "RECIPES",
+    "DEFAULT_RECIPE",
+    "recipe_config",
+    "recipe_overrides",
 ]

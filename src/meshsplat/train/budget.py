@@ -55,7 +55,7 @@ KEPT_KEYS = (
     "walk.every",
     "log_every",
     "loss.lpips_every",
-    "model.occlusion_key_iter",
+    "shading.key_iter",
 )
 PROBE_ITERATIONS = 6  # timed after one warm-up iteration (even: LPIPS every second iteration is averaged)
 GROWTH_MARGIN = 1.5  # later iterations hold more Gaussians than the measured first ones

@@ -13,7 +13,7 @@ normal motion have the same world-space speed as 3DGS positions, whatever the me
 Colour learning rates. ``lr_color`` (sh0) and ``lr_shN`` are constant unless ``lr_color_final`` is
 set: then both decay log-linearly by the factor ``lr_color_final / lr_color`` over the run (no
 warm-up), like the embedding's. The schedule depends only on the iteration, so a resumed run
-continues it exactly. The global illumination coefficients (``lr_shading``, their own optimizer in
+continues it exactly. The global illumination coefficients (``shading.lr``, their own optimizer in
 the trainer) stay constant: a handful of numbers fit to every pixel of every frame, Monte Carlo
 noise averages out in their gradient, and they are what carries the lighting the albedo is divided by.
 """

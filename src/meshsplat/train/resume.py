@@ -11,6 +11,8 @@ Rules (nothing is lost or silently wrong):
 
 from __future__ import annotations
 
+import hashlib
+import json
 import random
 import signal
 import threading
@@ -20,9 +22,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from meshsplat.data.dataset import AvatarDataset
 from meshsplat.errors import MeshsplatError
+from meshsplat.io.atomic import write_text_atomic
 from meshsplat.io.checkpoint import load_checkpoint
-from meshsplat.run_folder import RunFolder
+from meshsplat.run_folder import RunFolder, capture_identity, identity_differences
 
 __all__ = [
     "SAFE_CHANGES",
@@ -35,6 +39,8 @@ __all__ = [
     "signal_name",
     "capture_rng",
     "restore_rng",
+    "check_same_capture",
+    "write_identity",
 ]
 
 # Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs.
@@ -212,3 +218,32 @@ def restore_rng(rng: dict[str, Any], names: tuple[str, ...], device: torch.devic
 
 def _tuplify(x):
     return tuple(_tuplify(v) for v in x) if isinstance(x, (list, tuple)) else x
+
+
+def check_same_capture(run: RunFolder, dataset: AvatarDataset, data: str) -> None:
+    """On resume: the capture is the one the run was trained on (``RUN/run.json``; runs without it pass)."""
+    old = run.identity()
+    if not isinstance(old, dict) or not isinstance(old.get("capture"), dict):
+        return
+    differ = identity_differences(old["capture"], capture_identity(dataset))
+    if differ:
+        raise MeshsplatError(
+            f"cannot resume {run.root}: it was trained on {old.get('data', 'another capture')}, and "
+            f"{data} is another capture ({', '.join(differ)} differ); resume with the run's own "
+            "capture, or train this one into a new --out"
+        )
+
+
+def write_identity(run: RunFolder, config: dict[str, Any], dataset: AvatarDataset, resumed: bool) -> None:
+    """``RUN/run.json``: the capture this run trains and a digest of its recipe (every config key but those a
+    resume may change); kept on resume."""
+    if resumed and run.identity_path.is_file():
+        return
+    recipe = {k: v for k, v in config.items() if k not in SAFE_CHANGES}
+    record = {
+        "data": config["data"],
+        "data_format": dataset.format_name,
+        "capture": capture_identity(dataset),
+        "recipe": hashlib.sha256(json.dumps(recipe, sort_keys=True, default=str).encode()).hexdigest()[:16],
+    }
+    write_text_atomic(run.identity_path, json.dumps(record, indent=1) + "\n")

@@ -10,7 +10,7 @@ section of ``avatar.json["sections"]`` gives its byte ``offset`` (4-byte aligned
 plus half floats, :func:`pack_gaussians`), their higher SH bands into ``sh_rest`` (half floats).
 The browser poses and shades the Gaussians from the mesh each frame on the GPU exactly as
 :func:`meshsplat.gaussians.compose` does (view-dependent colour, the learned irradiance of the
-posed normal, the shadowed key light of ``model.occlusion=key``, antialiasing compensation). See
+posed normal, the shadowed key light of ``shading.occlusion=key``, antialiasing compensation). See
 docs/viewer.md.
 """
 
@@ -238,19 +238,19 @@ def _sh_rest(avatar: Avatar) -> np.ndarray | None:
 
 
 def _check_occlusion(avatar: Avatar) -> None:
-    """The player shades ``model.occlusion=none`` and an aligned ``key`` (its shadow maps built per frame)."""
+    """The player shades ``shading.occlusion=none`` and an aligned ``key`` (its shadow maps built per frame)."""
     sh = avatar.shading
     if sh is None or sh.occlusion == "none" or (sh.occlusion == "key" and sh.key_aligned):
         return
     if sh.occlusion == "key":
         raise MeshsplatError(
-            f"avatar: model.occlusion=key with the key light not aligned yet (stage {sh.key_stage} of "
+            f"avatar: shading.occlusion=key with the key light not aligned yet (stage {sh.key_stage} of "
             f"{KEY_STAGES}; the web player shades one key light); train to {KEY_STAGES} x "
-            "model.occlusion_key_iter or use meshsplat render for this avatar"
+            "shading.key_iter or use meshsplat render for this avatar"
         )
     raise MeshsplatError(
-        f"avatar: trained with model.occlusion={sh.occlusion}, which the web player does not shade (one "
-        "shadow map per light direction and frame; it shades model.occlusion=key); use meshsplat render for this avatar"
+        f"avatar: trained with shading.occlusion={sh.occlusion}, which the web player does not shade (one "
+        "shadow map per light direction and frame; it shades shading.occlusion=key); use meshsplat render for this avatar"
     )
 
 
@@ -260,9 +260,9 @@ def _shading_header(avatar: Avatar) -> dict[str, Any]:
     shading: dict[str, Any] | None = None
     if sh is not None:
         shading = {"coeffs": sh.coeffs.detach().double().cpu().tolist(), "normal": sh.normal, "space": "world"}
-        if sh.specular is not None:  # added after the albedo multiply (model.specular=sh2)
+        if sh.specular is not None:  # added after the albedo multiply (shading.specular=sh2)
             shading["specular"] = sh.specular.detach().double().cpu().tolist()
-        if sh.occlusion == "key":  # one shadowed key light (model.occlusion=key, aligned): E += L V(x) max(0, n . w)
+        if sh.occlusion == "key":  # one shadowed key light (shading.occlusion=key, aligned): E += L V(x) max(0, n . w)
             shadows = sh.shadow_directions()  # V(x): the mean over these directions' height maps
             assert sh.directions is not None and sh.light is not None and shadows is not None
             shading["key"] = {

@@ -1,0 +1,121 @@
+"""Component ``pose_refine``: the tracker's per-frame body/head-model parameters refined with the avatar.
+
+Each training frame's parameters named in ``params`` (those the capture's model has) get a trainable offset,
+optimised with a lazy Adam (``meshsplat.train.pose_refine.PoseRefiner``); test frames keep the tracker's. Its
+checkpoint state is the refiner's; beside each checkpoint it writes ``RUN/refined_params.npz``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.run_folder import RunFolder
+from meshsplat.train.components.base import Component, TrainingState
+from meshsplat.train.pose_refine import PoseRefiner
+
+__all__ = ["PoseRefineConfig", "PoseRefinement"]
+
+
+@dataclass
+class PoseRefineConfig:
+    """Refine when the capture's meshes come from SMPL/SMPL-X/FLAME parameters and the model files are found
+    (else train without, saying why); with ``required`` such a capture is the only one accepted."""
+
+    enabled: bool = False
+    required: bool = False  # refuse a capture whose poses cannot be refined
+    lr: float = 3e-4  # bench/pose_refine.py: 3e-4 best of 3e-4, 1e-3, 5e-3 (diverges) at the demo budget
+    params: str = "global_orient,body_pose,transl,neck_pose,jaw_pose,expression"
+    # a pull of each offset towards zero (its gradient gains prior * offset): keeps a pose where the images say
+    # nothing (e.g. depth in a monocular capture); 0: none (bench/reports/pose_refine.md)
+    prior: float = 0.0
+    # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen; 0: none
+    polish_steps: int = 0
+    polish_lr: float = 1e-3
+
+    def checks(self) -> list[tuple[bool, str]]:
+        return [
+            (self.lr > 0, "pose_refine.lr must be > 0"),
+            (self.prior >= 0, "pose_refine.prior must be >= 0"),
+            (0 <= self.polish_steps <= 100_000, "pose_refine.polish_steps must be in [0, 100000]"),
+            (self.polish_lr > 0, "pose_refine.polish_lr must be > 0"),
+        ]
+
+
+class PoseRefinement(Component):
+    name = "pose_refine"
+    cfg: PoseRefineConfig
+
+    def __init__(self, cfg: PoseRefineConfig, state: TrainingState, refiner: PoseRefiner) -> None:
+        super().__init__(cfg, state)
+        self.refiner = refiner
+
+    @classmethod
+    def build(cls, cfg: PoseRefineConfig, state: TrainingState) -> tuple[Component | None, str | None]:
+        ds = state.dataset
+        if not cfg.required and (ds.driver_info is None or ds.driver_params is None):
+            return None, None  # meshes without model parameters: nothing to refine, nothing to say
+        try:
+            refiner = PoseRefiner(
+                state.dataset,
+                state.train_ids,
+                cfg.params,
+                cfg.lr * state.lr_factor,
+                state.model_dir,
+                state.device,
+                prior=cfg.prior,
+            )
+        except MeshsplatError as exc:
+            if cfg.required:
+                raise
+            return None, f"pose refinement off, the tracker's poses are kept: {exc}"
+        kind = str((state.dataset.driver_info or {}).get("type", "model")).upper()
+        note = f"pose refinement on: {', '.join(refiner.names)} of {len(refiner.row_of)} training meshes ({kind})"
+        return cls(cfg, state, refiner), note
+
+    def _row(self, idx: int) -> int:
+        return int(self.state.dataset.frame_info(idx)["mesh"])
+
+    def posed(self, idx: int) -> torch.Tensor | None:
+        row = self._row(idx)
+        return self.refiner.vertices(row) if self.refiner.refines(row) else None  # changes every step
+
+    def parameters(self) -> list[torch.Tensor]:
+        return list(self.refiner.offsets.values())
+
+    def after_step(self, it: int, rows: list[int]) -> None:
+        # the batch's rows only: a frame not drawn keeps its pose and its Adam state
+        self.refiner.step(self._row(i) for i in rows)
+        self.refiner.polished = False  # the poses moved with the avatar: fit them again at the end
+
+    @property
+    def finishing(self) -> bool:
+        return self.cfg.polish_steps > 0 and not self.refiner.polished
+
+    def finish(self, render_error: Callable[[int], torch.Tensor], on_step: Callable[[], None] | None = None) -> None:
+        """``polish_steps`` Adam steps on the refined training poses, the avatar frozen: the sum of
+        ``render_error(idx)`` over each mesh row's training frames, one backward per row (``PoseRefiner.fit``)."""
+        frames: dict[int, list[int]] = {}
+        for i in self.state.train_ids:
+            frames.setdefault(self._row(i), []).append(i)
+
+        def row_error(row: int) -> torch.Tensor:
+            return torch.stack([render_error(i) for i in frames[row]]).sum()
+
+        self.refiner.fit(row_error, self.cfg.polish_steps, self.cfg.polish_lr, on_step)
+        self.refiner.polished = True
+
+    def state_dict(self) -> Any:
+        return self.refiner.state_dict()
+
+    def load_state_dict(self, state: Any, checkpoint: dict[str, Any]) -> None:
+        self.refiner.load_state_dict(state)
+
+    def on_checkpoint(self, folder: RunFolder) -> None:
+        arrays: dict[str, Any] = self.refiner.refined_params()  # readable without torch
+        np.savez(folder.refined_params_path, **arrays)

@@ -1,0 +1,125 @@
+"""Component ``shading``: pose-dependent lighting (``meshsplat.gaussians.shading``).
+
+The SH colour becomes an albedo, times a learned 2nd-order SH irradiance of the Gaussian's posed normal; with
+``occlusion`` the posed mesh also casts shadows of learned lights (``key``: one key light found in training). The
+lighting has its own Adam at ``lr``. The avatar's state carries the lighting itself (``Avatar.state_dict``), so
+checkpoints, exports and the player read it from one place; this component's checkpoint state is its optimizer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians.shading import OCCLUSION_MODES, SHADING_NORMALS, SPECULAR_MODES, Shading
+from meshsplat.train.components.base import Component
+
+__all__ = ["ShadingConfig", "ShadingComponent"]
+
+
+@dataclass
+class ShadingConfig:
+    """Pose-dependent shading; off: one colour per Gaussian (the paper)."""
+
+    enabled: bool = False
+    normal: str = "phong"  # "phong": the embedding's interpolated normal | "axis": shortest Gaussian axis
+    # shadows from the posed driving mesh: "none" | "directions": learned lights from `directions` fixed directions,
+    # each Gaussian's visibility on a grid^2 depth map per direction | "key": the same, then one key light found among
+    # them in stages of `key_iter` iterations (Shading.align_key), the rest folded into the SH2 irradiance
+    occlusion: str = "key"
+    directions: int = 16
+    grid: int = 96  # cells per side of each shadow map
+    key_iter: int = 300
+    key_soft: float = 12.0  # "key": the light's angular radius (degrees), a soft area-light shadow; 0: hard
+    # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
+    specular: str = "none"
+    lr: float = 5e-2  # the lighting's Adam (times sqrt(batch_size))
+
+    def checks(self) -> list[tuple[bool, str]]:
+        return [
+            (self.normal in SHADING_NORMALS, f"shading.normal: {'|'.join(SHADING_NORMALS)}"),
+            (self.occlusion in OCCLUSION_MODES, f"shading.occlusion: {'|'.join(OCCLUSION_MODES)}"),
+            (self.specular in SPECULAR_MODES, f"shading.specular: {'|'.join(SPECULAR_MODES)}"),
+            (1 <= self.directions <= 256, "shading.directions must be in 1..256"),
+            (8 <= self.grid <= 1024, "shading.grid must be in 8..1024"),
+            (self.key_iter >= 1, "shading.key_iter must be >= 1"),
+            (0.0 <= self.key_soft <= 45.0, "shading.key_soft must be in 0..45 (degrees)"),
+            (self.lr > 0, "shading.lr must be > 0"),
+        ]
+
+
+class ShadingComponent(Component):
+    name = "shading"
+    cfg: ShadingConfig
+
+    def __init__(self, cfg: ShadingConfig, state: Any) -> None:
+        super().__init__(cfg, state)
+        self.shading: Shading | None = None
+        self.optimizer: torch.optim.Adam | None = None
+
+    def start(self) -> None:
+        c = self.cfg
+        self._set(
+            Shading(
+                normal=c.normal,
+                device=self.state.device,
+                occlusion=c.occlusion,
+                directions=c.directions,
+                grid=c.grid,
+                specular=c.specular,
+                key_soft=c.key_soft if c.occlusion == "key" else 0.0,
+            )
+        )
+
+    def _set(self, shading: Shading) -> None:
+        """Make ``shading``'s tensors trainable leaves on the device, with a new Adam over them."""
+        dev = self.state.device
+        shading.coeffs = torch.nn.Parameter(shading.coeffs.detach().clone().to(dev))
+        if shading.light is not None:
+            shading.light = torch.nn.Parameter(shading.light.detach().clone().to(dev))
+        if shading.specular is not None:
+            shading.specular = torch.nn.Parameter(shading.specular.detach().clone().to(dev))
+        self.shading = shading
+        self.optimizer = torch.optim.Adam(
+            shading.parameters(), lr=self.cfg.lr * self.state.lr_factor, eps=self.state.eps
+        )
+
+    def parameters(self) -> list[torch.Tensor]:
+        return [] if self.shading is None else self.shading.parameters()
+
+    def after_step(self, it: int, rows: list[int]) -> None:
+        assert self.optimizer is not None and self.shading is not None
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.shading.project()
+        self._align_key(it)
+
+    def _align_key(self, it: int) -> None:
+        """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
+        iteration (a short run ends with one key light too)."""
+        sh, every = self.shading, self.cfg.key_iter
+        if sh is None or sh.occlusion != "key" or sh.key_aligned:
+            return
+        stage = sh.key_stage
+        while not sh.key_aligned and (it >= every * (sh.key_stage + 1) or it == self.state.iterations):
+            sh.align_key()
+        if sh.key_stage != stage:  # new tensors: a new optimizer
+            self._set(sh)
+
+    def state_dict(self) -> Any:
+        return None if self.optimizer is None else {"optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: Any, checkpoint: dict[str, Any]) -> None:
+        shading = Shading.from_state_dict(checkpoint["avatar"].get("shading"), self.state.device)
+        if shading is None or shading.occlusion != self.cfg.occlusion or shading.specular_mode != self.cfg.specular:
+            raise MeshsplatError(
+                "checkpoint: its avatar's lighting does not match the shading section of the configuration; "
+                "resume with the run's own config.json or start a new run"
+            )
+        self._set(shading)
+        if state:
+            assert self.optimizer is not None
+            self.optimizer.load_state_dict(state["optimizer"])
