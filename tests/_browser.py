@@ -117,6 +117,15 @@ class Page:
         pts = [{"x": x, "y": y, "id": i, "radiusX": 1, "radiusY": 1, "force": 1} for i, (x, y) in enumerate(points)]
         self.call("Input.dispatchTouchEvent", {"type": kind, "touchPoints": pts})
 
+    def mouse(self, kind: str, x: float, y: float, button: str = "left", clicks: int = 1, **extra) -> None:
+        """``kind``: mousePressed | mouseReleased | mouseMoved | mouseWheel (``deltaX``/``deltaY`` in
+        ``extra``); ``button``: left | right | middle | none."""
+        pressed = {"left": 1, "right": 2, "middle": 4}.get(button, 0)
+        params = {"type": kind, "x": x, "y": y, "button": button, "clickCount": clicks, **extra}
+        if kind == "mouseMoved":
+            params["buttons"] = pressed
+        self.call("Input.dispatchMouseEvent", params)
+
     def key(self, key: str, code: str, text: str = "") -> None:
         """Press and release one key (``key``/``code`` as KeyboardEvent's; ``text`` for printable keys)."""
         for kind in ("keyDown", "keyUp"):

@@ -255,7 +255,8 @@ def add_camera_options(parser: argparse.ArgumentParser, orbit_turn: bool = False
         "--camera",
         default=None,
         help="dataset:<camera_id> (a capture camera) or page:FOLDER (the initial camera of a viewer page: "
-        "its folder or avatar.json); the flags below override a page's values",
+        "its folder or avatar.json), page:FOLDER#view=... (the view the page showed: its address's #view= or "
+        "its 'copy view'); the flags below override a page's values",
     )
     parser.add_argument(
         "--center", default=None, metavar="X,Y,Z", help="orbit centre (default the animation's box centre)"

@@ -525,11 +525,49 @@ def _fill_template(template: str, values: dict[str, str]) -> str:
     return re.sub(r"__(TITLE|AVATAR_HEADER|AVATAR_DATA|VIEWER_JS)__", lambda m: values[m.group(1)], template)
 
 
+def parse_view(text: str) -> dict[str, Any]:
+    """The orbit entries of a page's ``view=AZ,EL,DIST,CX,CY,CZ,FOV,W,H`` (the player's URL fragment and
+    "copy view", ``viewString`` in viewer.js): ``azimuth_deg, elevation_deg, distance, center, fov_deg,
+    width, height``."""
+    m = re.search(r"(?:^|[#&])view=([^&#]*)", text)
+    if m is None:
+        raise MeshsplatError(
+            f"page view: expected view=AZ,EL,DIST,CX,CY,CZ,FOV,W,H (the page's #view=...), got {text!r}"
+        )
+    try:
+        v = [float(x) for x in m.group(1).split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 9 or not all(math.isfinite(x) for x in v) or v[2] <= 0 or v[7] < 1 or v[8] < 1:
+        raise MeshsplatError(
+            f"page view: expected 9 numbers AZ,EL,DIST,CX,CY,CZ,FOV,W,H (distance > 0, a size in pixels), got {m.group(1)!r}"
+        )
+    return {
+        "azimuth_deg": v[0],
+        "elevation_deg": v[1],
+        "distance": v[2],
+        "center": (v[3], v[4], v[5]),
+        "fov_deg": v[6],
+        "width": round(v[7]),
+        "height": round(v[8]),
+    }
+
+
 def page_camera(path: str | Path) -> dict[str, Any]:
-    """The player page's initial camera as an orbit description (``meshsplat.camera.ORBIT_KEYS``:
-    ``center, distance, azimuth_deg, elevation_deg, fov_deg, width, height, up, front``) from a viewer
-    bundle folder or its ``avatar.json``; ``meshsplat.camera.orbit_camera(**it)`` is the page's camera."""
-    p = Path(path)
+    """The player page's camera as an orbit description (``meshsplat.camera.ORBIT_KEYS``: ``center,
+    distance, azimuth_deg, elevation_deg, fov_deg, width, height, up, front``) from a viewer bundle folder,
+    its ``avatar.json`` or its ``index.html`` (a path or a ``file://`` URL): the initial camera, or, with a
+    ``#view=...`` fragment (the page's address, "copy view"), the view the page showed; ``meshsplat.camera.
+    orbit_camera(**it)`` is the page's camera."""
+    text = str(path)
+    view = None
+    if "#" in text:
+        text, fragment = text.split("#", 1)
+        view = parse_view(fragment)
+    if text.startswith("file://"):
+        text = urllib.parse.unquote(urllib.parse.urlparse(text).path)
+    p = Path(text)
+    p = p.parent if p.name == "index.html" else p
     p = p / "avatar.json" if p.is_dir() else p
     try:
         cam = json.loads(p.read_text(encoding="utf-8")).get("camera")

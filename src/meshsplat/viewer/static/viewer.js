@@ -64,8 +64,39 @@ export function unpackGaussians(packed, N) {
   return out;
 }
 
+/** Bytes the header's sections need (the end of the last one). */
+export function bundleBytes(header) {
+  let need = 0;
+  for (const s of Object.values(header.sections || {})) {
+    const count = s.shape.reduce((a, b) => a * b, 1);
+    need = Math.max(need, s.offset + count * TYPED[s.dtype].BYTES_PER_ELEMENT);
+  }
+  return need;
+}
+
+/** Why `header` is not a page this viewer plays (a foreign or older page), or null. */
+export function headerProblem(header) {
+  if (!header || typeof header !== "object" || header.format !== "meshsplat-viewer" || !header.sections) {
+    return "this is not a meshsplat player page (its data header is missing or foreign)";
+  }
+  if (header.version !== 3) {
+    return `this page was written by another meshsplat (player data version ${header.version}; this player reads 3): write it again with meshsplat view`;
+  }
+  for (const [name, s] of Object.entries(header.sections)) {
+    if (!TYPED[s.dtype] || !Array.isArray(s.shape)) return `this page's data header is damaged (section ${name})`;
+  }
+  return null;
+}
+
 /** Typed-array views of avatar.bin (`bytes`: ArrayBuffer or Uint8Array) laid out per `header`. */
 export function decodeBundle(header, bytes) {
+  const problem = headerProblem(header);
+  if (problem) throw new Error(problem);
+  const have = bytes.byteLength, need = bundleBytes(header);
+  if (have < need) {
+    throw new Error(`this page's avatar data is cut short (${have.toLocaleString("en")} of ${need.toLocaleString("en")} bytes): ` +
+                    "the page was truncated (an interrupted download or copy?); get the whole file again");
+  }
   // own copy at offset 0 so that every section is aligned (a Node Buffer may be a view into a pool)
   const buf = new Uint8Array(bytes instanceof ArrayBuffer ? new Uint8Array(bytes) : bytes).buffer;
   const arr = {};
@@ -581,6 +612,32 @@ export function orbitViewmat(center, distance, azimuthDeg, elevationDeg, up = [0
   }
   m[15] = 1;
   return m;
+}
+
+/**
+ * The page's current view as a URL fragment value, `view=AZ,EL,DIST,CX,CY,CZ,FOV,W,H` (degrees, the
+ * orbit's distance and centre in the avatar's units, the canvas in pixels): what
+ * `meshsplat render --camera 'page:FOLDER#view=...'` draws (meshsplat.viewer.bundle.page_camera).
+ */
+export function viewString(cam, fovDeg, width, height) {
+  const n = (x) => String(Number(Number(x).toPrecision(10)));
+  return `view=${[cam.az, cam.el, cam.dist, ...cam.center, fovDeg].map(n).join(",")},${width},${height}`;
+}
+
+/** {az, el, dist, center, fov, width, height} of a `view=...` string (with or without '#'), or null. */
+export function parseView(text) {
+  const m = /(?:^|[#&])view=([-+0-9.eE,]+)/.exec(text || "");
+  if (!m) return null;
+  const v = m[1].split(",").map(Number);
+  if (v.length !== 9 || !v.every(Number.isFinite) || !(v[2] > 0)) return null;
+  return { az: v[0], el: v[1], dist: v[2], center: [v[3], v[4], v[5]], fov: v[6], width: v[7], height: v[8] };
+}
+
+/** The view's render flags (meshsplat render / view). */
+export function viewFlags(cam, fovDeg, width, height) {
+  const n = (x) => String(Number(Number(x).toPrecision(7)));
+  return `--azimuth ${n(cam.az)} --elevation ${n(cam.el)} --distance ${n(cam.dist)} --center ${cam.center.map(n).join(",")} ` +
+         `--fov ${n(fovDeg)} --size ${width}x${height}`;
 }
 
 /** Pinhole [fx, fy, cx, cy] for a vertical field of view, principal point at the image centre. */
@@ -1679,15 +1736,42 @@ function el(doc, tag, attrs, parent) {
 /** Start the viewer in a page holding #avatar-header (JSON) and #avatar-data (base64 avatar.bin). */
 export function startViewer(doc) {
   const $ = (id) => doc.getElementById(id);
-  const header = JSON.parse($("avatar-header").textContent);
-  const b = decodeBundle(header, decodeBase64($("avatar-data").textContent));
+  if (typeof window !== "undefined") window.meshsplatStarted = true;
+  let header, bytes;
+  try { header = JSON.parse($("avatar-header").textContent); } catch (err) {
+    throw new Error("this page's data header is damaged (not JSON): the page was cut or edited; write it again with meshsplat view");
+  }
+  const problem = headerProblem(header);
+  if (problem) throw new Error(problem);
+  try { bytes = decodeBase64($("avatar-data").textContent); } catch (err) {
+    throw new Error("this page's avatar data is damaged or cut short (not base64): get the whole file again");
+  }
+  const b = decodeBundle(header, bytes);
+  if ($("loading")) $("loading").hidden = true;
   const params = new URLSearchParams(doc.location ? doc.location.search : "");
   const canvas = $("canvas");
   const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0" });
   const poser = new FramePoser(b);
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
-  const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: cam0.distance };
+  // the home view: the bundle's camera, moved back on a narrower screen (a phone held upright) so that
+  // the subject fits across as it did in the bundle's frame
+  const aspect = canvas.clientWidth / Math.max(canvas.clientHeight, 1), aspect0 = cam0.width / cam0.height;
+  const homeDist = cam0.distance * (aspect > 0 && aspect < aspect0 ? aspect0 / aspect : 1);
+  const cam = { az: cam0.azimuth_deg, el: cam0.elevation_deg, dist: homeDist, center: cam0.center.slice() };
+  // zoom and pan limits from the subject's size: its canonical mesh's bounding sphere
+  let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < b.cano.length; i += 3) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], b.cano[i + k]); hi[k] = Math.max(hi[k], b.cano[i + k]); }
+  const radius = Math.max(0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]), 1e-9);
+  const limits = { minDist: 0.2 * radius, maxDist: Math.max(20 * radius, 4 * homeDist), pan: 1.5 * radius };
+  const clampView = () => {
+    cam.dist = Math.min(limits.maxDist, Math.max(limits.minDist, cam.dist));
+    cam.el = Math.max(-89, Math.min(89, cam.el));
+    const d = [0, 1, 2].map((k) => cam.center[k] - cam0.center[k]), len = Math.hypot(...d);
+    if (len > limits.pan) for (let k = 0; k < 3; k++) cam.center[k] = cam0.center[k] + d[k] * limits.pan / len;
+  };
+  const hashView = parseView(doc.location ? doc.location.hash : "");
+  if (hashView) { cam.az = hashView.az; cam.el = hashView.el; cam.dist = hashView.dist; cam.center = hashView.center.slice(); }
   // the page's own timers (the last 1,000 frames and sorts, ms) for the status line and bench/viewer.py
   const timings = { main: [], sort: [], key: [], firstReadyMs: null }; // key: the key light's height maps (CPU, worker)
   const record = (list, ms) => { list.push(ms); if (list.length > 1000) list.shift(); };
@@ -1723,7 +1807,23 @@ export function startViewer(doc) {
     state.shadowKey = state.shadowPending; state.shadowPending = null;
     record(timings.key, r.ms);
   }, params.get("worker") !== "0") : null;
-  if (params.get("ui") === "0") $("ui").style.display = "none";
+  const noUi = params.get("ui") === "0";
+  if (noUi) $("ui").style.display = "none";
+  // small screens: one row of controls until "more" is opened; the status line on request (?stats=1, i)
+  const small = (window.innerWidth || 1000) < 600 || (window.innerHeight || 1000) < 500;
+  const more = $("more"), menu = $("menu");
+  const setMore = (open) => { more.hidden = !open; menu.setAttribute("aria-expanded", String(open)); menu.textContent = open ? "less" : "more"; };
+  setMore(!small);
+  menu.onclick = () => setMore(more.hidden);
+  $("stats").hidden = params.get("stats") !== "1";
+  const hint = $("hint");
+  let hintSeen = false;
+  try { hintSeen = window.localStorage.getItem("meshsplat-hint") === "seen"; } catch (err) { /* storage off */ }
+  hint.hidden = noUi || hintSeen || params.get("hint") === "0";
+  if (window.matchMedia && window.matchMedia("(pointer: coarse)").matches) {
+    $("hinttext").textContent = "one finger: turn · two fingers: move and pinch to zoom · double tap: reset";
+  }
+  $("hintclose").onclick = () => { hint.hidden = true; try { window.localStorage.setItem("meshsplat-hint", "seen"); } catch (err) { /* storage off */ } };
   const slider = $("frame"), play = $("play"), bg = $("bg"), info = $("info"), stats = $("stats");
   $("title").textContent = header.title || "meshsplat avatar";
   const clipLength = () => (live && clips.length ? clips[state.clip].duration : 0);
@@ -1737,16 +1837,16 @@ export function startViewer(doc) {
     speedSel = el(doc, "select", { title: "speed" });
     [0.25, 0.5, 1, 2].forEach((s) => el(doc, "option", { value: String(s), textContent: `${s}x` }, speedSel));
     speedSel.value = "1";
-    slider.before(clipSel); slider.after(speedSel);
+    $("more").prepend(clipSel, speedSel);
     clipSel.onchange = () => { state.clip = parseInt(clipSel.value, 10); state.time = 0; syncUi(); };
     speedSel.onchange = () => { state.speed = parseFloat(speedSel.value); };
     const nMorph = b.rig.defaultWeights.length;
     const toggle = nMorph ? el(doc, "button", { textContent: `${nMorph} morph targets` }, $("ui")) : null;
     const panel = el(doc, "div", { id: "morphs" }, $("ui"));
     if (toggle) { // long lists (an ARKit face has 50+) start folded
-      panel.hidden = nMorph > 12;
+      panel.hidden = nMorph > 12 || small; // never over the face on a phone until asked for
       toggle.onclick = () => { panel.hidden = !panel.hidden; };
-      $("stats").before(toggle);
+      $("viewline").before(toggle);
     }
     const prefix = b.rig.groups.length > 1;
     for (const g of b.rig.groups) {
@@ -1805,22 +1905,46 @@ export function startViewer(doc) {
     syncUi();
   };
   bg.onclick = () => { state.white = !state.white; syncUi(); };
-  const resetView = () => { cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = cam0.distance; };
+  const resetView = () => {
+    cam.az = cam0.azimuth_deg; cam.el = cam0.elevation_deg; cam.dist = homeDist; cam.center = cam0.center.slice();
+  };
+  // pan: the centre moves in the view plane so that the subject follows the pointer (dx, dy CSS pixels)
+  const pan = (dx, dy) => {
+    const vm = orbitViewmat(cam.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
+    const s = 2 * cam.dist * Math.tan(cam0.fov_deg * Math.PI / 360) / Math.max(canvas.clientHeight, 1);
+    for (let k = 0; k < 3; k++) cam.center[k] -= s * (dx * vm[k] + dy * vm[4 + k]);
+    clampView();
+  };
+  canvas.addEventListener("dblclick", (e) => { e.preventDefault(); resetView(); });
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  const fs = $("fullscreen");
+  if (!doc.fullscreenEnabled) fs.hidden = true;
+  const toggleFullscreen = () => {
+    if (!doc.fullscreenEnabled) return;
+    if (doc.fullscreenElement) doc.exitFullscreen(); else doc.documentElement.requestFullscreen().catch(() => {});
+  };
+  fs.onclick = toggleFullscreen;
+  const quality = $("quality");
+  if (params.get("dpr")) quality.value = params.get("dpr");
+  const PIXEL_BUDGET = 4e6; // canvas pixels at most (a 3x phone would draw 3 million at full resolution)
   $("reset").onclick = resetView;
   // one pointer (mouse or finger) drags to orbit; two fingers pinch to zoom (distance ratio); the
   // wheel zooms; a double tap, the reset button or "r" gives the default view back
   const pointers = new Map(); // pointerId -> [x, y]
   let pinch = 0, lastTap = null, press = null; // press: [time, x, y] of a lone finger, null once it moved or had company
+  let mid = null, panning = false; // two fingers' midpoint (they pan as they move); a right/middle/shift mouse drag pans
   const spread = () => { const [a, c] = [...pointers.values()]; return Math.hypot(a[0] - c[0], a[1] - c[1]); };
+  const midpoint = () => { const [a, c] = [...pointers.values()]; return [(a[0] + c[0]) / 2, (a[1] + c[1]) / 2]; };
   canvas.addEventListener("pointerdown", (e) => {
     canvas.setPointerCapture(e.pointerId);
     pointers.set(e.pointerId, [e.clientX, e.clientY]);
-    if (pointers.size === 2) pinch = spread();
+    if (pointers.size === 2) { pinch = spread(); mid = midpoint(); }
+    panning = e.pointerType === "mouse" && (e.button === 2 || e.button === 1 || e.shiftKey);
     press = pointers.size === 1 && e.pointerType === "touch" ? [e.timeStamp, e.clientX, e.clientY] : null;
   });
   const release = (e) => {
     if (!pointers.delete(e.pointerId)) return;
-    if (pointers.size === 2) pinch = spread();
+    if (pointers.size === 2) { pinch = spread(); mid = midpoint(); }
     if (e.type !== "pointerup" || !press || pointers.size > 0) return;
     const now = e.timeStamp; // a tap: short, still, alone; two taps close in time and place reset the view
     if (now - press[0] < 300) {
@@ -1837,23 +1961,57 @@ export function startViewer(doc) {
     if (!prev) return;
     pointers.set(e.pointerId, [e.clientX, e.clientY]);
     if (press && Math.hypot(e.clientX - press[1], e.clientY - press[2]) > 10) press = null;
-    if (pointers.size === 1) {
+    if (pointers.size === 1 && panning) {
+      pan(e.clientX - prev[0], e.clientY - prev[1]);
+    } else if (pointers.size === 1) {
       cam.az -= 0.3 * (e.clientX - prev[0]);
       cam.el = Math.max(-89, Math.min(89, cam.el + 0.3 * (e.clientY - prev[1])));
     } else if (pointers.size === 2) {
-      const d = spread();
+      const d = spread(), m = midpoint();
       if (pinch > 0 && d > 0) cam.dist *= pinch / d; // fingers apart: closer
-      pinch = d;
+      if (mid) pan(m[0] - mid[0], m[1] - mid[1]); // both fingers moving together: move
+      pinch = d; mid = m;
+      clampView();
     }
   });
-  canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); },
+  canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(0.001 * e.deltaY); clampView(); },
                           { passive: false });
   // the space bar plays/pauses whatever has the focus (a focused button would otherwise take it)
   const isSpace = (e) => e.key === " " || e.code === "Space";
   doc.addEventListener("keydown", (e) => {
-    if (isSpace(e)) { e.preventDefault(); if (!e.repeat) play.onclick(); } else if (e.key === "r") resetView();
+    if (isSpace(e)) { e.preventDefault(); if (!e.repeat) play.onclick(); return; }
+    const tag = (e.target && e.target.tagName) || "";
+    if (tag === "INPUT" || tag === "SELECT" || tag === "TEXTAREA" || e.ctrlKey || e.metaKey || e.altKey) return; // their own keys
+    const step = e.shiftKey ? 1 : 5, keys = {
+      ArrowLeft: () => { cam.az += step; }, ArrowRight: () => { cam.az -= step; },
+      ArrowUp: () => { cam.el += step; }, ArrowDown: () => { cam.el -= step; },
+      "+": () => { cam.dist *= 0.9; }, "=": () => { cam.dist *= 0.9; }, "-": () => { cam.dist /= 0.9; },
+      r: resetView, f: toggleFullscreen, i: () => { $("stats").hidden = !$("stats").hidden; },
+    };
+    if (keys[e.key]) { e.preventDefault(); keys[e.key](); clampView(); }
   }, true);
   doc.addEventListener("keyup", (e) => { if (isSpace(e)) e.preventDefault(); }, true);
+  // the view readout (render flags), the URL fragment that reopens it, and "copy view"
+  const viewText = $("viewtext");
+  let viewShown = "", hashAt = 0;
+  const pageFolder = () => {
+    const loc = doc.location;
+    if (!loc || loc.protocol !== "file:") return "FOLDER";
+    const path = decodeURIComponent(loc.pathname);
+    return path.slice(0, path.lastIndexOf("/")) || "/";
+  };
+  const viewCopy = (vs) => {
+    const loc = doc.location, url = loc ? `${loc.href.split("#")[0]}#${vs}` : `#${vs}`;
+    return `${url}\nmeshsplat render RUN --camera 'page:${pageFolder()}#${vs}' --out OUT`;
+  };
+  $("copyview").onclick = async () => {
+    const text = viewCopy(viewShown), btn = $("copyview");
+    try { await navigator.clipboard.writeText(text); btn.textContent = "copied"; } catch (err) {
+      viewText.value = text; viewText.select(); // no clipboard here (file:// in some browsers): select it to copy
+      btn.textContent = doc.execCommand && doc.execCommand("copy") ? "copied" : "select + copy";
+    }
+    setTimeout(() => { btn.textContent = "copy view"; }, 1500);
+  };
   // what the page shows, for tests and benchmarks (read-only use)
   // floatTarget: whether the splats blend in floating point (false: the 8-bit fallback, or ?float=0);
   // timeDraws(n, float) (bench/viewer_float.py): the last frame drawn again n times, each waited for by
@@ -1873,7 +2031,7 @@ export function startViewer(doc) {
     if (lastDraw) renderer.draw(...lastDraw);
     return out;
   };
-  window.meshsplatViewer = { view: cam, state, timings, timeDraws, get webcam() { return cam_.driver; }, get floatTarget() { return renderer.floatTarget; },
+  window.meshsplatViewer = { view: cam, limits, get viewString() { return viewShown; }, state, timings, timeDraws, get webcam() { return cam_.driver; }, get floatTarget() { return renderer.floatTarget; },
                             get shadowWorker() { return mapper ? mapper.inWorker : null; } };
   syncUi();
   let fpsCount = 0, fpsT = performance.now(), fps = 0, mainMs = 0, pose = null;
@@ -1893,10 +2051,22 @@ export function startViewer(doc) {
       }
       slider.value = String(live ? state.time : state.frame);
     }
-    const dpr = window.devicePixelRatio || 1;
+    // device pixels per CSS pixel: the screen's, capped by the quality setting and a pixel budget
+    let dpr = Math.min(window.devicePixelRatio || 1, parseFloat(quality.value) || 2);
+    const css = Math.max(canvas.clientWidth * canvas.clientHeight, 1);
+    if (css * dpr * dpr > PIXEL_BUDGET) dpr = Math.max(1, Math.sqrt(PIXEL_BUDGET / css));
     const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-    const viewmat = orbitViewmat(cam0.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
+    const viewmat = orbitViewmat(cam.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
+    const vs = viewString(cam, cam0.fov_deg, w, h);
+    if (vs !== viewShown) {
+      viewShown = vs;
+      if (doc.activeElement !== viewText) viewText.value = viewFlags(cam, cam0.fov_deg, w, h);
+    }
+    if (doc.location && doc.location.hash !== `#${vs}` && now - hashAt > 250 && window.history && window.history.replaceState) {
+      hashAt = now; // the address bar holds the view (throttled): a reload or a shared link opens it
+      try { window.history.replaceState(null, "", `#${vs}`); } catch (err) { /* opaque origins */ }
+    }
     const K = intrinsics(w, h, cam0.fov_deg);
     const webcamOn = cam_.weights !== null;
     const poseKey = webcamOn ? `webcam|${cam_.key}` : live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
@@ -1952,7 +2122,7 @@ export function startViewer(doc) {
     if (key === state.sortedKey && (!mapper || state.shadowKey === poseKey) && state.drawnKey === drawKey) {
       if (timings.firstReadyMs === null) timings.firstReadyMs = performance.now(); // since navigation start
       doc.body.dataset.ready = "1";
-    }
+    } else if (doc.body.dataset.ready === "1") doc.body.dataset.ready = "0"; // a new view or pose on its way
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
