@@ -208,36 +208,19 @@ def export_avatar(
         "antialiased": avatar.antialiased,
     }
     if avatar.shading is not None:
-        sd = avatar.shading.state_dict()
-        shading_meta: dict[str, Any] = {
-            "coeffs": sd["coeffs"].tolist(),
-            "normal": sd["normal"],
-            "space": sd["space"],
-            "order": sd["order"],
-            "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)",
-        }
-        if "occlusion" in sd:  # tensors -> lists for JSON
-            occ = sd["occlusion"]
-            shading_meta["occlusion"] = {
-                "kind": occ["kind"],
-                "directions": occ["directions"].tolist(),
-                "grid": occ["grid"],
-                "light": occ["light"].tolist(),
-                **{
-                    k: occ[k] for k in ("candidates", "stage", "aligned", "soft_deg") if k in occ
-                },  # shading.occlusion=key
-            }
+        sd = avatar.shading.json_state()
+        shading_meta: dict[str, Any] = {**sd, "colour": "rgb = albedo (sh0, shN) * max(0, SH9(n) . coeffs)"}
+        if "occlusion" in sd:
             shading_meta["colour"] = (
                 "rgb = albedo * (max(0, SH9(n) . coeffs) + sum_k max(0, light_k) V_k max(0, n . directions_k)), "
                 "V_k: the surface point lit from directions_k by the posed mesh (meshsplat.mesh.visibility)"
             )
-            if occ.get("soft_deg"):
+            if sd["occlusion"].get("soft_deg"):
                 shading_meta["colour"] += (
                     "; the aligned key's V: the mean of V over the directions within soft_deg of it "
                     "(meshsplat.gaussians.shading.Shading.shadow_directions)"
                 )
         if "specular" in sd:
-            shading_meta["specular"] = {"kind": sd["specular"]["kind"], "coeffs": sd["specular"]["coeffs"].tolist()}
             shading_meta["colour"] += " + SH9(n) . specular.coeffs (added, not clamped)"
         meta["shading"] = shading_meta
     # every file goes to a temporary name and is renamed into place: a full disk leaves no truncated file

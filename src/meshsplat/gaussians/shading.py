@@ -361,6 +361,17 @@ class Shading:
             sd["specular"] = {"kind": self.specular_mode, "coeffs": self.specular.detach().cpu().clone()}
         return sd
 
+    def json_state(self) -> dict[str, Any]:
+        """``state_dict`` with every tensor as nested lists: the form an export's JSON holds, read back by
+        ``from_state_dict`` (one serialization for checkpoints and exports)."""
+
+        def plain(v: Any) -> Any:
+            if isinstance(v, torch.Tensor):
+                return v.tolist()
+            return {k: plain(x) for k, x in v.items()} if isinstance(v, dict) else v
+
+        return plain(self.state_dict())
+
     @classmethod
     def from_state_dict(cls, sd: dict[str, Any] | None, device: Device = "cpu") -> Shading | None:
         if sd is None:

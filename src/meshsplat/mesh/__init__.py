@@ -8,6 +8,8 @@ from meshsplat.mesh.geometry import (
     face_frames,
     face_normals,
     face_rotations,
+    mean_edge_length,
+    mesh_extent,
     vertex_normals,
     vertex_quaternions,
 )
@@ -17,6 +19,8 @@ from meshsplat.mesh.topology import MeshTopology
 from meshsplat.mesh.tri_mesh import MeshReport, TriMesh, validate_mesh
 
 __all__ = [
+    "mesh_extent",
+    "mean_edge_length",
     "TriMesh",
     "MeshReport",
     "validate_mesh",

@@ -17,6 +17,8 @@ from meshsplat.mesh.quaternion import matrix_to_quat, quat_normalize
 
 __all__ = [
     "bbox_diagonal",
+    "mesh_extent",
+    "mean_edge_length",
     "safe_normalize",
     "face_corners",
     "face_normals",
@@ -42,6 +44,18 @@ def bbox_diagonal(points: torch.Tensor | np.ndarray) -> float:
         return float((points.amax(0) - points.amin(0)).norm())
     p = np.asarray(points)
     return float(np.linalg.norm(p.max(0) - p.min(0)))
+
+
+def mesh_extent(vertices: torch.Tensor) -> float:
+    """Half the bounding-box diagonal of ``vertices [V,3]``: the 'scene extent' of an avatar (≈1 for a 1.7 m
+    body); the unit of the training config's relative sizes."""
+    return 0.5 * bbox_diagonal(vertices)
+
+
+def mean_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
+    """Mean length of the edges of the faces ``[F,3]`` over ``vertices [V,3]`` (each edge once per face)."""
+    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return float((vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1).mean())
 
 
 def safe_normalize(x: torch.Tensor, eps: float = _EPS) -> torch.Tensor:

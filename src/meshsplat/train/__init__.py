@@ -10,6 +10,7 @@ Losses live in ``meshsplat.train.losses``; the features beyond the paper in ``me
     run_dir = train(cfg)
 """
 
+from meshsplat.mesh import mesh_extent
 from meshsplat.train.config import (
     LossConfig,
     ModelConfig,
@@ -24,7 +25,7 @@ from meshsplat.train.optim import LrSchedule, base_learning_rates, build_optimiz
 from meshsplat.train.recipes import DEFAULT_RECIPE, RECIPES, recipe_config, recipe_overrides
 from meshsplat.train.run_log import LOG_COLUMNS
 from meshsplat.train.strategy import DensifyStrategy, walk_embeddings
-from meshsplat.train.trainer import Trainer, mesh_extent, train
+from meshsplat.train.trainer import Trainer, train
 
 __all__ = [
     "TrainConfig",

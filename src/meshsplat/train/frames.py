@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import numpy as np
 import torch
 
 from meshsplat.data.dataset import AvatarDataset
 from meshsplat.gaussians.avatar import Avatar
+from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
 from meshsplat.gaussians.shading import Shading
-from meshsplat.mesh import MeshPose
+from meshsplat.mesh import MeshPose, TriMesh
 
 __all__ = ["FrameCache", "CACHE_BYTES"]
 
@@ -57,3 +61,18 @@ class FrameCache:
             self._poses[idx] = pose
             self._bytes += size
         return pose
+
+    def colors_fn(
+        self, mesh: TriMesh, ids: list[int], frames: int
+    ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """Initial colours ``[N,3]`` of points ``(face [N], uv [N,2])`` on ``mesh``: the first of ``ids``'
+        pixel (``frames`` = 1, the paper) or the mean over ``frames`` frames spread over ``ids``."""
+
+        def colors(face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+            if frames == 1:
+                return first_view_colors(mesh, self.frame(ids[0]), face, uv)
+            k = min(frames, len(ids))
+            picks = sorted({ids[round(x)] for x in np.linspace(0, len(ids) - 1, k)})
+            return mean_view_colors(mesh, (self.frame(i) for i in picks), face, uv)
+
+        return colors

@@ -29,10 +29,9 @@ from meshsplat._device import resolve_device
 from meshsplat.data.formats import open_capture, reader_options
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians.avatar import Avatar, AvatarRender
-from meshsplat.gaussians.init_colors import first_view_colors, mean_view_colors
 from meshsplat.gaussians.params import init_params, num_gaussians
 from meshsplat.gaussians.shading import Shading
-from meshsplat.mesh import TriMesh, bbox_diagonal
+from meshsplat.mesh import TriMesh, mean_edge_length, mesh_extent
 from meshsplat.metrics import psnr
 from meshsplat.render.background import background_color, composite
 from meshsplat.run_folder import RunFolder, check_training_target
@@ -54,17 +53,7 @@ from meshsplat.train.resume import (
 from meshsplat.train.run_log import LOGGED_PARTS
 from meshsplat.train.strategy import walk_embeddings
 
-__all__ = ["Trainer", "train", "mesh_extent", "mean_edge_length"]
-
-
-def mesh_extent(vertices: torch.Tensor) -> float:
-    """Half the bounding-box diagonal: the 'scene extent' of an avatar (≈1 for a 1.7 m body)."""
-    return 0.5 * bbox_diagonal(vertices)
-
-
-def mean_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
-    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return float((vertices[e[:, 0]] - vertices[e[:, 1]]).norm(dim=-1).mean())
+__all__ = ["Trainer", "train"]
 
 
 class Trainer(TrainingLoop, TrainerCheckpoints):
@@ -199,7 +188,9 @@ class Trainer(TrainingLoop, TrainerCheckpoints):
             sh_degree=cfg.model.sh_degree,
             init_opacity=cfg.model.init_opacity,
             knn=cfg.model.init_knn,
-            colors_fn=self._image_colors if cfg.model.init_color == "image" else None,
+            colors_fn=self.frames.colors_fn(self.mesh, self.train_ids, cfg.model.init_color_frames)
+            if cfg.model.init_color == "image"
+            else None,
             generator=torch.Generator().manual_seed(cfg.seed),
             trainable_embedding=not cfg.model.freeze_embedding,
         )
@@ -211,15 +202,6 @@ class Trainer(TrainingLoop, TrainerCheckpoints):
         self.bg_gen = torch.Generator().manual_seed(cfg.seed + 2)
         self.order = torch.randperm(len(self.train_ids), generator=self.order_gen)
         self.order_pos = 0
-
-    def _image_colors(self, face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Initial colour [N,3] of the embedded points: the first training frame's pixel
-        (``model.init_color_frames`` = 1) or the mean over that many frames spread over the sequence."""
-        k = min(self.cfg.model.init_color_frames, len(self.train_ids))
-        if self.cfg.model.init_color_frames == 1:
-            return first_view_colors(self.mesh, self.frames.frame(self.train_ids[0]), face, uv)
-        picks = sorted({self.train_ids[round(x)] for x in np.linspace(0, len(self.train_ids) - 1, k)})
-        return mean_view_colors(self.mesh, (self.frames.frame(i) for i in picks), face, uv)
 
     # ---- one iteration -----------------------------------------------------------------------------------------
     def _next_index(self) -> int:
