@@ -16,11 +16,16 @@ Coordinates are written as they are (the avatar's mesh frame), with no axis conv
   ("smallest three" in 32 bits: index of the largest |component| of the xyzw quaternion made
   positive, then the other three as sign + 9-bit magnitude / sqrt(1/2)), SH (uint8 of x*128+128,
   colour innermost; degree-1 coefficients rounded to steps of 8, higher degrees to steps of 16,
-  as the reference encoder). Version 2 files (rotation as 3 bytes xyz) are read too.
+  as the reference encoder). Version 2 files (rotation as 3 bytes xyz) are read too, and version 4
+  (what the spz library and splat-transform write by default): a 32-byte plain header (magic, version,
+  count, SH degree, fractional bits, flags, stream count, table-of-contents offset), optional extension
+  records, a table of (compressed, uncompressed) sizes and one zstd stream per array, the arrays as in
+  version 3 (needs the ``zstandard`` package: ``pip install meshsplat[spz]``).
 - ``.glb`` glTF 2.0 with ``KHR_gaussian_splatting`` (release candidate): one POINTS primitive,
   ``POSITION``, ``KHR_gaussian_splatting:ROTATION`` (xyzw), ``:SCALE`` (linear), ``:OPACITY``
   (linear), ``:SH_DEGREE_l_COEF_n`` (float VEC3 per coefficient and degree) and a ``COLOR_0``
-  fallback (DC colour and opacity) for viewers without the extension.
+  fallback for viewers without the extension: the DC colour converted to linear RGB (glTF vertex
+  colours are linear; the SH stay in the extension's ``srgb_rec709_display`` space) and the opacity.
 """
 
 from __future__ import annotations
@@ -189,9 +194,51 @@ def write_spz(path: str | os.PathLike, g: dict) -> Path:
     return path
 
 
+def _spz_v4_arrays(path, raw: bytes) -> tuple[int, int, int, int, list[bytes]]:
+    """``(version 4, count, SH degree, fractional bits, [the streams' bytes])`` of a version 4 file."""
+    if len(raw) < 32:
+        raise MeshsplatError(f"{str(path)!r}: .spz header is truncated")
+    _, version, n, degree, frac, _flags, streams, toc = struct.unpack_from("<IIIBBBBI", raw)
+    if version != 4:
+        raise MeshsplatError(f"{str(path)!r}: a plain NGSP header with version {version} (only version 4 has one)")
+    if toc < 32 or toc + 16 * streams > len(raw):
+        raise MeshsplatError(f"{str(path)!r}: .spz table of contents lies outside the file")
+    try:
+        import zstandard
+    except ImportError:
+        raise MeshsplatError(
+            f"{str(path)!r}: SPZ version 4 (zstd) needs the zstandard package: pip install 'meshsplat[spz]'"
+        ) from None
+    sizes = [struct.unpack_from("<QQ", raw, toc + 16 * i) for i in range(streams)]
+    off, out = toc + 16 * streams, []
+    dec = zstandard.ZstdDecompressor()
+    for packed, size in sizes:
+        if off + packed > len(raw):
+            raise MeshsplatError(f"{str(path)!r}: .spz data is truncated ({n} Gaussians announced)")
+        try:
+            data = dec.decompress(raw[off : off + packed], max_output_size=size)
+        except zstandard.ZstdError as exc:
+            raise MeshsplatError(f"{str(path)!r}: a .spz stream does not decompress ({exc})") from None
+        if len(data) != size:
+            raise MeshsplatError(f"{str(path)!r}: a .spz stream holds {len(data)} bytes, its table says {size}")
+        out.append(data)
+        off += packed
+    return version, n, degree, frac, out
+
+
 def read_spz(path: str | os.PathLike) -> dict:
-    """Gaussians of a version 2 or 3 ``.spz`` file."""
+    """Gaussians of a version 2, 3 (gzip) or 4 (zstd streams) ``.spz`` file."""
     raw = _read_bytes(path, ".spz")
+    if raw[:4] == struct.pack("<I", _SPZ_MAGIC):  # version 4: a plain header, then zstd streams
+        version, n, degree, frac, streams = _spz_v4_arrays(path, raw)
+        if degree > 3:
+            raise MeshsplatError(f"{str(path)!r}: SH degree {degree} (only 0..3 are read)")
+        k = (degree + 1) ** 2 - 1
+        sizes = [9 * n, n, 3 * n, 3 * n, 4 * n, 3 * k * n]
+        if len(streams) < 6 or any(len(a) < s for a, s in zip(streams[:6], sizes, strict=True)):
+            raise MeshsplatError(f"{str(path)!r}: .spz streams are shorter than {n} Gaussians need")
+        parts = [np.frombuffer(a, np.uint8, s).astype(np.int64) for a, s in zip(streams[:6], sizes, strict=True)]
+        return _spz_gaussians(version, n, k, frac, parts)
     try:
         data = gzip.decompress(raw)
     except (OSError, EOFError) as exc:
@@ -202,7 +249,9 @@ def read_spz(path: str | os.PathLike) -> dict:
         raise MeshsplatError(f"{str(path)!r}: .spz header is truncated")
     magic, version, n, degree, frac, _flags, _ = struct.unpack_from("<IIIBBBB", data)
     if magic != _SPZ_MAGIC or version not in (2, 3):
-        raise MeshsplatError(f"{str(path)!r}: expected SPZ magic NGSP version 2 or 3, got {magic:#x} version {version}")
+        raise MeshsplatError(
+            f"{str(path)!r}: expected SPZ magic NGSP version 2 or 3 in gzip (or 4), got {magic:#x} version {version}"
+        )
     if degree > 3:
         raise MeshsplatError(f"{str(path)!r}: SH degree {degree} (only 0..3 are read)")
     k = (degree + 1) ** 2 - 1
@@ -213,6 +262,11 @@ def read_spz(path: str | os.PathLike) -> dict:
     for s in sizes:
         parts.append(np.frombuffer(data, np.uint8, s, off).astype(np.int64))
         off += s
+    return _spz_gaussians(version, n, k, frac, parts)
+
+
+def _spz_gaussians(version: int, n: int, k: int, frac: int, parts: list[np.ndarray]) -> dict:
+    """The Gaussians of the six SPZ arrays (positions, alphas, colours, scales, rotations, SH)."""
     pos, alpha, col, scl, rot, sh = parts
     p = pos.reshape(-1, 3)
     fixed = p[:, 0] | (p[:, 1] << 8) | (p[:, 2] << 16)
@@ -253,7 +307,10 @@ def write_gltf_splats(path: str | os.PathLike, g: dict, color_space: str = "srgb
         (f"{_KHR}:SH_DEGREE_0_COEF_0", "VEC3", g["sh0"]),
     ]
     columns += [(name, "VEC3", g["shN"][:, i]) for i, name in enumerate(_sh_attribute_names(_K_TO_DEGREE[k]))]
-    columns.append(("COLOR_0", "VEC4", np.clip(np.concatenate([0.5 + SH_C0 * g["sh0"], alpha[:, None]], 1), 0, 1)))
+    # glTF vertex colours are linear: the DC colour (a display, sRGB-encoded value) through the sRGB curve
+    display = np.clip(0.5 + SH_C0 * g["sh0"], 0, 1)
+    linear = np.where(display <= 0.04045, display / 12.92, ((display + 0.055) / 1.055) ** 2.4)
+    columns.append(("COLOR_0", "VEC4", np.concatenate([linear, alpha[:, None]], 1)))
     blob, views, accessors, attributes = bytearray(), [], [], {}
     for i, (name, kind, arr) in enumerate(columns):
         data = np.ascontiguousarray(arr, "<f4")
