@@ -292,3 +292,38 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     # landmarks: the shapes the image barely tells apart (brows, cheeks) trade places
     assert np.abs(page_w - offline).mean() < 0.15
     assert shown[names.index("jawOpen")] > 0.25  # what the avatar shows
+
+
+def test_view_cli_webcam_needs_a_live_head(tmp_path, capsys):
+    """`meshsplat view --webcam` on vertex frames says what it needs, in one line."""
+    from meshsplat.cli.main import main
+    from test_eval_kit import make_run
+
+    av = make_avatar(n=40)
+    run = make_run(av, tmp_path / "run", None)
+    np.save(tmp_path / "seq.npy", torch.stack([av.mesh.vertices, av.mesh.vertices]).numpy())
+    argv = ["view", str(run), "--out", str(tmp_path / "v"), "--animation", "vertices", str(tmp_path / "seq.npy")]
+    assert main([*argv, "--webcam"]) == 2
+    assert "--webcam: needs a live blend-shape head" in capsys.readouterr().err
+
+
+@needs_node
+def test_camera_refusals_are_explained(tmp_path):
+    """What the page says when the camera is refused, absent or busy (getUserMedia's errors), and on file://."""
+    script = f"""
+import {{ cameraErrorText, WebcamDriver }} from {json.dumps(VIEWER_JS.as_uri())};
+const out = ["NotAllowedError", "NotFoundError", "NotReadableError", "TypeError"].map((name) => cameraErrorText({{ name }}));
+const doc = {{ location: {{ protocol: "file:" }}, defaultView: {{ navigator: {{}} }} }};
+try {{ await new WebcamDriver(doc, {{}}, null, () => {{}}).start(null); }} catch (err) {{ out.push(err.message); }}
+doc.location.protocol = "http:";
+try {{ await new WebcamDriver(doc, {{}}, null, () => {{}}).start(null); }} catch (err) {{ out.push(err.message); }}
+console.log(JSON.stringify(out));
+"""
+    (tmp_path / "t.mjs").write_text(script)
+    r = subprocess.run([NODE, str(tmp_path / "t.mjs")], capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 0, r.stderr
+    refused, absent, busy, other, on_file, no_media = json.loads(r.stdout)
+    assert "refused" in refused and "allow the camera" in refused
+    assert "no camera found" in absent and "busy" in busy and "TypeError" in other
+    assert "served over http" in on_file and "--serve" in on_file
+    assert "gives no camera" in no_media

@@ -1879,6 +1879,7 @@ export function startViewer(doc) {
     btn.onclick = async () => {
       if (cam_.driver && cam_.driver.running) { stop(); return; }
       panel.hidden = false; btn.textContent = "stop webcam"; btn.setAttribute("aria-pressed", "true");
+      $("hint").hidden = true; // the camera panel takes its corner
       cam_.driver = cam_.driver || new WebcamDriver(doc, b, (w, q, frameIn) => {
         const over = new Float64Array(b.rig.defaultWeights.length); // untracked morphs at 0
         targets.forEach((i, e) => { if (i >= 0) over[i] = w[e]; });
