@@ -14,7 +14,8 @@ Animation (the same words as `meshsplat view` and ``meshsplat.animation.Animatio
 --frames N keeps the first N frames.
 
 Camera (the same words as `meshsplat view` and the player page's camera): an orbit auto-framed on the
-animation, or --camera page:FOLDER (a viewer page's initial camera, to compare a render with the page),
+animation, or --camera page:FOLDER (a viewer page's initial camera, to compare a render with the page;
+'page:FOLDER#view=...', quoted, the view the page shows now: its address or its "copy view"),
 refined by --center X,Y,Z --azimuth DEG --elevation DEG --distance D --fov DEG --up X,Y,Z --front X,Y,Z,
 with --orbit DEG turning it over the frames; or --camera dataset:<camera_id>. With --animation dataset
 --split and no camera option each frame uses its own dataset camera. The orbit turns about the
