@@ -297,7 +297,10 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
 def test_view_cli_webcam_needs_a_live_head(tmp_path, capsys):
     """`meshsplat view --webcam` on vertex frames says what it needs, in one line."""
     from meshsplat.cli.main import main
-    from test_eval_kit import make_run
+    try:  # the test kit's home (tests/_eval_kit.py once the helpers move there)
+        from _eval_kit import make_run
+    except ImportError:
+        from test_eval_kit import make_run
 
     av = make_avatar(n=40)
     run = make_run(av, tmp_path / "run", None)
