@@ -7,6 +7,7 @@ import os
 import pytest
 import torch
 
+from _train_kit import tiny_dataset  # noqa: F401  (the tiny capture fixture, for every test module)
 from meshsplat.paths import assets_dir
 from meshsplat.synth.standin_models import write_standin_models
 

@@ -9,6 +9,7 @@ import torch
 import trimesh
 
 import meshsplat.train.components.albedo_prior as trainer_module
+from _train_kit import small_config
 from meshsplat._numba import numba_available
 from meshsplat.embedding import surface_points
 from meshsplat.errors import MeshsplatError
@@ -16,7 +17,6 @@ from meshsplat.gaussians import rgb_to_sh0
 from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.train import Trainer
 from meshsplat.train.albedo_prior import MAX_REACH, NEIGHBOURS, albedo_neighbours, albedo_smoothness, neighbour_ranks
-from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 needs_numba = pytest.mark.skipif(not numba_available(), reason="the compiled prior needs numba (the fast extra)")
 PATHS = [pytest.param(False, id="torch"), pytest.param(True, id="numba", marks=needs_numba)]
@@ -161,7 +161,7 @@ def test_the_prior_and_its_gradient_repeat_bit_for_bit_on_several_threads(compil
         assert torch.equal(value, results[0][0]) and torch.equal(grad, results[0][1])
 
 
-def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny_dataset, tmp_path, monkeypatch):  # noqa: F811
+def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny_dataset, tmp_path, monkeypatch):
     monkeypatch.setattr(trainer_module, "REFRESH_EVERY", 3)  # neighbours searched again within the run
     seen: list[int] = []
     search = trainer_module.albedo_neighbours
@@ -204,7 +204,7 @@ def test_training_with_the_prior_keeps_its_neighbours_and_resumes_bit_exact(tiny
     assert off.component("albedo_prior").neighbours is None and not torch.equal(off.params["sh0"], full.params["sh0"])
 
 
-def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_dataset, tmp_path):  # noqa: F811
+def test_a_checkpoint_with_damaged_neighbours_is_refused_in_one_line(tiny_dataset, tmp_path):
     cfg = small_config(tiny_dataset, tmp_path / "run", 10)
     Trainer(cfg).train()
     path = tmp_path / "run" / "checkpoints" / "ckpt_00000010.pt"

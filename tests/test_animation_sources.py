@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from _eval_kit import deform, make_avatar, make_dataset, make_run
 from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.camera import orbit_camera, orbit_viewmat
 from meshsplat.cli import render_cmd
@@ -21,7 +22,6 @@ from meshsplat.drivers import BlendshapeDriver
 from meshsplat.errors import MeshsplatError
 from meshsplat.run_folder import load_run
 from meshsplat.viewer import page_camera, read_viewer_bundle
-from test_eval_kit import deform, make_avatar, make_dataset, make_run
 
 NODE = shutil.which("node")
 

@@ -7,11 +7,11 @@ import json
 
 import pytest
 
+from _train_kit import make_tiny_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.fleet.jobs import job_config, read_jobs
 from meshsplat.fleet.report import write_results
 from meshsplat.fleet.runner import RESULT_KEYS, failed_result, run_job
-from test_train import make_tiny_dataset
 
 
 def test_yaml_json_and_text_say_the_same(tmp_path):

@@ -16,12 +16,12 @@ from pathlib import Path
 import pytest
 import torch
 
+from _train_kit import make_tiny_dataset
 from meshsplat.fleet.batch import run_batch
 from meshsplat.fleet.jobs import job_config, read_jobs
 from meshsplat.io import load_checkpoint
 from meshsplat.run_folder import RunFolder
 from meshsplat.train import Trainer
-from test_train import make_tiny_dataset
 
 ray = pytest.importorskip("ray")
 

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
+from _train_kit import make_tiny_dataset
 from meshsplat.errors import MeshsplatError
 from meshsplat.fleet.jobs import MAX_DEPTH, MAX_FILE_BYTES, read_jobs
 from meshsplat.fleet.runner import finished_result, run_job
-from test_train import make_tiny_dataset
 
 
 def _jobs(tmp_path, entries, name="jobs.json"):

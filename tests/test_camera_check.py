@@ -15,6 +15,7 @@ import pytest
 import torch
 from PIL import Image
 
+from _eval_kit import make_run
 from _peoplesnapshot import H, K, W, make_capture
 from meshsplat.camera import look_at, orbit_cameras
 from meshsplat.cli.main import main
@@ -27,7 +28,6 @@ from meshsplat.gaussians.params import init_params
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
 from meshsplat.viewer.bundle import read_viewer_bundle
-from test_eval_kit import make_run
 
 EYE = np.array([1.8, -0.2, -4.6])  # world y points down: the camera is slightly above the pelvis
 EXTRINSIC = look_at(EYE, [0.0, 0.0, 0.0], up=[0.0, -1.0, 0.0])

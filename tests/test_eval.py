@@ -6,11 +6,11 @@ import json
 
 import pytest
 
+from _eval_kit import make_avatar, make_dataset, make_run
 from meshsplat.errors import MeshsplatError
 from meshsplat.eval import evaluate_avatar, evaluate_run
 from meshsplat.metrics import lpips_available
 from meshsplat.run_folder import load_run
-from test_eval_kit import make_avatar, make_dataset, make_run
 
 
 @pytest.fixture(scope="module")

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from _eval_kit import SIZE, camera, deform, make_avatar, make_run
 from meshsplat.camera import Camera
 from meshsplat.export import canonical_gaussians, export_avatar, load_exported_avatar
 from meshsplat.io import read_gaussian_ply
-from test_eval_kit import SIZE, camera, deform, make_avatar, make_run
 
 
 def _render(av, verts, azimuth):

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from _eval_kit import deform, make_avatar, make_run
 from meshsplat.export import export_avatar
 from meshsplat.fleet.report import write_results
 from meshsplat.io.atomic import atomic_write, write_bytes_atomic, write_text_atomic, write_with
 from meshsplat.viewer import write_viewer_bundle
-from test_eval_kit import deform, make_avatar, make_run
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="file modes and umask are POSIX")
 

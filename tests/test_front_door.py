@@ -14,7 +14,6 @@ import pytest
 
 import meshsplat as ms
 from meshsplat.errors import MeshsplatError
-from test_train import tiny_dataset  # noqa: F401  (fixture)
 
 PKG = Path(ms.__file__).parent
 CURATED = [
@@ -104,7 +103,7 @@ def test_import_meshsplat_stays_light():
     assert out.strip() == "[] ['meshsplat', 'meshsplat.errors']"
 
 
-def test_train_avatar_recipes_and_overrides(tiny_dataset, tmp_path):  # noqa: F811
+def test_train_avatar_recipes_and_overrides(tiny_dataset, tmp_path):
     fast = ["model.n_init=200", "checkpoint_every=2", "preview_every=2", "log_every=1", "backend=torch"]
     run = ms.train_avatar(tiny_dataset, tmp_path / "q", iterations=2, overrides=fast, device="cpu", progress=False)
     assert run == (tmp_path / "q").resolve() and (run / "checkpoints" / "ckpt_00000002.pt").is_file()

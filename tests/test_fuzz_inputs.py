@@ -20,13 +20,13 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
+from _train_kit import make_tiny_dataset, small_config  # noqa: E402
 from meshsplat.camera import Camera  # noqa: E402
 from meshsplat.data import open_dataset  # noqa: E402
 from meshsplat.errors import MeshsplatError  # noqa: E402
 from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from meshsplat.io.embedding_json import read_embedding_json, write_embedding_json  # noqa: E402
 from meshsplat.run_folder import load_run  # noqa: E402
-from test_train import make_tiny_dataset, small_config  # noqa: E402
 
 JSON_VALUES = st.recursive(
     st.none()

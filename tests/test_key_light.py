@@ -8,6 +8,7 @@ import shutil
 import pytest
 import torch
 
+from _train_kit import small_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params
 from meshsplat.gaussians.shading import KEY_CONE_DEG, KEY_RING, KEY_RINGS_DEG, KEY_STAGES, Shading, sh9_basis
@@ -16,7 +17,6 @@ from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.recipes import recipe_config
 from test_quality_options import _sphere
-from test_train import small_config, tiny_dataset  # noqa: F401  (fixture)
 
 KEY = ["shading.occlusion=key", "shading.directions=8", "shading.grid=32", "shading.key_iter=4"]
 
@@ -152,7 +152,7 @@ def test_config_validates_the_key_iteration():
         apply_overrides(recipe_config("quality"), ["shading.key_iter=0"]).validate()
 
 
-def test_trainer_aligns_once_and_resumes_exactly_across_it(tiny_dataset, tmp_path):  # noqa: F811
+def test_trainer_aligns_once_and_resumes_exactly_across_it(tiny_dataset, tmp_path):
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, KEY))
     assert full.shading is not None and full.shading.directions is not None
     assert full.shading.directions.shape == (8, 3)
@@ -177,14 +177,14 @@ def test_trainer_aligns_once_and_resumes_exactly_across_it(tiny_dataset, tmp_pat
         assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
 
 
-def test_a_short_run_aligns_at_its_last_iteration(tiny_dataset, tmp_path):  # noqa: F811
+def test_a_short_run_aligns_at_its_last_iteration(tiny_dataset, tmp_path):
     cfg = small_config(tiny_dataset, tmp_path / "short", 6, [*KEY, "shading.key_iter=300"])
     t = Trainer(cfg)
     t.train()
     assert t.shading is not None and t.shading.key_aligned
 
 
-def test_training_frames_are_posed_once_and_render_as_their_vertices(tiny_dataset, tmp_path):  # noqa: F811
+def test_training_frames_are_posed_once_and_render_as_their_vertices(tiny_dataset, tmp_path):
     """The trainer keeps each training frame's ``MeshPose`` (and with it the key's shadow maps): a frame renders
     bit for bit as the avatar does from its vertices, and the second time from the same pose and maps."""
     t = Trainer(small_config(tiny_dataset, tmp_path / "posed", 13, KEY))
@@ -311,7 +311,7 @@ def test_a_soft_key_round_trips_and_validates(tmp_path):
         apply_overrides(recipe_config("quality"), ["shading.key_soft=90"]).validate()
 
 
-def test_the_trainer_builds_a_soft_key_only_for_occlusion_key(tiny_dataset, tmp_path):  # noqa: F811
+def test_the_trainer_builds_a_soft_key_only_for_occlusion_key(tiny_dataset, tmp_path):
     t = Trainer(small_config(tiny_dataset, tmp_path / "soft", 12, [*KEY, "shading.key_soft=6"]))
     t.train()
     assert t.shading is not None and t.shading.soft_key and t.shading.key_soft == 6.0

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from _train_kit import make_tiny_dataset
 from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io.images import image_size, read_image, read_mask
-from test_train import make_tiny_dataset
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402

@@ -7,6 +7,7 @@ import shutil
 import pytest
 import torch
 
+from _train_kit import VIEWMAT, H, K, W, small_config
 from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
@@ -17,7 +18,6 @@ from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.recipes import recipe_config
 from test_quality_options import _lit_from_x, _sphere
-from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 from test_visibility import box
 
 OCCL = ["shading.occlusion=directions", "shading.directions=8", "shading.grid=32"]
@@ -166,7 +166,7 @@ def test_config_keys_validate():
             apply_overrides(recipe_config("quality"), bad).validate()
 
 
-def test_trainer_learns_the_lights_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811
+def test_trainer_learns_the_lights_and_resumes_exactly(tiny_dataset, tmp_path):
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, OCCL))
     assert full.shading is not None and full.shading.light is not None
     full.train()

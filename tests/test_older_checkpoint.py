@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from _eval_kit import deform, make_avatar, make_dataset, make_run
 from meshsplat.cli.main import main
 from meshsplat.run_folder import RunFolder
-from test_eval_kit import deform, make_avatar, make_dataset, make_run
 
 pytestmark = pytest.mark.slow
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from _creature import creature_frames, write_creature_frames, write_creature_npz
+from _eval_kit import make_dataset, make_run
 from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.animation.avatar_match import sequence_for_mesh
 from meshsplat.data import open_dataset
@@ -22,7 +23,6 @@ from meshsplat.mesh import TriMesh
 from meshsplat.synth import synthesize
 from meshsplat.synth.sources import load_source
 from meshsplat.train.recipes import recipe_config
-from test_eval_kit import make_dataset, make_run
 
 TINY = dict(frames=4, resolution=32, test_views=1, test_frames=2, test_view_frames=1, supersample=1)
 

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from _train_kit import VIEWMAT, H, K, W, small_config
 from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
@@ -15,7 +16,6 @@ from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer
 from meshsplat.train.recipes import recipe_config
-from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 
 def _sphere() -> TriMesh:
@@ -173,7 +173,7 @@ def test_config_switches_validate():
             apply_overrides(recipe_config("quality"), [bad]).validate()
 
 
-def test_max_offset_keeps_gaussians_near_their_triangle(tiny_dataset, tmp_path):  # noqa: F811
+def test_max_offset_keeps_gaussians_near_their_triangle(tiny_dataset, tmp_path):
     # a fast embedding moves the offsets d along the normal; the bound holds them after every step
     fast = ["optim.lr_embedding=1e-2", "optim.lr_embedding_final=1e-2"]
     free = Trainer(small_config(tiny_dataset, tmp_path / "free", 12, [*fast, "offset_bound.enabled=false"]))
@@ -187,7 +187,7 @@ def test_max_offset_keeps_gaussians_near_their_triangle(tiny_dataset, tmp_path):
     assert reach == pytest.approx(bound)  # the bound is reached, not avoided
 
 
-def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811
+def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_dataset, tmp_path):
     import shutil
 
     opts = [
@@ -218,7 +218,7 @@ def test_trainer_with_all_options_learns_illumination_and_resumes_exactly(tiny_d
         Trainer(small_config(tiny_dataset, tmp_path / "res", 30, ["shading.enabled=false"]), resume=True)
 
 
-def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):  # noqa: F811
+def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):
     one = Trainer(small_config(tiny_dataset, tmp_path / "a", 1, ["model.init_color_frames=1"]))
     many = Trainer(small_config(tiny_dataset, tmp_path / "b", 1, ["model.init_color_frames=6"]))
     c1, c6 = sh0_to_rgb(one.params["sh0"].detach()), sh0_to_rgb(many.params["sh0"].detach())

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from _eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 from meshsplat import animate, camera
 from meshsplat.animation import AnimationSource, load_animation
 from meshsplat.animation.avatar_match import sequence_for_mesh
 from meshsplat.errors import MeshsplatError
-from test_eval_kit import SIZE, deform, make_avatar, make_dataset, make_run
 
 
 @pytest.fixture(scope="module")

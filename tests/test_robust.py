@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from _train_kit import make_tiny_dataset, small_config
 from meshsplat.cli.main import main
 from meshsplat.data import open_dataset
 from meshsplat.errors import MeshsplatError
@@ -23,7 +24,6 @@ from meshsplat.run_folder import load_run
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.config import load_config
 from meshsplat.train.recipes import recipe_config
-from test_train import make_tiny_dataset, small_config
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 

@@ -8,10 +8,10 @@ import warnings
 import pytest
 import torch
 
+from _eval_kit import make_avatar, make_run
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.io import checkpoint_path, save_checkpoint
 from meshsplat.run_folder import LoadedRun, RunFolder, load_avatar, load_run
-from test_eval_kit import make_avatar, make_run
 
 
 def _one_line(exc_info) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from _train_kit import make_tiny_dataset, small_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.folder_lock import FolderLock, lock_holder
 from meshsplat.run_folder import RunFolder, check_training_target
@@ -22,7 +23,6 @@ from meshsplat.synth.capture import synth_capture
 from meshsplat.train import Trainer
 from meshsplat.train.distributed import LAUNCHER_VAR, check_launcher
 from meshsplat.train.launch import launch, usable_cores
-from test_train import make_tiny_dataset, small_config
 
 
 @pytest.fixture(scope="module")

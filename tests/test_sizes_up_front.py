@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
+from _eval_kit import make_run
 from _peoplesnapshot import make_capture
 from meshsplat.cli.main import main
 from meshsplat.data.formats import peoplesnapshot as ps
 from meshsplat.gaussians import Avatar
 from meshsplat.gaussians.params import init_params
 from meshsplat.mesh import TriMesh
-from test_eval_kit import make_run
 
 BIG = 200_000  # frames: 200k x 6890 vertices x 12 bytes would be 16.5 GB once posed
 

@@ -7,6 +7,7 @@ import shutil
 import pytest
 import torch
 
+from _train_kit import VIEWMAT, H, K, W, small_config
 from meshsplat.embedding import embed
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params, sh0_to_rgb
@@ -16,7 +17,6 @@ from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.recipes import recipe_config
 from test_quality_options import _lit_from_x, _sphere
-from test_train import VIEWMAT, H, K, W, small_config, tiny_dataset  # noqa: F401  (fixture)
 
 SPEC = ["shading.specular=sh2"]
 
@@ -146,7 +146,7 @@ def test_config_keys_validate():
             apply_overrides(recipe_config("quality"), bad).validate()
 
 
-def test_trainer_learns_the_specular_and_resumes_exactly(tiny_dataset, tmp_path):  # noqa: F811
+def test_trainer_learns_the_specular_and_resumes_exactly(tiny_dataset, tmp_path):
     full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, SPEC))
     assert full.shading is not None and isinstance(full.shading.specular, torch.nn.Parameter)
     full.train()

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from _eval_kit import make_avatar, make_run
 from meshsplat.errors import MeshsplatError
 from meshsplat.export import canonical_gaussians, export_avatar
 from meshsplat.io import read_gaussian_ply, write_gaussian_ply
@@ -26,7 +27,6 @@ from meshsplat.io.splat_formats import (
     write_splat,
     write_spz,
 )
-from test_eval_kit import make_avatar, make_run
 
 # independent Node readers: `make test` installs them into .node-tools (or point MESHSPLAT_NODE_TOOLS elsewhere)
 NODE_TOOLS = os.environ.get("MESHSPLAT_NODE_TOOLS") or str(Path(__file__).resolve().parents[1] / ".node-tools")

@@ -11,7 +11,6 @@ from meshsplat.cli.main import build_parser, main
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.checkpoint import load_checkpoint
 from meshsplat.train import apply_overrides, recipe_config
-from test_train import tiny_dataset  # noqa: F401  (fixture)
 
 
 def _config(argv: list[str]):
@@ -85,7 +84,7 @@ def test_set_before_the_dataset_is_one_clear_error(capsys):
     )
 
 
-def test_resume_refuses_another_recipe(tiny_dataset, tmp_path, capsys):  # noqa: F811  (fixture)
+def test_resume_refuses_another_recipe(tiny_dataset, tmp_path, capsys):
     out = str(tmp_path / "run")
     common = ["train", str(tiny_dataset), "--out", out, "--device", "cpu", "--no-progress", "--threads", "1"]
     small = ["--set", "model.n_init=60", "backend=torch", "loss.lambda_lpips=0", "checkpoint_every=2"]

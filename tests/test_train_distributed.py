@@ -15,6 +15,7 @@ import pytest
 import torch
 import torch.distributed as dist
 
+from _train_kit import make_tiny_dataset, small_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.io import load_checkpoint
 from meshsplat.run_folder import RunFolder
@@ -22,7 +23,6 @@ from meshsplat.train import Trainer
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.launch import _wait, free_port, launch
 from meshsplat.train.recipes import recipe_config
-from test_train import make_tiny_dataset, small_config
 
 BATCH = [
     "batch_size=2",

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from _train_kit import make_tiny_dataset
 from meshsplat.metrics.lpips_net import lpips_available
-from test_train import make_tiny_dataset
 
 ITERS = 16
 ARGS = [

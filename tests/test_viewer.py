@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from _browser import find_chromium, screenshot
+from _eval_kit import deform, make_avatar, make_run
 from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar
@@ -23,7 +24,6 @@ from meshsplat.gaussians.compose import effective_uv
 from meshsplat.gaussians.params import SH_C0
 from meshsplat.gaussians.shading import Shading
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
-from test_eval_kit import deform, make_avatar, make_run
 
 NODE = shutil.which("node")
 REFERENCE_JS = json.dumps((Path(__file__).resolve().parent / "viewer_reference.mjs").as_uri())  # CPU reference
