@@ -1994,7 +1994,7 @@ export function startViewer(doc) {
   doc.addEventListener("keyup", (e) => { if (isSpace(e)) e.preventDefault(); }, true);
   // the view readout (render flags), the URL fragment that reopens it, and "copy view"
   const viewText = $("viewtext");
-  let viewShown = "", hashAt = 0;
+  let viewShown = "", hashAt = 0, readyView = null;
   const pageFolder = () => {
     const loc = doc.location;
     if (!loc || loc.protocol !== "file:") return "FOLDER";
@@ -2123,7 +2123,8 @@ export function startViewer(doc) {
     if (key === state.sortedKey && (!mapper || state.shadowKey === poseKey) && state.drawnKey === drawKey) {
       if (timings.firstReadyMs === null) timings.firstReadyMs = performance.now(); // since navigation start
       doc.body.dataset.ready = "1";
-    } else if (doc.body.dataset.ready === "1") doc.body.dataset.ready = "0"; // a new view or pose on its way
+      readyView = vs;
+    } else if (doc.body.dataset.ready === "1" && vs !== readyView) doc.body.dataset.ready = "0"; // a new view on its way
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
