@@ -260,6 +260,7 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
                 time.sleep(0.25)
             stats = page.evaluate("JSON.stringify(window.meshsplatViewer.webcam.stats)")
             shown = page.evaluate("Array.from(window.meshsplatViewer.webcam.smoothW)")
+            node_rot = page.evaluate("Array.from(window.meshsplatViewer.webcam.lastRotation)")
             page.screenshot(tmp_path / "webcam.png")
             status = page.evaluate("document.getElementById('camstatus').textContent")
     finally:
@@ -269,6 +270,9 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     names = model[1]["names"]
     page_w = np.median([s["w"] for s in st["weights"][2:]], axis=0)  # after the tracker settles
     assert np.median([s["err"] for s in st["weights"]]) < 3.0  # pixels of a 256² frame
+    # the head's turn (0.05, 0.2, 0 rad as rendered) reaches the avatar's head node
+    np.testing.assert_allclose(np.median([s["rot"] for s in st["weights"][2:]], axis=0), [0.05, 0.2, 0.0], atol=0.06)
+    assert abs(node_rot[1] - math.sin(0.1)) < 0.05  # the rig's rotation quaternion (xyzw): about +y by ~0.2 rad
     # the offline fit of the same frame (MediaPipe's Python build, the tracker's solver)
     from meshsplat.track.mediapipe_models import FaceMesh
 
@@ -296,11 +300,8 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
 
 def test_view_cli_webcam_needs_a_live_head(tmp_path, capsys):
     """`meshsplat view --webcam` on vertex frames says what it needs, in one line."""
+    from _eval_kit import make_run
     from meshsplat.cli.main import main
-    try:  # the test kit's home (tests/_eval_kit.py once the helpers move there)
-        from _eval_kit import make_run
-    except ImportError:
-        from test_eval_kit import make_run
 
     av = make_avatar(n=40)
     run = make_run(av, tmp_path / "run", None)

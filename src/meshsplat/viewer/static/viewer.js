@@ -1704,7 +1704,8 @@ export class WebcamDriver {
     this.stats.solveMs.push(solveMs); this.stats.frames++;
     this.stats.weights.push({ t: this.frameIn, w: Array.from(sol.w), rot: sol.rot, err: sol.errorPx });
     for (const k of ["solveMs", "landmarkMs", "latencyMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
-    this.onPose(this.smoothW, matrixQuaternion(axisAngleMatrix(this.smoothR)), this.frameIn);
+    this.lastRotation = matrixQuaternion(axisAngleMatrix(this.smoothR)); // the head node's (xyzw)
+    this.onPose(this.smoothW, this.lastRotation, this.frameIn);
     this.onStatus(`${this.stats.frames} frames · landmarks ${(t1 - this.frameIn).toFixed(0)} ms · solve ${solveMs.toFixed(1)} ms · error ${sol.errorPx.toFixed(1)} px`);
   }
 
