@@ -9,7 +9,7 @@ PY  := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 
-# Independent readers of our splat exports (tests/test_splat_formats.py), and the face landmarker that
+# Independent readers of our splat exports (tests/io/test_splat_formats.py), and the face landmarker that
 # `meshsplat view --webcam` copies beside the player page (tests/test_viewer_webcam.py), from the npm registry.
 NODE_TOOLS := .node-tools/node_modules/gltf-validator
 FACE_MESH := .node-tools/node_modules/@mediapipe/face_mesh

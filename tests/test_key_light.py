@@ -8,6 +8,7 @@ import shutil
 import pytest
 import torch
 
+from _shading_kit import _sphere
 from _train_kit import small_config
 from meshsplat.errors import MeshsplatError
 from meshsplat.gaussians import Avatar, compose, init_params
@@ -16,7 +17,6 @@ from meshsplat.mesh import MeshPose, TriMesh
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.recipes import recipe_config
-from test_quality_options import _sphere
 
 KEY = ["shading.occlusion=key", "shading.directions=8", "shading.grid=32", "shading.key_iter=4"]
 

@@ -7,6 +7,8 @@ import shutil
 import pytest
 import torch
 
+from _meshes import box
+from _shading_kit import _lit_from_x, _sphere
 from _train_kit import VIEWMAT, H, K, W, small_config
 from meshsplat.embedding import embed, surface_points
 from meshsplat.errors import MeshsplatError
@@ -17,8 +19,6 @@ from meshsplat.mesh.visibility import visibility
 from meshsplat.run_folder import load_avatar
 from meshsplat.train import Trainer, apply_overrides
 from meshsplat.train.recipes import recipe_config
-from test_quality_options import _lit_from_x, _sphere
-from test_visibility import box
 
 OCCL = ["shading.occlusion=directions", "shading.directions=8", "shading.grid=32"]
 

@@ -433,8 +433,8 @@ console.log(JSON.stringify(out));
 
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
+    from _eval_kit import make_dataset
     from meshsplat.cli.main import main
-    from test_eval_kit import make_dataset
 
     av = make_avatar(n=80)
     ds = make_dataset(av, tmp_path / "ds")

@@ -1,0 +1,130 @@
+"""The compositing kernels with pixels in SIMD lanes (``numba_lanes``) against the scalar ones they replace by
+default, their inlined ``exp``, the switch, and the vector code they compile to.
+
+Both kernels also run every parity test against the torch backend (test_render_numba.py is parametrized over
+them).
+"""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+import pytest
+import torch
+
+from _render_kit import random_scene
+from meshsplat.errors import MeshsplatError
+from meshsplat.render import rasterize
+from meshsplat.render.backends import numba_available
+from meshsplat.render.backends import numba_cpu as nc
+from meshsplat.render.backends import numba_lanes as nl
+
+numba = pytest.importorskip("numba")
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is switched off (MESHSPLAT_NO_NUMBA=1)")
+
+
+def _geometry(scene):
+    """The binned entries of a scene (one call's no-grad state), as the compositing kernels take them."""
+    k = nc._kernels()
+    s = scene
+    proj = nc.project_numba(
+        (k.project, k.project_backward), nc.numba_threads, s["means"], s["quats"], s["scales"], s["opacities"],
+        s["viewmats"], s["Ks"], s["width"], s["height"], 0.01, 1e10,
+    )  # fmt: skip
+    colors = s["colors"]
+    geo = nc._Geometry(proj, s["means"].shape[0], colors.dim() == 2, s["width"], s["height"], nc.TILE_SIZE)
+    geo.bin(s["opacities"], colors)
+    return k, geo, s["backgrounds"].contiguous().numpy()
+
+
+@pytest.mark.parametrize("n_colors", [1, 4])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_lanes_match_the_scalar_kernels(dtype, n_colors):
+    """Same contribution lists (list position after each pixel's last splat), image and final T to rounding, every
+    per-intersection gradient row to 1e-5 (float32) / 1e-12 (float64) of its column's largest entry; fewer and
+    more colour channels than the 3 the lane loop sums itself."""
+    scene = random_scene(n=400, seed=8, dtype=dtype, width=83, height=57)
+    g = torch.Generator().manual_seed(3)
+    scene["colors"] = torch.rand(3, 400, n_colors, generator=g, dtype=dtype)
+    scene["backgrounds"] = torch.rand(3, n_colors, generator=g, dtype=dtype)
+    k, geo, bg = _geometry(scene)
+    with nc.numba_threads():
+        out_s, tf_s, nc_s = k.forward(*geo.args(bg))
+        out_l, tf_l, nc_l, alpha_l = k.forward_lanes(*geo.args(bg))
+        rng = np.random.default_rng(0)
+        n_pix = tf_s.shape[0]
+        g_col = rng.standard_normal((n_pix, n_colors)).astype(out_s.dtype)
+        g_alpha = rng.standard_normal(n_pix).astype(out_s.dtype)
+        rows_s = k.backward(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
+        rows_l = k.backward_lanes(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
+    assert (tf_s < 1e-3).any() and int(nc_s.max()) > 5  # saturated pixels: the transmittance stop is exercised
+    np.testing.assert_array_equal(nc_l, nc_s)
+    np.testing.assert_allclose(out_l, out_s, atol=tol, rtol=0)
+    np.testing.assert_allclose(tf_l, tf_s, atol=tol, rtol=0)
+    np.testing.assert_allclose(alpha_l, 1.0 - tf_s, atol=tol, rtol=0)
+    scale = np.abs(rows_s).max(0)
+    assert (scale > 0).all()
+    err = (np.abs(rows_l - rows_s).max(0) / scale).max()
+    assert err < (1e-5 if dtype == torch.float32 else 1e-12), err
+
+
+def test_inlined_exp_is_within_two_ulp():
+    """The float32 polynomial ``exp(-x)`` of the lane loops against float64 ``exp``, over the range alpha uses."""
+    nl.compile_kernels(numba)
+    exp_neg = nl._exp_neg
+    f = numba.njit(lambda a: np.array([exp_neg(v) for v in a], np.float32))
+    x = np.concatenate([np.linspace(0, 20, 200_001), [87.0, 100.0, 1e30]]).astype(np.float32)
+    got = f(x).astype(np.float64)
+    ref = np.exp(-x.astype(np.float64))
+    rel = np.abs(got[:-3] - ref[:-3]) / ref[:-3]
+    assert float(rel.max()) < 2 * 2.0**-24  # two half-ulps; glibc's expf: one
+    assert (got[-3:] >= 0).all() and (got[-3:] < 1e-37).all()  # far tails: tiny, not negative, no NaN
+
+
+def test_switch_picks_the_kernel(monkeypatch):
+    scene = random_scene(seed=0, dtype=torch.float32)
+    monkeypatch.delenv(nc.KERNEL_ENV, raising=False)
+    assert rasterize(**scene, backend="numba").meta["kernel"] == "lanes"
+    monkeypatch.setenv(nc.KERNEL_ENV, "scalar")
+    assert rasterize(**scene, backend="numba").meta["kernel"] == "scalar"
+    monkeypatch.setenv(nc.KERNEL_ENV, "avx9")
+    with pytest.raises(MeshsplatError, match="MESHSPLAT_RASTER_KERNEL"):
+        rasterize(**scene, backend="numba")
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="checks x86-64 vector registers")
+def test_lane_loops_compile_to_vector_code():
+    """On an x86-64 host with AVX2 the float32 lane loops are vectorized: packed arithmetic on 256-bit (ymm) or
+    512-bit (zmm) registers. (The scalar kernel's code has none of it.)"""
+    import llvmlite.binding as ll
+
+    if "+avx2" not in ll.get_host_cpu_features().flatten().split(","):
+        pytest.skip("the host has no AVX2")
+    scene = random_scene(n=60, seed=1, dtype=torch.float32)
+    _, geo, bg = _geometry(scene)
+    with nc.numba_threads():
+        report = nl.vector_report(geo.args(bg))
+    assert report["ymm"] + report["zmm"] >= 30, report
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_radix_depth_order_matches_torch_stable_argsort(dtype):
+    """The entry order (camera, then depth, ties by Gaussian index) from the radix sort of the depths' bits is
+    torch's stable argsort's, with ties, -0 beside +0, negative depths and empty cameras."""
+    k = nc._kernels()
+    g = torch.Generator().manual_seed(0)
+    for n in (0, 1, 7, 3000):
+        depths = torch.rand(3, n, generator=g, dtype=dtype) * 5 + 0.01
+        if n > 10:
+            depths[:, : n // 3] = depths[:, n // 3 : 2 * (n // 3)]  # ties
+            depths[0, 5], depths[0, 6], depths[1, 3] = -0.0, 0.0, -1.5
+        visible = torch.rand(3, n, generator=g) < 0.7
+        visible[2] = False
+        key = torch.where(visible, depths, torch.full_like(depths, float("inf")))
+        order = torch.argsort(key, dim=1, stable=True)
+        want = (order + torch.arange(3)[:, None] * n)[visible.gather(1, order)].numpy()
+        d = depths.numpy()
+        got = k.depth_order(nc._depth_keys(d), visible.numpy(), 8 * d.itemsize)
+        np.testing.assert_array_equal(got, want)
