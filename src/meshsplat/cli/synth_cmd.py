@@ -105,6 +105,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--roughness", type=float, default=0.45, help="--renderer pbr: roughness of the glossy lobe (default 0.45)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer and the pose noise (default 0)")
+    parser.add_argument(
+        "--light",
+        default=None,
+        metavar="X,Y,Z",
+        help="world direction towards the light (y up; the rasterizer's directional light, the path tracer's key "
+        "light; written in the meta as light_dir); default 0.35,0.75,0.55 (front, above, right)",
+    )
+    parser.add_argument(
+        "--key", type=float, default=0.9, help="--renderer pbr: the key light's strength (default 0.9; 0: sky only)"
+    )
     parser.add_argument("--supersample", type=int, default=None, help="anti-aliasing factor (default 2 up to 384 px)")
     parser.add_argument("--contact-sheet", default=None, metavar="PNG", help="also save a contact sheet (native only)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
@@ -161,9 +171,10 @@ def run(args: argparse.Namespace) -> int:
         gender=args.gender,
         up=args.up,
         renderer=args.renderer,
-        pbr=PbrSettings(spp=args.spp, seed=args.seed, roughness=args.roughness),
+        pbr=PbrSettings(spp=args.spp, seed=args.seed, roughness=args.roughness, key=args.key),
         pose_noise=args.pose_noise,
         seed=args.seed,
+        light_dir=_light_arg(args.light),
     )
     out = synth_capture(
         args.asset,
@@ -180,3 +191,16 @@ def run(args: argparse.Namespace) -> int:
     if args.contact_sheet:
         print(f"contact sheet: {contact_sheet(out, args.contact_sheet)}")
     return 0
+
+
+def _light_arg(text: str | None) -> list[float] | None:
+    """``--light X,Y,Z`` as three numbers (None: the default light)."""
+    if text is None:
+        return None
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3:
+        raise MeshsplatError(f"--light: expected X,Y,Z (three numbers), got {text!r}")
+    return v

@@ -109,6 +109,10 @@ class SynthSpec:
     the images show the exact pose, so pose refinement has an error to fix."""
     seed: int = 0
     """Seed of the pose noise."""
+    light_dir: Sequence[float] | None = None
+    """World direction towards the light (the rasterizer's directional light, the path tracer's key light),
+    normalised; None: the default ``(0.35, 0.75, 0.55)`` (front, above, to the right). Written in the
+    dataset's meta as ``light_dir``."""
     splits: Sequence[str] | None = None
     """Render only the frames of these splits (same names, cameras, poses and per-frame sampler seeds as
     the full capture; e.g. held-out frames again with more samples per pixel, as low-noise references);
@@ -125,9 +129,15 @@ class SynthSpec:
             "pose_noise": float(self.pose_noise),
             "seed": int(self.seed),
             "splits": None if self.splits is None else [str(x) for x in self.splits],
+            "light_dir": None if self.light_dir is None else _unit_light(self.light_dir),
         }
         for name, value in resolved.items():
             object.__setattr__(self, name, value)
+
+    @property
+    def light(self) -> np.ndarray:
+        """The unit light direction ``[3]`` (``light_dir`` or the default)."""
+        return _LIGHT if self.light_dir is None else np.asarray(self.light_dir, np.float64)
 
     @property
     def supersample_factor(self) -> int:
@@ -412,6 +422,14 @@ def synthesize(
         torch.set_num_threads(old_threads)
 
 
+def _unit_light(d: Sequence[float]) -> list[float]:
+    v = np.asarray(d, np.float64)
+    n = float(np.linalg.norm(v)) if v.shape == (3,) and np.isfinite(v).all() else 0.0
+    if n < 1e-9:
+        raise MeshsplatError(f"light_dir: expected a non-zero direction [3], got {list(np.ravel(v))}")
+    return (v / n).tolist()
+
+
 def synth_spec(spec: SynthSpec | None = None, **fields: Any) -> SynthSpec:
     """``spec`` (default ``SynthSpec()``) with ``fields`` replaced; an unknown field is a ``TypeError``."""
     unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(SynthSpec)})
@@ -566,7 +584,7 @@ def _renderer(
     """``(path tracer or None for the rasterizer, the renderer's record for the dataset's meta)``."""
     if spec.renderer == "pbr":
         settings = spec.pbr or PbrSettings()
-        tracer = PbrRenderer(src.source, weld_group, framing.center, framing.extent, _LIGHT, settings, threads)
+        tracer = PbrRenderer(src.source, weld_group, framing.center, framing.extent, spec.light, settings, threads)
         return tracer, settings.record()
     return None, {"name": "lambert", "ambient": 0.4, "supersample": spec.supersample_factor}
 
@@ -587,7 +605,7 @@ def _meta(asset: Path | str, src: _Asset, drive: Any, clips: dict, spec: SynthSp
         "driver_vertices": int(drive.rest().shape[0]),
         "pose_noise": spec.pose_noise,
         "seed": spec.seed,
-        "light_dir": _LIGHT.tolist(),
+        "light_dir": spec.light.tolist(),
         "renderer": render_record,
         "fov_deg": spec.fov_deg,
         "background": list(spec.background),
@@ -684,6 +702,7 @@ def _render_shots(
                 weld_group,
                 spec.background,
                 spec.supersample_factor,
+                light_dir=spec.light,
             )
         if float(alpha.max()) == 0.0:
             raise MeshsplatError(f"shot {k} ({s.split}, camera {s.camera}): subject not visible")
