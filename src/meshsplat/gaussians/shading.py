@@ -35,6 +35,17 @@ disk of that radius around ``w``, so shadows soften with the occluder's distance
 A key light's shadow placed within a few degrees of the true light is what moves with pose; the fixed
 directions are tens of degrees off, which is why their shadows transfer badly.
 
+Seeded search (``align_key(start=...)`` at the first stage; the trainer's ``shading.key_seed``): the start
+of the rings is given instead of taken from the strongest candidate; :meth:`Shading.key_seed` is the
+direction of the learned irradiance itself, the SH2 coefficients plus every candidate's lobe unshadowed
+(:func:`irradiance_direction`: where a clamped-cosine lobe fits it best), which points at the light
+wherever the light is, while the strongest shadowed candidate may be the one whose shadows happen to fit.
+A seeded first stage keeps the unshadowed irradiance: every candidate folds into the SH2 coefficients and
+the ring's lobes are taken out of them again, so only the shadows change (two starts compare fairly).
+:meth:`Shading.drop_key` folds the key light into the SH2 irradiance (``occlusion="none"`` from then on,
+its direction kept in ``dropped_key`` for readers): the trainer's ``shading.key_check_frames`` does so when
+the key's shadow does not lower the error of a few training frames.
+
 Specular (``specular="sh2"``): light that is ADDED rather than albedo-multiplied, ``S(n) = SH9(n) . spec``
 with learned ``specular [9,3]`` (zero at the start, so the untrained model equals the one without it):
 
@@ -65,6 +76,7 @@ __all__ = [
     "SPECULAR_MODES",
     "sh9_basis",
     "shading_normals",
+    "irradiance_direction",
 ]
 
 SHADING_MODES = ("none", "sh2")  # model.shading: off (the paper) | the learned SH irradiance of this module
@@ -78,6 +90,8 @@ KEY_STAGES = 1 + len(KEY_RINGS_DEG)  # align_key calls until one key light is le
 KEY_SOFT_SAMPLES = 12  # key_soft > 0: shadow-map directions spread over the key light's disk
 # the clamped cosine max(0, n . w) in SH2: A_l * Y_lm(w) per band l (Ramamoorthi & Hanrahan)
 _CLAMPED_COS_BANDS = (math.pi, 2 * math.pi / 3, 2 * math.pi / 3, 2 * math.pi / 3) + (math.pi / 4,) * 5
+SEED_SEARCH = 4096  # irradiance_direction: the directions scored at first (about 3.2 degrees apart)
+SEED_RINGS_DEG = (2.0, 1.0, 0.5, 0.25)  # then rings of 8 around the best, narrowing
 SPECULAR_MODES = ("none", "sh2")  # shading.specular: off | an added (not albedo-multiplied) SH2 term of the normal
 _Y00 = 0.28209479177387814
 
@@ -99,6 +113,26 @@ def sh9_basis(n: torch.Tensor) -> torch.Tensor:
         ],
         dim=-1,
     )
+
+
+def _lobes(dirs: torch.Tensor) -> torch.Tensor:
+    """The SH2 projections ``[K,9]`` of the clamped cosines ``max(0, n . w_k)`` of unit ``dirs [K,3]``."""
+    return sh9_basis(dirs) * torch.tensor(_CLAMPED_COS_BANDS).to(dirs)
+
+
+def irradiance_direction(coeffs: torch.Tensor) -> torch.Tensor:
+    """The unit direction ``w [3]`` whose clamped-cosine lobe fits the SH2 irradiance ``coeffs [9,3]`` (mean over
+    RGB) best: the maximum over the sphere of ``sum_i A_i Y_i(w) c_i`` (its projection on the lobe; the linear
+    band points along the light, the quadratic band sharpens it). A ``SEED_SEARCH``-direction Fibonacci sphere,
+    then rings narrowing on the best (``SEED_RINGS_DEG``), in float64. A uniform irradiance gives the first
+    direction of the sphere."""
+    c = coeffs.detach().double().cpu().mean(-1)  # [9]
+    dirs = sphere_directions(SEED_SEARCH, torch.float64, "cpu")
+    best = dirs[int((_lobes(dirs) @ c).argmax())]
+    for deg in SEED_RINGS_DEG:
+        cand = torch.cat([best[None], _ring(best, deg, 8)])
+        best = cand[int((_lobes(cand) @ c).argmax())]
+    return (best / best.norm()).to(coeffs)
 
 
 def shading_normals(kind: str, phong: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -136,6 +170,7 @@ class Shading:
         specular: str = "none",
         specular_coeffs: torch.Tensor | None = None,
         key_soft: float = 0.0,
+        dropped_key: torch.Tensor | None = None,
     ) -> None:
         if normal not in SHADING_NORMALS:
             raise MeshsplatError(f"shading normal: expected one of {SHADING_NORMALS}, got {normal!r}")
@@ -167,6 +202,14 @@ class Shading:
         if key_soft and occlusion != "key":
             raise MeshsplatError("shading key_soft: a soft key light needs occlusion='key'")
         self.key_soft = float(key_soft)
+        if dropped_key is not None:
+            d = dropped_key
+            if occlusion != "none" or not isinstance(d, torch.Tensor) or tuple(d.shape) != (3,):
+                raise MeshsplatError("shading dropped_key: a direction [3] of a key folded away (occlusion 'none')")
+            if not bool(torch.isfinite(d).all()) or abs(float(d.norm()) - 1.0) > 1e-3:
+                raise MeshsplatError("shading dropped_key: expected a finite unit direction")
+        # the key light's direction when drop_key folded it into coeffs (for readers; it shades nothing)
+        self.dropped_key = None if dropped_key is None else dropped_key.detach().to(coeffs)
         if occlusion != "none":
             if not isinstance(directions, int) or not 1 <= directions <= 256:
                 raise MeshsplatError(f"shading occlusion directions: expected 1..256, got {directions!r}")
@@ -228,8 +271,39 @@ class Shading:
         """``occlusion="key"``: one key light is left (the last stage)."""
         return self.key_stage == KEY_STAGES
 
+    def _near_strongest(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(directions [K,3], intensities [K,3] >= 0, strongest's neighbours within KEY_CONE_DEG [K] bool,
+        their intensity-squared weighted mean direction [3])``: the rule of ``align_key``."""
+        assert self.directions is not None and self.light is not None
+        dirs, light = self.directions.detach(), self.light.detach().clamp_min(0.0)
+        weight = light.mean(-1)  # [K]
+        strongest = dirs[int(weight.argmax())]
+        near = dirs @ strongest >= math.cos(math.radians(KEY_CONE_DEG))  # [K]
+        w = (weight[near, None] ** 2 * dirs[near]).sum(0)  # squared: the best-fitting candidates lead
+        return dirs, light, near, strongest if float(w.norm()) < 1e-12 else w / w.norm()
+
+    def key_estimate(self) -> torch.Tensor:
+        """``occlusion="key"``, not aligned: the direction ``[3]`` the next ``align_key()`` centres on."""
+        self._check_key("key_estimate")
+        return self._near_strongest()[3].clone()
+
+    def unshadowed_coeffs(self) -> torch.Tensor:
+        """``[9,3]``: the SH2 irradiance with every light's clamped-cosine lobe added, unshadowed."""
+        c = self.coeffs.detach()
+        if self.light is None or self.directions is None:
+            return c.clone()
+        return c + _lobes(self.directions.detach()).T @ self.light.detach().clamp_min(0.0)
+
+    def key_seed(self) -> torch.Tensor:
+        """The learned light's direction ``[3]``: :func:`irradiance_direction` of ``unshadowed_coeffs``."""
+        return irradiance_direction(self.unshadowed_coeffs())
+
+    def _check_key(self, what: str) -> None:
+        if self.occlusion != "key" or self.key_aligned:
+            raise MeshsplatError(f"{what}: only a Shading with occlusion='key' that is not aligned yet")
+
     @torch.no_grad()
-    def align_key(self) -> None:
+    def align_key(self, start: torch.Tensor | None = None) -> None:
         """``occlusion="key"``: the next stage; the candidate lights collapse into the key's estimate.
 
         The estimate is the mean of the strongest light's direction and its neighbours' within
@@ -238,25 +312,44 @@ class Shading:
         unshadowed). Then the estimate and a ring of candidates around it (``KEY_RINGS_DEG``) share that
         intensity equally, or, at the last stage, the key alone holds it. With no light learned yet the
         strongest is the first direction, at zero intensity. In place; the tensors are new (an optimizer
-        of the old ones must be rebuilt)."""
-        if self.occlusion != "key" or self.key_aligned:
-            raise MeshsplatError("align_key: only a Shading with occlusion='key' that is not aligned yet")
-        assert self.directions is not None and self.light is not None
-        dirs, light = self.directions.detach(), self.light.detach().clamp_min(0.0)
-        weight = light.mean(-1)  # [K]
-        strongest = dirs[int(weight.argmax())]
-        near = dirs @ strongest >= math.cos(math.radians(KEY_CONE_DEG))  # [K]
-        w = (weight[near, None] ** 2 * dirs[near]).sum(0)  # squared: the best-fitting candidates lead
-        key = strongest if float(w.norm()) < 1e-12 else w / w.norm()
-        cos_sh = sh9_basis(dirs[~near]) * torch.tensor(_CLAMPED_COS_BANDS).to(dirs)  # [K',9]
-        self.coeffs = self.coeffs.detach() + cos_sh.T @ light[~near]
+        of the old ones must be rebuilt).
+
+        ``start`` (unit ``[3]``, first stage only, e.g. ``key_seed()``): the ring is centred there instead,
+        sharing the same summed intensity, and the unshadowed irradiance is kept: every candidate folds into
+        ``coeffs`` and the new candidates' lobes are taken out of it."""
+        self._check_key("align_key")
+        dirs, light, near, key = self._near_strongest()
         merged = light[near].sum(0, keepdim=True)  # [1,3]
+        if start is not None:
+            if self.key_stage != 0 or not isinstance(start, torch.Tensor) or tuple(start.shape) != (3,):
+                raise MeshsplatError("align_key: a start direction [3] is for the first stage only")
+            key = torch.nn.functional.normalize(start.detach().to(dirs), dim=0)
+            cand = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[0], KEY_RING)])
+            share = merged.expand(1 + KEY_RING, 3) / (1 + KEY_RING)
+            self.coeffs = self.coeffs.detach() + _lobes(dirs).T @ light - _lobes(cand).T @ share
+            self.key_stage = 1
+            self.directions, self.light = cand, share.clone()
+            return
+        self.coeffs = self.coeffs.detach() + _lobes(dirs[~near]).T @ light[~near]
         self.key_stage += 1
         if self.key_aligned:
             self.directions, self.light = key[None].clone(), merged
             return
         self.directions = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[self.key_stage - 1], KEY_RING)])
         self.light = merged.expand(1 + KEY_RING, 3) / (1 + KEY_RING)  # no candidate favoured at the start
+
+    @torch.no_grad()
+    def drop_key(self) -> None:
+        """``occlusion="key"`` (any stage): fold every light into ``coeffs`` (its lobe, unshadowed) and shade
+        without occlusion from then on; ``dropped_key`` keeps the direction the key had (aligned) or would
+        have had. In place; the tensors are new."""
+        if self.occlusion != "key" or self.directions is None or self.light is None:
+            raise MeshsplatError("drop_key: only a Shading with occlusion='key'")
+        key = self.directions[0] if self.key_aligned else self._near_strongest()[3]
+        self.coeffs = self.unshadowed_coeffs()
+        self.dropped_key = torch.nn.functional.normalize(key.detach().clone(), dim=0)
+        self.occlusion, self.directions, self.light = "none", None, None
+        self.key_stage, self.key_soft = 0, 0.0
 
     def visibility(self, pose: MeshPose, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
         """``V [N,K]`` of surface ``points [N,3]`` (unit ``normals [N,3]``) on the posed mesh ``pose``; None
@@ -322,6 +415,7 @@ class Shading:
             specular=self.specular_mode,
             specular_coeffs=spec,
             key_soft=self.key_soft,
+            dropped_key=None if self.dropped_key is None else self.dropped_key.detach().to(device),
         )
 
     def _occlusion_args(self, device: Device = "cpu") -> dict[str, Any]:
@@ -359,6 +453,8 @@ class Shading:
                 sd["occlusion"]["aligned"] = self.key_aligned  # for readers: one key light
         if self.specular is not None:
             sd["specular"] = {"kind": self.specular_mode, "coeffs": self.specular.detach().cpu().clone()}
+        if self.dropped_key is not None:  # a key light folded into coeffs: where it was (it shades nothing)
+            sd["dropped_key"] = {"direction": self.dropped_key.detach().cpu().clone()}
         return sd
 
     def json_state(self) -> dict[str, Any]:
@@ -384,7 +480,7 @@ class Shading:
         spec_kw = _specular_state(sd.get("specular"), device)  # absent in states written before specular existed
         occ = sd.get("occlusion")  # absent in states written before occlusion existed
         if occ is None:
-            return cls(c.to(device), sd["normal"], **spec_kw)
+            return cls(c.to(device), sd["normal"], dropped_key=_dropped_key(sd.get("dropped_key"), device), **spec_kw)
         if (
             not isinstance(occ, dict)
             or occ.get("kind") not in OCCLUSION_MODES[1:]
@@ -427,6 +523,7 @@ class Shading:
 
     def __repr__(self) -> str:
         occ = "" if self.light is None else f", occlusion={self.occlusion!r} x{self.light.shape[0]}"
+        occ += "" if self.dropped_key is None else ", key dropped"
         spec = "" if self.specular is None else f", specular={self.specular_mode!r}"
         return f"Shading(normal={self.normal!r}, ambient={(self.coeffs[0] * _Y00).tolist()}{occ}{spec})"
 
@@ -455,6 +552,18 @@ def _disk(centre: torch.Tensor, degrees: float, m: int) -> torch.Tensor:
     phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
     d = centre + r[:, None] * (phi.cos()[:, None] * a + phi.sin()[:, None] * b)
     return torch.nn.functional.normalize(d, dim=-1)
+
+
+def _dropped_key(entry: Any, device: Device) -> torch.Tensor | None:
+    """A state's ``dropped_key`` entry (absent: None) as the direction [3]."""
+    if entry is None:
+        return None
+    if not isinstance(entry, dict) or "direction" not in entry:
+        raise MeshsplatError("shading state: dropped_key must hold direction [3]")
+    d = _float_array("dropped_key direction", entry["direction"])
+    if tuple(d.shape) != (3,) or not bool(torch.isfinite(d).all()):
+        raise MeshsplatError("shading state: dropped_key direction must be 3 finite numbers")
+    return d.to(device)
 
 
 def _specular_state(spec: Any, device: Device) -> dict[str, Any]:

@@ -60,6 +60,8 @@ class TrainingState(Protocol):
     @property
     def shading(self) -> Shading | None: ...
 
+    def training_error(self, idx: int) -> torch.Tensor: ...  # L1 of training frame idx rendered now (no RNG drawn)
+
 
 class Component:
     """Base class: every hook does nothing. ``name`` is the config section and checkpoint key."""

@@ -34,6 +34,15 @@ class ShadingConfig:
     grid: int = 96  # cells per side of each shadow map
     key_iter: int = 300
     key_soft: float = 12.0  # "key": the light's angular radius (degrees), a soft area-light shadow; 0: hard
+    # "key": the first stage starts from the learned irradiance's own direction (Shading.key_seed) as well as the
+    # strongest candidates' (with key_check_frames > 0 the start whose shadows fit those frames better); false: the
+    # strongest candidates' only
+    key_seed: bool = False
+    # "key": training frames (spread over the training split) rendered at the alignments to choose the start and,
+    # once aligned, to keep the key only if its shadow lowers their L1 error (else folded into the SH2 irradiance,
+    # occlusion none from then on); 0: no check
+    key_check_frames: int = 0
+    key_check_gain: float = 0.002  # the share of the check frames' L1 error the key's shadow must take away to stay
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
     specular: str = "none"
     lr: float = 5e-2  # the lighting's Adam (times sqrt(batch_size))
@@ -47,6 +56,8 @@ class ShadingConfig:
             (8 <= self.grid <= 1024, "shading.grid must be in 8..1024"),
             (self.key_iter >= 1, "shading.key_iter must be >= 1"),
             (0.0 <= self.key_soft <= 45.0, "shading.key_soft must be in 0..45 (degrees)"),
+            (0 <= self.key_check_frames <= 64, "shading.key_check_frames must be in 0..64"),
+            (0.0 <= self.key_check_gain < 1.0, "shading.key_check_gain must be in [0, 1)"),
             (self.lr > 0, "shading.lr must be > 0"),
         ]
 
@@ -59,6 +70,8 @@ class ShadingComponent(Component):
         super().__init__(cfg, state)
         self.shading: Shading | None = None
         self.optimizer: torch.optim.Adam | None = None
+        # the key's choices, as measured (for the notes and checkpoints): {"start": ..., "errors": ..., "kept": ...}
+        self.key_log: dict[str, Any] = {}
 
     def start(self) -> None:
         c = self.cfg
@@ -99,22 +112,77 @@ class ShadingComponent(Component):
 
     def _align_key(self, it: int) -> None:
         """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
-        iteration (a short run ends with one key light too)."""
+        iteration (a short run ends with one key light too). ``key_seed``: the first stage starts from
+        ``Shading.key_seed`` (or, with ``key_check_frames``, from whichever of it and the strongest candidates'
+        estimate fits the check frames better); ``key_check_frames``: once aligned, the key is dropped
+        (``Shading.drop_key``) unless its shadow lowers the check frames' error by ``key_check_gain``."""
         sh, every = self.shading, self.cfg.key_iter
         if sh is None or sh.occlusion != "key" or sh.key_aligned:
             return
         stage = sh.key_stage
         while not sh.key_aligned and (it >= every * (sh.key_stage + 1) or it == self.state.iterations):
-            sh.align_key()
-        if sh.key_stage != stage:  # new tensors: a new optimizer
+            if sh.key_stage == 0 and self.cfg.key_seed:
+                sh.align_key(start=self._choose_start(sh))
+            else:
+                sh.align_key()
+        if sh.key_aligned and self.cfg.key_check_frames:
+            self._check_key(sh)
+        if sh.key_stage != stage or sh.occlusion != "key":  # new tensors: a new optimizer
             self._set(sh)
 
+    def _check_frames(self) -> list[int]:
+        ids, k = self.state.train_ids, min(self.cfg.key_check_frames, len(self.state.train_ids))
+        return [ids[(2 * j + 1) * len(ids) // (2 * k)] for j in range(k)]  # spread evenly, none at the ends
+
+    @torch.no_grad()
+    def _error(self, trial: Shading) -> float:
+        """Mean L1 error of the check frames rendered with ``trial`` as the avatar's lighting (the avatar and the
+        generators untouched)."""
+        own = self.shading
+        self.shading = trial
+        try:
+            frames = self._check_frames()
+            return sum(float(self.state.training_error(i)) for i in frames) / len(frames)
+        finally:
+            self.shading = own
+
+    def _choose_start(self, sh: Shading) -> torch.Tensor:
+        seed, strongest = sh.key_seed(), sh.key_estimate()
+        self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), strongest.tolist()
+        if not self.cfg.key_check_frames:
+            self.key_log["start"] = "seed"
+            return seed
+        errors = {}
+        for name, start in (("seed", seed), ("strongest", strongest)):
+            trial = sh.to(self.state.device)
+            trial.align_key(start=start)
+            errors[name] = self._error(trial)
+        self.key_log["start_errors"] = errors
+        self.key_log["start"] = name = "seed" if errors["seed"] <= errors["strongest"] else "strongest"
+        return seed if name == "seed" else strongest
+
+    def _check_key(self, sh: Shading) -> None:
+        off = sh.to(self.state.device)
+        off.drop_key()
+        errors = {"key": self._error(sh), "off": self._error(off)}
+        self.key_log["check_errors"] = errors
+        self.key_log["kept"] = kept = errors["key"] < errors["off"] * (1.0 - self.cfg.key_check_gain)
+        if not kept:
+            sh.drop_key()
+
     def state_dict(self) -> Any:
-        return None if self.optimizer is None else {"optimizer": self.optimizer.state_dict()}
+        if self.optimizer is None:
+            return None
+        return {"optimizer": self.optimizer.state_dict(), "key_log": dict(self.key_log)}
 
     def load_state_dict(self, state: Any, checkpoint: dict[str, Any]) -> None:
         shading = Shading.from_state_dict(checkpoint["avatar"].get("shading"), self.state.device)
-        if shading is None or shading.occlusion != self.cfg.occlusion or shading.specular_mode != self.cfg.specular:
+        dropped = shading is not None and shading.dropped_key is not None and self.cfg.occlusion == "key"
+        if (
+            shading is None
+            or (shading.occlusion != self.cfg.occlusion and not dropped)
+            or shading.specular_mode != self.cfg.specular
+        ):
             raise MeshsplatError(
                 "checkpoint: its avatar's lighting does not match the shading section of the configuration; "
                 "resume with the run's own config.json or start a new run"
@@ -123,3 +191,4 @@ class ShadingComponent(Component):
         if state:
             assert self.optimizer is not None
             self.optimizer.load_state_dict(state["optimizer"])
+            self.key_log = dict(state.get("key_log") or {})

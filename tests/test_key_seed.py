@@ -1,0 +1,192 @@
+"""The key light's seeded search (``shading.key_seed``) and its check (``shading.key_check_frames``): the search
+starts from the learned irradiance's own direction, and a key whose shadow does not lower the training error
+is folded into the SH2 irradiance (``Shading.drop_key``)."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from _train_kit import small_config
+from meshsplat.errors import MeshsplatError
+from meshsplat.export import export_avatar, load_exported_avatar
+from meshsplat.gaussians.shading import (
+    _CLAMPED_COS_BANDS,
+    KEY_RING,
+    KEY_RINGS_DEG,
+    KEY_STAGES,
+    Shading,
+    irradiance_direction,
+    sh9_basis,
+)
+from meshsplat.run_folder import load_avatar
+from meshsplat.train import Trainer
+from meshsplat.train.components.shading import ShadingComponent, ShadingConfig
+from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
+
+KEY = ["shading.occlusion=key", "shading.directions=8", "shading.grid=32", "shading.key_iter=4"]
+SEEDED = [*KEY, "shading.key_seed=true", "shading.key_check_frames=3"]
+
+
+def _lobe(d: torch.Tensor) -> torch.Tensor:
+    """SH2 projection [9] of max(0, n . d)."""
+    return sh9_basis(d[None])[0] * torch.tensor(_CLAMPED_COS_BANDS)
+
+
+def _angle(a: torch.Tensor, b: torch.Tensor) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(a @ b) / float(a.norm() * b.norm())))))
+
+
+def _random_directions(n: int, seed: int) -> torch.Tensor:
+    return torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(seed)), dim=-1)
+
+
+def test_irradiance_direction_finds_a_light_anywhere_on_the_sphere():
+    """Ambient, a coloured directional light and a dimmer second one at 120 degrees: the fit points at the
+    strong light, wherever it is."""
+    for d in _random_directions(20, 1):
+        other = torch.nn.functional.normalize(torch.linalg.cross(d, torch.tensor([0.3, 0.5, 0.8])), dim=0)
+        other = math.cos(math.radians(120)) * d + math.sin(math.radians(120)) * other
+        coeffs = torch.zeros(9, 3)
+        coeffs[0] = 0.35 / 0.28209479177387814
+        coeffs += _lobe(d)[:, None] * torch.tensor([0.9, 0.8, 0.6])
+        coeffs += _lobe(other)[:, None] * 0.2
+        assert _angle(irradiance_direction(coeffs), d) < 10.0  # the dim light pulls it a few degrees
+        assert _angle(irradiance_direction(_lobe(d)[:, None].expand(9, 3)), d) < 0.5  # alone: exact
+
+
+def test_key_seed_reads_the_light_spread_over_the_candidates():
+    """Candidate lights that each took a share of one light (and SH2 that took some): the seed is the light's
+    direction within 20 degrees, from any of 20 directions; the strongest candidate is up to tens of degrees off."""
+    for d in _random_directions(20, 2):
+        sh = Shading(occlusion="key", directions=16)
+        assert sh.directions is not None and sh.light is not None
+        with torch.no_grad():
+            sh.light.copy_((sh.directions @ d).clamp_min(0.0)[:, None].pow(3) * 0.5)
+            sh.coeffs += 0.3 * _lobe(d)[:, None]
+        assert _angle(sh.key_seed(), d) < 20.0
+
+
+def test_a_seeded_first_stage_keeps_the_unshadowed_irradiance():
+    sh = Shading(occlusion="key", directions=16)
+    assert sh.light is not None
+    with torch.no_grad():
+        sh.light.uniform_(0.0, 1.0, generator=torch.Generator().manual_seed(3))
+    before = sh.unshadowed_coeffs()
+    start = torch.nn.functional.normalize(torch.tensor([0.2, -0.4, -0.9]), dim=0)
+    sh.align_key(start=start)
+    assert sh.key_stage == 1 and sh.directions is not None and sh.directions.shape == (1 + KEY_RING, 3)
+    assert torch.allclose(sh.directions[0], start, atol=1e-6)
+    ring = sh.directions[1:] @ start
+    assert torch.allclose(ring, torch.full((KEY_RING,), math.cos(math.radians(KEY_RINGS_DEG[0]))), atol=1e-5)
+    assert torch.allclose(sh.unshadowed_coeffs(), before, atol=1e-5)  # only the shadows moved
+    with pytest.raises(MeshsplatError, match="first stage"):
+        sh.align_key(start=start)
+
+
+def test_drop_key_folds_the_key_into_sh2_and_round_trips(tmp_path):
+    sh = Shading(occlusion="key", directions=16, key_soft=8.0)
+    assert sh.light is not None
+    with torch.no_grad():
+        sh.light[3] = 0.7
+    for _ in range(KEY_STAGES):
+        sh.align_key()
+    assert sh.key_aligned and sh.directions is not None
+    key, before = sh.directions[0].clone(), sh.unshadowed_coeffs()
+    sh.drop_key()
+    assert sh.occlusion == "none" and sh.directions is None and sh.light is None and sh.key_soft == 0.0
+    assert sh.dropped_key is not None and torch.allclose(sh.dropped_key, key)
+    assert torch.allclose(sh.coeffs, before)
+    assert sh.visibility(None, torch.zeros(1, 3), torch.zeros(1, 3)) is None  # type: ignore[arg-type]
+    for state in (sh.state_dict(), sh.json_state()):
+        back = Shading.from_state_dict(state)
+        assert back is not None and back.occlusion == "none" and back.light is None
+        assert back.dropped_key is not None and torch.allclose(back.dropped_key, key)
+        assert torch.equal(back.coeffs, sh.coeffs)
+    assert "key dropped" in repr(sh)
+    with pytest.raises(MeshsplatError, match="drop_key"):
+        sh.drop_key()
+    with pytest.raises(MeshsplatError, match="dropped_key"):
+        Shading.from_state_dict({**sh.state_dict(), "dropped_key": {"direction": [1.0, 2.0]}})
+
+
+class _StubState(SimpleNamespace):
+    """What the shading component reads of the trainer, with a training error that is lower with a key light
+    (``key_helps``) or higher."""
+
+    def training_error(self, idx: int) -> torch.Tensor:
+        sh = self.component.shading
+        keyed = sh.occlusion == "key"
+        return torch.tensor(0.1 + (0.0 if keyed == self.key_helps else 0.01) + 1e-4 * idx)
+
+
+@pytest.mark.parametrize("key_helps", [True, False])
+def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not(key_helps):
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
+    state.key_helps = key_helps
+    comp = ShadingComponent(
+        ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_seed=True, key_check_frames=3), state
+    )
+    state.component = comp
+    comp.start()
+    assert comp.shading is not None and comp.shading.light is not None
+    with torch.no_grad():
+        comp.shading.light[2] = 0.5
+    assert comp._check_frames() == [1, 5, 8]
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    sh = comp.shading
+    assert comp.key_log["kept"] is key_helps and set(comp.key_log["check_errors"]) == {"key", "off"}
+    assert comp.key_log["start"] in ("seed", "strongest")
+    if key_helps:
+        assert sh.key_aligned and sh.occlusion == "key"
+    else:
+        assert sh.occlusion == "none" and sh.dropped_key is not None
+        assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
+        comp.after_step(7, [])  # nothing more to align
+
+
+def test_without_directional_light_the_key_is_dropped_and_the_run_resumes_exactly(tiny_dataset, tmp_path):
+    """The tiny capture is unshaded (no directional light): the check folds the key away at the last stage;
+    the run resumes bit for bit across the alignments, and the avatar, its export and the player's header
+    read the folded lighting."""
+    full = Trainer(small_config(tiny_dataset, tmp_path / "full", 20, SEEDED))
+    full.train()
+    comp = full.component("shading")
+    assert isinstance(comp, ShadingComponent)
+    sh = full.shading
+    assert sh is not None and sh.occlusion == "none" and sh.dropped_key is not None
+    assert comp.key_log["kept"] is False and comp.key_log["start"] in ("seed", "strongest")
+    av = load_avatar(tmp_path / "full")
+    assert av.shading is not None and av.shading.occlusion == "none"
+    assert torch.equal(av.shading.coeffs, sh.coeffs.detach())
+    assert av.shading.dropped_key is not None and torch.allclose(av.shading.dropped_key, sh.dropped_key)
+    export_avatar(av, tmp_path / "export")
+    back = load_exported_avatar(tmp_path / "export")
+    assert back.shading is not None and back.shading.occlusion == "none" and back.shading.dropped_key is not None
+    verts = av.mesh.vertices * torch.tensor([1.1, 0.95, 1.0])
+    assert torch.allclose(av.compose(verts).colors, back.compose(verts).colors, atol=1e-5)
+    write_viewer_bundle(av, [av.mesh.vertices, verts], tmp_path / "page")
+    header = read_viewer_bundle(tmp_path / "page")[0]["shading"]
+    assert "key" not in header  # the player shades the folded irradiance alone
+    assert torch.allclose(torch.tensor(header["coeffs"], dtype=torch.float64), sh.coeffs.detach().double())
+    # resumed from the checkpoint written in the middle of the search: bit-identical, the same decision
+    (tmp_path / "res" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000010.pt", tmp_path / "res" / "checkpoints")
+    res = Trainer(small_config(tiny_dataset, tmp_path / "res", 20, SEEDED), resume=True)
+    assert res.shading is not None and res.shading.key_stage == 2
+    res.train()
+    assert res.shading.occlusion == "none" and torch.equal(res.shading.coeffs.detach(), sh.coeffs.detach())
+    for k in full.params:
+        assert torch.equal(full.params[k].detach(), res.params[k].detach()), k
+    # resumed after the drop: the checkpoint's folded lighting is accepted under occlusion=key
+    (tmp_path / "res2" / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "full" / "checkpoints" / "ckpt_00000020.pt", tmp_path / "res2" / "checkpoints")
+    again = Trainer(small_config(tiny_dataset, tmp_path / "res2", 20, SEEDED), resume=True)
+    assert again.shading is not None and again.shading.occlusion == "none"
+    again_comp = again.component("shading")
+    assert isinstance(again_comp, ShadingComponent) and again_comp.key_log["kept"] is False
