@@ -2065,9 +2065,13 @@ export function startViewer(doc) {
       viewShown = vs;
       if (doc.activeElement !== viewText) viewText.value = viewFlags(cam, cam0.fov_deg, w, h);
     }
-    if (doc.location && doc.location.hash !== `#${vs}` && now - hashAt > 250 && window.history && window.history.replaceState) {
-      hashAt = now; // the address bar holds the view (throttled): a reload or a shared link opens it
-      try { window.history.replaceState(null, "", `#${vs}`); } catch (err) { /* opaque origins */ }
+    // the address holds the view once it left the home view (throttled): a reload or a shared link opens it
+    const atHome = cam.az === cam0.azimuth_deg && cam.el === cam0.elevation_deg && cam.dist === homeDist &&
+      cam.center.every((x, k) => x === cam0.center[k]);
+    const wanted = atHome ? "" : `#${vs}`;
+    if (doc.location && doc.location.hash !== wanted && now - hashAt > 250 && window.history && window.history.replaceState) {
+      hashAt = now;
+      try { window.history.replaceState(null, "", wanted || doc.location.href.split("#")[0]); } catch (err) { /* opaque origins */ }
     }
     const K = intrinsics(w, h, cam0.fov_deg);
     const webcamOn = cam_.weights !== null;
