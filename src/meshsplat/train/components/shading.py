@@ -34,9 +34,9 @@ class ShadingConfig:
     grid: int = 96  # cells per side of each shadow map
     key_iter: int = 300
     key_soft: float = 12.0  # "key": the light's angular radius (degrees), a soft area-light shadow; 0: hard
-    # "key": the first stage starts from the learned irradiance's own direction (Shading.key_seed) as well as the
-    # strongest candidates' (with key_check_frames > 0 the start whose shadows fit those frames better); false: the
-    # strongest candidates' only
+    # "key": the first stage starts from the learned irradiance's own direction (Shading.key_seed); with
+    # key_check_frames > 0 from the strongest candidates' estimate instead if its shadows fit those frames better by
+    # key_check_gain; false: the strongest candidates' estimate only
     key_seed: bool = False
     # "key": training frames (spread over the training split) rendered at the alignments to choose the start and,
     # once aligned, to keep the key only if its shadow lowers their L1 error (else folded into the SH2 irradiance,
@@ -158,7 +158,9 @@ class ShadingComponent(Component):
             trial.align_key(start=start)
             errors[name] = self._error(trial)
         self.key_log["start_errors"] = errors
-        self.key_log["start"] = name = "seed" if errors["seed"] <= errors["strongest"] else "strongest"
+        # the seed unless the strongest candidates' shadows earn the place as the key must (key_check_gain)
+        better = errors["strongest"] < errors["seed"] * (1.0 - self.cfg.key_check_gain)
+        self.key_log["start"] = name = "strongest" if better else "seed"
         return seed if name == "seed" else strongest
 
     def _check_key(self, sh: Shading) -> None:
