@@ -269,10 +269,12 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     assert st["frames"] >= 6, status
     names = model[1]["names"]
     page_w = np.median([s["w"] for s in st["weights"][2:]], axis=0)  # after the tracker settles
+    smile_l_raw = st["weights"][-1]["w"][names.index("mouthSmile_L")]
     assert np.median([s["err"] for s in st["weights"]]) < 3.0  # pixels of a 256² frame
     # the head's turn (0.05, 0.2, 0 rad as rendered) reaches the avatar's head node
     np.testing.assert_allclose(np.median([s["rot"] for s in st["weights"][2:]], axis=0), [0.05, 0.2, 0.0], atol=0.06)
-    assert abs(node_rot[1] - math.sin(0.1)) < 0.05  # the rig's rotation quaternion (xyzw): about +y by ~0.2 rad
+    # mirrored (the default): the rig's rotation (quaternion xyzw) turns the other way about y, ~0.2 rad
+    assert abs(node_rot[1] + math.sin(0.1)) < 0.05 and abs(node_rot[0] - math.sin(0.025)) < 0.05
     # the offline fit of the same frame (MediaPipe's Python build, the tracker's solver)
     from meshsplat.track.mediapipe_models import FaceMesh
 
@@ -296,6 +298,8 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     # landmarks: the shapes the image barely tells apart (brows, cheeks) trade places
     assert np.abs(page_w - offline).mean() < 0.15
     assert shown[names.index("jawOpen")] > 0.25  # what the avatar shows
+    # ... with the sides swapped (mirrored): the avatar's mouthSmile_R is the face's mouthSmile_L
+    assert shown[names.index("mouthSmile_R")] == pytest.approx(smile_l_raw, abs=0.15)
 
 
 def test_view_cli_webcam_needs_a_live_head(tmp_path, capsys):

@@ -1620,6 +1620,16 @@ export class WebcamDriver {
     this.doc = doc; this.b = b; this.onPose = onPose; this.onStatus = onStatus;
     this.running = false; this.stream = null; this.mesh = null; this.prev = null; this.smoothW = null; this.smoothR = null;
     this.neutral = null; this.lastRaw = null; this.alpha = 0.6;
+    // mirrored (default, as the preview and a selfie camera): turn left and the avatar turns to the
+    // screen's left, smile on your left and it smiles on the screen's left (its right): the turn is
+    // reflected in the x = 0 plane of the head (y and z of the axis-angle negated), _L and _R swapped
+    this.mirror = true;
+    const names = b.webcam ? b.webcam.names : [];
+    this.swap = names.map((n, e) => {
+      const other = n.endsWith("_L") ? `${n.slice(0, -2)}_R` : n.endsWith("_R") ? `${n.slice(0, -2)}_L` : n;
+      const i = names.indexOf(other);
+      return i < 0 ? e : i;
+    });
     this.stats = { frames: 0, solveMs: [], landmarkMs: [], latencyMs: [], startedAt: 0, lost: 0, weights: [] };
   }
 
@@ -1698,7 +1708,8 @@ export class WebcamDriver {
     if (this.neutral) w = w.map((x, e) => Math.min(1, Math.max(0, (x - this.neutral[e]) / Math.max(1 - this.neutral[e], 1e-3))));
     const a = this.alpha; // exponential smoothing of what is shown
     this.smoothW = this.smoothW ? this.smoothW.map((x, e) => x + a * (w[e] - x)) : Float64Array.from(w);
-    const rot = sol.rot;
+    let rot = sol.rot;
+    if (this.mirror) { w = this.swap.map((i) => w[i]); rot = [rot[0], -rot[1], -rot[2]]; }
     this.smoothR = this.smoothR ? this.smoothR.map((x, k) => x + a * (rot[k] - x)) : rot.slice();
     const solveMs = performance.now() - t1;
     this.stats.solveMs.push(solveMs); this.stats.frames++;
@@ -1892,6 +1903,12 @@ export function startViewer(doc) {
     };
     $("camstop").onclick = stop;
     $("camneutral").onclick = () => cam_.driver && cam_.driver.calibrate();
+    $("cammirror").onclick = () => {
+      if (!cam_.driver) return;
+      cam_.driver.mirror = !cam_.driver.mirror; cam_.driver.smoothW = null; cam_.driver.smoothR = null;
+      $("cammirror").textContent = cam_.driver.mirror ? "mirrored" : "as seen";
+      $("cammirror").setAttribute("aria-pressed", String(cam_.driver.mirror));
+    };
   }
   const syncUi = () => {
     if (live) { slider.max = String(clipLength()); slider.value = String(state.time); }
