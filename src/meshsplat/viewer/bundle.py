@@ -21,6 +21,7 @@ import html
 import json
 import math
 import re
+import urllib.parse
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -588,6 +589,8 @@ def page_camera(path: str | Path) -> dict[str, Any]:
             out[k] = tuple(float(x) for x in v)
     except (TypeError, ValueError) as exc:
         raise MeshsplatError(f"{p}: page camera: {exc}") from None
+    if view is not None:
+        out.update(view)
     return out
 
 
