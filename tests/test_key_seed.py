@@ -141,7 +141,7 @@ def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not
         comp.after_step(it, [])
     sh = comp.shading
     assert comp.key_log["kept"] is key_helps and set(comp.key_log["check_errors"]) == {"key", "off"}
-    assert comp.key_log["start"] in ("seed", "strongest")
+    assert set(comp.key_log) >= {"seed", "strongest"}  # the start, and the one without key_seed
     if key_helps:
         assert sh.key_aligned and sh.occlusion == "key"
     else:
@@ -160,7 +160,7 @@ def test_without_directional_light_the_key_is_dropped_and_the_run_resumes_exactl
     assert isinstance(comp, ShadingComponent)
     sh = full.shading
     assert sh is not None and sh.occlusion == "none" and sh.dropped_key is not None
-    assert comp.key_log["kept"] is False and comp.key_log["start"] in ("seed", "strongest")
+    assert comp.key_log["kept"] is False and "seed" in comp.key_log
     av = load_avatar(tmp_path / "full")
     assert av.shading is not None and av.shading.occlusion == "none"
     assert torch.equal(av.shading.coeffs, sh.coeffs.detach())

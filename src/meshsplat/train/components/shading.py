@@ -34,13 +34,12 @@ class ShadingConfig:
     grid: int = 96  # cells per side of each shadow map
     key_iter: int = 300
     key_soft: float = 12.0  # "key": the light's angular radius (degrees), a soft area-light shadow; 0: hard
-    # "key": the first stage starts from the learned irradiance's own direction (Shading.key_seed); with
-    # key_check_frames > 0 from the strongest candidates' estimate instead if its shadows fit those frames better by
-    # key_check_gain; false: the strongest candidates' estimate only
+    # "key": the first stage starts from the learned irradiance's own direction (Shading.key_seed); false: from the
+    # strongest candidates' estimate
     key_seed: bool = False
-    # "key": training frames (spread over the training split) rendered at the alignments to choose the start and,
-    # once aligned, to keep the key only if its shadow lowers their L1 error (else folded into the SH2 irradiance,
-    # occlusion none from then on); 0: no check
+    # "key": training frames (spread over the training split) rendered once the key is aligned, to keep it only if
+    # its shadow lowers their L1 error (else it is folded into the SH2 irradiance, occlusion none from then on); 0: no
+    # check
     key_check_frames: int = 0
     key_check_gain: float = 0.002  # the share of the check frames' L1 error the key's shadow must take away to stay
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
@@ -70,7 +69,7 @@ class ShadingComponent(Component):
         super().__init__(cfg, state)
         self.shading: Shading | None = None
         self.optimizer: torch.optim.Adam | None = None
-        # the key's choices, as measured (for the notes and checkpoints): {"start": ..., "errors": ..., "kept": ...}
+        # what the key light did (checkpointed): the seed and strongest estimate, the check errors, kept
         self.key_log: dict[str, Any] = {}
 
     def start(self) -> None:
@@ -113,8 +112,7 @@ class ShadingComponent(Component):
     def _align_key(self, it: int) -> None:
         """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
         iteration (a short run ends with one key light too). ``key_seed``: the first stage starts from
-        ``Shading.key_seed`` (or, with ``key_check_frames``, from whichever of it and the strongest candidates'
-        estimate fits the check frames better); ``key_check_frames``: once aligned, the key is dropped
+        ``Shading.key_seed``; ``key_check_frames``: once aligned, the key is dropped
         (``Shading.drop_key``) unless its shadow lowers the check frames' error by ``key_check_gain``."""
         sh, every = self.shading, self.cfg.key_iter
         if sh is None or sh.occlusion != "key" or sh.key_aligned:
@@ -122,7 +120,7 @@ class ShadingComponent(Component):
         stage = sh.key_stage
         while not sh.key_aligned and (it >= every * (sh.key_stage + 1) or it == self.state.iterations):
             if sh.key_stage == 0 and self.cfg.key_seed:
-                sh.align_key(start=self._choose_start(sh))
+                sh.align_key(start=self._seed(sh))
             else:
                 sh.align_key()
         if sh.key_aligned and self.cfg.key_check_frames:
@@ -146,22 +144,12 @@ class ShadingComponent(Component):
         finally:
             self.shading = own
 
-    def _choose_start(self, sh: Shading) -> torch.Tensor:
-        seed, strongest = sh.key_seed(), sh.key_estimate()
-        self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), strongest.tolist()
-        if not self.cfg.key_check_frames:
-            self.key_log["start"] = "seed"
-            return seed
-        errors = {}
-        for name, start in (("seed", seed), ("strongest", strongest)):
-            trial = sh.to(self.state.device)
-            trial.align_key(start=start)
-            errors[name] = self._error(trial)
-        self.key_log["start_errors"] = errors
-        # the seed unless the strongest candidates' shadows earn the place as the key must (key_check_gain)
-        better = errors["strongest"] < errors["seed"] * (1.0 - self.cfg.key_check_gain)
-        self.key_log["start"] = name = "strongest" if better else "seed"
-        return seed if name == "seed" else strongest
+    def _seed(self, sh: Shading) -> torch.Tensor:
+        """The first stage's start: the learned irradiance's own direction (logged beside the strongest
+        candidates' estimate, the start without ``key_seed``)."""
+        seed = sh.key_seed()
+        self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), sh.key_estimate().tolist()
+        return seed
 
     def _check_key(self, sh: Shading) -> None:
         off = sh.to(self.state.device)
