@@ -10,7 +10,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 
 # Independent readers of our splat exports (tests/io/test_splat_formats.py), and the face landmarker that
-# `meshsplat view --webcam` copies beside the player page (tests/test_viewer_webcam.py), from the npm registry.
+# `meshsplat view --webcam` copies beside the player page (tests/viewer/test_viewer_webcam.py), from the npm registry.
 NODE_TOOLS := .node-tools/node_modules/gltf-validator
 FACE_MESH := .node-tools/node_modules/@mediapipe/face_mesh
 NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.10 @mediapipe/face_mesh@0.4.1633559619

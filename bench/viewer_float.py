@@ -79,7 +79,7 @@ def render_ref(av: Avatar, verts, cam: dict, size: int) -> np.ndarray:
 
 def bright_key_avatar(mesh: TriMesh, n: int, light: float) -> Avatar:
     """Albedos 0.3-0.8, opacity 0.8, a low ambient irradiance plus an aligned key light of RGB intensity
-    ``light`` from (0.6, 0.3, 0.75) (tests/test_viewer.py's key_shading with a brighter light)."""
+    ``light`` from (0.6, 0.3, 0.75) (tests/viewer/test_viewer.py's key_shading with a brighter light)."""
     g = torch.Generator().manual_seed(0)
     p = init_params(
         mesh,

@@ -3,7 +3,6 @@ no 'UserWarning'), and the training progress PSNR labelled for what it is (not e
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -50,15 +49,13 @@ def test_library_warnings_are_meshsplat_warnings(tmp_path, standin_model_dir):
 
 def test_a_warning_raised_twice_in_one_command_prints_once_as_one_plain_line(tmp_path, standin_model_dir, capsys):
     root = _capture_that_warns(tmp_path / "ps")
-    # an older config whose pixel threshold needs the image size: the capture is opened for it, then
-    # again for training, so the reader warns twice within this one command
-    old = tmp_path / "old.json"
-    old.write_text(json.dumps({"strategy": {"refine_stop": 15000, "reset_every": 3000, "prune_scale2d": 20}}))
-    args = ["train", str(root), "--out", str(tmp_path / "run"), "--config", str(old), "--iters", "1"]
+    # a time budget: the probe opens the capture, then training opens it again, so the reader warns twice
+    # within this one command
+    args = ["train", str(root), "--out", str(tmp_path / "run"), "--minutes", "5", "--threads", "1"]
     args += ["--model-dir", str(standin_model_dir), "--gender", "neutral", "--device", "cpu", "--no-progress"]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
+        assert main([*args, "--set", "iterations=2", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
     err = capsys.readouterr().err
     lines = _note_lines(err)
     assert len(lines) == 1, err

@@ -228,7 +228,7 @@ def test_multi_frame_colours_average_visible_frames(tiny_dataset, tmp_path):
 
 
 def test_viewer_bundle_ships_the_shading(tmp_path):
-    """The player shades on the GPU (tests/test_viewer.py checks its screenshots against avatar.render):
+    """The player shades on the GPU (tests/viewer/test_viewer.py checks its screenshots against avatar.render):
     the bundle carries the albedo, not a baked colour, and the learned illumination."""
     from meshsplat.gaussians.params import SH_C0
     from meshsplat.viewer.bundle import read_viewer_bundle, write_viewer_bundle

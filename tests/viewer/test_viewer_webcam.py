@@ -30,7 +30,7 @@ from meshsplat.viewer.webcam import LANDMARKER_FILES, LANDMARKER_VERSION, find_l
 from test_viewer import _chromium, _small_blendshapes
 
 NODE = shutil.which("node")
-VIEWER_JS = Path(__file__).resolve().parents[1] / "src/meshsplat/viewer/static/viewer.js"
+VIEWER_JS = Path(__file__).resolve().parents[2] / "src/meshsplat/viewer/static/viewer.js"
 needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
 
 
@@ -63,7 +63,7 @@ def _installed_landmarker() -> Path:
 
 def test_landmarker_version_is_the_makefiles():
     """`make node-tools` installs the release the page is written for (0.4.1657299874 cannot start its detector)."""
-    text = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    text = (Path(__file__).resolve().parents[2] / "Makefile").read_text()
     assert text.split("@mediapipe/face_mesh@", 1)[1].split()[0] == LANDMARKER_VERSION
 
 

@@ -114,7 +114,7 @@ def test_title_cannot_break_the_page(tmp_path, title):
     av = make_avatar(n=20)
     index = write_viewer_bundle(av, _frames(av), tmp_path, title=title)
     page = index.read_text()
-    template = (Path(__file__).parents[1] / "src/meshsplat/viewer/static/index.html").read_text()
+    template = (Path(__file__).parents[2] / "src/meshsplat/viewer/static/index.html").read_text()
     js = (tmp_path / "viewer.js").read_text()
     assert page.count(js) == 1 and page.count("<script") == template.count("<script")
     assert page.count("</script>") == template.count("</script>")
@@ -989,11 +989,11 @@ def test_bundle_carries_the_key_light_and_refuses_other_occlusion(tmp_path):
     # refused: lights from fixed directions, and a key light not aligned yet (one line each, naming the option)
     sh = av.shading
     for shading, match in (
-        (Shading(sh.coeffs, occlusion="directions", directions=8), r"model\.occlusion=directions"),
-        (Shading(sh.coeffs, occlusion="key", directions=8), r"model\.occlusion=key .*not aligned"),
+        (Shading(sh.coeffs, occlusion="directions", directions=8), r"shading\.occlusion=directions"),
+        (Shading(sh.coeffs, occlusion="key", directions=8), r"shading\.occlusion=key .*not aligned"),
         (
             Shading(sh.coeffs, occlusion="key", directions=8, key=sh.directions.expand(7, 3), key_stage=KEY_STAGES - 1),
-            r"model\.occlusion=key .*not aligned",
+            r"shading\.occlusion=key .*not aligned",
         ),
     ):
         bad = Avatar(av.mesh, av.params, av.scale_mode, shading=shading)
