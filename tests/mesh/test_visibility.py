@@ -21,7 +21,7 @@ def path(request, monkeypatch):
     if request.param == "torch":
         monkeypatch.setenv(NO_NUMBA_ENV, "1")
     elif not numba_available():
-        pytest.skip("numba is not installed (pip install 'meshsplat[fast]')")
+        pytest.skip("numba is not installed (pip install numba)")
     return request.param
 
 

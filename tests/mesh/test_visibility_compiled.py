@@ -11,7 +11,7 @@ from meshsplat._numba import NO_NUMBA_ENV, numba_available
 from meshsplat.embedding import sample_surface, surface_points
 from meshsplat.mesh.visibility import sphere_directions, visibility
 
-pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not installed (pip install 'meshsplat[fast]')")
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not installed (pip install numba)")
 
 
 def _both_paths(monkeypatch, *args, **kw):

@@ -309,3 +309,13 @@ def test_cli_train_and_resume(tiny_dataset, tmp_path, capsys):
     assert main(args[:6] + ["--set", "strategy.bogus=1"]) == 2
     assert "unknown key" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "nothing"), "--out", str(out)]) == 2
+
+
+def test_training_without_numba_says_it_runs_on_the_torch_path(tiny_dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MESHSPLAT_NO_NUMBA", "1")
+    Trainer(small_config(tiny_dataset, tmp_path / "run", 1, ["backend=auto", "loss.lambda_lpips=0"])).train()
+    err = capsys.readouterr().err
+    assert err.count("training runs on the torch rasterizer") == 1 and "pip install numba" in err
+    monkeypatch.delenv("MESHSPLAT_NO_NUMBA")
+    Trainer(small_config(tiny_dataset, tmp_path / "run2", 1, ["backend=auto", "loss.lambda_lpips=0"])).train()
+    assert "torch rasterizer" not in capsys.readouterr().err

@@ -30,6 +30,10 @@ from meshsplat.train.run_log import RunLog
 
 __all__ = ["TrainingLoop", "PROGRESS_WINDOW"]
 
+NO_NUMBA_NOTE = (
+    "note: numba is not available here (not installed, or MESHSPLAT_NO_NUMBA set), so training runs on the torch "
+    "rasterizer, several times slower on a CPU: pip install numba"
+)
 PROGRESS_WINDOW = 10  # the progress bar's loss and PSNR: means over this many latest iterations
 
 
@@ -109,13 +113,17 @@ class TrainingLoop:
         print(f"progress: loss, {self.train_psnr_label}, Gaussians (G)", file=sys.stderr)
         if self.monitor is not None:
             print(f"watch it live: tensorboard --logdir {self.monitor.log_dir}", file=sys.stderr)
-        compiled = self.device.type == "cpu" and self.cfg.backend in ("auto", "numba") and numba_available()
-        if self.iteration < end and compiled:  # numba's kernels load (after an install: compile) on first use
+        cpu_auto = self.device.type == "cpu" and self.cfg.backend in ("auto", "numba")
+        if self.iteration < end and cpu_auto and numba_available():  # loaded (after an install: compiled) once
             print("first step: loading the compiled CPU kernels (after an install: compiling, ~30 s)", file=sys.stderr)
+
         return tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True, bar_format=PROGRESS_FORMAT)
 
     def _train(self, end: int, main: bool) -> Path:
         cfg = self.cfg
+        cpu_auto = self.device.type == "cpu" and cfg.backend in ("auto", "numba")
+        if main and self.iteration < end and cpu_auto and not numba_available():
+            print(NO_NUMBA_NOTE, file=sys.stderr)
         bar = self._progress_bar(end) if cfg.progress else None
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()

@@ -652,7 +652,7 @@ def rasterize_numba(
     if means.dtype not in (torch.float32, torch.float64):
         raise MeshsplatError(f"backend='numba' needs float32 or float64 tensors, got {means.dtype}")
     if not numba_available():
-        raise MeshsplatError("backend='numba' needs numba: pip install 'meshsplat[fast]' (or use backend='torch')")
+        raise MeshsplatError("backend='numba' needs numba: pip install numba (or use backend='torch')")
     W, H, C, N = int(width), int(height), viewmats.shape[0], means.shape[0]
     if viewmats.requires_grad or Ks.requires_grad:  # camera gradients: torch's projection (autograd)
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, W, H, near_plane, far_plane)
