@@ -99,3 +99,17 @@ def test_resume_refuses_another_recipe(tiny_dataset, tmp_path, capsys):
     assert main(common + ["--iters", "4", "--resume", "--recipe", "paper"]) == 0
     ckpt = load_checkpoint(tmp_path / "run" / "checkpoints" / "ckpt_00000004.pt")
     assert not ckpt["config"]["shading"]["enabled"] and ckpt["config"]["recipe"] == "paper"
+
+
+def test_a_partial_yaml_config_trains_the_default_recipe_with_its_keys_changed(tiny_dataset, tmp_path):
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("model:\n  n_init: 60\nmask_loss:\n  weight: 0.3\nloss:\n  lambda_lpips: 0\n")
+    out = tmp_path / "run"
+    argv = ["train", str(tiny_dataset), "--out", str(out), "--config", str(mine), "--iters", "2"]
+    assert main([*argv, "--device", "cpu", "--no-progress", "--threads", "1", "--set", "backend=torch"]) == 0
+    written = json.loads((out / "config.json").read_text())
+    want = apply_overrides(recipe_config("quality"), ["model.n_init=60", "mask_loss.weight=0.3", "loss.lambda_lpips=0"])
+    for section in ("model", "shading", "albedo_prior", "mask_loss", "offset_bound", "pose_refine", "strategy"):
+        assert written[section] == want.to_dict()[section], section
+    assert written["recipe"] == "quality" and written["iterations"] == 2
+    assert (out / "checkpoints" / "ckpt_00000002.pt").is_file()
