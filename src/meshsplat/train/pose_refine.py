@@ -31,6 +31,10 @@ ADAM_BETAS = (0.9, 0.999)  # torch.optim.Adam's defaults
 ADAM_EPS = 1e-15  # as the avatar's optimizers
 
 
+def _float32(a: Any, device: torch.device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(a, np.float32), device=device)
+
+
 class PoseRefiner:
     """Offsets ``[R, k]`` per refined parameter for the ``R`` distinct meshes of the training frames."""
 
@@ -61,9 +65,8 @@ class PoseRefiner:
                 f"pose_refine.params: none of {wanted} is a per-frame parameter of this "
                 f"dataset (it has {sorted(per_frame)})"
             )
-        as_t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
-        self.rows = {k: as_t(params[k][rows]) for k in per_frame if k in params}  # [R, k]
-        self.shared = {k: as_t(v) for k, v in params.items() if k not in per_frame}
+        self.rows = {k: _float32(params[k][rows], device) for k in per_frame if k in params}  # [R, k]
+        self.shared = {k: _float32(v, device) for k, v in params.items() if k not in per_frame}
         self.offsets = {k: torch.nn.Parameter(torch.zeros_like(self.rows[k])) for k in self.names}
         self.lr = lr
         self.prior = prior  # gradient + prior * offset: a pull towards the tracked parameters
