@@ -1,0 +1,289 @@
+"""The key light on captures lit from several directions (issue 51): found vs true direction, held-out quality.
+
+    python bench/key_light.py                        # 7 captures x (before, after) x seeds 0 1, ~25 min on 2 cores
+    python bench/key_light.py --seeds 0 --captures pbr-side lambert-side
+    python bench/key_light.py --tiny                 # seconds, to check the script
+
+Captures: CesiumMan (monocular turn, driving mesh Taubin-smoothed 5 iterations as the demo's), rendered by the
+path tracer (``meshsplat synth --renderer pbr``: sky + a soft key light) with the key light from the front (the
+project's default direction), the side, behind and above, and no key at all (the sky alone, ``--key 0``), and by
+the Lambert rasterizer (one directional light + ambient, no shadows) from the first three. Each capture's
+``light_dir`` is in its meta (``manifest.json``) and in the table. Path-traced held-out frames are scored against
+the same frames rendered again with ``--ref-spp`` samples per pixel.
+
+Variants, the same code: ``before`` is the quality recipe with the key light's search as it was (``shading.key_seed
+=false shading.key_check_frames=0``); ``after`` seeds the search from the learned irradiance and checks the key
+(``shading.key_seed=true shading.key_check_frames=4``). Both at ``--iters`` iterations with ``shading.key_iter`` a
+fifth of them (the key aligned at 60%). Per run: the key's final direction (kept, or dropped: folded into the SH2
+irradiance), its angle to the true light, the learned irradiance's own direction (``Shading.key_seed`` of the
+final lighting) and its angle, and per held-out split subject PSNR (white) and LPIPS in the mask. Saves
+bench/results/key_light-<host>.json after every run; a rerun reuses the captures and finished runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from _machine import machine_info, results_path
+
+FRONT = (0.35, 0.75, 0.55)  # meshsplat.synth's default light
+CAPTURES: dict[str, dict] = {
+    "pbr-front": {"renderer": "pbr", "light": FRONT},
+    "pbr-side": {"renderer": "pbr", "light": (1.0, 0.25, 0.0)},
+    "pbr-backtop": {"renderer": "pbr", "light": (-0.25, 0.8, -0.55)},
+    "pbr-env": {"renderer": "pbr", "light": FRONT, "key": 0.0},  # the sky alone: no directional light
+    "lambert-front": {"renderer": "lambert", "light": FRONT},
+    "lambert-side": {"renderer": "lambert", "light": (1.0, 0.25, 0.0)},
+    "lambert-backtop": {"renderer": "lambert", "light": (-0.25, 0.8, -0.55)},
+}
+VARIANTS = {
+    "before": ["shading.key_seed=false", "shading.key_check_frames=0"],
+    "after": ["shading.key_seed=true", "shading.key_check_frames=4"],
+    "check": ["shading.key_seed=false", "shading.key_check_frames=4"],  # the old search, then the check (when named)
+    "nokey": ["shading.occlusion=none"],  # no key light at all (a reference; only when named)
+}
+
+
+def _schedule(iterations: int) -> tuple[str, ...]:
+    """The demo's short schedule (refine 300..1200 of 1500) scaled to ``iterations``; the key's stages a fifth."""
+    s = iterations / 1500
+    every = max(10, round(100 * s))
+    return (
+        f"strategy.refine_start_iter={round(300 * s)}",
+        f"strategy.refine_stop_iter={round(1200 * s)}",
+        f"strategy.refine_every={every}",
+        "strategy.reset_every=100000",
+        "strategy.max_gaussians=40000",
+        f"walk.every={every}",
+        f"shading.key_iter={max(1, iterations // 5)}",
+        f"checkpoint_every={iterations}",
+        f"preview_every={iterations}",
+        "log_every=10",
+        "device=cpu",
+    )
+
+
+def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
+    """Capture ``name``; with ``spp`` other than ``args.spp`` its held-out frames only (the references)."""
+    from meshsplat.synth import synthesize
+    from meshsplat.synth.pbr import PbrSettings
+
+    c = CAPTURES[name]
+    spp = args.spp if spp is None else spp
+    data = work / (f"data-{name}" + (f"-spp{spp}" if spp != args.spp else ""))
+    if (data / "manifest.json").exists():
+        return data
+    synthesize(
+        "CesiumMan",
+        data,
+        rig="monocular-turn",
+        frames=args.frames,
+        resolution=args.resolution,
+        test_frames=args.test_frames,
+        test_views=2,
+        test_view_frames=max(2, args.test_frames // 2),
+        driver_smooth=5,
+        renderer=c["renderer"],
+        pbr=PbrSettings(spp=spp, key=c.get("key", PbrSettings.key)),
+        light_dir=c["light"],
+        overwrite=True,
+        splits=None if spp == args.spp else ["test_frames", "test_views"],
+        threads=1,
+    )
+    return data
+
+
+def _angle(a, b) -> float | None:
+    if a is None or b is None:
+        return None
+    dot = sum(x * y for x, y in zip(a, b, strict=True))
+    na, nb = math.sqrt(sum(x * x for x in a)), math.sqrt(sum(x * x for x in b))
+    return math.degrees(math.acos(max(-1.0, min(1.0, dot / (na * nb)))))
+
+
+def _key(run: Path, light: list[float] | None) -> dict:
+    """The run's key light: where it ended (kept or dropped), the irradiance's own direction, angles to ``light``."""
+    import torch
+
+    from meshsplat.gaussians.shading import irradiance_direction
+    from meshsplat.run_folder import load_run
+
+    loaded = load_run(run)
+    sh = loaded.avatar.shading
+    assert sh is not None
+    kept = sh.occlusion == "key" and sh.directions is not None
+    found = sh.directions[0] if kept else sh.dropped_key  # type: ignore[index]
+    ckpt = torch.load(sorted((run / "checkpoints").glob("ckpt_*.pt"))[-1], map_location="cpu", weights_only=False)
+    state = ckpt.get("state", ckpt)
+    log = ((state.get("components") or {}).get("shading") or {}).get("key_log", {})
+    irr = irradiance_direction(sh.unshadowed_coeffs() if kept else sh.coeffs.detach())
+    out = {
+        "kept": bool(kept),
+        "found": None if found is None else [round(float(x), 4) for x in found],
+        "irradiance": [round(float(x), 4) for x in irr],
+        "log": log,
+    }
+    out["found_deg"] = _angle(out["found"], light)
+    out["irradiance_deg"] = _angle(out["irradiance"], light)
+    for k in ("seed", "strongest"):
+        if k in log:
+            out[f"{k}_deg"] = _angle(log[k], light)
+    return out
+
+
+def _score(run: Path, data: Path, ref: Path) -> dict:
+    """Per held-out split: mean subject PSNR (white) and LPIPS in the mask against ``ref``'s images."""
+    import torch
+
+    from meshsplat.data import open_dataset
+    from meshsplat.metrics import lpips, lpips_available
+    from meshsplat.metrics.subject import subject_metrics
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_run
+
+    loaded = load_run(run)
+    ds, refs = loaded.open_dataset(data), open_dataset(ref)
+    by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
+    lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
+    white = torch.ones(3)
+    out = {}
+    for split in [s for s in ds.split_names if s != "train"]:
+        rows = []
+        for i in ds.split(split):
+            fr = ds[i]
+            target = refs[by_name[ds.frame_info(i)["name"]]]
+            with torch.no_grad():
+                img = loaded.avatar.render(fr.vertices, fr.camera, white).image.float().clamp(0, 1)
+            rows.append(subject_metrics(img, composite(target.image, target.mask, white), target.mask, lp))
+        lps = [r["lpips_mask"] for r in rows if r["lpips_mask"] is not None]  # None: a crop too small
+        out[split] = {
+            "psnr_mask": sum(r["psnr_mask"] for r in rows) / len(rows),
+            "lpips_mask": sum(lps) / len(lps) if lps else None,
+            "frames": len(rows),
+        }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--captures", nargs="*", default=list(CAPTURES), choices=list(CAPTURES))
+    ap.add_argument("--variants", nargs="*", default=["before", "after"], choices=list(VARIANTS))
+    ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1])
+    ap.add_argument("--resolution", type=int, default=64)
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--test-frames", type=int, default=4)
+    ap.add_argument("--iters", type=int, default=400)
+    ap.add_argument("--n-init", type=int, default=2000)
+    ap.add_argument("--spp", type=int, default=16, help="pbr: samples per pixel of the training capture")
+    ap.add_argument("--ref-spp", type=int, default=64, help="pbr: samples per pixel of the held-out references")
+    ap.add_argument("--tiny", action="store_true", help="seconds: 32 px, 6 frames, 40 iterations, 4 spp")
+    ap.add_argument("--work", default="runs/bench-key_light")
+    ap.add_argument("--name", default="key_light")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    if args.tiny:
+        args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.ref_spp = 32, 6, 2, 40, 4, 8
+        args.n_init, args.name, args.work = 500, "key_light_tiny", "runs/bench-key_light-tiny"
+
+    import torch
+
+    from meshsplat.demo import PRESETS, demo_train_config
+    from meshsplat.train import Trainer
+
+    torch.set_num_threads(args.threads)
+    sizes = replace(
+        PRESETS["default"],
+        frames=args.frames,
+        resolution=args.resolution,
+        iterations=args.iters,
+        n_init=args.n_init,
+        overrides=_schedule(args.iters),
+    )
+    work = Path(args.work)
+    out = results_path(args.name)
+    previous = json.loads(out.read_text()) if out.exists() else {}
+    rows: dict = previous.get("captures", {}) if previous.get("args", {}).get("iters") == args.iters else {}
+    t_all = time.perf_counter()
+    for seed in args.seeds:
+        for cap in args.captures:
+            t0 = time.perf_counter()
+            data = _capture(cap, args, work)
+            meta = json.loads((data / "manifest.json").read_text()).get("meta", {})
+            renderer = meta.get("renderer", {})
+            directional = CAPTURES[cap].get("key", 1.0) > 0
+            light = meta.get("light_dir") if directional else None
+            ref = data
+            if CAPTURES[cap]["renderer"] == "pbr" and args.ref_spp != args.spp:
+                ref = _capture(cap, args, work, spp=args.ref_spp)
+            row = rows.setdefault(cap, {"runs": {}})
+            row.update({"light_dir": meta.get("light_dir"), "directional": directional, "renderer": renderer})
+            print(f"[{cap}] capture ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+            for variant in args.variants:
+                name = f"{variant}_s{seed}"
+                run = work / f"{cap}-{name}"
+                cfg = demo_train_config(
+                    data, run, sizes, [*VARIANTS[variant], f"seed={seed}"], progress=False, recipe="quality"
+                )
+                t0 = time.perf_counter()
+                trainer = Trainer(cfg, resume=True)
+                finished = trainer.iteration >= cfg.iterations
+                trainer.train()
+                train_s = time.perf_counter() - t0
+                if finished:
+                    train_s = row["runs"].get(name, {}).get("train_s", train_s)
+                row["runs"][name] = {
+                    "variant": variant,
+                    "seed": seed,
+                    "overrides": VARIANTS[variant],
+                    "train_s": train_s,
+                    "key": _key(run, light),
+                    "splits": _score(run, data, ref),
+                }
+                k = row["runs"][name]["key"]
+                print(
+                    f"[{cap}/{name}] {train_s:.0f} s; key {'kept' if k['kept'] else 'dropped'}, "
+                    f"found {k['found_deg']}, irradiance {k['irradiance_deg']}; "
+                    + ", ".join(f"{s} {m['psnr_mask']:.2f}" for s, m in row["runs"][name]["splits"].items()),
+                    flush=True,
+                )
+                out.write_text(
+                    json.dumps({"machine": machine_info(), "args": vars(args), "captures": rows}, indent=2) + "\n"
+                )
+    print(f"\n{args.iters} iterations, {args.resolution} px, {time.perf_counter() - t_all:.0f} s")
+    _table(rows)
+    print(f"saved {out}")
+
+
+def _fmt(x, f=".1f") -> str:
+    return "-" if x is None else format(x, f)
+
+
+def _table(rows: dict) -> None:
+    """Markdown: per capture and variant (seeds side by side), key kept, angles, PSNR/LPIPS per split."""
+    print(
+        "| capture | light_dir | run | key | found° | irradiance° | test_frames PSNR / LPIPS | test_views PSNR / LPIPS |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for cap, r in rows.items():
+        ld = "sky only" if not r.get("directional") else ",".join(f"{x:.2f}" for x in r["light_dir"])
+        for name, v in sorted(
+            r["runs"].items(), key=lambda kv: (kv[1]["seed"], list(VARIANTS).index(kv[1]["variant"]))
+        ):
+            k, s = v["key"], v["splits"]
+            cells = [
+                f"{_fmt(s[sp]['psnr_mask'], '.2f')} / {_fmt(s[sp]['lpips_mask'], '.4f')}" if sp in s else "-"
+                for sp in ("test_frames", "test_views")
+            ]
+            print(
+                f"| {cap} | {ld} | {name} | {'kept' if k['kept'] else 'dropped'} | {_fmt(k['found_deg'])} "
+                f"| {_fmt(k['irradiance_deg'])} | {cells[0]} | {cells[1]} |"
+            )
+
+
+if __name__ == "__main__":
+    main()
