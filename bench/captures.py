@@ -42,13 +42,13 @@ def main() -> None:
 
     from meshsplat.data import open_dataset
     from meshsplat.data.formats import detect_format, format_module
-    from meshsplat.demo import RECIPES, demo_train_config
+    from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
 
-    preset = RECIPES[args.preset]
+    preset = PRESETS[args.preset]
     if args.iters:
         preset = replace(preset, iterations=args.iters)
     work = Path(args.work)

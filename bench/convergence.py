@@ -111,10 +111,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from meshsplat.data import open_dataset
-    from meshsplat.demo import RECIPES, _generate
+    from meshsplat.demo import PRESETS, _generate
     from meshsplat.train import Trainer, apply_overrides, recipe_config
 
-    preset = RECIPES[args.preset]
+    preset = PRESETS[args.preset]
     data = _generate(Path(args.data), preset, progress=False)
     ckpt_every = max(1, min(1000, args.iters // 10))
     cfg = recipe_config(args.train_preset)

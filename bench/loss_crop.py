@@ -94,15 +94,15 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    from meshsplat.demo import RECIPES, _generate, demo_train_config
+    from meshsplat.demo import PRESETS, _generate, demo_train_config
     from meshsplat.train import Trainer
     from meshsplat.train.losses import subject_crop
 
     tmp = Path(tempfile.mkdtemp(prefix="loss_crop_"))
-    data = args.data if args.data is not None else _generate(tmp / "data", RECIPES["default"], progress=False)
+    data = args.data if args.data is not None else _generate(tmp / "data", PRESETS["default"], progress=False)
     trainers, times, boxes = {}, {}, {}
     for name, on in (("off", "false"), ("on", "true")):
-        cfg = demo_train_config(data, tmp / name, RECIPES["default"], [f"loss.crop_to_subject={on}"], progress=False)
+        cfg = demo_train_config(data, tmp / name, PRESETS["default"], [f"loss.crop_to_subject={on}"], progress=False)
         trainers[name] = Trainer(cfg)
         times[name], boxes[name] = [], []
     for tr in trainers.values():  # warm-up: numba kernels, LPIPS, the frame cache

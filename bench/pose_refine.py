@@ -109,13 +109,13 @@ def main() -> None:
     ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "new"])
     args = ap.parse_args()
 
-    from meshsplat.demo import RECIPES, demo_train_config
+    from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
 
-    preset = RECIPES[args.preset]
+    preset = PRESETS[args.preset]
     for field, value in (("iterations", args.iters), ("resolution", args.resolution), ("frames", args.frames)):
         if value:
             preset = replace(preset, **{field: value})
@@ -145,7 +145,11 @@ def main() -> None:
             run = work / f"run_{case}_{variant}"
             if run.exists():
                 shutil.rmtree(run)
-            extra = ["pose_refine.auto=false"] if variant == "off" else ["pose_refine.enabled=true"]
+            extra = (
+                ["pose_refine.enabled=false"]
+                if variant == "off"
+                else ["pose_refine.enabled=true", "pose_refine.required=true"]
+            )
             if variant == "old":
                 extra.append(f"pose_refine.lr={OLD_LR}")
             elif variant.startswith("new_lr"):

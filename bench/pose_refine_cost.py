@@ -6,7 +6,7 @@
 
 Trains the default (``quality`` preset, the demo's schedule as ``bench/quality_pbr.py`` scales it) on an
 SMPL capture with tracking noise twice per repeat, without and with pose refinement
-(``pose_refine.auto=false`` / ``true``), in the order off, on, on, off, ... so a change of the machine's
+(``pose_refine.enabled=false`` / ``true``), in the order off, on, on, off, ... so a change of the machine's
 load and one-off costs of the first run hit both alike, and prints the training seconds of every run, their
 medians and the ratio. Without ``--data`` it synthesizes the stand-in SMPL body dancing the bundled
 AIST++ motion (Lambert renderer, ``--pose-noise`` radians). Saves bench/results/<name>-<host>.json.
@@ -45,7 +45,7 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import RECIPES, demo_train_config
+    from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.synth import synthesize
     from meshsplat.synth.standin_models import write_standin_models
     from meshsplat.train import Trainer
@@ -64,14 +64,14 @@ def main() -> None:
             pose_noise=args.pose_noise,
             threads=args.threads,
         )
-    sizes = replace(RECIPES["default"], iterations=args.iters, n_init=args.n_init, overrides=_schedule(args.iters))
+    sizes = replace(PRESETS["default"], iterations=args.iters, n_init=args.n_init, overrides=_schedule(args.iters))
     runs: dict[str, list[float]] = {"off": [], "on": []}
     notes: dict[str, str | None] = {}
     for rep in range(args.repeats):
         order = (("off", "false"), ("on", "true"))
         for tag, auto in order if rep % 2 == 0 else order[::-1]:  # off, on, on, off, ...: first-run costs spread
             out = work / f"run-{tag}-{rep}"
-            overrides = [f"model_dir={models}", f"pose_refine.auto={auto}"]
+            overrides = [f"model_dir={models}", f"pose_refine.enabled={auto}"]
             cfg = demo_train_config(Path(data), out, sizes, overrides, progress=False)
             t0 = time.perf_counter()
             trainer = Trainer(cfg)

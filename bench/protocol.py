@@ -23,7 +23,7 @@ import numpy as np
 from _machine import machine_info, results_path
 from meshsplat.data import open_dataset
 from meshsplat.data.formats import peoplesnapshot as ps
-from meshsplat.demo import RECIPES, demo_train_config
+from meshsplat.demo import PRESETS, demo_train_config
 from meshsplat.eval import evaluate_run
 from meshsplat.synth import synthesize
 from meshsplat.synth.standin_models import write_standin_models
@@ -69,7 +69,7 @@ def main() -> None:
         ps.write(open_dataset(native), data)
         _split_files(data)
     run = work / "run"
-    preset = RECIPES["default"]
+    preset = PRESETS["default"]
     cfg = demo_train_config(data, run, preset, progress=False)
     cfg.iterations = args.iters
     cfg.model_dir = str(models)

@@ -51,8 +51,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "frozen": ("paper", ["model.freeze_embedding=true"]),
     "scale_area": ("paper", ["model.scale_mode=area"]),
     "unfold": ("paper", ["walk.mode=unfold"]),
-    "shading": ("paper", ["model.shading=sh2"]),
-    "shading_axis": ("paper", ["model.shading=sh2", "shading.normal=axis"]),
+    "shading": ("paper", ["shading.enabled=true"]),
+    "shading_axis": ("paper", ["shading.enabled=true", "shading.normal=axis"]),
     "sh1_world": ("paper", ["model.sh_degree=1"]),
     "sh1_triangle": ("paper", ["model.sh_degree=1", "model.sh_frame=triangle"]),
     "init_multi": ("paper", ["model.init_color_frames=8"]),
@@ -116,12 +116,12 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import RECIPES, demo_train_config
+    from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.train import Trainer
 
     torch.set_num_threads(args.threads)
-    preset = RECIPES[args.preset]
+    preset = PRESETS[args.preset]
     if args.iters:
         preset = replace(preset, iterations=args.iters)
     if args.resolution:

@@ -37,16 +37,34 @@ from dataclasses import replace
 from pathlib import Path
 
 from _machine import machine_info, results_path
-from meshsplat.train import config as train_config
 from quality import VARIANTS
 
 
+# The quality recipe's history before the format reset (config versions 1-14 of the pre-release): at version v,
+# each key of CHANGED_AFTER[v] still had this value. Frozen: the rows of bench/reports/quality_pbr.md name them.
+CHANGED_AFTER: dict[int, dict[str, object]] = {
+    1: {"shading.enabled": False, "model.init_color_frames": 1, "optim.lr_color": 2.5e-3},
+    2: {"loss.crop_to_subject": False},
+    3: {"loss.lpips_every": 1},
+    4: {"shading.occlusion": "none"},
+    5: {"pose_refine.enabled": False},
+    6: {"shading.lr": 5e-3},
+    7: {"shading.key_soft": 0.0},
+    8: {"shading.grid": 64, "shading.key_soft": 8.0},
+    9: {"albedo_prior.enabled": False},
+    10: {"albedo_prior.reach": 8},
+    11: {"strategy.grow_grad2d": 2e-4},
+    12: {"mask_loss.enabled": False},
+    13: {"offset_bound.enabled": False},
+}
+
+
 def version_defaults(version: int) -> list[str]:
-    """Overrides giving config ``version``'s default: each key whose default changed since, at its value then
-    (for a key changed twice, the earliest table's)."""
+    """Overrides giving the pre-release config ``version``'s default: each key changed since, at its value then
+    (for a key changed twice, the earliest value)."""
     values: dict = {}
-    for v in range(train_config.CONFIG_VERSION - 1, version - 1, -1):
-        values.update(getattr(train_config, f"VERSION_{v}_DEFAULTS"))
+    for v in range(max(CHANGED_AFTER), version - 1, -1):
+        values.update(CHANGED_AFTER.get(v, {}))
     return [f"{k}={str(val).lower() if isinstance(val, bool) else val}" for k, val in values.items()]
 
 
@@ -61,9 +79,9 @@ EXTRA: dict[str, tuple[str, list[str]]] = {
     "default_spec": ("quality", ["shading.specular=sh2"]),
     "default_spec_occl": ("quality", ["shading.specular=sh2", "shading.occlusion=directions"]),
     "default_key": ("quality", ["shading.occlusion=key"]),
-    # the default before shading.occlusion=key and pose_refine.auto
-    "default_nokey": ("quality", ["shading.occlusion=none", "pose_refine.auto=false"]),
-    "default_norefine": ("quality", ["pose_refine.auto=false"]),  # the key light without pose refinement
+    # the default before shading.occlusion=key and pose refinement
+    "default_nokey": ("quality", ["shading.occlusion=none", "pose_refine.enabled=false"]),
+    "default_norefine": ("quality", ["pose_refine.enabled=false"]),  # the key light without pose refinement
     "default_key150": ("quality", ["shading.key_iter=150"]),  # a shorter search
     "default_key_spec": ("quality", ["shading.occlusion=key", "shading.specular=sh2"]),
     "default_lrdecay": ("quality", ["optim.lr_color_final=1e-3"]),
@@ -400,12 +418,12 @@ def main() -> None:
 
     import torch
 
-    from meshsplat.demo import RECIPES, demo_train_config
+    from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.train import Trainer
 
     torch.set_num_threads(args.threads)
     sizes = replace(
-        RECIPES["default"],
+        PRESETS["default"],
         frames=args.frames,
         resolution=args.resolution,
         iterations=args.iters,

@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from _machine import machine_info, results_path
-from meshsplat.demo import RECIPES, _generate
+from meshsplat.demo import PRESETS, _generate
 from meshsplat.fleet.batch import run_batch
 from meshsplat.fleet.jobs import job_config, read_jobs
 from meshsplat.fleet.runner import run_job
@@ -47,7 +47,7 @@ def main() -> None:
     ap.add_argument("--nproc-iters", type=int, default=30, help="iterations of the --nproc part")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="scale_out_"))
-    first = _generate(tmp / "cap0", RECIPES["tiny"], progress=False)
+    first = _generate(tmp / "cap0", PRESETS["tiny"], progress=False)
     for i in range(1, 4):
         shutil.copytree(first, tmp / f"cap{i}")
     jobs_file = tmp / "jobs.json"

@@ -35,7 +35,7 @@ import torch
 
 from _machine import machine_info, results_path
 from _shadow_maps import use_torch_maps
-from meshsplat.demo import RECIPES, _generate, demo_train_config
+from meshsplat.demo import PRESETS, _generate, demo_train_config
 from meshsplat.train import Trainer
 
 VARIANTS = {
@@ -68,13 +68,13 @@ def main() -> None:
     if args.warmup % cycle or args.block % cycle:
         raise SystemExit(f"--warmup and --block must be multiples of {cycle} (the lcm of --lpips-every)")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_"))
-    data = args.data if args.data is not None else _generate(tmp / "data", RECIPES["default"], progress=False)
+    data = args.data if args.data is not None else _generate(tmp / "data", PRESETS["default"], progress=False)
     rows = []
     for threads in [int(t) for t in args.threads.split(",")]:
         torch.set_num_threads(threads)
         trainers = {}
         for name, extra in variants.items():
-            cfg = demo_train_config(data, tmp / f"{name}{threads}", RECIPES["default"], extra, progress=False)
+            cfg = demo_train_config(data, tmp / f"{name}{threads}", PRESETS["default"], extra, progress=False)
             trainers[name] = Trainer(cfg)
             use_torch_maps(name in TORCH_MAPS)
             for _ in range(args.warmup):

@@ -4,7 +4,7 @@
 // (a counting sort of given depths), keyVisibilities (the key light's visibility the splat shader reads). They mirror meshsplat.mesh.geometry, meshsplat.embedding and
 // meshsplat.gaussians.compose; tests/test_viewer.py compares them with those under Node.
 import { EPS, EXACT_KEY_MAX, NEAR_PLANE, faceGeometry, frameVertices, keyShadowMap, keyVisibility, vertexKeys }
-  from "../src/meshsplat/viewer/static/viewer.js";
+  from "../../src/meshsplat/viewer/static/viewer.js";
 
 /** Rotation matrix (row-major, 9 numbers from `m` at `o`) -> unit quaternion wxyz with w >= 0. */
 function matrixToQuat(m, o, q, qo) {
