@@ -39,7 +39,6 @@ from pathlib import Path
 from _machine import machine_info, results_path
 from quality import VARIANTS
 
-
 # The quality recipe's history before the format reset (config versions 1-14 of the pre-release): at version v,
 # each key of CHANGED_AFTER[v] still had this value. Frozen: the rows of bench/reports/quality_pbr.md name them.
 CHANGED_AFTER: dict[int, dict[str, object]] = {

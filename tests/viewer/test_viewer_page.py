@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from test_viewer import _chromium, _frames, _psnr, _small_blendshapes
 
 from _browser import open_page
 from _eval_kit import make_avatar
@@ -20,7 +21,6 @@ from meshsplat.cli._options import orbit_request
 from meshsplat.errors import MeshsplatError
 from meshsplat.viewer import page_camera, read_viewer_bundle, write_viewer_bundle
 from meshsplat.viewer.bundle import parse_view
-from test_viewer import _chromium, _frames, _psnr, _small_blendshapes
 
 
 def test_page_view_string_is_a_camera(tmp_path):

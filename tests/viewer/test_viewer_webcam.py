@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_viewer import _chromium, _small_blendshapes
 
 from _browser import open_page
 from _eval_kit import make_avatar
@@ -27,7 +28,6 @@ from meshsplat.track.head_fit import _project, fit_head, focal_from_fov
 from meshsplat.track.ict_head import load_ict_head
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 from meshsplat.viewer.webcam import LANDMARKER_FILES, LANDMARKER_VERSION, find_landmarker, webcam_model
-from test_viewer import _chromium, _small_blendshapes
 
 NODE = shutil.which("node")
 VIEWER_JS = Path(__file__).resolve().parents[2] / "src/meshsplat/viewer/static/viewer.js"
