@@ -155,7 +155,7 @@ def test_real_webcam_footage(tmp_path):
     landmarks within a few pixels of MediaPipe's, the matte covering the face and leaving the room out."""
     from pathlib import Path
 
-    video = Path(__file__).parent / "data" / "facemesh_input_2s.mp4"
+    video = Path(__file__).parents[1] / "data" / "facemesh_input_2s.mp4"
     res = track_head(video, tmp_path / "cap", TrackSettings(size=128))
     assert res.frames == 30 and not res.dropped
     assert res.error_px < 4.0, res.error_px  # pixels of the 480x320 video
