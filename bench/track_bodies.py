@@ -34,7 +34,7 @@ import numpy as np
 
 from _machine import RESULTS, machine_info, results_path
 from meshsplat.track.body_capture import track_body
-from meshsplat.track.head_capture import TrackSettings
+from meshsplat.track.clip import TrackSettings
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")
 

@@ -44,7 +44,8 @@ from meshsplat.metrics.psnr import psnr
 from meshsplat.metrics.ssim import ssim
 from meshsplat.metrics.subject import subject_box
 from meshsplat.run_folder import load_avatar
-from meshsplat.track.head_capture import TrackSettings, track_head
+from meshsplat.track.clip import TrackSettings
+from meshsplat.track.head_capture import track_head
 from meshsplat.train import DEFAULT_RECIPE, Trainer, apply_overrides, recipe_config
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi")

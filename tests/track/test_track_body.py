@@ -20,7 +20,7 @@ from meshsplat.drivers.body_models import model_from_record
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.video import write_mp4
 from meshsplat.mesh import TriMesh
-from meshsplat.track.head_capture import TrackSettings
+from meshsplat.track.clip import TrackSettings
 from meshsplat.track.head_region import mesh_silhouette
 
 pytest.importorskip("mediapipe")

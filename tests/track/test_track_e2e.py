@@ -14,8 +14,9 @@ from meshsplat.data import open_dataset
 from meshsplat.drivers.blendshape import read_weights
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.video import read_video_frames, write_mp4
+from meshsplat.track.clip import TrackSettings
 from meshsplat.track.face_track import track_faces
-from meshsplat.track.head_capture import TrackSettings, track_head
+from meshsplat.track.head_capture import track_head
 
 pytest.importorskip("mediapipe")
 from meshsplat.track.mediapipe_models import FaceMesh

@@ -28,7 +28,8 @@ import argparse
 import sys
 
 from meshsplat.track.body_capture import track_body
-from meshsplat.track.head_capture import TrackSettings, track_head
+from meshsplat.track.clip import TrackSettings
+from meshsplat.track.head_capture import track_head
 
 __all__ = ["add_arguments", "run"]
 

@@ -24,7 +24,7 @@ The capture is a native dataset (``docs/dataset-format.md``) with:
 from __future__ import annotations
 
 import time as _time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -33,11 +33,10 @@ import numpy as np
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.drivers.anny_body import ANNY_VERSION, MODEL_TYPE, AnnyBody, load_anny_body
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.video import VideoInfo, probe_video, read_video_frames
 from meshsplat.track.body_fit import BodyFit, fit_body
 from meshsplat.track.body_render import BODY_CAMERA_VIEWMAT
 from meshsplat.track.body_track import TORSO, BodyTrack, track_bodies
-from meshsplat.track.head_capture import MIN_FRAMES, TRACK_MAX_SIDE, TrackResult, TrackSettings
+from meshsplat.track.clip import MIN_FRAMES, Clip, TrackResult, TrackSettings, open_clip
 from meshsplat.track.head_region import Crop, crop_frame, crop_inside, mesh_silhouette
 from meshsplat.track.mediapipe_models import PersonSegmenter, PoseLandmarker
 
@@ -46,13 +45,6 @@ __all__ = ["track_body", "MATTE_MARGIN", "CROP_MARGIN", "SMALL_MATTE"]
 MATTE_MARGIN = 0.06  # the mask keeps the person matte this far (x body height) around the body's silhouette
 CROP_MARGIN = 1.15  # crop side: this times the clip's largest projected body extent
 SMALL_MATTE = 160  # the fit's mattes: longer side in pixels
-
-
-def _frames(video: Path, s: TrackSettings) -> Iterator[np.ndarray]:
-    for i, frame in enumerate(read_video_frames(video, s.fps, s.start, s.seconds, TRACK_MAX_SIDE)):
-        if s.max_frames is not None and i >= s.max_frames:
-            return
-        yield frame
 
 
 def _small(matte: np.ndarray) -> np.ndarray:
@@ -110,20 +102,9 @@ def track_body(
     ``progress(stage, done, total)`` reports frames as they go (stages ``landmarks``, ``fit``, ``frames``);
     ``iterations``: the fit's (:func:`meshsplat.track.body_fit.fit_body`).
     """
-    s = settings or TrackSettings()
-    s.check()
     out = Path(out)
-    if out.exists() and any(out.iterdir()) and not s.overwrite:
-        raise MeshsplatError(f"{out}: not empty; choose a new folder, or pass --overwrite to replace its capture")
-    info: VideoInfo = probe_video(video)
-    fps = s.fps or info.fps
-    total = info.frames if s.seconds is None else max(1, round(fps * s.seconds))
-    if s.max_frames is not None:
-        total = min(total, s.max_frames)
-
-    def tick(stage: str) -> Callable[[int], None]:
-        return (lambda i: progress(stage, i + 1, total)) if progress else (lambda i: None)
-
+    clip = open_clip(video, out, settings, progress)
+    fps, tick = clip.fps, clip.tick
     seconds: dict[str, float] = {}
     body = load_anny_body()
     t0 = _time.perf_counter()
@@ -134,11 +115,9 @@ def track_body(
             mattes.append(_small(seg(frame)))
             return pose(frame)
 
-        track = track_bodies(
-            _frames(info.path, s), both, tick("landmarks"), names=lambda i: f"{s.start + i / fps:.2f}s"
-        )
+        track = track_bodies(clip.frames(), both, tick("landmarks"), names=clip.time_of)
     seconds["landmarks"] = _time.perf_counter() - t0
-    times = s.start + np.arange(track.frames) / fps
+    times = clip.times(track.frames)
     missing = _check_found(track, times)
     notes = list(track.notes)
     if missing:
@@ -170,7 +149,7 @@ def track_body(
     seconds["fit"] = _time.perf_counter() - t0
 
     t0 = _time.perf_counter()
-    result = _write_capture(info.path, out, s, track, keep, times, fit, body, tick("frames"))
+    result = _write_capture(clip, out, track, keep, times, fit, body, tick("frames"))
     seconds["frames"] = _time.perf_counter() - t0
     result.seconds, result.dropped = seconds, missing
     result.notes = notes + result.notes
@@ -195,9 +174,8 @@ def _write_npz(path: Path, **arrays: np.ndarray) -> None:
 
 
 def _write_capture(
-    video: Path,
+    clip: Clip,
     out: Path,
-    s: TrackSettings,
     track: BodyTrack,
     keep: np.ndarray,
     times: np.ndarray,
@@ -205,6 +183,7 @@ def _write_capture(
     body: AnnyBody,
     tick: Callable[[int], Any],
 ) -> TrackResult:
+    s = clip.settings
     params = fit.params()
     verts = fit.vertices()  # [T,V,3] world
     K = fit.K.numpy().astype(np.float64)
@@ -216,7 +195,7 @@ def _write_capture(
     meta = {
         "generator": "meshsplat.track",
         "subject": "body",
-        "video": video.name,
+        "video": clip.info.path.name,
         "up": "y",
         "units": "m",
         "body_fit": "body_fit.npz",
@@ -236,7 +215,7 @@ def _write_capture(
     pos = {int(k): j for j, k in enumerate(keep)}
     outside = np.zeros(len(keep), np.float32)
     with PersonSegmenter() as seg:
-        for i, frame in enumerate(_frames(video, s)):
+        for i, frame in enumerate(clip.frames()):
             tick(i)
             j = pos.get(i)
             if j is None:

@@ -19,8 +19,7 @@ native dataset (``docs/dataset-format.md``) with:
 from __future__ import annotations
 
 import time as _time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -29,8 +28,8 @@ import torch
 
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.errors import MeshsplatError
-from meshsplat.io.video import VideoInfo, probe_video, read_video_frames
 from meshsplat.synth.driving import weld
+from meshsplat.track.clip import MIN_FRAMES, Clip, TrackResult, TrackSettings, open_clip
 from meshsplat.track.face_track import FaceTrack, track_faces
 from meshsplat.track.head_fit import HeadFit, fit_head
 from meshsplat.track.head_region import clip_crops, crop_frame, crop_inside, hair_region, mesh_silhouette
@@ -38,54 +37,7 @@ from meshsplat.track.head_render import visible_faces
 from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
 from meshsplat.track.mediapipe_models import FaceMesh, PersonSegmenter
 
-__all__ = ["TrackSettings", "TrackResult", "track_head", "MIN_FRAMES"]
-
-MIN_FRAMES = 10  # fewer frames with a face than this cannot pin an identity (and leave nothing to test)
-TRACK_MAX_SIDE = 1920  # frames are tracked and cropped at most this large (4K is scaled down by ffmpeg)
-
-
-@dataclass
-class TrackSettings:
-    """What :func:`track_head` does with a clip: output ``size`` (square crops, pixels), ``fps``
-    (resample; None keeps every frame), ``start``/``seconds`` (a time range), ``max_frames``, the
-    ``train_fraction`` of frames (from the start) that train, and ``overwrite``."""
-
-    size: int = 512
-    fps: float | None = None
-    start: float = 0.0
-    seconds: float | None = None
-    max_frames: int | None = None
-    train_fraction: float = 0.8
-    overwrite: bool = False
-
-    def check(self) -> None:
-        if not 64 <= self.size <= 2048:
-            raise MeshsplatError(f"size: expected 64 to 2048 pixels, got {self.size}")
-        if not 0.0 < self.train_fraction < 1.0:
-            raise MeshsplatError(f"train fraction: expected a number between 0 and 1, got {self.train_fraction}")
-        if self.max_frames is not None and self.max_frames < MIN_FRAMES:
-            raise MeshsplatError(f"max frames: expected at least {MIN_FRAMES}, got {self.max_frames}")
-
-
-@dataclass
-class TrackResult:
-    """What was written: the capture folder, frame counts, the fit's landmark error, times (seconds)."""
-
-    capture: Path
-    frames: int
-    dropped: list[str]
-    train: int
-    test: int
-    error_px: float
-    seconds: dict[str, float] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)
-
-
-def _frames(video: Path, s: TrackSettings) -> Iterator[np.ndarray]:
-    for i, frame in enumerate(read_video_frames(video, s.fps, s.start, s.seconds, TRACK_MAX_SIDE)):
-        if s.max_frames is not None and i >= s.max_frames:
-            return
-        yield frame
+__all__ = ["track_head"]
 
 
 def _check_found(track: FaceTrack, times: np.ndarray) -> list[str]:
@@ -150,27 +102,16 @@ def track_head(
 
     ``progress(stage, done, total)`` reports frames as they go (stages ``landmarks``, ``frames``).
     """
-    s = settings or TrackSettings()
-    s.check()
     out = Path(out)
-    if out.exists() and any(out.iterdir()) and not s.overwrite:
-        raise MeshsplatError(f"{out}: not empty; choose a new folder, or pass --overwrite to replace its capture")
-    info: VideoInfo = probe_video(video)
-    fps = s.fps or info.fps
-    total = info.frames if s.seconds is None else max(1, round(fps * s.seconds))
-    if s.max_frames is not None:
-        total = min(total, s.max_frames)
-
-    def tick(stage: str) -> Callable[[int], None]:
-        return (lambda i: progress(stage, i + 1, total)) if progress else (lambda i: None)
-
+    clip = open_clip(video, out, settings, progress)
+    fps, tick = clip.fps, clip.tick
     seconds: dict[str, float] = {}
 
     t0 = _time.perf_counter()
     with FaceMesh() as mesh:
-        track = track_faces(_frames(info.path, s), mesh, tick("landmarks"), names=lambda i: f"{s.start + i / fps:.2f}s")
+        track = track_faces(clip.frames(), mesh, tick("landmarks"), names=clip.time_of)
     seconds["landmarks"] = _time.perf_counter() - t0
-    times = s.start + np.arange(track.frames) / fps
+    times = clip.times(track.frames)
     missing = _check_found(track, times)
     notes = list(track.notes)
     if missing:
@@ -186,22 +127,22 @@ def track_head(
     seconds["fit"] = _time.perf_counter() - t0
 
     t0 = _time.perf_counter()
-    result = _write_capture(info.path, out, s, track, keep, times, fit, tick("frames"))
+    result = _write_capture(clip, out, track, keep, times, fit, tick("frames"))
     seconds["frames"] = _time.perf_counter() - t0
     result.seconds, result.notes, result.dropped = seconds, notes, missing
     return result
 
 
 def _write_capture(
-    video: Path,
+    clip: Clip,
     out: Path,
-    s: TrackSettings,
     track: FaceTrack,
     keep: np.ndarray,
     times: np.ndarray,
     fit: HeadFit,
     tick: Callable[[int], Any],
 ) -> TrackResult:
+    s = clip.settings
     head = fit.head
     rest = (head.neutral + fit.identity).detach()
     index, faces = _driving_mesh(head, rest)
@@ -211,7 +152,7 @@ def _write_capture(
     meta = {
         "generator": "meshsplat.track",
         "subject": "head",
-        "video": video.name,
+        "video": clip.info.path.name,
         "up": "y",
         "units": "cm",
         "head_model": "head_model.npz",
@@ -226,7 +167,7 @@ def _write_capture(
     verts = fit.vertices()  # [T,V,3] world
     pos = {int(k): j for j, k in enumerate(keep)}
     with PersonSegmenter() as seg:
-        for i, frame in enumerate(_frames(video, s)):
+        for i, frame in enumerate(clip.frames()):
             tick(i)
             j = pos.get(i)
             if j is None:
