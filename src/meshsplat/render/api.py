@@ -97,7 +97,9 @@ def _pick_backend(backend: str, device: torch.device, dtype: torch.dtype = torch
         if dtype not in (torch.float32, torch.float64):
             raise MeshsplatError(f"backend='numba' needs float32 or float64 tensors, got {dtype}")
         if not numba_available():
-            raise MeshsplatError("backend='numba' needs numba, which did not import: pip install numba (or backend='torch')")
+            raise MeshsplatError(
+                "backend='numba' needs numba, which did not import: pip install numba (or backend='torch')"
+            )
         return "numba"
     if backend == "gsplat":
         if device.type != "cuda":
