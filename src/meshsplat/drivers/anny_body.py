@@ -239,10 +239,15 @@ class AnnyBody:
     num_betas = len(PHENOTYPES)
     num_expression = 0
 
-    def __init__(self, arrays: dict[str, np.ndarray], path: Path | None = None, device: str | torch.device = "cpu"):
+    def __init__(
+        self, arrays: dict[str, np.ndarray], path: Path | None = None, device: str | torch.device = "cpu"
+    ) -> None:
         self.path = path
         self.device = torch.device(device)
-        t = lambda k: torch.as_tensor(np.asarray(arrays[k], np.float32), device=self.device)  # noqa: E731
+
+        def t(k: str) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(arrays[k], np.float32), device=self.device)
+
         self.template, self.shapedirs = t("template"), t("shapedirs")
         self.joints_rest, self.joint_dirs = t("joints"), t("joint_dirs")
         self.weights, self.keypoint_weights = t("weights"), t("keypoint_weights")
