@@ -169,12 +169,53 @@ def test_frames_whose_subject_left_the_view_are_named_and_dropped_exactly(tmp_pa
     with pytest.raises(MeshsplatError) as err:
         open_dataset(root)
     msg = str(err.value)
-    assert msg.splitlines()[0].count("--drop-bad-frames") == 1  # the first line says how to leave them out
-    assert "empty mask masks/f02.png" in msg and "empty mask masks/f05.png" in msg and "f01" not in msg
+    assert "\n" not in msg and msg.count("--drop-bad-frames") == 1  # one line, saying how to leave them out
+    assert "the subject left the view in 2 of 7 frames (empty masks: f02.png, f05.png)" in msg
+    assert "f01" not in msg and "masks/" not in msg
     with pytest.warns(UserWarning, match=r"left out 2 of 7 frames"):
         ds = open_dataset(root, drop_bad_frames=True)
     assert ds.dropped_frames == _names([2, 5])
     assert [ds.frame_info(i)["name"] for i in range(len(ds))] == _names([0, 1, 3, 4, 6])
+
+
+def test_many_frames_leaving_the_view_are_one_line_naming_a_few_images_and_the_flag(tmp_path):
+    """Seven of twelve frames out of view (and one badly tracked): one line, a few image names per reason
+    then how many more, what to do; no mask paths."""
+    shifts = [0.0, 4.0, 4.5, 0.1, 5.0, -4.0, -4.5, 0.0, 6.0, -5.0, 0.2, 0.0]
+    shots = [Shot(*FULL, pose=i % 4, shift=(x, 0.0, 0.0)) for i, x in enumerate(shifts)]
+    root = tmp_path / "many"
+    write_capture(root, shots).close()
+    with pytest.raises(MeshsplatError) as err:
+        open_dataset(root)
+    msg = str(err.value)
+    assert "\n" not in msg and "masks/" not in msg, msg
+    assert (
+        "the subject left the view in 7 of 12 frames (empty masks: f01.png, f02.png, f04.png, f05.png and 3 more)"
+        in msg
+    )
+    assert msg.endswith("leave them out with --drop-bad-frames, or fix their masks or cameras")
+    m = np.zeros((64, 64), np.uint8)
+    m[:10, :10] = 255  # frame 10's subject is not where its camera puts it
+    Image.fromarray(m).save(root / "masks" / "f10.png")
+    with pytest.raises(MeshsplatError) as err:
+        open_dataset(root)
+    msg = str(err.value)
+    assert "\n" not in msg and "8 of 12 frames do not show the subject where their camera puts the mesh" in msg
+    assert "the mesh projects off the mask: f10.png" in msg and "f05.png and 3 more" in msg
+    with pytest.warns(UserWarning, match=r"left out 8 of 12 frames"):
+        ds = open_dataset(root, drop_bad_frames=True)
+    assert ds.dropped_frames == _names([1, 2, 4, 5, 6, 8, 9, 10])
+
+
+def test_every_mask_empty_is_refused_saying_so(tmp_path):
+    """Every mask black while the cameras see the mesh: nothing to leave out, so the flag is not offered."""
+    root = capture(tmp_path / "none", [Shot(*FULL, pose=p) for p in range(3)])
+    for f in (root / "masks").glob("*.png"):
+        Image.fromarray(np.zeros((64, 64), np.uint8)).save(f)
+    for drop in (False, True):
+        with pytest.raises(MeshsplatError, match=r"every mask is empty \(3 frames\)") as err:
+            open_dataset(root, drop_bad_frames=drop)
+        assert "--drop-bad-frames" not in str(err.value) and "\n" not in str(err.value)
 
 
 def test_leaving_the_view_in_a_close_up_and_in_a_portrait(tmp_path):
@@ -188,7 +229,7 @@ def test_leaving_the_view_in_a_close_up_and_in_a_portrait(tmp_path):
     root = capture(tmp_path / "both", shots)
     with pytest.raises(MeshsplatError) as err:
         open_dataset(root)
-    assert "empty mask masks/f02.png" in str(err.value) and "empty mask masks/f06.png" in str(err.value)
+    assert "(empty masks: f02.png, f06.png); leave them out with --drop-bad-frames" in str(err.value)
     with pytest.warns(UserWarning, match=r"left out 2 of 9 frames"):
         ds = open_dataset(root, drop_bad_frames=True)
     assert ds.dropped_frames == _names([2, 6])

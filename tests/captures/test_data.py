@@ -169,7 +169,7 @@ def test_non_positive_focal(ds_root):
 
 def test_empty_mask(ds_root):
     Image.new("L", (W, H)).save(ds_root / "masks" / "000000.png")
-    _expect(ds_root, "frame 0 ('000000')", "empty mask masks/000000.png")
+    _expect(ds_root, "the subject left the view in 1 of", "(empty masks: 000000.png)", "--drop-bad-frames")
 
 
 def test_missing_mask_and_bad_split_reported_together(ds_root):

@@ -446,7 +446,7 @@ def build_dataset(
             cameras[str(cid)] = (ok[0], ok[1], int(cam["width"]), int(cam["height"]))
 
     names = set()
-    empty: list[int] = []  # frames whose mask is empty (left out with drop_bad_frames)
+    empty: list[int] = []  # frames whose mask is empty: bad frames at the door
     for i, rec in enumerate(frames):
         name = rec.get("name", str(i)) if isinstance(rec, dict) else str(i)
         where = f"frame {i} ({name!r})"
@@ -481,7 +481,7 @@ def build_dataset(
             problems.add(where, f"driving vertices contain {bad_meshes[m]} NaN/Inf values (mesh {m})")
         cam = (cams_in or {}).get(cid)
         size = (cam.get("width"), cam.get("height")) if isinstance(cam, dict) and cid in cameras else None
-        if _check_frame_files(root, rec, where, size, check_masks, problems, allow_outside, drop_bad_frames):
+        if _check_frame_files(root, rec, where, size, check_masks, problems, allow_outside):
             empty.append(i)
     splits = manifest.get("splits")
     if splits is None:
@@ -523,7 +523,7 @@ def build_dataset(
 
 
 EMPTY_MASK = "empty mask, the subject left the view"
-LISTED_NAMES = 8  # image names listed per reason in a refusal, then how many more
+LISTED_NAMES = 4  # image names listed per reason in a refusal, then how many more
 
 
 def _names(frames: list[dict], ids: list[int]) -> str:
@@ -559,14 +559,20 @@ def _check_at_the_door(
     for i in bad:
         reasons.setdefault(found.bad_frames[i], []).append(i)
     listed = "; ".join(f"{why}: {_names(frames, ids)}" for why, ids in reasons.items())
-    if not drop_bad_frames:
-        raise MeshsplatError(
-            f"{ds.root}: {len(bad)} of {len(frames)} frames do not show the subject where their camera "
-            f"puts the mesh ({listed}); fix them, or leave them out with {DROP_FLAG}"
-        )
-    if len(bad) == len(frames):
-        raise MeshsplatError(f"{ds.root}: every frame fails the camera check ({listed}); nothing left to use")
-    warnings.warn(f"{ds.root}: left out {len(bad)} of {len(frames)} frames ({listed})", MeshsplatWarning, stacklevel=3)
+    n, n_all = len(bad), len(frames)
+    if n == n_all:  # nothing would be left to train on: dropping is no way out
+        if set(reasons) == {EMPTY_MASK}:
+            raise MeshsplatError(
+                f"{ds.root}: every mask is empty ({n} frames): give the masks of the subject, white on black"
+            )
+        raise MeshsplatError(f"{ds.root}: every frame fails the camera check ({listed}); fix the cameras or the masks")
+    if not drop_bad_frames:  # one line: the problem, at most a few image names per reason, what to do
+        if set(reasons) == {EMPTY_MASK}:
+            what = f"the subject left the view in {n} of {n_all} frames (empty masks: {_names(frames, bad)})"
+        else:
+            what = f"{n} of {n_all} frames do not show the subject where their camera puts the mesh ({listed})"
+        raise MeshsplatError(f"{ds.root}: {what}; leave them out with {DROP_FLAG}, or fix their masks or cameras")
+    warnings.warn(f"{ds.root}: left out {n} of {n_all} frames ({listed})", MeshsplatWarning, stacklevel=3)
     drop = set(bad)
     new_index: dict[int, int] = {}
     kept: list[dict] = []
@@ -603,10 +609,10 @@ def _check_frame_files(
     check_masks: bool,
     problems: Problems,
     allow_outside: bool,
-    empty_ok: bool = False,
 ) -> bool:
-    """Image and mask of one frame record: present, decodable header, the camera's size, mask not empty.
-    Returns whether the mask is empty and ``empty_ok`` (the frame is then left out, not a problem)."""
+    """Image and mask of one frame record: present, decodable header, the camera's size.
+    Returns whether the mask is empty (the subject left the view: a bad frame for the check at the door,
+    which refuses it in one line with the others or leaves it out with ``drop_bad_frames``)."""
     kind = rec.get("mask_kind", "png")
     if kind not in MASK_KINDS:
         problems.add(where, f"mask_kind {kind!r} is not one of {list(MASK_KINDS)}")
@@ -659,12 +665,4 @@ def _check_frame_files(
     except MeshsplatError as exc:
         problems.add(where, str(exc))
         return False
-    if float(m.max()) == 0:
-        if empty_ok:
-            return True
-        problems.add(
-            where,
-            f"empty mask {rec.get('mask') or rec['image']} (no foreground pixel; the subject left the view? "
-            f"leave such frames out with {DROP_FLAG})",
-        )
-    return False
+    return float(m.max()) == 0
