@@ -297,3 +297,85 @@ def test_a_projection_larger_than_the_subject_is_no_occlusion(tmp_path, case):
     w.close()
     with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0' does not see the subject on 4 of 4 frames"):
         open_dataset(root, drop_bad_frames=True)
+
+
+# -- without masks (render and view open the capture with check_masks=False): geometry and the faces only
+
+
+@pytest.mark.parametrize("case", list(LEGIT))
+def test_a_legitimate_unusual_capture_opens_without_its_masks(tmp_path, case):
+    """Close-ups with under 10% of the mesh's vertices in the image (belly, knees, feet) pass as the mesh
+    fills the image, as every other legitimate capture does."""
+    shots = LEGIT[case]
+    ds = open_dataset(capture(tmp_path / case, shots), check_masks=False)
+    assert len(ds) == len(shots) and ds.dropped_frames == []
+
+
+def _inside_shots() -> list[Shot]:
+    """Cameras in the body (chest, belly, head), looking forward: the mesh is all around them."""
+    return [
+        Shot((0.0, 1.0, 0.0), (0.0, 1.0, 1.0), pose=0),
+        Shot((0.0, 0.9, 0.02), (0.0, 0.9, 1.0), pose=1),
+        Shot((0.0, 1.35, 0.0), (0.0, 1.35, 1.0), pose=2),
+    ]
+
+
+def test_without_masks_a_camera_inside_the_mesh_is_refused(tmp_path):
+    root = capture(tmp_path / "inside", _inside_shots())
+    for drop in (False, True):
+        with pytest.raises(
+            MeshsplatError,
+            match=r"camera '0' does not see the subject on 3 of 3 frames \(the camera is inside the mesh\)",
+        ):
+            open_dataset(root, check_masks=False, drop_bad_frames=drop)
+
+
+def test_without_masks_a_mesh_out_of_view_or_behind_is_refused(tmp_path):
+    """The whole mesh beside the view, and a camera whose y and z axes are flipped (the mesh behind it)."""
+    away = capture(tmp_path / "away", [Shot(*FULL, pose=p, shift=(5.0, 0.0, 0.0)) for p in range(3)])
+    with pytest.raises(MeshsplatError, match=r"camera '0' does not see the subject on 3 of 3 .*outside the image"):
+        open_dataset(away, check_masks=False)
+    root = tmp_path / "flipped"
+    w = write_capture(root, LEGIT["close-up-belly"])
+    w.cameras["0"]["viewmat"] = (FLIP_YZ @ np.asarray(w.cameras["0"]["viewmat"])).tolist()
+    w.close()
+    with pytest.raises(MeshsplatError, match=r"camera '0' .*behind the camera.*y and z axes are flipped"):
+        open_dataset(root, check_masks=False)
+
+
+def test_without_masks_close_ups_pass_and_a_frame_inside_or_out_of_view_is_named(tmp_path):
+    """A close-up camera on the belly; in one frame the subject stepped aside, in another it stepped onto the
+    camera (which is then inside the body): those two are named (and dropped with the flag), the close-ups
+    with under 10% of the vertices in view are not."""
+    shots = [Shot(*BELLY, pose=p % 4) for p in range(10)]
+    shots[3] = Shot(*BELLY, pose=3, shift=(3.0, 0.0, 0.0))
+    shots[8] = Shot(*BELLY, pose=0, shift=(0.0, 0.0, 0.42))
+    root = capture(tmp_path / "mixed", shots)
+    with pytest.raises(MeshsplatError) as err:
+        open_dataset(root, check_masks=False)
+    msg = str(err.value)
+    assert "\n" not in msg and "2 of 10 frames" in msg, msg
+    assert "the mesh projects outside the image: f03.png" in msg and "the camera is inside the mesh: f08.png" in msg
+    with pytest.warns(UserWarning, match="left out 2 of 10 frames"):
+        assert open_dataset(root, check_masks=False, drop_bad_frames=True).dropped_frames == _names([3, 8])
+
+
+def test_render_of_a_close_up_run_is_not_refused(tmp_path):
+    """`meshsplat render` and `view` open the run's capture without its masks: a close-up capture whose
+    frames hold under 10% of the mesh's vertices renders."""
+    from _eval_kit import make_run
+    from meshsplat.cli.main import main
+    from meshsplat.gaussians import Avatar, init_params
+    from meshsplat.mesh import TriMesh
+
+    root = capture(tmp_path / "belly", LEGIT["close-up-belly"])
+    verts, faces = _body()
+    mesh = TriMesh(torch.from_numpy(verts[0]).float(), torch.from_numpy(faces).long())
+    run = make_run(
+        Avatar(mesh, init_params(mesh, 200, generator=torch.Generator().manual_seed(0))), tmp_path / "run", root
+    )
+    out = tmp_path / "frames"
+    argv = ["render", str(run), "--animation", "dataset", "--split", "train", "--out", str(out), "--no-mp4"]
+    assert main([*argv, "--size", "32x32", "--no-progress", "--device", "cpu"]) == 0
+    assert len(list((out / "frames").glob("*.png"))) == 4
+    assert main(["view", str(run), "--out", str(tmp_path / "page")]) == 0

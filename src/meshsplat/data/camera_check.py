@@ -4,6 +4,9 @@ Every reader ends in ``build_dataset``, which calls :func:`check_cameras`. The r
 
 - every frame: at least half of the mesh's vertices (a subsample of at most ``MAX_VERTICES``) in front of
   the camera and at least ``MIN_VISIBLE`` of them projecting inside the image (geometry only, no decoding);
+  a frame with fewer in the image and no mask (none given, or ``check_masks=False``: ``render``, ``view``)
+  passes as a close-up when, with the faces, the projected mesh covers ``MIN_COVER`` of the image and the
+  camera is not inside the mesh (its winding number);
 - every frame with a mask, against it: at least
   ``MIN_ON_MASK`` of the visible vertices (when ``MIN_MASK_POINTS`` or more are visible) on the frame's
   mask (pooled to a grid of about 64 cells a side, dilated one cell), and no
@@ -56,6 +59,7 @@ BROKEN_SHARE = 0.8  # a camera failing on this share of its checked frames is wr
 CLEARLY_BETTER = 0.25  # another convention beating "as is" on the mask by this much means "as is" is wrong
 MIN_WITHIN = 0.9  # share of the mask's cells on the projected mesh: the mask is the visible part of the subject
 MIN_OUTLINE = 0.75  # ... and share of its outline on the projection's outline (not a projection larger than it)
+MIN_COVER = 0.01  # without a mask: share of the image the projected mesh must cover when under MIN_VISIBLE is in it
 # the projection shrunk by these factors must not fit clearly better (a focal length or distance off)
 SMALLER = (0.8, 0.6, 0.45)
 PROBE_FRAMES = 8  # frames of a wrong camera on which the convention fixes are tried
@@ -174,6 +178,35 @@ def _silhouette(vm: np.ndarray, K, w, h, verts: np.ndarray, faces: np.ndarray, s
     return cells
 
 
+def _winding_number(point: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> float:
+    """The generalized winding number of the mesh ``verts [V,3]``, ``faces [F,3]`` about ``point [3]``: about
+    +-1 inside a closed mesh, 0 outside, in between near holes (Jacobson et al. 2013: the triangles' solid
+    angles over 4 pi; either winding of the faces)."""
+    a, b, c = (verts[faces[:, k]] - point for k in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))
+    dots = np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb
+    return float(np.arctan2(det, la * lb * lc + dots).sum() / (2 * np.pi))
+
+
+def _seen_without_mask(vm: np.ndarray, K, w: int, h: int, mesh: tuple[np.ndarray, np.ndarray] | None) -> str | None:
+    """Why a frame with no mask, its mesh in front of the camera but under ``MIN_VISIBLE`` of its vertices in
+    the image, is wrong (None: a close-up, whose image the mesh fills while most of it lies outside): the
+    camera is inside the mesh, or the projected mesh covers under ``MIN_COVER`` of the image. Without the
+    faces (``mesh`` None) nothing tells a close-up: the vertex count decides."""
+    if mesh is None:
+        return "the mesh projects outside the image"
+    verts, faces = mesh
+    eye = -vm[:3, :3].T @ vm[:3, 3]
+    if abs(_winding_number(eye, verts, faces)) > 0.5:
+        return "the camera is inside the mesh"
+    cell = max(1, math.ceil(max(w, h) / _GRID))
+    shape = (math.ceil(h / cell), math.ceil(w / cell))
+    if float(_silhouette(vm, K, w, h, verts, faces, shape, cell).mean()) < MIN_COVER:
+        return "the mesh projects outside the image"
+    return None
+
+
 def _dilate(a: np.ndarray) -> np.ndarray:
     return F.max_pool2d(torch.from_numpy(a).float()[None, None], 3, 1, padding=1)[0, 0].numpy() > 0
 
@@ -238,8 +271,13 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
     than the subject does not pass); the roll wins only when it holds more of the mask and fits clearly
     better on both counts together."""
     s = _score(vm, K, w, h, verts, grid)
-    if s.in_front < MIN_IN_FRONT or grid is None:
-        return None if s.ok else s.why()
+    if s.ok:
+        if grid is None:
+            return None
+    elif s.in_front < MIN_IN_FRONT:
+        return s.why()
+    elif grid is None:  # no mask: a close-up passes when the mesh fills the image, the camera outside it
+        return _seen_without_mask(vm, K, w, h, None if mesh is None else mesh())
     held: tuple[float, float] | None = None  # _within as is, computed when needed (a raster of the mesh)
     if not s.ok:
         if mesh is not None and s.visible > 0:
@@ -340,7 +378,8 @@ def check_cameras(
         for i in ids:  # geometry, then the mask, of every frame
             s = _score(vm, K, w, h, sub[frames[i][1]], None)
             close_up = s.in_front >= MIN_IN_FRONT and s.visible > 0  # its mask may show it is a close-up
-            if s.ok or (close_up and grid(i) is not None):
+            no_mask = s.in_front >= MIN_IN_FRONT and grid(i) is None  # a close-up when the mesh fills the image
+            if s.ok or (close_up and grid(i) is not None) or no_mask:
                 _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails, full(frames[i][1]))
             else:
                 fails[i] = s.why()
