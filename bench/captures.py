@@ -1,7 +1,7 @@
 """Real-capture layouts end to end: the same synthetic capture, native and written in each layout.
 
     python bench/captures.py                 # demo sizes: 256 px, 1500 iterations per run
-    python bench/captures.py --recipe tiny   # seconds, to check the script
+    python bench/captures.py --preset tiny   # seconds, to check the script
 
 Stand-in SMPL / FLAME model files (meshsplat.synth.standin_models: a CesiumMan-derived body and an
 ICT-derived head, not the licensed models) drive three synthetic captures: a body turning in front of
@@ -34,7 +34,7 @@ KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--recipe", default="default", choices=["default", "tiny"])
+    ap.add_argument("--preset", default="default", choices=["default", "tiny"])
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--work", default="runs/bench-captures")
     ap.add_argument("--captures", nargs="*", default=list(CAPTURES), choices=list(CAPTURES))

@@ -2,7 +2,7 @@
 
     python bench/convergence.py                      # demo capture (CesiumMan 256 px), paper schedule, 30k
     python bench/convergence.py --iters 3000         # a shorter curve
-    python bench/convergence.py --recipe tiny --iters 200 --points 50 100 200   # seconds, to check
+    python bench/convergence.py --preset tiny --iters 200 --points 50 100 200   # seconds, to check
 
 Trains ONE run of a training preset (``--train-preset``, default ``paper``: the paper-faithful model)
 on the TrainConfig schedule (the 30k-iteration densification schedule, opacity reset, lr decay to
@@ -82,7 +82,7 @@ def plot(doc: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--recipe", default="default", help="demo preset whose dataset is used")
+    ap.add_argument("--preset", default="default", help="demo preset whose dataset is used")
     ap.add_argument("--iters", type=int, default=30_000)
     ap.add_argument("--points", type=int, nargs="*", default=list(DEFAULT_POINTS))
     ap.add_argument("--frames", type=int, default=4, help="held-out frames per split at each point")

@@ -1,7 +1,7 @@
 """Quality of the method's variants and options on one capture, in one run (same data, seed, schedule).
 
     python bench/quality.py                                 # demo: CesiumMan 256px, 1500 iterations each
-    python bench/quality.py --recipe tiny                   # seconds, to check the script
+    python bench/quality.py --preset tiny                   # seconds, to check the script
     python bench/quality.py --resolution 128 --iters 400 --variants paper shading   # quick screening
     python bench/quality.py --asset RobotExpressive --variants paper default        # novel poses (test_clip:
                                                             # Walking -> Wave, Dance)
@@ -96,7 +96,7 @@ def _dataset(args, preset, work: Path) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--recipe", default="default")
+    ap.add_argument("--preset", default="default")
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--resolution", type=int, default=None, help="override the preset's image size")
     ap.add_argument("--frames", type=int, default=None, help="override the preset's training frames")
