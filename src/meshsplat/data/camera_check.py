@@ -200,9 +200,11 @@ def _seen_without_mask(vm: np.ndarray, K, w: int, h: int, mesh: tuple[np.ndarray
     eye = -vm[:3, :3].T @ vm[:3, 3]
     if abs(_winding_number(eye, verts, faces)) > 0.5:
         return "the camera is inside the mesh"
+    # the cover on a grid of about _GRID cells a side, one sample per cell (the image scaled to the grid)
     cell = max(1, math.ceil(max(w, h) / _GRID))
-    shape = (math.ceil(h / cell), math.ceil(w / cell))
-    if float(_silhouette(vm, K, w, h, verts, faces, shape, cell).mean()) < MIN_COVER:
+    gw, gh = math.ceil(w / cell), math.ceil(h / cell)
+    Kg = np.diag([1.0 / cell, 1.0 / cell, 1.0]) @ K
+    if float(_silhouette(vm, Kg, gw, gh, verts, faces, (gh, gw), 1).mean()) < MIN_COVER:
         return "the mesh projects outside the image"
     return None
 
