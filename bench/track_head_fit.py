@@ -25,8 +25,9 @@ import torch
 
 from _machine import machine_info, results_path
 from meshsplat.drivers.blendshape import BlendshapeDriver
-from meshsplat.track.head_fit import fit_head, focal_from_fov
+from meshsplat.track.head_fit import fit_head
 from meshsplat.track.ict_head import NUM_LANDMARKS, load_ict_head, rotation_matrix
+from meshsplat.track.tracker_camera import focal_from_fov
 
 
 def main() -> None:

@@ -12,9 +12,10 @@ import torch
 
 from meshsplat.drivers.blendshape import BlendshapeDriver, axis_angle_to_matrix
 from meshsplat.errors import MeshsplatError
-from meshsplat.track.head_fit import MIN_FRAMES_FOR_IDENTITY, _identity_basis, fit_head, focal_from_fov
+from meshsplat.track.head_fit import MIN_FRAMES_FOR_IDENTITY, _identity_basis, fit_head
 from meshsplat.track.head_render import render_head
 from meshsplat.track.ict_head import NUM_LANDMARKS, load_ict_head
+from meshsplat.track.tracker_camera import focal_from_fov
 
 W = H = 512
 T = 40

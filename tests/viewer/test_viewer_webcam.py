@@ -24,8 +24,9 @@ from test_viewer import _chromium, _small_blendshapes
 from _browser import open_page
 from _eval_kit import make_avatar
 from meshsplat.errors import MeshsplatError
-from meshsplat.track.head_fit import _project, fit_head, focal_from_fov
+from meshsplat.track.head_fit import fit_head
 from meshsplat.track.ict_head import load_ict_head
+from meshsplat.track.tracker_camera import focal_from_fov, project
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 from meshsplat.viewer.webcam import LANDMARKER_FILES, LANDMARKER_VERSION, find_landmarker, webcam_model
 
@@ -127,7 +128,7 @@ def _synthetic_landmarks(head):
     c = (head.neutral.min(0).values + head.neutral.max(0).values) / 2
     trans = -c + torch.tensor([0.0, 3.0, -55.0]) + torch.tensor([[0, 0, 0], [2, -1, 3], [-3, 1, -4], [1, 2, 0.0]])
     v = head.pose(torch.zeros_like(head.neutral), w, torch.zeros(T, 2, 2), rot, trans)
-    return _project(head.landmarks(v), K), w, rot, W, H
+    return project(head.landmarks(v), K), w, rot, W, H
 
 
 def _js_solve(tmp_path: Path, model, landmarks: np.ndarray, W: int, H: int, chain: bool = False) -> list[dict]:

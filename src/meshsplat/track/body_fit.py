@@ -8,7 +8,7 @@ API::
     #   mattes [T,h,w]      optional person mattes in [0,1] at any size (the frame's aspect)
     fit.params()         -> SMPL-style dict: global_orient [T,3], body_pose [T,69], transl [T,3], betas [6]
     fit.vertices(t)      -> [V,3] world vertices of frame t (fit.vertices() -> [T,V,3])
-    fit.K [3,3], fit.viewmat [4,4] (BODY_CAMERA_VIEWMAT: camera at the origin looking along -z, +y up)
+    fit.K [3,3], fit.viewmat [4,4] (TRACKER_VIEWMAT: camera at the origin looking along -z, +y up)
     fit.error_px [T]     mean 2D keypoint reprojection error per frame over the seen keypoints (pixels)
 
 The model (``drivers.anny_body``): shape once per clip (6 phenotype offsets ``betas``, kept in [-0.5, 0.5]
@@ -53,13 +53,17 @@ from numpy.typing import ArrayLike
 from meshsplat.camera import Camera
 from meshsplat.drivers.anny_body import JOINTS, KEYPOINTS, AnnyBody, load_anny_body
 from meshsplat.errors import MeshsplatError
-from meshsplat.track.body_render import BODY_CAMERA_VIEWMAT
-from meshsplat.track.head_fit import DEFAULT_DIAGONAL_FOV_DEG, focal_from_fov
+from meshsplat.track.tracker_camera import (
+    DEFAULT_DIAGONAL_FOV_DEG,
+    TRACKER_VIEWMAT,
+    focal_from_fov,
+    project,
+    world_to_camera_axes,
+)
 
-__all__ = ["BodyFit", "fit_body", "KEYPOINT_MAP", "DEFAULT_DIAGONAL_FOV_DEG", "MIN_FRAMES_FOR_SHAPE"]
+__all__ = ["BodyFit", "fit_body", "KEYPOINT_MAP", "MIN_FRAMES_FOR_SHAPE"]
 
 MIN_FRAMES_FOR_SHAPE = 10
-_CV = torch.tensor([1.0, -1.0, -1.0])  # world <-> camera axes (BODY_CAMERA_VIEWMAT's diagonal)
 # Anny keypoint name -> MediaPipe Pose landmark (their small toes have no MediaPipe counterpart)
 KEYPOINT_MAP = {
     "nose": 0, "left_eye": 2, "right_eye": 5, "left_ear": 7, "right_ear": 8,
@@ -108,7 +112,7 @@ class BodyFit:
 
     @property
     def viewmat(self) -> torch.Tensor:
-        return BODY_CAMERA_VIEWMAT.clone()
+        return TRACKER_VIEWMAT.clone()
 
     def camera(self) -> Camera:
         return Camera(self.viewmat, self.K.clone(), self.width, self.height)
@@ -139,13 +143,7 @@ class BodyFit:
 
     def project(self, points: torch.Tensor) -> torch.Tensor:
         """Pixels ``[...,2]`` of world ``points [...,3]``."""
-        return _project(points, self.K)
-
-
-def _project(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    cam = points * _CV.to(points)
-    z = cam[..., 2:].clamp_min(1e-3)
-    return torch.stack([K[0, 0] * cam[..., 0], K[1, 1] * cam[..., 1]], -1) / z + K[:2, 2]
+        return project(points, self.K)
 
 
 def _check_inputs(landmarks: ArrayLike, world: ArrayLike | None) -> tuple[np.ndarray, np.ndarray]:
@@ -275,7 +273,7 @@ def _optimize(
     obs = torch.from_numpy(lm[:, list(KEYPOINT_MAP.values()), :2])  # [T,21,2]
     w2d = torch.from_numpy(_weights(lm, width, height)) * torch.tensor([_KP_WEIGHT.get(k, 1.0) for k in KEYPOINT_MAP])
     vis = torch.from_numpy(np.clip((lm[:, :, 3] - 0.3) / 0.4, 0, 1))  # [T,33]
-    mp3 = torch.from_numpy(np.nan_to_num(world)) * _CV  # MediaPipe's metric landmarks in world axes
+    mp3 = world_to_camera_axes(torch.from_numpy(np.nan_to_num(world)))  # MediaPipe's metric landmarks in world axes
     has3 = torch.from_numpy(np.isfinite(world).all((1, 2)).astype(np.float32))  # [T]
     mp_of = {mp: i for i, mp in enumerate(KEYPOINT_MAP.values())}  # MediaPipe id -> column of obs
 
@@ -352,7 +350,7 @@ def _optimize(
     def loss_fn(stage: int) -> torch.Tensor:
         kp, _ = body.keypoints(pose, betas, transl)
         kp = kp[:, kp_ids]  # [T,21,3]
-        res = (_project(kp, K) - obs) / unit
+        res = (project(kp, K) - obs) / unit
         r = torch.nn.functional.huber_loss(res, torch.zeros_like(res), delta=5.0, reduction="none").sum(-1)
         if stage == 0:
             sel = torch.tensor([mp_of[i] for i in _TORSO])
@@ -377,7 +375,7 @@ def _optimize(
         if stage == 2 and sil is not None:
             dist, scale, vid, pts, (h, w) = sil
             v, _ = body.pose(pose, betas, transl, vid)
-            px = _project(v, K)  # [T,600,2] frame pixels
+            px = project(v, K)  # [T,600,2] frame pixels
             g = (px * scale) / torch.tensor([w, h]) * 2 - 1
             out = torch.nn.functional.grid_sample(dist, g[:, None], align_corners=False, padding_mode="border")
             loss = loss + 0.3 * (out / (unit * float(scale.mean()))).pow(2).clamp_max(400).mean() * 21
@@ -417,5 +415,5 @@ def _optimize(
         run(params, last, 2)
     with torch.no_grad():
         kp, _ = body.keypoints(pose, betas, transl)
-        err = (_project(kp[:, kp_ids], K) - obs).norm(dim=-1)  # [T,21]
+        err = (project(kp[:, kp_ids], K) - obs).norm(dim=-1)  # [T,21]
     return betas.detach().clone(), pose.detach().clone(), transl.detach().clone(), err

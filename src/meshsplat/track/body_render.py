@@ -2,7 +2,7 @@
 on generated clips (``tests/_body_video.py``) and for the bench's previews.
 
 Per-vertex colours by body part (skin, a shirt, trousers, shoes, hair), Lambert shading from a light
-above the camera, through the body camera (``BODY_CAMERA_VIEWMAT``: at the origin, looking along -z).
+above the camera, through the trackers' camera (``tracker_camera.TRACKER_VIEWMAT``: at the origin, looking along -z).
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import torch
 
 from meshsplat.drivers.anny_body import JOINTS, AnnyBody
 from meshsplat.synth.raster import Fragments, interpolate, lambert, rasterize_triangles, vertex_normals
+from meshsplat.track.tracker_camera import world_to_camera_axes
 
-__all__ = ["BODY_CAMERA_VIEWMAT", "body_colors", "render_body"]
+__all__ = ["body_colors", "render_body"]
 
-BODY_CAMERA_VIEWMAT = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))  # world (+y up) -> OpenCV camera
 _SKIN = (0.86, 0.64, 0.52)
 _PART_COLORS = {  # joint -> albedo of the vertices it moves most
     "shirt": ((0.2, 0.35, 0.7), ("spine1", "spine2", "spine3", "left_collar", "right_collar", "left_shoulder", "right_shoulder")),
@@ -49,7 +49,7 @@ def render_body(
     colors: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, Fragments]:
     """Render world ``vertices [V,3]`` through ``K [3,3]``: ``(image [H,W,3] in [0,1], fragments)``."""
-    cam = vertices @ BODY_CAMERA_VIEWMAT[:3, :3].T
+    cam = world_to_camera_axes(vertices)
     frags = rasterize_triangles(cam, body.faces, K, width, height)
     albedo = body_colors(body) if colors is None else colors
     normals = vertex_normals(cam, body.faces)

@@ -34,8 +34,9 @@ from meshsplat.track.face_track import FaceTrack, track_faces
 from meshsplat.track.head_fit import HeadFit, fit_head
 from meshsplat.track.head_region import clip_crops, crop_frame, crop_inside, hair_region, mesh_silhouette
 from meshsplat.track.head_render import visible_faces
-from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
+from meshsplat.track.ict_head import IctHead
 from meshsplat.track.mediapipe_models import FaceMesh, PersonSegmenter
+from meshsplat.track.tracker_camera import TRACKER_VIEWMAT
 
 __all__ = ["track_head"]
 
@@ -68,7 +69,7 @@ def _driving_mesh(head: IctHead, rest: torch.Tensor) -> tuple[np.ndarray, np.nda
 
 def _silhouette(world: torch.Tensor, faces: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
     """Where the posed driving mesh ``world [V,3]`` covers the crop seen through ``K``."""
-    cam = world.numpy().astype(np.float64) @ HEAD_CAMERA_VIEWMAT[:3, :3].numpy().T  # the camera sits at the origin
+    cam = world.numpy().astype(np.float64) @ TRACKER_VIEWMAT[:3, :3].numpy().T  # the camera sits at the origin
     px = cam @ K.T
     px = px[:, :2] / np.maximum(px[:, 2:], 1e-9)
     edges = np.linalg.norm(px[faces[:, 0]] - px[faces[:, 1]], axis=1)
@@ -160,7 +161,7 @@ def _write_capture(
         "split_rule": f"train: the first {n_train} frames with a face; test_frames: the {len(keep) - n_train} after",
         "attribution": "head mesh: ICT FaceKit (MIT, (c) 2020 USC Institute for Creative Technologies)",
     }
-    viewmat = HEAD_CAMERA_VIEWMAT.numpy().astype(np.float64)
+    viewmat = TRACKER_VIEWMAT.numpy().astype(np.float64)
     out.mkdir(parents=True, exist_ok=True)
     writer = DatasetWriter(out, rest[index].numpy(), faces, overwrite=s.overwrite, meta=meta)
     writer.set_source_map(index, rest.numpy(), head.faces.numpy(), exact=True)

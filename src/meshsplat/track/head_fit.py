@@ -55,7 +55,6 @@ from numpy.typing import ArrayLike
 from meshsplat.camera import Camera
 from meshsplat.errors import MeshsplatError
 from meshsplat.track.ict_head import (
-    HEAD_CAMERA_VIEWMAT,
     NUM_LANDMARKS,
     IctHead,
     gaze_matrices,
@@ -63,18 +62,12 @@ from meshsplat.track.ict_head import (
     rotation_matrix,
     with_eye_look,
 )
+from meshsplat.track.tracker_camera import TRACKER_VIEWMAT, focal_from_fov, project, world_to_camera_axes
 
-__all__ = ["HeadFit", "fit_head", "focal_from_fov", "DEFAULT_DIAGONAL_FOV_DEG", "MIN_FRAMES_FOR_IDENTITY"]
+__all__ = ["HeadFit", "fit_head", "MIN_FRAMES_FOR_IDENTITY"]
 
-DEFAULT_DIAGONAL_FOV_DEG = 60.0
 MIN_FRAMES_FOR_IDENTITY = 10
-_CV = torch.tensor([1.0, -1.0, -1.0])  # world -> camera axes (HEAD_CAMERA_VIEWMAT's diagonal)
 _BASIS_SCALE = 15.0  # cm: the identity polynomial's unit length
-
-
-def focal_from_fov(width: int, height: int, diagonal_fov_deg: float = DEFAULT_DIAGONAL_FOV_DEG) -> float:
-    """Focal length in pixels of a ``width`` x ``height`` image with the given diagonal field of view."""
-    return 0.5 * math.hypot(width, height) / math.tan(math.radians(diagonal_fov_deg) / 2)
 
 
 @dataclass
@@ -115,7 +108,7 @@ class HeadFit:
 
     @property
     def viewmat(self) -> torch.Tensor:
-        return HEAD_CAMERA_VIEWMAT.clone()
+        return TRACKER_VIEWMAT.clone()
 
     def camera(self) -> Camera:
         return Camera(self.viewmat, self.K.clone(), self.width, self.height)
@@ -136,13 +129,7 @@ class HeadFit:
 
     def project(self, points: torch.Tensor) -> torch.Tensor:
         """Pixels ``[...,2]`` of world ``points [...,3]``."""
-        return _project(points, self.K)
-
-
-def _project(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    cam = points * _CV.to(points)
-    z = cam[..., 2:].clamp_min(1e-3)
-    return torch.stack([K[0, 0] * cam[..., 0], K[1, 1] * cam[..., 1]], -1) / z + K[:2, 2]
+        return project(points, self.K)
 
 
 def _identity_basis(neutral: torch.Tensor) -> torch.Tensor:
@@ -289,7 +276,7 @@ def _optimize(
     z0 = f * spread3 / spread2d
     c2 = obs.mean(1)
     cam_c = torch.stack([(c2[:, 0] - K[0, 2]) * z0 / f, (c2[:, 1] - K[1, 2]) * z0 / f, z0], 1)
-    trans = (cam_c * _CV - lm0.mean(0)).clone().requires_grad_(True)
+    trans = (world_to_camera_axes(cam_c) - lm0.mean(0)).clone().requires_grad_(True)
     rot = torch.zeros(T, 3, requires_grad=True)
     if identity is None:
         coeffs = torch.zeros(basis.shape[1], 3, requires_grad=True)
@@ -306,7 +293,7 @@ def _optimize(
 
     def loss_fn(stage: int) -> torch.Tensor:
         pts = sub.points(coeffs, weights(), gaze, rot, trans)
-        res = (_project(pts, K) - obs) / unit
+        res = (project(pts, K) - obs) / unit
         loss = torch.nn.functional.huber_loss(res, torch.zeros_like(res), delta=3.0, reduction="sum") / T
         if smooth > 0 and T > 1:
             for x, s in ((w_free, 30.0), (gaze, 30.0), (rot, 100.0), (trans, 0.3)):
@@ -349,5 +336,5 @@ def _optimize(
         R = rotation_matrix(rot)
         t2 = trans + torch.einsum("tij,j->ti", R - torch.eye(3), p2 - p)
         w = with_eye_look(weights(), gaze, head.eye_look)
-        err = (_project(sub.points(coeffs, weights(), gaze, rot, trans), K) - obs).norm(dim=-1)  # [T,L]
+        err = (project(sub.points(coeffs, weights(), gaze, rot, trans), K) - obs).norm(dim=-1)  # [T,L]
         return ident, w, gaze.detach().clone(), rot.detach().clone(), t2.detach(), err

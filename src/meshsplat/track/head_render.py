@@ -14,7 +14,8 @@ import torch
 
 from meshsplat.synth.raster import Fragments, interpolate, lambert, rasterize_triangles, vertex_normals
 from meshsplat.synth.sources import ICT_HIDDEN_MATERIALS
-from meshsplat.track.ict_head import HEAD_CAMERA_VIEWMAT, IctHead
+from meshsplat.track.ict_head import IctHead
+from meshsplat.track.tracker_camera import world_to_camera_axes
 
 __all__ = ["head_colors", "visible_faces", "render_head"]
 
@@ -82,9 +83,9 @@ def render_head(
     background: tuple[float, float, float] = (0.55, 0.6, 0.65),
     colors: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, Fragments, torch.Tensor]:
-    """Render world ``vertices [V,3]`` through ``K`` and :data:`HEAD_CAMERA_VIEWMAT`: ``(image [H,W,3]
+    """Render world ``vertices [V,3]`` through ``K`` and :data:`~meshsplat.track.tracker_camera.TRACKER_VIEWMAT`: ``(image [H,W,3]
     float in [0,1], fragments, face_ids [F'])``; ``fragments.face`` indexes ``face_ids`` (-1 background)."""
-    cam = vertices @ HEAD_CAMERA_VIEWMAT[:3, :3].T
+    cam = world_to_camera_axes(vertices)
     keep = visible_faces(head)
     faces = head.faces[keep]
     frags = rasterize_triangles(cam, faces, K, width, height)

@@ -33,7 +33,6 @@ from meshsplat.paths import asset
 
 __all__ = [
     "IctHead",
-    "HEAD_CAMERA_VIEWMAT",
     "load_ict_head",
     "LANDMARKS_ASSET",
     "NUM_LANDMARKS",
@@ -44,8 +43,6 @@ __all__ = [
     "eye_look_weights",
 ]
 
-# world (model: +y up, +z out of the face) -> OpenCV camera at the origin looking along world -z
-HEAD_CAMERA_VIEWMAT = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
 LANDMARKS_ASSET = "ict_facekit/ict_mediapipe_landmarks.npz"
 NUM_LANDMARKS = 478  # MediaPipe face mesh with refine_landmarks (468 + 10 iris points)
 EYE_LOOK_RANGE = math.radians(30.0)  # gaze angle at which an ARKit eyeLook* weight reaches 1

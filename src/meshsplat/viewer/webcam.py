@@ -51,7 +51,7 @@ LANDMARKER_FILES = (
     "package.json",
 )
 INSTALL_HINT = f"npm install --prefix .node-tools {LANDMARKER_PACKAGE}@{LANDMARKER_VERSION} (or make node-tools)"
-_DIAGONAL_FOV_DEG = 60.0  # meshsplat.track.head_fit.DEFAULT_DIAGONAL_FOV_DEG (the page gets it in the header)
+_DIAGONAL_FOV_DEG = 60.0  # meshsplat.track.tracker_camera.DEFAULT_DIAGONAL_FOV_DEG (the page gets it in the header)
 
 
 def webcam_model(head: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
