@@ -165,3 +165,14 @@ def test_synth_cli_peoplesnapshot_then_import(tmp_path, standin_model_dir, capsy
     for i in range(len(nat)):
         assert (nat.vertices(i) - n0.vertices(i)).abs().max() < 1e-5
     assert main(["synth", "smpl", "--format", "native", "--masks", "npy", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_a_file_given_for_the_capture_folder_is_named_as_a_file(tmp_path):
+    """A file where the capture folder should be is not "not found" (it is there): one line saying what it is."""
+    f = tmp_path / "capture.zip"
+    f.write_bytes(b"PK")
+    with pytest.raises(MeshsplatError, match=r"capture\.zip is a file, not a capture folder") as err:
+        open_capture(f)
+    assert "\n" not in str(err.value)
+    with pytest.raises(MeshsplatError, match=r"capture folder not found: .*nothing_here"):
+        open_capture(tmp_path / "nothing_here")

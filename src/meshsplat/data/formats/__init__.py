@@ -39,6 +39,8 @@ def detect_format(root: Path | str) -> str:
     root = Path(root)
     if root.is_file() and root.name == "manifest.json":
         root = root.parent
+    if root.exists() and not root.is_dir():
+        raise MeshsplatError(f"{root} is a file, not a capture folder: give the folder that holds the capture")
     if not root.is_dir():
         raise MeshsplatError(f"capture folder not found: {root}")
     for name in FORMAT_NAMES:
