@@ -74,6 +74,11 @@ def test_sequence_and_blendshape_drivers(avatar, tmp_path):
     assert len(frames) == 2 and torch.equal(frames[1], seq[1])
     with pytest.raises(MeshsplatError, match=r"\[T,42,3\]"):
         sequence_for_mesh(avatar.mesh, np.zeros((2, 41, 3), np.float32))
+    nan = seq.numpy().copy()
+    nan[1, 5] = np.nan  # NaN edges compare as no stretch: named as NaN, not as another mesh
+    with pytest.raises(MeshsplatError, match=r"frame 1: contains 3 NaN/Inf values") as err:
+        sequence_for_mesh(avatar.mesh, nan)
+    assert "does not match" not in str(err.value)
 
     # a blend-shape model on a superset of the avatar's vertices, shuffled: matched by rest position
     v = avatar.mesh.vertices

@@ -246,6 +246,8 @@ def sequence_for_mesh(
         return f.detach().cpu().float() if isinstance(f, torch.Tensor) else torch.from_numpy(np.array(f, np.float32))
 
     probe = sorted({0, shape[0] // 2, shape[0] - 1})
+    for i in probe:  # NaN edges compare as no stretch: named as such, not as another mesh (all frames: below)
+        check_tensor(f"{what} frame {i}", frame(i), "V,3", {"V": shape[1]}, dtype="float", finite=True)
     canonical = mesh.vertices.detach().cpu().float()
     faces = mesh.faces.detach().cpu().long()
     scores = {}
