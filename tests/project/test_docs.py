@@ -1,4 +1,5 @@
-"""The README and docs: no links leave the repository, and every relative link (and its #anchor) resolves."""
+"""The README and docs: no links leave the repository, every relative link (and its #anchor) resolves, and
+every ``meshsplat[extra]`` they tell a user to install exists."""
 
 import re
 from pathlib import Path
@@ -50,3 +51,19 @@ def test_anchors_name_a_heading(doc):
         if path.suffix == ".md" and path.exists() and anchor not in _anchors(path):
             broken.append(target)
     assert not broken, f"{doc.relative_to(ROOT)}: links to headings that do not exist {broken}"
+
+
+def _extras() -> set[str]:
+    """The optional-dependency names of pyproject.toml (read without tomllib, which Python 3.10 lacks)."""
+    section = (ROOT / "pyproject.toml").read_text().split("[project.optional-dependencies]", 1)[1]
+    section = re.split(r"^\[", section, flags=re.M)[0]
+    return set(re.findall(r"^([A-Za-z][\w-]*)\s*=", section, re.M))
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_install_commands_name_extras_that_exist(doc):
+    # pip only warns about an unknown extra and installs without it: the user finds out at run time
+    extras = _extras()
+    assert {"track", "video", "cuda"} <= extras, extras
+    named = {e.strip() for group in re.findall(r"meshsplat\[([^\]]+)\]", doc.read_text()) for e in group.split(",")}
+    assert named <= extras, f"{doc.relative_to(ROOT)}: extras that pyproject.toml does not declare {named - extras}"
