@@ -3,6 +3,12 @@
     python bench/key_light.py                        # 7 captures x (before, after) x seeds 0 1, ~25 min on 2 cores
     python bench/key_light.py --seeds 0 --captures pbr-side lambert-side
     python bench/key_light.py --tiny                 # seconds, to check the script
+    python bench/key_light.py --report --variants quality check   # the tables (and --pictures) of saved runs
+    python bench/key_light.py --asset ASSETS/Fox.glb --captures pbr-front pbr-side pbr-backtop pbr-env \
+        lambert-front --variants control quality check check-noprior after --pictures pbr-side pbr-env
+                                                     # an asset the recipe was not tuned on, with the control
+    python bench/key_light.py --asset ASSETS/Fox.glb --iters 1500 --seeds 0 --name key_light_Fox_1500 \
+        --work runs/bench-key_light-Fox-1500 --captures ... --variants control quality check after
 
 Captures: CesiumMan (monocular turn, driving mesh Taubin-smoothed 5 iterations as the demo's), rendered by the
 path tracer (``meshsplat synth --renderer pbr``: sky + a soft key light) with the key light from the front (the
@@ -13,11 +19,18 @@ the same frames rendered again with ``--ref-spp`` samples per pixel.
 
 Variants, the same code: ``before`` is the quality recipe with the key light's search as it was (``shading.key_seed
 =false shading.key_check_frames=0``); ``after`` seeds the search from the learned irradiance and checks the key
-(``shading.key_seed=true shading.key_check_frames=4``). Both at ``--iters`` iterations with ``shading.key_iter`` a
+(``shading.key_seed=true shading.key_check_frames=4``); ``check`` the search as it was, then the check (the quality
+recipe since issue 51's unseen-asset bench). ``control`` is the ``paper`` recipe (the previous default) with the
+same schedule; ``quality`` the quality recipe as it was measured there (no check: the same runs as ``before``);
+``check-noprior`` the check with the albedo prior off. All at ``--iters`` iterations with ``shading.key_iter`` a
 fifth of them (the key aligned at 60%). Per run: the key's final direction (kept, or dropped: folded into the SH2
 irradiance), its angle to the true light, the learned irradiance's own direction (``Shading.key_seed`` of the
-final lighting) and its angle, and per held-out split subject PSNR (white) and LPIPS in the mask. Saves
-bench/results/key_light-<host>.json after every run; a rerun reuses the captures and finished runs.
+final lighting) and its angle, the check's gain, and per held-out split subject PSNR (white), full-image PSNR
+(white) and LPIPS in the mask. Saves bench/results/key_light-<host>.json (``key_light_<asset>`` for another
+``--asset``) after every run; a rerun reuses the captures and finished runs. ``--asset``: a bundled asset's name
+or a .glb path (any animated glTF ``meshsplat synth`` reads; its held-out novel-clip split is scored too).
+``--pictures CAP ...``: bench/reports/images/<name>_<CAP>.png, a held-out view of seed 0: the reference, then
+each variant named. Reports: bench/reports/key_light.md (CesiumMan), key_light_unseen.md (Fox, with the control).
 """
 
 from __future__ import annotations
@@ -44,9 +57,13 @@ CAPTURES: dict[str, dict] = {
 VARIANTS = {
     "before": ["shading.key_seed=false", "shading.key_check_frames=0"],
     "after": ["shading.key_seed=true", "shading.key_check_frames=4"],
-    "check": ["shading.key_seed=false", "shading.key_check_frames=4"],  # the old search, then the check (when named)
+    "check": ["shading.key_seed=false", "shading.key_check_frames=4"],  # the old search, then the check: the recipe
     "nokey": ["shading.occlusion=none"],  # no key light at all (a reference; only when named)
+    "control": [],  # the paper recipe (the previous default), same code and schedule
+    "quality": ["shading.key_check_frames=0"],  # the quality recipe as measured against the control (= before)
+    "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false"],
 }
+RECIPE = {"control": "paper"}  # the recipe of each variant; quality otherwise
 
 
 def _schedule(iterations: int) -> tuple[str, ...]:
@@ -78,8 +95,12 @@ def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
     data = work / (f"data-{name}" + (f"-spp{spp}" if spp != args.spp else ""))
     if (data / "manifest.json").exists():
         return data
+    held_out = None
+    if spp != args.spp:  # the references: every held-out split of the training capture
+        main = json.loads((work / f"data-{name}" / "manifest.json").read_text())
+        held_out = [s for s in main["splits"] if s != "train"]
     synthesize(
-        "CesiumMan",
+        args.asset,
         data,
         rig="monocular-turn",
         frames=args.frames,
@@ -92,7 +113,7 @@ def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
         pbr=PbrSettings(spp=spp, key=c.get("key", PbrSettings.key)),
         light_dir=c["light"],
         overwrite=True,
-        splits=None if spp == args.spp else ["test_frames", "test_views"],
+        splits=held_out,
         threads=1,
     )
     return data
@@ -115,7 +136,8 @@ def _key(run: Path, light: list[float] | None) -> dict:
 
     loaded = load_run(run)
     sh = loaded.avatar.shading
-    assert sh is not None
+    if sh is None:  # no shading component (the paper recipe)
+        return {"kept": None, "found": None, "irradiance": None, "log": {}, "found_deg": None, "irradiance_deg": None}
     kept = sh.occlusion == "key" and sh.directions is not None
     found = sh.directions[0] if kept else sh.dropped_key  # type: ignore[index]
     ckpt = torch.load(sorted((run / "checkpoints").glob("ckpt_*.pt"))[-1], map_location="cpu", weights_only=False)
@@ -141,7 +163,7 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
     import torch
 
     from meshsplat.data import open_dataset
-    from meshsplat.metrics import lpips, lpips_available
+    from meshsplat.metrics import lpips, lpips_available, psnr
     from meshsplat.metrics.subject import subject_metrics
     from meshsplat.render.background import composite
     from meshsplat.run_folder import load_run
@@ -159,10 +181,12 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
             target = refs[by_name[ds.frame_info(i)["name"]]]
             with torch.no_grad():
                 img = loaded.avatar.render(fr.vertices, fr.camera, white).image.float().clamp(0, 1)
-            rows.append(subject_metrics(img, composite(target.image, target.mask, white), target.mask, lp))
+            gt = composite(target.image, target.mask, white)
+            rows.append({**subject_metrics(img, gt, target.mask, lp), "psnr_full": float(psnr(img, gt))})
         lps = [r["lpips_mask"] for r in rows if r["lpips_mask"] is not None]  # None: a crop too small
         out[split] = {
             "psnr_mask": sum(r["psnr_mask"] for r in rows) / len(rows),
+            "psnr_full": sum(r["psnr_full"] for r in rows) / len(rows),
             "lpips_mask": sum(lps) / len(lps) if lps else None,
             "frames": len(rows),
         }
@@ -182,13 +206,23 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16, help="pbr: samples per pixel of the training capture")
     ap.add_argument("--ref-spp", type=int, default=64, help="pbr: samples per pixel of the held-out references")
     ap.add_argument("--tiny", action="store_true", help="seconds: 32 px, 6 frames, 40 iterations, 4 spp")
-    ap.add_argument("--work", default="runs/bench-key_light")
-    ap.add_argument("--name", default="key_light")
+    ap.add_argument("--work", help="default runs/bench-key_light[-<asset>][-tiny]")
+    ap.add_argument("--name", help="results name, default key_light[_<asset>][_tiny]")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--asset", default="CesiumMan", help="bundled asset name or .glb path (default CesiumMan)")
+    ap.add_argument("--pictures", nargs="*", default=[], help="captures to picture (a held-out view, seed 0)")
+    ap.add_argument("--report", action="store_true", help="train nothing: the tables and pictures of saved runs")
     args = ap.parse_args()
+    stem = Path(args.asset).stem
+    name, work = (
+        ("key_light", "runs/bench-key_light")
+        if stem == "CesiumMan"
+        else (f"key_light_{stem}", f"runs/bench-key_light-{stem}")
+    )
     if args.tiny:
         args.resolution, args.frames, args.test_frames, args.iters, args.spp, args.ref_spp = 32, 6, 2, 40, 4, 8
-        args.n_init, args.name, args.work = 500, "key_light_tiny", "runs/bench-key_light-tiny"
+        args.n_init, name, work = 500, name + "_tiny", work + "-tiny"
+    args.name, args.work = args.name or name, args.work or work
 
     import torch
 
@@ -209,7 +243,7 @@ def main() -> None:
     previous = json.loads(out.read_text()) if out.exists() else {}
     rows: dict = previous.get("captures", {}) if previous.get("args", {}).get("iters") == args.iters else {}
     t_all = time.perf_counter()
-    for seed in args.seeds:
+    for seed in [] if args.report else args.seeds:
         for cap in args.captures:
             t0 = time.perf_counter()
             data = _capture(cap, args, work)
@@ -226,8 +260,9 @@ def main() -> None:
             for variant in args.variants:
                 name = f"{variant}_s{seed}"
                 run = work / f"{cap}-{name}"
+                recipe = RECIPE.get(variant, "quality")
                 cfg = demo_train_config(
-                    data, run, sizes, [*VARIANTS[variant], f"seed={seed}"], progress=False, recipe="quality"
+                    data, run, sizes, [*VARIANTS[variant], f"seed={seed}"], progress=False, recipe=recipe
                 )
                 t0 = time.perf_counter()
                 trainer = Trainer(cfg, resume=True)
@@ -238,6 +273,7 @@ def main() -> None:
                     train_s = row["runs"].get(name, {}).get("train_s", train_s)
                 row["runs"][name] = {
                     "variant": variant,
+                    "recipe": recipe,
                     "seed": seed,
                     "overrides": VARIANTS[variant],
                     "train_s": train_s,
@@ -246,17 +282,148 @@ def main() -> None:
                 }
                 k = row["runs"][name]["key"]
                 print(
-                    f"[{cap}/{name}] {train_s:.0f} s; key {'kept' if k['kept'] else 'dropped'}, "
+                    f"[{cap}/{name}] {train_s:.0f} s; key {_kept(k)}, "
                     f"found {k['found_deg']}, irradiance {k['irradiance_deg']}; "
                     + ", ".join(f"{s} {m['psnr_mask']:.2f}" for s, m in row["runs"][name]["splits"].items()),
                     flush=True,
                 )
+                shown = {**vars(args), "asset": _shown(args.asset)}  # no machine path in the results
                 out.write_text(
-                    json.dumps({"machine": machine_info(), "args": vars(args), "captures": rows}, indent=2) + "\n"
+                    json.dumps({"machine": machine_info(), "args": shown, "captures": rows}, indent=2) + "\n"
                 )
     print(f"\n{args.iters} iterations, {args.resolution} px, {time.perf_counter() - t_all:.0f} s")
+    rows = {c: r for c, r in rows.items() if c in args.captures}
     _table(rows)
+    _summary(rows, args.variants)
+    for cap in args.pictures:
+        _picture(cap, args, work, args.variants)
     print(f"saved {out}")
+
+
+def _shown(asset: str) -> str:
+    """A bundled asset's name, or ``ASSETS/<file>`` for a path (results and reports name no machine path)."""
+    return asset if "/" not in asset and "." not in asset else f"ASSETS/{Path(asset).name}"
+
+
+def _gain(k: dict) -> float | None:
+    """How much of the check frames' L1 error the key's shadow takes away, % (None: no check ran)."""
+    e = (k.get("log") or {}).get("check_errors")
+    return None if not e else 100 * (e["off"] - e["key"]) / e["off"]
+
+
+def _kept(k: dict) -> str:
+    return "none" if k["kept"] is None else "kept" if k["kept"] else "dropped"
+
+
+def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
+    """bench/reports/images/<name>_<cap>.png: the first held-out view frame (seed 0), on white, cropped
+    to the subject and enlarged (nearest): the reference, then each of ``variants``; a label strip above each."""
+    import numpy as np
+    import torch
+    from PIL import Image, ImageDraw
+
+    from meshsplat.data import open_dataset
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_run
+
+    data = work / f"data-{cap}"
+    ref = work / f"data-{cap}-spp{args.ref_spp}"
+    ref = ref if ref.exists() else data
+    refs = open_dataset(ref)
+    split = "test_views" if "test_views" in refs.split_names else "test_frames"
+    j = refs.split(split)[0]
+    name = refs.frame_info(j)["name"]
+    white = torch.ones(3)
+    t = refs[j]
+    panels, labels = [composite(t.image, t.mask, white)], ["ground truth"]
+    for v in variants:
+        run = work / f"{cap}-{v}_s0"
+        if not (run / "checkpoints").exists():
+            continue
+        loaded = load_run(run)
+        ds = loaded.open_dataset(data)
+        i = next(k for k in ds.split(split) if ds.frame_info(k)["name"] == name)
+        fr = ds[i]
+        with torch.no_grad():
+            panels.append(loaded.avatar.render(fr.vertices, fr.camera, white).image.float().clamp(0, 1))
+        labels.append(v)
+    ys, xs = torch.nonzero(t.mask[..., 0] > 0.5, as_tuple=True)  # the subject's box, 3 px around it
+    y0, y1 = max(0, int(ys.min()) - 3), min(t.mask.shape[0], int(ys.max()) + 4)
+    x0, x1 = max(0, int(xs.min()) - 3), min(t.mask.shape[1], int(xs.max()) + 4)
+    scale, strip = max(2, 200 // max(y1 - y0, x1 - x0)), 14
+    h, w = (y1 - y0) * scale, max((x1 - x0) * scale, 90)
+    sheet = Image.new("RGB", (w * len(panels), h + strip), "white")
+    draw = ImageDraw.Draw(sheet)
+    for k, (img, label) in enumerate(zip(panels, labels, strict=True)):
+        a = (img[y0:y1, x0:x1].numpy() * 255 + 0.5).astype(np.uint8)
+        sheet.paste(Image.fromarray(a).resize(((x1 - x0) * scale, h), Image.NEAREST), (k * w, strip))
+        draw.text((k * w + 3, 1), label, fill="black")
+    path = Path(__file__).resolve().parent / "reports" / "images" / f"{args.name}_{cap}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path, optimize=True)
+    print(f"picture {path.name} ({split} {name}): {', '.join(labels)}")
+
+
+SPLITS = ("test_frames", "test_views", "test_clip")
+
+
+def _summary(rows: dict, variants: list[str]) -> None:
+    """Markdown: per capture and variant, seed means of subject PSNR, full PSNR and LPIPS per split, Δ subject
+    PSNR against ``quality`` (or the first variant) with the noise (half the larger seed-to-seed spread), and
+    which variants win or tie on every capture-split against ``quality``."""
+    base = "quality" if "quality" in variants else variants[0]
+
+    def cell(cap: str, v: str, sp: str, key: str) -> list[float] | None:
+        vals = [r["splits"][sp][key] for r in rows[cap]["runs"].values() if r["variant"] == v and sp in r["splits"]]
+        vals = [x for x in vals if x is not None]
+        return vals or None
+
+    def mean(x):
+        return None if not x else sum(x) / len(x)
+
+    def half(x):
+        return 0.0 if not x or len(x) < 2 else (max(x) - min(x)) / 2
+
+    print(
+        "\n| capture | light_dir | variant | key kept | found° | check gain % | "
+        + " | ".join(f"{sp} subject PSNR (Δ vs {base}) / full PSNR / LPIPS" for sp in SPLITS)
+        + " |"
+    )
+    print("|---|---|---|---|---|---|" + "---|" * len(SPLITS))
+    verdict: dict[str, list] = {v: [] for v in variants if v != base}
+    for cap, r in rows.items():
+        ld = "sky only" if not r.get("directional") else ",".join(f"{x:.2f}" for x in r["light_dir"])
+        for v in variants:
+            runs = [x for x in r["runs"].values() if x["variant"] == v]
+            if not runs:
+                continue
+            runs.sort(key=lambda x: x["seed"])
+            kept = ", ".join(_kept(x["key"]) for x in runs)
+            found = ", ".join(_fmt(x["key"]["found_deg"]) for x in runs)
+            gain = ", ".join(_fmt(_gain(x["key"]), ".2f") for x in runs)
+            cells = []
+            for sp in SPLITS:
+                p = cell(cap, v, sp, "psnr_mask")
+                if p is None:
+                    cells.append("-")
+                    continue
+                b = cell(cap, base, sp, "psnr_mask")
+                noise = max(half(p), half(b))
+                d = "" if b is None else (f" (±{noise:.2f})" if v == base else f" ({mean(p) - mean(b):+.2f})")
+                if v != base and b is not None:
+                    verdict[v].append((cap, sp, mean(p) - mean(b), noise))
+                cells.append(
+                    f"{mean(p):.2f}{d} / {_fmt(mean(cell(cap, v, sp, 'psnr_full')), '.2f')} / "
+                    f"{_fmt(mean(cell(cap, v, sp, 'lpips_mask')), '.4f')}"
+                )
+            print(f"| {cap} | {ld} | {v} | {kept} | {found} | {gain} | " + " | ".join(cells) + " |")
+    print(f"\nagainst {base} (subject PSNR; a loss is a Δ below minus the noise):")
+    for v, ds in verdict.items():
+        if not ds:
+            continue
+        losses = [f"{c}/{sp} {d:+.2f} (±{n:.2f})" for c, sp, d, n in ds if d < -n]
+        avg = sum(d for _, _, d, _ in ds) / len(ds)
+        print(f"- {v}: mean Δ {avg:+.3f} dB over {len(ds)} capture-splits; losses beyond noise: {losses or 'none'}")
 
 
 def _fmt(x, f=".1f") -> str:
@@ -280,7 +447,7 @@ def _table(rows: dict) -> None:
                 for sp in ("test_frames", "test_views")
             ]
             print(
-                f"| {cap} | {ld} | {name} | {'kept' if k['kept'] else 'dropped'} | {_fmt(k['found_deg'])} "
+                f"| {cap} | {ld} | {name} | {_kept(k)} | {_fmt(k['found_deg'])} "
                 f"| {_fmt(k['irradiance_deg'])} | {cells[0]} | {cells[1]} |"
             )
 
