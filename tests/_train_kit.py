@@ -86,9 +86,6 @@ def small_config(data, out, iterations, extra=()):
             "strategy.grow_grad2d=1e-5",
             "strategy.max_gaussians=500",
             "walk.every=5",
-            # every short run aligns its key at the last iteration; the quality recipe's check would then drop it on
-            # these captures without a directional light: the tests keep the key (the check: test_key_seed.py)
-            "shading.key_check_frames=0",
             *extra,
         ],
     )

@@ -19,7 +19,6 @@ def test_quality_is_the_default_recipe():
     assert q == recipe_config("quality") and q.recipe == "quality"
     assert q.shading.enabled and (q.shading.occlusion, q.shading.key_soft, q.shading.grid) == ("key", 12.0, 96)
     assert (q.model.init_color_frames, q.optim.lr_color, q.loss.crop_to_subject) == (8, 1e-2, True)
-    assert q.shading.key_check_frames == 4 and not q.shading.key_seed  # bench/reports/key_light_unseen.md
 
 
 def test_paper_recipe_is_the_published_method():
@@ -68,7 +67,7 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
     # applying a recipe's overrides to any config gives that recipe's model
     assert apply_overrides(recipe_config("quality"), list(recipe_overrides("paper"))) == recipe_config("paper")
     assert apply_overrides(recipe_config("paper"), list(recipe_overrides("quality"))) == recipe_config("quality")
-    # the quality recipe: five components and six values over the published method, nothing else
+    # the quality recipe: five components and five values over the published method, nothing else
     assert recipe_differences(recipe_config("paper"), "quality") == [
         "model.init_color_frames=1 (recipe: 8)",
         "optim.lr_color=0.0025 (recipe: 0.01)",
@@ -76,7 +75,6 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
         "loss.lpips_every=1 (recipe: 2)",
         "strategy.grow_grad2d=0.0002 (recipe: 0.0001)",
         "shading.enabled=False (recipe: True)",
-        "shading.key_check_frames=0 (recipe: 4)",
         "albedo_prior.enabled=False (recipe: True)",
         "mask_loss.enabled=False (recipe: True)",
         "offset_bound.enabled=False (recipe: True)",

@@ -1,11 +1,10 @@
 """Recipes: named training setups, each a list of components and a few settings over the published method.
 
     quality   the default of ``meshsplat train``: components shading (a learned SH2 irradiance with a key light
-              found in training and its soft shadow from the posed mesh, the key folded into the irradiance when
-              its shadow does not lower the error of 4 training frames), albedo_prior, mask_loss, offset_bound
+              found in training and its soft shadow from the posed mesh), albedo_prior, mask_loss, offset_bound
               and pose_refine, plus colours initialised from 8 frames, colour lr 1e-2, LPIPS on the box around
               the subject on every second iteration (at twice the weight) and densification at half the paper's
-              gradient threshold. What each is worth: docs/quality.md, bench/reports/key_light_unseen.md
+              gradient threshold. What each is worth: docs/quality.md
     paper     the published method (SplattingAvatar, CVPR 2024): ``TrainConfig()``, no component
 
 A recipe sets the same keys whatever it starts from, so applying it to any config gives that recipe's model
@@ -46,7 +45,6 @@ _QUALITY_SETTINGS = (
     "loss.crop_to_subject=true",
     "loss.lpips_every=2",
     "strategy.grow_grad2d=1e-4",
-    "shading.key_check_frames=4",
 )
 _PAPER_SETTINGS = (  # the published values of the keys the other recipes set
     "model.init_color_frames=1",
@@ -54,7 +52,6 @@ _PAPER_SETTINGS = (  # the published values of the keys the other recipes set
     "loss.crop_to_subject=false",
     "loss.lpips_every=1",
     "strategy.grow_grad2d=2e-4",
-    "shading.key_check_frames=0",
 )
 RECIPES: dict[str, Recipe] = {
     "quality": Recipe(("shading", "albedo_prior", "mask_loss", "offset_bound", "pose_refine"), _QUALITY_SETTINGS),
