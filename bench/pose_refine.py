@@ -1,7 +1,7 @@
 """Pose refinement on an exactly tracked capture and on a noisy one, in one run (issue 44).
 
     python bench/pose_refine.py                      # demo sizes: 256 px, 100 frames, 1500 iterations a run
-    python bench/pose_refine.py --recipe tiny        # seconds, to check the script
+    python bench/pose_refine.py --preset tiny         # seconds, to check the script
     python bench/pose_refine.py --resolution 128 --frames 40 --iters 600   # what fits a shared 2-core box
 
 Two synthetic SMPL captures (stand-in body model, AIST++ dance, one turning camera, ``meshsplat synth``):
@@ -52,6 +52,13 @@ class StaleAdamRefiner:
         return getattr(type(self._new), name).__get__(self)
 
 
+def _same_config(run: Path, cfg) -> bool:
+    """Whether ``run`` was trained with ``cfg`` (every key but the paths, which its name holds)."""
+    old = json.loads((run / "config.json").read_text())
+    new = json.loads(json.dumps(cfg.to_dict()))
+    return all(old.get(k) == v for k, v in new.items() if k not in ("out", "data", "model_dir"))
+
+
 def mesh_drift(run: Path) -> dict:
     """Distance per vertex between the refined training meshes and the stored (here: true) ones."""
     from meshsplat.run_folder import load_run
@@ -92,7 +99,7 @@ def chart(rows: dict, out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--recipe", default="default", choices=["default", "tiny"])
+    ap.add_argument("--preset", default="default", choices=["default", "tiny"], help="sizes (meshsplat.demo.PRESETS)")
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--resolution", type=int, default=None)
     ap.add_argument("--frames", type=int, default=None)
@@ -101,10 +108,20 @@ def main() -> None:
     ap.add_argument(
         "--new-lrs", type=float, nargs="*", default=[], help="also the new refiner at these pose_refine.lr (new_lr<x>)"
     )
+    ap.add_argument(
+        "--with",
+        dest="extra_variants",
+        action="append",
+        default=[],
+        metavar="NAME:KEY=V[,KEY=V]",
+        help="also the new refiner with these config overrides, e.g. late:pose_refine.start=0.3 (repeatable)",
+    )
     ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
     ap.add_argument("--prior", type=float, default=None, help="pose_refine.prior of the new refiner variants")
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
     ap.add_argument("--work", default="runs/bench-pose-refine")
+    ap.add_argument("--pictures", action="store_true", help="eval writes its report with sample images per split")
+    ap.add_argument("--reuse", action="store_true", help="keep a finished run of the same config (no retraining)")
     ap.add_argument("--cases", nargs="*", default=["exact", "noisy"], choices=["exact", "noisy"])
     ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "new"])
     args = ap.parse_args()
@@ -141,10 +158,9 @@ def main() -> None:
                 overwrite=True,
             )
         rows[case] = {}
-        for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs]:
-            run = work / f"run_{case}_{variant}"
-            if run.exists():
-                shutil.rmtree(run)
+        named = dict(v.split(":", 1) for v in args.extra_variants)
+        for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs] + list(named):
+            run = work / f"run_{case}-{preset.resolution}-{preset.frames}-{preset.iterations}_{variant}"
             extra = (
                 ["pose_refine.enabled=false"]
                 if variant == "off"
@@ -154,22 +170,32 @@ def main() -> None:
                 extra.append(f"pose_refine.lr={OLD_LR}")
             elif variant.startswith("new_lr"):
                 extra.append(f"pose_refine.lr={variant[len('new_lr') :]}")
-            if variant.startswith("new") and args.prior is not None:
+            if variant in named:
+                extra += named[variant].split(",")
+            if (variant.startswith("new") or variant in named) and args.prior is not None:
                 extra.append(f"pose_refine.prior={args.prior}")
             cfg = demo_train_config(data, run, preset, extra, progress=False)
             cfg.model_dir = str(models)
             if args.seed is not None:
                 cfg.seed = args.seed
+            done = run / "checkpoints" / f"ckpt_{cfg.iterations:08d}.pt"
             t0 = time.perf_counter()
-            trainer = Trainer(cfg)
-            if variant == "old":
-                trainer.refiner = StaleAdamRefiner(trainer.refiner)  # type: ignore[assignment]
-            trainer.train()
+            if args.reuse and done.is_file() and _same_config(run, cfg):
+                print(f"[{case}/{variant}] reusing {run.name}", flush=True)
+                trainer = None
+            else:
+                if run.exists():
+                    shutil.rmtree(run)
+                trainer = Trainer(cfg)
+                if variant == "old":
+                    refine = trainer.component("pose_refine")
+                    refine.refiner = StaleAdamRefiner(refine.refiner)  # type: ignore[attr-defined]
+                trainer.train()
             train_s = time.perf_counter() - t0
-            m = evaluate_run(run, splits=list(SPLITS), report=False, lpips_net=None, device="cpu")
+            m = evaluate_run(run, splits=list(SPLITS), report=args.pictures, lpips_net=None, device="cpu")
             rec: dict = {
                 "train_s": train_s,
-                "gaussians": trainer.num_gaussians,
+                "gaussians": trainer.num_gaussians if trainer else None,
                 "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
             }
             if variant != "off" and case == "exact":
@@ -208,6 +234,7 @@ def main() -> None:
                 "pose_noise_rad": args.pose_noise,
                 "lr_new_extra": args.new_lrs,
                 "prior_new": args.prior,
+                "with": args.extra_variants,
                 "seed": args.seed,
                 "lr_old": OLD_LR,
                 "cases": rows,

@@ -436,6 +436,35 @@ def test_training_moves_only_the_frames_it_drew(noisy_smpl, standin_model_dir, t
             assert (float(v.detach()[j].abs().max()) == 0) == (n == 0), (k, j)
 
 
+def test_poses_stay_tracked_until_the_start_fraction_then_move(noisy_smpl, standin_model_dir, tmp_path):
+    """``pose_refine.start=0.5`` of 6 iterations: iterations 1-3 train on the tracker's poses (no row steps,
+    no gradient reaches the offsets), 4-6 step the rows they draw."""
+    cfg = _short(
+        noisy_smpl, tmp_path / "run", f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "pose_refine.start=0.5"
+    )
+    cfg.iterations = 6
+    t = Trainer(cfg)
+    comp = t.component("pose_refine")
+    seen = []
+    step = comp.after_step
+
+    def spy(it, rows):
+        seen.append((it, comp.started, sum(comp.refiner.steps)))
+        step(it, rows)
+
+    comp.after_step = spy
+    t.train()
+    assert [s for _, s, _ in seen] == [False, False, False, True, True, True]
+    assert [n for _, _, n in seen[:4]] == [0, 0, 0, 0] and sum(comp.refiner.steps) == 3
+    assert any(float(v.detach().abs().max()) > 0 for v in comp.refiner.offsets.values())
+
+
+def test_the_start_fraction_is_checked():
+    for bad in ("1", "-0.1"):
+        with pytest.raises(MeshsplatError, match=r"pose_refine.start must be in \[0, 1\)"):
+            apply_overrides(recipe_config("quality"), [f"pose_refine.start={bad}"]).validate()
+
+
 @pytest.mark.slow
 def test_two_processes_refine_as_one_process_with_the_same_batch(noisy_smpl, standin_model_dir, tmp_path, monkeypatch):
     """Data-parallel (``--nproc 2``, batch 2): every rank steps the rows of the whole batch with the

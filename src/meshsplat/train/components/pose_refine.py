@@ -34,6 +34,9 @@ class PoseRefineConfig:
     # a pull of each offset towards zero (its gradient gains prior * offset): keeps a pose where the images say
     # nothing (e.g. depth in a monocular capture); 0: none (bench/reports/pose_refine.md)
     prior: float = 0.0
+    # the fraction of the run's iterations trained on the tracker's poses before they move: early gradients come
+    # from an avatar that does not yet look like the subject and push right poses away; 0: from the first step
+    start: float = 0.0
     # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen; 0: none
     polish_steps: int = 0
     polish_lr: float = 1e-3
@@ -42,6 +45,7 @@ class PoseRefineConfig:
         return [
             (self.lr > 0, "pose_refine.lr must be > 0"),
             (self.prior >= 0, "pose_refine.prior must be >= 0"),
+            (0 <= self.start < 1, "pose_refine.start must be in [0, 1) (a fraction of the iterations)"),
             (0 <= self.polish_steps <= 100_000, "pose_refine.polish_steps must be in [0, 100000]"),
             (self.polish_lr > 0, "pose_refine.polish_lr must be > 0"),
         ]
@@ -81,14 +85,26 @@ class PoseRefinement(Component):
     def _row(self, idx: int) -> int:
         return int(self.state.dataset.frame_info(idx)["mesh"])
 
+    @property
+    def started(self) -> bool:
+        """Whether the poses move this iteration (``start`` of the run's iterations are behind)."""
+        return self.state.iteration > int(self.cfg.start * self.state.iterations)
+
     def posed(self, idx: int) -> torch.Tensor | None:
         row = self._row(idx)
-        return self.refiner.vertices(row) if self.refiner.refines(row) else None  # changes every step
+        if not self.refiner.refines(row):
+            return None
+        if not self.started:  # the tracker's pose (zero offsets), through the same model, no gradient
+            with torch.no_grad():
+                return self.refiner.vertices(row)
+        return self.refiner.vertices(row)  # changes every step
 
     def parameters(self) -> list[torch.Tensor]:
         return list(self.refiner.offsets.values())
 
     def after_step(self, it: int, rows: list[int]) -> None:
+        if not self.started:
+            return
         # the batch's rows only: a frame not drawn keeps its pose and its Adam state
         self.refiner.step(self._row(i) for i in rows)
         self.refiner.polished = False  # the poses moved with the avatar: fit them again at the end
