@@ -92,11 +92,8 @@ class PoseRefinement(Component):
 
     def posed(self, idx: int) -> torch.Tensor | None:
         row = self._row(idx)
-        if not self.refiner.refines(row):
-            return None
-        if not self.started:  # the tracker's pose (zero offsets), through the same model, no gradient
-            with torch.no_grad():
-                return self.refiner.vertices(row)
+        if not self.started or not self.refiner.refines(row):
+            return None  # the stored mesh, the tracker's pose (the offsets are zero until the start), posed once
         return self.refiner.vertices(row)  # changes every step
 
     def parameters(self) -> list[torch.Tensor]:
