@@ -132,6 +132,7 @@ def _synthetic_landmarks(head):
 
 
 def _js_solve(tmp_path: Path, model, landmarks: np.ndarray, W: int, H: int, chain: bool = False) -> list[dict]:
+    """``landmarks`` [T, P, 2]: P = 478, or 468 (the plain mesh's, no iris points)."""
     sections, header = model
     for k, v in sections.items():
         v.astype("<f4").tofile(tmp_path / f"{k}.bin")
@@ -145,10 +146,10 @@ const rd = (n) => new Float32Array(fs.readFileSync(`${{dir}}/${{n}}.bin`).buffer
 const m = decodeWebcam(JSON.parse(fs.readFileSync(`${{dir}}/model.json`)),
                        {{ webcam_neutral: rd("webcam_neutral"), webcam_deltas: rd("webcam_deltas") }});
 const lm = new Float64Array(fs.readFileSync(`${{dir}}/lm.bin`).buffer.slice(0));
-const T = lm.length / (2 * m.L), out = [];
+const P = {landmarks.shape[1]}, T = lm.length / (2 * P), out = [];
 let prev = null;
 for (let t = 0; t < T; t++) {{
-  const obs = lm.subarray(2 * m.L * t, 2 * m.L * (t + 1));
+  const obs = lm.subarray(2 * P * t, 2 * P * (t + 1));
   const t0 = performance.now();
   const s = solveFace(m, obs, {W}, {H}, {"prev" if chain else "null"}, {{}});
   const cold = performance.now() - t0;
@@ -182,6 +183,75 @@ def test_js_face_solve_matches_truth_and_head_fit(tmp_path, head, model):
         assert np.abs(jw - offline).max() < 0.15, (t, np.abs(jw - offline).max())
         np.testing.assert_allclose(s["rot"], fit.rotations[t].numpy(), atol=0.01)
     print("solve ms (cold, warm):", [(round(s["ms"], 1), round(s["warmMs"], 1)) for s in js])
+
+
+@needs_node
+def test_js_face_solve_on_the_plain_mesh(tmp_path, head, model):
+    """MediaPipe's plain face mesh gives 468 points (no iris): the solve uses none beyond them
+    (``used`` is 0..467) and finds the same weights and pose."""
+    assert model[1]["used"] == list(range(468))
+    lm, w, rot, W, H = _synthetic_landmarks(head)
+    js = _js_solve(tmp_path, model, lm.numpy()[:, :468], W, H)
+    for t, s in enumerate(js):
+        assert np.abs(np.asarray(s["w"]) - w[t, head.free_shapes].numpy()).max() < 0.01, t
+        np.testing.assert_allclose(s["rot"], rot[t].numpy(), atol=2e-3)
+        assert s["err"] < 0.05
+
+
+@needs_node
+def test_webcam_driver_moves_the_head(tmp_path, head, model):
+    """The driver passes the head's move since the first solved frame (cm; x mirrored by default; smoothed as
+    the rotation) on with each pose; "neutral" makes the current place the rest."""
+    W, H = 640, 480
+    f = focal_from_fov(W, H)
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    c = (head.neutral.min(0).values + head.neutral.max(0).values) / 2
+    moves = torch.tensor([[0, 0, 0], [2.0, -1.0, 3.0], [2.0, -1.0, 3.0]])
+    z = torch.zeros(3, len(head.names))
+    v = head.pose(
+        torch.zeros_like(head.neutral),
+        z,
+        torch.zeros(3, 2, 2),
+        torch.zeros(3, 3),
+        -c + torch.tensor([0, 3.0, -55]) + moves,
+    )
+    lm = project(head.landmarks(v), K).numpy()  # [3, 478, 2] pixels
+    sections, header = model
+    for k, a in sections.items():
+        a.astype("<f4").tofile(tmp_path / f"{k}.bin")
+    (tmp_path / "model.json").write_text(json.dumps(header))
+    (tmp_path / "lm.json").write_text(json.dumps((lm / [W, H]).tolist()))
+    script = f"""
+import {{ decodeWebcam, WebcamDriver }} from {json.dumps(VIEWER_JS.as_uri())};
+import fs from "fs";
+const dir = {json.dumps(str(tmp_path))};
+const rd = (n) => new Float32Array(fs.readFileSync(`${{dir}}/${{n}}.bin`).buffer.slice(0));
+const m = decodeWebcam(JSON.parse(fs.readFileSync(`${{dir}}/model.json`)),
+                       {{ webcam_neutral: rd("webcam_neutral"), webcam_deltas: rd("webcam_deltas") }});
+const frames = JSON.parse(fs.readFileSync(`${{dir}}/lm.json`));
+const out = [];
+const d = new WebcamDriver({{}}, {{ webcam: m }}, (w, q, t, move) => out.push({{ move, t: d.prev.t }}), () => {{}});
+d.running = true; d.frameW = {W}; d.frameH = {H}; d.stats.latencyMs = [];
+for (const fr of frames) d.results({{ multiFaceLandmarks: [fr.map(([x, y]) => ({{ x, y }}))] }});
+d.calibrate();
+d.results({{ multiFaceLandmarks: [frames[2].map(([x, y]) => ({{ x, y }}))] }});
+console.log(JSON.stringify(out));
+"""
+    (tmp_path / "t.mjs").write_text(script)
+    r = subprocess.run([NODE, str(tmp_path / "t.mjs")], capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out[0]["move"] == [0, 0, 0]
+    solved = np.subtract(out[1]["t"], out[0]["t"])  # the solve's own move: the rendered one, nearly
+    np.testing.assert_allclose(solved, moves[1].numpy(), atol=0.3)
+    mirror = np.array([-1, 1, 1])
+    np.testing.assert_allclose(out[1]["move"], 0.6 * mirror * solved, atol=1e-9)  # smoothed (0.6) and mirrored
+    np.testing.assert_allclose(
+        out[2]["move"],
+        out[1]["move"] + 0.6 * (mirror * np.subtract(out[2]["t"], out[0]["t"]) - out[1]["move"]),
+        atol=1e-9,
+    )
+    assert np.abs(out[3]["move"]).max() < 1e-3  # after "neutral": the current place is the rest (the same frame again)
 
 
 def _head_image(head, weights: dict[str, float], rot, size: int = 256) -> np.ndarray:
@@ -262,6 +332,7 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
             stats = page.evaluate("JSON.stringify(window.meshsplatViewer.webcam.stats)")
             shown = page.evaluate("Array.from(window.meshsplatViewer.webcam.smoothW)")
             node_rot = page.evaluate("Array.from(window.meshsplatViewer.webcam.lastRotation)")
+            move = page.evaluate("Array.from(window.meshsplatViewer.webcam.lastTranslation)")
             page.screenshot(tmp_path / "webcam.png")
             status = page.evaluate("document.getElementById('camstatus').textContent")
     finally:
@@ -276,6 +347,10 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     np.testing.assert_allclose(np.median([s["rot"] for s in st["weights"][2:]], axis=0), [0.05, 0.2, 0.0], atol=0.06)
     # mirrored (the default): the rig's rotation (quaternion xyzw) turns the other way about y, ~0.2 rad
     assert abs(node_rot[1] + math.sin(0.1)) < 0.05 and abs(node_rot[0] - math.sin(0.025)) < 0.05
+    # a still face: the head stays about where it was first seen (cm; measured 0.16-0.19 across, 0.5 in depth,
+    # which the warm frames settle differently from the first, cold one)
+    assert np.abs(move).max() < 1.0, move
+    assert model[1]["head_size_cm"] > 10
     # the offline fit of the same frame (MediaPipe's Python build, the tracker's solver)
     from meshsplat.track.mediapipe_models import FaceMesh
 

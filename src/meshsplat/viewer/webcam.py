@@ -10,7 +10,8 @@ landmarks are left out). :func:`webcam_model` restricts the head's blend-shape b
 ``point_l(w) = neutral_l + sum_e w_e delta_e,l`` (47 free shapes x 478 landmarks), so the solve is a
 small bounded least squares (Gauss-Newton with an active set) instead of a pose of the whole mesh.
 
-The weights drive the avatar's morph targets of the same ARKit name, the rotation its head node.
+The weights drive the avatar's morph targets of the same ARKit name, the rotation and the translation
+(the move since the first solved frame, scaled by the avatar's size over the ICT head's) its head node.
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ def webcam_model(head: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         "landmarks": len(tri),
         "used": [int(i) for i in np.nonzero(~on_eye)[0]],
         "pivot": [float(x) for x in pivot],
+        # the page scales the head's move (cm) by the avatar's size over this (the ICT neutral's bounding-box diagonal)
+        "head_size_cm": float(np.linalg.norm(neutral.max(0) - neutral.min(0))),
         "diagonal_fov_deg": _DIAGONAL_FOV_DEG,
         "landmarker": {"package": LANDMARKER_PACKAGE, "version": LANDMARKER_VERSION, "folder": LANDMARKER_FOLDER},
     }

@@ -231,10 +231,11 @@ export function evalRig(rig, clip, time, override, out, pose) {
       trs.get(ch.node)[["translation", "rotation", "scale"].indexOf(ch.path)] = v;
     }
   }
-  if (pose) { // a node's rotation (xyzw) set last (the webcam's head pose)
+  if (pose) { // a node's rotation (xyzw) and translation set last (the webcam's head pose)
     const o = 10 * pose.node;
     if (!trs.has(pose.node)) trs.set(pose.node, [rig.trs.slice(o, o + 3), rig.trs.slice(o + 3, o + 7), rig.trs.slice(o + 7, o + 10)]);
     trs.get(pose.node)[1] = pose.rotation;
+    if (pose.translation) trs.get(pose.node)[0] = pose.translation;
   }
   for (const [i, [t, r, s]] of trs) trsMatrix(t, r, s, local, 16 * i);
   if (override) for (let i = 0; i < weights.length; i++) if (!Number.isNaN(override[i])) weights[i] = override[i];
@@ -1407,9 +1408,17 @@ export class FramePoser {
 /** Landmark model of a bundle's `header.webcam` and its sections. */
 export function decodeWebcam(h, arr) {
   const L = h.landmarks, E = h.names.length;
-  return { L, E, names: h.names, used: Uint32Array.from(h.used), pivot: Float64Array.from(h.pivot),
+  return { L, E, names: h.names, used: Uint32Array.from(h.used), usedMax: Math.max(-1, ...h.used), pivot: Float64Array.from(h.pivot),
+           headSize: h.head_size_cm || null,
            fovDiag: h.diagonal_fov_deg, neutral: Float64Array.from(arr.webcam_neutral),
            deltas: Float64Array.from(arr.webcam_deltas), landmarker: h.landmarker };
+}
+
+/** The diagonal of the bounding box of points [N*3]. */
+export function boxDiagonal(p) {
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < p.length; i += 3) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[i + k]); hi[k] = Math.max(hi[k], p[i + k]); }
+  return Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
 }
 
 /** Row-major 3x3 rotation of axis-angle `a` (Rodrigues). */
@@ -1448,7 +1457,8 @@ function mat3Mul(A, B) {
 export function webcamFocal(m, width, height) { return 0.5 * Math.hypot(width, height) / Math.tan(m.fovDiag * Math.PI / 360); }
 
 /**
- * Solve one frame. `obs`: [L*2] landmark pixels (x right, y down, in a `width` x `height` frame);
+ * Solve one frame. `obs`: [L*2] landmark pixels (x right, y down, in a `width` x `height` frame), or
+ * fewer (the landmarker's 468 points without the 10 iris points: `m.used` must lie among them);
  * `prev`: the previous frame's result (warm start and temporal prior) or null. Options: `smooth`
  * (temporal prior weight, 0 = none), `iterations`, `focal` (pixels). Returns
  * { R [9] row-major, rot [3] axis-angle, t [3], w Float64Array [E] in [0, 1], cost, iterations, errorPx }.
@@ -1456,22 +1466,24 @@ export function webcamFocal(m, width, height) { return 0.5 * Math.hypot(width, h
 export function solveFace(m, obs, width, height, prev = null, opts = {}) {
   const L = m.L, E = m.E, U = m.used, n = 6 + E, f = opts.focal || webcamFocal(m, width, height);
   const cx = width / 2, cy = height / 2, smooth = opts.smooth || 0, delta = 3;
-  // residual unit: 1/100 of the landmarks' RMS spread in the image
+  const Lo = Math.min(L, obs.length >> 1); // the landmarks given (all L, or the first 468)
+  for (let k = 0; k < U.length; k++) if (U[k] >= Lo) throw new Error(`solveFace: landmark ${U[k]} is used but only ${Lo} are given`);
+  // residual unit: 1/100 of the given landmarks' RMS spread in the image
   let mx = 0, my = 0;
-  for (let l = 0; l < L; l++) { mx += obs[2 * l]; my += obs[2 * l + 1]; }
-  mx /= L; my /= L;
+  for (let l = 0; l < Lo; l++) { mx += obs[2 * l]; my += obs[2 * l + 1]; }
+  mx /= Lo; my /= Lo;
   let s2 = 0;
-  for (let l = 0; l < L; l++) s2 += (obs[2 * l] - mx) ** 2 + (obs[2 * l + 1] - my) ** 2;
-  const spread2d = Math.sqrt(s2 / L), unit = spread2d / 100;
+  for (let l = 0; l < Lo; l++) s2 += (obs[2 * l] - mx) ** 2 + (obs[2 * l + 1] - my) ** 2;
+  const spread2d = Math.sqrt(s2 / Lo), unit = spread2d / 100;
   let R, t, w = new Float64Array(E);
   if (prev) { R = prev.R.slice(); t = prev.t.slice(); w.set(prev.w); } else {
     // frontal, at the distance where the neutral's landmarks have the observed spread (as fit_head)
     let ax = 0, ay = 0, az = 0;
-    for (let l = 0; l < L; l++) { ax += m.neutral[3 * l]; ay += m.neutral[3 * l + 1]; az += m.neutral[3 * l + 2]; }
-    ax /= L; ay /= L; az /= L;
+    for (let l = 0; l < Lo; l++) { ax += m.neutral[3 * l]; ay += m.neutral[3 * l + 1]; az += m.neutral[3 * l + 2]; }
+    ax /= Lo; ay /= Lo; az /= Lo;
     let s3 = 0;
-    for (let l = 0; l < L; l++) s3 += (m.neutral[3 * l] - ax) ** 2 + (m.neutral[3 * l + 1] - ay) ** 2;
-    const z0 = f * Math.sqrt(s3 / L) / spread2d;
+    for (let l = 0; l < Lo; l++) s3 += (m.neutral[3 * l] - ax) ** 2 + (m.neutral[3 * l + 1] - ay) ** 2;
+    const z0 = f * Math.sqrt(s3 / Lo) / spread2d;
     R = [1, 0, 0, 0, 1, 0, 0, 0, 1];
     t = [(mx - cx) * z0 / f - ax, -(my - cy) * z0 / f - ay, -z0 - az];
   }
@@ -1610,27 +1622,46 @@ export function cameraErrorText(err) {
   return `the camera could not be opened (${name || "error"}: ${err && err.message ? err.message : err})`;
 }
 
+/** What the webcam mode's landmarker runs by default (the page's URL overrides them: `camrefine=0`, `camsize=N`, `camcpu=0`). */
+export const WEBCAM_DEFAULTS = {
+  // MediaPipe's attention model (478 points, lips and eyes refined); false: the plain 468-point mesh, 1-2 ms
+  // less a frame at 256 px, but it misses a smile by 0.3-0.4 (bench/reports/viewer.md, webcam mode)
+  refine: true,
+  size: 256, // the camera frame is scaled to this many pixels on its long side before the landmarker (0: as it comes)
+  cpu: true, // the models run on the CPU (WebAssembly, XNNPACK) rather than in WebGL, where each pass reads pixels back
+};
+
 /**
  * The page's webcam mode: the camera's frames -> MediaPipe face landmarks (the @mediapipe/face_mesh
  * files beside the page; nothing is sent anywhere) -> solveFace -> the avatar's morph weights and head
- * rotation (smoothed). `onPose(weights or null, rotation xyzw or null, frameTime)` is called per solved frame.
+ * rotation and translation (smoothed). `onPose(weights, rotation xyzw, frameTime, translation)` is called per
+ * solved frame; the translation (cm, the head's axes: x right, y up, z towards the camera) is the head's
+ * move since the first solved frame (or since "neutral").
+ * `options`: WEBCAM_DEFAULTS's keys.
  */
 export class WebcamDriver {
-  constructor(doc, b, onPose, onStatus) {
+  constructor(doc, b, onPose, onStatus, options = {}) {
     this.doc = doc; this.b = b; this.onPose = onPose; this.onStatus = onStatus;
+    this.options = { ...WEBCAM_DEFAULTS, ...options };
+    this.busy = false; this.pending = null; this.canvas = null;
     this.running = false; this.stream = null; this.mesh = null; this.prev = null; this.smoothW = null; this.smoothR = null;
     this.neutral = null; this.lastRaw = null; this.alpha = 0.6;
     // mirrored (default, as the preview and a selfie camera): turn left and the avatar turns to the
     // screen's left, smile on your left and it smiles on the screen's left (its right): the turn is
     // reflected in the x = 0 plane of the head (y and z of the axis-angle negated), _L and _R swapped
     this.mirror = true;
+    this.t0 = null; this.smoothT = null;
     const names = b.webcam ? b.webcam.names : [];
     this.swap = names.map((n, e) => {
       const other = n.endsWith("_L") ? `${n.slice(0, -2)}_R` : n.endsWith("_R") ? `${n.slice(0, -2)}_L` : n;
       const i = names.indexOf(other);
       return i < 0 ? e : i;
     });
-    this.stats = { frames: 0, solveMs: [], landmarkMs: [], latencyMs: [], startedAt: 0, lost: 0, weights: [] };
+    // frames: solved; camera: camera frames seen; dropped: those replaced by a newer one while the landmarker was busy
+    // latencyMs: frame in -> the avatar's draw calls issued; renderedMs: -> its pixels rendered (a fence);
+    // idleMs: from one landmark pass's end to the next one's start (waiting for a new camera frame)
+    this.stats = { frames: 0, camera: 0, dropped: 0, solveMs: [], landmarkMs: [], latencyMs: [], renderedMs: [], idleMs: [],
+                   startedAt: 0, lost: 0, weights: [] };
   }
 
   async loadLandmarker() {
@@ -1645,7 +1676,9 @@ export class WebcamDriver {
       });
     }
     const mesh = new win.FaceMesh({ locateFile: (f) => `${folder}/${f}` });
-    mesh.setOptions({ maxNumFaces: 1, refineLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
+    // one face; the attention model unless `refine` is false (the solve needs no iris: `used` is the first 468 points)
+    mesh.setOptions({ maxNumFaces: 1, refineLandmarks: !!this.options.refine, useCpuInference: !!this.options.cpu,
+                      minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
     mesh.onResults((r) => this.results(r));
     await mesh.initialize();
     return mesh;
@@ -1672,35 +1705,69 @@ export class WebcamDriver {
     this.loop();
   }
 
-  // one landmark pass per new camera frame (requestVideoFrameCallback), each after the last one's results;
-  // every pass waits for a frame callback, so the page's own frames keep drawing in between
+  // every camera frame is noted as it arrives (requestVideoFrameCallback); the landmarker takes the
+  // newest one whenever it is free, so a frame that arrives while it is busy is dropped, never queued
+  // (its time of arrival is "frame in"); the page draws the latest solution on its next animation frame
   loop() {
-    const v = this.video, next = () => {
+    const v = this.video;
+    const watch = () => {
       if (!this.running) return;
-      if (v.requestVideoFrameCallback) v.requestVideoFrameCallback(step); else requestAnimationFrame(step);
+      if (v.requestVideoFrameCallback) v.requestVideoFrameCallback(onFrame); else requestAnimationFrame(onFrame);
     };
-    const step = async () => {
+    const onFrame = () => {
       if (!this.running) return;
-      if (v.readyState >= 2 && v.videoWidth > 0) {
-        this.frameIn = performance.now();
-        try { await this.mesh.send({ image: v }); } catch (err) {
-          this.onStatus(`face landmarker failed: ${err.message || err}`); this.stop(); return;
-        }
+      this.stats.camera++;
+      if (this.pending !== null) this.stats.dropped++;
+      this.pending = performance.now();
+      if (!this.busy) this.pump();
+      watch();
+    };
+    watch();
+  }
+
+  // landmark the newest pending frame, and again while newer ones came in meanwhile
+  async pump() {
+    const v = this.video;
+    this.busy = true;
+    try {
+      while (this.running && this.pending !== null) {
+        this.frameIn = this.pending; this.pending = null;
+        if (!(v.readyState >= 2 && v.videoWidth > 0)) continue;
+        this.sentAt = performance.now();
+        if (this.doneAt !== undefined) this.stats.idleMs.push(this.sentAt - this.doneAt);
+        this.frameW = v.videoWidth; this.frameH = v.videoHeight;
+        await this.mesh.send({ image: this.input(v) });
+        this.doneAt = performance.now();
       }
-      next();
-    };
-    next();
+    } catch (err) {
+      this.onStatus(`face landmarker failed: ${err.message || err}`); this.stop();
+    } finally { this.busy = false; }
+  }
+
+  // the frame the landmarker sees: scaled to `size` pixels on its long side (the landmarks come back
+  // normalised to the frame, so they scale back to the camera's pixels as they are)
+  input(v) {
+    const W = this.frameW, H = this.frameH, size = this.options.size;
+    const s = size > 0 ? Math.min(1, size / Math.max(W, H)) : 1;
+    if (s >= 1) return v;
+    if (!this.canvas) this.canvas = this.doc.createElement("canvas");
+    const c = this.canvas, w = Math.max(1, Math.round(W * s)), h = Math.max(1, Math.round(H * s));
+    if (c.width !== w || c.height !== h) { c.width = w; c.height = h; this.ctx = null; }
+    if (!this.ctx) this.ctx = c.getContext("2d", { alpha: false, desynchronized: true });
+    this.ctx.drawImage(v, 0, 0, w, h);
+    return c;
   }
 
   results(r) {
     if (!this.running) return;
     const t1 = performance.now(), m = this.b.webcam, faces = r.multiFaceLandmarks;
-    this.stats.landmarkMs.push(t1 - this.frameIn);
-    if (!faces || !faces.length || faces[0].length !== m.L) {
+    this.stats.landmarkMs.push(t1 - this.sentAt);
+    const given = faces && faces.length ? Math.min(faces[0].length, m.L) : 0;
+    if (!given || given <= m.usedMax) {
       this.stats.lost++; this.prev = null; this.onStatus("no face in view"); return;
     }
-    const W = this.video.videoWidth, H = this.video.videoHeight, obs = new Float64Array(2 * m.L);
-    faces[0].forEach((p, l) => { obs[2 * l] = p.x * W; obs[2 * l + 1] = p.y * H; });
+    const W = this.frameW, H = this.frameH, obs = new Float64Array(2 * given);
+    for (let l = 0; l < given; l++) { const p = faces[0][l]; obs[2 * l] = p.x * W; obs[2 * l + 1] = p.y * H; }
     const sol = solveFace(m, obs, W, H, this.prev, { smooth: this.prev ? 0.1 : 0 });
     this.prev = sol;
     this.lastRaw = sol.w;
@@ -1714,19 +1781,27 @@ export class WebcamDriver {
     const solveMs = performance.now() - t1;
     this.stats.solveMs.push(solveMs); this.stats.frames++;
     this.stats.weights.push({ t: this.frameIn, w: Array.from(sol.w), rot: sol.rot, err: sol.errorPx });
-    for (const k of ["solveMs", "landmarkMs", "latencyMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
+    for (const k of ["solveMs", "landmarkMs", "latencyMs", "renderedMs", "idleMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
     this.lastRotation = matrixQuaternion(axisAngleMatrix(this.smoothR)); // the head node's (xyzw)
-    this.onPose(this.smoothW, this.lastRotation, this.frameIn);
-    this.onStatus(`${this.stats.frames} frames · landmarks ${(t1 - this.frameIn).toFixed(0)} ms · solve ${solveMs.toFixed(1)} ms · error ${sol.errorPx.toFixed(1)} px`);
+    if (!this.t0) this.t0 = sol.t.slice();
+    const move = [0, 1, 2].map((k) => sol.t[k] - this.t0[k]);
+    if (this.mirror) move[0] = -move[0];
+    this.smoothT = this.smoothT ? this.smoothT.map((x, k) => x + a * (move[k] - x)) : move;
+    this.lastTranslation = this.smoothT.slice();
+    this.onPose(this.smoothW, this.lastRotation, this.frameIn, this.lastTranslation);
+    this.onStatus(`${this.stats.frames} frames · landmarks ${(t1 - this.sentAt).toFixed(0)} ms · solve ${solveMs.toFixed(1)} ms · error ${sol.errorPx.toFixed(1)} px`);
   }
 
-  /** The current raw weights become the neutral face (subtracted from then on). */
-  calibrate() { if (this.lastRaw) this.neutral = Float64Array.from(this.lastRaw); }
+  /** The current raw weights become the neutral face (subtracted from then on), the current place the head's rest. */
+  calibrate() {
+    if (this.lastRaw) this.neutral = Float64Array.from(this.lastRaw);
+    if (this.prev) { this.t0 = this.prev.t.slice(); this.smoothT = null; }
+  }
 
   stop() {
-    this.running = false;
+    this.running = false; this.pending = null;
     if (this.stream) for (const t of this.stream.getTracks()) t.stop();
-    this.stream = null; this.prev = null; this.smoothW = null; this.smoothR = null;
+    this.stream = null; this.prev = null; this.smoothW = null; this.smoothR = null; this.t0 = null; this.smoothT = null;
   }
 }
 
@@ -1883,6 +1958,7 @@ export function startViewer(doc) {
     const say = (text, bad) => { status.textContent = text; status.classList.toggle("bad", !!bad); };
     const targets = header.webcam.targets;
     const headNode = b.driver.source === "blendshapes" ? 0 : null;
+    const headScale = headNode !== null && b.webcam.headSize ? boxDiagonal(b.rig.base) / b.webcam.headSize : 0;
     const stop = () => {
       if (cam_.driver) cam_.driver.stop();
       cam_.weights = null; cam_.rotation = null; cam_.frameIn = null;
@@ -1892,12 +1968,18 @@ export function startViewer(doc) {
       if (cam_.driver && cam_.driver.running) { stop(); return; }
       panel.hidden = false; btn.textContent = "stop webcam"; btn.setAttribute("aria-pressed", "true");
       $("hint").hidden = true; // the camera panel takes its corner
-      cam_.driver = cam_.driver || new WebcamDriver(doc, b, (w, q, frameIn) => {
+      cam_.driver = cam_.driver || new WebcamDriver(doc, b, (w, q, frameIn, move) => {
         const over = new Float64Array(b.rig.defaultWeights.length); // untracked morphs at 0
         targets.forEach((i, e) => { if (i >= 0) over[i] = w[e]; });
-        cam_.weights = over; cam_.rotation = headNode === null ? null : { node: headNode, rotation: q };
+        // the head node at its rest place plus the face's move, in the avatar's units (its size over the ICT head's)
+        const translation = headNode !== null && move && headScale ? [0, 1, 2].map((k) => b.rig.trs[10 * headNode + k] + headScale * move[k]) : undefined;
+        cam_.weights = over; cam_.rotation = headNode === null ? null : { node: headNode, rotation: q, translation };
         cam_.frameIn = frameIn; cam_.key++;
-      }, (text) => say(text));
+      }, (text) => say(text), {
+        ...(params.has("camrefine") ? { refine: params.get("camrefine") === "1" } : {}),
+        ...(params.has("camsize") ? { size: parseInt(params.get("camsize"), 10) || 0 } : {}),
+        ...(params.has("camcpu") ? { cpu: params.get("camcpu") === "1" } : {}),
+      });
       state.playing = false; syncUi();
       try { await cam_.driver.start(video); } catch (err) { cam_.driver.stop(); say(String(err.message || err), true); btn.textContent = "webcam"; }
     };
@@ -1905,7 +1987,7 @@ export function startViewer(doc) {
     $("camneutral").onclick = () => cam_.driver && cam_.driver.calibrate();
     $("cammirror").onclick = () => {
       if (!cam_.driver) return;
-      cam_.driver.mirror = !cam_.driver.mirror; cam_.driver.smoothW = null; cam_.driver.smoothR = null;
+      cam_.driver.mirror = !cam_.driver.mirror; cam_.driver.smoothW = null; cam_.driver.smoothR = null; cam_.driver.smoothT = null;
       $("cammirror").textContent = cam_.driver.mirror ? "mirrored" : "as seen";
       $("cammirror").setAttribute("aria-pressed", String(cam_.driver.mirror));
     };
@@ -2126,8 +2208,18 @@ export function startViewer(doc) {
       lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
       renderer.draw(...lastDraw);
       state.drawnKey = drawKey;
-      if (webcamOn && cam_.frameIn !== null && cam_.driver) { // frame in -> avatar drawn
-        cam_.driver.stats.latencyMs.push(performance.now() - cam_.frameIn); cam_.frameIn = null;
+      if (webcamOn && cam_.frameIn !== null && cam_.driver) { // frame in -> avatar drawn (its draw calls issued)
+        const st = cam_.driver.stats, frameIn = cam_.frameIn, gl = renderer.gl;
+        st.latencyMs.push(performance.now() - frameIn); cam_.frameIn = null;
+        if (gl.fenceSync) { // ... and -> its pixels rendered (a fence after the draw signals)
+          const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+          gl.flush();
+          const poll = () => {
+            if (gl.getSyncParameter(fence, gl.SYNC_STATUS) !== gl.SIGNALED) { setTimeout(poll, 1); return; }
+            st.renderedMs.push(performance.now() - frameIn); gl.deleteSync(fence);
+          };
+          setTimeout(poll, 0);
+        }
       }
       mainMs = performance.now() - t0;
       record(timings.main, mainMs);

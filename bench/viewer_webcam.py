@@ -1,0 +1,272 @@
+"""Benchmark the player's webcam mode (docs/viewer.md, issue 49): frame in -> avatar drawn latency and
+solved frames per second in headless Chromium (SwiftShader WebGL2), whose fake camera plays a rendered
+ICT head (640x480, 30 frames/s, jawOpen 0.5, smiles 0.6, turned 0.2 rad), and the page's solved
+weights against the tracker's offline fit of the same frame (MediaPipe's Python build + ``fit_head``,
+identity fixed, no smoothing) and against the rendered truth.
+
+Variants, each in a fresh browser, interleaved over ``--rounds`` rounds so that the shared machine's
+load falls on all of them alike:
+
+- ``before``: the page as it was at ``--before-rev`` (its viewer.js, inlined into the same bundle):
+  the attention model (478 points), full camera frames, one landmark pass per frame callback;
+- ``pipelined``, ``pipelined+cpu``, ``after-plain468``: the current page with the landmarker's options
+  set by the URL (``camcpu``, ``camrefine``, ``camsize``), to tell the changes apart;
+- ``after``: the current page with its defaults (models on the CPU, attention model, frames scaled to
+  256 px); ``after-320x240``: the same in a 320x240 viewport (the avatar's draw costs a quarter).
+
+Per run: the page loads, the webcam starts, the first ``--warmup`` solved frames are left out (the
+landmarker's first frame takes seconds), then ``--seconds`` are recorded: the page's ``latencyMs``
+(``frameIn``, the time the camera frame was noted, to the draw calls that show its solution issued),
+``renderedMs`` (to a fence after those draw calls signalled: the pixels rendered; the old page gets the
+same fence patched in, its only change), ``landmarkMs``,
+``solveMs``, solved frames per second (solved frames / wall-clock seconds, in the page's clock) and the
+median weights over the window. The load average goes with each run: the machine is shared.
+
+Usage: python bench/viewer_webcam.py [--rounds 2] [--seconds 15] [--variants before,after]
+                                      [--out bench/results/viewer_webcam-<host>.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _machine import machine_info, results_path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver and fixtures the browser tests use
+sys.path.insert(0, str(ROOT / "tests" / "viewer"))
+from test_viewer import _small_blendshapes  # noqa: E402
+from test_viewer_webcam import serve, write_y4m  # noqa: E402
+
+from _browser import find_chromium, open_page  # noqa: E402
+from _eval_kit import make_avatar  # noqa: E402
+from meshsplat.track.head_fit import fit_head  # noqa: E402
+from meshsplat.track.head_render import render_head  # noqa: E402
+from meshsplat.track.ict_head import load_ict_head  # noqa: E402
+from meshsplat.track.tracker_camera import focal_from_fov  # noqa: E402
+from meshsplat.viewer import bundle as bundle_mod  # noqa: E402
+from meshsplat.viewer import write_viewer_bundle  # noqa: E402
+from meshsplat.viewer.webcam import find_landmarker, webcam_model  # noqa: E402
+
+W, H, FPS = 640, 480, 30
+EXPR = {"jawOpen": 0.5, "mouthSmile_L": 0.6, "mouthSmile_R": 0.6}
+ROT = [0.05, 0.2, 0.0]
+VARIANTS = {  # name -> (code, URL parameters[, viewport]); the viewport is 640x480 CSS px unless given
+    "before": ("before", ""),
+    "pipelined": ("now", "&camcpu=0&camrefine=1&camsize=0"),  # the new frame loop, the old landmarker options
+    "pipelined+cpu": ("now", "&camcpu=1&camrefine=1&camsize=0"),  # ... with the models on the CPU
+    "after": ("now", ""),  # the defaults: + frames scaled to 256 px
+    "after-plain468": ("now", "&camrefine=0"),  # ... with the plain 468-point mesh
+    "after-320x240": ("now", "", (320, 240)),  # the defaults in a smaller viewport (the avatar's draw is cheaper)
+}
+
+
+OLD_LATENCY = """        cam_.driver.stats.latencyMs.push(performance.now() - cam_.frameIn); cam_.frameIn = null;
+"""
+FENCED_LATENCY = """        const st = cam_.driver.stats, frameIn = cam_.frameIn, gl = renderer.gl;
+        st.latencyMs.push(performance.now() - frameIn); cam_.frameIn = null;
+        st.renderedMs = st.renderedMs || [];
+        const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+        gl.flush();
+        const poll = () => {
+          if (gl.getSyncParameter(fence, gl.SYNC_STATUS) !== gl.SIGNALED) { setTimeout(poll, 1); return; }
+          st.renderedMs.push(performance.now() - frameIn); gl.deleteSync(fence);
+        };
+        setTimeout(poll, 0);
+"""
+
+
+def head_frame(head) -> np.ndarray:
+    """The ICT head in EXPR, turned by ROT, 55 cm in front of a 640x480 camera of the page's field of view."""
+    w = torch.zeros(1, len(head.names))
+    for n, x in EXPR.items():
+        w[0, head.names.index(n)] = x
+    c = (head.neutral.min(0).values + head.neutral.max(0).values) / 2
+    v = head.pose(
+        torch.zeros_like(head.neutral),
+        w,
+        torch.zeros(1, 2, 2),
+        torch.tensor([ROT]),
+        (-c + torch.tensor([0, 3.0, -55]))[None],
+    )[0]
+    f = focal_from_fov(W, H)
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    return (render_head(head, v, K, W, H)[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None) -> None:
+    """The webcam bundle of the browser tests' small avatar; ``viewer_js``: another page's code (the baseline)."""
+    av = make_avatar(n=300)
+    drv = _small_blendshapes(av)
+    static = bundle_mod._STATIC
+    if viewer_js is not None:
+        tmp = Path(tempfile.mkdtemp(prefix="meshsplat-static-"))
+        shutil.copytree(static, tmp, dirs_exist_ok=True)
+        (tmp / "viewer.js").write_text(viewer_js, encoding="utf-8")
+        bundle_mod._STATIC = tmp
+    try:
+        write_viewer_bundle(av, None, out, rig=drv, webcam=model, landmarker=landmarker)
+    finally:
+        bundle_mod._STATIC = static
+
+
+def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float, viewport=(W, H)) -> dict:
+    load0 = os.getloadavg()[0]
+    with open_page(url, *viewport, chromium, fake_camera=clip) as page:
+        page.wait_ready(120)
+        page.evaluate("document.getElementById('webcam').click()")
+        get = "(window.meshsplatViewer.webcam || {stats: {frames: 0}}).stats.frames"
+        deadline = time.monotonic() + 120
+        while page.evaluate(get) < warmup:
+            if time.monotonic() > deadline:
+                raise RuntimeError(page.evaluate("document.getElementById('camstatus').textContent"))
+            time.sleep(0.2)
+        start = json.loads(
+            page.evaluate(
+                "(() => { const s = window.meshsplatViewer.webcam.stats;"
+                " for (const k of ['latencyMs', 'renderedMs', 'landmarkMs', 'solveMs', 'weights']) if (s[k]) s[k].length = 0;"
+                " return JSON.stringify({t: performance.now(), frames: s.frames, camera: s.camera || 0,"
+                " dropped: s.dropped || 0, lost: s.lost}); })()"
+            )
+        )
+        time.sleep(seconds)
+        end = json.loads(
+            page.evaluate(
+                "(() => { const s = window.meshsplatViewer.webcam.stats;"
+                " return JSON.stringify({...s, t: performance.now()}); })()"
+            )
+        )
+    dt = (end["t"] - start["t"]) / 1000
+    lat = np.asarray(end["latencyMs"])
+    return {
+        "url_query": url.split("?", 1)[1],
+        "seconds": round(dt, 2),
+        "solved": end["frames"] - start["frames"],
+        "solved_fps": round((end["frames"] - start["frames"]) / dt, 2),
+        "camera_fps": round((end.get("camera", 0) - start["camera"]) / dt, 2) if "camera" in end else None,
+        "dropped": end.get("dropped", 0) - start["dropped"] if "dropped" in end else None,
+        "lost": end["lost"] - start["lost"],
+        "latency_ms": {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90)), "n": len(lat)},
+        "rendered_ms": (
+            {"median": float(np.median(end["renderedMs"])), "p90": float(np.percentile(end["renderedMs"], 90))}
+            if end.get("renderedMs")
+            else None
+        ),
+        "landmark_ms": {
+            "median": float(np.median(end["landmarkMs"])),
+            "p90": float(np.percentile(end["landmarkMs"], 90)),
+        },
+        "solve_ms": {"median": float(np.median(end["solveMs"])), "p90": float(np.percentile(end["solveMs"], 90))},
+        "weights": np.median([s["w"] for s in end["weights"]], axis=0).tolist(),
+        "rotation": np.median([s["rot"] for s in end["weights"]], axis=0).tolist(),
+        "error_px": float(np.median([s["err"] for s in end["weights"]])),
+        "load_avg_1m": [round(load0, 2), round(os.getloadavg()[0], 2)],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--warmup", type=int, default=4, help="solved frames left out at the start")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--before-rev", default="2307bfb", help="the commit whose page is 'before'")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    chromium = find_chromium()
+    if chromium is None:
+        sys.exit("chromium is not installed")
+    landmarker = find_landmarker(ROOT / ".node-tools")
+    head = load_ict_head()
+    model = webcam_model(head)
+    names = model[1]["names"]
+    img = head_frame(head)
+    work = Path(tempfile.mkdtemp(prefix="meshsplat-webcam-bench-"))
+    clip = write_y4m(work / "face.y4m", [img] * FPS, fps=FPS)
+    old_js = subprocess.run(
+        ["git", "show", f"{args.before_rev}:src/meshsplat/viewer/static/viewer.js"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    # the one change to the old page, for the measurement only: the fence that times its pixels rendered
+    assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
+    write_bundle(work / "before", model, landmarker, old_js.replace(OLD_LATENCY, FENCED_LATENCY))
+    write_bundle(work / "now", model, landmarker, None)
+    srv, base = serve(work)
+
+    # the tracker's offline fit of the same frame
+    from meshsplat.track.mediapipe_models import FaceMesh
+
+    with FaceMesh(max_faces=1, video=False) as fm:
+        lm = fm(img)[0]
+    fit = fit_head(lm[None].repeat(2, 0), W, H, identity=torch.zeros_like(head.neutral), smoothing=0.0)
+    offline = fit.weights[0, head.free_shapes].numpy()
+    truth = np.zeros(len(names))
+    for n, x in EXPR.items():
+        truth[names.index(n)] = x
+
+    runs: list[dict] = []
+    try:
+        for r in range(args.rounds):
+            for name in args.variants.split(","):
+                code, query, *viewport = VARIANTS[name]
+                viewport = viewport[0] if viewport else (W, H)
+                res = run_variant(
+                    f"{base}/{code}/index.html?play=0{query}", clip, chromium, args.warmup, args.seconds, viewport
+                )
+                res["viewport"] = list(viewport)
+                w = np.asarray(res.pop("weights"))
+                res.update(
+                    variant=name,
+                    round=r,
+                    vs_offline={"mean": float(np.abs(w - offline).mean()), "max": float(np.abs(w - offline).max())},
+                    vs_offline_expr={n: round(float(w[names.index(n)] - offline[names.index(n)]), 3) for n in EXPR},
+                    vs_truth_expr={n: round(float(w[names.index(n)] - truth[names.index(n)]), 3) for n in EXPR},
+                )
+                runs.append(res)
+                print(
+                    f"{name:13s} r{r}: latency {res['latency_ms']['median']:.0f}/{res['latency_ms']['p90']:.0f} ms "
+                    f"(median/p90; rendered {res['rendered_ms']}), {res['solved_fps']:.1f} solved/s (camera {res['camera_fps']}), landmarks "
+                    f"{res['landmark_ms']['median']:.0f} ms, solve {res['solve_ms']['median']:.1f} ms, |w - offline| "
+                    f"mean {res['vs_offline']['mean']:.3f} max {res['vs_offline']['max']:.3f}, expr-offline "
+                    f"{res['vs_offline_expr']}, load {res['load_avg_1m']}",
+                    flush=True,
+                )
+    finally:
+        srv.shutdown()
+        shutil.rmtree(work, ignore_errors=True)
+    out = args.out or results_path("viewer_webcam")
+    out.write_text(
+        json.dumps(
+            {
+                "machine": {
+                    **machine_info(),
+                    "webgl": "SwiftShader (software)",
+                    "chromium": chromium.rsplit("/", 1)[-1],
+                },
+                "clip": {"width": W, "height": H, "fps": FPS, "expression": EXPR, "rotation": ROT},
+                "before_rev": args.before_rev,
+                "offline_expr": {n: round(float(offline[names.index(n)]), 3) for n in EXPR},
+                "runs": runs,
+            },
+            indent=1,
+        )
+    )
+    print("wrote", out.relative_to(ROOT) if out.is_relative_to(ROOT) else out)
+
+
+if __name__ == "__main__":
+    main()
