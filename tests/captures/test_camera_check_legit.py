@@ -4,7 +4,9 @@ Each capture is rendered here with the project's own rasterizer (``synth.raster.
 its own cameras, so every image and mask matches its camera: close-ups of the full-body CesiumMan (the
 mesh projects far outside the image), a partly occluded subject (the mask is the visible part only), the
 subject leaving the view (empty masks: refused naming those images, dropped exactly with the flag), a
-wide-angle camera, a portrait image, and combinations. Wrong cameras among them are still named.
+wide-angle camera, a portrait image, and combinations; heavier occlusion (three quarters of the body hidden,
+or one half), also with a mask 2 px loose or 2 px off at 64 px (a matte reaching past the body, a small
+tracking error). Wrong cameras among them are still named.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from PIL import Image
 
 from meshsplat.camera import intrinsics, look_at
@@ -50,6 +53,7 @@ class Shot:
     shift: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the subject walked by this much
     occluder: tuple[float, float, float, float] | None = None  # x0, y0, x1, y1 as image fractions
     camera: str = "0"  # frames sharing a camera id share its K and viewmat (the first shot's)
+    mask_error: str = ""  # "loose N": the mask N px beyond the subject; "off N": N px to the right
 
 
 def _render(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, vm: np.ndarray, w: int, h: int):
@@ -63,6 +67,20 @@ def _render(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, vm: np.ndarray,
     shade = np.clip(0.8 - 0.2 * (depth - depth[mask].min() if mask.any() else depth), 0.2, 0.8)
     img = np.where(mask[..., None], shade[..., None] * np.array([0.9, 0.6, 0.4]), 1.0)
     return img, mask
+
+
+def mask_error(mask: np.ndarray, error: str) -> np.ndarray:
+    """The rendered mask ``[H,W]`` (bool) as a matte or tracker leaves it: ``"loose N"`` (dilated by N px, a
+    square), ``"off N"`` (moved N px to the right), ``""`` (as rendered)."""
+    if not error:
+        return mask
+    kind, n = error.split()
+    if kind == "loose":
+        t = torch.from_numpy(mask.astype(np.float32))[None, None]
+        return F.max_pool2d(t, 2 * int(n) + 1, 1, padding=int(n))[0, 0].numpy() > 0
+    if kind == "off":
+        return np.roll(mask, int(n), axis=1)
+    raise ValueError(f"unknown mask error {error!r}")
 
 
 def write_capture(root, shots: list[Shot]) -> DatasetWriter:
@@ -79,6 +97,7 @@ def write_capture(root, shots: list[Shot]) -> DatasetWriter:
         K, vm, width, height = cams[s.camera]
         v = verts[s.pose] + np.array(s.shift)
         img, mask = _render(v, faces, K, vm, width, height)
+        mask = mask_error(mask, s.mask_error)
         if s.occluder is not None:  # something in front of the subject: the mask keeps the visible part
             x0, y0, x1, y1 = s.occluder
             cols = slice(round(x0 * width), round(x1 * width))
@@ -135,11 +154,87 @@ LEGIT = {
 }
 
 
+# heavier occlusion (the occluder in front of the subject: the mask is the visible part only), each also with a
+# mask 2 px loose (a matte reaching past the body; at 64 px the body is about 10 px wide) and 2 px off
+OCCLUDERS = {
+    "occluded-lower-75%": (FULL, 40.0, (0.0, 0.25, 1.0, 1.0)),
+    "occluded-upper-60%": (FULL, 40.0, (0.0, 0.0, 1.0, 0.6)),
+    "occluded-left-half": (FULL, 40.0, (0.0, 0.0, 0.5, 1.0)),
+    "occluded-right-60%": (FULL, 40.0, (0.4, 0.0, 1.0, 1.0)),
+    "wide-angle-lower-60%-occluded": (((0.0, 0.8, 1.6), (0.0, 0.7, 0.0)), 100.0, (0.0, 0.4, 1.0, 1.0)),
+}
+MASK_ERRORS = ("", "loose 2", "off 2")
+OCCLUDED = {
+    f"{name}{'/' + err.replace(' ', '-') if err else ''}": [
+        Shot(*view, fov=fov, pose=p, occluder=occ, mask_error=err) for p in range(4)
+    ]
+    for name, (view, fov, occ) in OCCLUDERS.items()
+    for err in MASK_ERRORS
+}
+
+
 @pytest.mark.parametrize("case", list(LEGIT))
 def test_a_legitimate_unusual_capture_opens(tmp_path, case):
     shots = LEGIT[case]
     ds = open_dataset(capture(tmp_path / case, shots))
     assert len(ds) == len(shots) and ds.dropped_frames == []
+
+
+@pytest.mark.parametrize("case", list(OCCLUDED))
+def test_a_heavily_occluded_capture_opens_also_with_a_loose_or_offset_mask(tmp_path, case):
+    """Three quarters of the body hidden from below, the left half hidden, ...: each frame's mask is the
+    visible part, exact or 2 px loose or 2 px off at 64 px. None is refused; a frame whose subject is
+    hidden whole (an empty mask: the right 60% hidden and the mask moved right) is named and dropped with
+    the flag, as a subject leaving the view is, and nothing else."""
+    shots = OCCLUDED[case]
+    root = capture(tmp_path / "c", shots)
+    empty = [
+        f"f{i:02d}" for i in range(len(shots)) if not np.asarray(Image.open(root / "masks" / f"f{i:02d}.png")).any()
+    ]
+    if empty:
+        with pytest.raises(MeshsplatError, match=r"the subject left the view in \d+ of 4 frames \(empty masks"):
+            open_dataset(root)
+        with pytest.warns(UserWarning, match=rf"left out {len(empty)} of 4 frames"):
+            ds = open_dataset(root, drop_bad_frames=True)
+    else:
+        ds = open_dataset(root)
+    assert ds.dropped_frames == empty and len(ds) == len(shots) - len(empty)
+    assert len(empty) < 4
+
+
+def _wrong_focal(vm, K):
+    return vm, np.diag([1.5, 1.5, 1.0]) @ K
+
+
+def _too_close(vm, K):
+    vm = vm.copy()
+    vm[:3, 3] *= 0.8  # the camera moved a fifth of the way towards the world origin
+    return vm, K
+
+
+@pytest.mark.parametrize("error", MASK_ERRORS, ids=["exact", "loose-2", "off-2"])
+@pytest.mark.parametrize(
+    "wrong, match",
+    [
+        (lambda vm, K: (ROLL @ vm, K), r"rolled by 180 degrees"),
+        (lambda vm, K: (FLIP_YZ @ vm, K), r"y and z axes are flipped"),
+        (_wrong_focal, r"on 4 of 4 frames"),
+        (_too_close, r"on 4 of 4 frames"),
+    ],
+    ids=["rolled", "flipped", "focal-x1.5", "translation-x0.8"],
+)
+def test_a_wrong_camera_on_a_heavily_occluded_capture_is_refused(tmp_path, error, wrong, match):
+    """Three quarters of the body hidden, the mask exact, loose or off by 2 px: the slack a loose or offset
+    mask gets does not let a rolled, flipped, too-long-focal or too-close camera through."""
+    name = "occluded-lower-75%" + (f"/{error.replace(' ', '-')}" if error else "")
+    root = tmp_path / "c"
+    w = write_capture(root, OCCLUDED[name])
+    vm, K = wrong(np.asarray(w.cameras["0"]["viewmat"]), np.asarray(w.cameras["0"]["K"]))
+    w.cameras["0"]["viewmat"], w.cameras["0"]["K"] = vm.tolist(), K.tolist()
+    w.close()
+    with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0' does not see the subject") as err:
+        open_dataset(root, drop_bad_frames=True)
+    assert err.match(match) and "\n" not in str(err.value)
 
 
 def test_each_case_is_what_it_says(tmp_path):

@@ -15,7 +15,9 @@ Every reader ends in ``build_dataset``, which calls :func:`check_cameras`. The r
   mask is also compared the other way (:func:`_within`): a frame whose vertices miss the mask (occlusion)
   or lie mostly outside the image (a close-up) passes when the mask lies within the projected silhouette
   (``MIN_WITHIN``), its outline on the silhouette's (``MIN_OUTLINE``) and no shrunk projection
-  (``SMALLER``) fits clearly better; the roll must then hold more of the mask to win. A badly tracked frame
+  (``SMALLER``) fits clearly better (``SMALLER_BETTER`` more of the outline on it); a mask may be loose or
+  off by ``SLACK`` of the subject's projected width (the best such fit counts). The roll then wins when
+  it fits clearly better (vertices on the mask, mask within, outline on the silhouette's). A badly tracked frame
   anywhere in the capture is found (a sample of 32 frames missed them); the cost is a mask decode and a
   pooling per frame (``bench/badinput.py``).
 - a camera failing on at least ``BROKEN_SHARE`` of its checked frames is a wrong camera: the capture is
@@ -48,22 +50,29 @@ __all__ = [
     "CLEARLY_BETTER",
     "MIN_WITHIN",
     "MIN_OUTLINE",
+    "SLACK",
 ]
 
 MAX_VERTICES = 512  # vertices projected per frame (an even subsample of larger meshes)
 MIN_IN_FRONT = 0.5  # share of the vertices in front of the camera
 MIN_VISIBLE = 0.1  # share of the vertices in front and inside the image
 MIN_ON_MASK = 0.5  # share of the visible vertices on the (dilated) mask
+MOSTLY_ON_MASK = 0.8  # under this share on the mask (occlusion?), the roll is compared even with fewer on it
 MIN_MASK_POINTS = 16  # fewer visible vertices than this say nothing about the overlap: geometry only
 BROKEN_SHARE = 0.8  # a camera failing on this share of its checked frames is wrong, not its frames
 CLEARLY_BETTER = 0.25  # another convention beating "as is" on the mask by this much means "as is" is wrong
 MIN_WITHIN = 0.9  # share of the mask's cells on the projected mesh: the mask is the visible part of the subject
-MIN_OUTLINE = 0.75  # ... and share of its outline on the projection's outline (not a projection larger than it)
+MIN_OUTLINE = 0.5  # ... and share of its outline on the projection's outline (not a projection larger than it)
 MIN_COVER = 0.01  # without a mask: share of the image the projected mesh must cover when under MIN_VISIBLE is in it
 # the projection shrunk by these factors must not fit clearly better (a focal length or distance off)
-SMALLER = (0.8, 0.6, 0.45)
+SMALLER = (0.8, 0.7, 0.6, 0.45)
+SMALLER_BETTER = 0.08  # ... by this much more of the mask's outline on the shrunk projection's
+SLACK = 0.2  # a mask may be loose or off by this share of the subject's projected width (a matte, a tracker)
+BAND_IN, BAND_OUT = 2.2, 0.5  # a mask's outline cell on the silhouette's: its signed distance (cells) in this band
+_MAX_SLACK = 2  # ... in grid cells at most (close-ups: the silhouette is wider than the image)
 PROBE_FRAMES = 8  # frames of a wrong camera on which the convention fixes are tried
 _RASTER_CHUNK = 1 << 20  # (triangle, sample) pairs tested at a time when a silhouette is rasterized
+_SAMPLES = 2  # samples per cell side (at most) when a silhouette is rasterized (4 cost twice as much)
 _GRID = 64  # masks are pooled to about this many cells along their longer side, then dilated one cell
 
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -139,11 +148,12 @@ def _project(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray):
 
 def _silhouette(vm: np.ndarray, K, w, h, verts: np.ndarray, faces: np.ndarray, shape, cell: int) -> np.ndarray:
     """The mesh's projection on the mask grid ``shape`` (cells of ``cell`` pixels), pooled as the mask is: a
-    cell is in when a triangle covers one of its samples (up to 4 x 4 at pixel centres; triangles with a
-    corner behind the camera are left out) or it holds a vertex. ``verts [V,3]``, ``faces [F,3]``."""
+    cell is in when a triangle covers one of its samples (up to ``_SAMPLES`` a side, at pixel centres;
+    triangles with a corner behind the camera are left out) or it holds a vertex. ``verts [V,3]``, ``faces
+    [F,3]``."""
     u, v, front, inside = _project(vm, K, w, h, verts)
     gh, gw = shape
-    sub = min(cell, 4)  # samples per cell side
+    sub = min(cell, _SAMPLES)  # samples per cell side
     step = cell / sub  # pixels between samples
     out = np.zeros((gh * sub, gw * sub), bool)
     f = faces[front[faces].all(1)]
@@ -222,19 +232,57 @@ def _outline(a: np.ndarray) -> np.ndarray:
     return out
 
 
+def _signed_distance(a: np.ndarray, pad: int) -> np.ndarray:
+    """Signed distance in cells to the outline of ``a`` (positive outside, negative inside), on the grid
+    padded by ``pad`` cells on each side; beyond the grid's border ``a`` continues as at the border (the
+    image edge cuts the subject: no outline there)."""
+    from scipy.ndimage import distance_transform_edt
+
+    p = np.pad(a, pad + 2, mode="edge")
+    sd = distance_transform_edt(~p) - distance_transform_edt(p)
+    return sd[2:-2, 2:-2]
+
+
 def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) -> tuple[float, float]:
     """How the mask lies in the mesh's projection (``mesh``: every vertex ``[V,3]`` and the faces ``[F,3]``,
-    :func:`_silhouette`): (share of the mask's cells the projection covers, share of the mask's outline on
+    :func:`_silhouette`): (share of the mask's cells within the projection, share of the mask's outline on
     the projection's outline). Both near 1 when the mask is a part of the projected silhouette cut only by
     occluders or the image edge; a projection larger than the subject holds the mask with its outline
-    inside. (0, 0) for an empty mask."""
+    inside. Tolerances are relative to the subject's projected width (its widest inscribed disc on the grid):
+    the mask may be loose (its outline up to ``SLACK`` of that width outside the silhouette's, at least one
+    cell and at most ``_MAX_SLACK``) and off by as much in any direction, the two together within that
+    slack; the best fit, of those holding ``MIN_WITHIN`` of the mask, is taken. (0, 0) for an empty mask."""
     _, cell, raw = grid
     if not raw.any():
         return 0.0, 0.0
     sil = _silhouette(vm, K, w, h, mesh[0], mesh[1], raw.shape, cell)
+    if not sil.any():
+        return 0.0, 0.0
+    sd = _signed_distance(sil, _MAX_SLACK)
+    # the slack: SLACK of the subject's projected width (its widest inscribed disc), 1 to _MAX_SLACK cells
+    t = int(min(_MAX_SLACK, max(1, round(SLACK * 2.0 * float(-sd.min())))))
+    sd = sd[_MAX_SLACK - t : sd.shape[0] - _MAX_SLACK + t, _MAX_SLACK - t : sd.shape[1] - _MAX_SLACK + t]
+    ys, xs = np.nonzero(raw)
     m_out = _outline(raw)
-    on_outline = float(_dilate(_outline(sil))[m_out].mean()) if m_out.any() else 1.0
-    return float(_dilate(sil)[raw].mean()), on_outline
+    oy, ox = np.nonzero(m_out)
+    shifts = np.arange(-t, t + 1)
+    dy, dx = (a.ravel() for a in np.meshgrid(shifts, shifts, indexing="ij"))
+    loose = np.arange(0, t + 1, dtype=np.float64)  # how far outside the silhouette the mask's outline lies
+    # [shift, cell] signed distances of the mask's cells and outline cells, the mask moved by each shift
+    d_in = sd[ys[None] + t + dy[:, None], xs[None] + t + dx[:, None]]
+    inside = (d_in[:, None, :] <= loose[None, :, None] + 1.5).mean(-1)  # [shift, loose]
+    if len(oy):
+        d_out = sd[oy[None] + t + dy[:, None], ox[None] + t + dx[:, None]][:, None, :] - loose[None, :, None]
+        on_line = ((d_out >= -BAND_IN) & (d_out <= BAND_OUT)).mean(-1)
+    else:
+        on_line = np.ones_like(inside)
+    budget = np.maximum(np.abs(dy), np.abs(dx))[:, None] + loose[None, :] <= t
+    ok = (inside >= MIN_WITHIN) & budget
+    if ok.any():
+        k = np.argmax(np.where(ok, on_line, -1.0))
+    else:
+        k = np.argmax(np.where(budget, inside, -1.0))
+    return float(inside.flat[k]), float(on_line.flat[k])
 
 
 def _score(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray, grid) -> _Score:
@@ -269,9 +317,11 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
     With ``mesh()`` (the frame's every vertex and the faces) the mask is also compared the other way
     (:func:`_within`): a frame whose vertices miss the mask (occlusion) or lie mostly outside the image (a
     close-up) passes when the mask lies within the projected silhouette (``MIN_WITHIN``) and its outline
-    on the silhouette's (``MIN_OUTLINE``: cut only by occluders and the image edge, so a projection larger
-    than the subject does not pass); the roll wins only when it holds more of the mask and fits clearly
-    better on both counts together."""
+    on the silhouette's (``MIN_OUTLINE``: cut only by occluders and the image edge), a loose or offset mask
+    fitted within ``SLACK`` of the subject's width, and no shrunk projection fits clearly better (a
+    projection larger than the subject holds the mask too, its outline inside); the roll wins when its
+    outline fits by ``SMALLER_BETTER`` more, or its vertices on the mask, mask within and outline together
+    by ``CLEARLY_BETTER`` more."""
     s = _score(vm, K, w, h, verts, grid)
     if s.ok:
         if grid is None:
@@ -296,16 +346,23 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
             return s.why()
     if s.on_mask is not None:
         r = _score(_ROLL @ vm, K, w, h, verts, grid)
-        if r.on_mask is None or r.visible < MIN_VISIBLE or r.on_mask <= s.on_mask:
+        if r.on_mask is None or r.visible < MIN_VISIBLE:
             return None
+        if r.on_mask <= s.on_mask and (mesh is None or s.on_mask >= MOSTLY_ON_MASK):
+            return None  # (most of the mesh on the mask: no roll can fit better)
         if mesh is None:
             better = r.on_mask >= s.on_mask + CLEARLY_BETTER
         else:
-            # what the projection as is holds of the mask is explained by it (what it misses may be occluded):
-            # the roll must hold more of the mask, and fit clearly better on both counts together
-            within = (held or _within(vm, K, w, h, mesh(), grid))[0]
-            r_within = _within(_ROLL @ vm, K, w, h, mesh(), grid)[0]
-            better = r_within > within and r.on_mask + r_within >= s.on_mask + within + CLEARLY_BETTER
+            # what the projection as is misses of the mask may be occluded: the roll must fit the mask's
+            # outline clearly better, or the mask on all three counts together
+            within, line = held or _within(vm, K, w, h, mesh(), grid)
+            r_within, r_line = _within(_ROLL @ vm, K, w, h, mesh(), grid)
+            if r.on_mask > s.on_mask:
+                better = (r_within >= MIN_WITHIN and r_line >= line + SMALLER_BETTER) or (
+                    r.on_mask + r_within + r_line >= s.on_mask + within + line + CLEARLY_BETTER
+                )
+            else:  # fewer vertices on the mask (occluded?): the outline must fit far better
+                better = r_within >= MIN_WITHIN and r_line >= line + CLEARLY_BETTER
         if better:
             return "the mesh fits the mask much better turned by 180 degrees (camera rolled?)"
     return None
@@ -313,15 +370,20 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
 
 def _smaller_fits(vm, K, w, h, verts, grid, mesh, s: _Score, outline: float) -> bool:
     """Whether the projection shrunk about the principal point (``SMALLER``: a focal length or a distance
-    off) fits the mask clearly better than as is: a mask held by a projection larger than the subject."""
+    off) fits the mask clearly better than as is: the mask within it (:func:`_within`) and either its
+    outline on the shrunk one's by ``SMALLER_BETTER`` more, or as much of it with ``CLEARLY_BETTER`` more
+    of the vertices on the mask. A mask held by a projection larger than the subject."""
     for k in SMALLER:
         K2 = K.copy()
         K2[:2, :2] *= k
         r = _score(vm, K2, w, h, verts, grid)
-        if r.on_mask is None or (s.on_mask is not None and r.on_mask < s.on_mask + CLEARLY_BETTER):
-            continue
+        if r.on_mask is None:
+            continue  # too few vertices in the image (a close-up): its mask's outline is mostly the image edge
+        more = r.on_mask >= (s.on_mask or 0.0) + CLEARLY_BETTER
+        if not more and outline + SMALLER_BETTER > 1.0:
+            continue  # nothing to gain: the outline as is is on the silhouette's, the vertices no better
         cover, line = _within(vm, K2, w, h, mesh, grid)
-        if cover >= MIN_WITHIN and line >= outline:
+        if cover >= MIN_WITHIN and (line >= outline + SMALLER_BETTER or (more and line >= outline)):
             return True
     return False
 
