@@ -459,6 +459,34 @@ def test_poses_stay_tracked_until_the_start_fraction_then_move(noisy_smpl, stand
     assert any(float(v.detach().abs().max()) > 0 for v in comp.refiner.offsets.values())
 
 
+def test_keep_depth_moves_no_translation_along_the_training_camera(noisy_smpl, standin_model_dir, tmp_path):
+    """``pose_refine.keep_depth``: every training frame of the monocular capture has one camera, so each row's
+    translation offset ends perpendicular to that camera's line of sight to the subject; without it the
+    offsets have a component along it."""
+    offsets = {}
+    for keep in (True, False):
+        cfg = _short(
+            noisy_smpl,
+            tmp_path / f"run{keep}",
+            f"model_dir={standin_model_dir}",
+            "pose_refine.lr=1e-2",
+            f"pose_refine.keep_depth={str(keep).lower()}",
+        )
+        cfg.iterations = 6
+        t = Trainer(cfg)
+        comp = t.component("pose_refine")
+        t.train()
+        offsets[keep] = comp.refiner.offsets["transl"].detach()
+        if keep:
+            dirs = comp.depth_dirs
+            assert len(dirs) == len(comp.refiner.row_of)
+            along = [float(offsets[keep][comp.refiner.row_of[r]] @ d) for r, d in dirs.items()]
+            moved = [float(offsets[keep][comp.refiner.row_of[r]].norm()) for r in dirs]
+            assert max(moved) > 1e-4 and max(abs(a) for a in along) < 1e-5 * max(moved)
+    # the same draws without the rule move along the line of sight too
+    assert float((offsets[False] - offsets[True]).abs().max()) > 1e-5
+
+
 def test_the_start_fraction_is_checked():
     for bad in ("1", "-0.1"):
         with pytest.raises(MeshsplatError, match=r"pose_refine.start must be in \[0, 1\)"):

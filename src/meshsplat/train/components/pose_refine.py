@@ -37,6 +37,9 @@ class PoseRefineConfig:
     # the fraction of the run's iterations trained on the tracker's poses before they move: early gradients come
     # from an avatar that does not yet look like the subject and push right poses away; 0: from the first step
     start: float = 0.0
+    # a mesh whose training frames all come from one camera: its translation offset does not move along that
+    # camera's line of sight to the subject (depth, which one camera hardly sees; the avatar's size absorbs it)
+    keep_depth: bool = False
     # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen; 0: none
     polish_steps: int = 0
     polish_lr: float = 1e-3
@@ -58,6 +61,24 @@ class PoseRefinement(Component):
     def __init__(self, cfg: PoseRefineConfig, state: TrainingState, refiner: PoseRefiner) -> None:
         super().__init__(cfg, state)
         self.refiner = refiner
+        self.depth_dirs = self._depth_directions() if cfg.keep_depth and "transl" in refiner.offsets else {}
+
+    def _depth_directions(self) -> dict[int, torch.Tensor]:
+        """Per refined mesh row seen by one camera only: the unit vector ``[3]`` from that camera's centre to the
+        tracked mesh's centroid (rows seen by several cameras have their depth in the images: none)."""
+        ds = self.state.dataset
+        cams: dict[int, set[str]] = {}
+        first: dict[int, int] = {}
+        for i in self.state.train_ids:
+            row = self._row(i)
+            cams.setdefault(row, set()).add(str(ds.frame_info(i)["camera"]))
+            first.setdefault(row, i)
+        dirs = {}
+        for row, ids in cams.items():
+            if len(ids) == 1 and self.refiner.refines(row):
+                d = ds.vertices(first[row]).mean(0) - ds.frame_camera(first[row]).center.to(torch.float32)
+                dirs[row] = (d / d.norm().clamp_min(1e-9)).to(self.state.device)
+        return dirs
 
     @classmethod
     def build(cls, cfg: PoseRefineConfig, state: TrainingState) -> tuple[Component | None, str | None]:
@@ -102,8 +123,14 @@ class PoseRefinement(Component):
     def after_step(self, it: int, rows: list[int]) -> None:
         if not self.started:
             return
+        mesh_rows = [self._row(i) for i in rows]
         # the batch's rows only: a frame not drawn keeps its pose and its Adam state
-        self.refiner.step(self._row(i) for i in rows)
+        self.refiner.step(mesh_rows)
+        if self.depth_dirs:  # projected Adam: the offset back onto the plane across the camera's line of sight
+            transl = self.refiner.offsets["transl"].data
+            for row in set(mesh_rows) & set(self.depth_dirs):
+                j, d = self.refiner.row_of[row], self.depth_dirs[row]
+                transl[j] -= (transl[j] @ d) * d
         self.refiner.polished = False  # the poses moved with the avatar: fit them again at the end
 
     @property
