@@ -7,19 +7,23 @@ identity fixed, no smoothing) and against the rendered truth.
 Variants, each in a fresh browser, interleaved over ``--rounds`` rounds so that the shared machine's
 load falls on all of them alike:
 
-- ``before``: the page as it was at ``--before-rev`` (its viewer.js, inlined into the same bundle):
-  the attention model (478 points), full camera frames, one landmark pass per frame callback;
+- ``before``: the page as it was at ``--before-rev`` (its viewer.js, inlined into the same bundle;
+  default 256bbc2, the landmarker on the CPU at 256 px, the avatar drawn at the full buffer; 2307bfb:
+  the attention model in WebGL on full camera frames, one landmark pass per frame callback);
 - ``pipelined``, ``pipelined+cpu``, ``after-plain468``: the current page with the landmarker's options
-  set by the URL (``camcpu``, ``camrefine``, ``camsize``), to tell the changes apart;
-- ``after``: the current page with its defaults (models on the CPU, attention model, frames scaled to
-  256 px); ``after-320x240``: the same in a 320x240 viewport (the avatar's draw costs a quarter).
+  set by the URL (``camcpu``, ``camrefine``, ``camsize``) at the full drawing buffer, to tell those apart;
+- ``after-nocap``: the current page's draw rules (one draw per solution, re-sorted only when the pose
+  moved) at the full drawing buffer with float blending (``campixels=0&camfloat=1``);
+- ``after``: the current page with its defaults (+ while its draws are slow, the drawing buffer capped
+  and 8-bit blending); ``after-float``: the cap alone (``camfloat=1``); ``after-cap80k``,
+  ``after-cap120k``: other caps (``campixels``); ``after-320x240``: the defaults in a 320x240 viewport.
 
 Per run: the page loads, the webcam starts, the first ``--warmup`` solved frames are left out (the
 landmarker's first frame takes seconds), then ``--seconds`` are recorded: the page's ``latencyMs``
 (``frameIn``, the time the camera frame was noted, to the draw calls that show its solution issued),
 ``renderedMs`` (to a fence after those draw calls signalled: the pixels rendered; the old page gets the
 same fence patched in, its only change), ``landmarkMs``,
-``solveMs``, solved frames per second (solved frames / wall-clock seconds, in the page's clock) and the
+``solveMs``, ``drawMs`` (the draw calls issued -> the fence), the drawing buffer's size, solved frames per second (solved frames / wall-clock seconds, in the page's clock) and the
 median weights over the window. The load average goes with each run: the machine is shared.
 
 Usage: python bench/viewer_webcam.py [--rounds 2] [--seconds 15] [--variants before,after]
@@ -64,11 +68,18 @@ EXPR = {"jawOpen": 0.5, "mouthSmile_L": 0.6, "mouthSmile_R": 0.6}
 ROT = [0.05, 0.2, 0.0]
 VARIANTS = {  # name -> (code, URL parameters[, viewport]); the viewport is 640x480 CSS px unless given
     "before": ("before", ""),
-    "pipelined": ("now", "&camcpu=0&camrefine=1&camsize=0"),  # the new frame loop, the old landmarker options
-    "pipelined+cpu": ("now", "&camcpu=1&camrefine=1&camsize=0"),  # ... with the models on the CPU
-    "after": ("now", ""),  # the defaults: + frames scaled to 256 px
-    "after-plain468": ("now", "&camrefine=0"),  # ... with the plain 468-point mesh
-    "after-320x240": ("now", "", (320, 240)),  # the defaults in a smaller viewport (the avatar's draw is cheaper)
+    # the landmarker's steps (commit 256bbc2), each at the full drawing buffer (campixels=0)
+    # the new frame loop, the old landmarker options
+    "pipelined": ("now", "&camcpu=0&camrefine=1&camsize=0&campixels=0"),
+    "pipelined+cpu": ("now", "&camcpu=1&camrefine=1&camsize=0&campixels=0"),  # ... with the models on the CPU
+    "after-plain468": ("now", "&camrefine=0&campixels=0"),  # ... frames scaled to 256 px, the plain 468-point mesh
+    # the avatar's draw while the webcam drives it
+    "after-nocap": ("now", "&campixels=0&camfloat=1"),  # one draw per solution, re-sorted when the pose moved
+    "after": ("now", ""),  # the defaults: + on slow draws the buffer capped (WEBCAM_PIXELS, 258x193 here), 8-bit
+    "after-float": ("now", "&camfloat=1"),  # the cap alone (float blending kept)
+    "after-cap80k": ("now", "&campixels=80000"),  # a higher cap (326x244 here), 8-bit
+    "after-cap120k": ("now", "&campixels=120000"),  # (400x300 here), 8-bit
+    "after-320x240": ("now", "", (320, 240)),  # the defaults in a 320x240 viewport (capped to 258x193 too)
 }
 
 
@@ -135,8 +146,9 @@ def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float
         start = json.loads(
             page.evaluate(
                 "(() => { const s = window.meshsplatViewer.webcam.stats;"
-                " for (const k of ['latencyMs', 'renderedMs', 'landmarkMs', 'solveMs', 'weights']) if (s[k]) s[k].length = 0;"
+                " for (const k of ['latencyMs', 'renderedMs', 'drawMs', 'landmarkMs', 'solveMs', 'weights']) if (s[k]) s[k].length = 0;"
                 " return JSON.stringify({t: performance.now(), frames: s.frames, camera: s.camera || 0,"
+                " draws: window.meshsplatViewer.timings.main.length,"
                 " dropped: s.dropped || 0, lost: s.lost}); })()"
             )
         )
@@ -144,7 +156,9 @@ def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float
         end = json.loads(
             page.evaluate(
                 "(() => { const s = window.meshsplatViewer.webcam.stats;"
-                " return JSON.stringify({...s, t: performance.now()}); })()"
+                " const c = document.getElementById('canvas');"
+                " return JSON.stringify({...s, t: performance.now(), draws: window.meshsplatViewer.timings.main.length,"
+                " buffer: [c.width, c.height]}); })()"
             )
         )
     dt = (end["t"] - start["t"]) / 1000
@@ -154,6 +168,8 @@ def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float
         "seconds": round(dt, 2),
         "solved": end["frames"] - start["frames"],
         "solved_fps": round((end["frames"] - start["frames"]) / dt, 2),
+        "draws_per_s": round((end["draws"] - start["draws"]) / dt, 2),  # the page's draws (its main-thread timer)
+        "drawing_buffer": end["buffer"],
         "camera_fps": round((end.get("camera", 0) - start["camera"]) / dt, 2) if "camera" in end else None,
         "dropped": end.get("dropped", 0) - start["dropped"] if "dropped" in end else None,
         "lost": end["lost"] - start["lost"],
@@ -161,6 +177,11 @@ def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float
         "rendered_ms": (
             {"median": float(np.median(end["renderedMs"])), "p90": float(np.percentile(end["renderedMs"], 90))}
             if end.get("renderedMs")
+            else None
+        ),
+        "draw_ms": (  # the avatar's draw: its draw calls issued -> its pixels rendered
+            {"median": float(np.median(end["drawMs"])), "p90": float(np.percentile(end["drawMs"], 90))}
+            if end.get("drawMs")
             else None
         ),
         "landmark_ms": {
@@ -181,7 +202,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--warmup", type=int, default=4, help="solved frames left out at the start")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--before-rev", default="2307bfb", help="the commit whose page is 'before'")
+    ap.add_argument("--before-rev", default="256bbc2", help="the commit whose page is 'before' (2307bfb: older)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     chromium = find_chromium()
@@ -201,9 +222,11 @@ def main() -> None:
         text=True,
         check=True,
     ).stdout
-    # the one change to the old page, for the measurement only: the fence that times its pixels rendered
-    assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
-    write_bundle(work / "before", model, landmarker, old_js.replace(OLD_LATENCY, FENCED_LATENCY))
+    # the one change to an old page without it, for the measurement only: the fence that times its pixels rendered
+    if "renderedMs" not in old_js:
+        assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
+        old_js = old_js.replace(OLD_LATENCY, FENCED_LATENCY)
+    write_bundle(work / "before", model, landmarker, old_js)
     write_bundle(work / "now", model, landmarker, None)
     srv, base = serve(work)
 

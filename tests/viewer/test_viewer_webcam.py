@@ -254,6 +254,49 @@ console.log(JSON.stringify(out));
     assert np.abs(out[3]["move"]).max() < 1e-3  # after "neutral": the current place is the rest (the same frame again)
 
 
+@needs_node
+def test_webcam_drawing_buffer_cap(tmp_path):
+    """The drawing buffer's size rule (drawingSize): without a cap (webcam off) the page's rule as before
+    (the screen's pixel ratio, capped by the quality setting and 4 MP); with one (webcam mode) at most that
+    many pixels, the aspect kept, never larger than without; and the webcam's re-sort tolerance."""
+    script = f"""
+import {{ drawingSize, webcamPoseClose, WEBCAM_PIXELS, WEBCAM_RESORT }} from {json.dumps(VIEWER_JS.as_uri())};
+const old = (cw, ch, ratio, quality, budget) => {{  // the rule before webcam mode's cap
+  let dpr = Math.min(ratio || 1, quality || 2);
+  const css = Math.max(cw * ch, 1);
+  if (css * dpr * dpr > budget) dpr = Math.max(1, Math.sqrt(budget / css));
+  return [Math.round(cw * dpr), Math.round(ch * dpr)];
+}};
+const out = {{ cases: [], WEBCAM_PIXELS, WEBCAM_RESORT }};
+for (const [cw, ch, r, q] of [[640, 480, 1, 2], [320, 240, 1, 2], [390, 844, 3, 2], [1920, 1080, 2, 2], [1280, 720, 1.5, 1], [200, 100, 1, 2]]) {{
+  out.cases.push({{ args: [cw, ch, r, q], old: old(cw, ch, r, q, 4e6), off: drawingSize(cw, ch, r, q, 4e6, 0),
+                   on: drawingSize(cw, ch, r, q, 4e6, WEBCAM_PIXELS) }});
+}}
+const pose = (w, angle, t) => ({{ weights: [w, 0], rotation: {{ rotation: [0, Math.sin(angle / 2), 0, Math.cos(angle / 2)], translation: [t, 0, 0] }} }});
+const a = pose(0.5, 0.1, 0);
+out.close = [webcamPoseClose(a, pose(0.53, 0.11, 0.005), 1), webcamPoseClose(a, pose(0.6, 0.1, 0), 1),
+             webcamPoseClose(a, pose(0.5, 0.13, 0), 1), webcamPoseClose(a, pose(0.5, 0.1, 0.02), 1), webcamPoseClose(null, a, 1)];
+console.log(JSON.stringify(out));
+"""
+    (tmp_path / "t.mjs").write_text(script)
+    r = subprocess.run([NODE, str(tmp_path / "t.mjs")], capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    cap = out["WEBCAM_PIXELS"]
+    assert 20000 <= cap <= 150000
+    for c in out["cases"]:
+        off, on = c["off"], c["on"]
+        assert [off["w"], off["h"]] == c["old"] == [off["fullW"], off["fullH"]], c  # webcam off: as before
+        assert [on["fullW"], on["fullH"]] == c["old"], c  # the view readout's size does not change
+        assert on["w"] * on["h"] <= max(cap, off["w"] * off["h"]) and on["w"] <= off["w"] and on["h"] <= off["h"], c
+        if off["w"] * off["h"] > cap:
+            assert on["w"] * on["h"] > 0.95 * cap, c  # the cap used, not much less
+            assert on["w"] / on["h"] == pytest.approx(off["w"] / off["h"], rel=0.02), c
+        else:
+            assert [on["w"], on["h"]] == [off["w"], off["h"]], c
+    assert out["close"] == [True, False, False, False, False]
+
+
 def _head_image(head, weights: dict[str, float], rot, size: int = 256) -> np.ndarray:
     from meshsplat.track.head_render import render_head
 
@@ -322,6 +365,8 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     try:
         with open_page(f"{base}/index.html?play=0", 640, 480, chromium, fake_camera=clip) as page:
             page.wait_ready(60)
+            size_js = "(() => { const c = document.getElementById('canvas'); return [c.width, c.height]; })()"
+            size_off = page.evaluate(size_js)
             page.evaluate("document.getElementById('webcam').click()")
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:
@@ -335,10 +380,22 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
             move = page.evaluate("Array.from(window.meshsplatViewer.webcam.lastTranslation)")
             page.screenshot(tmp_path / "webcam.png")
             status = page.evaluate("document.getElementById('camstatus').textContent")
+            size_on, view_on = page.evaluate(size_js), page.evaluate("window.meshsplatViewer.viewString")
+            page.evaluate("document.getElementById('camstop').click()")
+            time.sleep(1.0)
+            size_stopped = page.evaluate(size_js)
     finally:
         srv.shutdown()
     st = json.loads(stats)
     assert st["frames"] >= 6, status
+    # the drawing buffer: the page's own size with the webcam off and after "stop"; while the webcam drives
+    # the avatar and its draws are slow (software WebGL here), capped at WEBCAM_PIXELS (and the CSS size kept)
+    assert size_off == [640, 480] and size_stopped == [640, 480], (size_off, size_stopped)
+    if np.median(st["drawMs"][:5]) > 20:
+        assert size_on[0] * size_on[1] <= 50000 and size_on[0] / size_on[1] == pytest.approx(4 / 3, abs=0.02), size_on
+    else:
+        assert size_on == [640, 480], (size_on, st["drawMs"])
+    assert view_on.endswith(",640,480"), view_on  # the view readout names the page's size, capped or not
     names = model[1]["names"]
     page_w = np.median([s["w"] for s in st["weights"][2:]], axis=0)  # after the tracker settles
     smile_l_raw = st["weights"][-1]["w"][names.index("mouthSmile_L")]

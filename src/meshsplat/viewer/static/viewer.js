@@ -1162,6 +1162,7 @@ export class SplatRenderer {
     // every splat's premultiplied colour at 1 (darker where bright splats overlap)
     this.composite = program(gl, PASS_VERT, COMPOSITE_FRAG, ["img"]);
     this.target = null;
+    this.blend8 = false; // this draw through the 8-bit path even with a float target (webcam mode on slow draws)
     this.floatTarget = floatTarget && this.resizeTarget(1, 1);
     if (floatTarget && !this.floatTarget) console.warn("meshsplat viewer: no RGBA16F render target; blending in 8 bits (colours above 1 clamped per splat)");
     const ftex = new Uint32Array(4 * b.F);
@@ -1319,11 +1320,12 @@ export class SplatRenderer {
 
   draw(viewmat, K, background) {
     const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, p = this.splat, t = this.t;
-    if (this.floatTarget && !this.resizeTarget(Math.max(w, 1), Math.max(h, 1))) {
+    if (this.floatTarget && !this.blend8 && !this.resizeTarget(Math.max(w, 1), Math.max(h, 1))) {
       this.floatTarget = false;
       console.warn(`meshsplat viewer: no ${w}x${h} RGBA16F render target; blending in 8 bits from now on`);
     }
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.floatTarget ? this.target.fb : null);
+    const float = this.floatTarget && !this.blend8;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, float ? this.target.fb : null);
     gl.viewport(0, 0, w, h);
     gl.clearColor(background[0], background[1], background[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
@@ -1357,7 +1359,7 @@ export class SplatRenderer {
     this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k });
     gl.bindVertexArray(this.vao);
     if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
-    if (this.floatTarget) { // one full-screen pass: clamp the blended image into the canvas
+    if (float) { // one full-screen pass: clamp the blended image into the canvas
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
       gl.disable(gl.BLEND);
       gl.useProgram(this.composite.prog);
@@ -1622,6 +1624,52 @@ export function cameraErrorText(err) {
   return `the camera could not be opened (${name || "error"}: ${err && err.message ? err.message : err})`;
 }
 
+/** Drawing-buffer pixels at most while the webcam drives the avatar and its draws are slow (the median of
+ * the first solutions' draws, issued -> rendered, over WEBCAM_SLOW_DRAW_MS): the page draws a smaller image
+ * and the browser scales it up to the canvas's CSS size, and blends in 8 bits (no float target and
+ * composite pass; URL `camfloat=1` keeps them). URL `campixels=N` sets the cap and applies both however fast
+ * the draws are (0: no cap). Under software WebGL the draw's cost follows its pixels (bench/reports/viewer.md,
+ * webcam mode); with the webcam off the page draws as ever. */
+export const WEBCAM_PIXELS = 50000;
+export const WEBCAM_SLOW_DRAW_MS = 20;
+
+/**
+ * The canvas's drawing buffer: device pixels per CSS pixel are the screen's, capped by the quality setting
+ * and a pixel budget (`budget`); `cap` > 0 (webcam mode) caps the buffer's pixels further (below one device
+ * pixel per CSS pixel if need be). Returns {w, h} (the buffer) and {fullW, fullH} (without `cap`: the size
+ * the view readout names).
+ */
+export function drawingSize(cssW, cssH, deviceRatio, quality, budget, cap = 0) {
+  let dpr = Math.min(deviceRatio || 1, quality || 2);
+  const css = Math.max(cssW * cssH, 1);
+  if (css * dpr * dpr > budget) dpr = Math.max(1, Math.sqrt(budget / css));
+  const fullW = Math.round(cssW * dpr), fullH = Math.round(cssH * dpr);
+  if (!(cap > 0) || fullW * fullH <= cap) return { w: fullW, h: fullH, fullW, fullH };
+  const s = Math.sqrt(cap / Math.max(fullW * fullH, 1));
+  return { w: Math.max(1, Math.floor(fullW * s)), h: Math.max(1, Math.floor(fullH * s)), fullW, fullH };
+}
+
+/** Webcam mode re-sorts the Gaussians only when the head turned (quaternion angle, rad) or moved (its
+ * translation, in the avatar's bounding radius) or a morph weight changed past these since the last sort. */
+export const WEBCAM_RESORT = { angle: 0.02, move: 0.01, weight: 0.05 };
+/** ... and a new order is drawn by itself only once no solution came for this long (ms). */
+export const WEBCAM_SETTLE_MS = 150;
+
+/** Whether webcam pose `p` ({weights, rotation: {rotation xyzw, translation} | null}) is within
+ * WEBCAM_RESORT of `s` (the pose last sorted), `radius` the avatar's bounding radius. */
+export function webcamPoseClose(s, p, radius) {
+  if (!s || !p || s.weights.length !== p.weights.length) return false;
+  for (let i = 0; i < p.weights.length; i++) if (Math.abs(p.weights[i] - s.weights[i]) > WEBCAM_RESORT.weight) return false;
+  const a = s.rotation, c = p.rotation;
+  if (!a !== !c) return false;
+  if (!a) return true;
+  const dot = Math.abs(a.rotation[0] * c.rotation[0] + a.rotation[1] * c.rotation[1] + a.rotation[2] * c.rotation[2] + a.rotation[3] * c.rotation[3]);
+  if (2 * Math.acos(Math.min(1, dot)) > WEBCAM_RESORT.angle) return false;
+  if (!a.translation !== !c.translation) return false;
+  if (a.translation && Math.hypot(...[0, 1, 2].map((k) => a.translation[k] - c.translation[k])) > WEBCAM_RESORT.move * radius) return false;
+  return true;
+}
+
 /** What the webcam mode's landmarker runs by default (the page's URL overrides them: `camrefine=0`, `camsize=N`, `camcpu=0`). */
 export const WEBCAM_DEFAULTS = {
   // MediaPipe's attention model (478 points, lips and eyes refined); false: the plain 468-point mesh, 1-2 ms
@@ -1660,7 +1708,8 @@ export class WebcamDriver {
     // frames: solved; camera: camera frames seen; dropped: those replaced by a newer one while the landmarker was busy
     // latencyMs: frame in -> the avatar's draw calls issued; renderedMs: -> its pixels rendered (a fence);
     // idleMs: from one landmark pass's end to the next one's start (waiting for a new camera frame)
-    this.stats = { frames: 0, camera: 0, dropped: 0, solveMs: [], landmarkMs: [], latencyMs: [], renderedMs: [], idleMs: [],
+    // drawMs: the avatar's draw, its draw calls issued -> its pixels rendered (the page's cap on slow draws reads it)
+    this.stats = { frames: 0, camera: 0, dropped: 0, solveMs: [], landmarkMs: [], latencyMs: [], renderedMs: [], drawMs: [], idleMs: [],
                    startedAt: 0, lost: 0, weights: [] };
   }
 
@@ -1781,7 +1830,7 @@ export class WebcamDriver {
     const solveMs = performance.now() - t1;
     this.stats.solveMs.push(solveMs); this.stats.frames++;
     this.stats.weights.push({ t: this.frameIn, w: Array.from(sol.w), rot: sol.rot, err: sol.errorPx });
-    for (const k of ["solveMs", "landmarkMs", "latencyMs", "renderedMs", "idleMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
+    for (const k of ["solveMs", "landmarkMs", "latencyMs", "renderedMs", "drawMs", "idleMs", "weights"]) if (this.stats[k].length > 600) this.stats[k].shift();
     this.lastRotation = matrixQuaternion(axisAngleMatrix(this.smoothR)); // the head node's (xyzw)
     if (!this.t0) this.t0 = sol.t.slice();
     const move = [0, 1, 2].map((k) => sol.t[k] - this.t0[k]);
@@ -1874,6 +1923,7 @@ export function startViewer(doc) {
     white: (params.get("bg") || header.background || "white") !== "black",
     poseKey: "", sortedKey: null, drawnKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
     shadowKey: null, shadowPending: null, // the pose whose height maps are uploaded / being built (model.occlusion=key)
+    camSorted: null, camPoseKey: null, camPoseAt: 0, drawnBase: null, // webcam mode: the pose last sorted, the newest solution's key and time
   };
   for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
     const [i, w] = kv.split(":").map(Number);
@@ -1951,7 +2001,7 @@ export function startViewer(doc) {
   }
   // webcam mode (bundles written with --webcam): the face in the camera drives the morph targets of
   // the solve's ARKit names and, for a blend-shape head, the head node's rotation
-  const cam_ = { driver: null, weights: null, rotation: null, frameIn: null, key: 0 };
+  const cam_ = { driver: null, weights: null, rotation: null, frameIn: null, key: 0, slow: false };
   if (live && b.webcam) {
     const btn = $("webcam"), panel = $("campanel"), status = $("camstatus"), video = $("camvideo");
     btn.hidden = false;
@@ -1961,7 +2011,7 @@ export function startViewer(doc) {
     const headScale = headNode !== null && b.webcam.headSize ? boxDiagonal(b.rig.base) / b.webcam.headSize : 0;
     const stop = () => {
       if (cam_.driver) cam_.driver.stop();
-      cam_.weights = null; cam_.rotation = null; cam_.frameIn = null;
+      cam_.weights = null; cam_.rotation = null; cam_.frameIn = null; cam_.slow = false;
       panel.hidden = true; btn.textContent = "webcam"; btn.setAttribute("aria-pressed", "false");
     };
     btn.onclick = async () => {
@@ -2028,6 +2078,10 @@ export function startViewer(doc) {
   const quality = $("quality");
   if (params.get("dpr")) quality.value = params.get("dpr");
   const PIXEL_BUDGET = 4e6; // canvas pixels at most (a 3x phone would draw 3 million at full resolution)
+  // webcam mode's cap on the drawing buffer: on slow draws (?campixels=N: always; 0: never); off while the webcam is stopped
+  const camPixelsSet = params.has("campixels");
+  const camPixels = camPixelsSet ? Math.max(0, parseFloat(params.get("campixels")) || 0) : WEBCAM_PIXELS;
+  const camFloat = params.get("camfloat") === "1"; // ... and blends in 8 bits then, unless ?camfloat=1
   $("reset").onclick = resetView;
   // one pointer (mouse or finger) drags to orbit; two fingers pinch to zoom (distance ratio); the
   // wheel zooms; a double tap, the reset button or "r" gives the default view back
@@ -2152,17 +2206,24 @@ export function startViewer(doc) {
       }
       slider.value = String(live ? state.time : state.frame);
     }
-    // device pixels per CSS pixel: the screen's, capped by the quality setting and a pixel budget
-    let dpr = Math.min(window.devicePixelRatio || 1, parseFloat(quality.value) || 2);
-    const css = Math.max(canvas.clientWidth * canvas.clientHeight, 1);
-    if (css * dpr * dpr > PIXEL_BUDGET) dpr = Math.max(1, Math.sqrt(PIXEL_BUDGET / css));
-    const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
+    // device pixels per CSS pixel: the screen's, capped by the quality setting and a pixel budget; while
+    // the webcam drives the avatar, the drawing buffer's pixels are capped further (camPixels; CSS scales it up)
+    const webcamOn = cam_.weights !== null;
+    if (webcamOn && !cam_.slow && cam_.driver && cam_.driver.stats.drawMs.length >= 3) { // slow draws: the cap stays on until stop
+      const d = cam_.driver.stats.drawMs.slice(-5).sort((x, y) => x - y);
+      cam_.slow = d[d.length >> 1] > WEBCAM_SLOW_DRAW_MS;
+    }
+    const cheap = webcamOn && (camPixelsSet || cam_.slow); // the webcam's cheaper draw: capped buffer, 8-bit blending
+    renderer.blend8 = cheap && !camFloat;
+    const size = drawingSize(canvas.clientWidth, canvas.clientHeight, window.devicePixelRatio || 1, parseFloat(quality.value) || 2,
+                             PIXEL_BUDGET, cheap ? camPixels : 0);
+    const w = size.w, h = size.h;
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
     const viewmat = orbitViewmat(cam.center, cam.dist, cam.az, cam.el, cam0.up, cam0.front);
-    const vs = viewString(cam, cam0.fov_deg, w, h);
+    const vs = viewString(cam, cam0.fov_deg, size.fullW, size.fullH); // the view at the page's own size, capped or not
     if (vs !== viewShown) {
       viewShown = vs;
-      if (doc.activeElement !== viewText) viewText.value = viewFlags(cam, cam0.fov_deg, w, h);
+      if (doc.activeElement !== viewText) viewText.value = viewFlags(cam, cam0.fov_deg, size.fullW, size.fullH);
     }
     // the address holds the view once it left the home view (throttled): a reload or a shared link opens it
     const atHome = cam.az === cam0.azimuth_deg && cam.el === cam0.elevation_deg && cam.dist === homeDist &&
@@ -2173,7 +2234,6 @@ export function startViewer(doc) {
       try { window.history.replaceState(null, "", wanted || doc.location.href.split("#")[0]); } catch (err) { /* opaque origins */ }
     }
     const K = intrinsics(w, h, cam0.fov_deg);
-    const webcamOn = cam_.weights !== null;
     const poseKey = webcamOn ? `webcam|${cam_.key}` : live ? `${state.clip}|${(clips.length ? clips[state.clip].start : 0) + state.time}|${Array.from(state.weights).join()}`
                          : String(state.frame);
     if (poseKey !== state.poseKey) {
@@ -2196,27 +2256,38 @@ export function startViewer(doc) {
       state.shadowPending = poseKey; // before the request: without a worker the result comes back inside it
       if (!mapper.request(pose)) state.shadowPending = null;
     }
-    // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free
-    const key = `${poseKey}#${Array.from(viewmat).join()}`;
+    // the worker sorts whenever the drawn pose or view differs from the sorted one and it is free; in webcam
+    // mode a pose within WEBCAM_RESORT of the one last sorted keeps that order (its key stands for it)
+    const camPose = webcamOn ? { weights: cam_.weights, rotation: cam_.rotation } : null;
+    if (!webcamOn) state.camSorted = null;
+    else if (poseKey !== state.camPoseKey) { state.camPoseKey = poseKey; state.camPoseAt = now; }
+    const sortPoseKey = webcamOn && state.camSorted && webcamPoseClose(state.camSorted.pose, camPose, radius) ? state.camSorted.key : poseKey;
+    const key = `${sortPoseKey}#${Array.from(viewmat).join()}`;
     if (key !== state.sortedKey && state.pendingKey === null) {
       state.pendingKey = key; // before the request: without a worker the result comes back inside it
+      if (webcamOn) state.camSorted = { pose: camPose, key: sortPoseKey };
       if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
-    // draw when the pose, view, order, background or size changed (a still page stays idle)
-    const drawKey = `${key}|${state.sortedKey}|${state.shadowKey}|${state.white}|${w}x${h}`;
-    if (drawKey !== state.drawnKey && !(mapper && state.shadowKey === null)) { // not before the first height maps
+    // draw when the pose, view, order, background or size changed (a still page stays idle); in webcam
+    // mode a new order alone waits for the next solution's draw while solutions keep coming (one draw each)
+    const drawBase = `${poseKey}|${key}|${state.shadowKey}|${state.white}|${w}x${h}|${renderer.blend8}`;
+    const drawKey = `${drawBase}|${state.sortedKey}`;
+    const orderOnly = webcamOn && state.drawnBase === drawBase && now - state.camPoseAt < WEBCAM_SETTLE_MS;
+    if (drawKey !== state.drawnKey && !orderOnly && !(mapper && state.shadowKey === null)) { // not before the first height maps
       lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
       renderer.draw(...lastDraw);
-      state.drawnKey = drawKey;
+      state.drawnKey = drawKey; state.drawnBase = drawBase;
       if (webcamOn && cam_.frameIn !== null && cam_.driver) { // frame in -> avatar drawn (its draw calls issued)
         const st = cam_.driver.stats, frameIn = cam_.frameIn, gl = renderer.gl;
-        st.latencyMs.push(performance.now() - frameIn); cam_.frameIn = null;
+        const issued = performance.now();
+        st.latencyMs.push(issued - frameIn); cam_.frameIn = null;
         if (gl.fenceSync) { // ... and -> its pixels rendered (a fence after the draw signals)
           const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
           gl.flush();
           const poll = () => {
             if (gl.getSyncParameter(fence, gl.SYNC_STATUS) !== gl.SIGNALED) { setTimeout(poll, 1); return; }
-            st.renderedMs.push(performance.now() - frameIn); gl.deleteSync(fence);
+            const t = performance.now();
+            st.renderedMs.push(t - frameIn); st.drawMs.push(t - issued); gl.deleteSync(fence);
           };
           setTimeout(poll, 0);
         }
@@ -2230,7 +2301,7 @@ export function startViewer(doc) {
     stats.textContent = `${fps.toFixed(0)} fps · ${b.N} Gaussians (${renderer.visible} drawn) · main ${mainMs.toFixed(1)} ms` +
       ` · sort ${state.sortMs.toFixed(1)} ms (${sorter.inWorker ? "worker" : "main thread"})` +
       (mapper ? ` · shadow maps ${renderer.keyMs.toFixed(1)} ms (${mapper.inWorker ? "worker" : "main thread"})` : "") +
-      (renderer.floatTarget ? "" : " · 8-bit blending (bright overlaps clamped)") +
+      (renderer.floatTarget && !renderer.blend8 ? "" : " · 8-bit blending (bright overlaps clamped)") +
       ` · centres moved ≤ ${Number.isFinite(state.moved) ? state.moved.toExponential(1) : "-"} between sorts` +
       (key === state.sortedKey ? "" : " · order stale") + (mapper && state.shadowKey !== poseKey ? " · shadow stale" : "");
     // ready (for screenshots) once the drawn order belongs to the drawn pose and view, and so do its height maps
