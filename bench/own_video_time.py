@@ -1,11 +1,13 @@
-"""From a video to a viewable head avatar with the README's own commands, timed: track, train with a
-time budget, view, then eval for the held-out metrics (not counted in the time).
+"""From a video to a viewable avatar with the README's own commands, timed: track, train with a time budget,
+view; then, not counted in the time, eval for the held-out metrics and (bodies) the bundled AIST++ dance
+rendered, with a picture of its frames and a check that the body stands upright in them.
 
     python bench/own_video_time.py VIDEO [--size 512] [--fps 15] [--minutes 8] [--work runs/bench-own-video]
+    python bench/own_video_time.py VIDEO --subject body --fps 12 --minutes 14    # a body: issue 45's 20 minutes
 
 Each command runs as a user would run it (`meshsplat ...` in a subprocess); the table gives wall time per
 step and in all, and the held-out frames' metrics; bench/results/own_video_time-<host>.json keeps them
-under ``<video stem>@<size>``.
+under ``<video stem>@<size>`` (``<video stem>@<size>-body`` for bodies).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=8)
     ap.add_argument("--work", type=Path, default=Path("runs/bench-own-video"))
     ap.add_argument("--name", default="own_video_time")
+    ap.add_argument("--subject", choices=["head", "body"], default="head")
     args = ap.parse_args()
     if args.work.exists():
         shutil.rmtree(args.work)
@@ -52,7 +55,19 @@ def main() -> None:
     times = {
         "track": run(
             "track",
-            ["track", str(args.video), "--out", str(cap), "--size", str(args.size), "--fps", str(args.fps), *common],
+            [
+                "track",
+                str(args.video),
+                "--out",
+                str(cap),
+                "--size",
+                str(args.size),
+                "--fps",
+                str(args.fps),
+                "--subject",
+                args.subject,
+                *common,
+            ],
         ),
         "train": run("train", ["train", str(cap), "--out", str(run_dir), "--minutes", str(args.minutes), *common]),
         "view": run("view", ["view", str(run_dir), "--out", str(viewer)]),
@@ -60,18 +75,57 @@ def main() -> None:
     times["total"] = sum(times.values())
     run("eval", ["eval", str(run_dir), "--no-report", *common])
     metrics = json.loads((run_dir / "eval" / "metrics.json").read_text())["splits"]["test_frames"]
+    dance = dance_check(run_dir, args.work / "dance", args.size) if args.subject == "body" else None
     path = results_path(args.name)
     results = json.loads(path.read_text()) if path.exists() else {}
     results["machine"] = machine_info()
-    key = f"{args.video.stem}@{args.size}"
+    key = f"{args.video.stem}@{args.size}" + ("-body" if args.subject == "body" else "")
     results[key] = {"seconds": times, "minutes_budget": args.minutes, "fps": args.fps, "test_frames": metrics}
+    if dance:
+        results[key]["dance"] = dance
     path.write_text(json.dumps(results, indent=1))
     print(f"{'step':8s} {'wall s':>8s}")
     for k, v in times.items():
         print(f"{k:8s} {v:8.1f}")
     keys = ("psnr", "ssim", "lpips", "psnr_mask", "lpips_mask")
     print("held-out frames: " + ", ".join(f"{k} {metrics[k]:.4g}" for k in keys if metrics.get(k) is not None))
+    if dance:
+        print(
+            f"AIST++ dance: {dance['frames']} frames rendered in {dance['seconds']:.0f} s, upright in "
+            f"{dance['upright_frames']} (subject taller than wide, head above hips); picture {dance['picture']}"
+        )
     print(f"saved {path}")
+
+
+def dance_check(run_dir: Path, out: Path, size: int) -> dict:
+    """Render the bundled AIST++ dance on the body avatar (the orbit camera ``render`` chooses, no flags) and
+    count the frames that stand upright: the subject taller than wide, or (arms out) its top tenth, the head,
+    narrower than its middle."""
+    import numpy as np
+    from PIL import Image
+
+    argv = ["render", str(run_dir), "--animation", "motion", "aist_demo", "--frames", "48"]
+    argv += ["--size", f"{size}x{size}", "--background", "black", "--no-mp4", "--out", str(out), "--no-progress"]
+    seconds = run("render", argv)
+    frames = sorted((out / "frames").glob("*.png"))
+    upright = 0
+    for f in frames:
+        fg = np.asarray(Image.open(f).convert("RGB"), np.float32).max(-1) > 8  # foreground on black
+        widths, cols = fg.sum(1), np.nonzero(fg.any(0))[0]
+        rows = np.nonzero(widths)[0]
+        if not len(rows):
+            continue
+        top, h = rows[0], rows[-1] - rows[0] + 1
+        head = widths[top : top + max(1, h // 10)].max()
+        middle = widths[top + 4 * h // 10 : top + 6 * h // 10 + 1].max()
+        upright += int(h > 1.2 * (cols[-1] - cols[0] + 1) or head < middle)
+    picks = [frames[i] for i in np.linspace(0, len(frames) - 1, 6).astype(int)] if frames else []
+    sheet = Image.new("RGB", (len(picks) * 160, 160))
+    for k, f in enumerate(picks):
+        sheet.paste(Image.open(f).convert("RGB").resize((160, 160)), (k * 160, 0))
+    picture = out / "dance_sheet.png"
+    sheet.save(picture)
+    return {"frames": len(frames), "upright_frames": upright, "seconds": seconds, "picture": str(picture)}
 
 
 if __name__ == "__main__":
