@@ -43,6 +43,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from _machine import machine_info, results_path
+from quality_pbr import _schedule as _demo_schedule
 
 FRONT = (0.35, 0.75, 0.55)  # meshsplat.synth's default light
 CAPTURES: dict[str, dict] = {
@@ -67,22 +68,8 @@ RECIPE = {"control": "paper"}  # the recipe of each variant; quality otherwise
 
 
 def _schedule(iterations: int) -> tuple[str, ...]:
-    """The demo's short schedule (refine 300..1200 of 1500) scaled to ``iterations``; the key's stages a fifth."""
-    s = iterations / 1500
-    every = max(10, round(100 * s))
-    return (
-        f"strategy.refine_start_iter={round(300 * s)}",
-        f"strategy.refine_stop_iter={round(1200 * s)}",
-        f"strategy.refine_every={every}",
-        "strategy.reset_every=100000",
-        "strategy.max_gaussians=40000",
-        f"walk.every={every}",
-        f"shading.key_iter={max(1, iterations // 5)}",
-        f"checkpoint_every={iterations}",
-        f"preview_every={iterations}",
-        "log_every=10",
-        "device=cpu",
-    )
+    """quality_pbr's short schedule (the demo's, scaled to ``iterations``), the key's stages a fifth of it."""
+    return (*_demo_schedule(iterations), f"shading.key_iter={max(1, iterations // 5)}", "device=cpu")
 
 
 def _capture(name: str, args, work: Path, spp: int | None = None) -> Path:
