@@ -89,3 +89,10 @@ def small_config(data, out, iterations, extra=()):
             *extra,
         ],
     )
+
+
+def tiny_train_argv() -> list[str]:
+    """``meshsplat train`` flags for a 30-iteration end-to-end check (densification inside it, no LPIPS)."""
+    argv = ["--iters", "30", "--no-progress", "--set", "model.n_init=800", "--set", "loss.lambda_lpips=0"]
+    argv += ["--set", "strategy.refine_start_iter=10", "--set", "strategy.refine_stop_iter=25"]
+    return argv + ["--set", "strategy.refine_every=10", "--set", "preview_every=1000", "--set", "checkpoint_every=1000"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from _head_video import write_head_clip
+from _train_kit import tiny_train_argv
 from meshsplat.cli.main import main
 from meshsplat.data import open_dataset
 from meshsplat.drivers.blendshape import read_weights
@@ -71,10 +72,7 @@ def test_capture_opens_with_splits_cameras_and_fit(capture, head_clip):
 def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path):
     out, _ = capture
     run = tmp_path / "run"
-    tiny = ["--iters", "30", "--no-progress", "--set", "model.n_init=800", "--set", "loss.lambda_lpips=0"]
-    tiny += ["--set", "strategy.refine_start_iter=10", "--set", "strategy.refine_stop_iter=25"]
-    tiny += ["--set", "strategy.refine_every=10", "--set", "preview_every=1000", "--set", "checkpoint_every=1000"]
-    assert main(["train", str(out), "--out", str(run), *tiny]) == 0
+    assert main(["train", str(out), "--out", str(run), *tiny_train_argv()]) == 0
     assert main(["eval", str(run), "--no-report", "--no-lpips", "--no-progress"]) == 0
     m = json.loads((run / "eval" / "metrics.json").read_text())["splits"]["test_frames"]
     assert m["psnr_mask"] is not None and m["psnr_mask"] > 10
