@@ -29,6 +29,9 @@ all but ``default`` start from the ``paper`` preset):
   lpips_every4_unscaled  every 4th iteration at the plain weight (lambda_lpips 0.01 / 4 x 4): a quarter of
                 the mean LPIPS weight, to compare with the scaled one under Adam
   no_lpips      ``default`` without LPIPS (lambda_lpips=0): the bound of what skipping LPIPS can cost
+  lpips_fp32    ``default`` with LPIPS's backbone in float32 (loss.lpips_precision=float32)
+  lpips_bf16    ``default`` with LPIPS's backbone in bfloat16 (loss.lpips_precision=bfloat16, ~2x faster on CPUs
+                with native bf16)
 
 Prints full-image and subject (inside the mask) PSNR / SSIM / LPIPS per test split and saves
 bench/results/<name>-<host>.json after every variant (a rerun resumes finished variants' runs).
@@ -65,6 +68,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "lpips_every4": ("quality", ["loss.lpips_every=4"]),
     "lpips_every4_unscaled": ("quality", ["loss.lpips_every=4", "loss.lambda_lpips=0.0025"]),
     "no_lpips": ("quality", ["loss.lambda_lpips=0"]),
+    "lpips_fp32": ("quality", ["loss.lpips_precision=float32"]),
+    "lpips_bf16": ("quality", ["loss.lpips_precision=bfloat16"]),
 }
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask", "psnr_crop", "ssim_crop", "lpips_crop")
 

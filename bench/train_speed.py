@@ -9,7 +9,8 @@ sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false`
 ``loss.lpips_every=1`` and the torch shadow maps (the path of meshsplat before the numba backend, the crop
 and the LPIPS cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
 ``now`` = the defaults (``backend=auto``: numba on CPU when installed; LPIPS on the subject's box, every
-second iteration), ``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
+second iteration), ``now_lpips_bf16`` = ``now`` with LPIPS's backbone in bfloat16 (``loss.lpips_precision=bfloat16``),
+``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
 ``--lpips-every`` (default none). (A variant ``now_torch_maps`` timed the key light's shadow maps in pure
 torch against the compiled ones; since the trainer keeps each training frame's maps, they are built once per
 frame and that variant was dropped.) Per thread count, every trainer is warmed up, then timed in
@@ -42,9 +43,10 @@ VARIANTS = {
     "before": ["backend=torch", "loss.crop_to_subject=false", "loss.lpips_every=1"],
     "numba_crop": ["loss.lpips_every=1"],
     "now": [],
+    "now_lpips_bf16": ["loss.lpips_precision=bfloat16"],  # LPIPS's backbone in bfloat16 (opt-in, issue 47)
 }
 TORCH_MAPS = {"before"}  # variants whose shadow maps are built by the torch path
-CADENCES = {"before": 1, "numba_crop": 1, "now": 2}  # loss.lpips_every of each variant
+CADENCES = {"before": 1, "numba_crop": 1, "now": 2, "now_lpips_bf16": 2}  # loss.lpips_every of each variant
 
 
 def main() -> None:

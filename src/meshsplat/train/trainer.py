@@ -109,7 +109,11 @@ class Trainer(TrainingLoop, TrainerCheckpoints):
         self._loop_init()
         self.components, self.notes = self._build_components()
         # built now: nothing may draw random numbers after seeding or restoring the generators
-        self.perceptual = make_perceptual_loss("alex").build(self.device) if cfg.loss.lambda_lpips else None
+        self.perceptual = (
+            make_perceptual_loss("alex", precision=cfg.loss.lpips_precision).build(self.device)
+            if cfg.loss.lambda_lpips
+            else None
+        )
         self.elapsed = 0.0
         self.resume_notes: list[str] = []
         loaded = load_resume_checkpoint(self.folder) if resume else None
