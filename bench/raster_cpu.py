@@ -57,11 +57,10 @@ def _pixel_visits(scene: dict) -> int:
     k = nc._kernels()
     s = scene
     size = s["width"]
-    with nc.numba_threads():
-        proj = nc.project_numba(
-            (k.project, k.project_backward), nc.numba_threads, s["means"], s["quats"], s["scales"], s["opacities"],
-            s["viewmats"], s["Ks"], size, s["height"], 0.01, 1e10,
-        )  # fmt: skip
+    proj = nc.project_numba(
+        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
+        s["viewmats"], s["Ks"], size, s["height"], 0.01, 1e10,
+    )  # fmt: skip
     geo = nc._Geometry(proj, s["means"].shape[0], True, size, s["height"], nc.TILE_SIZE)
     geo.bin(s["opacities"], s["colors"])
     counts = numba.njit(_count_visits)(

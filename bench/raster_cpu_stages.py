@@ -108,31 +108,30 @@ def main(argv=None) -> int:
     cams = [sc[x].double().contiguous().numpy() for x in ("viewmats", "Ks")]
     rng = np.random.default_rng(0)
     stages: dict[str, tuple[float, float]] = {}
-    with nc.numba_threads():
-        proj_args = (*arrs, *cams, float(size), float(size), 0.01, 1e10)
-        stages["projection forward"] = _timed(lambda: k.project(*proj_args), args.repeats)
-        m2, con, depth, radii, vis = k.project(*proj_args)
-        v = [rng.standard_normal(x.shape) for x in (m2, con, depth)]
-        bwd_args = (*arrs[:3], *cams, float(size), float(size), vis, *v)
-        stages["projection backward"] = _timed(lambda: k.project_backward(*bwd_args), args.repeats)
-        proj = Projection(
-            means2d=torch.from_numpy(m2).float(), conics=torch.from_numpy(con).float(),
-            depths=torch.from_numpy(depth).float(), radii=torch.from_numpy(radii), visible=torch.from_numpy(vis),
-        )  # fmt: skip
-        stages["geometry (depth argsort)"] = _timed(lambda: nc._Geometry(proj, n, True, size, size, 16), args.repeats)
-        geo = nc._Geometry(proj, n, True, size, size, 16)
-        stages["binning"] = _timed(lambda: geo.bin(sc["opacities"], sc["colors"]), args.repeats)
-        bg = sc["backgrounds"].numpy()
-        stages["compositing forward (scalar)"] = _timed(lambda: k.forward(*geo.args(bg)), args.repeats)
-        stages["compositing forward (lanes)"] = _timed(lambda: k.forward_lanes(*geo.args(bg)), args.repeats)
-        _, t_final, n_contrib = k.forward(*geo.args(bg))
-        g_out = rng.standard_normal((size * size, 3)).astype(np.float32)
-        g_alpha = rng.standard_normal(size * size).astype(np.float32)
-        bwd = (*geo.args(bg), g_out, g_alpha, t_final, n_contrib)
-        stages["compositing backward (scalar)"] = _timed(lambda: k.backward(*bwd), args.repeats)
-        stages["compositing backward (lanes)"] = _timed(lambda: k.backward_lanes(*bwd), args.repeats)
-        rows = k.backward(*bwd)
-        stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1), args.repeats)
+    proj_args = (*arrs, *cams, float(size), float(size), 0.01, 1e10)
+    stages["projection forward"] = _timed(lambda: k.project(*proj_args), args.repeats)
+    m2, con, depth, radii, vis = k.project(*proj_args)
+    v = [rng.standard_normal(x.shape) for x in (m2, con, depth)]
+    bwd_args = (*arrs[:3], *cams, float(size), float(size), vis, *v)
+    stages["projection backward"] = _timed(lambda: k.project_backward(*bwd_args), args.repeats)
+    proj = Projection(
+        means2d=torch.from_numpy(m2).float(), conics=torch.from_numpy(con).float(),
+        depths=torch.from_numpy(depth).float(), radii=torch.from_numpy(radii), visible=torch.from_numpy(vis),
+    )  # fmt: skip
+    stages["geometry (depth argsort)"] = _timed(lambda: nc._Geometry(proj, n, True, size, size, 16), args.repeats)
+    geo = nc._Geometry(proj, n, True, size, size, 16)
+    stages["binning"] = _timed(lambda: geo.bin(sc["opacities"], sc["colors"]), args.repeats)
+    bg = sc["backgrounds"].numpy()
+    stages["compositing forward (scalar)"] = _timed(lambda: k.forward(*geo.args(bg)), args.repeats)
+    stages["compositing forward (lanes)"] = _timed(lambda: k.forward_lanes(*geo.args(bg)), args.repeats)
+    _, t_final, n_contrib = k.forward(*geo.args(bg))
+    g_out = rng.standard_normal((size * size, 3)).astype(np.float32)
+    g_alpha = rng.standard_normal(size * size).astype(np.float32)
+    bwd = (*geo.args(bg), g_out, g_alpha, t_final, n_contrib)
+    stages["compositing backward (scalar)"] = _timed(lambda: k.backward(*bwd), args.repeats)
+    stages["compositing backward (lanes)"] = _timed(lambda: k.backward_lanes(*bwd), args.repeats)
+    rows = k.backward(*bwd)
+    stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1), args.repeats)
     count = numba.njit(_count_visits)
     visited, at_done, below, contributed, n_rows = (
         int(x) for x in count(geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, size, 16, geo.tiles_x)

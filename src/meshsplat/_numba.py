@@ -1,15 +1,20 @@
-"""Whether numba can be used, and running its parallel kernels on torch's thread count (one home for both the
-compiled rasterizer, ``render.backends.numba_cpu``, and the compiled shadow maps, ``mesh.visibility``)."""
+"""Whether numba can be used, and running compiled kernels on torch's thread count (one home for the compiled
+rasterizer, ``render.backends.numba_cpu``, the compiled shadow maps, ``mesh.visibility``, and the albedo prior).
+
+Kernels are serial (``njit_serial``: a kernel over ``[lo, hi)`` ranges of its items) and run on several threads by
+``run_ranges``. numba's ``parallel=True`` loops around a whole kernel compiled several times slower (the
+rasterizer's four largest kernels: about 20 s of CPU against 7 s serial, bench/reports/raster_cpu.md), which is
+what the first run after an install waits for; on one thread nothing parallel is compiled at all, on more each
+kernel gets a small parallel driver (compiled on first use, cached) that runs it over ranges."""
 
 from __future__ import annotations
 
-import contextlib
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
-__all__ = ["numba_available", "numba_threads", "njit_parallel", "NO_NUMBA_ENV"]
+__all__ = ["numba_available", "njit_serial", "run_ranges", "NO_NUMBA_ENV"]
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
 
@@ -33,29 +38,40 @@ def numba_available() -> bool:
     return _numba_importable()
 
 
-@contextlib.contextmanager
-def numba_threads() -> Iterator[None]:
-    """Run numba's parallel kernels on ``torch.get_num_threads()`` threads (capped by numba's pool), and
-    give torch its count back afterwards: numba's OpenMP layer shares the runtime and would raise it."""
-    import numba
+def njit_serial(numba: Any, inline: bool = False) -> Callable[[Callable[..., Any]], Any]:
+    """The decorator of serial kernels and their helpers: cached on disk, no fastmath, GIL released, and numpy's
+    error model (a division by zero gives inf or nan, as in numba's parallel loops, instead of raising: the checks
+    would stop LLVM from vectorizing). ``inline``: inlined into the caller at numba's IR level."""
+    opts: dict[str, Any] = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
+    if inline:
+        opts["inline"] = "always"
+    return numba.njit(**opts)
+
+
+CHUNKS_PER_THREAD = 4  # ranges per thread: uneven items (tiles) still balance
+
+
+def run_ranges(kernel: Callable[..., Any], driver: Callable[..., Any], n: int, *args: Any) -> None:
+    """``kernel(*args, lo, hi)`` over ``[0, n)`` on ``torch.get_num_threads()`` threads: one call when that is 1
+    (nothing parallel is compiled); else ``driver(bounds, *args)``, a ``parallel=True`` loop over
+    ``CHUNKS_PER_THREAD`` contiguous ranges per thread that calls the kernel on each (numba's threads share the
+    OpenMP runtime with torch's: a pool of Python threads instead measured 10-25% slower beside torch's spinning
+    threads). Each item is computed on its own into the output arrays among ``args``, so the results do not depend
+    on the thread count."""
     import torch
 
-    n = torch.get_num_threads()
-    pool = int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))
-    numba.set_num_threads(max(1, min(n, pool)))
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != n:
-            torch.set_num_threads(n)
-
-
-def njit_parallel(namespace: dict[str, Any], *kernels: Callable[..., Any]) -> tuple[Any, ...]:
-    """The plain-Python ``kernels`` wrapped by ``numba.njit(parallel=True)`` (cached on disk, no fastmath), after
-    binding ``_prange`` in their module's ``namespace`` (its ``globals()``) to ``numba.prange``: the kernels are
-    written with ``for i in _prange(n)``, which runs as a plain loop until then. Imports numba."""
+    threads = max(1, torch.get_num_threads())
+    if threads == 1 or n < 2:
+        kernel(*args, 0, n)
+        return
     import numba
+    import numpy as np
 
-    namespace["_prange"] = numba.prange
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return tuple(par(k) for k in kernels)
+    chunks = min(n, CHUNKS_PER_THREAD * threads)
+    bounds = np.array([n * j // chunks for j in range(chunks + 1)], np.int64)
+    numba.set_num_threads(max(1, min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))))
+    try:
+        driver(bounds, *args)
+    finally:  # numba's OpenMP layer shares the runtime with torch and would change its count
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 import torch
 
@@ -200,3 +201,29 @@ def test_camera_gradients_use_torch_projection():
         err = float((got["numba"][k] - g).abs().max() / g.abs().max().clamp_min(1e-30))
         assert err < 1e-4, f"{k}: {err:.2e}"
     assert float(got["numba"]["viewmats"].abs().max()) > 0
+
+
+def test_run_ranges_covers_every_item_once():
+    """``run_ranges``: one call over ``[0, n)`` on one thread, and on more the driver's ranges tile ``[0, n)``
+    exactly (contiguous, in order, about 4 per thread), for several thread counts and sizes."""
+    from meshsplat._numba import run_ranges
+
+    def mark(hits, lo, hi):
+        hits[lo:hi] += 1
+
+    def driver(bounds, hits):  # what the compiled drivers do, in plain Python
+        assert bounds[0] == 0 and (np.diff(bounds) > 0).all()
+        for j in range(bounds.shape[0] - 1):
+            mark(hits, bounds[j], bounds[j + 1])
+
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            for n in (0, 1, 2, 7, 1000):
+                hits = np.zeros(n, np.int64)
+                run_ranges(mark, driver, n, hits)
+                assert (hits == 1).all(), (threads, n)
+            assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)

@@ -29,7 +29,7 @@ def _geometry(scene):
     k = nc._kernels()
     s = scene
     proj = nc.project_numba(
-        (k.project, k.project_backward), nc.numba_threads, s["means"], s["quats"], s["scales"], s["opacities"],
+        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
         s["viewmats"], s["Ks"], s["width"], s["height"], 0.01, 1e10,
     )  # fmt: skip
     colors = s["colors"]
@@ -49,15 +49,14 @@ def test_lanes_match_the_scalar_kernels(dtype, n_colors):
     scene["colors"] = torch.rand(3, 400, n_colors, generator=g, dtype=dtype)
     scene["backgrounds"] = torch.rand(3, n_colors, generator=g, dtype=dtype)
     k, geo, bg = _geometry(scene)
-    with nc.numba_threads():
-        out_s, tf_s, nc_s = k.forward(*geo.args(bg))
-        out_l, tf_l, nc_l, alpha_l = k.forward_lanes(*geo.args(bg))
-        rng = np.random.default_rng(0)
-        n_pix = tf_s.shape[0]
-        g_col = rng.standard_normal((n_pix, n_colors)).astype(out_s.dtype)
-        g_alpha = rng.standard_normal(n_pix).astype(out_s.dtype)
-        rows_s = k.backward(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
-        rows_l = k.backward_lanes(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
+    out_s, tf_s, nc_s = k.forward(*geo.args(bg))
+    out_l, tf_l, nc_l, alpha_l = k.forward_lanes(*geo.args(bg))
+    rng = np.random.default_rng(0)
+    n_pix = tf_s.shape[0]
+    g_col = rng.standard_normal((n_pix, n_colors)).astype(out_s.dtype)
+    g_alpha = rng.standard_normal(n_pix).astype(out_s.dtype)
+    rows_s = k.backward(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
+    rows_l = k.backward_lanes(*geo.args(bg), g_col, g_alpha, tf_s, nc_s)
     tol = 1e-6 if dtype == torch.float32 else 1e-13
     assert (tf_s < 1e-3).any() and int(nc_s.max()) > 5  # saturated pixels: the transmittance stop is exercised
     np.testing.assert_array_equal(nc_l, nc_s)
@@ -104,8 +103,7 @@ def test_lane_loops_compile_to_vector_code():
         pytest.skip("the host has no AVX2")
     scene = random_scene(n=60, seed=1, dtype=torch.float32)
     _, geo, bg = _geometry(scene)
-    with nc.numba_threads():
-        report = nl.vector_report(geo.args(bg))
+    report = nl.vector_report(geo.args(bg))
     assert report["ymm"] + report["zmm"] >= 30, report
 
 
@@ -128,3 +126,34 @@ def test_radix_depth_order_matches_torch_stable_argsort(dtype):
         d = depths.numpy()
         got = k.depth_order(nc._depth_keys(d), visible.numpy(), 8 * d.itemsize)
         np.testing.assert_array_equal(got, want)
+
+
+def test_kernels_are_bit_identical_for_any_thread_count():
+    """The projection and compositing kernels run over ranges of Gaussians / tiles on a pool of threads
+    (``run_ranges``); each item is computed alone, so 1, 2 and 3 threads give the same bits."""
+    scene = random_scene(n=500, seed=5, dtype=torch.float32, width=90, height=61)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            k, geo, bg = _geometry(scene)
+            s = scene
+            arrs = [s[x].contiguous().numpy() for x in ("means", "quats", "scales", "opacities")]
+            cams = [s[x].double().contiguous().numpy() for x in ("viewmats", "Ks")]
+            proj = k.project(*arrs, *cams, float(s["width"]), float(s["height"]), 0.01, 1e10)
+            rng = np.random.default_rng(1)
+            v = [rng.standard_normal(x.shape) for x in proj[:3]]
+            proj_bwd = k.project_backward(*arrs[:3], *cams, float(s["width"]), float(s["height"]), proj[4], *v)
+            fwd = k.forward_lanes(*geo.args(bg))
+            g_col = rng.standard_normal(fwd[0].shape).astype(np.float32)
+            g_alpha = rng.standard_normal(fwd[1].shape[0]).astype(np.float32)
+            rows = k.backward_lanes(*geo.args(bg), g_col, g_alpha, fwd[1], fwd[2])
+            rows_scalar = k.backward(*geo.args(bg), g_col, g_alpha, fwd[1], fwd[2])
+            # the tile order depends on the thread count; the images and the rows of each intersection do not
+            results.append((*proj, *proj_bwd, *fwd, rows, rows_scalar))
+    finally:
+        torch.set_num_threads(before)
+    for other in results[1:]:
+        for a, b in zip(results[0], other, strict=True):
+            np.testing.assert_array_equal(a, b)

@@ -1,6 +1,7 @@
 """``mesh.visibility`` compiled with numba (CPU): the same surface samples, cells and bias, without arrays of
-samples per direction. float64 inside. Each direction's map is filled by one thread (and a maximum does not
-depend on the order), so the result does not depend on the thread count."""
+samples per direction. float64 inside. Serial kernels over ranges (``_numba.run_ranges`` on torch's thread
+count): each direction's map is filled by one range (and a maximum does not depend on the order), each point's
+row of ``lit`` by one range, so the result does not depend on the thread count."""
 
 from __future__ import annotations
 
@@ -11,16 +12,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_parallel, numba_threads
+from meshsplat._numba import njit_serial, run_ranges
 
-_prange: Any = range  # rebound to numba.prange when the kernel is compiled
 _BLOCK = 4096  # samples per block (96 KiB of float64 points)
 
 
-def _depth_kernel(verts, faces, frame, centre, radius, inv_cell, grid, spacing, threads):  # pragma: no cover - compiled
-    """Heights ``[K*grid*grid]`` (-inf where no sample fell) of ``verts [V,3]``/``faces [F,3]`` seen along each
-    of the ``K`` frames (``frame [3K,3]``: rows a_1..a_K, b_1..b_K, w_1..w_K), relative to ``centre [3]``."""
-    n_v, n_f, k = verts.shape[0], faces.shape[0], frame.shape[0] // 3
+def _samples_kernel(verts, faces, centre, spacing):  # pragma: no cover - compiled
+    """Surface samples ``[S,3]`` of ``verts [V,3]``/``faces [F,3]`` relative to ``centre [3]``: the vertices, then
+    each face's lattice (``surface_samples``: steps = ceil(longest edge / spacing)) without its corners."""
+    n_v, n_f = verts.shape[0], faces.shape[0]
     steps = np.empty(n_f, np.int64)
     total = n_v
     for f in range(n_f):  # the lattice of surface_samples: steps = ceil(longest edge / spacing)
@@ -52,10 +52,18 @@ def _depth_kernel(verts, faces, frame, centre, radius, inv_cell, grid, spacing, 
                 for c in range(3):
                     pts[n, c] = u * verts[ia, c] + w * verts[ib, c] + t * verts[ic, c] - centre[c]
                 n += 1
+    return pts
+
+
+def _depth_kernel(pts, frame, radius, inv_cell, grid, parts, depth, lo, hi):  # pragma: no cover - compiled
+    """Heights into ``depth [K*grid*grid]`` (-inf where no sample fell) of the samples ``pts [S,3]`` seen along
+    each of the ``K`` frames (``frame [3K,3]``: rows a_1..a_K, b_1..b_K, w_1..w_K); part t of ``parts`` (for t in
+    ``lo..hi-1``) fills maps t, t + parts, ...: blocks of samples stay in its thread's cache."""
+    total, k = pts.shape[0], frame.shape[0] // 3
     cells = grid * grid
-    depth = np.full(k * cells, -np.inf, np.float64)
     g1 = grid - 1
-    for t in _prange(threads):  # thread t fills maps t, t + threads, ...: blocks of samples stay in its cache
+    threads = parts
+    for t in range(lo, hi):
         for m0 in range(0, total, _BLOCK):
             m1 = min(m0 + _BLOCK, total)
             for d in range(t, k, threads):
@@ -71,18 +79,17 @@ def _depth_kernel(verts, faces, frame, centre, radius, inv_cell, grid, spacing, 
                     gj = 0 if fj < 0.0 else min(int(fj), g1)
                     idx = o + gi * grid + gj
                     depth[idx] = max(depth[idx], w0 * x + w1 * y + w2 * z)  # branch-free
-    return depth
 
 
 def _lit_kernel(
-    depth, frame, rel, normals, radius, inv_cell, grid, cell, bias_cells, slope_cells, max_tan
+    depth, frame, rel, normals, radius, inv_cell, grid, cell, bias_cells, slope_cells, max_tan, lit, lo, hi
 ):  # pragma: no cover - compiled
-    """``[N,K]`` 1.0 where the points ``rel [N,3]`` (relative to the grid's centre; unit ``normals [N,3]``) are
-    not below their cell's height by more than the slope-scaled bias, else 0.0."""
-    n, k = rel.shape[0], frame.shape[0] // 3
+    """Into the zeroed ``lit [N,K]``, for the points ``lo..hi-1``: 1.0 where the points ``rel [N,3]`` (relative to
+    the grid's centre; unit ``normals [N,3]``) are not below their cell's height by more than the slope-scaled
+    bias."""
+    k = frame.shape[0] // 3
     g1, cells = grid - 1, grid * grid
-    lit = np.zeros((n, k), np.float64)
-    for p in _prange(n):
+    for p in range(lo, hi):
         x, y, z = rel[p, 0], rel[p, 1], rel[p, 2]
         for d in range(k):
             w0, w1, w2 = frame[2 * k + d, 0], frame[2 * k + d, 1], frame[2 * k + d, 2]
@@ -94,12 +101,37 @@ def _lit_kernel(
             tan = min(math.sqrt(max(1.0 - c * c, 0.0)) / c, max_tan)
             if w0 * x + w1 * y + w2 * z >= depth[d * cells + gi * grid + gj] - cell * (bias_cells + slope_cells * tan):
                 lit[p, d] = 1.0
-    return lit
+
+
+# Plain Python until _kernel() rebinds them: numba's prange and the serial kernels the parallel drivers call.
+_prange: Any = range
+_depth_serial: Any = None
+_lit_serial: Any = None
+
+
+def _depth_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_depth_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
+    for j in _prange(bounds.shape[0] - 1):
+        _depth_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _lit_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_lit_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _lit_serial(*args, bounds[j], bounds[j + 1])
 
 
 @lru_cache(maxsize=1)
 def _kernel() -> Any:
-    return njit_parallel(globals(), _depth_kernel, _lit_kernel)
+    """(samples, depth, lit, depth driver, lit driver)."""
+    global _prange, _depth_serial, _lit_serial
+    import numba
+
+    ser = njit_serial(numba)
+    samples, depth, lit = ser(_samples_kernel), ser(_depth_kernel), ser(_lit_kernel)
+    _prange, _depth_serial, _lit_serial = numba.prange, depth, lit
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    return samples, depth, lit, par(_depth_ranges), par(_lit_ranges)
 
 
 def depth_compiled(
@@ -113,13 +145,14 @@ def depth_compiled(
 ) -> torch.Tensor:
     """``ShadowMaps.depth`` ``[K*grid*grid]`` (float64) of ``verts [V,3]``/``faces [F,3]`` along ``frame [3K,3]``
     around ``centre [3]``, compiled for CPU tensors."""
-    import numba
-
-    depth_k, _ = _kernel()
-    with numba_threads():
-        faces64 = np.ascontiguousarray(faces.cpu().numpy(), dtype=np.int64)
-        args = (_as64(verts), faces64, _as64(frame), _as64(centre), float(radius), 1.0 / cell, int(grid), cell / 2)
-        return torch.from_numpy(depth_k(*args, numba.get_num_threads()))
+    samples_k, depth_k, _, depth_par, _ = _kernel()
+    faces64 = np.ascontiguousarray(faces.cpu().numpy(), dtype=np.int64)
+    pts = samples_k(_as64(verts), faces64, _as64(centre), cell / 2)
+    k = frame.shape[0] // 3
+    depth = np.full(k * int(grid) * int(grid), -np.inf, np.float64)
+    parts = max(1, min(torch.get_num_threads(), k))  # one part per thread: each a comb of maps
+    run_ranges(depth_k, depth_par, parts, pts, _as64(frame), float(radius), 1.0 / cell, int(grid), parts, depth)
+    return torch.from_numpy(depth)
 
 
 def lit_compiled(
@@ -135,19 +168,10 @@ def lit_compiled(
     """``ShadowMaps.lit``'s ``[N,K]`` (0 or 1, float64), compiled: the points ``rel [N,3]`` (less the grid's
     centre) with unit ``normals [N,3]`` looked up in ``depth`` (from :func:`depth_compiled`) along ``frame [3K,3]``;
     ``bias``: (cells, slope cells, largest tangent)."""
-    _, lit_k = _kernel()
-    with numba_threads():
-        lit = lit_k(
-            _as64(depth),
-            _as64(frame),
-            _as64(rel),
-            _as64(normals),
-            float(radius),
-            1.0 / cell,
-            int(grid),
-            float(cell),
-            *bias,
-        )
+    _, _, lit_k, _, lit_par = _kernel()
+    lit = np.zeros((rel.shape[0], frame.shape[0] // 3), np.float64)
+    args = (_as64(depth), _as64(frame), _as64(rel), _as64(normals), float(radius), 1.0 / cell, int(grid), float(cell))
+    run_ranges(lit_k, lit_par, rel.shape[0], *args, *bias, lit)
     return torch.from_numpy(lit)
 
 

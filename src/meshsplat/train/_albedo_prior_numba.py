@@ -1,7 +1,8 @@
 """``albedo_prior.albedo_smoothness`` compiled with numba (CPU): the value and its gradient in two passes over the
-pairs, without the ``[N,k,3]`` temporaries of the torch path. float64 inside. Each Gaussian's row is summed by
-one thread and the rows, and the gradient's scatter to the neighbours, in a fixed serial order, so the result
-does not depend on the thread count (training stays bit-reproducible)."""
+pairs, without the ``[N,k,3]`` temporaries of the torch path. float64 inside. Serial kernels over ranges of
+Gaussians (``_numba.run_ranges`` on torch's thread count): each Gaussian's row is summed by one range, and the
+rows, and the gradient's scatter to the neighbours, in a fixed serial order, so the result does not depend on the
+thread count (training stays bit-reproducible)."""
 
 from __future__ import annotations
 
@@ -12,22 +13,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_parallel, numba_threads
-
-_prange: Any = range  # rebound to numba.prange when the kernels are compiled
+from meshsplat._numba import njit_serial, run_ranges
 
 
-def _forward_kernel(a, nb, inv_sigma2, w):  # pragma: no cover - compiled
-    """The sum over pairs of ``w |a_i - a_j|`` for albedos ``a [N,3]`` and neighbours ``nb [N,k]``; fills the
-    weights ``w [N,k]``."""
-    n, k = nb.shape
-    chroma = np.empty((n, 3), np.float64)  # the albedo clamped at 1e-4, over its sum (as the torch path)
-    for i in _prange(n):
+def _chroma_kernel(a, chroma, lo, hi):  # pragma: no cover - compiled
+    """Rows ``lo..hi-1`` of ``chroma [N,3]``: the albedo ``a [N,3]`` clamped at 1e-4, over its sum (as the torch
+    path)."""
+    for i in range(lo, hi):
         c0, c1, c2 = max(a[i, 0], 1e-4), max(a[i, 1], 1e-4), max(a[i, 2], 1e-4)
         s = c0 + c1 + c2
         chroma[i, 0], chroma[i, 1], chroma[i, 2] = c0 / s, c1 / s, c2 / s
-    rows = np.zeros(n, np.float64)
-    for i in _prange(n):
+
+
+def _rows_kernel(a, nb, chroma, inv_sigma2, w, rows, lo, hi):  # pragma: no cover - compiled
+    """For the Gaussians ``lo..hi-1``: ``rows [N]``, the sum over their neighbours ``nb [N,k]`` of ``w |a_i - a_j|``,
+    and the weights ``w [N,k]``."""
+    k = nb.shape[1]
+    for i in range(lo, hi):
         acc = 0.0
         for q in range(k):
             j = nb[i, q]
@@ -37,18 +39,21 @@ def _forward_kernel(a, nb, inv_sigma2, w):  # pragma: no cover - compiled
             w[i, q] = wq
             acc += wq * (abs(a[i, 0] - a[j, 0]) + abs(a[i, 1] - a[j, 1]) + abs(a[i, 2] - a[j, 2]))
         rows[i] = acc
+
+
+def _sum_kernel(rows):  # pragma: no cover - compiled
+    """The rows summed in index order (a fixed order: the same bits for any thread count)."""
     total = 0.0
-    for i in range(n):
+    for i in range(rows.shape[0]):
         total += rows[i]
     return total
 
 
-def _backward_kernel(a, nb, w, scale):  # pragma: no cover - compiled
-    """The gradient ``[N,3]`` of ``scale`` times the forward's sum by ``a``."""
-    n, k = nb.shape
-    term = np.empty((n, k, 3), np.float64)  # each pair's term of d/da_i; -term is its term of d/da_j
-    grad = np.zeros((n, 3), np.float64)
-    for i in _prange(n):
+def _terms_kernel(a, nb, w, scale, term, grad, lo, hi):  # pragma: no cover - compiled
+    """For the Gaussians ``lo..hi-1``: each pair's term of d/da_i into ``term [N,k,3]`` (-term is its term of
+    d/da_j) and their sum into ``grad [N,3]`` (zeroed), for ``scale`` times the forward's sum."""
+    k = nb.shape[1]
+    for i in range(lo, hi):
         for q in range(k):
             j = nb[i, q]
             for c in range(3):
@@ -56,37 +61,75 @@ def _backward_kernel(a, nb, w, scale):  # pragma: no cover - compiled
                 t = scale * w[i, q] * (np.float64(d > 0.0) - np.float64(d < 0.0))  # 0 where equal, as torch's
                 term[i, q, c] = t
                 grad[i, c] += t
-    for i in range(n):  # to the neighbours, in a fixed order
+
+
+def _to_neighbours_kernel(nb, term, grad):  # pragma: no cover - compiled
+    """``-term`` added to each pair's neighbour row of ``grad [N,3]``, in a fixed order."""
+    n, k = nb.shape
+    for i in range(n):
         for q in range(k):
             j = nb[i, q]
             for c in range(3):
                 grad[j, c] -= term[i, q, c]
-    return grad
+
+
+# Plain Python until _kernels() rebinds them: numba's prange and the serial kernels the parallel drivers call.
+_prange: Any = range
+_rows_serial: Any = None
+_terms_serial: Any = None
+
+
+def _rows_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_rows_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
+    for j in _prange(bounds.shape[0] - 1):
+        _rows_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _terms_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_terms_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _terms_serial(*args, bounds[j], bounds[j + 1])
 
 
 @lru_cache(maxsize=1)
 def _kernels() -> Any:
-    return njit_parallel(globals(), _forward_kernel, _backward_kernel)
+    """(chroma, rows, sum, terms, to_neighbours, rows driver, terms driver)."""
+    global _prange, _rows_serial, _terms_serial
+    import numba
+
+    ser = njit_serial(numba)
+    chroma, rows, total, terms, to_nb = (
+        ser(f) for f in (_chroma_kernel, _rows_kernel, _sum_kernel, _terms_kernel, _to_neighbours_kernel)
+    )
+    _prange, _rows_serial, _terms_serial = numba.prange, rows, terms
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    return chroma, rows, total, terms, to_nb, par(_rows_ranges), par(_terms_ranges)
 
 
 class _AlbedoPrior(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, a: torch.Tensor, nb: torch.Tensor, inv_sigma2: float) -> torch.Tensor:
-        fwd, _ = _kernels()
+        chroma_k, rows_k, sum_k, _, _, rows_par, _ = _kernels()
         a64 = np.ascontiguousarray(a.detach().numpy(), dtype=np.float64)
         nb64 = np.ascontiguousarray(nb.numpy(), dtype=np.int64)
+        n = nb64.shape[0]
         w = np.empty(nb64.shape, np.float64)
-        with numba_threads():
-            total = fwd(a64, nb64, inv_sigma2, w)
+        chroma, rows = np.empty((n, 3), np.float64), np.zeros(n, np.float64)
+        chroma_k(a64, chroma, 0, n)  # O(N): serial
+        run_ranges(rows_k, rows_par, n, a64, nb64, chroma, inv_sigma2, w, rows)
+        total = sum_k(rows)
         ctx.saved = (a64, nb64, w, a.dtype)
         return torch.tensor(total / (nb64.size * 3), dtype=a.dtype)
 
     @staticmethod
     def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[torch.Tensor, None, None]:
-        _, bwd = _kernels()
+        _, _, _, terms_k, to_nb_k, _, terms_par = _kernels()
         a64, nb64, w, dtype = ctx.saved
-        with numba_threads():
-            grad = bwd(a64, nb64, w, float(grad_out) / (nb64.size * 3))
+        term = np.empty((*nb64.shape, 3), np.float64)
+        grad = np.zeros((nb64.shape[0], 3), np.float64)
+        scale = float(grad_out) / (nb64.size * 3)
+        run_ranges(terms_k, terms_par, nb64.shape[0], a64, nb64, w, scale, term, grad)
+        to_nb_k(nb64, term, grad)
         return torch.from_numpy(grad).to(dtype), None, None
 
 

@@ -115,7 +115,9 @@ class TrainingLoop:
             print(f"watch it live: tensorboard --logdir {self.monitor.log_dir}", file=sys.stderr)
         cpu_auto = self.device.type == "cpu" and self.cfg.backend in ("auto", "numba")
         if self.iteration < end and cpu_auto and numba_available():  # loaded (after an install: compiled) once
-            print("first step: loading the compiled CPU kernels (after an install: compiling, ~30 s)", file=sys.stderr)
+            print(
+                "first step: loading the compiled CPU kernels (after an install: compiling, 10-20 s)", file=sys.stderr
+            )
 
         return tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True, bar_format=PROGRESS_FORMAT)
 

@@ -12,7 +12,7 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
    Each entry's values (projection outputs, footprint terms, colours) go into one float64 record, and
    records are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
    six arrays at random (memory latency, not arithmetic, is much of what the walks wait on).
-2. Forward, parallel over tiles (``prange``): every pixel walks its tile's list front to back
+2. Forward, parallel over tiles (ranges of tiles on threads): every pixel walks its tile's list front to back
    (alpha evaluated in the input dtype with the torch backend's operation order and thresholds;
    transmittance in float64), stops before the splat that would take T to ``<= 1e-4``, and keeps
    its final T (float64) and the list position after its last contributing splat. An entry's row
@@ -27,12 +27,14 @@ Steps 2 and 3 run by default with the 16 pixels of a tile row in SIMD lanes (``n
 lists, thresholds and stop, transmittance in the input dtype, ``exp`` inlined as a polynomial for float32);
 the scalar kernels here are the reference and the fallback, forced with ``MESHSPLAT_RASTER_KERNEL=scalar``.
 
-Tiles are handed to the threads as combs (every n-th tile to each of n threads): numba gives each thread one
-contiguous share of a ``prange``, and an avatar's work is not spread evenly over the image's rows.
+The kernels are serial (numba's ``parallel=True`` took several times longer to compile); the projection and the
+compositing kernels take a range of their items, and ``_numba.run_ranges`` runs contiguous ranges on a pool of
+``torch.get_num_threads()`` Python threads (numba releases the GIL), so one setting drives both libraries. Tiles
+are ordered as combs (every n-th tile to each of n threads), so each range holds tiles from the whole image: an
+avatar's work is not spread evenly over the image's rows.
 
 numba is imported lazily (first call); kernels are compiled with ``cache=True`` (on-disk cache next
-to this file, or numba's user cache directory when that is read-only). The thread count follows
-``torch.get_num_threads()`` (capped by numba's pool size), so one setting drives both libraries.
+to this file, or numba's user cache directory when that is read-only).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from meshsplat._numba import numba_threads
+from meshsplat._numba import njit_serial, run_ranges
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import (
     ALPHA_MAX,
@@ -69,9 +71,8 @@ KERNELS = ("lanes", "scalar")
 # columns of an entry's record (float64; the projection's values kept exactly, then the colours)
 _MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
 
-# The kernels below are plain Python until _kernels() wraps them with numba.njit; these globals are
-# then rebound to numba's prange and the jitted helper, which the kernels resolve when compiled.
-_prange: Any = range
+# The kernels below are plain Python until _kernels() wraps them with numba.njit; _spans is then rebound to
+# the jitted helper, which the kernels resolve when compiled.
 
 
 def _bin_kernel(
@@ -117,7 +118,8 @@ def _bin_kernel(
             rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
             rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
             first[(f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] + 1] += 1
-    first = np.cumsum(first)
+    for t in range(1, first.shape[0]):  # offsets (a loop: np.cumsum costs a second of compiling)
+        first[t] += first[t - 1]
     rid = np.empty(m, np.int64)  # entry -> record id (stable counting sort by first tile)
     rflat = np.empty(m, np.int64)
     rec = np.empty((m, _COL + d_out), np.float64)
@@ -137,9 +139,13 @@ def _bin_kernel(
         for ty in range(rect[e, 2], rect[e, 3] + 1):
             for tx in range(rect[e, 0], rect[e, 1] + 1):
                 counts[base + ty * tiles_x + tx + 1] += 1
-    tile_ptr = np.cumsum(counts)
-    cursor = tile_ptr[:-1].copy()
-    isect = np.empty(tile_ptr[-1], np.int32)
+    for t in range(1, counts.shape[0]):
+        counts[t] += counts[t - 1]
+    tile_ptr = counts
+    cursor = np.empty(tile_ptr.shape[0] - 1, np.int64)
+    for t in range(cursor.shape[0]):
+        cursor[t] = tile_ptr[t]
+    isect = np.empty(tile_ptr[tile_ptr.shape[0] - 1], np.int32)
     for e in range(m):  # entry order = depth order within each camera, hence within each tile
         base = (flat[e] // n_gauss) * per_cam
         for ty in range(rect[e, 2], rect[e, 3] + 1):
@@ -153,50 +159,52 @@ def _bin_kernel(
 def _depth_order_kernel(keys, visible, nbits):  # pragma: no cover - compiled
     """The visible entries ``[M]`` (camera * N + Gaussian) in compositing order: camera, then ``keys [C,N]``
     (uint64, ordered as the depths), ties by Gaussian index. A stable LSD radix sort, 8 bits a pass over the
-    low ``nbits`` bits, skipping passes where every key has the same digit (the exponent's high bits)."""
+    low ``nbits`` bits, skipping passes where every key has the same digit (the exponent's high bits). Plain
+    index loops over two ping-pong rows (no slices: they made this kernel the slowest to compile)."""
     n_cams, n = keys.shape[0], keys.shape[1]
     m = 0
     for c in range(n_cams):
         for i in range(n):
             m += visible[c, i]
-    flat = np.empty(m, np.int64)
-    tmp = np.empty(m, np.int64)
-    kb = np.empty(m, np.uint64)
-    kt = np.empty(m, np.uint64)
+    idx = np.empty((2, m), np.int64)
+    kb = np.empty((2, m), np.uint64)
     hist = np.empty(257, np.int64)
     pos = 0
     for c in range(n_cams):
         cnt = 0
         for i in range(n):
             if visible[c, i]:
-                flat[pos + cnt] = c * n + i
-                kb[pos + cnt] = keys[c, i]
+                idx[0, pos + cnt] = c * n + i
+                kb[0, pos + cnt] = keys[c, i]
                 cnt += 1
-        src, dst = flat[pos : pos + cnt], tmp[pos : pos + cnt]
-        ksrc, kdst = kb[pos : pos + cnt], kt[pos : pos + cnt]
-        in_tmp = False
+        cur = 0
         for shift in range(0, nbits, 8):
             sh = np.uint64(shift)
-            hist[:] = 0
+            for d in range(257):
+                hist[d] = 0
             for j in range(cnt):
-                hist[np.int64((ksrc[j] >> sh) & np.uint64(255)) + 1] += 1
-            if hist[1:].max() == cnt:  # one digit for all: the pass would not move anything
+                hist[np.int64((kb[cur, pos + j] >> sh) & np.uint64(255)) + 1] += 1
+            top = 0
+            for d in range(1, 257):
+                top = max(top, hist[d])
+            if top == cnt:  # one digit for all: the pass would not move anything
                 continue
             for d in range(256):
                 hist[d + 1] += hist[d]
+            nxt = 1 - cur
             for j in range(cnt):
-                d = np.int64((ksrc[j] >> sh) & np.uint64(255))
-                o = hist[d]
-                dst[o] = src[j]
-                kdst[o] = ksrc[j]
-                hist[d] = o + 1
-            src, dst = dst, src
-            ksrc, kdst = kdst, ksrc
-            in_tmp = not in_tmp
-        if in_tmp:
-            flat[pos : pos + cnt] = src
+                key = kb[cur, pos + j]
+                d = np.int64((key >> sh) & np.uint64(255))
+                o = pos + hist[d]
+                idx[nxt, o] = idx[cur, pos + j]
+                kb[nxt, o] = key
+                hist[d] += 1
+            cur = nxt
+        if cur == 1:
+            for j in range(cnt):
+                idx[0, pos + j] = idx[1, pos + j]
         pos += cnt
-    return flat
+    return idx[0].copy()
 
 
 def _depth_keys(depths: np.ndarray) -> np.ndarray:
@@ -234,9 +242,11 @@ _spans: Any = _spans_py
 
 
 def _forward_kernel(
-    tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y
-):  # pragma: no cover - compiled
-    """Composite every pixel: colors [P,D] (dtype), final T [P] float64, list position after the last splat [P].
+    tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y, out, t_final, n_contrib,
+    lo, hi,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Composite the pixels of the tiles ``order[lo:hi]`` into colors ``out`` [P,D] (dtype, zeroed), final T
+    ``t_final`` [P] float64 (ones), list position after the last splat ``n_contrib`` [P] (zeros).
 
     Per tile (in ``order``), entries are walked front to back and each one visits only the pixels of its
     exact footprint rows; per-pixel state (T, colour sums, done) lives in tile buffers.
@@ -245,12 +255,8 @@ def _forward_kernel(
     to_dt = xs.dtype.type  # the record keeps input-dtype values exactly; alpha is evaluated in that dtype
     d_out = rec.shape[1] - _COL
     n_pix_cam = width * height
-    n_cams = bg.shape[0]
-    out = np.zeros((n_cams * n_pix_cam, d_out), bg.dtype)
-    t_final = np.ones(n_cams * n_pix_cam, np.float64)
-    n_contrib = np.zeros(n_cams * n_pix_cam, np.int32)
     per_cam = tiles_x * tiles_y
-    for i in _prange(order.shape[0]):
+    for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * tile
@@ -309,7 +315,6 @@ def _forward_kernel(
                 out[p, d] = acc[d, q] + trans[q] * bg[c, d]
             t_final[p] = trans[q]
             n_contrib[p] = last[q]
-    return out, t_final, n_contrib
 
 
 def _backward_kernel(
@@ -330,8 +335,12 @@ def _backward_kernel(
     g_alpha,
     t_final,
     n_contrib,
+    grad,
+    lo,
+    hi,
 ):  # pragma: no cover - compiled
-    """Per-intersection gradient rows [I, 6+D] float64: (mx, my, a, b, c, opacity, colors...).
+    """Per-intersection gradient rows ``grad`` [I, 6+D] float64 (zeroed): (mx, my, a, b, c, opacity, colors...),
+    for the tiles ``order[lo:hi]``.
 
     Per tile, entries are walked back to front over the same footprint pixels; each pixel carries
     T (recovered by division, float64) and the sum of later splats' ``w_j <g, c_j>``.
@@ -341,8 +350,7 @@ def _backward_kernel(
     d_out = rec.shape[1] - _COL
     n_pix_cam = width * height
     per_cam = tiles_x * tiles_y
-    grad = np.zeros((isect.shape[0], 6 + d_out), np.float64)
-    for i in _prange(order.shape[0]):
+    for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * tile
@@ -422,7 +430,6 @@ def _backward_kernel(
             grad[k, 0], grad[k, 1], grad[k, 2], grad[k, 3], grad[k, 4], grad[k, 5] = g0, g1, g2, g3, g4, g5
             for d in range(d_out):
                 grad[k, 6 + d] = g_c[d]
-    return grad
 
 
 def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams):  # pragma: no cover - compiled
@@ -449,6 +456,24 @@ def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams):  # prag
     return g_m2, g_con, g_op, g_col
 
 
+# Plain Python until _kernels() rebinds them: numba's prange and the serial kernels the parallel drivers call.
+_prange: Any = range
+_forward_serial: Any = None
+_backward_serial: Any = None
+
+
+def _forward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_forward_kernel`` over the tile ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
+    for j in _prange(bounds.shape[0] - 1):
+        _forward_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _backward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_backward_kernel`` over the tile ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _backward_serial(*args, bounds[j], bounds[j + 1])
+
+
 class _Kernels(NamedTuple):
     bin: Any
     forward: Any
@@ -463,21 +488,38 @@ class _Kernels(NamedTuple):
 
 @lru_cache(maxsize=1)
 def _kernels() -> _Kernels:
-    """Import numba and wrap the kernels (compilation itself happens per dtype on first call)."""
-    global _prange, _spans
+    """Import numba and wrap the kernels (compilation itself happens per dtype on first call). Serial kernels
+    (``njit_serial``); the projection and the compositing ones take ranges, run by ``run_ranges`` on torch's
+    thread count, and their wrappers here take and return what the kernels did before they took ranges."""
+    global _spans, _prange, _forward_serial, _backward_serial
     try:
         import numba
     except Exception as exc:  # ImportError, or a broken llvmlite/numpy combination
         raise MeshsplatError(f"numba could not be imported ({exc}); use backend='torch'") from exc
-    _prange = numba.prange
-    ser = numba.njit(cache=True, fastmath=False, nogil=True)
+    ser = njit_serial(numba)
     _spans = ser(_spans_py)
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
     proj, proj_bwd = numba_projection.compile_kernels(numba)
     fwd_lanes, bwd_lanes = numba_lanes.compile_kernels(numba)
+    fwd_k, bwd_k = ser(_forward_kernel), ser(_backward_kernel)
+    _prange, _forward_serial, _backward_serial = numba.prange, fwd_k, bwd_k
+    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
+
+    def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
+        n_pix = bg.shape[0] * width * height
+        out = (np.zeros((n_pix, rec.shape[1] - _COL), bg.dtype), np.ones(n_pix), np.zeros(n_pix, np.int32))
+        args = (tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y)
+        run_ranges(fwd_k, fwd_par, order.shape[0], *args, *out)
+        return out
+
+    def backward(*args):
+        grad = np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64)
+        run_ranges(bwd_k, bwd_par, args[3].shape[0], *args, grad)
+        return grad
+
     return _Kernels(
-        ser(_bin_kernel), par(_forward_kernel), par(_backward_kernel), ser(_scatter_kernel), proj, proj_bwd,
-        fwd_lanes, bwd_lanes, ser(_depth_order_kernel),
+        ser(_bin_kernel), forward, backward, ser(_scatter_kernel), proj, proj_bwd, fwd_lanes, bwd_lanes,
+        ser(_depth_order_kernel),
     )  # fmt: skip
 
 
@@ -491,12 +533,10 @@ def compositing_kernel() -> str:
 
 
 def _tile_order(n_tiles: int) -> np.ndarray:
-    """Tiles in the order the parallel kernels take them: every n-th tile, for each of numba's n threads in
-    turn. numba hands each thread one contiguous share of a ``prange``, so each thread gets a comb of tiles
-    spread over the whole image instead of one band of it (an avatar's busy rows are not evenly spread)."""
-    import numba
-
-    n = numba.get_num_threads()
+    """Tiles in the order the kernels' ranges take them: every n-th tile, for each of torch's n threads in turn,
+    so that each contiguous range (``run_ranges``) holds tiles spread over the whole image instead of one band of
+    it (an avatar's busy rows are not evenly spread)."""
+    n = max(1, torch.get_num_threads())
     return np.argsort(np.arange(n_tiles) % n, kind="stable")
 
 
@@ -558,12 +598,11 @@ class _Composite(torch.autograd.Function):
         geo.bin(opacities, colors)
         bgv = _bg_array(bg, C, D, colors.dtype)
         k = _kernels()
-        with numba_threads():
-            if geo.kernel == "lanes":  # alpha as the sum of the weights: exact near 0, where 1 - T is not in float32
-                out, t_final, n_contrib, alpha_np = k.forward_lanes(*geo.args(bgv))
-            else:
-                out, t_final, n_contrib = k.forward(*geo.args(bgv))
-                alpha_np = (1.0 - t_final).astype(out.dtype)
+        if geo.kernel == "lanes":  # alpha as the sum of the weights: exact near 0, where 1 - T is not in float32
+            out, t_final, n_contrib, alpha_np = k.forward_lanes(*geo.args(bgv))
+        else:
+            out, t_final, n_contrib = k.forward(*geo.args(bgv))
+            alpha_np = (1.0 - t_final).astype(out.dtype)
         geo.t_final, geo.n_contrib = t_final, n_contrib
         ctx.geo, ctx.has_bg, ctx.col_shape, ctx.dtype = geo, bg is not None, tuple(colors.shape), colors.dtype
         ctx.save_for_backward(bg if bg is not None else torch.empty(0))
@@ -582,15 +621,14 @@ class _Composite(torch.autograd.Function):
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
-        with numba_threads():
-            rows = (k.backward_lanes if geo.kernel == "lanes" else k.backward)(
-                *geo.args(bgv),
-                g_out.detach().contiguous().numpy(),
-                g_alpha.detach().contiguous().numpy(),
-                geo.t_final,
-                geo.n_contrib,
-            )
-            g_m2, g_con, g_op, g_col = k.scatter(geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C)
+        rows = (k.backward_lanes if geo.kernel == "lanes" else k.backward)(
+            *geo.args(bgv),
+            g_out.detach().contiguous().numpy(),
+            g_alpha.detach().contiguous().numpy(),
+            geo.t_final,
+            geo.n_contrib,
+        )
+        g_m2, g_con, g_op, g_col = k.scatter(geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C)
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
             t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
@@ -658,7 +696,7 @@ def rasterize_numba(
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, W, H, near_plane, far_plane)
     else:
         k = _kernels()
-        proj = project_numba((k.project, k.project_backward), numba_threads, means, quats, scales, opacities, viewmats, Ks, W, H,
+        proj = project_numba((k.project, k.project_backward), means, quats, scales, opacities, viewmats, Ks, W, H,
                              near_plane, far_plane)  # fmt: skip
     means2d = proj.means2d
     if means2d.requires_grad:

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from meshsplat._numba import njit_serial, run_ranges
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
 __all__ = ["LANES", "compile_kernels", "vector_report"]
@@ -45,9 +46,6 @@ _F_T, _F_W, _F_A, _F_ACC = 0, 1, 2, 3
 # Backward fields: T, later splats' sum, <g, c>, w, dL/dcolour of the pixel.
 _B_T, _B_LATER, _B_CG, _B_W, _B_GP = 0, 1, 2, 3, 4
 
-# Plain Python until compile_kernels() rebinds them (numba's prange; the float32 polynomial exp).
-_prange: Any = range
-
 
 def _exp_neg(x):  # pragma: no cover - replaced by an overload when compiled
     """``exp(-x)`` (compiled: a polynomial for float32, ``math.exp`` for float64)."""
@@ -55,11 +53,12 @@ def _exp_neg(x):  # pragma: no cover - replaced by an overload when compiled
 
 
 def _forward_lanes(
-    tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y
-):  # pragma: no cover - compiled
-    """As ``numba_cpu._forward_kernel``: colors [P,D] (dtype), final T [P] float64, list position after the
-    last splat [P] int32, and alpha [P] (dtype, the sum of the weights); per tile, each entry's footprint rows
-    inside the tile, 16 pixels at a time."""
+    tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y,
+    out, t_final, n_contrib, alphas, lo, hi,
+):  # pragma: no cover - compiled  # fmt: skip
+    """As ``numba_cpu._forward_kernel``, for the tiles ``order[lo:hi]``: into colors ``out`` [P,D] (dtype), final
+    T [P] float64, list position after the last splat [P] int32, and alpha [P] (dtype, the sum of the weights);
+    per tile, each entry's footprint rows inside the tile, 16 pixels at a time."""
     to_dt = xs.dtype.type
     half, a_max, a_thr = consts[0], consts[1], consts[2]
     one, zero, t_min = to_dt(1.0), to_dt(0.0), to_dt(TRANSMITTANCE_MIN)
@@ -67,13 +66,8 @@ def _forward_lanes(
     d_pad = max(d_out, 3)  # the first 3 colours are summed in the lane loop itself
     nf = _F_ACC + d_pad
     n_pix_cam = width * height
-    n_cams = bg.shape[0]
-    out = np.zeros((n_cams * n_pix_cam, d_out), bg.dtype)
-    t_final = np.ones(n_cams * n_pix_cam, np.float64)
-    n_contrib = np.zeros(n_cams * n_pix_cam, np.int32)
-    alphas = np.zeros(n_cams * n_pix_cam, xs.dtype)
     per_cam = tiles_x * tiles_y
-    for i in _prange(order.shape[0]):
+    for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * LANES
@@ -143,7 +137,6 @@ def _forward_lanes(
                 t_final[p] = np.float64(tf)
                 n_contrib[p] = last[r * LANES + lane]
                 alphas[p] = st[(r * nf + _F_A) * LANES + lane]
-    return out, t_final, n_contrib, alphas
 
 
 def _backward_lanes(
@@ -164,9 +157,13 @@ def _backward_lanes(
     g_alpha,
     t_final,
     n_contrib,
+    grad,
+    lo,
+    hi,
 ):  # pragma: no cover - compiled
-    """As ``numba_cpu._backward_kernel``: per-intersection gradient rows [I, 6+D] float64 (mx, my, a, b, c,
-    opacity, colours), walking each tile's list back to front, 16 pixels of a row at a time."""
+    """As ``numba_cpu._backward_kernel``, for the tiles ``order[lo:hi]``: into the per-intersection gradient rows
+    ``grad`` [I, 6+D] float64 (mx, my, a, b, c, opacity, colours), walking each tile's list back to front, 16
+    pixels of a row at a time."""
     to_dt = xs.dtype.type
     half, a_max, a_thr = consts[0], consts[1], consts[2]
     one, zero = to_dt(1.0), to_dt(0.0)
@@ -176,8 +173,7 @@ def _backward_lanes(
     n_pix_cam = width * height
     per_cam = tiles_x * tiles_y
     n_g = 6 + d_out
-    grad = np.zeros((isect.shape[0], n_g), np.float64)
-    for i in _prange(order.shape[0]):
+    for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
         tx0 = (t % tiles_x) * LANES
@@ -281,7 +277,6 @@ def _backward_lanes(
             grad[k, 4] = 0.5 * sums[4]
             for j in range(5, n_g):
                 grad[k, j] = sums[j]
-    return grad
 
 
 def _exp_neg_f32(x):  # pragma: no cover - compiled
@@ -306,11 +301,38 @@ def _f32_from_bits_py(i):  # pragma: no cover - replaced by an intrinsic when co
 _f32_from_bits: Any = _f32_from_bits_py
 
 
+# Plain Python until compile_kernels() rebinds them: numba's prange, and the compiled serial kernels the parallel
+# drivers below call.
+_prange: Any = range
+_forward_serial: Any = None
+_backward_serial: Any = None
+
+
+def _forward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_forward_lanes`` over the tile ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
+    for j in _prange(bounds.shape[0] - 1):
+        _forward_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _backward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_backward_lanes`` over the tile ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _backward_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _outputs(rec, bg, xs, width, height) -> tuple[np.ndarray, ...]:
+    """The forward's outputs, before any tile: colours [P,D] 0, T [P] 1, list positions [P] 0, alpha [P] 0."""
+    n_pix = bg.shape[0] * width * height
+    return (np.zeros((n_pix, rec.shape[1] - _COL), bg.dtype), np.ones(n_pix, np.float64),
+            np.zeros(n_pix, np.int32), np.zeros(n_pix, xs.dtype))  # fmt: skip
+
+
 @lru_cache(maxsize=1)
 def compile_kernels(numba: Any) -> tuple[Any, Any]:
-    """The forward and backward lane kernels wrapped by ``numba.njit(parallel=True)`` (cached on disk); registers
-    the float32 ``exp`` once."""
-    global _prange, _f32_from_bits
+    """The forward and backward: serial lane kernels (``njit_serial``, cached on disk) over ranges of tiles, run
+    by ``run_ranges`` on torch's thread count, with the arguments and results of ``numba_cpu``'s scalar kernels;
+    registers the float32 ``exp`` once."""
+    global _f32_from_bits, _prange, _forward_serial, _backward_serial
     from llvmlite import ir
     from numba.core import types
     from numba.extending import intrinsic, overload
@@ -331,24 +353,42 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
             return lambda x: exp_f32(x)
         return lambda x: math.exp(-x)
 
-    _prange = numba.prange
+    fwd, bwd = njit_serial(numba)(_forward_lanes), njit_serial(numba)(_backward_lanes)
+    _prange, _forward_serial, _backward_serial = numba.prange, fwd, bwd
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return par(_forward_lanes), par(_backward_lanes)
+    fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
+
+    def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
+        out = _outputs(rec, bg, xs, width, height)
+        args = (tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y)
+        run_ranges(fwd, fwd_par, order.shape[0], *args, *out)
+        return out
+
+    def backward(*args):
+        grad = np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64)
+        run_ranges(bwd, bwd_par, args[3].shape[0], *args, grad)
+        return grad
+
+    return forward, backward
 
 
 def vector_report(args: tuple[Any, ...], backward: bool = False) -> dict[str, int]:
     """How wide LLVM made the lane loops on this host: an uncached copy of the forward (or backward) kernel is
-    compiled for ``args`` (as the cached kernels take them) and run once, and its generated code
-    (``inspect_asm``) searched for packed arithmetic (``v...ps``/``v...pd``), counted by register width:
-    ``zmm`` 512-bit, ``ymm`` 256-bit, ``xmm`` 128-bit (scalar ``ss``/``sd`` code uses ``xmm`` too, but is not
-    counted). Imports numba; takes seconds."""
+    compiled for ``args`` (as the forward and backward of :func:`compile_kernels` take them) and run once over
+    every tile, and its generated code (``inspect_asm``) searched for packed arithmetic (``v...ps``/``v...pd``),
+    counted by register width: ``zmm`` 512-bit, ``ymm`` 256-bit, ``xmm`` 128-bit (scalar ``ss``/``sd`` code uses
+    ``xmm`` too, but is not counted). Imports numba; takes seconds."""
     import re
 
     import numba
 
     compile_kernels(numba)
-    fn = numba.njit(parallel=True, cache=False, nogil=True)(_backward_lanes if backward else _forward_lanes)
-    fn(*args)
+    fn = numba.njit(cache=False, nogil=True, error_model="numpy")(_backward_lanes if backward else _forward_lanes)
+    if backward:
+        outs: tuple[np.ndarray, ...] = (np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64),)
+    else:
+        outs = _outputs(args[2], args[4], args[5], args[8], args[9])
+    fn(*args, *outs, 0, args[3].shape[0])
     asm = "\n".join(fn.inspect_asm().values())
     packed = re.findall(
         r"^\s*v(?:add|sub|mul|div|min|max|cmp[a-z]*|rndscale|round|blendm|fmadd[0-9]*)p[sd]\s+([^\n]*)", asm, re.M

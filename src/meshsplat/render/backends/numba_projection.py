@@ -15,31 +15,31 @@ allocations per Gaussian before: 1.2x faster at 50k; the same in the forward, tw
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from typing import Any
 
 import numpy as np
 import torch
 
+from meshsplat._numba import njit_serial, run_ranges
 from meshsplat.render._constants import ALPHA_THRESHOLD, EPS2D, FOV_CLAMP_MARGIN, MAX_EXTEND
 from meshsplat.render.projection import Projection
 
 __all__ = ["project_numba"]
 
-_prange: Any = range  # rebound to numba.prange when the kernels are compiled
-_BLOCK = 256  # Gaussians per block of the parallel loops (scratch arrays allocated once per block)
+_BLOCK = 256  # Gaussians per block of the backward (scratch arrays allocated once per block)
+# Plain Python until compile_kernels() rebinds them: numba's prange and the serial kernels the drivers call.
+_prange: Any = range
+_project_serial: Any = None
+_project_backward_serial: Any = None
 
 
-def _project_kernel(means, quats, scales, opac, viewmats, ks, width, height, near, far):  # pragma: no cover
-    """means2d [C,N,2], conics [C,N,3], depths [C,N] (float64), radii [C,N,2] int32, visible [C,N] bool."""
-    n_cams, n = viewmats.shape[0], means.shape[0]
-    m2 = np.zeros((n_cams, n, 2), np.float64)
-    con = np.zeros((n_cams, n, 3), np.float64)
-    depth = np.zeros((n_cams, n), np.float64)
-    radii = np.zeros((n_cams, n, 2), np.int32)
-    vis = np.zeros((n_cams, n), np.bool_)
-    for i in _prange(n):
+def _project_kernel(
+    means, quats, scales, opac, viewmats, ks, width, height, near, far, m2, con, depth, radii, vis, lo, hi
+):  # pragma: no cover - compiled
+    """Gaussians ``lo..hi-1`` into the zeroed outputs means2d [C,N,2], conics [C,N,3], depths [C,N] (float64),
+    radii [C,N,2] int32, visible [C,N] bool."""
+    n_cams = viewmats.shape[0]
+    for i in range(lo, hi):
         rot = np.empty((3, 3), np.float64)
         _quat_rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], rot)
         sig = np.empty((3, 3), np.float64)  # R S S^T R^T
@@ -130,14 +130,12 @@ _screen_cov: Any = _screen_cov_py
 
 
 def _project_backward_kernel(
-    means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth
+    means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, g_means, g_quats, g_scales, lo, hi
 ):  # pragma: no cover - compiled
-    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64 from the gradients of the visible outputs."""
+    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64 from the gradients of the visible outputs, for the
+    blocks of ``_BLOCK`` Gaussians ``lo..hi-1``, into the zeroed ``g_*``."""
     n = means.shape[0]
-    g_means = np.zeros((n, 3), np.float64)
-    g_quats = np.zeros((n, 4), np.float64)
-    g_scales = np.zeros((n, 3), np.float64)
-    for blk in _prange((n + _BLOCK - 1) // _BLOCK):
+    for blk in range(lo, hi):
         rot, sig, g_sig = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
         s_c, g_rot = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
         s, gm, js0, js1 = np.empty(3, np.float64), np.empty(3, np.float64), np.empty(3), np.empty(3)
@@ -145,7 +143,6 @@ def _project_backward_kernel(
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             _backward_one(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, i,
                           rot, sig, g_sig, s_c, g_rot, s, gm, js0, js1, t, g_means, g_quats, g_scales)  # fmt: skip
-    return g_means, g_quats, g_scales
 
 
 def _backward_one_py(
@@ -294,30 +291,62 @@ def _quat_backward_py(qw, qx, qy, qz, g, out):  # pragma: no cover - compiled
 _quat_backward: Any = _quat_backward_py
 
 
+def _project_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_project_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
+    for j in _prange(bounds.shape[0] - 1):
+        _project_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _project_backward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_project_backward_kernel`` over the block ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _project_backward_serial(*args, bounds[j], bounds[j + 1])
+
+
 def compile_kernels(numba: Any) -> tuple[Any, Any]:
-    """Wrap the kernels with ``numba`` (called once by the numba backend's kernel loader)."""
-    global _prange, _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _backward_one
-    _prange = numba.prange
-    helper = numba.njit(cache=True, fastmath=False, nogil=True)
+    """The projection and its backward (called once by the numba backend's kernel loader): serial kernels
+    (``njit_serial``) over ranges of Gaussians, run by ``run_ranges`` on torch's thread count; same arguments and
+    results as before they took ranges."""
+    global _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _backward_one
+    global _prange, _project_serial, _project_backward_serial
+    helper = njit_serial(numba)
     _quat_rotation = helper(_quat_rotation_py)
     _clamped_xy = helper(_clamped_xy_py)
     _screen_cov = helper(_screen_cov_py)
     _quat_backward = helper(_quat_backward_py)
-    inline = numba.njit(cache=True, fastmath=False, nogil=True, inline="always")
-    _backward_one = inline(_backward_one_py)
+    _backward_one = njit_serial(numba, inline=True)(_backward_one_py)
+    fwd, bwd = helper(_project_kernel), helper(_project_backward_kernel)
+    _prange, _project_serial, _project_backward_serial = numba.prange, fwd, bwd
     par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
-    return par(_project_kernel), par(_project_backward_kernel)
+    fwd_par, bwd_par = par(_project_ranges), par(_project_backward_ranges)
+
+    def project(means, quats, scales, opac, viewmats, ks, width, height, near, far):
+        """means2d [C,N,2], conics [C,N,3], depths [C,N] (float64), radii [C,N,2] int32, visible [C,N] bool."""
+        c, n = viewmats.shape[0], means.shape[0]
+        out = (np.zeros((c, n, 2)), np.zeros((c, n, 3)), np.zeros((c, n)), np.zeros((c, n, 2), np.int32),
+               np.zeros((c, n), np.bool_))  # fmt: skip
+        run_ranges(fwd, fwd_par, n, means, quats, scales, opac, viewmats, ks, width, height, near, far, *out)
+        return out
+
+    def project_backward(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth):
+        """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64."""
+        n = means.shape[0]
+        out = (np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3)))
+        args = (means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, *out)
+        run_ranges(bwd, bwd_par, (n + _BLOCK - 1) // _BLOCK, *args)
+        return out
+
+    return project, project_backward
 
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, ks, width, height, near, far, kernels, threads):
+    def forward(ctx, means, quats, scales, opacities, viewmats, ks, width, height, near, far, kernels):
         dt = means.dtype
         arrs = [t.detach().contiguous().numpy() for t in (means, quats, scales, opacities)]
         cams = [t.detach().double().contiguous().numpy() for t in (viewmats, ks)]
-        with threads():
-            m2, con, depth, radii, vis = kernels[0](*arrs, *cams, float(width), float(height), float(near), float(far))
-        ctx.kernels, ctx.size, ctx.cams, ctx.threads = kernels, (float(width), float(height)), cams, threads
+        m2, con, depth, radii, vis = kernels[0](*arrs, *cams, float(width), float(height), float(near), float(far))
+        ctx.kernels, ctx.size, ctx.cams = kernels, (float(width), float(height)), cams
         ctx.save_for_backward(means, quats, scales)
         ctx.vis = vis
         radii_t, vis_t = torch.from_numpy(radii), torch.from_numpy(vis)
@@ -339,23 +368,21 @@ class _Project(torch.autograd.Function):
         def arr(g: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
             return np.zeros(shape, np.float64) if g is None else g.detach().contiguous().numpy()
 
-        with ctx.threads():
-            gm, gq, gs = ctx.kernels[1](
-                *(t.detach().contiguous().numpy() for t in (means, quats, scales)),
-                *ctx.cams,
-                *ctx.size,
-                ctx.vis,
-                arr(v_m2, (c, n, 2)),
-                arr(v_con, (c, n, 3)),
-                arr(v_depth, (c, n)),
-            )
+        gm, gq, gs = ctx.kernels[1](
+            *(t.detach().contiguous().numpy() for t in (means, quats, scales)),
+            *ctx.cams,
+            *ctx.size,
+            ctx.vis,
+            arr(v_m2, (c, n, 2)),
+            arr(v_con, (c, n, 3)),
+            arr(v_depth, (c, n)),
+        )
         out = [torch.from_numpy(g).to(dt) for g in (gm, gq, gs)]
-        return out[0], out[1], out[2], None, None, None, None, None, None, None, None, None
+        return out[0], out[1], out[2], None, None, None, None, None, None, None, None
 
 
 def project_numba(
     kernels: tuple[Any, Any],
-    threads: Callable[[], AbstractContextManager[None]],
     means: torch.Tensor,
     quats: torch.Tensor,
     scales: torch.Tensor,
@@ -368,8 +395,8 @@ def project_numba(
     far_plane: float,
 ) -> Projection:
     """:func:`meshsplat.render.projection.project_gaussians` compiled (CPU; no gradient for viewmats/Ks);
-    ``kernels`` from :func:`compile_kernels`, ``threads()`` sets numba's thread count around each call."""
+    ``kernels`` from :func:`compile_kernels` (on torch's thread count)."""
     m2, con, depth, radii, vis = _Project.apply(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, kernels, threads
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, kernels
     )
     return Projection(means2d=m2, conics=con, depths=depth, radii=radii, visible=vis)
