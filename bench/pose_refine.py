@@ -53,10 +53,26 @@ class StaleAdamRefiner:
 
 
 def _same_config(run: Path, cfg) -> bool:
-    """Whether ``run`` was trained with ``cfg`` (every key but the paths, which its name holds)."""
+    """Whether ``run`` was trained with ``cfg`` (every key but the paths, which its name holds). A key added to a
+    section since the run was trained counts as the same when ``cfg`` has its default (which keeps the
+    behaviour from before the key)."""
+    from meshsplat.train.config import TrainConfig
+
     old = json.loads((run / "config.json").read_text())
     new = json.loads(json.dumps(cfg.to_dict()))
-    return all(old.get(k) == v for k, v in new.items() if k not in ("out", "data", "model_dir"))
+    default = json.loads(json.dumps(TrainConfig().to_dict()))
+    for k, v in new.items():
+        if k in ("out", "data", "model_dir"):
+            continue
+        was = old.get(k)
+        if isinstance(v, dict) and isinstance(was, dict):
+            added = {kk: vv for kk, vv in v.items() if kk not in was}
+            if any(default.get(k, {}).get(kk) != vv for kk, vv in added.items()):
+                return False
+            v = {kk: vv for kk, vv in v.items() if kk in was}
+        if was != v:
+            return False
+    return True
 
 
 def mesh_drift(run: Path) -> dict:

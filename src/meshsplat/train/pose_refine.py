@@ -47,6 +47,7 @@ class PoseRefiner:
         model_dir: str | None,
         device: torch.device,
         prior: float = 0.0,
+        evidence: float = 0.0,
     ) -> None:
         if dataset.driver_info is None or dataset.driver_params is None:
             raise MeshsplatError(
@@ -70,6 +71,9 @@ class PoseRefiner:
         self.offsets = {k: torch.nn.Parameter(torch.zeros_like(self.rows[k])) for k in self.names}
         self.lr = lr
         self.prior = prior  # gradient + prior * offset: a pull towards the tracked parameters
+        # each step times (|m| / sqrt(v))^evidence per number: the agreement of its recent gradients (1 when they
+        # keep one sign, small when it flips: noise about a right pose); 0: plain Adam
+        self.evidence = evidence
         self.exp_avg = {k: torch.zeros_like(v) for k, v in self.rows.items() if k in self.offsets}  # [R, k]
         self.exp_avg_sq = {k: torch.zeros_like(v) for k, v in self.exp_avg.items()}  # [R, k]
         self.steps = [0] * len(rows)  # Adam steps taken by each row
@@ -114,7 +118,11 @@ class PoseRefiner:
                     m.lerp_(g, 1 - b1)
                     v.mul_(b2).addcmul_(g, g, value=1 - b2)
                     denom = (v.sqrt() / bias2_sqrt).add_(eps)
-                    off.data[j].addcdiv_(m, denom, value=-step_size)
+                    if self.evidence:
+                        agree = (m.abs() / (1 - b1**n) / denom).clamp_(max=1.0).pow_(self.evidence)
+                        off.data[j].addcdiv_(m * agree, denom, value=-step_size)
+                    else:
+                        off.data[j].addcdiv_(m, denom, value=-step_size)
         for off in self.offsets.values():
             off.grad = None
 
