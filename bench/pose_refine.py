@@ -9,7 +9,10 @@ Two synthetic SMPL captures (stand-in body model, AIST++ dance, one turning came
 with ``--pose-noise`` (every joint's tracked rotation off by that many radians, the images exact). Each is
 trained three times with the demo's schedule and seed: refinement ``off``; the ``old`` refiner (one Adam
 over every training frame's offsets, stepped every iteration: frames not drawn move on stale momentum, the
-refiner before issue 44, rebuilt here); and the ``new`` one (``PoseRefiner``: a lazy per-frame Adam).
+refiner before issue 44, rebuilt here); and the ``new`` one (``PoseRefiner``: a lazy per-frame Adam, with the
+component's defaults); ``prev`` (only when named) is the lazy Adam with the defaults before issue 44's third
+round (lr 3e-4, no evidence gate, no start, no depth rule). ``--subject flame``: the stand-in FLAME head
+instead (jaw, neck and expressions per frame), its captures and runs named ``flame-...``.
 Prints PSNR/SSIM in full and in the mask on the training frames (in their refined poses, as ``eval`` and
 ``render --split train`` use them), held-out views of training frames (refined poses) and held-out frames
 (tracked poses); and, on the exact capture, how far the refined training meshes ended from the true ones.
@@ -139,7 +142,8 @@ def main() -> None:
     ap.add_argument("--pictures", action="store_true", help="eval writes its report with sample images per split")
     ap.add_argument("--reuse", action="store_true", help="keep a finished run of the same config (no retraining)")
     ap.add_argument("--cases", nargs="*", default=["exact", "noisy"], choices=["exact", "noisy"])
-    ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "new"])
+    ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "prev", "new"])
+    ap.add_argument("--subject", default="smpl", choices=["smpl", "flame"], help="the stand-in body or head model")
     args = ap.parse_args()
 
     from meshsplat.demo import PRESETS, demo_train_config
@@ -156,14 +160,15 @@ def main() -> None:
         preset = replace(preset, n_init=args.n_init)
     work = Path(args.work)
     models = work / "models"
-    if not (models / "smpl").is_dir():
-        write_standin_models(models, kinds=("smpl",))
+    if not (models / args.subject).is_dir():
+        write_standin_models(models, kinds=(args.subject,))
     rows: dict = {}
+    tag = "" if args.subject == "smpl" else f"{args.subject}-"  # the SMPL captures keep their names
     for case in args.cases:
-        data = work / f"{case}-{preset.resolution}-{preset.frames}"
+        data = work / f"{tag}{case}-{preset.resolution}-{preset.frames}"
         if not (data / "manifest.json").is_file():
             synthesize(
-                "smpl",
+                args.subject,
                 data,
                 rig="monocular-turn",
                 frames=preset.frames,
@@ -176,14 +181,15 @@ def main() -> None:
         rows[case] = {}
         named = dict(v.split(":", 1) for v in args.extra_variants)
         for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs] + list(named):
-            run = work / f"run_{case}-{preset.resolution}-{preset.frames}-{preset.iterations}_{variant}"
+            run = work / f"run_{tag}{case}-{preset.resolution}-{preset.frames}-{preset.iterations}_{variant}"
             extra = (
                 ["pose_refine.enabled=false"]
                 if variant == "off"
                 else ["pose_refine.enabled=true", "pose_refine.required=true"]
             )
-            if variant == "old":
-                extra.append(f"pose_refine.lr={OLD_LR}")
+            if variant in ("old", "prev"):  # the settings before issue 44's third round (prev: its lazy Adam)
+                extra += [f"pose_refine.lr={OLD_LR}", "pose_refine.evidence=0", "pose_refine.start=0"]
+                extra.append("pose_refine.keep_depth=false")
             elif variant.startswith("new_lr"):
                 extra.append(f"pose_refine.lr={variant[len('new_lr') :]}")
             if variant in named:
