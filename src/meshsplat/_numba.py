@@ -14,7 +14,7 @@ from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
-__all__ = ["numba_available", "njit_serial", "run_ranges", "NO_NUMBA_ENV"]
+__all__ = ["numba_available", "njit_serial", "njit_driver", "run_ranges", "NO_NUMBA_ENV"]
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
 
@@ -46,6 +46,13 @@ def njit_serial(numba: Any, inline: bool = False) -> Callable[[Callable[..., Any
     if inline:
         opts["inline"] = "always"
     return numba.njit(**opts)
+
+
+def njit_driver(numba: Any) -> Callable[[Callable[..., Any]], Any]:
+    """The decorator of ``run_ranges``'s drivers: ``parallel=True``, cached on disk, no fastmath, GIL released. A
+    driver is a module-level function (numba caches no closure across processes) of the form ``for j in
+    prange(bounds.shape[0] - 1): kernel(*args, bounds[j], bounds[j + 1])``."""
+    return numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
 
 
 CHUNKS_PER_THREAD = 4  # ranges per thread: uneven items (tiles) still balance

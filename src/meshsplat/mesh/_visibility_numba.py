@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_serial, run_ranges
+from meshsplat._numba import njit_driver, njit_serial, run_ranges
 
 _BLOCK = 4096  # samples per block (96 KiB of float64 points)
 
@@ -62,11 +62,10 @@ def _depth_kernel(pts, frame, radius, inv_cell, grid, parts, depth, lo, hi):  # 
     total, k = pts.shape[0], frame.shape[0] // 3
     cells = grid * grid
     g1 = grid - 1
-    threads = parts
     for t in range(lo, hi):
         for m0 in range(0, total, _BLOCK):
             m1 = min(m0 + _BLOCK, total)
-            for d in range(t, k, threads):
+            for d in range(t, k, parts):
                 a0, a1, a2 = frame[d, 0], frame[d, 1], frame[d, 2]
                 b0, b1, b2 = frame[k + d, 0], frame[k + d, 1], frame[k + d, 2]
                 w0, w1, w2 = frame[2 * k + d, 0], frame[2 * k + d, 1], frame[2 * k + d, 2]
@@ -130,7 +129,7 @@ def _kernel() -> Any:
     ser = njit_serial(numba)
     samples, depth, lit = ser(_samples_kernel), ser(_depth_kernel), ser(_lit_kernel)
     _prange, _depth_serial, _lit_serial = numba.prange, depth, lit
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    par = njit_driver(numba)
     return samples, depth, lit, par(_depth_ranges), par(_lit_ranges)
 
 

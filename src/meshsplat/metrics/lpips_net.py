@@ -27,6 +27,7 @@ import os
 import pickle
 import threading
 import zipfile
+from functools import lru_cache
 from pathlib import Path
 from typing import ClassVar, cast
 
@@ -76,10 +77,12 @@ _ALEX = [
 LPIPS_PRECISIONS = ("float32", "bfloat16", "auto")
 
 
+@lru_cache(maxsize=1)
 def native_bf16() -> bool:
     """Whether this CPU has native bfloat16 instructions (AVX512-BF16 or AMX), where oneDNN's bf16
     convolutions run about twice as fast as float32 ones; elsewhere (AVX2-only, Arm) they are emulated.
-    torch's probes are private: False when they are missing."""
+    torch's probes are private: False when they are missing. Asked once (``loss.lpips_precision=auto`` asks every
+    LPIPS iteration)."""
     probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     try:
         return any(bool(getattr(torch.cpu, name)()) for name in probes if hasattr(torch.cpu, name))

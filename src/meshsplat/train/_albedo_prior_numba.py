@@ -13,13 +13,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_serial, run_ranges
+from meshsplat._numba import njit_driver, njit_serial, run_ranges
 
 
-def _chroma_kernel(a, chroma, lo, hi):  # pragma: no cover - compiled
-    """Rows ``lo..hi-1`` of ``chroma [N,3]``: the albedo ``a [N,3]`` clamped at 1e-4, over its sum (as the torch
-    path)."""
-    for i in range(lo, hi):
+def _chroma_kernel(a, chroma):  # pragma: no cover - compiled
+    """``chroma [N,3]``: the albedo ``a [N,3]`` clamped at 1e-4, over its sum (as the torch path)."""
+    for i in range(a.shape[0]):
         c0, c1, c2 = max(a[i, 0], 1e-4), max(a[i, 1], 1e-4), max(a[i, 2], 1e-4)
         s = c0 + c1 + c2
         chroma[i, 0], chroma[i, 1], chroma[i, 2] = c0 / s, c1 / s, c2 / s
@@ -102,7 +101,7 @@ def _kernels() -> Any:
         ser(f) for f in (_chroma_kernel, _rows_kernel, _sum_kernel, _terms_kernel, _to_neighbours_kernel)
     )
     _prange, _rows_serial, _terms_serial = numba.prange, rows, terms
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    par = njit_driver(numba)
     return chroma, rows, total, terms, to_nb, par(_rows_ranges), par(_terms_ranges)
 
 
@@ -115,7 +114,7 @@ class _AlbedoPrior(torch.autograd.Function):
         n = nb64.shape[0]
         w = np.empty(nb64.shape, np.float64)
         chroma, rows = np.empty((n, 3), np.float64), np.zeros(n, np.float64)
-        chroma_k(a64, chroma, 0, n)  # O(N): serial
+        chroma_k(a64, chroma)  # O(N): serial
         run_ranges(rows_k, rows_par, n, a64, nb64, chroma, inv_sigma2, w, rows)
         total = sum_k(rows)
         ctx.saved = (a64, nb64, w, a.dtype)

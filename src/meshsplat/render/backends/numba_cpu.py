@@ -47,7 +47,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_serial, run_ranges
+from meshsplat._numba import njit_driver, njit_serial, run_ranges
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import (
     ALPHA_MAX,
@@ -502,7 +502,7 @@ def _kernels() -> _Kernels:
     fwd_lanes, bwd_lanes = numba_lanes.compile_kernels(numba)
     fwd_k, bwd_k = ser(_forward_kernel), ser(_backward_kernel)
     _prange, _forward_serial, _backward_serial = numba.prange, fwd_k, bwd_k
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    par = njit_driver(numba)
     fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
 
     def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
@@ -513,7 +513,7 @@ def _kernels() -> _Kernels:
         return out
 
     def backward(*args):
-        grad = np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64)
+        grad = numba_lanes.grad_rows(args[1], args[2])
         run_ranges(bwd_k, bwd_par, args[3].shape[0], *args, grad)
         return grad
 

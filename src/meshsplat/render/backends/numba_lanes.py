@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from meshsplat._numba import njit_serial, run_ranges
+from meshsplat._numba import njit_driver, njit_serial, run_ranges
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
-__all__ = ["LANES", "compile_kernels", "vector_report"]
+__all__ = ["LANES", "compile_kernels", "grad_rows", "vector_report"]
 
 LANES = 16  # pixels per tile row = the tile size of numba_cpu
 # columns of an entry's record (numba_cpu's layout)
@@ -320,6 +320,11 @@ def _backward_ranges(bounds, *args):  # pragma: no cover - compiled
         _backward_serial(*args, bounds[j], bounds[j + 1])
 
 
+def grad_rows(isect: np.ndarray, rec: np.ndarray) -> np.ndarray:
+    """The backward's output, zeroed: a gradient row ``[I, 6+D]`` float64 per intersection (both kernels')."""
+    return np.zeros((isect.shape[0], 6 + rec.shape[1] - _COL), np.float64)
+
+
 def _outputs(rec, bg, xs, width, height) -> tuple[np.ndarray, ...]:
     """The forward's outputs, before any tile: colours [P,D] 0, T [P] 1, list positions [P] 0, alpha [P] 0."""
     n_pix = bg.shape[0] * width * height
@@ -355,7 +360,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
 
     fwd, bwd = njit_serial(numba)(_forward_lanes), njit_serial(numba)(_backward_lanes)
     _prange, _forward_serial, _backward_serial = numba.prange, fwd, bwd
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    par = njit_driver(numba)
     fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
 
     def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
@@ -365,7 +370,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
         return out
 
     def backward(*args):
-        grad = np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64)
+        grad = grad_rows(args[1], args[2])
         run_ranges(bwd, bwd_par, args[3].shape[0], *args, grad)
         return grad
 
@@ -385,7 +390,7 @@ def vector_report(args: tuple[Any, ...], backward: bool = False) -> dict[str, in
     compile_kernels(numba)
     fn = numba.njit(cache=False, nogil=True, error_model="numpy")(_backward_lanes if backward else _forward_lanes)
     if backward:
-        outs: tuple[np.ndarray, ...] = (np.zeros((args[1].shape[0], 6 + args[2].shape[1] - _COL), np.float64),)
+        outs: tuple[np.ndarray, ...] = (grad_rows(args[1], args[2]),)
     else:
         outs = _outputs(args[2], args[4], args[5], args[8], args[9])
     fn(*args, *outs, 0, args[3].shape[0])

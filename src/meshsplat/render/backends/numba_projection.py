@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_serial, run_ranges
+from meshsplat._numba import njit_driver, njit_serial, run_ranges
 from meshsplat.render._constants import ALPHA_THRESHOLD, EPS2D, FOV_CLAMP_MARGIN, MAX_EXTEND
 from meshsplat.render.projection import Projection
 
@@ -316,7 +316,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     _backward_one = njit_serial(numba, inline=True)(_backward_one_py)
     fwd, bwd = helper(_project_kernel), helper(_project_backward_kernel)
     _prange, _project_serial, _project_backward_serial = numba.prange, fwd, bwd
-    par = numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+    par = njit_driver(numba)
     fwd_par, bwd_par = par(_project_ranges), par(_project_backward_ranges)
 
     def project(means, quats, scales, opac, viewmats, ks, width, height, near, far):
