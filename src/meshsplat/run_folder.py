@@ -326,6 +326,29 @@ class LoadedRun:
                 ds = ds.with_meshes(meshes)
         return ds
 
+    def head_model(self, dataset: str | Path | None = None) -> Path | None:
+        """The blend-shape model the capture's tracker fitted (``meshsplat track``: the capture manifest's
+        ``meta.head_model``, e.g. ``CAPTURE/head_model.npz``), the model the avatar was trained on; None for
+        any other capture or when the run's capture is not there."""
+        try:
+            root = self.dataset_path(dataset)
+        except MeshsplatError:
+            return None
+        manifest = root / "manifest.json"
+        if not manifest.is_file():
+            return None
+        meta = read_json_object(manifest, "a capture manifest").get("meta")
+        name = meta.get("head_model") if isinstance(meta, dict) else None
+        if not isinstance(name, str) or not name or Path(name).name != name:
+            return None  # a file name inside the capture, nothing else
+        path = root / name
+        if not path.is_file():
+            raise MeshsplatError(
+                f"{manifest} names the head model {name}, which is not there: pass the model the avatar was "
+                "trained on (--animation blendshapes FILE.npz)"
+            )
+        return path
+
     def _own_dataset(self, path: Path) -> bool:
         data = self.config.get("data")
         if not isinstance(data, str) or not data:

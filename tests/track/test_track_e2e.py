@@ -69,7 +69,7 @@ def test_capture_opens_with_splits_cameras_and_fit(capture, head_clip):
 
 
 @pytest.mark.slow
-def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path):
+def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path, capsys):
     out, _ = capture
     run = tmp_path / "run"
     assert main(["train", str(out), "--out", str(run), *tiny_train_argv()]) == 0
@@ -89,6 +89,16 @@ def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path):
 
     imgs = [np.asarray(Image.open(p), dtype=np.float32) for p in sorted((frames_out / "frames").glob("*.png"))]
     assert len(imgs) == 3 and np.abs(imgs[0] - imgs[2]).mean() > 0.3, "the jaw weight does not move the avatar"
+    # without a FILE a tracked head plays in its capture's own head model (the bundled ICT head does not fit it)
+    default_out = tmp_path / "anim_default"
+    argv = ["render", str(run), "--animation", "blendshapes", "--weights", str(tmp_path / "w.npy")]
+    argv += ["--size", "64x64", "--no-mp4", "--no-progress", "--out", str(default_out)]
+    assert main(argv) == 0
+    again = [np.asarray(Image.open(p), dtype=np.float32) for p in sorted((default_out / "frames").glob("*.png"))]
+    np.testing.assert_array_equal(np.stack(again), np.stack(imgs))
+    capsys.readouterr()
+    assert main(["render", str(run), "--animation", "blendshapes", "ict", "--out", str(tmp_path / "ict")]) == 2
+    assert "use the blend-shape model the avatar was trained on" in capsys.readouterr().err
     # another tracked capture's expressions, named columns matched: the capture folder is the weights source
     got = read_weights(out, list(reversed(names)))
     np.testing.assert_array_equal(got[:, ::-1], np.load(out / "head_fit.npz")["weights"])

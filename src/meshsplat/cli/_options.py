@@ -189,7 +189,8 @@ def add_animation_options(parser: argparse.ArgumentParser) -> None:
         metavar=("KIND", "FILE"),
         help="what drives the avatar: dataset (default; --split NAME for one split with its cameras), "
         "gltf FILE (--clip), vertices FILE (.npy [T,V,3], mesh-sequence .npz, OBJ/PLY folder), "
-        "blendshapes [FILE.npz|ict] (--weights, else a talking sequence) or motion FILE "
+        "blendshapes [FILE.npz|ict] (default: a tracked head's own head_model.npz, else the ICT head; --weights, "
+        "else a talking sequence) or motion FILE "
         "(SMPL/SMPL-X .npz, flame_params.json, flame_param/)",
     )
     parser.add_argument("--clip", default=None, help="gltf: clip name (default the first)")
@@ -222,9 +223,12 @@ def animation_source(args: argparse.Namespace, run: LoadedRun, command: str) -> 
     if len(rest) > 1:
         raise MeshsplatError(f"--animation {kind}: expected at most one FILE, got {len(rest)} ({' '.join(rest)})")
     model_dir = run.model_dir(args.model_dir or None) if kind == "motion" else args.model_dir
+    file = rest[0] if rest else None
+    if kind == "blendshapes" and file is None:
+        file = run.head_model(args.dataset)  # a tracked head plays in its own fitted model; else the ICT head
     return AnimationSource(
         kind,
-        rest[0] if rest else None,
+        file,
         clip=args.clip,
         split=args.split,
         weights=args.weights,

@@ -6,8 +6,9 @@ Animation (the same words as `meshsplat view` and ``meshsplat.animation.Animatio
                                           was synthesized from), sampled at --fps for --seconds from --start
   --animation vertices FILE               a vertex sequence [T,V,3] (.npy), a mesh-sequence .npz or a folder
                                           of OBJ/PLY frames, in the canonical or the asset's order
-  --animation blendshapes [FILE.npz|ict]  a blend-shape model (default the bundled ICT head, as trained from
-                                          `meshsplat synth ict`) driven by --weights W.json|W.npy [T,K], else a
+  --animation blendshapes [FILE.npz|ict]  a blend-shape model (default: a head tracked by `meshsplat track`
+                                          its capture's head_model.npz, else the bundled ICT head, as trained
+                                          from `meshsplat synth ict`) driven by --weights W.json|W.npy [T,K], else a
                                           talking sequence of --frames (125) at --fps
   --animation motion FILE [--model-dir D] SMPL/SMPL-X motion .npz, IMavatar flame_params.json or a VHAP
                                           flame_param/ folder (avatars of SMPL/FLAME captures)

@@ -8,8 +8,9 @@ Animation (the same words as `meshsplat render` and ``meshsplat.animation.Animat
   --animation vertices FILE               a vertex sequence [T,V,3] (.npy, mesh-sequence .npz, OBJ/PLY folder)
   --animation motion FILE                 SMPL/SMPL-X motion .npz, FLAME flame_params.json or VHAP
                                           flame_param/ (avatars of SMPL/FLAME captures; baked to frames)
-  --animation blendshapes [FILE.npz|ict]  a blend-shape face (default the bundled ICT FaceKit ARKit model,
-                                          also an ICT head trained from `meshsplat synth ict`) LIVE: one
+  --animation blendshapes [FILE.npz|ict]  a blend-shape face (default: a head tracked by `meshsplat track`
+                                          plays in its capture's head_model.npz, any other avatar in the
+                                          bundled ICT FaceKit ARKit model, as `meshsplat synth ict`) LIVE: one
                                           slider per expression, and --weights [T,K] or a procedural
                                           talking sequence (--frames, default 125, at --fps) as a clip
 --frames N keeps the first N frames.
