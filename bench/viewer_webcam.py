@@ -26,7 +26,13 @@ same fence patched in, its only change), ``landmarkMs``,
 ``solveMs``, ``drawMs`` (the draw calls issued -> the fence), the drawing buffer's size, solved frames per second (solved frames / wall-clock seconds, in the page's clock) and the
 median weights over the window. The load average goes with each run: the machine is shared.
 
+``--avatar RUN``: a trained blend-shape head instead (e.g. a head from ``meshsplat track`` + ``train``), its
+page written by ``meshsplat view RUN --animation blendshapes --webcam`` (``before``: the same command with the
+old viewer.js). ``--motion turn``: the camera's head yaws +-0.25 rad once a second (a moving face costs the
+landmarker more and re-sorts the avatar).
+
 Usage: python bench/viewer_webcam.py [--rounds 2] [--seconds 15] [--variants before,after]
+                                      [--avatar RUN] [--motion still|turn]
                                       [--out bench/results/viewer_webcam-<host>.json]
 """
 
@@ -34,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -98,8 +105,9 @@ FENCED_LATENCY = """        const st = cam_.driver.stats, frameIn = cam_.frameIn
 """
 
 
-def head_frame(head) -> np.ndarray:
-    """The ICT head in EXPR, turned by ROT, 55 cm in front of a 640x480 camera of the page's field of view."""
+def head_frame(head, rot=ROT) -> np.ndarray:
+    """The ICT head in EXPR, turned by ``rot`` (default ROT), 55 cm in front of a 640x480 camera of the page's
+    field of view."""
     w = torch.zeros(1, len(head.names))
     for n, x in EXPR.items():
         w[0, head.names.index(n)] = x
@@ -108,7 +116,7 @@ def head_frame(head) -> np.ndarray:
         torch.zeros_like(head.neutral),
         w,
         torch.zeros(1, 2, 2),
-        torch.tensor([ROT]),
+        torch.tensor([list(rot)]),
         (-c + torch.tensor([0, 3.0, -55]))[None],
     )[0]
     f = focal_from_fov(W, H)
@@ -116,10 +124,18 @@ def head_frame(head) -> np.ndarray:
     return (render_head(head, v, K, W, H)[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None) -> None:
-    """The webcam bundle of the browser tests' small avatar; ``viewer_js``: another page's code (the baseline)."""
-    av = make_avatar(n=300)
-    drv = _small_blendshapes(av)
+def head_clip(head, motion: str) -> list[np.ndarray]:
+    """One second of camera frames: ``still`` (the head in ROT) or ``turn`` (yawing ROT[1] +- 0.25 rad once a
+    second, looped by the fake camera)."""
+    if motion == "still":
+        return [head_frame(head)] * FPS
+    return [head_frame(head, (ROT[0], ROT[1] + 0.25 * math.sin(2 * math.pi * i / FPS), ROT[2])) for i in range(FPS)]
+
+
+def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None, run: Path | None = None) -> None:
+    """The webcam bundle of the browser tests' small avatar, or with ``run`` of that trained head as a user
+    makes it (``meshsplat view RUN --animation blendshapes --webcam``); ``viewer_js``: another page's code
+    (the baseline)."""
     static = bundle_mod._STATIC
     if viewer_js is not None:
         tmp = Path(tempfile.mkdtemp(prefix="meshsplat-static-"))
@@ -127,7 +143,15 @@ def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None) -> N
         (tmp / "viewer.js").write_text(viewer_js, encoding="utf-8")
         bundle_mod._STATIC = tmp
     try:
-        write_viewer_bundle(av, None, out, rig=drv, webcam=model, landmarker=landmarker)
+        if run is None:
+            av = make_avatar(n=300)
+            write_viewer_bundle(av, None, out, rig=_small_blendshapes(av), webcam=model, landmarker=landmarker)
+        else:
+            from meshsplat.cli.main import main as cli
+
+            argv = ["view", str(run), "--animation", "blendshapes", "--webcam", str(landmarker), "--out", str(out)]
+            if cli(argv) != 0:
+                raise SystemExit(f"meshsplat {' '.join(argv)} failed")
     finally:
         bundle_mod._STATIC = static
 
@@ -203,6 +227,14 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=4, help="solved frames left out at the start")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--before-rev", default="256bbc2", help="the commit whose page is 'before' (2307bfb: older)")
+    ap.add_argument(
+        "--avatar",
+        type=Path,
+        default=None,
+        help="a trained blend-shape head's run folder (its page as `view --animation blendshapes --webcam` "
+        "writes it); default the browser tests' small avatar (300 Gaussians)",
+    )
+    ap.add_argument("--motion", choices=("still", "turn"), default="still", help="the camera's face: still or turning")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     chromium = find_chromium()
@@ -214,7 +246,7 @@ def main() -> None:
     names = model[1]["names"]
     img = head_frame(head)
     work = Path(tempfile.mkdtemp(prefix="meshsplat-webcam-bench-"))
-    clip = write_y4m(work / "face.y4m", [img] * FPS, fps=FPS)
+    clip = write_y4m(work / "face.y4m", head_clip(head, args.motion), fps=FPS)
     old_js = subprocess.run(
         ["git", "show", f"{args.before_rev}:src/meshsplat/viewer/static/viewer.js"],
         cwd=ROOT,
@@ -226,8 +258,9 @@ def main() -> None:
     if "renderedMs" not in old_js:
         assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
         old_js = old_js.replace(OLD_LATENCY, FENCED_LATENCY)
-    write_bundle(work / "before", model, landmarker, old_js)
-    write_bundle(work / "now", model, landmarker, None)
+    write_bundle(work / "before", model, landmarker, old_js, args.avatar)
+    write_bundle(work / "now", model, landmarker, None, args.avatar)
+    gaussians = json.loads((work / "now" / "avatar.json").read_text())["num_gaussians"]
     srv, base = serve(work)
 
     # the tracker's offline fit of the same frame
@@ -280,7 +313,18 @@ def main() -> None:
                     "webgl": "SwiftShader (software)",
                     "chromium": chromium.rsplit("/", 1)[-1],
                 },
-                "clip": {"width": W, "height": H, "fps": FPS, "expression": EXPR, "rotation": ROT},
+                "clip": {
+                    "width": W,
+                    "height": H,
+                    "fps": FPS,
+                    "expression": EXPR,
+                    "rotation": ROT,
+                    "motion": args.motion,
+                },
+                "avatar": {
+                    "run": args.avatar.name if args.avatar else "the browser tests' small avatar",
+                    "gaussians": gaussians,
+                },
                 "before_rev": args.before_rev,
                 "offline_expr": {n: round(float(offline[names.index(n)]), 3) for n in EXPR},
                 "runs": runs,

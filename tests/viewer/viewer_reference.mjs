@@ -1,7 +1,7 @@
 // CPU reference of the player's GPU posing and of its depth keys, for the tests only (the shipped
-// page does not need it): poseMesh (face and vertex passes), poseGaussians (the splat vertex shader's
-// placement), gaussianDepths (the worker's sort keys, one per Gaussian), sortDepths and sortByDepth
-// (a counting sort of given depths), keyVisibilities (the key light's visibility the splat shader reads). They mirror meshsplat.mesh.geometry, meshsplat.embedding and
+// page does not need it): poseMesh (face and vertex passes), poseGaussians (the placement of the page's
+// per-Gaussian pass), gaussianDepths (the worker's sort keys, one per Gaussian), sortDepths and sortByDepth
+// (a counting sort of given depths), keyVisibilities (the key light's visibility that pass reads). They mirror meshsplat.mesh.geometry, meshsplat.embedding and
 // meshsplat.gaussians.compose; tests/test_viewer.py compares them with those under Node.
 import { EPS, EXACT_KEY_MAX, NEAR_PLANE, faceGeometry, frameVertices, keyShadowMap, keyVisibility, vertexKeys }
   from "../../src/meshsplat/viewer/static/viewer.js";

@@ -891,11 +891,13 @@ void main() {
 }`;
 
 // ------------------------------------------------------------------ WebGL2 splatting
-const VERT = `#version 300 es
+// pass C, per Gaussian (once per draw, not once per quad corner): posed mean, covariance, projection and
+// colour -> its pixel position and radius, conic, colour and opacity (three RGBA32F texels); the draw's
+// vertex shader (VERT) only places the quad's corners
+const PREP_FRAG = `#version 300 es
 precision highp float; precision highp int;
 precision highp sampler2D; precision highp usampler2D;
-layout(location=0) in vec2 corner;      // quad corner in {-1, 1}^2
-layout(location=1) in uint gid;         // Gaussian index, instances in back-to-front order
+uniform int count;
 uniform usampler2D gTex;                // 2 RGBA32UI texels per Gaussian (bundle.py pack_gaussians)
 uniform usampler2D shTex;               // shTexels RGBA32UI texels per Gaussian: SH bands > 0, half floats
 uniform usampler2D fTex;                // face -> vertex indices (a, b, c)
@@ -919,8 +921,10 @@ uniform bool antialiased;               // opacity x sqrt(det S / det(S + eps I)
 uniform mat3 R; uniform vec3 tr;        // world->camera (OpenCV)
 uniform vec4 K;                         // fx, fy, cx, cy
 uniform vec2 size;                      // width, height (pixels)
-out vec2 offs; out vec3 conic; out vec4 col;
-ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
+layout(location=0) out vec4 oPos;       // pixel position (y down), the quad's first half-axis u (pixels)
+layout(location=1) out vec4 oConic;     // conic (inverse 2D covariance: a, b, c), the second half-axis's length
+                                        // (along u turned 90°; < 0: not drawn)
+layout(location=2) out vec4 oCol;       // colour, opacity${TEXEL}
 vec4 quatMul(vec4 a, vec4 b) {          // Hamilton product, w first
   return vec4(a.x * b.x - dot(a.yzw, b.yzw), a.x * b.yzw + b.x * a.yzw + cross(a.yzw, b.yzw));
 }
@@ -985,8 +989,11 @@ vec3 sh9(vec3 n, vec3 c[9]) {
        + ${SH9[2]} * x * y * c[4] + ${SH9[2]} * y * z * c[5] + ${SH9[3]} * (3.0 * z * z - 1.0) * c[6]
        + ${SH9[2]} * x * z * c[7] + ${SH9[4]} * (x * x - y * y) * c[8];
 }
+const vec4 CULLED = vec4(0.0, 0.0, 0.0, -1.0);
 void main() {
-  int g = int(gid);
+  int g = here();
+  oPos = vec4(0.0); oCol = vec4(0.0);
+  if (g >= count) { oConic = CULLED; return; }
   uvec4 w0 = texelFetch(gTex, at(2 * g), 0), w1 = texelFetch(gTex, at(2 * g + 1), 0);
   vec2 uv = unpackHalf2x16(w0.y), dop = unpackHalf2x16(w0.z), rg = unpackHalf2x16(w0.w);
   vec4 qc = vec4(unpackHalf2x16(w1.x), unpackHalf2x16(w1.y));
@@ -1010,7 +1017,7 @@ void main() {
   float fac = scaleMode == 1 ? ratio : scaleMode == 2 ? sqrt(max(ratio, 0.0) + 1e-20) : 1.0;
   vec3 s = vec3(s01, s2b.x) * fac;
   vec3 mc = R * mean + tr;
-  if (mc.z < ${NEAR_PLANE}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  if (mc.z < ${NEAR_PLANE}) { oConic = CULLED; return; }
   // world covariance M M^T with M = rot(q) diag(s)  (columns of rot(q) scaled)
   mat3 Rq = quatMat(q);
   mat3 M = Rq * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
@@ -1029,14 +1036,18 @@ void main() {
   float det = a * c - b * b;
   float op = dop.y;
   if (antialiased) op *= sqrt(clamp(det > 0.0 ? max(a0 * c0 - b * b, 0.0) / det : 1.0, 0.0, 1.0) + 1e-12);
-  if (det <= 0.0 || op < ${ALPHA_THRESHOLD}) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
-  conic = vec3(c, -b, a) / det;
+  if (det <= 0.0 || op < ${ALPHA_THRESHOLD}) { oConic = CULLED; return; }
   float extend = min(${MAX_EXTEND}, sqrt(2.0 * log(op / ${ALPHA_THRESHOLD})));
-  vec2 radius = ceil(extend * sqrt(vec2(a, c)));
-  vec2 m2 = K.xy * mc.xy * rz + K.zw;   // pixel position, y down
-  offs = corner * radius;
-  vec2 px = m2 + offs;
-  gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
+  vec2 radius = ceil(extend * sqrt(vec2(a, c)));  // the rasterizer's box
+  // the quad: the box, or, when smaller, the rectangle along the ellipse's axes around the same ellipse
+  // {alpha >= 1/255} (half-axes extend sqrt(eigenvalue), a pixel of margin); either holds every pixel
+  // the rasterizer draws (opacity <= 1: the box's extend is never capped), the fragment shader drops the rest
+  float mid = 0.5 * (a + c), disc = sqrt(max(mid * mid - det, 0.0));
+  vec2 h = extend * sqrt(vec2(mid + disc, max(mid - disc, 0.0))) + 1.0;
+  vec2 e1 = abs(b) > 1e-6 * mid ? normalize(vec2(b, mid + disc - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
+  bool turned = h.x * h.y < radius.x * radius.y;
+  oPos = vec4(K.xy * mc.xy * rz + K.zw, turned ? e1 * h.x : vec2(radius.x, 0.0));   // pixel position, y down
+  oConic = vec4(vec3(c, -b, a) / det, turned ? h.y : radius.y);
   // colour, per frame: view-dependent SH (view direction in world or the triangle's canonical frame),
   // times the learned irradiance E(n) = max(0, sh9(n, irr)) of the posed normal (plus the key light
   // L V(x) max(0, n . w), its visibility V of the surface point before the offset d), plus the learned
@@ -1060,7 +1071,32 @@ void main() {
     rgb *= e;
     if (specular) rgb += sh9(sn, spec);
   }
-  col = vec4(rgb, op);
+  oCol = vec4(rgb, op);
+}`;
+
+// the draw: one quad (two triangles, six vertices, no vertex attributes) per Gaussian in back-to-front order
+// around its pass-C position; one plain draw call, not an instanced one (SwiftShader, the software WebGL,
+// pays a draw call's set-up per instance: 44 us a Gaussian)
+const VERT = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
+uniform usampler2D orderTex;            // slot -> Gaussian index, back to front (the sort's order)
+uniform sampler2D posTex, conicTex, colTex;  // pass C's outputs
+uniform vec2 size;                      // width, height (pixels)
+out vec2 offs; out vec3 conic; out vec4 col;
+const vec2 CORNERS[4] = vec2[4](vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(-1.0, 1.0), vec2(1.0, 1.0));
+ivec2 at(int i) { return ivec2(i & ${TEX_WIDTH - 1}, i >> ${Math.log2(TEX_WIDTH)}); }
+void main() {
+  int g = int(texelFetch(orderTex, at(gl_VertexID >> 2), 0).x);
+  vec2 corner = CORNERS[gl_VertexID & 3];
+  vec4 cn = texelFetch(conicTex, at(g), 0);
+  if (cn.w < 0.0) { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); return; }
+  vec4 pr = texelFetch(posTex, at(g), 0);
+  vec2 u = pr.zw, v = vec2(-u.y, u.x) * (cn.w / max(length(u), 1e-30));  // the quad's half-axes
+  offs = corner.x * u + corner.y * v;
+  vec2 px = pr.xy + offs;
+  gl_Position = vec4(2.0 * px.x / size.x - 1.0, 1.0 - 2.0 * px.y / size.y, 0.0, 1.0);
+  conic = cn.xyz;
+  col = texelFetch(colTex, at(g), 0);
 }`;
 
 const FRAG = `#version 300 es
@@ -1140,8 +1176,9 @@ export function vertexFaces(faces, V) {
  * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians (and their SH bands), faces, canonical face
  * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
  * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
- * `setOrder(order, n)`; `draw(viewmat, K, background)` issues one instanced draw call into an RGBA16F
- * target (`floatTarget`; else straight into the canvas) and one full-screen pass that clamps it into the canvas.
+ * `setOrder(order, n)`; `draw(viewmat, K, background)` runs pass C (each Gaussian projected and shaded once,
+ * into three data textures), then issues one draw call of their quads into an RGBA16F target
+ * (`floatTarget`; else straight into the canvas) and one full-screen pass that clamps it into the canvas.
  */
 export class SplatRenderer {
   constructor(canvas, b, { floatTarget = true } = {}) {
@@ -1151,9 +1188,10 @@ export class SplatRenderer {
     this.gl = gl; this.b = b;
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
-    this.splat = program(gl, VERT, FRAG, ["R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
+    this.prep = program(gl, PASS_VERT, PREP_FRAG, ["count", "R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
       "scaleMode", "shK", "shTexels", "shFrame", "shadeNormal", "irr", "specular", "spec", "antialiased",
       "keyOn", "keyLight", "keyDir", "keyA", "keyB", "keyW", "keyMaps", "keyCentre", "keyRadius", "keyCell", "keyGrid", "kTex"]);
+    this.splat = program(gl, VERT, FRAG, ["orderTex", "posTex", "conicTex", "colTex", "size"]);
     this.facePass = program(gl, PASS_VERT, FACE_FRAG, ["count", "pTex", "cfTex", "fTex"]);
     this.vertPass = program(gl, PASS_VERT, VERTEX_FRAG, ["count", "fqTex", "fcTex", "adjTex", "vaTex"]);
     // the splats blend into an RGBA16F target (renderable and blendable with EXT_color_buffer_float),
@@ -1179,6 +1217,8 @@ export class SplatRenderer {
       cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
       p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
       fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
+      gPos: dataTexture(gl, "f4", b.N), gConic: dataTexture(gl, "f4", b.N), gCol: dataTexture(gl, "f4", b.N),
+      order: dataTexture(gl, "u1", b.N),
     };
     // the key light's height maps (model.occlusion=key): S grid x grid, stacked, rebuilt on the CPU per pose (setKeyMap)
     this.key = (b.header.shading && b.header.shading.key) || null;
@@ -1206,6 +1246,7 @@ export class SplatRenderer {
     }
     this.fbFace = this.framebuffer([this.t.fq, this.t.fc, this.t.r]);
     this.fbVert = this.framebuffer([this.t.n, this.t.q]);
+    this.fbPrep = this.framebuffer([this.t.gPos, this.t.gConic, this.t.gCol]);
     this.vao = gl.createVertexArray();
     gl.bindVertexArray(this.vao);
     const quad = gl.createBuffer();
@@ -1213,12 +1254,17 @@ export class SplatRenderer {
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
     gl.enableVertexAttribArray(0);
     gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
-    this.orderBuf = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.orderBuf);
-    gl.bufferData(gl.ARRAY_BUFFER, b.N * 4, gl.DYNAMIC_DRAW);
-    gl.enableVertexAttribArray(1);
-    gl.vertexAttribIPointer(1, 1, gl.UNSIGNED_INT, 0, 0);
-    gl.vertexAttribDivisor(1, 1);
+    // the splat draw reads no vertex attributes: vertex 4 s + c is corner c of slot s's quad, two triangles
+    // each (indexed, so that each corner is shaded once)
+    this.splatVao = gl.createVertexArray();
+    gl.bindVertexArray(this.splatVao);
+    const quads = new Uint32Array(6 * b.N);
+    for (let s = 0, o = 0, v = 0; s < b.N; s++, o += 6, v += 4) {
+      quads[o] = v; quads[o + 1] = v + 1; quads[o + 2] = v + 2; quads[o + 3] = v + 2; quads[o + 4] = v + 1; quads[o + 5] = v + 3;
+    }
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, quads, gl.STATIC_DRAW);
+    gl.bindVertexArray(null);
     gl.bindVertexArray(null);
     this.visible = 0;
   }
@@ -1311,54 +1357,41 @@ export class SplatRenderer {
     this.runPass(this.vertPass, this.fbVert, this.b.V, { fqTex: t.fq, fcTex: t.fc, adjTex: t.adj, vaTex: t.va });
   }
 
+  /** The sort's back-to-front Gaussian indices `order[0:n]`, uploaded in whole texture rows. */
   setOrder(order, n) {
-    const gl = this.gl;
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.orderBuf);
-    gl.bufferSubData(gl.ARRAY_BUFFER, 0, order, 0, n);
+    const gl = this.gl, t = this.t.order, rows = Math.ceil(n / TEX_WIDTH);
+    if (rows > 0) {
+      const buf = this.orderRows || (this.orderRows = new Uint32Array(t.texels));
+      buf.set(order.subarray(0, n));
+      gl.bindTexture(gl.TEXTURE_2D, t.tex);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, rows, gl.RED_INTEGER, gl.UNSIGNED_INT, buf.subarray(0, rows * TEX_WIDTH));
+    }
     this.visible = n;
   }
 
   draw(viewmat, K, background) {
-    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, p = this.splat, t = this.t;
+    const gl = this.gl, w = gl.canvas.width, h = gl.canvas.height, t = this.t;
     if (this.floatTarget && !this.blend8 && !this.resizeTarget(Math.max(w, 1), Math.max(h, 1))) {
       this.floatTarget = false;
       console.warn(`meshsplat viewer: no ${w}x${h} RGBA16F render target; blending in 8 bits from now on`);
     }
     const float = this.floatTarget && !this.blend8;
+    if (this.visible > 0) this.runPass(this.prep, this.fbPrep, this.b.N, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p,
+      nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k }, (loc) => this.prepUniforms(loc, viewmat, K, w, h));
     gl.bindFramebuffer(gl.FRAMEBUFFER, float ? this.target.fb : null);
     gl.viewport(0, 0, w, h);
     gl.clearColor(background[0], background[1], background[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
+    const p = this.splat;
     gl.useProgram(p.prog);
     gl.disable(gl.DEPTH_TEST);
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
-    const m = viewmat; // row-major -> GLSL column-major: pass transpose=false with columns
-    gl.uniformMatrix3fv(p.loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
-    gl.uniform3f(p.loc.tr, m[3], m[7], m[11]);
-    gl.uniform4f(p.loc.K, K[0], K[1], K[2], K[3]);
     gl.uniform2f(p.loc.size, w, h);
-    const hd = this.b.header, shK = [0, 3, 8, 15][hd.sh_degree || 0], shade = hd.shading;
-    gl.uniform1i(p.loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[hd.scale_mode]);
-    gl.uniform1i(p.loc.shK, shK);
-    gl.uniform1i(p.loc.shTexels, shK ? this.b.shRest.length / (4 * this.b.N) : 0);
-    gl.uniform1i(p.loc.shFrame, hd.sh_frame === "triangle" ? 1 : 0);
-    gl.uniform1i(p.loc.shadeNormal, shade ? (shade.normal === "axis" ? 2 : 1) : 0);
-    if (shade) gl.uniform3fv(p.loc.irr, shade.coeffs.flat());
-    gl.uniform1i(p.loc.specular, shade && shade.specular ? 1 : 0);
-    if (shade && shade.specular) gl.uniform3fv(p.loc.spec, shade.specular.flat());
-    gl.uniform1i(p.loc.antialiased, hd.antialiased ? 1 : 0);
-    const key = shade && this.key && this.keyMap ? this.keyMap : null;
-    gl.uniform1i(p.loc.keyOn, key ? 1 : 0);
-    if (key) {
-      gl.uniform3fv(p.loc.keyLight, this.key.light); gl.uniform3fv(p.loc.keyDir, key.frame.w);
-      for (const [name, axis] of [["keyA", "a"], ["keyB", "b"], ["keyW", "w"]]) gl.uniform3fv(p.loc[name], key.frames.flatMap((f) => f[axis]));
-      gl.uniform1i(p.loc.keyMaps, key.frames.length); gl.uniform3fv(p.loc.keyCentre, key.centre);
-      gl.uniform1f(p.loc.keyRadius, key.radius); gl.uniform1f(p.loc.keyCell, key.cell); gl.uniform1i(p.loc.keyGrid, key.grid);
-    }
-    this.bind(p, { gTex: t.g, shTex: t.sh, fTex: t.f, pTex: t.p, nTex: t.n, qTex: t.q, rTex: t.r, kTex: t.k });
+    this.bind(p, { orderTex: t.order, posTex: t.gPos, conicTex: t.gConic, colTex: t.gCol });
+    gl.bindVertexArray(this.splatVao);
+    if (this.visible > 0) gl.drawElements(gl.TRIANGLES, 6 * this.visible, gl.UNSIGNED_INT, 0);
     gl.bindVertexArray(this.vao);
-    if (this.visible > 0) gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.visible);
     if (float) { // one full-screen pass: clamp the blended image into the canvas
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
       gl.disable(gl.BLEND);
@@ -1367,6 +1400,33 @@ export class SplatRenderer {
       gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
     }
     gl.bindVertexArray(null);
+  }
+
+  /** Pass C's uniforms: the view, the canvas size `w` x `h`, the SH and shading of the header, the key light. */
+  prepUniforms(loc, viewmat, K, w, h) {
+    const gl = this.gl, m = viewmat; // row-major -> GLSL column-major: pass transpose=false with columns
+    gl.uniformMatrix3fv(loc.R, false, [m[0], m[4], m[8], m[1], m[5], m[9], m[2], m[6], m[10]]);
+    gl.uniform3f(loc.tr, m[3], m[7], m[11]);
+    gl.uniform4f(loc.K, K[0], K[1], K[2], K[3]);
+    gl.uniform2f(loc.size, w, h);
+    const hd = this.b.header, shK = [0, 3, 8, 15][hd.sh_degree || 0], shade = hd.shading;
+    gl.uniform1i(loc.scaleMode, { none: 0, area: 1, sqrt_area: 2 }[hd.scale_mode]);
+    gl.uniform1i(loc.shK, shK);
+    gl.uniform1i(loc.shTexels, shK ? this.b.shRest.length / (4 * this.b.N) : 0);
+    gl.uniform1i(loc.shFrame, hd.sh_frame === "triangle" ? 1 : 0);
+    gl.uniform1i(loc.shadeNormal, shade ? (shade.normal === "axis" ? 2 : 1) : 0);
+    if (shade) gl.uniform3fv(loc.irr, shade.coeffs.flat());
+    gl.uniform1i(loc.specular, shade && shade.specular ? 1 : 0);
+    if (shade && shade.specular) gl.uniform3fv(loc.spec, shade.specular.flat());
+    gl.uniform1i(loc.antialiased, hd.antialiased ? 1 : 0);
+    const key = shade && this.key && this.keyMap ? this.keyMap : null;
+    gl.uniform1i(loc.keyOn, key ? 1 : 0);
+    if (key) {
+      gl.uniform3fv(loc.keyLight, this.key.light); gl.uniform3fv(loc.keyDir, key.frame.w);
+      for (const [name, axis] of [["keyA", "a"], ["keyB", "b"], ["keyW", "w"]]) gl.uniform3fv(loc[name], key.frames.flatMap((f) => f[axis]));
+      gl.uniform1i(loc.keyMaps, key.frames.length); gl.uniform3fv(loc.keyCentre, key.centre);
+      gl.uniform1f(loc.keyRadius, key.radius); gl.uniform1f(loc.keyCell, key.cell); gl.uniform1i(loc.keyGrid, key.grid);
+    }
   }
 }
 
@@ -2183,7 +2243,7 @@ export function startViewer(doc) {
       out.push(performance.now() - t0);
     }
     renderer.floatTarget = own;
-    if (lastDraw) renderer.draw(...lastDraw);
+    if (lastDraw) { renderer.draw(...lastDraw); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px); } // waited for: not in the next call's first time
     return out;
   };
   window.meshsplatViewer = { view: cam, limits, get viewString() { return viewShown; }, state, timings, timeDraws, get webcam() { return cam_.driver; }, get floatTarget() { return renderer.floatTarget; },
