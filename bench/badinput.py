@@ -1072,6 +1072,11 @@ BAD_CAMERAS = {
     "focal 1e9": lambda K, vm: (_with_focal(K, 1e9), vm),
     "subject behind the camera": lambda K, vm: (K, TURN @ vm),
     "viewmat with z flipped": lambda K, vm: (K, FLIP_Z @ vm),
+    # the camera at 0.6 of its distance from the world origin (a translation in other units than the meshes)
+    "translation x0.6 (camera too close)": lambda K, vm: (
+        K,
+        np.vstack([np.hstack([vm[:3, :3], 0.6 * vm[:3, 3:]]), vm[3:]]),
+    ),
 }
 
 

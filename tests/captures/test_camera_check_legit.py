@@ -12,6 +12,7 @@ tracking error). Wrong cameras among them are still named.
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,7 @@ from meshsplat.camera import intrinsics, look_at
 from meshsplat.data import open_dataset
 from meshsplat.data.writer import DatasetWriter
 from meshsplat.drivers import GltfDriver
-from meshsplat.errors import MeshsplatError
+from meshsplat.errors import MeshsplatError, MeshsplatWarning
 from meshsplat.paths import assets_dir
 from meshsplat.synth.raster import rasterize_triangles
 
@@ -235,6 +236,61 @@ def test_a_wrong_camera_on_a_heavily_occluded_capture_is_refused(tmp_path, error
     with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0' does not see the subject") as err:
         open_dataset(root, drop_bad_frames=True)
     assert err.match(match) and "\n" not in str(err.value)
+
+
+# a camera too close: its translation scaled after rendering (the camera that far towards the world origin, at
+# CesiumMan's feet), as a translation in other units than the meshes, or meshes scaled without their cameras,
+# leaves it; the subject's projection is 1.25 (x0.8) or 1.67 (x0.6) times larger than its mask and shifted
+TOO_CLOSE = [
+    ("wide-angle", 0.6),
+    ("occluded-upper-60%", 0.6),
+    ("portrait", 0.8),
+    ("portrait", 0.6),
+    ("wide-angle-close-up", 0.8),
+    ("wide-angle-close-up", 0.6),
+]
+
+
+@pytest.mark.parametrize("case, factor", TOO_CLOSE, ids=[f"{c}-x{f}" for c, f in TOO_CLOSE])
+def test_a_camera_too_close_is_refused(tmp_path, case, factor):
+    """A small subject in a wide-angle view, the upper 60% hidden, a portrait image, a wide-angle close-up: a
+    camera too close by its translation is refused as a wrong camera saying so, with or without dropping
+    frames (before, each passed whole, but for 1 frame of 4 on the wide-angle subject at x0.6). Not caught:
+    x0.8 on the small wide-angle subject (24 px tall, 6 to 10 px wide at 64 px: 1 px a side, as a mask 1 px
+    tight; 1 frame of 4 fails) and with the upper 60% hidden (the visible shins are near the world origin,
+    which scaling the translation leaves in place; 2 frames of 4 fail)."""
+    root = tmp_path / "c"
+    w = write_capture(root, {**LEGIT, **OCCLUDED}[case])
+    vm = np.asarray(w.cameras["0"]["viewmat"])
+    vm[:3, 3] *= factor
+    w.cameras["0"]["viewmat"] = vm.tolist()
+    w.close()
+    for drop in (False, True):
+        with pytest.raises(MeshsplatError, match=r"wrong camera: camera '0' does not see the subject on 4 of 4") as err:
+            open_dataset(root, drop_bad_frames=drop)
+        msg = str(err.value)
+        assert "(the mesh projects larger than the subject on the mask)" in msg and "\n" not in msg
+        assert "the camera looks too close or its focal length too long" in msg
+
+
+def test_masks_filling_the_image_are_noted_once(tmp_path):
+    """A face-filling close-up: a mask white over the whole image says nothing about the subject's size, so
+    a camera's distance cannot be checked against it (a camera too close fails only on the frames where the
+    mesh then leaves the image). The capture opens with one note naming those frames; a capture whose masks
+    have an outline opens without it."""
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        ds = open_dataset(capture(tmp_path / "head", LEGIT["close-up-head"]))
+        three = open_dataset(capture(tmp_path / "three", LEGIT["three-cameras"]))
+        torso = open_dataset(capture(tmp_path / "torso", LEGIT["close-up-torso"]))
+    assert len(ds) == 4 and len(three) == 6 and len(torso) == 4
+    notes = [str(w.message) for w in seen if issubclass(w.category, MeshsplatWarning)]
+    assert len(notes) == 2 and all("\n" not in n for n in notes), notes
+    tail = "nothing in them shows the subject's size, so their camera's distance to it was not checked"
+    assert notes[0].endswith(
+        f"head: the masks of 4 of 4 frames fill the image (f00.png, f01.png, f02.png, f03.png): {tail}"
+    )
+    assert notes[1].endswith(f"three: the masks of 2 of 6 frames fill the image (f04.png, f05.png): {tail}")
 
 
 def test_each_case_is_what_it_says(tmp_path):

@@ -15,11 +15,15 @@ Every reader ends in ``build_dataset``, which calls :func:`check_cameras`. The r
   mask is also compared the other way (:func:`_within`): a frame whose vertices miss the mask (occlusion)
   or lie mostly outside the image (a close-up) passes when the mask lies within the projected silhouette
   (``MIN_WITHIN``), its outline on the silhouette's (``MIN_OUTLINE``) and no shrunk projection
-  (``SMALLER``) fits clearly better (``SMALLER_BETTER`` more of the outline on it); a mask may be loose or
-  off by ``SLACK`` of the subject's projected width (the best such fit counts). The roll then wins when
-  it fits clearly better (vertices on the mask, mask within, outline on the silhouette's). A badly tracked frame
-  anywhere in the capture is found (a sample of 32 frames missed them); the cost is a mask decode and a
-  pooling per frame (``bench/badinput.py``).
+  (``SMALLER``, about the principal point or the world origin's image) fits clearly better
+  (``SMALLER_BETTER`` more of the outline on it); a mask may be loose or off by ``SLACK`` of the subject's
+  projected width (the best such fit counts). A frame passing on its vertices with under ``SIZE_CHECKED`` of
+  them on the mask is compared with the shrunk projections too (a camera too close) when its mask spans
+  ``SIZE_CELLS`` cells, the mask then allowed ``TIGHT`` cells inside the silhouette. The roll then wins when
+  it fits clearly better (vertices on the mask, mask within, outline on the silhouette's). A badly tracked
+  frame anywhere in the capture is found (a sample of 32 frames missed them); the cost is a mask decode and
+  a pooling per frame (``bench/badinput.py``). A mask filling the image (no outline in it) says nothing
+  about the subject's size: such frames are listed (``CameraCheck.unsized``), the reader notes them.
 - a camera failing on at least ``BROKEN_SHARE`` of its checked frames is a wrong camera: the capture is
   refused, naming the convention mix-up that makes it fit (y and z flipped, rolled by 180 degrees,
   camera-to-world given for world-to-camera, an OpenGL camera-to-world); fewer failing frames are bad
@@ -51,6 +55,8 @@ __all__ = [
     "MIN_WITHIN",
     "MIN_OUTLINE",
     "SLACK",
+    "SIZE_CHECKED",
+    "LARGER",
 ]
 
 MAX_VERTICES = 512  # vertices projected per frame (an even subsample of larger meshes)
@@ -68,6 +74,11 @@ MIN_COVER = 0.01  # without a mask: share of the image the projected mesh must c
 SMALLER = (0.8, 0.7, 0.6, 0.45)
 SMALLER_BETTER = 0.08  # ... by this much more of the mask's outline on the shrunk projection's
 SLACK = 0.2  # a mask may be loose or off by this share of the subject's projected width (a matte, a tracker)
+# under this share of the visible vertices on the mask, a frame passing on them is compared with the shrunk
+# projections too: a camera too close (a translation scaled) puts only part of them on it
+SIZE_CHECKED = 0.9
+TIGHT = 1  # ... its mask then allowed this many cells inside the silhouette (a tight matte, a mesh fatter than it)
+SIZE_CELLS = 12  # ... when the mask spans this many cells (fewer: a fifth of its size is within those tolerances)
 BAND_IN, BAND_OUT = 2.2, 0.5  # a mask's outline cell on the silhouette's: its signed distance (cells) in this band
 _MAX_SLACK = 2  # ... in grid cells at most (close-ups: the silhouette is wider than the image)
 PROBE_FRAMES = 8  # frames of a wrong camera on which the convention fixes are tried
@@ -114,12 +125,15 @@ class _Score:
 @dataclass
 class CameraCheck:
     """What :func:`check_cameras` found: ``wrong`` cameras (one sentence each) and ``bad_frames``
-    (frame index -> reason) of the other cameras; ``checked`` frames and ``masks_read``."""
+    (frame index -> reason) of the other cameras; ``checked`` frames and ``masks_read``; ``unsized``: the
+    passing frames whose mask fills the image (no outline in it), so that their camera's distance to the
+    subject could not be checked against it (a face-filling close-up)."""
 
     wrong: dict[str, str] = field(default_factory=dict)
     bad_frames: dict[int, str] = field(default_factory=dict)
     checked: int = 0
     masks_read: int = 0
+    unsized: list[int] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -243,7 +257,14 @@ def _signed_distance(a: np.ndarray, pad: int) -> np.ndarray:
     return sd[2:-2, 2:-2]
 
 
-def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) -> tuple[float, float]:
+def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid, tight: int = 0) -> tuple[float, float]:
+    """:func:`_fits` with one ``tight``."""
+    return _fits(vm, K, w, h, mesh, grid, (tight,))[0]
+
+
+def _fits(
+    vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid, tights: tuple[int, ...]
+) -> list[tuple[float, float]]:
     """How the mask lies in the mesh's projection (``mesh``: every vertex ``[V,3]`` and the faces ``[F,3]``,
     :func:`_silhouette`): (share of the mask's cells within the projection, share of the mask's outline on
     the projection's outline). Both near 1 when the mask is a part of the projected silhouette cut only by
@@ -251,13 +272,15 @@ def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) 
     inside. Tolerances are relative to the subject's projected width (its widest inscribed disc on the grid):
     the mask may be loose (its outline up to ``SLACK`` of that width outside the silhouette's, at least one
     cell and at most ``_MAX_SLACK``) and off by as much in any direction, the two together within that
-    slack; the best fit, of those holding ``MIN_WITHIN`` of the mask, is taken. (0, 0) for an empty mask."""
+    slack; the best fit, of those holding ``MIN_WITHIN`` of the mask, is taken. With a ``tight`` of n the
+    mask's outline may also lie up to n cells inside the silhouette's (a tight matte, a mesh fatter than the
+    body). One (within, outline) per entry of ``tights``, from one raster; (0, 0) for an empty mask."""
     _, cell, raw = grid
     if not raw.any():
-        return 0.0, 0.0
+        return [(0.0, 0.0)] * len(tights)
     sil = _silhouette(vm, K, w, h, mesh[0], mesh[1], raw.shape, cell)
     if not sil.any():
-        return 0.0, 0.0
+        return [(0.0, 0.0)] * len(tights)
     sd = _signed_distance(sil, _MAX_SLACK)
     # the slack: SLACK of the subject's projected width (its widest inscribed disc), 1 to _MAX_SLACK cells
     t = int(min(_MAX_SLACK, max(1, round(SLACK * 2.0 * float(-sd.min())))))
@@ -267,7 +290,12 @@ def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) 
     oy, ox = np.nonzero(m_out)
     shifts = np.arange(-t, t + 1)
     dy, dx = (a.ravel() for a in np.meshgrid(shifts, shifts, indexing="ij"))
-    loose = np.arange(0, t + 1, dtype=np.float64)  # how far outside the silhouette the mask's outline lies
+    return [_fit(sd, t, ys, xs, oy, ox, dy, dx, tight) for tight in tights]
+
+
+def _fit(sd, t: int, ys, xs, oy, ox, dy, dx, tight: int) -> tuple[float, float]:
+    """:func:`_fits`'s best fit on the silhouette's signed distances ``sd`` (cropped to the slack ``t``)."""
+    loose = np.arange(-tight, t + 1, dtype=np.float64)  # how far outside the silhouette the mask's outline lies
     # [shift, cell] signed distances of the mask's cells and outline cells, the mask moved by each shift
     d_in = sd[ys[None] + t + dy[:, None], xs[None] + t + dx[:, None]]
     inside = (d_in[:, None, :] <= loose[None, :, None] + 1.5).mean(-1)  # [shift, loose]
@@ -276,7 +304,7 @@ def _within(vm: np.ndarray, K, w, h, mesh: tuple[np.ndarray, np.ndarray], grid) 
         on_line = ((d_out >= -BAND_IN) & (d_out <= BAND_OUT)).mean(-1)
     else:
         on_line = np.ones_like(inside)
-    budget = np.maximum(np.abs(dy), np.abs(dx))[:, None] + loose[None, :] <= t
+    budget = np.maximum(np.abs(dy), np.abs(dx))[:, None] + np.maximum(loose, 0.0)[None, :] <= t
     ok = (inside >= MIN_WITHIN) & budget
     if ok.any():
         k = np.argmax(np.where(ok, on_line, -1.0))
@@ -298,6 +326,7 @@ def _score(vm: np.ndarray, K: np.ndarray, w: int, h: int, verts: np.ndarray, gri
 
 
 INVERTED = "the mask looks inverted (the subject black on white)"
+LARGER = "the mesh projects larger than the subject on the mask"
 
 
 def _inverted(vm: np.ndarray, K, w, h, verts, grid) -> bool:
@@ -319,31 +348,38 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
     close-up) passes when the mask lies within the projected silhouette (``MIN_WITHIN``) and its outline
     on the silhouette's (``MIN_OUTLINE``: cut only by occluders and the image edge), a loose or offset mask
     fitted within ``SLACK`` of the subject's width, and no shrunk projection fits clearly better (a
-    projection larger than the subject holds the mask too, its outline inside); the roll wins when its
-    outline fits by ``SMALLER_BETTER`` more, or its vertices on the mask, mask within and outline together
-    by ``CLEARLY_BETTER`` more."""
+    projection larger than the subject holds the mask too, its outline inside: ``LARGER``); a frame passing
+    on its vertices with under ``SIZE_CHECKED`` of them on the mask is compared with the shrunk projections
+    too, its mask allowed ``TIGHT`` cells inside the silhouette. The roll wins when its outline fits by
+    ``SMALLER_BETTER`` more, or its vertices on the mask, mask within and outline together by
+    ``CLEARLY_BETTER`` more."""
     s = _score(vm, K, w, h, verts, grid)
+    held: tuple[float, float] | None = None  # _within as is, computed when needed (a raster of the mesh)
     if s.ok:
         if grid is None:
             return None
+        if mesh is not None and s.on_mask is not None and s.on_mask < SIZE_CHECKED and _span(grid[2]) >= SIZE_CELLS:
+            # enough vertices on the mask, not nearly all: a projection larger than the subject (a camera too
+            # close) puts about half of them there; a shrunk one must not fit clearly better
+            held, (_, line) = _fits(vm, K, w, h, mesh(), grid, (0, TIGHT))
+            if _smaller_fits(vm, K, w, h, verts, grid, mesh(), s, line):
+                return LARGER
     elif s.in_front < MIN_IN_FRONT:
         return s.why()
     elif grid is None:  # no mask: a close-up passes when the mesh fills the image, the camera outside it
         return _seen_without_mask(vm, K, w, h, None if mesh is None else mesh())
-    held: tuple[float, float] | None = None  # _within as is, computed when needed (a raster of the mesh)
     if not s.ok:
         if mesh is not None and s.visible > 0:
             held = _within(vm, K, w, h, mesh(), grid)
-        if (
-            mesh is None
-            or held is None
-            or held[0] < MIN_WITHIN
-            or held[1] < MIN_OUTLINE
-            or _smaller_fits(vm, K, w, h, verts, grid, mesh(), s, held[1])
-        ):  # not within the projected silhouette: the mesh is where the subject is not
+        why: str | None = None
+        if mesh is None or held is None or held[0] < MIN_WITHIN or held[1] < MIN_OUTLINE:
+            why = s.why()  # not within the projected silhouette: the mesh is where the subject is not
+        elif _smaller_fits(vm, K, w, h, verts, grid, mesh(), s, held[1]):
+            why = LARGER
+        if why is not None:
             if s.on_mask is not None and s.on_mask < MIN_ON_MASK and _inverted(vm, K, w, h, verts, grid):
                 return INVERTED
-            return s.why()
+            return why
     if s.on_mask is not None:
         r = _score(_ROLL @ vm, K, w, h, verts, grid)
         if r.on_mask is None or r.visible < MIN_VISIBLE:
@@ -368,24 +404,57 @@ def _fails(vm: np.ndarray, K, w, h, verts, grid, mesh: Callable[[], tuple] | Non
     return None
 
 
+def _span(a: np.ndarray) -> int:
+    """The longer side, in cells, of the bounding box of ``a`` (0 when empty)."""
+    ys, xs = np.nonzero(a.any(1))[0], np.nonzero(a.any(0))[0]
+    return 0 if len(ys) == 0 else int(max(ys[-1] - ys[0], xs[-1] - xs[0])) + 1
+
+
 def _smaller_fits(vm, K, w, h, verts, grid, mesh, s: _Score, outline: float) -> bool:
-    """Whether the projection shrunk about the principal point (``SMALLER``: a focal length or a distance
-    off) fits the mask clearly better than as is: the mask within it (:func:`_within`) and either its
-    outline on the shrunk one's by ``SMALLER_BETTER`` more, or as much of it with ``CLEARLY_BETTER`` more
-    of the vertices on the mask. A mask held by a projection larger than the subject."""
-    for k in SMALLER:
+    """Whether the projection shrunk (``SMALLER``) fits the mask clearly better than as is: the mask within
+    it (:func:`_within`) and either its outline on the shrunk one's by ``SMALLER_BETTER`` more, or as much
+    of it with ``CLEARLY_BETTER`` more of the vertices on the mask. A mask held by a projection larger than
+    the subject. Shrunk about the principal point (a focal length too long, a camera too close along its
+    axis) and about the world origin's image (a translation scaled: in other units than the meshes, or the
+    meshes scaled without their cameras, moves the camera towards the world origin)."""
+    centres = [K[:2, 2]]
+    o = vm[:3, 3]  # the world origin in the camera's frame
+    if o[2] > 1e-9:
+        c = np.array([K[0, 0] * o[0] / o[2] + K[0, 1] * o[1] / o[2] + K[0, 2], K[1, 1] * o[1] / o[2] + K[1, 2]])
+        if np.abs(c - K[:2, 2]).max() >= grid[1]:  # (within a cell of the principal point: the same shrink)
+            centres.append(c)
+    for c, k in ((c, k) for c in centres for k in SMALLER):
         K2 = K.copy()
         K2[:2, :2] *= k
+        K2[:2, 2] = k * K[:2, 2] + (1.0 - k) * c  # u -> c + k (u - c)
         r = _score(vm, K2, w, h, verts, grid)
         if r.on_mask is None:
             continue  # too few vertices in the image (a close-up): its mask's outline is mostly the image edge
         more = r.on_mask >= (s.on_mask or 0.0) + CLEARLY_BETTER
         if not more and outline + SMALLER_BETTER > 1.0:
             continue  # nothing to gain: the outline as is is on the silhouette's, the vertices no better
+        if not _may_hold(vm, K2, w, h, mesh[0], grid):
+            continue  # (the shrunk projection's bounding box misses the mask: it cannot hold it)
         cover, line = _within(vm, K2, w, h, mesh, grid)
         if cover >= MIN_WITHIN and (line >= outline + SMALLER_BETTER or (more and line >= outline)):
             return True
     return False
+
+
+def _may_hold(vm: np.ndarray, K, w, h, verts: np.ndarray, grid) -> bool:
+    """False when the projection of ``verts [V,3]`` cannot hold ``MIN_WITHIN`` of the mask by
+    :func:`_within`'s measure: more of the mask's cells lie beyond its bounding box (on the grid) than any
+    shift and looseness reach. Spares a raster."""
+    _, cell, raw = grid
+    u, v, front, _ = _project(vm, K, w, h, verts)
+    if not front.any():
+        return False
+    x0, x1 = np.floor(u[front].min() / cell), np.floor(u[front].max() / cell)
+    y0, y1 = np.floor(v[front].min() / cell), np.floor(v[front].max() / cell)
+    ys, xs = np.nonzero(raw)
+    dx, dy = np.maximum(np.maximum(x0 - xs, xs - x1), 0), np.maximum(np.maximum(y0 - ys, ys - y1), 0)
+    reach = 1.5 + math.sqrt(2.0) * _MAX_SLACK  # a cell within the silhouette by _within's measure lies this near
+    return float((np.hypot(dx, dy) <= reach).mean()) >= MIN_WITHIN
 
 
 def _spread(items: list[int], k: int) -> list[int]:
@@ -439,12 +508,16 @@ def check_cameras(
         K, vm, w, h = cameras[cid]
         probe = _spread(ids, PROBE_FRAMES)
         fails: dict[int, str] = {}
+        unsized: list[int] = []
         for i in ids:  # geometry, then the mask, of every frame
             s = _score(vm, K, w, h, sub[frames[i][1]], None)
             close_up = s.in_front >= MIN_IN_FRONT and s.visible > 0  # its mask may show it is a close-up
             no_mask = s.in_front >= MIN_IN_FRONT and grid(i) is None  # a close-up when the mesh fills the image
             if s.ok or (close_up and grid(i) is not None) or no_mask:
-                _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails, full(frames[i][1]))
+                if not _mask_fail(i, vm, K, w, h, sub[frames[i][1]], grid(i), fails, full(frames[i][1])):
+                    g = grid(i)
+                    if g is not None and g[2].mean() > 0.5 and not _outline(g[2]).any():
+                        unsized.append(i)  # the mask fills the image: nothing in it shows the subject's size
             else:
                 fails[i] = s.why()
         report.checked += len(ids)
@@ -452,6 +525,7 @@ def check_cameras(
             report.wrong[cid] = _diagnose(cid, fails, len(ids), vm, K, w, h, probe, frames, sub, grid, full)
         else:
             report.bad_frames.update(fails)
+            report.unsized += unsized
     return report
 
 
@@ -473,12 +547,24 @@ def _diagnose(cid, fails, n_checked, vm, K, w, h, probe, frames, sub, grid, full
             "on white, the mesh landing on the black): invert them, white = subject"
         )
     what = f"camera {cid!r} does not see the subject on {len(fails)} of {n_checked} frames ({main})"
+
+    def on_mask(m: np.ndarray) -> float:  # the mean share of the vertices on the mask, over the probed frames
+        return float(np.mean([_score(m, K, w, h, sub[frames[i][1]], grid(i)).on_mask or 0.0 for i in probe]))
+
     for meaning, fix in _FIXES:
         try:
             vm2 = fix(vm)
         except np.linalg.LinAlgError:
             continue
         good = sum(_fails(vm2, K, w, h, sub[frames[i][1]], grid(i), full(frames[i][1])) is None for i in probe)
-        if good >= max(1, BROKEN_SHARE * len(probe)):
-            return f"{what}: likely {meaning}, which fits {good} of {len(probe)} checked frames"
+        if good < max(1, BROKEN_SHARE * len(probe)):
+            continue
+        if main == LARGER and on_mask(vm2) < on_mask(vm) + CLEARLY_BETTER:
+            continue  # a camera too close: a mix-up that passes as narrowly as it (a large blob of a mask) is no fix
+        return f"{what}: likely {meaning}, which fits {good} of {len(probe)} checked frames"
+    if main == LARGER:
+        return (
+            f"{what}: no common convention mix-up fixes it; the camera looks too close or its focal length too long "
+            "(a translation in other units than the meshes, or meshes scaled without their cameras?)"
+        )
     return f"{what}: no common convention mix-up (y/z flip, 180-degree roll, inverse) fixes it"

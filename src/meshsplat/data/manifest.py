@@ -551,8 +551,20 @@ def _check_at_the_door(
         raise MeshsplatError(
             f"{ds.root}: wrong camera{'s' if len(found.wrong) > 1 else ''}: " + "; ".join(found.wrong.values())
         )
+
+    def note_unsized() -> None:  # once the capture opens: the frames whose camera distance went unchecked
+        if found.unsized:
+            ids = sorted(found.unsized)
+            warnings.warn(
+                f"{ds.root}: the masks of {len(ids)} of {len(frames)} frames fill the image ({_names(frames, ids)}): "
+                "nothing in them shows the subject's size, so their camera's distance to it was not checked",
+                MeshsplatWarning,
+                stacklevel=4,
+            )
+
     found.bad_frames.update(dict.fromkeys(empty, EMPTY_MASK))
     if not found.bad_frames:
+        note_unsized()
         return ds
     bad = sorted(found.bad_frames)
     reasons: dict[str, list[int]] = {}
@@ -573,6 +585,7 @@ def _check_at_the_door(
             what = f"{n} of {n_all} frames do not show the subject where their camera puts the mesh ({listed})"
         raise MeshsplatError(f"{ds.root}: {what}; leave them out with {DROP_FLAG}, or fix their masks or cameras")
     warnings.warn(f"{ds.root}: left out {n} of {n_all} frames ({listed})", MeshsplatWarning, stacklevel=3)
+    note_unsized()
     drop = set(bad)
     new_index: dict[int, int] = {}
     kept: list[dict] = []
