@@ -23,13 +23,16 @@ Usage: python bench/viewer.py [--quick] [--out bench/results/viewer-<host>.json]
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -42,11 +45,37 @@ from meshsplat.gaussians.params import make_params
 from meshsplat.gaussians.shading import Shading
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
+from meshsplat.viewer import bundle as bundle_mod
 from meshsplat.viewer import read_viewer_bundle, write_viewer_bundle
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver the browser tests use
 from _browser import find_chromium, open_page  # noqa: E402
+
+
+def page_code_at(rev: str) -> str:
+    """The page code (viewer.js) of commit ``rev``."""
+    path = f"{rev}:src/meshsplat/viewer/static/viewer.js"
+    return subprocess.run(["git", "show", path], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+
+
+@contextlib.contextmanager
+def page_code(viewer_js: str | None) -> Iterator[None]:
+    """Within: bundles are written with ``viewer_js`` as their page code (another commit's viewer.js, a
+    baseline in the same run); None: today's."""
+    static = bundle_mod._STATIC
+    if viewer_js is not None:
+        tmp = Path(tempfile.mkdtemp(prefix="meshsplat-static-"))
+        shutil.copytree(static, tmp, dirs_exist_ok=True)
+        (tmp / "viewer.js").write_text(viewer_js, encoding="utf-8")
+        bundle_mod._STATIC = tmp
+    try:
+        yield
+    finally:
+        bundle_mod._STATIC = static
+        if viewer_js is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
 
 SIZE = 256  # timing viewport (CSS px, device pixel ratio 1); main-thread and sort work do not depend on it
 

@@ -21,7 +21,6 @@ import argparse
 import json
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -29,27 +28,12 @@ from pathlib import Path
 import torch
 
 from _machine import machine_info, results_path
-from meshsplat.viewer import bundle as bundle_mod
 from meshsplat.viewer import write_viewer_bundle
-from viewer import cesium, random_avatar
+from viewer import cesium, page_code, page_code_at, random_avatar
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver the browser tests use
 from _browser import find_chromium, open_page  # noqa: E402
-
-
-def with_static(viewer_js: str | None, write) -> None:
-    """``write()`` with the bundle's viewer.js replaced by ``viewer_js`` (None: today's)."""
-    static = bundle_mod._STATIC
-    if viewer_js is not None:
-        tmp = Path(tempfile.mkdtemp(prefix="meshsplat-static-"))
-        shutil.copytree(static, tmp, dirs_exist_ok=True)
-        (tmp / "viewer.js").write_text(viewer_js, encoding="utf-8")
-        bundle_mod._STATIC = tmp
-    try:
-        write()
-    finally:
-        bundle_mod._STATIC = static
 
 
 def time_page(index: Path, size: tuple[int, int], draws: int, chromium: str) -> list[float]:
@@ -73,13 +57,7 @@ def main() -> None:
     if chromium is None:
         sys.exit("chromium is not installed")
     torch.set_num_threads(1)
-    old_js = subprocess.run(
-        ["git", "show", f"{args.before_rev}:src/meshsplat/viewer/static/viewer.js"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
+    old_js = page_code_at(args.before_rev)
     sizes = [tuple(int(x) for x in s.split("x")) for s in args.sizes.split(",")]
     work = Path(tempfile.mkdtemp(prefix="meshsplat-draw-bench-"))
     pages: dict[str, dict[str, Path]] = {}  # case -> {before, now} -> index.html
@@ -92,7 +70,8 @@ def main() -> None:
                 pages[case] = {}
                 for code, js in (("before", old_js), ("now", None)):
                     out = work / f"r{n}-{code}"
-                    with_static(js, lambda out=out, av=av: write_viewer_bundle(av, frames[20:21], out))
+                    with page_code(js):
+                        write_viewer_bundle(av, frames[20:21], out)
                     pages[case][code] = out / "index.html"
         if args.avatar is not None:
             from meshsplat.cli.main import main as cli
@@ -103,7 +82,8 @@ def main() -> None:
             for code, js in (("before", old_js), ("now", None)):
                 out = work / f"head-{code}"
                 argv = ["view", str(args.avatar), "--animation", "blendshapes", "--frames", "1", "--out", str(out)]
-                with_static(js, lambda argv=argv: cli(argv))
+                with page_code(js):
+                    cli(argv)
                 pages[case][code] = out / "index.html"
         rows = []
         for case, by_code in pages.items():

@@ -43,7 +43,6 @@ import json
 import math
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -53,6 +52,7 @@ import numpy as np
 import torch
 
 from _machine import machine_info, results_path
+from viewer import page_code, page_code_at
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver and fixtures the browser tests use
@@ -66,7 +66,6 @@ from meshsplat.track.head_fit import fit_head  # noqa: E402
 from meshsplat.track.head_render import render_head  # noqa: E402
 from meshsplat.track.ict_head import load_ict_head  # noqa: E402
 from meshsplat.track.tracker_camera import focal_from_fov  # noqa: E402
-from meshsplat.viewer import bundle as bundle_mod  # noqa: E402
 from meshsplat.viewer import write_viewer_bundle  # noqa: E402
 from meshsplat.viewer.webcam import find_landmarker, webcam_model  # noqa: E402
 
@@ -136,13 +135,7 @@ def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None, run:
     """The webcam bundle of the browser tests' small avatar, or with ``run`` of that trained head as a user
     makes it (``meshsplat view RUN --animation blendshapes --webcam``); ``viewer_js``: another page's code
     (the baseline)."""
-    static = bundle_mod._STATIC
-    if viewer_js is not None:
-        tmp = Path(tempfile.mkdtemp(prefix="meshsplat-static-"))
-        shutil.copytree(static, tmp, dirs_exist_ok=True)
-        (tmp / "viewer.js").write_text(viewer_js, encoding="utf-8")
-        bundle_mod._STATIC = tmp
-    try:
+    with page_code(viewer_js):
         if run is None:
             av = make_avatar(n=300)
             write_viewer_bundle(av, None, out, rig=_small_blendshapes(av), webcam=model, landmarker=landmarker)
@@ -152,8 +145,6 @@ def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None, run:
             argv = ["view", str(run), "--animation", "blendshapes", "--webcam", str(landmarker), "--out", str(out)]
             if cli(argv) != 0:
                 raise SystemExit(f"meshsplat {' '.join(argv)} failed")
-    finally:
-        bundle_mod._STATIC = static
 
 
 def run_variant(url: str, clip: Path, chromium: str, warmup: int, seconds: float, viewport=(W, H)) -> dict:
@@ -247,13 +238,7 @@ def main() -> None:
     img = head_frame(head)
     work = Path(tempfile.mkdtemp(prefix="meshsplat-webcam-bench-"))
     clip = write_y4m(work / "face.y4m", head_clip(head, args.motion), fps=FPS)
-    old_js = subprocess.run(
-        ["git", "show", f"{args.before_rev}:src/meshsplat/viewer/static/viewer.js"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
+    old_js = page_code_at(args.before_rev)
     # the one change to an old page without it, for the measurement only: the fence that times its pixels rendered
     if "renderedMs" not in old_js:
         assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
