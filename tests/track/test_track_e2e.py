@@ -18,6 +18,7 @@ from meshsplat.io.video import read_video_frames, write_mp4
 from meshsplat.track.clip import TrackSettings
 from meshsplat.track.face_track import track_faces
 from meshsplat.track.head_capture import track_head
+from meshsplat.viewer.webcam import LANDMARKER_FILES
 
 pytest.importorskip("mediapipe")
 from meshsplat.track.mediapipe_models import FaceMesh
@@ -99,6 +100,16 @@ def test_trains_evaluates_and_plays_arkit_weights(capture, tmp_path, capsys):
     capsys.readouterr()
     assert main(["render", str(run), "--animation", "blendshapes", "ict", "--out", str(tmp_path / "ict")]) == 2
     assert "use the blend-shape model the avatar was trained on" in capsys.readouterr().err
+    # ... and so in the player's webcam mode: your own head, driven live (the landmarker's files stand in here)
+    marker = tmp_path / "face_mesh_pkg"
+    marker.mkdir()
+    for f in LANDMARKER_FILES:
+        (marker / f).write_text("x")
+    page = tmp_path / "live"
+    assert main(["view", str(run), "--animation", "blendshapes", "--webcam", str(marker), "--out", str(page)]) == 0
+    header = json.loads((page / "avatar.json").read_text())
+    assert header["webcam"]["names"] and header["driver"]["source"] == "blendshapes"
+    assert header["num_vertices"] == open_dataset(out).num_vertices
     # another tracked capture's expressions, named columns matched: the capture folder is the weights source
     got = read_weights(out, list(reversed(names)))
     np.testing.assert_array_equal(got[:, ::-1], np.load(out / "head_fit.npz")["weights"])
