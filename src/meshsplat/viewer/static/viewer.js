@@ -1074,9 +1074,9 @@ void main() {
   oCol = vec4(rgb, op);
 }`;
 
-// the draw: one quad (two triangles, six vertices, no vertex attributes) per Gaussian in back-to-front order
-// around its pass-C position; one plain draw call, not an instanced one (SwiftShader, the software WebGL,
-// pays a draw call's set-up per instance: 44 us a Gaussian)
+// the draw: one quad (two indexed triangles over four vertices, no vertex attributes) per Gaussian in
+// back-to-front order around its pass-C position; one plain draw call, not an instanced one (SwiftShader, the
+// software WebGL, pays a draw call's set-up per instance: 44 us a Gaussian)
 const VERT = `#version 300 es
 precision highp float; precision highp int; precision highp sampler2D; precision highp usampler2D;
 uniform usampler2D orderTex;            // slot -> Gaussian index, back to front (the sort's order)
@@ -1264,7 +1264,6 @@ export class SplatRenderer {
     }
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, quads, gl.STATIC_DRAW);
-    gl.bindVertexArray(null);
     gl.bindVertexArray(null);
     this.visible = 0;
   }
