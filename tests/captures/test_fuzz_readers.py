@@ -70,7 +70,7 @@ def _mutate_npz(path: Path, key: str, how: str, draw) -> None:
         z[key] = {
             "flat": a.reshape(-1),
             "extra": a[None],
-            "empty": a[:0],
+            "empty": a[:0] if a.ndim else a.reshape(-1)[:0],  # a 0-d array has no rows to cut
             "scalar": np.asarray(a.reshape(-1)[:1].sum() if a.size else 0),
             "rows": np.concatenate([a, a]) if a.ndim else a,
         }[shape]
