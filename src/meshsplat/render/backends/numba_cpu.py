@@ -76,11 +76,11 @@ _MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
 
 
 def _bin_kernel(
-    m2, con, op, col, flat, col_row, n_gauss, n_cams, width, height, tile, tiles_x, tiles_y
+    m2, con, op, col, flat, vis, shared_colors, n_gauss, n_cams, width, height, tile, tiles_x, tiles_y
 ):  # pragma: no cover - compiled
-    """Entry records and tile lists, from the projection's ``means2d [C*N,2]``, ``conics [C*N,3]``,
-    ``opacities [N]`` and colours ``[rows, D]`` (input dtype), for the visible entries ``flat [M]`` (camera * N
-    + Gaussian) in compositing order.
+    """Entry records and tile lists, from the projection's ``means2d [C*N,2]``, ``conics [C*N,3]``, ``visible
+    [C*N]``, ``opacities [N]`` and colours (``[N, D]`` when ``shared_colors``, else ``[C*N, D]``; input dtype), for
+    the visible entries ``flat [M]`` (camera * N + Gaussian) in compositing order.
 
     Records are stored in the order of the first tile each entry touches, so that a tile's entries lie close
     together in memory (random reads are what a tile's walk waits on); ``isect`` holds these record ids.
@@ -88,59 +88,74 @@ def _bin_kernel(
     torch backend's row-span terms; first and last pixel row, last < first: empty; colours), ``rflat [M]``
     (record -> camera * N + Gaussian), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth order
     within each tile.
+
+    Serial passes, none of them arithmetic behind a random read: footprints in Gaussian order, then first tiles and
+    tile counts in depth order (one random read of a footprint box each), then the records filled in their own
+    order (independent random reads), then the tile lists.
     """
     m = flat.shape[0]
     d_out = col.shape[1]
     per_cam = tiles_x * tiles_y
-    rect = np.empty((m, 4), np.int64)
-    foot = np.empty((m, 4), np.float64)
     tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
-    first = np.zeros(n_cams * per_cam + 1, np.int64)  # entries per first tile, then counting-sort offsets
-    for e in range(m):  # serial: cheap next to compositing, and a serial kernel compiles much faster
-        f = flat[e]
+    foot = np.empty((vis.shape[0], 4), np.float64)  # 2 a tau, det, first and last pixel row
+    box = np.empty((vis.shape[0], 4), np.int32)  # first and last tile column, row (last < first: none)
+    for f in range(vis.shape[0]):  # Gaussian order: sequential reads
+        if not vis[f]:
+            continue
         mx, my = np.float64(m2[f, 0]), np.float64(m2[f, 1])
         a, b, c = np.float64(con[f, 0]), np.float64(con[f, 1]), np.float64(con[f, 2])
         tau = min(max(math.log(np.float64(op[f % n_gauss]) / ALPHA_THRESHOLD), 0.0), tau_max)
         det = max(a * c - b * b, 1e-300)
         ry = math.sqrt(2.0 * tau * a / det)
         rx = math.sqrt(2.0 * tau * c / det)
-        foot[e, 0], foot[e, 1] = 2.0 * a * tau, det
+        foot[f, 0], foot[f, 1] = 2.0 * a * tau, det
         y0 = max(np.ceil(my - ry - PIXEL_CENTER - SPAN_MARGIN), 0.0)
         y1 = min(np.floor(my + ry - PIXEL_CENTER + SPAN_MARGIN), height - 1.0)
         x0 = max(np.ceil(mx - rx - PIXEL_CENTER - SPAN_MARGIN), 0.0)
         x1 = min(np.floor(mx + rx - PIXEL_CENTER + SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
-            foot[e, 2], foot[e, 3] = 0.0, -1.0
-            rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
-            first[1] += 1
+            foot[f, 2], foot[f, 3] = 0.0, -1.0
+            box[f, 0], box[f, 1], box[f, 2], box[f, 3] = 0, -1, 0, -1
         else:
-            foot[e, 2], foot[e, 3] = y0, y1
-            rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
-            rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
-            first[(f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] + 1] += 1
-    for t in range(1, first.shape[0]):  # offsets (a loop: np.cumsum costs a second of compiling)
-        first[t] += first[t - 1]
-    rid = np.empty(m, np.int64)  # entry -> record id (stable counting sort by first tile)
-    rflat = np.empty(m, np.int64)
-    rec = np.empty((m, _COL + d_out), np.float64)
-    counts = np.zeros(n_cams * per_cam + 1, np.int64)
+            foot[f, 2], foot[f, 3] = y0, y1
+            box[f, 0], box[f, 1] = int(x0) // tile, int(x1) // tile
+            box[f, 2], box[f, 3] = int(y0) // tile, int(y1) // tile
+    first = np.zeros(n_cams * per_cam + 1, np.int64)  # entries per first tile, then counting-sort offsets
+    counts = np.zeros(n_cams * per_cam + 1, np.int64)  # intersections per tile, then tile_ptr
+    rect = np.empty((m, 4), np.int32)  # the boxes in depth order (read twice more, in order)
     for e in range(m):
         f = flat[e]
         base = (f // n_gauss) * per_cam
-        key = base + rect[e, 2] * tiles_x + rect[e, 0] if rect[e, 1] >= rect[e, 0] else 0
-        r = first[key]
-        first[key] += 1
-        rid[e], rflat[r] = r, f
-        rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
-        rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[f % n_gauss]
-        rec[r, _TWO_A_TAU], rec[r, _DET], rec[r, _Y0], rec[r, _Y1] = foot[e, 0], foot[e, 1], foot[e, 2], foot[e, 3]
-        for d in range(d_out):
-            rec[r, _COL + d] = col[col_row[e], d]
+        for j in range(4):
+            rect[e, j] = box[f, j]
+        if rect[e, 1] < rect[e, 0]:
+            first[1] += 1
+            continue
+        first[base + rect[e, 2] * tiles_x + rect[e, 0] + 1] += 1
         for ty in range(rect[e, 2], rect[e, 3] + 1):
             for tx in range(rect[e, 0], rect[e, 1] + 1):
                 counts[base + ty * tiles_x + tx + 1] += 1
-    for t in range(1, counts.shape[0]):
+    for t in range(1, first.shape[0]):  # offsets (a loop: np.cumsum costs a second of compiling)
+        first[t] += first[t - 1]
         counts[t] += counts[t - 1]
+    rid = np.empty(m, np.int64)  # entry -> record id (stable counting sort by first tile)
+    rflat = np.empty(m, np.int64)
+    for e in range(m):
+        f = flat[e]
+        key = (f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] if rect[e, 1] >= rect[e, 0] else 0
+        r = first[key]
+        first[key] += 1
+        rid[e], rflat[r] = r, f
+    rec = np.empty((m, _COL + d_out), np.float64)
+    for r in range(m):  # record order: sequential writes
+        f = rflat[r]
+        g = f % n_gauss
+        rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
+        rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[g]
+        rec[r, _TWO_A_TAU], rec[r, _DET], rec[r, _Y0], rec[r, _Y1] = foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3]
+        cr = g if shared_colors else f
+        for d in range(d_out):
+            rec[r, _COL + d] = col[cr, d]
     tile_ptr = counts
     cursor = np.empty(tile_ptr.shape[0] - 1, np.int64)
     for t in range(cursor.shape[0]):
@@ -555,7 +570,8 @@ class _Geometry:
         visible = proj.visible.contiguous().numpy()
         # [M] entry -> camera * N + Gaussian: a radix sort of the depths' bits (torch's stable argsort's order)
         self.flat = _kernels().depth_order(_depth_keys(depths), visible, 8 * depths.itemsize)
-        self.col_row = self.flat % max(n_gauss, 1) if shared_colors else self.flat
+        self.shared_colors = shared_colors
+        self.visible = visible.reshape(-1)
         self.m2 = proj.means2d.detach().reshape(-1, 2).contiguous().numpy()
         self.con = proj.conics.detach().reshape(-1, 3).contiguous().numpy()
         # pixel centres in the input dtype, as torch_ref's ``arange(W, dtype) + 0.5``
@@ -571,8 +587,8 @@ class _Geometry:
         op = opacities.detach().contiguous().numpy()
         col = colors.detach().reshape(-1, colors.shape[-1]).contiguous().numpy()
         self.rec, self.rflat, self.tile_ptr, self.isect = _kernels().bin(
-            self.m2, self.con, op, col, self.flat, self.col_row, self.n_gauss, self.n_cams, self.width, self.height,
-            self.tile, self.tiles_x, self.tiles_y,
+            self.m2, self.con, op, col, self.flat, self.visible, self.shared_colors, self.n_gauss, self.n_cams,
+            self.width, self.height, self.tile, self.tiles_x, self.tiles_y,
         )  # fmt: skip
 
     def args(self, bg: np.ndarray) -> tuple[Any, ...]:
