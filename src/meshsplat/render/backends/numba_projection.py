@@ -9,6 +9,8 @@ to torch when ``viewmats`` or ``Ks`` require grad). Both kernels run over ranges
 (``_numba.run_ranges``), each Gaussian summing its cameras in camera order: bit-identical for any thread count.
 The forward allocates its scratch matrices once per range (once per Gaussian before: 1.3x slower at 500k), the
 backward once per block of ``_BLOCK`` Gaussians (ten small allocations per Gaussian before: 1.2x faster at 50k).
+The backward takes ``J W Σ W^T`` from the forward's ``Σ u``, ``Σ v`` (not a 3x3 product per camera) and skips
+Gaussians no camera sees: 500k @ 512² 72 -> 53 ms.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ def _project_kernel(
             tx, ty, _, _ = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
             rz = 1.0 / z
             j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
-            a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+            a, b, c, _, _, _, _, _, _ = _screen_cov(w, sig, j00, j02, j11, j12)
             a += EPS2D
             c += EPS2D
             det = a * c - b * b
@@ -106,7 +108,8 @@ def _clamped_xy_py(x, y, z, fx, fy, cx, cy, width, height):  # pragma: no cover 
 
 
 def _screen_cov_py(w, sig, j00, j02, j11, j12):  # pragma: no cover - compiled
-    """(a, b, c) of ``J W Σ W^T J^T`` for J = [[j00, 0, j02], [0, j11, j12]] (no dilation)."""
+    """(a, b, c) of ``J W Σ W^T J^T`` for J = [[j00, 0, j02], [0, j11, j12]] (no dilation), then ``Σ u`` and ``Σ v``
+    for the rows u, v of ``J W`` (the backward's ``J W Σ W^T = [Σ u, Σ v]^T W^T``)."""
     # rows of J W: u = j00 * W0 + j02 * W2, v = j11 * W1 + j12 * W2
     u0 = j00 * w[0, 0] + j02 * w[2, 0]
     u1 = j00 * w[0, 1] + j02 * w[2, 1]
@@ -120,7 +123,8 @@ def _screen_cov_py(w, sig, j00, j02, j11, j12):  # pragma: no cover - compiled
     sv0 = sig[0, 0] * v0 + sig[0, 1] * v1 + sig[0, 2] * v2
     sv1 = sig[1, 0] * v0 + sig[1, 1] * v1 + sig[1, 2] * v2
     sv2 = sig[2, 0] * v0 + sig[2, 1] * v1 + sig[2, 2] * v2
-    return u0 * su0 + u1 * su1 + u2 * su2, u0 * sv0 + u1 * sv1 + u2 * sv2, v0 * sv0 + v1 * sv1 + v2 * sv2
+    a, b, c = u0 * su0 + u1 * su1 + u2 * su2, u0 * sv0 + u1 * sv1 + u2 * sv2, v0 * sv0 + v1 * sv1 + v2 * sv2
+    return a, b, c, su0, su1, su2, sv0, sv1, sv2
 
 
 _quat_rotation: Any = _quat_rotation_py
@@ -136,12 +140,13 @@ def _project_backward_kernel(
     n = means.shape[0]
     for blk in range(lo, hi):
         rot, sig, g_sig = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
-        s_c, g_rot = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
-        s, gm, js0, js1 = np.empty(3, np.float64), np.empty(3, np.float64), np.empty(3), np.empty(3)
+        g_rot, s, gm = np.empty((3, 3), np.float64), np.empty(3, np.float64), np.empty(3, np.float64)
         t = np.empty((2, 3), np.float64)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            if _culled(vis, quats, scales, i):  # no camera sees it: its gradients stay zero
+                continue
             _backward_one(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, i,
-                          rot, sig, g_sig, s_c, g_rot, s, gm, js0, js1, t, g_means, g_quats, g_scales)  # fmt: skip
+                          rot, sig, g_sig, g_rot, s, gm, t, g_means, g_quats, g_scales)  # fmt: skip
 
 
 def _backward_one_py(
@@ -160,12 +165,9 @@ def _backward_one_py(
     rot,
     sig,
     g_sig,
-    s_c,
     g_rot,
     s,
     gm,
-    js0,
-    js1,
     t,
     g_means,
     g_quats,
@@ -195,7 +197,7 @@ def _backward_one_py(
         tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
         rz = 1.0 / z
         j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
-        a, b, c = _screen_cov(w, sig, j00, j02, j11, j12)
+        a, b, c, su0, su1, su2, sv0, sv1, sv2 = _screen_cov(w, sig, j00, j02, j11, j12)
         a += EPS2D
         c += EPS2D
         det = a * c - b * b
@@ -213,23 +215,19 @@ def _backward_one_py(
         for r in range(3):
             for q in range(3):
                 g_sig[r, q] += t[0, r] * (ga * t[0, q] + g01 * t[1, q]) + t[1, r] * (g01 * t[0, q] + gc * t[1, q])
-        # d/dJ of J S J^T with S = W Σ W^T: 2 G J S; only J00, J02, J11, J12 are variables
-        for r in range(3):
-            for q in range(3):
-                acc = 0.0
-                for k in range(3):
-                    for m in range(3):
-                        acc += w[r, k] * sig[k, m] * w[q, m]
-                s_c[r, q] = acc
-        # js0, js1: rows 0 and 1 of J S
-        for k in range(3):
-            js0[k] = j00 * s_c[0, k] + j02 * s_c[2, k]
-            js1[k] = j11 * s_c[1, k] + j12 * s_c[2, k]
+        # d/dJ of J S J^T with S = W Σ W^T: 2 G J S; only J00, J02, J11, J12 are variables. Rows 0 and 1 of
+        # J S = J W Σ W^T: (Σ u)^T W^T and (Σ v)^T W^T
+        js00 = su0 * w[0, 0] + su1 * w[0, 1] + su2 * w[0, 2]
+        js01 = su0 * w[1, 0] + su1 * w[1, 1] + su2 * w[1, 2]
+        js02 = su0 * w[2, 0] + su1 * w[2, 1] + su2 * w[2, 2]
+        js10 = sv0 * w[0, 0] + sv1 * w[0, 1] + sv2 * w[0, 2]
+        js11 = sv0 * w[1, 0] + sv1 * w[1, 1] + sv2 * w[1, 2]
+        js12 = sv0 * w[2, 0] + sv1 * w[2, 1] + sv2 * w[2, 2]
         # (G J S)[r, k] = G[r,0] js0[k] + G[r,1] js1[k]
-        v_j00 = 2.0 * (ga * js0[0] + g01 * js1[0])
-        v_j02 = 2.0 * (ga * js0[2] + g01 * js1[2])
-        v_j11 = 2.0 * (g01 * js0[1] + gc * js1[1])
-        v_j12 = 2.0 * (g01 * js0[2] + gc * js1[2])
+        v_j00 = 2.0 * (ga * js00 + g01 * js10)
+        v_j02 = 2.0 * (ga * js02 + g01 * js12)
+        v_j11 = 2.0 * (g01 * js01 + gc * js11)
+        v_j12 = 2.0 * (g01 * js02 + gc * js12)
         vmx, vmy = np.float64(v_m2[cam, i, 0]), np.float64(v_m2[cam, i, 1])
         v_rz = fx * v_j00 + fy * v_j11 - 2.0 * fx * tx * rz * v_j02 - 2.0 * fy * ty * rz * v_j12
         v_rz += fx * x * vmx + fy * y * vmy
@@ -262,6 +260,24 @@ def _backward_one_py(
 
 
 _backward_one: Any = _backward_one_py
+
+
+def _culled_py(vis, quats, scales, i):  # pragma: no cover - compiled
+    """Whether Gaussian i is visible in no camera, with finite quaternion and scales (so that its gradients are
+    zero: non-finite ones still go through the chain rule, which makes them NaN as in the torch projection)."""
+    for cam in range(vis.shape[0]):
+        if vis[cam, i]:
+            return False
+    for k in range(4):
+        if not math.isfinite(quats[i, k]):
+            return False
+    for k in range(3):
+        if not math.isfinite(scales[i, k]):
+            return False
+    return True
+
+
+_culled: Any = _culled_py
 
 
 def _quat_backward_py(qw, qx, qy, qz, g, out):  # pragma: no cover - compiled
@@ -306,13 +322,14 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     """The projection and its backward (called once by the numba backend's kernel loader): serial kernels
     (``njit_serial``) over ranges of Gaussians, run by ``run_ranges`` on torch's thread count; same arguments and
     results as before they took ranges."""
-    global _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _backward_one
+    global _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _backward_one, _culled
     global _prange, _project_serial, _project_backward_serial
     helper = njit_serial(numba)
     _quat_rotation = helper(_quat_rotation_py)
     _clamped_xy = helper(_clamped_xy_py)
     _screen_cov = helper(_screen_cov_py)
     _quat_backward = helper(_quat_backward_py)
+    _culled = helper(_culled_py)
     _backward_one = njit_serial(numba, inline=True)(_backward_one_py)
     fwd, bwd = helper(_project_kernel), helper(_project_backward_kernel)
     _prange, _project_serial, _project_backward_serial = numba.prange, fwd, bwd
