@@ -131,7 +131,7 @@ def main(argv=None) -> int:
     stages["compositing backward (scalar)"] = _timed(lambda: k.backward(*bwd), args.repeats)
     stages["compositing backward (lanes)"] = _timed(lambda: k.backward_lanes(*bwd), args.repeats)
     rows = k.backward(*bwd)
-    stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1), args.repeats)
+    stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1, geo.xs), args.repeats)
     count = numba.njit(_count_visits)
     visited, at_done, below, contributed, n_rows = (
         int(x) for x in count(geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, size, 16, geo.tiles_x)

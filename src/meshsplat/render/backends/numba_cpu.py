@@ -447,27 +447,32 @@ def _backward_kernel(
                 grad[k, 6 + d] = g_c[d]
 
 
-def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams):  # pragma: no cover - compiled
+def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams, like):  # pragma: no cover - compiled
     """Sum intersection rows into the gradients of the projection's outputs, in intersection order (serial:
-    deterministic; one pass over the rows, faster than a per-Gaussian pass that reads them at random):
-    means2d and conics [C*N, 2|3] (row ``rflat[r]``), opacities [N] and colours ([N, D] when
-    ``shared_colors``, else [C*N, D]), float64."""
-    d_out = grad.shape[1] - 6
-    g_m2 = np.zeros((n_cams * n_gauss, 2), np.float64)
-    g_con = np.zeros((n_cams * n_gauss, 3), np.float64)
+    deterministic): each record's rows first (one pass over the rows; a record's tiles are neighbours, so these
+    sums stay in cache), then each record into its camera * N + Gaussian row ``rflat[r]``. Returns means2d and
+    conics [C*N, 2|3] in the dtype of ``like`` (one record per row: rounded once, as before), opacities [N] and
+    colours ([N, D] when ``shared_colors``, else [C*N, D]) float64 (summed over cameras in record order)."""
+    n_g = grad.shape[1]
+    d_out = n_g - 6
+    m = rflat.shape[0]
+    acc = np.zeros((m, n_g), np.float64)
+    for k in range(isect.shape[0]):
+        r = isect[k]
+        for j in range(n_g):
+            acc[r, j] += grad[k, j]
+    g_m2 = np.zeros((n_cams * n_gauss, 2), like.dtype)
+    g_con = np.zeros((n_cams * n_gauss, 3), like.dtype)
     g_op = np.zeros(n_gauss, np.float64)
     g_col = np.zeros((n_gauss if shared_colors else n_cams * n_gauss, d_out), np.float64)
-    for k in range(isect.shape[0]):
-        f = rflat[isect[k]]
-        g_m2[f, 0] += grad[k, 0]
-        g_m2[f, 1] += grad[k, 1]
-        g_con[f, 0] += grad[k, 2]
-        g_con[f, 1] += grad[k, 3]
-        g_con[f, 2] += grad[k, 4]
-        g_op[f % n_gauss] += grad[k, 5]
-        r = f % n_gauss if shared_colors else f
+    for r in range(m):
+        f = rflat[r]
+        g_m2[f, 0], g_m2[f, 1] = acc[r, 0], acc[r, 1]
+        g_con[f, 0], g_con[f, 1], g_con[f, 2] = acc[r, 2], acc[r, 3], acc[r, 4]
+        g_op[f % n_gauss] += acc[r, 5]
+        cr = f % n_gauss if shared_colors else f
         for d in range(d_out):
-            g_col[r, d] += grad[k, 6 + d]
+            g_col[cr, d] += acc[r, 6 + d]
     return g_m2, g_con, g_op, g_col
 
 
@@ -644,15 +649,17 @@ class _Composite(torch.autograd.Function):
             geo.t_final,
             geo.n_contrib,
         )
-        g_m2, g_con, g_op, g_col = k.scatter(geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C)
+        g_m2, g_con, g_op, g_col = k.scatter(
+            geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C, geo.xs
+        )  # means2d, conics in the input dtype
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
             t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
             grad_bg = (t_final * g_out.reshape(C, H * W, D).double()).sum(1).to(dtype)
         n = geo.n_gauss
         return (
-            torch.from_numpy(g_m2).to(dtype).reshape(C, n, 2),
-            torch.from_numpy(g_con).to(dtype).reshape(C, n, 3),
+            torch.from_numpy(g_m2).reshape(C, n, 2),
+            torch.from_numpy(g_con).reshape(C, n, 3),
             torch.from_numpy(g_op).to(dtype),
             torch.from_numpy(g_col).to(dtype).reshape(ctx.col_shape),
             grad_bg,
