@@ -37,7 +37,7 @@ _project_backward_serial: Any = None
 def _project_kernel(
     means, quats, scales, opac, viewmats, ks, width, height, near, far, m2, con, depth, radii, vis, lo, hi
 ):  # pragma: no cover - compiled
-    """Gaussians ``lo..hi-1`` into the zeroed outputs means2d [C,N,2], conics [C,N,3], depths [C,N] (float64),
+    """Gaussians ``lo..hi-1`` into the zeroed outputs means2d [C,N,2], conics [C,N,3], depths [C,N] (input dtype),
     radii [C,N,2] int32, visible [C,N] bool."""
     n_cams = viewmats.shape[0]
     rot = np.empty((3, 3), np.float64)  # scratch, once per range (a range is one call)
@@ -135,7 +135,7 @@ _screen_cov: Any = _screen_cov_py
 def _project_backward_kernel(
     means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, g_means, g_quats, g_scales, lo, hi
 ):  # pragma: no cover - compiled
-    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64 from the gradients of the visible outputs, for the
+    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) (input dtype) from the gradients of the visible outputs, for the
     blocks of ``_BLOCK`` Gaussians ``lo..hi-1``, into the zeroed ``g_*``."""
     n = means.shape[0]
     for blk in range(lo, hi):
@@ -249,13 +249,15 @@ def _backward_one_py(
     for k in range(3):
         g_means[i, k] = gm[k]
     # Σ = M M^T, M = R diag(s): dM = 2 g_sig M (g_sig symmetric)
-    for r in range(3):
-        for k in range(3):
+    for k in range(3):
+        gs = 0.0  # summed in float64, rounded to the output's dtype once
+        for r in range(3):
             gmk = 0.0
             for q in range(3):
                 gmk += (g_sig[r, q] + g_sig[q, r]) * rot[q, k] * s[k]
             g_rot[r, k] = gmk * s[k]
-            g_scales[i, k] += gmk * rot[r, k]
+            gs += gmk * rot[r, k]
+        g_scales[i, k] = gs
     _quat_backward(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], g_rot, g_quats[i])
 
 
@@ -268,13 +270,12 @@ def _culled_py(vis, quats, scales, i):  # pragma: no cover - compiled
     for cam in range(vis.shape[0]):
         if vis[cam, i]:
             return False
+    finite = True
     for k in range(4):
-        if not math.isfinite(quats[i, k]):
-            return False
+        finite &= math.isfinite(quats[i, k])
     for k in range(3):
-        if not math.isfinite(scales[i, k]):
-            return False
-    return True
+        finite &= math.isfinite(scales[i, k])
+    return finite
 
 
 _culled: Any = _culled_py
@@ -337,17 +338,18 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     fwd_par, bwd_par = par(_project_ranges), par(_project_backward_ranges)
 
     def project(means, quats, scales, opac, viewmats, ks, width, height, near, far):
-        """means2d [C,N,2], conics [C,N,3], depths [C,N] (float64), radii [C,N,2] int32, visible [C,N] bool."""
-        c, n = viewmats.shape[0], means.shape[0]
-        out = (np.zeros((c, n, 2)), np.zeros((c, n, 3)), np.zeros((c, n)), np.zeros((c, n, 2), np.int32),
+        """means2d [C,N,2], conics [C,N,3], depths [C,N] (the dtype of ``means``: float64 rounded once, on store),
+        radii [C,N,2] int32, visible [C,N] bool."""
+        c, n, dt = viewmats.shape[0], means.shape[0], means.dtype
+        out = (np.zeros((c, n, 2), dt), np.zeros((c, n, 3), dt), np.zeros((c, n), dt), np.zeros((c, n, 2), np.int32),
                np.zeros((c, n), np.bool_))  # fmt: skip
         run_ranges(fwd, fwd_par, n, means, quats, scales, opac, viewmats, ks, width, height, near, far, *out)
         return out
 
     def project_backward(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth):
-        """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) float64."""
-        n = means.shape[0]
-        out = (np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3)))
+        """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) in the dtype of ``means`` (float64 inside)."""
+        n, dt = means.shape[0], means.dtype
+        out = (np.zeros((n, 3), dt), np.zeros((n, 4), dt), np.zeros((n, 3), dt))
         args = (means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, *out)
         run_ranges(bwd, bwd_par, (n + _BLOCK - 1) // _BLOCK, *args)
         return out
@@ -358,7 +360,6 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, ks, width, height, near, far, kernels):
-        dt = means.dtype
         arrs = [t.detach().contiguous().numpy() for t in (means, quats, scales, opacities)]
         cams = [t.detach().double().contiguous().numpy() for t in (viewmats, ks)]
         m2, con, depth, radii, vis = kernels[0](*arrs, *cams, float(width), float(height), float(near), float(far))
@@ -368,9 +369,9 @@ class _Project(torch.autograd.Function):
         radii_t, vis_t = torch.from_numpy(radii), torch.from_numpy(vis)
         ctx.mark_non_differentiable(radii_t, vis_t)
         return (
-            torch.from_numpy(m2).to(dt),
-            torch.from_numpy(con).to(dt),
-            torch.from_numpy(depth).to(dt),
+            torch.from_numpy(m2),
+            torch.from_numpy(con),
+            torch.from_numpy(depth),
             radii_t,
             vis_t,
         )
@@ -379,7 +380,6 @@ class _Project(torch.autograd.Function):
     def backward(ctx, v_m2, v_con, v_depth, _r, _v):
         means, quats, scales = ctx.saved_tensors
         c, n = ctx.vis.shape
-        dt = means.dtype
 
         def arr(g: torch.Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
             return np.zeros(shape, np.float64) if g is None else g.detach().contiguous().numpy()
@@ -393,7 +393,7 @@ class _Project(torch.autograd.Function):
             arr(v_con, (c, n, 3)),
             arr(v_depth, (c, n)),
         )
-        out = [torch.from_numpy(g).to(dt) for g in (gm, gq, gs)]
+        out = [torch.from_numpy(g) for g in (gm, gq, gs)]
         return out[0], out[1], out[2], None, None, None, None, None, None, None, None
 
 
