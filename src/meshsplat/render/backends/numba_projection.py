@@ -40,6 +40,7 @@ def _project_kernel(
     """Gaussians ``lo..hi-1`` into the zeroed outputs means2d [C,N,2], conics [C,N,3], depths [C,N] (input dtype),
     radii [C,N,2] int32, visible [C,N] bool."""
     n_cams = viewmats.shape[0]
+    lims = _fov_limits(ks, width, height)
     rot = np.empty((3, 3), np.float64)  # scratch, once per range (a range is one call)
     sig = np.empty((3, 3), np.float64)  # R S S^T R^T
     for i in range(lo, hi):
@@ -61,7 +62,7 @@ def _project_kernel(
             if not (near <= z <= far):
                 continue
             fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
-            tx, ty, _, _ = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+            tx, ty, _, _ = _clamped_xy(x, y, z, lims[cam])
             rz = 1.0 / z
             j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
             a, b, c, _, _, _, _, _, _ = _screen_cov(w, sig, j00, j02, j11, j12)
@@ -95,15 +96,25 @@ def _quat_rotation_py(qw, qx, qy, qz, r):  # pragma: no cover - compiled
     r[2, 0], r[2, 1], r[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
-def _clamped_xy_py(x, y, z, fx, fy, cx, cy, width, height):  # pragma: no cover - compiled
-    """``z * clamp(x/z)``, ``z * clamp(y/z)`` (field of view widened by the margin) and whether each is clamped."""
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp = (width - cx) / fx + FOV_CLAMP_MARGIN * tan_x
-    lim_xn = cx / fx + FOV_CLAMP_MARGIN * tan_x
-    lim_yp = (height - cy) / fy + FOV_CLAMP_MARGIN * tan_y
-    lim_yn = cy / fy + FOV_CLAMP_MARGIN * tan_y
-    ux = min(lim_xp, max(-lim_xn, x / z))
-    uy = min(lim_yp, max(-lim_yn, y / z))
+def _fov_limits_py(ks, width, height):  # pragma: no cover - compiled
+    """``[C, 4]``: each camera's limits of ``x/z`` (right, left) and ``y/z`` (down, up), the field of view widened by
+    the margin (once per kernel call, not per Gaussian)."""
+    lims = np.empty((ks.shape[0], 4), np.float64)
+    for cam in range(ks.shape[0]):
+        fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
+        tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+        lims[cam, 0] = (width - cx) / fx + FOV_CLAMP_MARGIN * tan_x
+        lims[cam, 1] = cx / fx + FOV_CLAMP_MARGIN * tan_x
+        lims[cam, 2] = (height - cy) / fy + FOV_CLAMP_MARGIN * tan_y
+        lims[cam, 3] = cy / fy + FOV_CLAMP_MARGIN * tan_y
+    return lims
+
+
+def _clamped_xy_py(x, y, z, lim):  # pragma: no cover - compiled
+    """``z * clamp(x/z)``, ``z * clamp(y/z)`` (``lim``: the camera's row of :func:`_fov_limits_py`) and whether each
+    is clamped."""
+    ux = min(lim[0], max(-lim[1], x / z))
+    uy = min(lim[2], max(-lim[3], y / z))
     return z * ux, z * uy, ux != x / z, uy != y / z
 
 
@@ -129,6 +140,7 @@ def _screen_cov_py(w, sig, j00, j02, j11, j12):  # pragma: no cover - compiled
 
 _quat_rotation: Any = _quat_rotation_py
 _clamped_xy: Any = _clamped_xy_py
+_fov_limits: Any = _fov_limits_py
 _screen_cov: Any = _screen_cov_py
 
 
@@ -138,6 +150,7 @@ def _project_backward_kernel(
     """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) (input dtype) from the gradients of the visible outputs, for the
     blocks of ``_BLOCK`` Gaussians ``lo..hi-1``, into the zeroed ``g_*``."""
     n = means.shape[0]
+    lims = _fov_limits(ks, width, height)
     for blk in range(lo, hi):
         rot, sig, g_sig = np.empty((3, 3), np.float64), np.empty((3, 3), np.float64), np.empty((3, 3), np.float64)
         g_rot, s, gm = np.empty((3, 3), np.float64), np.empty(3, np.float64), np.empty(3, np.float64)
@@ -145,7 +158,7 @@ def _project_backward_kernel(
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             if _culled(vis, quats, scales, i):  # no camera sees it: its gradients stay zero
                 continue
-            _backward_one(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, i,
+            _backward_one(means, quats, scales, viewmats, ks, lims, vis, v_m2, v_con, v_depth, i,
                           rot, sig, g_sig, g_rot, s, gm, t, g_means, g_quats, g_scales)  # fmt: skip
 
 
@@ -155,8 +168,7 @@ def _backward_one_py(
     scales,
     viewmats,
     ks,
-    width,
-    height,
+    lims,
     vis,
     v_m2,
     v_con,
@@ -193,8 +205,8 @@ def _backward_one_py(
         x = w[0, 3] + w[0, 0] * means[i, 0] + w[0, 1] * means[i, 1] + w[0, 2] * means[i, 2]
         y = w[1, 3] + w[1, 0] * means[i, 0] + w[1, 1] * means[i, 1] + w[1, 2] * means[i, 2]
         z = w[2, 3] + w[2, 0] * means[i, 0] + w[2, 1] * means[i, 1] + w[2, 2] * means[i, 2]
-        fx, fy, cx, cy = ks[cam, 0, 0], ks[cam, 1, 1], ks[cam, 0, 2], ks[cam, 1, 2]
-        tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, fx, fy, cx, cy, width, height)
+        fx, fy = ks[cam, 0, 0], ks[cam, 1, 1]
+        tx, ty, clamp_x, clamp_y = _clamped_xy(x, y, z, lims[cam])
         rz = 1.0 / z
         j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
         a, b, c, su0, su1, su2, sv0, sv1, sv2 = _screen_cov(w, sig, j00, j02, j11, j12)
@@ -323,11 +335,12 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     """The projection and its backward (called once by the numba backend's kernel loader): serial kernels
     (``njit_serial``) over ranges of Gaussians, run by ``run_ranges`` on torch's thread count; same arguments and
     results as before they took ranges."""
-    global _quat_rotation, _clamped_xy, _screen_cov, _quat_backward, _backward_one, _culled
+    global _quat_rotation, _clamped_xy, _fov_limits, _screen_cov, _quat_backward, _backward_one, _culled
     global _prange, _project_serial, _project_backward_serial
     helper = njit_serial(numba)
     _quat_rotation = helper(_quat_rotation_py)
     _clamped_xy = helper(_clamped_xy_py)
+    _fov_limits = helper(_fov_limits_py)
     _screen_cov = helper(_screen_cov_py)
     _quat_backward = helper(_quat_backward_py)
     _culled = helper(_culled_py)
