@@ -23,7 +23,7 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
    opacities and colours in intersection order afterwards (serial). No atomics, no per-thread buffers:
    the result is bit-identical for any thread count and scheduling.
 
-Steps 2 and 3 run by default with the 16 pixels of a tile row in SIMD lanes (``numba_lanes``: the same
+Steps 2 and 3 run by default with the 16 pixels of a 4x4 block in SIMD lanes (``numba_lanes``: the same
 lists, thresholds and stop, transmittance in the input dtype, ``exp`` inlined as a polynomial for float32);
 the scalar kernels here are the reference and the fallback, forced with ``MESHSPLAT_RASTER_KERNEL=scalar``.
 
@@ -65,11 +65,11 @@ from meshsplat.render.types import RenderOutput
 
 __all__ = ["rasterize_numba", "TILE_SIZE", "warm_up", "compositing_kernel", "KERNEL_ENV", "KERNELS"]
 
-TILE_SIZE = numba_lanes.LANES  # the lane kernels put one tile row in the SIMD lanes
+TILE_SIZE = numba_lanes.LANES  # a tile is 4x4 blocks of the lane kernels' 16 SIMD lanes
 KERNEL_ENV = "MESHSPLAT_RASTER_KERNEL"  # "scalar": the scalar compositing kernels; "lanes" or unset: SIMD lanes
 KERNELS = ("lanes", "scalar")
 # columns of an entry's record (float64; the projection's values kept exactly, then the colours)
-_MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _COL = range(11)
+_MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _X0, _X1, _COL = range(13)
 
 # The kernels below are plain Python until _kernels() wraps them with numba.njit; _spans is then rebound to
 # the jitted helper, which the kernels resolve when compiled.
@@ -84,8 +84,9 @@ def _bin_kernel(
 
     Records are stored in the order of the first tile each entry touches, so that a tile's entries lie close
     together in memory (random reads are what a tile's walk waits on); ``isect`` holds these record ids.
-    Returns ``rec [M, 10+D]`` float64 (mx, my, a, b, c, opacity: the input values exactly; 2 a tau, det: the
-    torch backend's row-span terms; first and last pixel row, last < first: empty; colours), ``rflat [M]``
+    Returns ``rec [M, 12+D]`` float64 (mx, my, a, b, c, opacity: the input values exactly; 2 a tau, det: the
+    torch backend's row-span terms; first and last pixel row, last < first: empty; first and last pixel column;
+    colours), ``rflat [M]``
     (record -> camera * N + Gaussian), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth order
     within each tile.
 
@@ -97,7 +98,7 @@ def _bin_kernel(
     d_out = col.shape[1]
     per_cam = tiles_x * tiles_y
     tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
-    foot = np.empty((vis.shape[0], 4), np.float64)  # 2 a tau, det, first and last pixel row
+    foot = np.empty((vis.shape[0], 6), np.float64)  # 2 a tau, det, first and last pixel row and column
     box = np.empty((vis.shape[0], 4), np.int32)  # first and last tile column, row (last < first: none)
     for f in range(vis.shape[0]):  # Gaussian order: sequential reads
         if not vis[f]:
@@ -114,10 +115,10 @@ def _bin_kernel(
         x0 = max(np.ceil(mx - rx - PIXEL_CENTER - SPAN_MARGIN), 0.0)
         x1 = min(np.floor(mx + rx - PIXEL_CENTER + SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
-            foot[f, 2], foot[f, 3] = 0.0, -1.0
+            foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = 0.0, -1.0, 0.0, -1.0
             box[f, 0], box[f, 1], box[f, 2], box[f, 3] = 0, -1, 0, -1
         else:
-            foot[f, 2], foot[f, 3] = y0, y1
+            foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = y0, y1, x0, x1
             box[f, 0], box[f, 1] = int(x0) // tile, int(x1) // tile
             box[f, 2], box[f, 3] = int(y0) // tile, int(y1) // tile
     first = np.zeros(n_cams * per_cam + 1, np.int64)  # entries per first tile, then counting-sort offsets
@@ -153,6 +154,7 @@ def _bin_kernel(
         rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
         rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[g]
         rec[r, _TWO_A_TAU], rec[r, _DET], rec[r, _Y0], rec[r, _Y1] = foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3]
+        rec[r, _X0], rec[r, _X1] = foot[f, 4], foot[f, 5]
         cr = g if shared_colors else f
         for d in range(d_out):
             rec[r, _COL + d] = col[cr, d]
