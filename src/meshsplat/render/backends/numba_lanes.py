@@ -197,7 +197,6 @@ def _backward_lanes(
         # the entry's sums per lane: v dx, v dy, v dx dx, v dx dy, v dy dy (v: dL/dsigma), dL/dopacity, colours
         gl = np.empty((6 + d_pad) * LANES, xs.dtype)
         sums = np.empty(6 + d_pad, np.float64)
-        tch = np.zeros(LANES, np.bool_)  # lanes where the entry is live (in any of its blocks)
         max_last = 0
         for r in range(th):
             for x in range(tw):
@@ -225,7 +224,6 @@ def _backward_lanes(
                 col[d] = to_dt(rec[e, _COL + d])
             c0, c1, c2 = col[0], col[1], col[2]
             gl[:] = zero
-            tch[:] = False
             kk = np.int32(k - s0)
             for by in range(ra >> 2, (rb >> 2) + 1):  # the blocks of the entry's box in the tile
                 pyo = np.uint64(by * LANES)
@@ -260,7 +258,6 @@ def _backward_lanes(
                         lat = st[b + np.uint64(_B_LATER * LANES) + lane]
                         v_alpha = tr * cg - lat / one_m
                         grads = live & (raw <= a_max)  # through the 0.999 clamp no gradient passes (as gsplat)
-                        tch[lane] |= live
                         vs = -alpha * v_alpha if grads else zero
                         vdx = vs * dx
                         gl[lane] += vdx
@@ -283,10 +280,8 @@ def _backward_lanes(
                             gl[gd + lane] += st[bd + lane] * st[b + np.uint64(_B_W * LANES) + lane]
             for j in range(6 + d_pad):  # the lanes summed in a fixed order, in float64
                 sums[j] = 0.0
-            for lane in range(LANES):  # only lanes ever live: the others hold +0 and would not change the sums
-                if tch[lane]:
-                    for j in range(6 + d_pad):
-                        sums[j] += np.float64(gl[j * LANES + lane])
+                for lane in range(LANES):
+                    sums[j] += np.float64(gl[j * LANES + lane])
             a64, b64, c64 = rec[e, _CA], rec[e, _CB], rec[e, _CC]
             grad[k, 0] = a64 * sums[0] + b64 * sums[1]  # d sigma / d mean = conic @ (dx, dy)
             grad[k, 1] = b64 * sums[0] + c64 * sums[1]
