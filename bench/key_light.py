@@ -63,6 +63,10 @@ VARIANTS = {
     "control": [],  # the paper recipe (the previous default), same code and schedule
     "quality": ["shading.key_check_frames=0"],  # the quality recipe as measured against the control (= before)
     "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false"],
+    # the key kept only within 20 / 45 degrees of the learned irradiance's direction (shading.key_agree_deg)
+    "agree": ["shading.key_check_frames=0", "shading.key_agree_deg=20"],
+    "agree45": ["shading.key_check_frames=0", "shading.key_agree_deg=45"],
+    "after-agree": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=20"],
     # LPIPS's backbone in float32 / bfloat16 (issue 47: ~2x cheaper LPIPS on CPUs with native bf16)
     "lpips_fp32": ["loss.lpips_precision=float32"],
     "lpips_bf16": ["loss.lpips_precision=bfloat16"],

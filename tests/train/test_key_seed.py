@@ -1,6 +1,7 @@
-"""The key light's seeded search (``shading.key_seed``) and its check (``shading.key_check_frames``): the search
-starts from the learned irradiance's own direction, and a key whose shadow does not lower the training error
-is folded into the SH2 irradiance (``Shading.drop_key``)."""
+"""The key light's seeded search (``shading.key_seed``) and its checks (``shading.key_agree_deg``,
+``shading.key_check_frames``): the search starts from the learned irradiance's own direction, and a key far from
+that direction, or whose shadow does not lower the training error, is folded into the SH2 irradiance
+(``Shading.drop_key``)."""
 
 from __future__ import annotations
 
@@ -148,6 +149,39 @@ def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not
         assert sh.occlusion == "none" and sh.dropped_key is not None
         assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
         comp.after_step(7, [])  # nothing more to align
+
+
+@pytest.mark.parametrize("agrees", [True, False])
+def test_a_key_far_from_the_learned_irradiance_is_dropped(agrees):
+    """``key_agree_deg``: the aligned key stays when the learned irradiance points its way, and is folded into
+    the SH2 irradiance when the irradiance points elsewhere (its shadows fit frames from a light not there)."""
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
+    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=20.0), state)
+    state.component = comp
+    comp.start()
+    sh = comp.shading
+    assert sh is not None and sh.light is not None and sh.directions is not None
+    d = sh.directions[2].clone()
+    with torch.no_grad():
+        sh.light[2] = 0.5
+        if not agrees:  # most of the learned light comes from the other side
+            sh.coeffs += 1.5 * _lobe(-d)[:, None]
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    sh = comp.shading
+    assert comp.key_log["agrees"] is agrees and "check_errors" not in comp.key_log
+    angle = comp.key_log["key_vs_irradiance_deg"]
+    if agrees:
+        assert sh.key_aligned and sh.occlusion == "key" and angle <= 20.0
+        assert sh.directions is not None and _angle(sh.directions[0], d) < 20.0
+    else:
+        assert angle > 90.0 and sh.occlusion == "none" and sh.dropped_key is not None
+        assert _angle(sh.dropped_key, d) < 20.0
+        assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
+
+
+def test_key_agree_deg_is_checked():
+    assert any("key_agree_deg" in msg for ok, msg in ShadingConfig(key_agree_deg=200.0).checks() if not ok)
 
 
 def test_without_directional_light_the_key_is_dropped_and_the_run_resumes_exactly(tiny_dataset, tmp_path):

@@ -8,6 +8,7 @@ checkpoints, exports and the player read it from one place; this component's che
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,6 +43,10 @@ class ShadingConfig:
     # check
     key_check_frames: int = 0
     key_check_gain: float = 0.002  # the share of the check frames' L1 error the key's shadow must take away to stay
+    # "key": once aligned, the key stays only within this many degrees of the learned irradiance's own direction
+    # (Shading.key_seed); farther, its shadows fit the training frames from a light that is not there, and it is
+    # folded into the SH2 irradiance as the check does; 0: no such test
+    key_agree_deg: float = 0.0
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
     specular: str = "none"
     lr: float = 5e-2  # the lighting's Adam (times sqrt(batch_size))
@@ -57,6 +62,7 @@ class ShadingConfig:
             (0.0 <= self.key_soft <= 45.0, "shading.key_soft must be in 0..45 (degrees)"),
             (0 <= self.key_check_frames <= 64, "shading.key_check_frames must be in 0..64"),
             (0.0 <= self.key_check_gain < 1.0, "shading.key_check_gain must be in [0, 1)"),
+            (0.0 <= self.key_agree_deg <= 180.0, "shading.key_agree_deg must be in 0..180 (degrees; 0: off)"),
             (self.lr > 0, "shading.lr must be > 0"),
         ]
 
@@ -112,8 +118,9 @@ class ShadingComponent(Component):
     def _align_key(self, it: int) -> None:
         """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
         iteration (a short run ends with one key light too). ``key_seed``: the first stage starts from
-        ``Shading.key_seed``; ``key_check_frames``: once aligned, the key is dropped
-        (``Shading.drop_key``) unless its shadow lowers the check frames' error by ``key_check_gain``."""
+        ``Shading.key_seed``; once aligned, the key is dropped (``Shading.drop_key``) when it is farther than
+        ``key_agree_deg`` from the learned irradiance's direction, then (``key_check_frames``) unless its shadow
+        lowers the check frames' error by ``key_check_gain``."""
         sh, every = self.shading, self.cfg.key_iter
         if sh is None or sh.occlusion != "key" or sh.key_aligned:
             return
@@ -123,7 +130,9 @@ class ShadingComponent(Component):
                 sh.align_key(start=self._seed(sh))
             else:
                 sh.align_key()
-        if sh.key_aligned and self.cfg.key_check_frames:
+        if sh.key_aligned and self.cfg.key_agree_deg:
+            self._agree_key(sh)
+        if sh.key_aligned and sh.occlusion == "key" and self.cfg.key_check_frames:
             self._check_key(sh)
         if sh.key_stage != stage or sh.occlusion != "key":  # new tensors: a new optimizer
             self._set(sh)
@@ -150,6 +159,17 @@ class ShadingComponent(Component):
         seed = sh.key_seed()
         self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), sh.key_estimate().tolist()
         return seed
+
+    def _agree_key(self, sh: Shading) -> None:
+        """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's."""
+        assert sh.directions is not None
+        key, irradiance = sh.directions[0].detach(), sh.key_seed()
+        cos = float(key @ irradiance / (key.norm() * irradiance.norm()))
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+        self.key_log["irradiance"], self.key_log["key_vs_irradiance_deg"] = irradiance.tolist(), angle
+        self.key_log["agrees"] = agrees = angle <= self.cfg.key_agree_deg
+        if not agrees:
+            sh.drop_key()
 
     def _check_key(self, sh: Shading) -> None:
         off = sh.to(self.state.device)
