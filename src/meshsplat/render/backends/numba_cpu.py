@@ -90,17 +90,21 @@ def _bin_kernel(
     (record -> camera * N + Gaussian), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth order
     within each tile.
 
-    Serial passes, none of them arithmetic behind a random read: footprints in Gaussian order, then first tiles and
-    tile counts in depth order (one random read of a footprint box each), then the records filled in their own
-    order (independent random reads), then the tile lists.
+    Serial passes, none of them arithmetic behind a random read, and random writes instead of random reads (a
+    store does not stall the loop as a load does): each entry's position in depth order, then footprints in
+    Gaussian order, their tile boxes written to that position, then first tiles and tile counts in depth order,
+    then each entry's record id, then the records filled in Gaussian order (sequential reads), then the tile lists.
     """
     m = flat.shape[0]
     d_out = col.shape[1]
     per_cam = tiles_x * tiles_y
     tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
+    slot = np.empty(vis.shape[0], np.int64)  # camera * N + Gaussian -> entry (visible ones), later -> record id
+    for e in range(m):
+        slot[flat[e]] = e
     foot = np.empty((vis.shape[0], 6), np.float64)  # 2 a tau, det, first and last pixel row and column
-    box = np.empty((vis.shape[0], 4), np.int32)  # first and last tile column, row (last < first: none)
-    for f in range(vis.shape[0]):  # Gaussian order: sequential reads
+    rect = np.empty((m, 4), np.int32)  # per entry: first and last tile column, row (last < first: none)
+    for f in range(vis.shape[0]):  # Gaussian order: sequential reads, the boxes written in depth order
         if not vis[f]:
             continue
         mx, my = np.float64(m2[f, 0]), np.float64(m2[f, 1])
@@ -116,19 +120,17 @@ def _bin_kernel(
         x1 = min(np.floor(mx + rx - PIXEL_CENTER + SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
             foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = 0.0, -1.0, 0.0, -1.0
-            box[f, 0], box[f, 1], box[f, 2], box[f, 3] = 0, -1, 0, -1
+            e = slot[f]
+            rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
         else:
             foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = y0, y1, x0, x1
-            box[f, 0], box[f, 1] = int(x0) // tile, int(x1) // tile
-            box[f, 2], box[f, 3] = int(y0) // tile, int(y1) // tile
+            e = slot[f]
+            rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
+            rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
     first = np.zeros(n_cams * per_cam + 1, np.int64)  # entries per first tile, then counting-sort offsets
     counts = np.zeros(n_cams * per_cam + 1, np.int64)  # intersections per tile, then tile_ptr
-    rect = np.empty((m, 4), np.int32)  # the boxes in depth order (read twice more, in order)
     for e in range(m):
-        f = flat[e]
-        base = (f // n_gauss) * per_cam
-        for j in range(4):
-            rect[e, j] = box[f, j]
+        base = (flat[e] // n_gauss) * per_cam
         if rect[e, 1] < rect[e, 0]:
             first[1] += 1
             continue
@@ -146,10 +148,12 @@ def _bin_kernel(
         key = (f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] if rect[e, 1] >= rect[e, 0] else 0
         r = first[key]
         first[key] += 1
-        rid[e], rflat[r] = r, f
+        rid[e], rflat[r], slot[f] = r, f, r
     rec = np.empty((m, _COL + d_out), np.float64)
-    for r in range(m):  # record order: sequential writes
-        f = rflat[r]
+    for f in range(vis.shape[0]):  # Gaussian order: sequential reads, random writes
+        if not vis[f]:
+            continue
+        r = slot[f]
         g = f % n_gauss
         rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
         rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[g]
