@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meshsplat.render._constants import ALPHA_THRESHOLD, MAX_EXTEND
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -38,17 +40,11 @@ def _count_visits(tile_ptr, isect, rec, xs, ys, width, height, tile, tiles_x):  
         done = np.zeros(tw * th, np.bool_)
         for k in range(tile_ptr[t], tile_ptr[t + 1]):
             e = isect[k]
-            mx, my, a, b, c, op, two_a_tau, det = (
-                rec[e, 0],
-                rec[e, 1],
-                rec[e, 2],
-                rec[e, 3],
-                rec[e, 4],
-                rec[e, 5],
-                rec[e, 6],
-                rec[e, 7],
-            )
-            for y in range(max(int(rec[e, 8]), ty0), min(int(rec[e, 9]), ty0 + th - 1) + 1):
+            # the record: mx, my, a, b, c, opacity, first and last row (numba_lanes' columns); the row-span terms
+            mx, my, a, b, c, op = rec[e, 0], rec[e, 1], rec[e, 2], rec[e, 3], rec[e, 4], rec[e, 5]
+            two_a_tau = 2.0 * a * min(max(math.log(op / ALPHA_THRESHOLD), 0.0), 0.5 * MAX_EXTEND * MAX_EXTEND)
+            det = max(a * c - b * b, 1e-300)
+            for y in range(max(int(rec[e, 6]), ty0), min(int(rec[e, 7]), ty0 + th - 1) + 1):
                 out[4] += 1
                 dy = my - (y + 0.5)
                 disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
@@ -131,7 +127,9 @@ def main(argv=None) -> int:
     stages["compositing backward (scalar)"] = _timed(lambda: k.backward(*bwd), args.repeats)
     stages["compositing backward (lanes)"] = _timed(lambda: k.backward_lanes(*bwd), args.repeats)
     rows = k.backward(*bwd)
-    stages["scatter"] = _timed(lambda: k.scatter(geo.isect, rows, geo.rflat, True, n, 1, geo.xs), args.repeats)
+    stages["scatter"] = _timed(
+        lambda: k.scatter(geo.isect, rows, geo.slot, geo.visible, geo.flat.shape[0], True, n, 1, geo.xs), args.repeats
+    )
     count = numba.njit(_count_visits)
     visited, at_done, below, contributed, n_rows = (
         int(x) for x in count(geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, size, 16, geo.tiles_x)

@@ -9,8 +9,8 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
 1. Binning: each entry's footprint box (the same closed-form ``alpha >= 1/255`` ellipse and
    0.05 px slack as the torch backend's row spans, float64) is cut into 16x16 tiles; tile lists
    are filled in entry order, so each tile's list is depth-ordered exactly as the torch backend.
-   Each entry's values (projection outputs, footprint terms, colours) go into one float64 record, and
-   records are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
+   Each entry's values (projection outputs, footprint box, colours) go into one record in the input dtype
+   (exact: the box is whole pixels; the scalar kernels' row-span terms are recomputed from it), and records are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
    six arrays at random (memory latency, not arithmetic, is much of what the walks wait on).
 2. Forward, parallel over tiles (ranges of tiles on threads): every pixel walks its tile's list front to back
    (alpha evaluated in the input dtype with the torch backend's operation order and thresholds;
@@ -58,6 +58,7 @@ from meshsplat.render._constants import (
     TRANSMITTANCE_MIN,
 )
 from meshsplat.render.backends import numba_available, numba_lanes, numba_projection
+from meshsplat.render.backends.numba_lanes import _CA, _CB, _CC, _COL, _MX, _MY, _OP, _X0, _X1, _Y0, _Y1
 from meshsplat.render.backends.numba_projection import project_numba
 from meshsplat.render.backends.torch_ref import render_output
 from meshsplat.render.projection import Projection, project_gaussians
@@ -68,11 +69,18 @@ __all__ = ["rasterize_numba", "TILE_SIZE", "warm_up", "compositing_kernel", "KER
 TILE_SIZE = numba_lanes.LANES  # a tile is 4x4 blocks of the lane kernels' 16 SIMD lanes
 KERNEL_ENV = "MESHSPLAT_RASTER_KERNEL"  # "scalar": the scalar compositing kernels; "lanes" or unset: SIMD lanes
 KERNELS = ("lanes", "scalar")
-# columns of an entry's record (float64; the projection's values kept exactly, then the colours)
-_MX, _MY, _CA, _CB, _CC, _OP, _TWO_A_TAU, _DET, _Y0, _Y1, _X0, _X1, _COL = range(13)
+# The kernels below are plain Python until _kernels() wraps them with numba.njit; _spans and _tau_det are then
+# rebound to the jitted helpers, which the kernels resolve when compiled.
 
-# The kernels below are plain Python until _kernels() wraps them with numba.njit; _spans is then rebound to
-# the jitted helper, which the kernels resolve when compiled.
+
+def _tau_det_py(a, b, c, op):  # pragma: no cover - compiled
+    """An entry's footprint terms (float64, the torch backend's): ``tau``, the ``sigma`` at which alpha falls to
+    1/255 (clamped to [0, MAX_EXTEND² / 2]), and the conic's determinant ``a c - b²`` (at least 1e-300)."""
+    tau = min(max(math.log(op / ALPHA_THRESHOLD), 0.0), 0.5 * MAX_EXTEND * MAX_EXTEND)
+    return tau, max(a * c - b * b, 1e-300)
+
+
+_tau_det: Any = _tau_det_py
 
 
 def _bin_kernel(
@@ -84,11 +92,9 @@ def _bin_kernel(
 
     Records are stored in the order of the first tile each entry touches, so that a tile's entries lie close
     together in memory (random reads are what a tile's walk waits on); ``isect`` holds these record ids.
-    Returns ``rec [M, 12+D]`` float64 (mx, my, a, b, c, opacity: the input values exactly; 2 a tau, det: the
-    torch backend's row-span terms; first and last pixel row, last < first: empty; first and last pixel column;
-    colours), ``rflat [M]``
-    (record -> camera * N + Gaussian), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth order
-    within each tile.
+    Returns ``rec [M, 10+D]`` in the input dtype (mx, my, a, b, c, opacity: the input values exactly; first and
+    last pixel row, last < first: empty; first and last pixel column; colours), ``slot [C*N]`` (camera * N + Gaussian -> record id; visible ones only), ``tile_ptr [T+1]`` and
+    ``isect [I]`` int32 record ids, in depth order within each tile.
 
     Serial passes, none of them arithmetic behind a random read, and random writes instead of random reads (a
     store does not stall the loop as a load does): each entry's position in depth order, then footprints in
@@ -98,32 +104,29 @@ def _bin_kernel(
     m = flat.shape[0]
     d_out = col.shape[1]
     per_cam = tiles_x * tiles_y
-    tau_max = 0.5 * MAX_EXTEND * MAX_EXTEND
     slot = np.empty(vis.shape[0], np.int64)  # camera * N + Gaussian -> entry (visible ones), later -> record id
     for e in range(m):
         slot[flat[e]] = e
-    foot = np.empty((vis.shape[0], 6), np.float64)  # 2 a tau, det, first and last pixel row and column
+    foot = np.empty((vis.shape[0], 4), m2.dtype)  # first and last pixel row and column (whole numbers: exact)
     rect = np.empty((m, 4), np.int32)  # per entry: first and last tile column, row (last < first: none)
     for f in range(vis.shape[0]):  # Gaussian order: sequential reads, the boxes written in depth order
         if not vis[f]:
             continue
         mx, my = np.float64(m2[f, 0]), np.float64(m2[f, 1])
         a, b, c = np.float64(con[f, 0]), np.float64(con[f, 1]), np.float64(con[f, 2])
-        tau = min(max(math.log(np.float64(op[f % n_gauss]) / ALPHA_THRESHOLD), 0.0), tau_max)
-        det = max(a * c - b * b, 1e-300)
+        tau, det = _tau_det(a, b, c, np.float64(op[f % n_gauss]))
         ry = math.sqrt(2.0 * tau * a / det)
         rx = math.sqrt(2.0 * tau * c / det)
-        foot[f, 0], foot[f, 1] = 2.0 * a * tau, det
         y0 = max(np.ceil(my - ry - PIXEL_CENTER - SPAN_MARGIN), 0.0)
         y1 = min(np.floor(my + ry - PIXEL_CENTER + SPAN_MARGIN), height - 1.0)
         x0 = max(np.ceil(mx - rx - PIXEL_CENTER - SPAN_MARGIN), 0.0)
         x1 = min(np.floor(mx + rx - PIXEL_CENTER + SPAN_MARGIN), width - 1.0)
         if not (y0 <= y1 and x0 <= x1):  # also false for NaN
-            foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = 0.0, -1.0, 0.0, -1.0
+            foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3] = 0.0, -1.0, 0.0, -1.0
             e = slot[f]
             rect[e, 0], rect[e, 1], rect[e, 2], rect[e, 3] = 0, -1, 0, -1
         else:
-            foot[f, 2], foot[f, 3], foot[f, 4], foot[f, 5] = y0, y1, x0, x1
+            foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3] = y0, y1, x0, x1
             e = slot[f]
             rect[e, 0], rect[e, 1] = int(x0) // tile, int(x1) // tile
             rect[e, 2], rect[e, 3] = int(y0) // tile, int(y1) // tile
@@ -142,14 +145,13 @@ def _bin_kernel(
         first[t] += first[t - 1]
         counts[t] += counts[t - 1]
     rid = np.empty(m, np.int64)  # entry -> record id (stable counting sort by first tile)
-    rflat = np.empty(m, np.int64)
     for e in range(m):
         f = flat[e]
         key = (f // n_gauss) * per_cam + rect[e, 2] * tiles_x + rect[e, 0] if rect[e, 1] >= rect[e, 0] else 0
         r = first[key]
         first[key] += 1
-        rid[e], rflat[r], slot[f] = r, f, r
-    rec = np.empty((m, _COL + d_out), np.float64)
+        rid[e], slot[f] = r, r
+    rec = np.empty((m, _COL + d_out), m2.dtype)
     for f in range(vis.shape[0]):  # Gaussian order: sequential reads, random writes
         if not vis[f]:
             continue
@@ -157,8 +159,7 @@ def _bin_kernel(
         g = f % n_gauss
         rec[r, _MX], rec[r, _MY] = m2[f, 0], m2[f, 1]
         rec[r, _CA], rec[r, _CB], rec[r, _CC], rec[r, _OP] = con[f, 0], con[f, 1], con[f, 2], op[g]
-        rec[r, _TWO_A_TAU], rec[r, _DET], rec[r, _Y0], rec[r, _Y1] = foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3]
-        rec[r, _X0], rec[r, _X1] = foot[f, 4], foot[f, 5]
+        rec[r, _Y0], rec[r, _Y1], rec[r, _X0], rec[r, _X1] = foot[f, 0], foot[f, 1], foot[f, 2], foot[f, 3]
         cr = g if shared_colors else f
         for d in range(d_out):
             rec[r, _COL + d] = col[cr, d]
@@ -174,7 +175,7 @@ def _bin_kernel(
                 t = base + ty * tiles_x + tx
                 isect[cursor[t]] = rid[e]
                 cursor[t] += 1
-    return rec, rflat, tile_ptr, isect
+    return rec, slot, tile_ptr, isect
 
 
 def _depth_order_kernel(keys, visible, nbits):  # pragma: no cover - compiled
@@ -243,8 +244,9 @@ def _spans_py(rec, e, ya, yb, lo, hi, span):  # pragma: no cover - compiled
     """Columns ``span[y - ya] = (x0, x1)`` of rows ya..yb inside entry e's ``alpha >= 1/255`` ellipse, clipped
     to [lo, hi] (the torch backend's ``_row_spans`` arithmetic, float64; x1 < x0: empty). One pass over the
     rows before the pixels: the rows' square roots and divisions overlap instead of waiting on each other."""
-    mx, my, a, b = rec[e, _MX], rec[e, _MY], rec[e, _CA], rec[e, _CB]
-    two_a_tau, det = rec[e, _TWO_A_TAU], rec[e, _DET]
+    mx, my, a, b = np.float64(rec[e, _MX]), np.float64(rec[e, _MY]), np.float64(rec[e, _CA]), np.float64(rec[e, _CB])
+    tau, det = _tau_det(a, b, np.float64(rec[e, _CC]), np.float64(rec[e, _OP]))
+    two_a_tau = 2.0 * a * tau
     for y in range(ya, yb + 1):
         dy = my - (y + PIXEL_CENTER)
         disc = math.sqrt(max(two_a_tau - det * dy * dy, 0.0))
@@ -404,7 +406,7 @@ def _backward_kernel(
             _spans(rec, e, ya, yb, tx0, tx0 + tw - 1, span)
             mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
             ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
-            ca64, cb64, cc64 = rec[e, _CA], rec[e, _CB], rec[e, _CC]
+            ca64, cb64, cc64 = np.float64(rec[e, _CA]), np.float64(rec[e, _CB]), np.float64(rec[e, _CC])
             for d in range(d_out):
                 col[d] = rec[e, _COL + d]
                 g_c[d] = 0.0
@@ -453,15 +455,15 @@ def _backward_kernel(
                 grad[k, 6 + d] = g_c[d]
 
 
-def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams, like):  # pragma: no cover - compiled
+def _scatter_kernel(isect, grad, slot, vis, m, shared_colors, n_gauss, n_cams, like):  # pragma: no cover - compiled
     """Sum intersection rows into the gradients of the projection's outputs, in intersection order (serial:
     deterministic): each record's rows first (one pass over the rows; a record's tiles are neighbours, so these
-    sums stay in cache), then each record into its camera * N + Gaussian row ``rflat[r]``. Returns means2d and
-    conics [C*N, 2|3] in the dtype of ``like`` (one record per row: rounded once, as before), opacities [N] and
-    colours ([N, D] when ``shared_colors``, else [C*N, D]) float64 (summed over cameras in record order)."""
+    sums stay in cache), then, in camera * N + Gaussian order (sequential writes), the record ``slot[f]`` of each
+    visible ``f`` (``vis [C*N]``; ``m`` records). Returns means2d and conics [C*N, 2|3] in the dtype of ``like``
+    (one record per row: rounded once, as before), opacities [N] and colours ([N, D] when ``shared_colors``, else
+    [C*N, D]) float64 (summed over cameras in camera order, which is record order)."""
     n_g = grad.shape[1]
     d_out = n_g - 6
-    m = rflat.shape[0]
     acc = np.zeros((m, n_g), np.float64)
     for k in range(isect.shape[0]):
         r = isect[k]
@@ -471,8 +473,10 @@ def _scatter_kernel(isect, grad, rflat, shared_colors, n_gauss, n_cams, like):  
     g_con = np.zeros((n_cams * n_gauss, 3), like.dtype)
     g_op = np.zeros(n_gauss, np.float64)
     g_col = np.zeros((n_gauss if shared_colors else n_cams * n_gauss, d_out), np.float64)
-    for r in range(m):
-        f = rflat[r]
+    for f in range(vis.shape[0]):
+        if not vis[f]:
+            continue
+        r = slot[f]
         g_m2[f, 0], g_m2[f, 1] = acc[r, 0], acc[r, 1]
         g_con[f, 0], g_con[f, 1], g_con[f, 2] = acc[r, 2], acc[r, 3], acc[r, 4]
         g_op[f % n_gauss] += acc[r, 5]
@@ -517,12 +521,13 @@ def _kernels() -> _Kernels:
     """Import numba and wrap the kernels (compilation itself happens per dtype on first call). Serial kernels
     (``njit_serial``); the projection and the compositing ones take ranges, run by ``run_ranges`` on torch's
     thread count, and their wrappers here take and return what the kernels did before they took ranges."""
-    global _spans, _prange, _forward_serial, _backward_serial
+    global _spans, _tau_det, _prange, _forward_serial, _backward_serial
     try:
         import numba
     except Exception as exc:  # ImportError, or a broken llvmlite/numpy combination
         raise MeshsplatError(f"numba could not be imported ({exc}); use backend='torch'") from exc
     ser = njit_serial(numba)
+    _tau_det = ser(_tau_det_py)
     _spans = ser(_spans_py)
     proj, proj_bwd = numba_projection.compile_kernels(numba)
     fwd_lanes, bwd_lanes = numba_lanes.compile_kernels(numba)
@@ -597,7 +602,7 @@ class _Geometry:
         """Entry records (footprints, the projection's values, colours ``[N,D]`` or ``[C,N,D]``) and tile lists."""
         op = opacities.detach().contiguous().numpy()
         col = colors.detach().reshape(-1, colors.shape[-1]).contiguous().numpy()
-        self.rec, self.rflat, self.tile_ptr, self.isect = _kernels().bin(
+        self.rec, self.slot, self.tile_ptr, self.isect = _kernels().bin(
             self.m2, self.con, op, col, self.flat, self.visible, self.shared_colors, self.n_gauss, self.n_cams,
             self.width, self.height, self.tile, self.tiles_x, self.tiles_y,
         )  # fmt: skip
@@ -656,7 +661,7 @@ class _Composite(torch.autograd.Function):
             geo.n_contrib,
         )
         g_m2, g_con, g_op, g_col = k.scatter(
-            geo.isect, rows, geo.rflat, len(ctx.col_shape) == 2, geo.n_gauss, C, geo.xs
+            geo.isect, rows, geo.slot, geo.visible, geo.flat.shape[0], len(ctx.col_shape) == 2, geo.n_gauss, C, geo.xs
         )  # means2d, conics in the input dtype
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:

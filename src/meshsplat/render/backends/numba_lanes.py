@@ -40,8 +40,9 @@ from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 __all__ = ["LANES", "compile_kernels", "grad_rows", "vector_report"]
 
 LANES = 16  # pixels per block (4x4) = the tile size of numba_cpu (a tile: 4x4 blocks)
-# columns of an entry's record (numba_cpu's layout)
-_MX, _MY, _CA, _CB, _CC, _OP, _Y0, _Y1, _X0, _X1, _COL = 0, 1, 2, 3, 4, 5, 8, 9, 10, 11, 12
+# columns of an entry's record (numba_cpu's binning writes them, in the input dtype): the projection's values
+# exactly, the footprint's first and last pixel row and column, then the colours
+_MX, _MY, _CA, _CB, _CC, _OP, _Y0, _Y1, _X0, _X1, _COL = range(11)
 
 _ULANES = np.uint64(LANES)  # lane loops run over unsigned indices: no negative-index wraparound to vectorize
 # Per-tile state: one flat array of [block, field, lane], so that LLVM sees the fields of a block at constant
@@ -282,7 +283,7 @@ def _backward_lanes(
                 sums[j] = 0.0
                 for lane in range(LANES):
                     sums[j] += np.float64(gl[j * LANES + lane])
-            a64, b64, c64 = rec[e, _CA], rec[e, _CB], rec[e, _CC]
+            a64, b64, c64 = np.float64(rec[e, _CA]), np.float64(rec[e, _CB]), np.float64(rec[e, _CC])
             grad[k, 0] = a64 * sums[0] + b64 * sums[1]  # d sigma / d mean = conic @ (dx, dy)
             grad[k, 1] = b64 * sums[0] + c64 * sums[1]
             grad[k, 2] = 0.5 * sums[2]
