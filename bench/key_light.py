@@ -55,21 +55,23 @@ CAPTURES: dict[str, dict] = {
     "lambert-side": {"renderer": "lambert", "light": (1.0, 0.25, 0.0)},
     "lambert-backtop": {"renderer": "lambert", "light": (-0.25, 0.8, -0.55)},
 }
-VARIANTS = {
-    "before": ["shading.key_seed=false", "shading.key_check_frames=0"],
-    "after": ["shading.key_seed=true", "shading.key_check_frames=4"],
-    "check": ["shading.key_seed=false", "shading.key_check_frames=4"],  # the old search, then the check: the recipe
+VARIANTS = {  # all but agree*, nokey and control pin shading.key_agree_deg=0: the recipe as they measured it
+    "before": ["shading.key_seed=false", "shading.key_check_frames=0", "shading.key_agree_deg=0"],
+    "after": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=0"],
+    # the old search, then the check
+    "check": ["shading.key_seed=false", "shading.key_check_frames=4", "shading.key_agree_deg=0"],
     "nokey": ["shading.occlusion=none"],  # no key light at all (a reference; only when named)
     "control": [],  # the paper recipe (the previous default), same code and schedule
-    "quality": ["shading.key_check_frames=0"],  # the quality recipe as measured against the control (= before)
-    "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false"],
+    # the quality recipe before shading.key_agree_deg (= before), as measured against the control
+    "quality": ["shading.key_check_frames=0", "shading.key_agree_deg=0"],
+    "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false", "shading.key_agree_deg=0"],
     # the key kept only within 20 / 45 degrees of the learned irradiance's direction (shading.key_agree_deg)
     "agree": ["shading.key_check_frames=0", "shading.key_agree_deg=20"],
     "agree45": ["shading.key_check_frames=0", "shading.key_agree_deg=45"],
     "after-agree": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=20"],
     # LPIPS's backbone in float32 / bfloat16 (issue 47: ~2x cheaper LPIPS on CPUs with native bf16)
-    "lpips_fp32": ["loss.lpips_precision=float32"],
-    "lpips_bf16": ["loss.lpips_precision=bfloat16"],
+    "lpips_fp32": ["loss.lpips_precision=float32", "shading.key_agree_deg=0"],
+    "lpips_bf16": ["loss.lpips_precision=bfloat16", "shading.key_agree_deg=0"],
 }
 RECIPE = {"control": "paper"}  # the recipe of each variant; quality otherwise
 

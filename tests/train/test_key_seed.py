@@ -169,15 +169,40 @@ def test_a_key_far_from_the_learned_irradiance_is_dropped(agrees):
     for it in range(1, 7):
         comp.after_step(it, [])
     sh = comp.shading
-    assert comp.key_log["agrees"] is agrees and "check_errors" not in comp.key_log
-    angle = comp.key_log["key_vs_irradiance_deg"]
+    test = comp.key_log["agree_aligned"]
+    assert test["agrees"] is agrees and "check_errors" not in comp.key_log and "agree_end" not in comp.key_log
     if agrees:
-        assert sh.key_aligned and sh.occlusion == "key" and angle <= 20.0
+        assert sh.key_aligned and sh.occlusion == "key" and test["angle_deg"] <= 20.0
         assert sh.directions is not None and _angle(sh.directions[0], d) < 20.0
     else:
-        assert angle > 90.0 and sh.occlusion == "none" and sh.dropped_key is not None
+        assert test["angle_deg"] > 90.0 and sh.occlusion == "none" and sh.dropped_key is not None
         assert _angle(sh.dropped_key, d) < 20.0
         assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
+
+
+def test_the_key_is_tested_again_at_the_end():
+    """A key that agreed with the irradiance when aligned is dropped at the last iteration if the irradiance
+    learned since points elsewhere; before the last iteration nothing is tested."""
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=20, train_ids=list(range(10)))
+    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=20.0), state)
+    state.component = comp
+    comp.start()
+    assert comp.shading is not None and comp.shading.light is not None and comp.shading.directions is not None
+    d = comp.shading.directions[2].clone()
+    with torch.no_grad():
+        comp.shading.light[2] = 0.5
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    assert comp.key_log["agree_aligned"]["agrees"] and comp.shading.occlusion == "key"
+    with torch.no_grad():  # the irradiance learned after the alignment: most light from the other side
+        comp.shading.coeffs += 1.5 * _lobe(-d)[:, None]
+    for it in range(7, 20):
+        comp.after_step(it, [])
+    assert comp.shading.occlusion == "key" and "agree_end" not in comp.key_log
+    comp.after_step(20, [])
+    sh = comp.shading
+    assert comp.key_log["agree_end"]["agrees"] is False and sh.occlusion == "none" and sh.dropped_key is not None
+    assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
 
 
 def test_key_agree_deg_is_checked():

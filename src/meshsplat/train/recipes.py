@@ -1,7 +1,8 @@
 """Recipes: named training setups, each a list of components and a few settings over the published method.
 
     quality   the default of ``meshsplat train``: components shading (a learned SH2 irradiance with a key light
-              found in training and its soft shadow from the posed mesh), albedo_prior, mask_loss, offset_bound
+              found in training and its soft shadow from the posed mesh; a key more than 45 degrees from the
+              learned irradiance's direction is folded into it), albedo_prior, mask_loss, offset_bound
               and pose_refine, plus colours initialised from 8 frames, colour lr 1e-2, LPIPS on the box around
               the subject on every second iteration (at twice the weight) and densification at half the paper's
               gradient threshold. What each is worth: docs/quality.md
@@ -45,6 +46,7 @@ _QUALITY_SETTINGS = (
     "loss.crop_to_subject=true",
     "loss.lpips_every=2",
     "strategy.grow_grad2d=1e-4",
+    "shading.key_agree_deg=45",
 )
 _PAPER_SETTINGS = (  # the published values of the keys the other recipes set
     "model.init_color_frames=1",
@@ -52,6 +54,7 @@ _PAPER_SETTINGS = (  # the published values of the keys the other recipes set
     "loss.crop_to_subject=false",
     "loss.lpips_every=1",
     "strategy.grow_grad2d=2e-4",
+    "shading.key_agree_deg=0",
 )
 RECIPES: dict[str, Recipe] = {
     "quality": Recipe(("shading", "albedo_prior", "mask_loss", "offset_bound", "pose_refine"), _QUALITY_SETTINGS),

@@ -43,9 +43,9 @@ class ShadingConfig:
     # check
     key_check_frames: int = 0
     key_check_gain: float = 0.002  # the share of the check frames' L1 error the key's shadow must take away to stay
-    # "key": once aligned, the key stays only within this many degrees of the learned irradiance's own direction
-    # (Shading.key_seed); farther, its shadows fit the training frames from a light that is not there, and it is
-    # folded into the SH2 irradiance as the check does; 0: no such test
+    # "key": once aligned and at the last iteration, the key stays only within this many degrees of the learned
+    # irradiance's own direction (Shading.key_seed); farther, its shadows fit the training frames from a light that
+    # is not there, and it is folded into the SH2 irradiance as the check does; 0: no such test
     key_agree_deg: float = 0.0
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
     specular: str = "none"
@@ -118,11 +118,16 @@ class ShadingComponent(Component):
     def _align_key(self, it: int) -> None:
         """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
         iteration (a short run ends with one key light too). ``key_seed``: the first stage starts from
-        ``Shading.key_seed``; once aligned, the key is dropped (``Shading.drop_key``) when it is farther than
-        ``key_agree_deg`` from the learned irradiance's direction, then (``key_check_frames``) unless its shadow
-        lowers the check frames' error by ``key_check_gain``."""
+        ``Shading.key_seed``; once aligned, and again at the last iteration, the key is dropped
+        (``Shading.drop_key``) when it is farther than ``key_agree_deg`` from the learned irradiance's direction;
+        once aligned (``key_check_frames``) also unless its shadow lowers the check frames' error by
+        ``key_check_gain``."""
         sh, every = self.shading, self.cfg.key_iter
-        if sh is None or sh.occlusion != "key" or sh.key_aligned:
+        if sh is None or sh.occlusion != "key":
+            return
+        if sh.key_aligned:  # once more at the end: the irradiance the key was tested against had not settled
+            if it == self.state.iterations and self.cfg.key_agree_deg and self._agree_key(sh, "end") is False:
+                self._set(sh)
             return
         stage = sh.key_stage
         while not sh.key_aligned and (it >= every * (sh.key_stage + 1) or it == self.state.iterations):
@@ -131,7 +136,7 @@ class ShadingComponent(Component):
             else:
                 sh.align_key()
         if sh.key_aligned and self.cfg.key_agree_deg:
-            self._agree_key(sh)
+            self._agree_key(sh, "aligned")
         if sh.key_aligned and sh.occlusion == "key" and self.cfg.key_check_frames:
             self._check_key(sh)
         if sh.key_stage != stage or sh.occlusion != "key":  # new tensors: a new optimizer
@@ -160,16 +165,18 @@ class ShadingComponent(Component):
         self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), sh.key_estimate().tolist()
         return seed
 
-    def _agree_key(self, sh: Shading) -> None:
-        """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's."""
+    def _agree_key(self, sh: Shading, when: str) -> bool:
+        """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's;
+        ``when`` ("aligned" | "end") names the test in ``key_log``. Whether the key stays."""
         assert sh.directions is not None
         key, irradiance = sh.directions[0].detach(), sh.key_seed()
         cos = float(key @ irradiance / (key.norm() * irradiance.norm()))
         angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-        self.key_log["irradiance"], self.key_log["key_vs_irradiance_deg"] = irradiance.tolist(), angle
-        self.key_log["agrees"] = agrees = angle <= self.cfg.key_agree_deg
+        agrees = angle <= self.cfg.key_agree_deg
+        self.key_log[f"agree_{when}"] = {"irradiance": irradiance.tolist(), "angle_deg": angle, "agrees": agrees}
         if not agrees:
             sh.drop_key()
+        return agrees
 
     def _check_key(self, sh: Shading) -> None:
         off = sh.to(self.state.device)
