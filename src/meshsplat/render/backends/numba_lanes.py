@@ -95,13 +95,7 @@ def _forward_lanes(
             if n_done == tw * th:
                 break
             e = isect[k]
-            ra, rb = max(int(rec[e, _Y0]), ty0) - ty0, min(int(rec[e, _Y1]), ty0 + th - 1) - ty0
-            y_lo, y_hi = to_dt(ty0 + ra) + to_dt(PIXEL_CENTER), to_dt(ty0 + rb) + to_dt(PIXEL_CENTER)  # its rows
-            xa, xb = max(int(rec[e, _X0]), tx0) - tx0, min(int(rec[e, _X1]), tx0 + tw - 1) - tx0
-            mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
-            ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
-            for d in range(d_out):
-                col[d] = to_dt(rec[e, _COL + d])
+            ra, rb, y_lo, y_hi, xa, xb, mxe, mye, ca, cb, cc, ope = _entry(rec, e, tx0, ty0, tw, th, col, d_out, xs)
             c0, c1, c2 = col[0], col[1], col[2]
             step = np.int32(k - s0 + 1)
             for by in range(ra >> 2, (rb >> 2) + 1):  # the blocks of the entry's box in the tile
@@ -216,13 +210,7 @@ def _backward_lanes(
         unf = np.uint64(nf)
         for k in range(s0 + max_last - 1, s0 - 1, -1):
             e = isect[k]
-            ra, rb = max(int(rec[e, _Y0]), ty0) - ty0, min(int(rec[e, _Y1]), ty0 + th - 1) - ty0
-            y_lo, y_hi = to_dt(ty0 + ra) + to_dt(PIXEL_CENTER), to_dt(ty0 + rb) + to_dt(PIXEL_CENTER)  # its rows
-            xa, xb = max(int(rec[e, _X0]), tx0) - tx0, min(int(rec[e, _X1]), tx0 + tw - 1) - tx0
-            mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
-            ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
-            for d in range(d_out):
-                col[d] = to_dt(rec[e, _COL + d])
+            ra, rb, y_lo, y_hi, xa, xb, mxe, mye, ca, cb, cc, ope = _entry(rec, e, tx0, ty0, tw, th, col, d_out, xs)
             c0, c1, c2 = col[0], col[1], col[2]
             gl[:] = zero
             kk = np.int32(k - s0)
@@ -316,9 +304,25 @@ def _block_grid_py(tx0, ty0, xs):  # pragma: no cover - compiled
     return pxb, pyb
 
 
+def _entry_py(rec, e, tx0, ty0, tw, th, col, d_out, xs):  # pragma: no cover - compiled
+    """Entry ``e``'s record in the input dtype (``xs``), clipped to the tile at (tx0, ty0) of ``tw`` x ``th``: its
+    first and last row and column in the tile, the first and last row's pixel centre, mean, conic, opacity; its
+    ``d_out`` colours into ``col``."""
+    to_dt = xs.dtype.type
+    ra, rb = max(int(rec[e, _Y0]), ty0) - ty0, min(int(rec[e, _Y1]), ty0 + th - 1) - ty0
+    y_lo, y_hi = to_dt(ty0 + ra) + to_dt(PIXEL_CENTER), to_dt(ty0 + rb) + to_dt(PIXEL_CENTER)
+    xa, xb = max(int(rec[e, _X0]), tx0) - tx0, min(int(rec[e, _X1]), tx0 + tw - 1) - tx0
+    for d in range(d_out):
+        col[d] = to_dt(rec[e, _COL + d])
+    mxe, mye = to_dt(rec[e, _MX]), to_dt(rec[e, _MY])
+    ca, cb, cc, ope = to_dt(rec[e, _CA]), to_dt(rec[e, _CB]), to_dt(rec[e, _CC]), to_dt(rec[e, _OP])
+    return ra, rb, y_lo, y_hi, xa, xb, mxe, mye, ca, cb, cc, ope
+
+
 _block: Any = _block_py
 _lane: Any = _lane_py
 _block_grid: Any = _block_grid_py
+_entry: Any = _entry_py
 
 
 def _exp_neg_f32(x):  # pragma: no cover - compiled
@@ -379,7 +383,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     """The forward and backward: serial lane kernels (``njit_serial``, cached on disk) over ranges of tiles, run
     by ``run_ranges`` on torch's thread count, with the arguments and results of ``numba_cpu``'s scalar kernels;
     registers the float32 ``exp`` once."""
-    global _f32_from_bits, _prange, _forward_serial, _backward_serial, _block, _lane, _block_grid
+    global _f32_from_bits, _prange, _forward_serial, _backward_serial, _block, _lane, _block_grid, _entry
     from llvmlite import ir
     from numba.core import types
     from numba.extending import intrinsic, overload
@@ -393,6 +397,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
 
     _f32_from_bits = f32_from_bits
     exp_f32 = numba.njit(inline="always")(_exp_neg_f32)
+    _entry = numba.njit(inline="always")(_entry_py)  # per entry, beside the lane loops: no call
 
     @overload(_exp_neg, inline="always")
     def _exp_neg_overload(x):
