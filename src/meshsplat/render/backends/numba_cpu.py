@@ -10,7 +10,8 @@ used instead when ``viewmats`` or ``Ks`` require grad). Entries are ordered by c
    0.05 px slack as the torch backend's row spans, float64) is cut into 16x16 tiles; tile lists
    are filled in entry order, so each tile's list is depth-ordered exactly as the torch backend.
    Each entry's values (projection outputs, footprint box, colours) go into one record in the input dtype
-   (exact: the box is whole pixels; the scalar kernels' row-span terms are recomputed from it), and records are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
+   (exact: the box is whole pixels; the scalar kernels' row-span terms are recomputed from it), and records
+   are laid out by the first tile they touch: a tile's walk reads neighbouring records instead of
    six arrays at random (memory latency, not arithmetic, is much of what the walks wait on).
 2. Forward, parallel over tiles (ranges of tiles on threads): every pixel walks its tile's list front to back
    (alpha evaluated in the input dtype with the torch backend's operation order and thresholds;
@@ -93,8 +94,9 @@ def _bin_kernel(
     Records are stored in the order of the first tile each entry touches, so that a tile's entries lie close
     together in memory (random reads are what a tile's walk waits on); ``isect`` holds these record ids.
     Returns ``rec [M, 10+D]`` in the input dtype (mx, my, a, b, c, opacity: the input values exactly; first and
-    last pixel row, last < first: empty; first and last pixel column; colours), ``slot [C*N]`` (camera * N + Gaussian -> record id; visible ones only), ``tile_ptr [T+1]`` and
-    ``isect [I]`` int32 record ids, in depth order within each tile.
+    last pixel row, last < first: empty; first and last pixel column; colours), ``slot [C*N]`` (camera * N +
+    Gaussian -> record id; visible ones only), ``tile_ptr [T+1]`` and ``isect [I]`` int32 record ids, in depth
+    order within each tile.
 
     Serial passes, none of them arithmetic behind a random read, and random writes instead of random reads (a
     store does not stall the loop as a load does): each entry's position in depth order, then footprints in

@@ -183,8 +183,8 @@ _screen_cov: Any = _screen_cov_py
 def _project_backward_kernel(
     means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, g_means, g_quats, g_scales, lo, hi
 ):  # pragma: no cover - compiled
-    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) (input dtype) from the gradients of the visible outputs, for the
-    blocks of ``_BLOCK`` Gaussians ``lo..hi-1``, into the zeroed ``g_*``."""
+    """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) (input dtype) from the gradients of the visible outputs,
+    for the blocks of ``_BLOCK`` Gaussians ``lo..hi-1``, into the zeroed ``g_*``."""
     n = means.shape[0]
     lims = _fov_limits(ks, width, height)
     for blk in range(lo, hi):
