@@ -10,9 +10,15 @@ with ``--pose-noise`` (every joint's tracked rotation off by that many radians, 
 trained three times with the demo's schedule and seed: refinement ``off``; the ``old`` refiner (one Adam
 over every training frame's offsets, stepped every iteration: frames not drawn move on stale momentum, the
 refiner before issue 44, rebuilt here); and the ``new`` one (``PoseRefiner``: a lazy per-frame Adam, with the
-component's defaults); ``prev`` (only when named) is the lazy Adam with the defaults before issue 44's third
-round (lr 3e-4, no evidence gate, no start, no depth rule). ``--subject flame``: the stand-in FLAME head
-instead (jaw, neck and expressions per frame), its captures and runs named ``flame-...``.
+default recipe's settings, its guarded polish at half the run and at the end included); ``prev`` (only when named)
+is the lazy Adam with the defaults before issue 44's third round (lr 3e-4, no evidence gate, no start, no depth
+rule); ``off``, ``old`` and ``prev`` have no polish. ``--with NAME:KEY=V,...`` adds ``new`` with overrides. ``--subject flame``: the stand-in FLAME head
+instead (jaw, neck and expressions per frame), its captures and runs named ``flame-...``. ``--polish
+NAME:KEY=V,...`` (repeatable) adds the run of variant ``--polish-base`` (one trained without the polish), copied
+and resumed with those ``pose_refine.polish_*`` settings: its poses fitted after the last iteration, the avatar as
+it is (no retraining). ``--capture NAME=DIR`` adds a capture as it is, e.g. a real video tracked by ``meshsplat
+track`` (``--cases`` may be empty). ``--pictures``: one training frame and one held-out view per case, the truth
+beside every variant, in bench/reports/images/<results name>_<case>_<split>.png.
 Prints PSNR/SSIM in full and in the mask on the training frames (in their refined poses, as ``eval`` and
 ``render --split train`` use them), held-out views of training frames (refined poses) and held-out frames
 (tracked poses); and, on the exact capture, how far the refined training meshes ended from the true ones.
@@ -36,6 +42,7 @@ from _machine import machine_info, results_path
 KEYS = ("psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")
 SPLITS = ("train", "test_views", "test_frames")
 OLD_LR = 3e-4  # the old refiner's default rate
+NO_POLISH = ["pose_refine.polish_steps=0", "pose_refine.polish_lr=1e-3", "pose_refine.polish_mid=0"]
 
 
 class StaleAdamRefiner:
@@ -52,7 +59,8 @@ class StaleAdamRefiner:
         self.optimizer.zero_grad(set_to_none=True)
 
     def __getattr__(self, name):
-        return getattr(type(self._new), name).__get__(self)
+        attr = getattr(type(self._new), name)
+        return attr.__get__(self) if hasattr(attr, "__get__") else attr
 
 
 def _same_config(run: Path, cfg) -> bool:
@@ -116,6 +124,57 @@ def chart(rows: dict, out: Path) -> None:
     fig.savefig(out, dpi=80)
 
 
+def strips(runs: dict[str, dict[str, Path]], prefix: Path) -> list[Path]:
+    """Per case and split (training frames in their refined poses, held-out views): one frame, the ground truth
+    then every variant's render on white, cropped to the subject; ``<prefix>_<case>_<split>.png``."""
+    from PIL import Image, ImageDraw
+
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_run
+
+    white = torch.ones(3)
+    written = []
+    for case, variants in runs.items():
+        loaded = {v: load_run(run) for v, run in variants.items()}
+        datasets = {v: r.open_dataset() for v, r in loaded.items()}
+        first = next(iter(datasets.values()))
+        for split in ("train", "test_views"):
+            ids = first.split(split) if split in first.split_names else []
+            if not ids:
+                continue
+            i = ids[len(ids) // 2]
+            fr = first[i]
+            tiles = [("truth", composite(fr.image, fr.mask, white))]
+            with torch.no_grad():
+                for v, ds in datasets.items():
+                    f = ds[i]
+                    tiles.append((v, loaded[v].avatar.render(f.vertices, f.camera, white).image.clamp(0, 1)))
+            box = fr.mask[..., 0] > 0.5 if fr.mask is not None else torch.ones(fr.image.shape[:2], dtype=torch.bool)
+            ys, xs = torch.nonzero(box, as_tuple=True)
+            pad = 6
+            y0, y1 = max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, box.shape[0])
+            x0, x1 = max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, box.shape[1])
+            scale = max(1, 256 // (y1 - y0))
+            ims = []
+            for label, t in tiles:
+                a = (t[y0:y1, x0:x1].cpu().numpy() * 255).round().astype(np.uint8)
+                im = Image.fromarray(a).resize(((x1 - x0) * scale, (y1 - y0) * scale), Image.NEAREST)
+                canvas = Image.new("RGB", (im.width, im.height + 16), "white")
+                canvas.paste(im, (0, 16))
+                ImageDraw.Draw(canvas).text((2, 2), label, fill="black")
+                ims.append(canvas)
+            strip = Image.new("RGB", (sum(im.width for im in ims), ims[0].height), "white")
+            x = 0
+            for im in ims:
+                strip.paste(im, (x, 0))
+                x += im.width
+            out = Path(f"{prefix}_{case}_{split}.png")
+            out.parent.mkdir(parents=True, exist_ok=True)
+            strip.save(out)
+            written.append(out)
+    return written
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="default", choices=["default", "tiny"], help="sizes (meshsplat.demo.PRESETS)")
@@ -135,6 +194,14 @@ def main() -> None:
         metavar="NAME:KEY=V[,KEY=V]",
         help="also the new refiner with these config overrides, e.g. late:pose_refine.start=0.3 (repeatable)",
     )
+    ap.add_argument(
+        "--polish",
+        action="append",
+        default=[],
+        metavar="NAME:KEY=V[,KEY=V]",
+        help="also the finished --polish-base run resumed with these pose_refine.polish_* settings (repeatable)",
+    )
+    ap.add_argument("--polish-base", default="new", help="the variant --polish resumes (trained without the polish)")
     ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
     ap.add_argument("--prior", type=float, default=None, help="pose_refine.prior of the new refiner variants")
     ap.add_argument("--name", default=None, help="results file bench/results/<name>-<host>.json")
@@ -142,10 +209,18 @@ def main() -> None:
     ap.add_argument("--pictures", action="store_true", help="eval writes its report with sample images per split")
     ap.add_argument("--reuse", action="store_true", help="keep a finished run of the same config (no retraining)")
     ap.add_argument("--cases", nargs="*", default=["exact", "noisy"], choices=["exact", "noisy"])
+    ap.add_argument(
+        "--capture",
+        action="append",
+        default=[],
+        metavar="NAME=DIR",
+        help="also a capture as it is (e.g. a video tracked by `meshsplat track`), its case called NAME (repeatable)",
+    )
     ap.add_argument("--variants", nargs="*", default=["off", "old", "new"], choices=["off", "old", "prev", "new"])
     ap.add_argument("--subject", default="smpl", choices=["smpl", "flame"], help="the stand-in body or head model")
     args = ap.parse_args()
 
+    from meshsplat.data import open_dataset
     from meshsplat.demo import PRESETS, demo_train_config
     from meshsplat.eval import evaluate_run
     from meshsplat.synth import synthesize
@@ -163,10 +238,14 @@ def main() -> None:
     if not (models / args.subject).is_dir():
         write_standin_models(models, kinds=(args.subject,))
     rows: dict = {}
+    runs: dict[str, dict[str, Path]] = {}
     tag = "" if args.subject == "smpl" else f"{args.subject}-"  # the SMPL captures keep their names
-    for case in args.cases:
-        data = work / f"{tag}{case}-{preset.resolution}-{preset.frames}"
-        if not (data / "manifest.json").is_file():
+    captures = {c.split("=", 1)[0]: Path(c.split("=", 1)[1]).resolve() for c in args.capture if "=" in c}
+    if len(captures) != len(args.capture):
+        ap.error("--capture takes NAME=DIR")
+    for case in args.cases + list(captures):
+        data = captures.get(case, work / f"{tag}{case}-{preset.resolution}-{preset.frames}")
+        if case not in captures and not (data / "manifest.json").is_file():
             synthesize(
                 args.subject,
                 data,
@@ -180,13 +259,19 @@ def main() -> None:
             )
         rows[case] = {}
         named = dict(v.split(":", 1) for v in args.extra_variants)
-        for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs] + list(named):
+        polish = dict(v.split(":", 1) for v in args.polish)
+        base = args.polish_base
+        if polish and base not in args.variants + list(named):
+            ap.error(f"--polish resumes the run of variant {base!r}: name it in --variants or --with")
+        for variant in args.variants + [f"new_lr{x:g}" for x in args.new_lrs] + list(named) + list(polish):
             run = work / f"run_{tag}{case}-{preset.resolution}-{preset.frames}-{preset.iterations}_{variant}"
             extra = (
                 ["pose_refine.enabled=false"]
                 if variant == "off"
                 else ["pose_refine.enabled=true", "pose_refine.required=true"]
             )
+            if variant in ("off", "old", "prev"):  # no polish (issue 44's fifth round): off's keys as they were
+                extra += NO_POLISH
             if variant in ("old", "prev"):  # the settings before issue 44's third round (prev: its lazy Adam)
                 extra += [f"pose_refine.lr={OLD_LR}", "pose_refine.evidence=0", "pose_refine.start=0"]
                 extra.append("pose_refine.keep_depth=false")
@@ -194,6 +279,8 @@ def main() -> None:
                 extra.append(f"pose_refine.lr={variant[len('new_lr') :]}")
             if variant in named:
                 extra += named[variant].split(",")
+            if variant in polish:
+                extra += polish[variant].split(",")
             if (variant.startswith("new") or variant in named) and args.prior is not None:
                 extra.append(f"pose_refine.prior={args.prior}")
             cfg = demo_train_config(data, run, preset, extra, progress=False)
@@ -202,9 +289,18 @@ def main() -> None:
                 cfg.seed = args.seed
             done = run / "checkpoints" / f"ckpt_{cfg.iterations:08d}.pt"
             t0 = time.perf_counter()
+            counts = None
             if args.reuse and done.is_file() and _same_config(run, cfg):
                 print(f"[{case}/{variant}] reusing {run.name}", flush=True)
                 trainer = None
+            elif variant in polish:  # the new run, its poses polished: resumed past its last iteration
+                if run.exists():
+                    shutil.rmtree(run)
+                shutil.copytree(run.parent / (run.name[: -len(variant)] + base), run)
+                trainer = Trainer(cfg, resume=True)
+                trainer.train()
+                counts = trainer.component("pose_refine").polish_counts  # type: ignore[attr-defined]
+                print(f"[{case}/{variant}] polish: {counts}", flush=True)
             else:
                 if run.exists():
                     shutil.rmtree(run)
@@ -214,15 +310,19 @@ def main() -> None:
                     refine.refiner = StaleAdamRefiner(refine.refiner)  # type: ignore[attr-defined]
                 trainer.train()
             train_s = time.perf_counter() - t0
-            m = evaluate_run(run, splits=list(SPLITS), report=args.pictures, lpips_net=None, device="cpu")
+            splits = [s for s in SPLITS if s in open_dataset(data).split_names]  # a real capture: no test_views
+            m = evaluate_run(run, splits=splits, report=args.pictures, lpips_net=None, device="cpu")
             rec: dict = {
                 "train_s": train_s,
                 "gaussians": trainer.num_gaussians if trainer else None,
                 "splits": {s: {k: v.get(k) for k in KEYS} for s, v in m["splits"].items()},
             }
+            if counts is not None:
+                rec["polish"] = counts
             if variant != "off" and case == "exact":
                 rec["mesh_drift"] = mesh_drift(run)
             rows[case][variant] = rec
+            runs.setdefault(case, {})[variant] = run
             print(f"[{case}/{variant}] trained in {train_s:.0f} s", flush=True)
 
     f = lambda x, d: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
@@ -257,6 +357,7 @@ def main() -> None:
                 "lr_new_extra": args.new_lrs,
                 "prior_new": args.prior,
                 "with": args.extra_variants,
+                "polish": args.polish,
                 "seed": args.seed,
                 "lr_old": OLD_LR,
                 "cases": rows,
@@ -267,6 +368,9 @@ def main() -> None:
     )
     if {"off", "old", "new"} <= set(args.variants):
         chart(rows, out.with_suffix(".png"))
+    if args.pictures:
+        for f in strips(runs, Path(__file__).parent / "reports" / "images" / out.stem.replace("-", "_")):
+            print(f"picture {f}")
     print(f"saved {out}")
 
 

@@ -176,7 +176,15 @@ def test_eval_command_names_refined_frames_and_takes_tracked_poses(refined_run, 
 def _short(data, out, *extra):
     cfg = recipe_config("quality", data=str(data), out=str(out), iterations=2, device="cpu", backend="torch")
     return apply_overrides(
-        cfg, ["progress=false", "model.n_init=100", "loss.lambda_lpips=0", "checkpoint_every=2", *extra]
+        cfg,
+        [
+            "progress=false",
+            "model.n_init=100",
+            "loss.lambda_lpips=0",
+            "checkpoint_every=2",
+            "pose_refine.polish_steps=0",  # the recipe's polish where a test asks for it
+            *extra,
+        ],
     )
 
 
@@ -238,16 +246,19 @@ def test_train_command_says_what_it_decided(noisy_smpl, standin_model_dir, tmp_p
     assert not json.loads((tmp_path / "b" / "config.json").read_text())["pose_refine"]["enabled"]
 
 
-@pytest.mark.parametrize("polish", [0, 3], ids=["refined", "polished_at_the_end"])
-def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_path, polish):
+@pytest.mark.parametrize(
+    "polish,mid", [(0, 0), (3, 0), (3, 0.5)], ids=["refined", "polished_at_the_end", "polished_at_the_checkpoint"]
+)
+def test_resume_with_refinement_is_bit_exact(noisy_smpl, standin_model_dir, tmp_path, polish, mid):
     """A run "killed" after its checkpoint at 3 of 6 iterations resumes to the same avatar, pose offsets and
     refined poses as the run that went through (the offsets and their Adam state travel in the checkpoint);
-    with ``pose_refine.polish_steps`` the resumed run fits its poses at the end as the other did."""
+    with ``pose_refine.polish_steps`` the resumed run fits its poses at the end as the other did, and a polish at
+    the checkpoint's iteration (``polish_mid``) is in that checkpoint, not done again."""
     import shutil
 
     def cfg(out):
         sets = [f"model_dir={standin_model_dir}", "checkpoint_every=3", "pose_refine.lr=1e-2"]
-        c = _short(noisy_smpl, out, *sets, f"pose_refine.polish_steps={polish}")
+        c = _short(noisy_smpl, out, *sets, f"pose_refine.polish_steps={polish}", f"pose_refine.polish_mid={mid}")
         c.iterations = 6
         return c
 
@@ -300,7 +311,7 @@ def _training_error(trainer) -> float:
 def test_polishing_fits_the_training_poses_once_at_the_end(noisy_smpl, standin_model_dir, tmp_path):
     """``pose_refine.polish_steps``: after the last iteration the refined poses alone are fitted to the
     training images (the avatar unchanged), saved with the run, and not fitted again on a resume."""
-    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100"]
+    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100", "pose_refine.polish_mid=0"]
     plain = Trainer(_short(noisy_smpl, tmp_path / "plain", *sets))
     plain.train()
     polished = Trainer(_short(noisy_smpl, tmp_path / "polished", *sets, "pose_refine.polish_steps=8"))
@@ -571,3 +582,70 @@ def test_evidence_slows_a_number_whose_gradient_flips_and_not_one_that_keeps_its
     assert gated < 0.2 * plain, (gated, plain)
     with pytest.raises(MeshsplatError, match="evidence"):
         apply_overrides(recipe_config("quality"), ["pose_refine.evidence=-1"]).validate()
+
+
+def test_a_guarded_fit_keeps_a_right_pose_and_moves_a_wrong_one(noisy_smpl, standin_model_dir):
+    """``PoseRefiner.fit_guarded`` (the polish): a row whose error any step raises ends exactly where it began (plain
+    Adam moves it); a row whose error its steps lower moves most of the way."""
+    ref = _refiner(noisy_smpl, standin_model_dir, "global_orient,body_pose")
+    right, wrong = sorted(ref.row_of)[:2]
+    with torch.no_grad():
+        truth = {right: ref.vertices(right).clone()}
+        ref.offsets["body_pose"][ref.row_of[wrong], :9] = 0.05  # the images show this pose of the wrong row
+        truth[wrong] = ref.vertices(wrong).clone()
+        ref.offsets["body_pose"].zero_()
+
+    def row_error(row: int) -> torch.Tensor:
+        v = ref.vertices(row)
+        if row == right:  # a gradient at the tracked pose, but its minimum closer than any step the rate takes
+            return 1e3 * ((v - truth[row]) ** 2).sum() + 1e-4 * v[:, 0].sum()
+        return (v - truth[row]).abs().mean() if row in truth else v.sum() * 0
+
+    before = float(row_error(wrong).detach())
+    counts = ref.fit_guarded(row_error, steps=30, lr=1e-2, min_gain=1e-3)
+    for k, off in ref.offsets.items():
+        assert bool((off.detach()[ref.row_of[right]] == 0).all()), k  # undone, bit for bit
+    assert float(row_error(wrong).detach()) < 0.3 * before
+    assert counts["moved"] == 1 and counts["kept"] > 0 and counts["undone"] >= ref.GIVE_UP
+    ref.fit(row_error, steps=1, lr=1e-2)
+    assert float(ref.offsets["body_pose"].detach()[ref.row_of[right]].abs().max()) > 0
+
+
+def test_a_finished_run_resumed_with_a_polish_fits_its_poses_as_a_run_that_had_it_from_the_start(
+    noisy_smpl, standin_model_dir, tmp_path
+):
+    """``pose_refine.polish_*`` may change on a resume (they act after the last iteration): the resumed run ends
+    with the poses, bit for bit, of a run polished at its end."""
+    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100", "pose_refine.start=0"]
+    sets.append("pose_refine.polish_mid=0")
+    polish = ["pose_refine.polish_steps=4", "pose_refine.polish_lr=3e-3"]
+    whole = Trainer(_short(noisy_smpl, tmp_path / "whole", *sets, *polish))
+    whole.train()
+    Trainer(_short(noisy_smpl, tmp_path / "later", *sets)).train()
+    later = Trainer(_short(noisy_smpl, tmp_path / "later", *sets, *polish), resume=True)
+    assert later.finishing
+    later.train()
+    a, b = whole.component("pose_refine").refiner, later.component("pose_refine").refiner
+    assert b.polished and whole.component("pose_refine").polish_counts["kept"] > 0
+    for k, v in a.offsets.items():
+        assert torch.equal(v.detach(), b.offsets[k].detach()), k
+
+
+def test_a_polish_at_mid_run_fits_the_poses_and_the_avatar_trains_on_in_them(noisy_smpl, standin_model_dir, tmp_path):
+    """``pose_refine.polish_mid``: at that fraction of the run the poses are polished (the avatar frozen for it),
+    then the avatar trains on in the polished poses: the run differs from one without it from then on only."""
+    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100", "pose_refine.start=0"]
+    sets += ["pose_refine.polish_steps=4", "pose_refine.polish_lr=3e-3"]
+    runs = {}
+    for mid in (0, 0.5):
+        c = _short(noisy_smpl, tmp_path / f"mid{mid}", *sets, f"pose_refine.polish_mid={mid}")
+        c.iterations = 4
+        t = Trainer(c)
+        t.train(until=2)
+        runs[mid] = (t, {k: v.detach().clone() for k, v in t.params.items()}, t.component("pose_refine").polish_counts)
+        t.train()
+    (a, a_at2, a_counts), (b, b_at2, b_counts) = runs[0], runs[0.5]
+    assert a_counts is None and b_counts is not None and b_counts["kept"] > 0  # polished at iteration 2 only
+    for k in a_at2:
+        assert torch.equal(a_at2[k], b_at2[k]), k  # the avatar frozen during the polish
+    assert any(not torch.equal(a.params[k].detach(), b.params[k].detach()) for k in a.params)  # then trained on

@@ -67,7 +67,7 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
     # applying a recipe's overrides to any config gives that recipe's model
     assert apply_overrides(recipe_config("quality"), list(recipe_overrides("paper"))) == recipe_config("paper")
     assert apply_overrides(recipe_config("paper"), list(recipe_overrides("quality"))) == recipe_config("quality")
-    # the quality recipe: five components and six values over the published method, nothing else
+    # the quality recipe: five components and eight values over the published method, nothing else
     assert recipe_differences(recipe_config("paper"), "quality") == [
         "model.init_color_frames=1 (recipe: 8)",
         "optim.lr_color=0.0025 (recipe: 0.01)",
@@ -80,6 +80,8 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
         "mask_loss.enabled=False (recipe: True)",
         "offset_bound.enabled=False (recipe: True)",
         "pose_refine.enabled=False (recipe: True)",
+        "pose_refine.polish_steps=0 (recipe: 20)",
+        "pose_refine.polish_lr=0.001 (recipe: 0.003)",
     ]
     assert recipe_differences(recipe_config("paper")) == []
     with pytest.raises(MeshsplatError, match="recipe: expected one of quality, paper, got 'best'"):

@@ -38,6 +38,8 @@ def _float32(a: Any, device: torch.device) -> torch.Tensor:
 class PoseRefiner:
     """Offsets ``[R, k]`` per refined parameter for the ``R`` distinct meshes of the training frames."""
 
+    GIVE_UP = 3  # fit_guarded: a row whose step was undone this many times in a row is at its best
+
     def __init__(
         self,
         dataset: AvatarDataset,
@@ -142,13 +144,7 @@ class PoseRefiner:
         for _ in range(steps):
             grads = [torch.zeros_like(o) for o in offsets]
             for row in self.row_of:
-                with torch.enable_grad():
-                    err = row_error(row)
-                    if not torch.isfinite(err):
-                        raise MeshsplatError(
-                            f"pose fit: the image error of mesh row {row} became {float(err)}; use a lower rate"
-                        )
-                    parts = torch.autograd.grad(err, offsets, allow_unused=True)
+                _, parts = self._error_and_grads(row_error, row)
                 for g, d in zip(grads, parts, strict=True):
                     if d is not None:
                         g += d
@@ -158,6 +154,88 @@ class PoseRefiner:
             opt.zero_grad(set_to_none=True)
             if on_step is not None:
                 on_step()
+
+    def fit_guarded(
+        self,
+        row_error: Callable[[int], torch.Tensor],
+        steps: int,
+        lr: float,
+        min_gain: float,
+        project: Callable[[int], None] | None = None,
+        on_step: Callable[[], None] | None = None,
+    ) -> dict[str, int]:
+        """Like :meth:`fit`, but a row keeps a step only where it lowered that row's error by at least the
+        fraction ``min_gain``: otherwise the row goes back to its best offsets and its rate halves; a row
+        turned back ``GIVE_UP`` times in a row stops. A right pose thus stays where it is (its first steps
+        raise its error), a wrong one moves as far as its images ask. Rows have their own Adam moments and
+        rate (``lr`` at first). ``project(row)`` runs after each step of a row (e.g. the depth rule). Every
+        row ends at the lowest error it was measured at. Returns counts: ``kept`` and ``undone`` steps,
+        ``moved`` rows (at least one step kept)."""
+        b1, b2, eps = ADAM_BETAS[0], ADAM_BETAS[1], ADAM_EPS
+        names = list(self.offsets)
+        m = {k: torch.zeros_like(v) for k, v in self.offsets.items()}
+        v2 = {k: torch.zeros_like(v) for k, v in self.offsets.items()}
+        rows = list(self.row_of)
+        best_err: dict[int, float] = {}
+        best: dict[int, tuple[dict[str, torch.Tensor], tuple[torch.Tensor | None, ...]]] = {}
+        rate = {row: lr for row in rows}
+        undone_run = {row: 0 for row in rows}
+        n = {row: 0 for row in rows}
+        counts = {"kept": 0, "undone": 0, "moved": 0}
+        moved: set[int] = set()
+        for s in range(steps + 1):
+            for row in rows:
+                if undone_run[row] >= self.GIVE_UP:
+                    continue
+                j = self.row_of[row]
+                err, parts = self._error_and_grads(row_error, row)
+                with torch.no_grad():
+                    if row not in best_err or err < best_err[row] * (1.0 - min_gain):
+                        if row in best_err:
+                            counts["kept"] += 1
+                            moved.add(row)
+                        best_err[row] = err
+                        best[row] = ({k: self.offsets[k].data[j].clone() for k in names}, parts)
+                        undone_run[row] = 0
+                    else:  # back to the best offsets, at half the rate
+                        counts["undone"] += 1
+                        for k in names:
+                            self.offsets[k].data[j].copy_(best[row][0][k])
+                        rate[row] *= 0.5
+                        undone_run[row] += 1
+                        if undone_run[row] >= self.GIVE_UP:
+                            continue
+                    if s == steps:
+                        continue
+                    n[row] += 1
+                    step_size = rate[row] / (1 - b1 ** n[row])
+                    bias2_sqrt = (1 - b2 ** n[row]) ** 0.5
+                    for k, g in zip(names, best[row][1], strict=True):
+                        if g is None:
+                            continue
+                        mk, vk = m[k][j], v2[k][j]
+                        mk.lerp_(g[j], 1 - b1)
+                        vk.mul_(b2).addcmul_(g[j], g[j], value=1 - b2)
+                        self.offsets[k].data[j].addcdiv_(mk, (vk.sqrt() / bias2_sqrt).add_(eps), value=-step_size)
+                    if project is not None:
+                        project(row)
+            if on_step is not None:
+                on_step()
+        counts["moved"] = len(moved)
+        return counts
+
+    def _error_and_grads(
+        self, row_error: Callable[[int], torch.Tensor], row: int
+    ) -> tuple[float, tuple[torch.Tensor | None, ...]]:
+        """``row_error(row)`` and its gradients with respect to the offsets (``[R, k]`` each, None if unused)."""
+        with torch.enable_grad():
+            err = row_error(row)
+            if not torch.isfinite(err):
+                raise MeshsplatError(
+                    f"pose fit: the image error of mesh row {row} became {float(err)}; use a lower rate"
+                )
+            parts = torch.autograd.grad(err, list(self.offsets.values()), allow_unused=True)
+        return float(err.detach()), parts
 
     def offset_norms(self) -> dict[str, float]:
         """Mean absolute offset per parameter name (for logs and tests)."""

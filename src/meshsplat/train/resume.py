@@ -43,9 +43,13 @@ __all__ = [
     "write_identity",
 ]
 
-# Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs.
+# Keys a resumed run may change: where data/outputs live, how it runs and reports, how long it runs (the pose
+# polish comes after the last iteration: a finished run resumed with it fits its poses, the avatar as it is).
 SAFE_CHANGES = frozenset(
     {
+        "pose_refine.polish_steps",
+        "pose_refine.polish_lr",
+        "pose_refine.polish_min_gain",
         "data",
         "data_format",
         "model_dir",

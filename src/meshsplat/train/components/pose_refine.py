@@ -45,9 +45,15 @@ class PoseRefineConfig:
     # each Adam step times (|m| / sqrt(v))^evidence, the agreement of a number's recent gradients (1: one sign
     # throughout; noise about a right pose flips it and moves less); 0: plain Adam
     evidence: float = 4.0
-    # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen; 0: none
+    # after the last iteration: this many Adam steps on the refined poses alone, the avatar frozen; 0: none. A
+    # frame keeps a step only where it lowered its image error by polish_min_gain (a fraction), else the step is
+    # undone and that frame's rate halves: a right pose stays, a wrong one moves as far as its images ask
     polish_steps: int = 0
     polish_lr: float = 1e-3
+    polish_min_gain: float = 1e-3
+    # a polish also at this fraction of the run's iterations (the avatar then trains on in the polished poses); 0:
+    # at the end only
+    polish_mid: float = 0.0
 
     def checks(self) -> list[tuple[bool, str]]:
         return [
@@ -57,6 +63,8 @@ class PoseRefineConfig:
             (0 <= self.start < 1, "pose_refine.start must be in [0, 1) (a fraction of the iterations)"),
             (0 <= self.polish_steps <= 100_000, "pose_refine.polish_steps must be in [0, 100000]"),
             (self.polish_lr > 0, "pose_refine.polish_lr must be > 0"),
+            (0 <= self.polish_min_gain < 1, "pose_refine.polish_min_gain must be in [0, 1) (a fraction)"),
+            (0 <= self.polish_mid < 1, "pose_refine.polish_mid must be in [0, 1) (a fraction of the iterations)"),
         ]
 
 
@@ -67,6 +75,7 @@ class PoseRefinement(Component):
     def __init__(self, cfg: PoseRefineConfig, state: TrainingState, refiner: PoseRefiner) -> None:
         super().__init__(cfg, state)
         self.refiner = refiner
+        self.polish_counts: dict[str, int] | None = None  # the latest polish's (PoseRefiner.fit_guarded)
         self.depth_dirs = self._depth_directions() if cfg.keep_depth and "transl" in refiner.offsets else {}
 
     def _depth_directions(self) -> dict[int, torch.Tensor]:
@@ -128,25 +137,37 @@ class PoseRefinement(Component):
         return list(self.refiner.offsets.values())
 
     def after_step(self, it: int, rows: list[int]) -> None:
+        if self.cfg.polish_steps and self.cfg.polish_mid and it == int(self.cfg.polish_mid * self.state.iterations):
+            self._polish(self.state.training_error)
         if not self.started:
             return
         mesh_rows = [self._row(i) for i in rows]
         # the batch's rows only: a frame not drawn keeps its pose and its Adam state
         self.refiner.step(mesh_rows)
-        if self.depth_dirs:  # projected Adam: the offset back onto the plane across the camera's line of sight
-            transl = self.refiner.offsets["transl"].data
-            for row in set(mesh_rows) & set(self.depth_dirs):
-                j, d = self.refiner.row_of[row], self.depth_dirs[row]
-                transl[j] -= (transl[j] @ d) * d
+        for row in set(mesh_rows):
+            self._keep_depth(row)
         self.refiner.polished = False  # the poses moved with the avatar: fit them again at the end
+
+    def _keep_depth(self, row: int) -> None:
+        """Projected steps: a one-camera row's translation offset back onto the plane across that camera's line
+        of sight (``keep_depth``)."""
+        d = self.depth_dirs.get(row)
+        if d is not None:
+            j, transl = self.refiner.row_of[row], self.refiner.offsets["transl"].data
+            transl[j] -= (transl[j] @ d) * d
 
     @property
     def finishing(self) -> bool:
         return self.cfg.polish_steps > 0 and not self.refiner.polished
 
     def finish(self, render_error: Callable[[int], torch.Tensor], on_step: Callable[[], None] | None = None) -> None:
-        """``polish_steps`` Adam steps on the refined training poses, the avatar frozen: the sum of
-        ``render_error(idx)`` over each mesh row's training frames, one backward per row (``PoseRefiner.fit``)."""
+        self._polish(render_error, on_step)
+        self.refiner.polished = True
+
+    def _polish(self, render_error: Callable[[int], torch.Tensor], on_step: Callable[[], None] | None = None) -> None:
+        """``polish_steps`` Adam steps on the refined training poses, the avatar frozen: each mesh row's sum of
+        ``render_error(idx)`` over its training frames, one backward per row, a step kept only where it lowered
+        that error by ``polish_min_gain`` (``PoseRefiner.fit_guarded``)."""
         frames: dict[int, list[int]] = {}
         for i in self.state.train_ids:
             frames.setdefault(self._row(i), []).append(i)
@@ -154,8 +175,9 @@ class PoseRefinement(Component):
         def row_error(row: int) -> torch.Tensor:
             return torch.stack([render_error(i) for i in frames[row]]).sum()
 
-        self.refiner.fit(row_error, self.cfg.polish_steps, self.cfg.polish_lr, on_step)
-        self.refiner.polished = True
+        self.polish_counts = self.refiner.fit_guarded(
+            row_error, self.cfg.polish_steps, self.cfg.polish_lr, self.cfg.polish_min_gain, self._keep_depth, on_step
+        )
 
     def state_dict(self) -> Any:
         return self.refiner.state_dict()
