@@ -195,7 +195,8 @@ class PoseRefiner:
                             counts["kept"] += 1
                             moved.add(row)
                         best_err[row] = err
-                        best[row] = ({k: self.offsets[k].data[j].clone() for k in names}, parts)
+                        grads = tuple(None if g is None else g[j].clone() for g in parts)  # [k] each: this row's
+                        best[row] = ({k: self.offsets[k].data[j].clone() for k in names}, grads)
                         undone_run[row] = 0
                     else:  # back to the best offsets, at half the rate
                         counts["undone"] += 1
@@ -214,8 +215,8 @@ class PoseRefiner:
                         if g is None:
                             continue
                         mk, vk = m[k][j], v2[k][j]
-                        mk.lerp_(g[j], 1 - b1)
-                        vk.mul_(b2).addcmul_(g[j], g[j], value=1 - b2)
+                        mk.lerp_(g, 1 - b1)
+                        vk.mul_(b2).addcmul_(g, g, value=1 - b2)
                         self.offsets[k].data[j].addcdiv_(mk, (vk.sqrt() / bias2_sqrt).add_(eps), value=-step_size)
                     if project is not None:
                         project(row)
