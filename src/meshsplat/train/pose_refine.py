@@ -35,6 +35,25 @@ def _float32(a: Any, device: torch.device) -> torch.Tensor:
     return torch.as_tensor(np.asarray(a, np.float32), device=device)
 
 
+def _adam_row(
+    x: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, n: int, lr: float, evidence: float = 0.0
+) -> None:
+    """Step ``n`` (from 1) of ``torch.optim.Adam``'s arithmetic on one row ``x [k]`` in place, its moments ``m``
+    and ``v [k]`` updated with the gradient ``g [k]``; ``evidence``: each number's step times
+    ``(|m̂| / sqrt(v̂))^evidence`` (0: plain Adam)."""
+    b1, b2 = ADAM_BETAS
+    step_size = lr / (1 - b1**n)
+    bias2_sqrt = (1 - b2**n) ** 0.5
+    m.lerp_(g, 1 - b1)
+    v.mul_(b2).addcmul_(g, g, value=1 - b2)
+    denom = (v.sqrt() / bias2_sqrt).add_(ADAM_EPS)
+    if evidence:
+        agree = (m.abs() / (1 - b1**n) / denom).clamp_(max=1.0).pow_(evidence)
+        x.addcdiv_(m * agree, denom, value=-step_size)
+    else:
+        x.addcdiv_(m, denom, value=-step_size)
+
+
 class PoseRefiner:
     """Offsets ``[R, k]`` per refined parameter for the ``R`` distinct meshes of the training frames."""
 
@@ -103,28 +122,19 @@ class PoseRefiner:
         of ``mesh_rows`` (the batch's frames; a row drawn twice steps once, on its summed gradient), with that
         row's own moments and step count; every other row, and its state, stays as it is. With ``prior`` the
         gradient gains ``prior * offset`` (an L2 pull towards the tracked parameters). Clears the gradients."""
-        b1, b2, eps = ADAM_BETAS[0], ADAM_BETAS[1], ADAM_EPS
         with torch.no_grad():
             for row in sorted({int(r) for r in mesh_rows if int(r) in self.row_of}):
                 j = self.row_of[row]
                 self.steps[j] += 1
-                n = self.steps[j]
-                step_size = self.lr / (1 - b1**n)
-                bias2_sqrt = (1 - b2**n) ** 0.5
                 for k, off in self.offsets.items():
                     if off.grad is None:
                         continue
-                    g, m, v = off.grad[j], self.exp_avg[k][j], self.exp_avg_sq[k][j]
+                    g = off.grad[j]
                     if self.prior:
                         g = g + self.prior * off.data[j]
-                    m.lerp_(g, 1 - b1)
-                    v.mul_(b2).addcmul_(g, g, value=1 - b2)
-                    denom = (v.sqrt() / bias2_sqrt).add_(eps)
-                    if self.evidence:
-                        agree = (m.abs() / (1 - b1**n) / denom).clamp_(max=1.0).pow_(self.evidence)
-                        off.data[j].addcdiv_(m * agree, denom, value=-step_size)
-                    else:
-                        off.data[j].addcdiv_(m, denom, value=-step_size)
+                    _adam_row(
+                        off.data[j], g, self.exp_avg[k][j], self.exp_avg_sq[k][j], self.steps[j], self.lr, self.evidence
+                    )
         for off in self.offsets.values():
             off.grad = None
 
@@ -144,7 +154,7 @@ class PoseRefiner:
         for _ in range(steps):
             grads = [torch.zeros_like(o) for o in offsets]
             for row in self.row_of:
-                _, parts = self._error_and_grads(row_error, row)
+                parts = self._grads(self._error(row_error, row))
                 for g, d in zip(grads, parts, strict=True):
                     if d is not None:
                         g += d
@@ -171,7 +181,6 @@ class PoseRefiner:
         rate (``lr`` at first). ``project(row)`` runs after each step of a row (e.g. the depth rule). Every
         row ends at the lowest error it was measured at. Returns counts: ``kept`` and ``undone`` steps,
         ``moved`` rows (at least one step kept)."""
-        b1, b2, eps = ADAM_BETAS[0], ADAM_BETAS[1], ADAM_EPS
         names = list(self.offsets)
         m = {k: torch.zeros_like(v) for k, v in self.offsets.items()}
         v2 = {k: torch.zeros_like(v) for k, v in self.offsets.items()}
@@ -188,55 +197,52 @@ class PoseRefiner:
                 if undone_run[row] >= self.GIVE_UP:
                     continue
                 j = self.row_of[row]
-                err, parts = self._error_and_grads(row_error, row)
-                with torch.no_grad():
-                    if row not in best_err or err < best_err[row] * (1.0 - min_gain):
-                        if row in best_err:
-                            counts["kept"] += 1
-                            moved.add(row)
-                        best_err[row] = err
-                        grads = tuple(None if g is None else g[j].clone() for g in parts)  # [k] each: this row's
-                        best[row] = ({k: self.offsets[k].data[j].clone() for k in names}, grads)
-                        undone_run[row] = 0
-                    else:  # back to the best offsets, at half the rate
-                        counts["undone"] += 1
+                err_t = self._error(row_error, row, grad=s < steps)  # the last measure needs no gradient
+                err = float(err_t.detach())
+                if row not in best_err or err < best_err[row] * (1.0 - min_gain):
+                    if row in best_err:
+                        counts["kept"] += 1
+                        moved.add(row)
+                    best_err[row] = err
+                    # a backward only for a kept step (an undone one steps on the best offsets' gradient)
+                    parts = self._grads(err_t) if s < steps else ()
+                    grads = tuple(None if g is None else g[j].clone() for g in parts)  # [k] each: this row's
+                    best[row] = ({k: self.offsets[k].data[j].clone() for k in names}, grads)
+                    undone_run[row] = 0
+                else:  # back to the best offsets, at half the rate
+                    counts["undone"] += 1
+                    with torch.no_grad():
                         for k in names:
                             self.offsets[k].data[j].copy_(best[row][0][k])
-                        rate[row] *= 0.5
-                        undone_run[row] += 1
-                        if undone_run[row] >= self.GIVE_UP:
-                            continue
-                    if s == steps:
+                    rate[row] *= 0.5
+                    undone_run[row] += 1
+                    if undone_run[row] >= self.GIVE_UP:
                         continue
-                    n[row] += 1
-                    step_size = rate[row] / (1 - b1 ** n[row])
-                    bias2_sqrt = (1 - b2 ** n[row]) ** 0.5
+                if s == steps:
+                    continue
+                n[row] += 1
+                with torch.no_grad():
                     for k, g in zip(names, best[row][1], strict=True):
-                        if g is None:
-                            continue
-                        mk, vk = m[k][j], v2[k][j]
-                        mk.lerp_(g, 1 - b1)
-                        vk.mul_(b2).addcmul_(g, g, value=1 - b2)
-                        self.offsets[k].data[j].addcdiv_(mk, (vk.sqrt() / bias2_sqrt).add_(eps), value=-step_size)
-                    if project is not None:
-                        project(row)
+                        if g is not None:
+                            _adam_row(self.offsets[k].data[j], g, m[k][j], v2[k][j], n[row], rate[row])
+                if project is not None:
+                    project(row)
             if on_step is not None:
                 on_step()
         counts["moved"] = len(moved)
         return counts
 
-    def _error_and_grads(
-        self, row_error: Callable[[int], torch.Tensor], row: int
-    ) -> tuple[float, tuple[torch.Tensor | None, ...]]:
-        """``row_error(row)`` and its gradients with respect to the offsets (``[R, k]`` each, None if unused)."""
-        with torch.enable_grad():
+    def _error(self, row_error: Callable[[int], torch.Tensor], row: int, grad: bool = True) -> torch.Tensor:
+        """``row_error(row)``, with its graph to the offsets when ``grad``; one MeshsplatError if it is not finite."""
+        with torch.set_grad_enabled(grad):
             err = row_error(row)
-            if not torch.isfinite(err):
-                raise MeshsplatError(
-                    f"pose fit: the image error of mesh row {row} became {float(err)}; use a lower rate"
-                )
-            parts = torch.autograd.grad(err, list(self.offsets.values()), allow_unused=True)
-        return float(err.detach()), parts
+        if not torch.isfinite(err):
+            raise MeshsplatError(f"pose fit: the image error of mesh row {row} became {float(err)}; use a lower rate")
+        return err
+
+    def _grads(self, err: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        """The gradients of ``err`` with respect to the offsets (``[R, k]`` each, None where unused)."""
+        return torch.autograd.grad(err, list(self.offsets.values()), allow_unused=True)
 
     def offset_norms(self) -> dict[str, float]:
         """Mean absolute offset per parameter name (for logs and tests)."""
