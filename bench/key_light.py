@@ -314,10 +314,9 @@ def _kept(k: dict) -> str:
 def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
     """bench/reports/images/<name>_<cap>.png: the first held-out view frame (seed 0), on white, cropped
     to the subject and enlarged (nearest): the reference, then each of ``variants``; a label strip above each."""
-    import numpy as np
     import torch
-    from PIL import Image, ImageDraw
 
+    from _sheets import label_sheet
     from meshsplat.data import open_dataset
     from meshsplat.render.background import composite
     from meshsplat.run_folder import load_run
@@ -346,14 +345,8 @@ def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
     ys, xs = torch.nonzero(t.mask[..., 0] > 0.5, as_tuple=True)  # the subject's box, 3 px around it
     y0, y1 = max(0, int(ys.min()) - 3), min(t.mask.shape[0], int(ys.max()) + 4)
     x0, x1 = max(0, int(xs.min()) - 3), min(t.mask.shape[1], int(xs.max()) + 4)
-    scale, strip = max(2, 200 // max(y1 - y0, x1 - x0)), 14
-    h, w = (y1 - y0) * scale, max((x1 - x0) * scale, 90)
-    sheet = Image.new("RGB", (w * len(panels), h + strip), "white")
-    draw = ImageDraw.Draw(sheet)
-    for k, (img, label) in enumerate(zip(panels, labels, strict=True)):
-        a = (img[y0:y1, x0:x1].numpy() * 255 + 0.5).astype(np.uint8)
-        sheet.paste(Image.fromarray(a).resize(((x1 - x0) * scale, h), Image.NEAREST), (k * w, strip))
-        draw.text((k * w + 3, 1), label, fill="black")
+    scale = max(2, 200 // max(y1 - y0, x1 - x0))
+    sheet = label_sheet([[(label, img[y0:y1, x0:x1]) for img, label in zip(panels, labels, strict=True)]], scale, 90)
     path = Path(__file__).resolve().parent / "reports" / "images" / f"{args.name}_{cap}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     sheet.save(path, optimize=True)

@@ -127,8 +127,8 @@ def chart(rows: dict, out: Path) -> None:
 def strips(runs: dict[str, dict[str, Path]], prefix: Path) -> list[Path]:
     """Per case and split (training frames in their refined poses, held-out views): one frame, the ground truth
     then every variant's render on white, cropped to the subject; ``<prefix>_<case>_<split>.png``."""
-    from PIL import Image, ImageDraw
-
+    from _sheets import label_sheet
+    from meshsplat.metrics.subject import subject_box
     from meshsplat.render.background import composite
     from meshsplat.run_folder import load_run
 
@@ -149,28 +149,12 @@ def strips(runs: dict[str, dict[str, Path]], prefix: Path) -> list[Path]:
                 for v, ds in datasets.items():
                     f = ds[i]
                     tiles.append((v, loaded[v].avatar.render(f.vertices, f.camera, white).image.clamp(0, 1)))
-            box = fr.mask[..., 0] > 0.5 if fr.mask is not None else torch.ones(fr.image.shape[:2], dtype=torch.bool)
-            ys, xs = torch.nonzero(box, as_tuple=True)
-            pad = 6
-            y0, y1 = max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, box.shape[0])
-            x0, x1 = max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, box.shape[1])
-            scale = max(1, 256 // (y1 - y0))
-            ims = []
-            for label, t in tiles:
-                a = (t[y0:y1, x0:x1].cpu().numpy() * 255).round().astype(np.uint8)
-                im = Image.fromarray(a).resize(((x1 - x0) * scale, (y1 - y0) * scale), Image.NEAREST)
-                canvas = Image.new("RGB", (im.width, im.height + 16), "white")
-                canvas.paste(im, (0, 16))
-                ImageDraw.Draw(canvas).text((2, 2), label, fill="black")
-                ims.append(canvas)
-            strip = Image.new("RGB", (sum(im.width for im in ims), ims[0].height), "white")
-            x = 0
-            for im in ims:
-                strip.paste(im, (x, 0))
-                x += im.width
+            h, w = fr.image.shape[:2]
+            y0, y1, x0, x1 = (subject_box(fr.mask, pad=0.05) if fr.mask is not None else None) or (0, h, 0, w)
+            sheet = label_sheet([[(label, t[y0:y1, x0:x1]) for label, t in tiles]], max(1, 256 // (y1 - y0)))
             out = Path(f"{prefix}_{case}_{split}.png")
             out.parent.mkdir(parents=True, exist_ok=True)
-            strip.save(out)
+            sheet.save(out)
             written.append(out)
     return written
 

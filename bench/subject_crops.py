@@ -24,8 +24,7 @@ def main() -> None:
     ap.add_argument("--zoom", type=int, default=2)
     args = ap.parse_args()
 
-    from PIL import Image, ImageDraw
-
+    from _sheets import label_sheet
     from meshsplat.metrics import psnr
     from meshsplat.metrics.subject import subject_box
     from meshsplat.run_folder import load_run
@@ -49,16 +48,7 @@ def main() -> None:
                 tiles.append(img[y0:y1, x0:x1])
                 labels.append(f"{Path(run.run_dir).name} {float(psnr(img, gt, mask=m)):.2f} dB")
             rows.append((tiles, labels))
-    z = args.zoom
-    th = max(t[0].shape[0] for t, _ in rows) * z + 14
-    tw = max(t[0].shape[1] for t, _ in rows) * z
-    canvas = Image.new("RGB", (tw * (len(runs) + 1), th * len(rows)), "white")
-    draw = ImageDraw.Draw(canvas)
-    for r, (tiles, labels) in enumerate(rows):
-        for c, (t, lab) in enumerate(zip(tiles, labels, strict=True)):
-            arr = (t.numpy() * 255 + 0.5).astype(np.uint8).repeat(z, 0).repeat(z, 1)
-            canvas.paste(Image.fromarray(arr), (c * tw, r * th + 14))
-            draw.text((c * tw + 2, r * th), lab, fill="black")
+    canvas = label_sheet([list(zip(labels, tiles, strict=True)) for tiles, labels in rows], args.zoom)
     canvas.save(args.out)
     print(f"saved {args.out}")
 
