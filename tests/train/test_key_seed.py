@@ -205,8 +205,102 @@ def test_the_key_is_tested_again_at_the_end():
     assert comp.optimizer is not None and len(comp.optimizer.param_groups[0]["params"]) == 1
 
 
+def _turned(d: torch.Tensor, degrees: float) -> torch.Tensor:
+    """``d [3]`` turned by ``degrees`` about an axis perpendicular to it."""
+    side = torch.nn.functional.normalize(torch.linalg.cross(d, torch.tensor([0.3, 0.5, 0.8])), dim=0)
+    return math.cos(math.radians(degrees)) * d + math.sin(math.radians(degrees)) * side
+
+
+def test_move_key_moves_the_shadow_and_keeps_the_unshadowed_irradiance():
+    """``Shading.move_key``: the key's direction changes, its intensity does not, and every normal unshadowed
+    is lit as before; only where the key is shadowed does the light change. Only an aligned key moves."""
+    sh = Shading(normal="phong", occlusion="key", directions=8, grid=16)
+    with pytest.raises(MeshsplatError, match="aligned"):
+        sh.move_key(torch.tensor([0.0, 1.0, 0.0]))
+    with torch.no_grad():
+        sh.light[3] = torch.tensor([0.6, 0.5, 0.4])
+        sh.coeffs[0] += 0.3
+    while not sh.key_aligned:
+        sh.align_key()
+    old_dir, light, unshadowed = sh.directions[0].clone(), sh.light.clone(), sh.unshadowed_coeffs()
+    normals = _random_directions(200, 4)
+    lit_before = sh.irradiance(normals, torch.ones(200, 1))
+    shadowed_before = sh.irradiance(normals, torch.zeros(200, 1))
+    target = _turned(old_dir, 25.0)
+    sh.move_key(3.0 * target)  # any length: the direction is what counts
+    assert _angle(sh.directions[0], target) < 1e-4 and sh.directions.shape == (1, 3)
+    assert torch.equal(sh.light, light.clamp_min(0.0))
+    assert torch.allclose(sh.unshadowed_coeffs(), unshadowed, atol=1e-6)
+    # lit: the same but for the clamped cosine's part above SH2 (a few % of the key), which the SH2 fold cannot
+    # hold; in shadow: the lobe the SH2 irradiance now lacks is another one
+    lit_change = (sh.irradiance(normals, torch.ones(200, 1)) - lit_before).abs().max()
+    shadow_change = (sh.irradiance(normals, torch.zeros(200, 1)) - shadowed_before).abs().max()
+    assert lit_change < 0.15 * light.max() and shadow_change > 2 * lit_change
+    for bad in (torch.zeros(3), torch.tensor([float("nan"), 0.0, 1.0]), torch.ones(2)):
+        with pytest.raises(MeshsplatError, match="direction"):
+            sh.move_key(bad)
+
+
+@pytest.mark.parametrize("snap", [0.0, 10.0, 30.0])
+def test_a_key_that_half_agrees_with_the_irradiance_moves_to_it(snap):
+    """``key_snap_deg``: an aligned key 10-30 degrees from the learned irradiance's direction (within
+    ``key_agree_deg``) moves to that direction when farther than ``key_snap_deg``, and stays where the search
+    put it otherwise (0: off, or 30: closer than that); the moved key is the optimizer's new leaf."""
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
+    cfg = ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=45.0, key_snap_deg=snap)
+    comp = ShadingComponent(cfg, state)
+    state.component = comp
+    comp.start()
+    sh = comp.shading
+    assert sh is not None and sh.light is not None and sh.directions is not None
+    d = sh.directions[2].clone()
+    with torch.no_grad():
+        sh.light[2] = 0.5
+        sh.coeffs += 1.0 * _lobe(_turned(d, 40.0))[:, None]  # the irradiance pulled away from the key's side
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    sh = comp.shading
+    test = comp.key_log["agree_aligned"]
+    assert sh.key_aligned and sh.occlusion == "key" and sh.directions is not None
+    assert 10.0 < test["angle_deg"] < 30.0
+    if snap and test["angle_deg"] > snap:
+        assert test["fate"] == "moved" and _angle(torch.tensor(test["from"]), d) < 20.0
+        assert _angle(sh.directions[0], sh.key_seed()) < 1.0  # now where the irradiance points
+        assert comp.optimizer is not None and comp.optimizer.param_groups[0]["params"][1] is sh.light
+    else:
+        assert test["fate"] == "kept" and "from" not in test
+        assert _angle(sh.directions[0], sh.key_seed()) > 10.0
+
+
+def test_the_key_moves_at_the_end_when_the_irradiance_moved_since():
+    """``key_snap_deg`` at the last iteration: a key that was kept when aligned moves to the irradiance's
+    direction if the irradiance learned since turned 10-30 degrees away, and the optimizer holds the new key."""
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=20, train_ids=list(range(10)))
+    cfg = ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=45.0, key_snap_deg=10.0)
+    comp = ShadingComponent(cfg, state)
+    state.component = comp
+    comp.start()
+    assert comp.shading is not None and comp.shading.light is not None and comp.shading.directions is not None
+    d = comp.shading.directions[2].clone()
+    with torch.no_grad():
+        comp.shading.light[2] = 0.5
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    assert comp.key_log["agree_aligned"]["fate"] == "kept"
+    key = comp.shading.directions[0].clone()
+    with torch.no_grad():
+        comp.shading.coeffs += 1.0 * _lobe(_turned(d, 40.0))[:, None]
+    for it in range(7, 21):
+        comp.after_step(it, [])
+    sh, test = comp.shading, comp.key_log["agree_end"]
+    assert test["fate"] == "moved" and 10.0 < test["angle_deg"] < 30.0 and sh.directions is not None
+    assert _angle(torch.tensor(test["from"]), key) < 1e-3 and _angle(sh.directions[0], sh.key_seed()) < 1.0
+    assert comp.optimizer is not None and comp.optimizer.param_groups[0]["params"][1] is sh.light
+
+
 def test_key_agree_deg_is_checked():
     assert any("key_agree_deg" in msg for ok, msg in ShadingConfig(key_agree_deg=200.0).checks() if not ok)
+    assert any("key_snap_deg" in msg for ok, msg in ShadingConfig(key_snap_deg=-1.0).checks() if not ok)
 
 
 def test_without_directional_light_the_key_is_dropped_and_the_run_resumes_exactly(tiny_dataset, tmp_path):

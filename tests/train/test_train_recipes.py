@@ -67,7 +67,7 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
     # applying a recipe's overrides to any config gives that recipe's model
     assert apply_overrides(recipe_config("quality"), list(recipe_overrides("paper"))) == recipe_config("paper")
     assert apply_overrides(recipe_config("paper"), list(recipe_overrides("quality"))) == recipe_config("quality")
-    # the quality recipe: five components and eight values over the published method, nothing else
+    # the quality recipe: five components and nine values over the published method, nothing else
     assert recipe_differences(recipe_config("paper"), "quality") == [
         "model.init_color_frames=1 (recipe: 8)",
         "optim.lr_color=0.0025 (recipe: 0.01)",
@@ -76,6 +76,7 @@ def test_recipes_set_the_same_keys_and_differ_only_there():
         "strategy.grow_grad2d=0.0002 (recipe: 0.0001)",
         "shading.enabled=False (recipe: True)",
         "shading.key_agree_deg=0.0 (recipe: 45.0)",
+        "shading.key_snap_deg=0.0 (recipe: 15.0)",
         "albedo_prior.enabled=False (recipe: True)",
         "mask_loss.enabled=False (recipe: True)",
         "offset_bound.enabled=False (recipe: True)",

@@ -42,6 +42,8 @@ direction of the learned irradiance itself, the SH2 coefficients plus every cand
 wherever the light is, while the strongest shadowed candidate may be the one whose shadows happen to fit.
 A seeded first stage keeps the unshadowed irradiance: every candidate folds into the SH2 coefficients and
 the ring's lobes are taken out of them again, so only the shadows change (two starts compare fairly).
+:meth:`Shading.move_key` moves an aligned key to another direction with the unshadowed irradiance kept
+(the trainer's ``shading.key_snap_deg`` moves it to the irradiance's own direction where the two disagree).
 :meth:`Shading.drop_key` folds the key light into the SH2 irradiance (``occlusion="none"`` from then on,
 its direction kept in ``dropped_key`` for readers): the trainer's ``shading.key_check_frames`` does so when
 the key's shadow does not lower the error of a few training frames.
@@ -337,6 +339,24 @@ class Shading:
             return
         self.directions = torch.cat([key[None], _ring(key, KEY_RINGS_DEG[self.key_stage - 1], KEY_RING)])
         self.light = merged.expand(1 + KEY_RING, 3) / (1 + KEY_RING)  # no candidate favoured at the start
+
+    @torch.no_grad()
+    def move_key(self, direction: torch.Tensor) -> None:
+        """An aligned key light moves to unit ``direction [3]`` with its intensity; its old lobe folds into
+        ``coeffs`` and the new one is taken out of them, so the unshadowed irradiance is unchanged and only the
+        shadow moves. In place; the tensors are new (an optimizer of the old ones must be rebuilt)."""
+        if self.occlusion != "key" or not self.key_aligned or self.directions is None or self.light is None:
+            raise MeshsplatError("move_key: only a Shading with an aligned key light (occlusion='key')")
+        if (
+            not isinstance(direction, torch.Tensor)
+            or tuple(direction.shape) != (3,)
+            or not bool(torch.isfinite(direction).all() and direction.norm() > 0)
+        ):
+            raise MeshsplatError("move_key: expected a finite, non-zero direction of shape [3]")
+        new = torch.nn.functional.normalize(direction.detach().to(self.directions), dim=0)[None]  # [1,3]
+        light = self.light.detach().clamp_min(0.0)
+        self.coeffs = self.coeffs.detach() + (_lobes(self.directions.detach()) - _lobes(new)).T @ light
+        self.directions, self.light = new, light.clone()
 
     @torch.no_grad()
     def drop_key(self) -> None:

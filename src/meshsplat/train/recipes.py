@@ -2,8 +2,8 @@
 
     quality   the default of ``meshsplat train``: components shading (a learned SH2 irradiance with a key light
               found in training and its soft shadow from the posed mesh; a key more than 45 degrees from the
-              learned irradiance's direction is folded into it), albedo_prior, mask_loss, offset_bound
-              and pose_refine (its poses polished once more at the end, the avatar frozen), plus colours
+              learned irradiance's direction is folded into it, one 15-45 degrees away moves to it),
+              albedo_prior, mask_loss, offset_bound and pose_refine (its poses polished once more at the end, the avatar frozen), plus colours
               initialised from 8 frames, colour lr 1e-2, LPIPS on the box around the subject on every second
               iteration (at twice the weight) and densification at half the paper's gradient threshold. What each is worth: docs/quality.md
     paper     the published method (SplattingAvatar, CVPR 2024): ``TrainConfig()``, no component
@@ -47,6 +47,7 @@ _QUALITY_SETTINGS = (
     "loss.lpips_every=2",
     "strategy.grow_grad2d=1e-4",
     "shading.key_agree_deg=45",
+    "shading.key_snap_deg=15",
     "pose_refine.polish_steps=20",
     "pose_refine.polish_lr=3e-3",
 )
@@ -57,6 +58,7 @@ _PAPER_SETTINGS = (  # the published values of the keys the other recipes set
     "loss.lpips_every=1",
     "strategy.grow_grad2d=2e-4",
     "shading.key_agree_deg=0",
+    "shading.key_snap_deg=0",
     "pose_refine.polish_steps=0",
     "pose_refine.polish_lr=1e-3",
 )

@@ -47,6 +47,10 @@ class ShadingConfig:
     # irradiance's own direction (Shading.key_seed); farther, its shadows fit the training frames from a light that
     # is not there, and it is folded into the SH2 irradiance as the check does; 0: no such test
     key_agree_deg: float = 0.0
+    # "key", with key_agree_deg: a key farther than this many degrees from the learned irradiance's direction (but
+    # within key_agree_deg) moves there (Shading.move_key: the unshadowed irradiance kept, only the shadow moves),
+    # at the same two tests; 0: it stays where the search put it
+    key_snap_deg: float = 0.0
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
     specular: str = "none"
     lr: float = 5e-2  # the lighting's Adam (times sqrt(batch_size))
@@ -63,6 +67,7 @@ class ShadingConfig:
             (0 <= self.key_check_frames <= 64, "shading.key_check_frames must be in 0..64"),
             (0.0 <= self.key_check_gain < 1.0, "shading.key_check_gain must be in [0, 1)"),
             (0.0 <= self.key_agree_deg <= 180.0, "shading.key_agree_deg must be in 0..180 (degrees; 0: off)"),
+            (0.0 <= self.key_snap_deg <= 180.0, "shading.key_snap_deg must be in 0..180 (degrees; 0: off)"),
             (self.lr > 0, "shading.lr must be > 0"),
         ]
 
@@ -119,14 +124,14 @@ class ShadingComponent(Component):
         """``occlusion=key``: the next stage every ``key_iter`` iterations, all that are left at the last
         iteration (a short run ends with one key light too). ``key_seed``: the first stage starts from
         ``Shading.key_seed``; once aligned, and again at the last iteration, the key is dropped
-        (``Shading.drop_key``) when it is farther than ``key_agree_deg`` from the learned irradiance's direction;
-        once aligned (``key_check_frames``) also unless its shadow lowers the check frames' error by
-        ``key_check_gain``."""
+        (``Shading.drop_key``) when it is farther than ``key_agree_deg`` from the learned irradiance's direction,
+        and moved to that direction (``Shading.move_key``) when farther than ``key_snap_deg``; once aligned
+        (``key_check_frames``) also unless its shadow lowers the check frames' error by ``key_check_gain``."""
         sh, every = self.shading, self.cfg.key_iter
         if sh is None or sh.occlusion != "key":
             return
         if sh.key_aligned:  # once more at the end: the irradiance the key was tested against had not settled
-            if it == self.state.iterations and self.cfg.key_agree_deg and self._agree_key(sh, "end") is False:
+            if it == self.state.iterations and self.cfg.key_agree_deg and self._agree_key(sh, "end") != "kept":
                 self._set(sh)
             return
         stage = sh.key_stage
@@ -165,18 +170,30 @@ class ShadingComponent(Component):
         self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), sh.key_estimate().tolist()
         return seed
 
-    def _agree_key(self, sh: Shading, when: str) -> bool:
-        """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's;
-        ``when`` ("aligned" | "end") names the test in ``key_log``. Whether the key stays."""
+    def _agree_key(self, sh: Shading, when: str) -> str:
+        """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's,
+        move it there when more than ``key_snap_deg``; ``when`` ("aligned" | "end") names the test in
+        ``key_log``. What became of the key: "kept" | "moved" | "dropped"."""
         assert sh.directions is not None
         key, irradiance = sh.directions[0].detach(), sh.key_seed()
         cos = float(key @ irradiance / (key.norm() * irradiance.norm()))
         angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
         agrees = angle <= self.cfg.key_agree_deg
-        self.key_log[f"agree_{when}"] = {"irradiance": irradiance.tolist(), "angle_deg": angle, "agrees": agrees}
-        if not agrees:
+        fate = (
+            "dropped" if not agrees else "moved" if self.cfg.key_snap_deg and angle > self.cfg.key_snap_deg else "kept"
+        )
+        self.key_log[f"agree_{when}"] = {
+            "irradiance": irradiance.tolist(),
+            "angle_deg": angle,
+            "agrees": agrees,
+            "fate": fate,
+        }
+        if fate == "dropped":
             sh.drop_key()
-        return agrees
+        elif fate == "moved":
+            self.key_log[f"agree_{when}"]["from"] = key.tolist()
+            sh.move_key(irradiance)
+        return fate
 
     def _check_key(self, sh: Shading) -> None:
         off = sh.to(self.state.device)
