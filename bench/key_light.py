@@ -22,15 +22,20 @@ Variants, the same code: ``before`` is the quality recipe with the key light's s
 (``shading.key_seed=true shading.key_check_frames=4``); ``check`` the search as it was, then the check (the quality
 recipe since issue 51's unseen-asset bench). ``control`` is the ``paper`` recipe (the previous default) with the
 same schedule; ``quality`` the quality recipe as it was measured there (no check: the same runs as ``before``);
-``check-noprior`` the check with the albedo prior off. All at ``--iters`` iterations with ``shading.key_iter`` a
-fifth of them (the key aligned at 60%). Per run: the key's final direction (kept, or dropped: folded into the SH2
-irradiance), its angle to the true light, the learned irradiance's own direction (``Shading.key_seed`` of the
-final lighting) and its angle, the check's gain, and per held-out split subject PSNR (white), full-image PSNR
-(white) and LPIPS in the mask. Saves bench/results/key_light-<host>.json (``key_light_<asset>`` for another
-``--asset``) after every run; a rerun reuses the captures and finished runs. ``--asset``: a bundled asset's name
-or a .glb path (any animated glTF ``meshsplat synth`` reads; its held-out novel-clip split is scored too).
-``--pictures CAP ...``: bench/reports/images/<name>_<CAP>.png, a held-out view of seed 0: the reference, then
-each variant named. Reports: bench/reports/key_light.md (CesiumMan), key_light_unseen.md (Fox, with the control).
+``check-noprior`` the check with the albedo prior off; ``agree45`` the 45-degree test (the recipe before
+``shading.key_snap_deg``), ``snap15`` the recipe since (a key 15-45 degrees from the irradiance moves to it). All
+at ``--iters`` iterations with ``shading.key_iter`` a fifth of them (the key aligned at 60%). Per run: the key's
+final direction (kept, or dropped: folded into the SH2 irradiance), its angle to the true light, the learned
+irradiance's own direction (``Shading.key_seed`` of the final lighting) and its angle, the check's gain, and per
+held-out split subject PSNR (white), full-image PSNR (white), LPIPS in the mask, and the silhouette band on black:
+its share of the squared error, the part of it that is the edge's coverage (the band's error with the avatar's
+colour but the true mask, subtracted), the mean |alpha - mask| in it with its sign, and the driving mesh's own
+|coverage - mask|. Saves bench/results/key_light-<host>.json (``key_light_<asset>`` for another ``--asset``) after
+every run; a rerun reuses the captures and finished runs. ``--asset``: a bundled asset's name or a .glb path (any
+animated glTF ``meshsplat synth`` reads; its held-out novel-clip split is scored too). ``--pictures CAP ...``:
+bench/reports/images/<name>_<CAP>.png, a held-out view of seed 0 (``--picture-seed S``: of seed S,
+<name>_<CAP>_sS.png): the reference, then each variant named.
+Reports: bench/reports/key_light.md (CesiumMan), key_light_unseen.md (Fox, with the control).
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from _machine import machine_info, results_path
+from quality_pbr import _mesh_coverage
 from quality_pbr import _schedule as _demo_schedule
 
 FRONT = (0.35, 0.75, 0.55)  # meshsplat.synth's default light
@@ -55,7 +61,10 @@ CAPTURES: dict[str, dict] = {
     "lambert-side": {"renderer": "lambert", "light": (1.0, 0.25, 0.0)},
     "lambert-backtop": {"renderer": "lambert", "light": (-0.25, 0.8, -0.55)},
 }
-VARIANTS = {  # all but agree*, nokey and control pin shading.key_agree_deg=0: the recipe as they measured it
+_NO_SNAP = "shading.key_snap_deg=0"
+_AGREE45 = ["shading.key_check_frames=0", "shading.key_agree_deg=45", _NO_SNAP]  # the quality recipe before snap
+_SNAP15 = ["shading.key_check_frames=0", "shading.key_agree_deg=45", "shading.key_snap_deg=15"]  # the recipe since
+VARIANTS = {  # each pins the key's tests as it was measured (shading.key_agree_deg, key_snap_deg); control: paper
     "before": ["shading.key_seed=false", "shading.key_check_frames=0", "shading.key_agree_deg=0"],
     "after": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=0"],
     # the old search, then the check
@@ -66,9 +75,19 @@ VARIANTS = {  # all but agree*, nokey and control pin shading.key_agree_deg=0: t
     "quality": ["shading.key_check_frames=0", "shading.key_agree_deg=0"],
     "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false", "shading.key_agree_deg=0"],
     # the key kept only within 20 / 45 degrees of the learned irradiance's direction (shading.key_agree_deg)
-    "agree": ["shading.key_check_frames=0", "shading.key_agree_deg=20"],
-    "agree45": ["shading.key_check_frames=0", "shading.key_agree_deg=45"],
-    "after-agree": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=20"],
+    "agree": ["shading.key_check_frames=0", "shading.key_agree_deg=20", "shading.key_snap_deg=0"],
+    "agree45": _AGREE45,
+    "after-agree": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=20", _NO_SNAP],
+    # the seeded search (from the learned irradiance's direction), then the 45-degree test, no check
+    "seeded": ["shading.key_seed=true", *_AGREE45],
+    # the key moved to the learned irradiance's direction where they disagree by more than 15 degrees (the recipe since)
+    "snap15": _SNAP15,
+    # every key farther than 15 degrees from the learned irradiance moves there: none dropped
+    "snapall": ["shading.key_check_frames=0", "shading.key_agree_deg=180", "shading.key_snap_deg=15"],
+    # the silhouette band: antialiased opacity (the 0.3 px^2 screen-space blur compensated), a heavier mask loss
+    "aa": [*_AGREE45, "model.antialiased=true"],
+    "snap15aa": [*_SNAP15, "model.antialiased=true"],
+    "mask03": [*_AGREE45, "mask_loss.weight=0.3"],
     # LPIPS's backbone in float32 / bfloat16 (issue 47: ~2x cheaper LPIPS on CPUs with native bf16)
     "lpips_fp32": ["loss.lpips_precision=float32", "shading.key_agree_deg=0"],
     "lpips_bf16": ["loss.lpips_precision=bfloat16", "shading.key_agree_deg=0"],
@@ -155,11 +174,15 @@ def _key(run: Path, light: list[float] | None) -> dict:
 
 
 def _score(run: Path, data: Path, ref: Path) -> dict:
-    """Per held-out split: mean subject PSNR (white) and LPIPS in the mask against ``ref``'s images."""
+    """Per held-out split: mean subject PSNR (white) and LPIPS in the mask against ``ref``'s images, and where
+    the error on black is: the silhouette band's share of it (``meshsplat.metrics.budget``), in the band the
+    mean |alpha - mask| and its sign (> 0: the avatar spills over the edge) and the driving mesh's own
+    |coverage - mask|."""
     import torch
 
     from meshsplat.data import open_dataset
     from meshsplat.metrics import lpips, lpips_available, psnr
+    from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget, silhouette_regions
     from meshsplat.metrics.subject import subject_metrics
     from meshsplat.render.background import composite
     from meshsplat.run_folder import load_run
@@ -168,22 +191,49 @@ def _score(run: Path, data: Path, ref: Path) -> dict:
     ds, refs = loaded.open_dataset(data), open_dataset(ref)
     by_name = {refs.frame_info(j)["name"]: j for j in range(len(refs))}
     lp = (lambda a, b: lpips(a, b)) if lpips_available("alex") else None
-    white = torch.ones(3)
+    white, black = torch.ones(3), torch.zeros(3)
     out = {}
     for split in [s for s in ds.split_names if s != "train"]:
-        rows = []
+        rows, sse = [], dict.fromkeys((*BUDGET_REGIONS, "band_colour"), 0.0)
         for i in ds.split(split):
             fr = ds[i]
             target = refs[by_name[ds.frame_info(i)["name"]]]
             with torch.no_grad():
                 img = loaded.avatar.render(fr.vertices, fr.camera, white).image.float().clamp(0, 1)
+                on_black = loaded.avatar.render(fr.vertices, fr.camera, black)
             gt = composite(target.image, target.mask, white)
-            rows.append({**subject_metrics(img, gt, target.mask, lp), "psnr_full": float(psnr(img, gt))})
+            row = {**subject_metrics(img, gt, target.mask, lp), "psnr_full": float(psnr(img, gt))}
+            budget = error_budget(
+                on_black.image.float().clamp(0, 1), composite(target.image, target.mask, black), target.mask
+            )
+            for r in BUDGET_REGIONS:
+                sse[r] += budget[f"sse_{r}"]
+            band = silhouette_regions(target.mask)["band"]
+            # the band's error with the avatar's own colour but the true coverage (where it covers anything):
+            # what is left is colour; the rest of the band's error is the coverage (edge alpha)
+            a = on_black.alpha.float()
+            recovered = torch.where(a > 0.05, on_black.image.float() / a.clamp_min(0.05) * target.mask, on_black.image)
+            gt_black = composite(target.image, target.mask, black)
+            sse["band_colour"] += float((recovered.clamp(0, 1) - gt_black).pow(2).sum(-1)[band].sum())
+            d = (on_black.alpha.float() - target.mask)[band]
+            mesh = _mesh_coverage(fr.vertices, ds.faces, fr.camera)
+            row.update(
+                alpha_band_abs=float(d.abs().mean()),
+                alpha_band_bias=float(d.mean()),
+                mesh_band_abs=float((mesh - target.mask)[band].abs().mean()),
+            )
+            rows.append(row)
         lps = [r["lpips_mask"] for r in rows if r["lpips_mask"] is not None]  # None: a crop too small
+        total = sum(sse[r] for r in BUDGET_REGIONS) or 1.0
         out[split] = {
-            "psnr_mask": sum(r["psnr_mask"] for r in rows) / len(rows),
-            "psnr_full": sum(r["psnr_full"] for r in rows) / len(rows),
+            # the band's share of the error that is the edge's coverage, not its colour
+            "band_coverage_share": 1.0 - sse["band_colour"] / sse["band"] if sse["band"] > 0 else 0.0,
+            **{
+                k: sum(r[k] for r in rows) / len(rows)
+                for k in ("psnr_mask", "psnr_full", "alpha_band_abs", "alpha_band_bias", "mesh_band_abs")
+            },
             "lpips_mask": sum(lps) / len(lps) if lps else None,
+            **{f"share_{r}": sse[r] / total for r in BUDGET_REGIONS},
             "frames": len(rows),
         }
     return out
@@ -206,7 +256,8 @@ def main() -> None:
     ap.add_argument("--name", help="results name, default key_light[_<asset>][_tiny]")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--asset", default="CesiumMan", help="bundled asset name or .glb path (default CesiumMan)")
-    ap.add_argument("--pictures", nargs="*", default=[], help="captures to picture (a held-out view, seed 0)")
+    ap.add_argument("--pictures", nargs="*", default=[], help="captures to picture (a held-out view)")
+    ap.add_argument("--picture-seed", type=int, default=0, help="the seed of the runs pictured (default 0)")
     ap.add_argument("--report", action="store_true", help="train nothing: the tables and pictures of saved runs")
     args = ap.parse_args()
     stem = Path(args.asset).stem
@@ -292,7 +343,7 @@ def main() -> None:
     _table(rows)
     _summary(rows, args.variants)
     for cap in args.pictures:
-        _picture(cap, args, work, args.variants)
+        _picture(cap, args, work, args.variants, args.picture_seed)
     print(f"saved {out}")
 
 
@@ -311,9 +362,10 @@ def _kept(k: dict) -> str:
     return "none" if k["kept"] is None else "kept" if k["kept"] else "dropped"
 
 
-def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
-    """bench/reports/images/<name>_<cap>.png: the first held-out view frame (seed 0), on white, cropped
-    to the subject and enlarged (nearest): the reference, then each of ``variants``; a label strip above each."""
+def _picture(cap: str, args, work: Path, variants: list[str], seed: int = 0) -> None:
+    """bench/reports/images/<name>_<cap>[_s<seed>].png: the first held-out view frame of the runs of ``seed``, on
+    white, cropped to the subject and enlarged (nearest): the reference, then each of ``variants``; a label strip
+    above each."""
     import torch
 
     from _sheets import label_sheet
@@ -332,7 +384,7 @@ def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
     t = refs[j]
     panels, labels = [composite(t.image, t.mask, white)], ["ground truth"]
     for v in variants:
-        run = work / f"{cap}-{v}_s0"
+        run = work / f"{cap}-{v}_s{seed}"
         if not (run / "checkpoints").exists():
             continue
         loaded = load_run(run)
@@ -347,7 +399,8 @@ def _picture(cap: str, args, work: Path, variants: list[str]) -> None:
     x0, x1 = max(0, int(xs.min()) - 3), min(t.mask.shape[1], int(xs.max()) + 4)
     scale = max(2, 200 // max(y1 - y0, x1 - x0))
     sheet = label_sheet([[(label, img[y0:y1, x0:x1]) for img, label in zip(panels, labels, strict=True)]], scale, 90)
-    path = Path(__file__).resolve().parent / "reports" / "images" / f"{args.name}_{cap}.png"
+    stem = f"{args.name}_{cap}" + (f"_s{seed}" if seed else "")
+    path = Path(__file__).resolve().parent / "reports" / "images" / f"{stem}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     sheet.save(path, optimize=True)
     print(f"picture {path.name} ({split} {name}): {', '.join(labels)}")
