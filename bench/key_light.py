@@ -65,15 +65,15 @@ _NO_SNAP = "shading.key_snap_deg=0"
 _AGREE45 = ["shading.key_check_frames=0", "shading.key_agree_deg=45", _NO_SNAP]  # the quality recipe before snap
 _SNAP15 = ["shading.key_check_frames=0", "shading.key_agree_deg=45", "shading.key_snap_deg=15"]  # the recipe since
 VARIANTS = {  # each pins the key's tests as it was measured (shading.key_agree_deg, key_snap_deg); control: paper
-    "before": ["shading.key_seed=false", "shading.key_check_frames=0", "shading.key_agree_deg=0"],
-    "after": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=0"],
+    "before": ["shading.key_seed=false", "shading.key_check_frames=0", "shading.key_agree_deg=0", _NO_SNAP],
+    "after": ["shading.key_seed=true", "shading.key_check_frames=4", "shading.key_agree_deg=0", _NO_SNAP],
     # the old search, then the check
-    "check": ["shading.key_seed=false", "shading.key_check_frames=4", "shading.key_agree_deg=0"],
+    "check": ["shading.key_seed=false", "shading.key_check_frames=4", "shading.key_agree_deg=0", _NO_SNAP],
     "nokey": ["shading.occlusion=none"],  # no key light at all (a reference; only when named)
     "control": [],  # the paper recipe (the previous default), same code and schedule
     # the quality recipe before shading.key_agree_deg (= before), as measured against the control
-    "quality": ["shading.key_check_frames=0", "shading.key_agree_deg=0"],
-    "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false", "shading.key_agree_deg=0"],
+    "quality": ["shading.key_check_frames=0", "shading.key_agree_deg=0", _NO_SNAP],
+    "check-noprior": ["shading.key_check_frames=4", "albedo_prior.enabled=false", "shading.key_agree_deg=0", _NO_SNAP],
     # the key kept only within 20 / 45 degrees of the learned irradiance's direction (shading.key_agree_deg)
     "agree": ["shading.key_check_frames=0", "shading.key_agree_deg=20", "shading.key_snap_deg=0"],
     "agree45": _AGREE45,
@@ -89,8 +89,8 @@ VARIANTS = {  # each pins the key's tests as it was measured (shading.key_agree_
     "snap15aa": [*_SNAP15, "model.antialiased=true"],
     "mask03": [*_AGREE45, "mask_loss.weight=0.3"],
     # LPIPS's backbone in float32 / bfloat16 (issue 47: ~2x cheaper LPIPS on CPUs with native bf16)
-    "lpips_fp32": ["loss.lpips_precision=float32", "shading.key_agree_deg=0"],
-    "lpips_bf16": ["loss.lpips_precision=bfloat16", "shading.key_agree_deg=0"],
+    "lpips_fp32": ["loss.lpips_precision=float32", "shading.key_agree_deg=0", _NO_SNAP],
+    "lpips_bf16": ["loss.lpips_precision=bfloat16", "shading.key_agree_deg=0", _NO_SNAP],
 }
 RECIPE = {"control": "paper"}  # the recipe of each variant; quality otherwise
 

@@ -1,7 +1,7 @@
 """Same-code A/B of training settings on captures as they are (e.g. real videos tracked by ``meshsplat track``).
 
     python bench/recipe_ab.py --capture head=CAPTURE_DIR --capture body=CAPTURE_DIR \
-        --variant now: --variant agree0:shading.key_agree_deg=0 --name key_agree_real
+        --variant now: --variant snap0:shading.key_snap_deg=0 --set pose_refine.polish_steps=0 --name key_snap_real
 
 Every capture is trained once per variant with the demo's model and schedule shape (``meshsplat.demo``'s
 ``--preset`` sizes: 1,500 iterations by default) and the default recipe, then ``--set`` overrides common to all

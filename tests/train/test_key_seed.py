@@ -272,6 +272,26 @@ def test_a_key_that_half_agrees_with_the_irradiance_moves_to_it(snap):
         assert _angle(sh.directions[0], sh.key_seed()) > 10.0
 
 
+def test_without_key_agree_deg_a_far_key_moves_instead_of_being_dropped():
+    """``key_snap_deg`` alone (``key_agree_deg`` 0): the test still runs, and a key on the far side of the learned
+    irradiance moves to it; nothing is dropped."""
+    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
+    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_snap_deg=15.0), state)
+    state.component = comp
+    comp.start()
+    sh = comp.shading
+    assert sh is not None and sh.light is not None and sh.directions is not None
+    d = sh.directions[2].clone()
+    with torch.no_grad():
+        sh.light[2] = 0.5
+        sh.coeffs += 1.5 * _lobe(-d)[:, None]
+    for it in range(1, 7):
+        comp.after_step(it, [])
+    sh, test = comp.shading, comp.key_log["agree_aligned"]
+    assert test["angle_deg"] > 90.0 and test["agrees"] and test["fate"] == "moved"
+    assert sh.occlusion == "key" and sh.directions is not None and _angle(sh.directions[0], sh.key_seed()) < 1.0
+
+
 def test_the_key_moves_at_the_end_when_the_irradiance_moved_since():
     """``key_snap_deg`` at the last iteration: a key that was kept when aligned moves to the irradiance's
     direction if the irradiance learned since turned 10-30 degrees away, and the optimizer holds the new key."""

@@ -3,9 +3,10 @@
     quality   the default of ``meshsplat train``: components shading (a learned SH2 irradiance with a key light
               found in training and its soft shadow from the posed mesh; a key more than 45 degrees from the
               learned irradiance's direction is folded into it, one 15-45 degrees away moves to it),
-              albedo_prior, mask_loss, offset_bound and pose_refine (its poses polished once more at the end, the avatar frozen), plus colours
-              initialised from 8 frames, colour lr 1e-2, LPIPS on the box around the subject on every second
-              iteration (at twice the weight) and densification at half the paper's gradient threshold. What each is worth: docs/quality.md
+              albedo_prior, mask_loss, offset_bound and pose_refine (its poses polished once more at the end,
+              the avatar frozen), plus colours initialised from 8 frames, colour lr 1e-2, LPIPS on the box
+              around the subject on every second iteration (at twice the weight) and densification at half the
+              paper's gradient threshold. What each is worth: docs/quality.md
     paper     the published method (SplattingAvatar, CVPR 2024): ``TrainConfig()``, no component
 
 A recipe sets the same keys whatever it starts from, so applying it to any config gives that recipe's model

@@ -47,9 +47,9 @@ class ShadingConfig:
     # irradiance's own direction (Shading.key_seed); farther, its shadows fit the training frames from a light that
     # is not there, and it is folded into the SH2 irradiance as the check does; 0: no such test
     key_agree_deg: float = 0.0
-    # "key", with key_agree_deg: a key farther than this many degrees from the learned irradiance's direction (but
-    # within key_agree_deg) moves there (Shading.move_key: the unshadowed irradiance kept, only the shadow moves),
-    # at the same two tests; 0: it stays where the search put it
+    # "key": once aligned and at the last iteration, a key farther than this many degrees from the learned
+    # irradiance's direction (and not dropped by key_agree_deg) moves there (Shading.move_key: the unshadowed
+    # irradiance kept, only the shadow moves); 0: it stays where the search put it
     key_snap_deg: float = 0.0
     # "sh2": an added (not albedo-multiplied) SH2 term of the normal, zero at the start (a glossy highlight)
     specular: str = "none"
@@ -131,7 +131,7 @@ class ShadingComponent(Component):
         if sh is None or sh.occlusion != "key":
             return
         if sh.key_aligned:  # once more at the end: the irradiance the key was tested against had not settled
-            if it == self.state.iterations and self.cfg.key_agree_deg and self._agree_key(sh, "end") != "kept":
+            if it == self.state.iterations and self._tests_key() and self._agree_key(sh, "end") != "kept":
                 self._set(sh)
             return
         stage = sh.key_stage
@@ -140,7 +140,7 @@ class ShadingComponent(Component):
                 sh.align_key(start=self._seed(sh))
             else:
                 sh.align_key()
-        if sh.key_aligned and self.cfg.key_agree_deg:
+        if sh.key_aligned and self._tests_key():
             self._agree_key(sh, "aligned")
         if sh.key_aligned and sh.occlusion == "key" and self.cfg.key_check_frames:
             self._check_key(sh)
@@ -170,6 +170,10 @@ class ShadingComponent(Component):
         self.key_log["seed"], self.key_log["strongest"] = seed.tolist(), sh.key_estimate().tolist()
         return seed
 
+    def _tests_key(self) -> bool:
+        """Whether the aligned key is tested against the learned irradiance (``key_agree_deg`` or ``key_snap_deg``)."""
+        return bool(self.cfg.key_agree_deg or self.cfg.key_snap_deg)
+
     def _agree_key(self, sh: Shading, when: str) -> str:
         """Drop the aligned key when its direction is more than ``key_agree_deg`` from the learned irradiance's,
         move it there when more than ``key_snap_deg``; ``when`` ("aligned" | "end") names the test in
@@ -178,7 +182,7 @@ class ShadingComponent(Component):
         key, irradiance = sh.directions[0].detach(), sh.key_seed()
         cos = float(key @ irradiance / (key.norm() * irradiance.norm()))
         angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-        agrees = angle <= self.cfg.key_agree_deg
+        agrees = not self.cfg.key_agree_deg or angle <= self.cfg.key_agree_deg
         fate = (
             "dropped" if not agrees else "moved" if self.cfg.key_snap_deg and angle > self.cfg.key_snap_deg else "kept"
         )
