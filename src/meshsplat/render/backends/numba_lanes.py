@@ -23,7 +23,10 @@ Generated code (numba 0.68.1 / LLVM 20 on a Zen 4 host with AVX-512, ``vector_re
 loops compile to packed 256-bit code, each 16-pixel block as two ``ymm`` halves (``vmulps``/``vaddps``,
 ``vcmpleps`` into ``k`` masks and masked moves as selects, ``vrndscaleps``/``vcvttps2dq``/``vpslld`` for the
 exp), fully unrolled, with the aliasing checks hoisted out of the block loop; LLVM prefers 256-bit vectors on this
-CPU and numba exposes no per-function switch to 512. The scalar kernels' pixel loops have no packed arithmetic.
+CPU and numba exposes no per-function switch to 512. On a host with AVX2 but no AVX-512 (a Zen 3 host, the same
+versions) LLVM's cost model vectorizes the same loops 4 lanes wide, on 128-bit ``xmm`` registers; LLVM's
+``-force-vector-width=8`` makes them ``ymm`` there, which this module does not set (unmeasured). The scalar
+kernels' pixel loops have no packed arithmetic.
 """
 
 from __future__ import annotations
