@@ -125,18 +125,25 @@ class _StubState(SimpleNamespace):
         return torch.tensor(0.1 + (0.0 if keyed == self.key_helps else 0.01) + 1e-4 * idx)
 
 
-@pytest.mark.parametrize("key_helps", [True, False])
-def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not(key_helps):
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
-    state.key_helps = key_helps
-    comp = ShadingComponent(
-        ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_seed=True, key_check_frames=3), state
+def _key_component(iterations: int = 100, **cfg) -> tuple[ShadingComponent, torch.Tensor]:
+    """A started shading component with a key light (stages of 2 iterations) over a stub trainer, its third
+    candidate light lit (0.5): the component and that candidate's direction ``[3]``."""
+    state = _StubState(
+        device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=iterations, train_ids=list(range(10))
     )
+    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, **cfg), state)
     state.component = comp
     comp.start()
-    assert comp.shading is not None and comp.shading.light is not None
+    assert comp.shading is not None and comp.shading.light is not None and comp.shading.directions is not None
     with torch.no_grad():
         comp.shading.light[2] = 0.5
+    return comp, comp.shading.directions[2].clone()
+
+
+@pytest.mark.parametrize("key_helps", [True, False])
+def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not(key_helps):
+    comp, _ = _key_component(key_seed=True, key_check_frames=3)
+    comp.state.key_helps = key_helps
     assert comp._check_frames() == [1, 5, 8]
     for it in range(1, 7):
         comp.after_step(it, [])
@@ -155,17 +162,10 @@ def test_the_check_keeps_a_key_that_lowers_the_error_and_drops_one_that_does_not
 def test_a_key_far_from_the_learned_irradiance_is_dropped(agrees):
     """``key_agree_deg``: the aligned key stays when the learned irradiance points its way, and is folded into
     the SH2 irradiance when the irradiance points elsewhere (its shadows fit frames from a light not there)."""
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
-    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=20.0), state)
-    state.component = comp
-    comp.start()
-    sh = comp.shading
-    assert sh is not None and sh.light is not None and sh.directions is not None
-    d = sh.directions[2].clone()
-    with torch.no_grad():
-        sh.light[2] = 0.5
-        if not agrees:  # most of the learned light comes from the other side
-            sh.coeffs += 1.5 * _lobe(-d)[:, None]
+    comp, d = _key_component(key_agree_deg=20.0)
+    if not agrees:  # most of the learned light comes from the other side
+        with torch.no_grad():
+            comp.shading.coeffs += 1.5 * _lobe(-d)[:, None]
     for it in range(1, 7):
         comp.after_step(it, [])
     sh = comp.shading
@@ -183,14 +183,7 @@ def test_a_key_far_from_the_learned_irradiance_is_dropped(agrees):
 def test_the_key_is_tested_again_at_the_end():
     """A key that agreed with the irradiance when aligned is dropped at the last iteration if the irradiance
     learned since points elsewhere; before the last iteration nothing is tested."""
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=20, train_ids=list(range(10)))
-    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=20.0), state)
-    state.component = comp
-    comp.start()
-    assert comp.shading is not None and comp.shading.light is not None and comp.shading.directions is not None
-    d = comp.shading.directions[2].clone()
-    with torch.no_grad():
-        comp.shading.light[2] = 0.5
+    comp, d = _key_component(iterations=20, key_agree_deg=20.0)
     for it in range(1, 7):
         comp.after_step(it, [])
     assert comp.key_log["agree_aligned"]["agrees"] and comp.shading.occlusion == "key"
@@ -246,17 +239,9 @@ def test_a_key_that_half_agrees_with_the_irradiance_moves_to_it(snap):
     """``key_snap_deg``: an aligned key 10-30 degrees from the learned irradiance's direction (within
     ``key_agree_deg``) moves to that direction when farther than ``key_snap_deg``, and stays where the search
     put it otherwise (0: off, or 30: closer than that); the moved key is the optimizer's new leaf."""
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
-    cfg = ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=45.0, key_snap_deg=snap)
-    comp = ShadingComponent(cfg, state)
-    state.component = comp
-    comp.start()
-    sh = comp.shading
-    assert sh is not None and sh.light is not None and sh.directions is not None
-    d = sh.directions[2].clone()
-    with torch.no_grad():
-        sh.light[2] = 0.5
-        sh.coeffs += 1.0 * _lobe(_turned(d, 40.0))[:, None]  # the irradiance pulled away from the key's side
+    comp, d = _key_component(key_agree_deg=45.0, key_snap_deg=snap)
+    with torch.no_grad():  # the irradiance pulled away from the key's side
+        comp.shading.coeffs += 1.0 * _lobe(_turned(d, 40.0))[:, None]
     for it in range(1, 7):
         comp.after_step(it, [])
     sh = comp.shading
@@ -275,16 +260,9 @@ def test_a_key_that_half_agrees_with_the_irradiance_moves_to_it(snap):
 def test_without_key_agree_deg_a_far_key_moves_instead_of_being_dropped():
     """``key_snap_deg`` alone (``key_agree_deg`` 0): the test still runs, and a key on the far side of the learned
     irradiance moves to it; nothing is dropped."""
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=100, train_ids=list(range(10)))
-    comp = ShadingComponent(ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_snap_deg=15.0), state)
-    state.component = comp
-    comp.start()
-    sh = comp.shading
-    assert sh is not None and sh.light is not None and sh.directions is not None
-    d = sh.directions[2].clone()
+    comp, d = _key_component(key_snap_deg=15.0)
     with torch.no_grad():
-        sh.light[2] = 0.5
-        sh.coeffs += 1.5 * _lobe(-d)[:, None]
+        comp.shading.coeffs += 1.5 * _lobe(-d)[:, None]
     for it in range(1, 7):
         comp.after_step(it, [])
     sh, test = comp.shading, comp.key_log["agree_aligned"]
@@ -295,15 +273,7 @@ def test_without_key_agree_deg_a_far_key_moves_instead_of_being_dropped():
 def test_the_key_moves_at_the_end_when_the_irradiance_moved_since():
     """``key_snap_deg`` at the last iteration: a key that was kept when aligned moves to the irradiance's
     direction if the irradiance learned since turned 10-30 degrees away, and the optimizer holds the new key."""
-    state = _StubState(device=torch.device("cpu"), lr_factor=1.0, eps=1e-15, iterations=20, train_ids=list(range(10)))
-    cfg = ShadingConfig(enabled=True, occlusion="key", key_iter=2, key_agree_deg=45.0, key_snap_deg=10.0)
-    comp = ShadingComponent(cfg, state)
-    state.component = comp
-    comp.start()
-    assert comp.shading is not None and comp.shading.light is not None and comp.shading.directions is not None
-    d = comp.shading.directions[2].clone()
-    with torch.no_grad():
-        comp.shading.light[2] = 0.5
+    comp, d = _key_component(iterations=20, key_agree_deg=45.0, key_snap_deg=10.0)
     for it in range(1, 7):
         comp.after_step(it, [])
     assert comp.key_log["agree_aligned"]["fate"] == "kept"
