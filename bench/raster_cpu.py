@@ -6,7 +6,9 @@ Cases (one camera, avatar-like upper-body framing): 10k Gaussians @ 256x256, 50k
 
 Time: median over repeats of forward, backward and forward + backward (after one warm-up run), wall clock and
 CPU time of the process (``time.process_time``); with ``--rounds R`` every (case, variant) child runs R times,
-the variants interleaved within each round, and the median over the rounds' medians is reported. Work: pixel
+the variants interleaved within each round, and the median over the rounds' medians is reported. Variants:
+numba (the default lane kernels), numba-scalar, numba-llvmwidth (the lane kernels at LLVM's own vector width),
+torch. Work: pixel
 visits, the pixels of the entries' exact footprints in the tiles they touch that the scalar forward walks (from
 ``raster_cpu_stages.py``'s count), so "ns / visit" = forward + backward CPU time over visits.
 Memory: each (case, backend) runs in a fresh subprocess; peak = resource.getrusage ru_maxrss after the
@@ -33,7 +35,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 CASES = [(10_000, 256), (50_000, 512), (200_000, 1080), (500_000, 512)]
-VARIANTS = ("numba", "numba-scalar", "torch")  # numba: the default (lanes) compositing kernels
+# numba: the default (lanes) compositing kernels; numba-llvmwidth: the same kernels at LLVM's own vector width
+# (MESHSPLAT_LANE_VECTOR_WIDTH=0, compiled without the disk cache: what AVX2-only hosts ran before the width was set)
+VARIANTS = ("numba", "numba-scalar", "numba-llvmwidth", "torch")
 
 
 def _rss_mib() -> float:
@@ -69,12 +73,20 @@ def _pixel_visits(scene: dict) -> int:
     return int(counts[0])
 
 
+def _lane_width() -> int:
+    from meshsplat.render.backends.numba_lanes import lane_vector_width
+
+    return lane_vector_width()
+
+
 def run_case(n: int, size: int, repeats: int, variant: str, threads: int) -> dict:
     """Runs in the child process."""
     import torch
 
     backend = "numba" if variant.startswith("numba") else "torch"
     os.environ["MESHSPLAT_RASTER_KERNEL"] = "scalar" if variant == "numba-scalar" else "lanes"
+    if variant == "numba-llvmwidth":
+        os.environ["MESHSPLAT_LANE_VECTOR_WIDTH"] = "0"
 
     if threads:
         torch.set_num_threads(threads)
@@ -112,6 +124,7 @@ def run_case(n: int, size: int, repeats: int, variant: str, threads: int) -> dic
         "size": size,
         "backend": variant,
         "kernel": out.meta.get("kernel", ""),
+        "lane_vector_width": _lane_width() if backend == "numba" else None,  # 0: LLVM's own
         "fwd_bwd_cpu_s": statistics.median(cpu),
         "pixel_visits": _pixel_visits(scene) if backend == "numba" else 0,
         "fwd_s": statistics.median(fwd),

@@ -2,7 +2,10 @@
 compiled rasterizer and the subject-crop losses, in the same run, at 1 and 2 threads.
 
     python bench/train_speed.py [--data DIR] [--iters 60] [--warmup 20] [--block 20] [--threads 1,2]
-                                [--lpips-every 4] [--quick]
+                                [--lpips-every 4] [--quick] [--variants now,...]
+
+A setting read once per process (``MESHSPLAT_LANE_VECTOR_WIDTH``) is compared by running ``--variants now`` in
+alternating processes with and without it (bench/raster_cpu_lanes.md).
 
 Variants (the quality preset on the demo's schedule, ``demo_train_config`` with the ``default`` demo
 sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false``,
@@ -59,14 +62,18 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/train_speed-<host>.json)")
     ap.add_argument("--lpips-every", default="", help="comma-separated other loss.lpips_every values to time too")
     ap.add_argument("--quick", action="store_true", help="24 timed iterations after 12 warm-up ones, blocks of 12")
+    ap.add_argument("--variants", default="", help=f"comma-separated subset of {', '.join(VARIANTS)} (default: all)")
     args = ap.parse_args()
     if args.quick:
         args.iters, args.warmup, args.block = 24, 12, 12
-    variants = dict(VARIANTS)
+    picked = [v for v in args.variants.split(",") if v]
+    if unknown := set(picked) - set(VARIANTS):
+        raise SystemExit(f"unknown variants {sorted(unknown)}: pick from {', '.join(VARIANTS)}")
+    variants = {k: v for k, v in VARIANTS.items() if not picked or k in picked}
     cadences = [int(k) for k in args.lpips_every.split(",") if k.strip()]
     for k in cadences:
         variants[f"now_lpips{k}"] = [f"loss.lpips_every={k}"]
-    cycle = math.lcm(*CADENCES.values(), *cadences)
+    cycle = math.lcm(*(CADENCES[k] for k in variants if k in CADENCES), *cadences)
     if args.warmup % cycle or args.block % cycle:
         raise SystemExit(f"--warmup and --block must be multiples of {cycle} (the lcm of --lpips-every)")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_"))
@@ -110,7 +117,8 @@ def main() -> None:
             )
     print(f"{'threads':>7} {'variant':>11} {'median s':>9} {'mean s':>8} {'cycle s':>8} {'speed-up':>8} {'(cycle)':>8}")
     for r in rows:
-        base = next(b for b in rows if b["threads"] == r["threads"] and b["variant"] == "before")
+        same = [b for b in rows if b["threads"] == r["threads"]]  # against `before`, else the first variant
+        base = next((b for b in same if b["variant"] == "before"), same[0])
         r["speedup_median"] = base["median_s"] / r["median_s"]
         r["speedup_cycle"] = base["cycle_median_s"] / r["cycle_median_s"]
         print(

@@ -38,21 +38,22 @@ def numba_available() -> bool:
     return _numba_importable()
 
 
-def njit_serial(numba: Any, inline: bool = False) -> Callable[[Callable[..., Any]], Any]:
-    """The decorator of serial kernels and their helpers: cached on disk, no fastmath, GIL released, and numpy's
-    error model (a division by zero gives inf or nan, as in numba's parallel loops, instead of raising: the checks
-    would stop LLVM from vectorizing). ``inline``: inlined into the caller at numba's IR level."""
-    opts: dict[str, Any] = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
+def njit_serial(numba: Any, inline: bool = False, cache: bool = True) -> Callable[[Callable[..., Any]], Any]:
+    """The decorator of serial kernels and their helpers: cached on disk (unless ``cache`` is false), no fastmath,
+    GIL released, and numpy's error model (a division by zero gives inf or nan, as in numba's parallel loops,
+    instead of raising: the checks would stop LLVM from vectorizing). ``inline``: inlined into the caller at
+    numba's IR level."""
+    opts: dict[str, Any] = {"cache": cache, "fastmath": False, "nogil": True, "error_model": "numpy"}
     if inline:
         opts["inline"] = "always"
     return numba.njit(**opts)
 
 
-def njit_driver(numba: Any) -> Callable[[Callable[..., Any]], Any]:
-    """The decorator of ``run_ranges``'s drivers: ``parallel=True``, cached on disk, no fastmath, GIL released. A
-    driver is a module-level function (numba caches no closure across processes) of the form ``for j in
-    prange(bounds.shape[0] - 1): kernel(*args, bounds[j], bounds[j + 1])``."""
-    return numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def njit_driver(numba: Any, cache: bool = True) -> Callable[[Callable[..., Any]], Any]:
+    """The decorator of ``run_ranges``'s drivers: ``parallel=True``, cached on disk (unless ``cache`` is false), no
+    fastmath, GIL released. A driver is a module-level function (numba caches no closure across processes) of the
+    form ``for j in prange(bounds.shape[0] - 1): kernel(*args, bounds[j], bounds[j + 1])``."""
+    return numba.njit(parallel=True, cache=cache, fastmath=False, nogil=True)
 
 
 CHUNKS_PER_THREAD = 4  # ranges per thread: uneven items (tiles) still balance

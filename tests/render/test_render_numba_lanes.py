@@ -93,21 +93,79 @@ def test_switch_picks_the_kernel(monkeypatch):
         rasterize(**scene, backend="numba")
 
 
-@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="checks x86-64 vector registers")
-def test_lane_loops_compile_to_vector_code():
-    """On an x86-64 host with AVX2 the float32 lane loops are vectorized: packed arithmetic, on 256-bit (ymm) or
-    512-bit (zmm) registers where the host has AVX-512 (a Zen 4 host: ymm), on 128-bit (xmm) ones where it has
-    AVX2 alone (LLVM's cost model picks 4 lanes there: a Zen 3 host). (The scalar kernel's code has none of it.)"""
+def _host_features() -> list[str]:
     import llvmlite.binding as ll
 
-    features = ll.get_host_cpu_features().flatten().split(",")
-    if "+avx2" not in features:
-        pytest.skip("the host has no AVX2")
+    return ll.get_host_cpu_features().flatten().split(",")
+
+
+x86_avx2 = pytest.mark.skipif(
+    platform.machine() not in ("x86_64", "AMD64") or "+avx2" not in _host_features(),
+    reason="checks x86-64 vector registers on a host with AVX2",
+)
+
+
+@x86_avx2
+def test_lane_loops_compile_to_vector_code(monkeypatch):
+    """On an x86-64 host with AVX2 the float32 lane loops are packed 256-bit (ymm) code: LLVM's own choice where the
+    host has AVX-512 (a Zen 4 host), forced where it has AVX2 alone (LLVM picks 4 lanes, xmm, there: a Zen 3
+    host). (The scalar kernel's code has none of it.)"""
+    monkeypatch.delenv(nl.VECTOR_WIDTH_ENV, raising=False)
+    assert nl.lane_vector_width() == (0 if "+avx512f" in _host_features() else 8)
     scene = random_scene(n=60, seed=1, dtype=torch.float32)
     _, geo, bg = _geometry(scene)
     report = nl.vector_report(geo.args(bg))
-    wide = report["ymm"] + report["zmm"]
-    assert (wide if "+avx512f" in features else wide + report["xmm"]) >= 30, report
+    assert report["ymm"] + report["zmm"] >= 30, report
+
+
+@x86_avx2
+def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
+    """``MESHSPLAT_LANE_VECTOR_WIDTH=4`` compiles the lane loops on xmm; LLVM's option is reset after, so a loop
+    compiled next gets LLVM's own (256-bit) choice again; a width that is not 0/4/8/16 is refused in one line."""
+    scene = random_scene(n=60, seed=1, dtype=torch.float32)
+    _, geo, bg = _geometry(scene)
+    monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "4")
+    report = nl.vector_report(geo.args(bg))
+    assert report["xmm"] >= 30 and report["ymm"] + report["zmm"] < report["xmm"] / 4, report
+
+    def axpy(a, x, y):
+        for i in range(x.shape[0]):
+            y[i] = a * x[i] + y[i]
+
+    fn = numba.njit(cache=False)(axpy)
+    fn(np.float32(2.0), np.ones(64, np.float32), np.ones(64, np.float32))
+    assert "%ymm" in "\n".join(fn.inspect_asm().values()) or "%zmm" in "\n".join(fn.inspect_asm().values())
+    monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "6")
+    with pytest.raises(MeshsplatError, match="MESHSPLAT_LANE_VECTOR_WIDTH='6' is not one of 0, 4, 8, 16"):
+        nl.lane_vector_width()
+
+
+@x86_avx2
+def test_the_vector_width_changes_the_code_not_the_numbers():
+    """The lane loops compiled 4 and 8 lanes wide give the same image, transmittance, contribution lists and
+    gradient rows, bit for bit: every lane is a pixel of its own, and an entry's lanes are summed in a fixed
+    order outside the vector code (no fastmath: LLVM may not reassociate)."""
+    scene = random_scene(n=400, seed=8, dtype=torch.float32, width=83, height=57)
+    _, geo, bg = _geometry(scene)
+    args = geo.args(bg)
+    rng = np.random.default_rng(0)
+    results = []
+    for width in (4, 8):
+        with nl._compiling_at(width):
+            fwd = numba.njit(cache=False, nogil=True, error_model="numpy")(nl._forward_lanes)
+            bwd = numba.njit(cache=False, nogil=True, error_model="numpy")(nl._backward_lanes)
+            out = nl._outputs(args[2], args[4], args[5], args[8], args[9])
+            fwd(*args, *out, 0, args[3].shape[0])
+            colors, tf, last, _ = out
+            g_col = rng.standard_normal(colors.shape).astype(colors.dtype)
+            g_alpha = rng.standard_normal(tf.shape[0]).astype(colors.dtype)
+            rows = nl.grad_rows(args[1], args[2])
+            bwd(*args, g_col, g_alpha, tf, last, rows, 0, args[3].shape[0])
+        rng = np.random.default_rng(0)
+        results.append((*out, rows))
+    assert np.abs(results[0][-1]).max() > 0
+    for a, b in zip(*results, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -24,23 +24,28 @@ loops compile to packed 256-bit code, each 16-pixel block as two ``ymm`` halves 
 ``vcmpleps`` into ``k`` masks and masked moves as selects, ``vrndscaleps``/``vcvttps2dq``/``vpslld`` for the
 exp), fully unrolled, with the aliasing checks hoisted out of the block loop; LLVM prefers 256-bit vectors on this
 CPU and numba exposes no per-function switch to 512. On a host with AVX2 but no AVX-512 (a Zen 3 host, the same
-versions) LLVM's cost model vectorizes the same loops 4 lanes wide, on 128-bit ``xmm`` registers; LLVM's
-``-force-vector-width=8`` makes them ``ymm`` there, which this module does not set (unmeasured). The scalar
-kernels' pixel loops have no packed arithmetic.
+versions) LLVM's cost model vectorizes the same loops 4 lanes wide, on 128-bit ``xmm`` registers; there the lane
+kernels are compiled with LLVM's ``-force-vector-width=8`` (:func:`lane_vector_width`), set only while they
+compile and reset after (``ymm``; bench/raster_cpu_lanes.md). The scalar kernels' pixel loops have no packed
+arithmetic.
 """
 
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
 
 from meshsplat._numba import njit_driver, njit_serial, run_ranges
+from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
-__all__ = ["LANES", "compile_kernels", "grad_rows", "vector_report"]
+__all__ = ["LANES", "compile_kernels", "grad_rows", "vector_report", "lane_vector_width", "VECTOR_WIDTH_ENV"]
 
 LANES = 16  # pixels per block (4x4) = the tile size of numba_cpu (a tile: 4x4 blocks)
 # columns of an entry's record (numba_cpu's binning writes them, in the input dtype): the projection's values
@@ -54,6 +59,45 @@ _ULANES = np.uint64(LANES)  # lane loops run over unsigned indices: no negative-
 _F_T, _F_W, _F_A, _F_ACC = 0, 1, 2, 3
 # Backward fields: T, later splats' sum, <g, c>, w, dL/dcolour of the pixel.
 _B_T, _B_LATER, _B_CG, _B_W, _B_GP = 0, 1, 2, 3, 4
+
+
+VECTOR_WIDTH_ENV = "MESHSPLAT_LANE_VECTOR_WIDTH"  # 0: LLVM's own choice; 4, 8, 16: forced (unset: the host's)
+
+
+def lane_vector_width() -> int:
+    """The vector width (float32 elements) LLVM is told to use for the lane loops: 8 on an x86-64 host with AVX2
+    and without AVX-512, where its cost model picks 4 (``xmm``) and 8 (``ymm``) measured 26% faster forward; 0
+    (LLVM's choice) elsewhere, including AVX-512 hosts, where it already picks 8. ``MESHSPLAT_LANE_VECTOR_WIDTH``
+    overrides it (0, 4, 8 or 16; read when the kernels first compile in a process); the kernels are then compiled
+    without numba's disk cache, whose entries do not record the width."""
+    value = os.environ.get(VECTOR_WIDTH_ENV, "").strip()
+    if value:
+        if value not in ("0", "4", "8", "16"):
+            raise MeshsplatError(f"{VECTOR_WIDTH_ENV}={value!r} is not one of 0, 4, 8, 16 (or unset)")
+        return int(value)
+    from llvmlite import binding as llvm
+
+    features = llvm.get_host_cpu_features()
+    return 8 if features.get("avx2", False) and not features.get("avx512f", False) else 0
+
+
+@contextmanager
+def _compiling_at(width: int) -> Iterator[None]:
+    """Numba compilations inside run with LLVM's ``-force-vector-width=width`` (0: nothing changes). The option is
+    global to LLVM, so numba's compiler lock is held throughout and the option is reset to LLVM's default (0)
+    after."""
+    if not width:
+        yield
+        return
+    from llvmlite import binding as llvm
+    from numba.core.compiler_lock import global_compiler_lock
+
+    with global_compiler_lock:
+        llvm.set_option("", f"-force-vector-width={width}")
+        try:
+            yield
+        finally:
+            llvm.set_option("", "-force-vector-width=0")
 
 
 def _exp_neg(x):  # pragma: no cover - replaced by an overload when compiled
@@ -408,22 +452,39 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
             return lambda x: exp_f32(x)
         return lambda x: math.exp(-x)
 
-    helper = njit_serial(numba)
+    vector_width = lane_vector_width()
+    cache = not os.environ.get(VECTOR_WIDTH_ENV, "").strip()  # an override compiles afresh (see lane_vector_width)
+    helper = njit_serial(numba, cache=cache)
     _block, _lane, _block_grid = helper(_block_py), helper(_lane_py), helper(_block_grid_py)
     fwd, bwd = helper(_forward_lanes), helper(_backward_lanes)
     _prange, _forward_serial, _backward_serial = numba.prange, fwd, bwd
-    par = njit_driver(numba)
+    par = njit_driver(numba, cache=cache)
     fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
+    # The first call of each kind compiles (or loads from the disk cache) at the lane width; the key is what makes
+    # numba specialize: the float type, and serial or parallel (run_ranges). A specialization outside these
+    # compiles at LLVM's own width: the same results, maybe slower.
+    seen: set[tuple[Any, ...]] = set()
+
+    def _run(kernel, driver, n, key, *args):
+        import torch
+
+        key = (*key, n >= 2 and torch.get_num_threads() > 1)
+        if key in seen:
+            run_ranges(kernel, driver, n, *args)
+            return
+        with _compiling_at(vector_width):
+            run_ranges(kernel, driver, n, *args)
+        seen.add(key)
 
     def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
         out = _outputs(rec, bg, xs, width, height)
         args = (tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y)
-        run_ranges(fwd, fwd_par, order.shape[0], *args, *out)
+        _run(fwd, fwd_par, order.shape[0], ("fwd", rec.dtype, xs.dtype), *args, *out)
         return out
 
     def backward(*args):
         grad = grad_rows(args[1], args[2])
-        run_ranges(bwd, bwd_par, args[3].shape[0], *args, grad)
+        _run(bwd, bwd_par, args[3].shape[0], ("bwd", args[2].dtype, args[5].dtype), *args, grad)
         return grad
 
     return forward, backward
@@ -445,7 +506,8 @@ def vector_report(args: tuple[Any, ...], backward: bool = False) -> dict[str, in
         outs: tuple[np.ndarray, ...] = (grad_rows(args[1], args[2]),)
     else:
         outs = _outputs(args[2], args[4], args[5], args[8], args[9])
-    fn(*args, *outs, 0, args[3].shape[0])
+    with _compiling_at(lane_vector_width()):
+        fn(*args, *outs, 0, args[3].shape[0])
     asm = "\n".join(fn.inspect_asm().values())
     packed = re.findall(
         r"^\s*v(?:add|sub|mul|div|min|max|cmp[a-z]*|rndscale|round|blendm|fmadd[0-9]*)p[sd]\s+([^\n]*)", asm, re.M
