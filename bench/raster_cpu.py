@@ -8,7 +8,7 @@ Time: median over repeats of forward, backward and forward + backward (after one
 CPU time of the process (``time.process_time``); with ``--rounds R`` every (case, variant) child runs R times,
 the variants interleaved within each round, and the median over the rounds' medians is reported. Variants:
 numba (the default lane kernels), numba-scalar, numba-llvmwidth (the lane kernels at LLVM's own vector width),
-torch. Work: pixel
+numba-w4/-w8/-w16 (at that forced width), torch. Work: pixel
 visits, the pixels of the entries' exact footprints in the tiles they touch that the scalar forward walks (from
 ``raster_cpu_stages.py``'s count), so "ns / visit" = forward + backward CPU time over visits.
 Memory: each (case, backend) runs in a fresh subprocess; peak = resource.getrusage ru_maxrss after the
@@ -87,6 +87,8 @@ def run_case(n: int, size: int, repeats: int, variant: str, threads: int) -> dic
     os.environ["MESHSPLAT_RASTER_KERNEL"] = "scalar" if variant == "numba-scalar" else "lanes"
     if variant == "numba-llvmwidth":
         os.environ["MESHSPLAT_LANE_VECTOR_WIDTH"] = "0"
+    elif variant.startswith("numba-w"):  # numba-w4, -w8, -w16: the lane kernels at that forced width
+        os.environ["MESHSPLAT_LANE_VECTOR_WIDTH"] = variant.removeprefix("numba-w")
 
     if threads:
         torch.set_num_threads(threads)
@@ -177,7 +179,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch (and so numba) threads (0: torch default)")
     ap.add_argument("--repeats", type=int, default=0, help="timed runs per case (default 7, --quick 3)")
     ap.add_argument("--rounds", type=int, default=1, help="children per (case, variant), variants interleaved")
-    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument(
+        "--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}, numba-w4/8/16"
+    )
     ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--child", help=argparse.SUPPRESS)
