@@ -7,6 +7,7 @@ them).
 
 from __future__ import annotations
 
+import os
 import platform
 
 import numpy as np
@@ -138,6 +139,35 @@ def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
     monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "6")
     with pytest.raises(MeshsplatError, match="MESHSPLAT_LANE_VECTOR_WIDTH='6' is not one of 0, 4, 8, 16"):
         nl.lane_vector_width()
+
+
+def _allocates_in_a_loop(x):  # a loop LLVM cannot vectorize (a call inside)
+    t = 0.0
+    for i in range(x.shape[0]):
+        a = np.empty(3)
+        a[0] = x[i]
+        t += a[0]
+    return t
+
+
+@x86_avx2
+def test_llvm_remarks_of_a_forced_width_stay_off_stderr(capfd):
+    """At a forced width LLVM prints a remark on stderr for each loop it leaves scalar (31 lines for the first
+    two-thread render): they are dropped while the lane kernels compile, and anything else written to stderr
+    then still comes out."""
+    import llvmlite.binding as ll
+
+    ll.set_option("", "-force-vector-width=8")  # the bare option, as a control: the remark is printed
+    try:
+        numba.njit(cache=False)(_allocates_in_a_loop)(np.ones(4))
+    finally:
+        ll.set_option("", "-force-vector-width=0")
+    assert "loop not vectorized" in capfd.readouterr().err
+    with nl._compiling_at(8):
+        numba.njit(cache=False)(_allocates_in_a_loop)(np.ones(4))
+        os.write(2, b"a line of its own\n")
+    err = capfd.readouterr().err
+    assert "loop not vectorized" not in err and "a line of its own" in err, err
 
 
 @x86_avx2

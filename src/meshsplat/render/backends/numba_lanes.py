@@ -34,6 +34,9 @@ from __future__ import annotations
 
 import math
 import os
+import re
+import sys
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
@@ -92,12 +95,41 @@ def _compiling_at(width: int) -> Iterator[None]:
     from llvmlite import binding as llvm
     from numba.core.compiler_lock import global_compiler_lock
 
-    with global_compiler_lock:
+    with global_compiler_lock, _llvm_remarks_dropped():
         llvm.set_option("", f"-force-vector-width={width}")
         try:
             yield
         finally:
             llvm.set_option("", "-force-vector-width=0")
+
+
+_REMARK = re.compile(r"remark: [^\n]*loop not vectorized[^\n]*\n?")
+
+
+@contextmanager
+def _llvm_remarks_dropped() -> Iterator[None]:
+    """At a forced width LLVM prints a remark for every loop it leaves scalar (31 lines for a first multi-thread
+    render), on the process's stderr (file descriptor 2, below Python). Inside, descriptor 2 goes to a temporary
+    file; what was written there, less those remarks, goes to stderr after (delayed, not lost)."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr (e.g. pythonw): nothing to keep clean
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = _REMARK.sub("", tmp.read().decode(errors="replace"))
+            if kept:
+                sys.stderr.write(kept)
+                sys.stderr.flush()
 
 
 def _exp_neg(x):  # pragma: no cover - replaced by an overload when compiled
