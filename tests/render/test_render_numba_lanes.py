@@ -122,7 +122,8 @@ def test_lane_loops_compile_to_vector_code(monkeypatch):
 @x86_avx2
 def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
     """``MESHSPLAT_LANE_VECTOR_WIDTH=4`` compiles the lane loops on xmm; LLVM's option is reset after, so a loop
-    compiled next gets LLVM's own (256-bit) choice again; a width that is not 0/4/8/16 is refused in one line."""
+    compiled next gets LLVM's own (256-bit) choice again; numba compiling for another CPU gets LLVM's width; a
+    width that is not 0/4/8/16 is refused in one line."""
     scene = random_scene(n=60, seed=1, dtype=torch.float32)
     _, geo, bg = _geometry(scene)
     monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "4")
@@ -136,6 +137,9 @@ def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
     fn = numba.njit(cache=False)(axpy)
     fn(np.float32(2.0), np.ones(64, np.float32), np.ones(64, np.float32))
     assert "%ymm" in "\n".join(fn.inspect_asm().values()) or "%zmm" in "\n".join(fn.inspect_asm().values())
+    monkeypatch.delenv(nl.VECTOR_WIDTH_ENV)
+    monkeypatch.setattr(numba.config, "CPU_NAME", "x86-64")  # numba told to compile for another CPU: LLVM's width
+    assert nl.lane_vector_width() == 0
     monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "6")
     with pytest.raises(MeshsplatError, match="MESHSPLAT_LANE_VECTOR_WIDTH='6' is not one of 0, 4, 8, 16"):
         nl.lane_vector_width()

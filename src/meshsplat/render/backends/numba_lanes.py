@@ -70,7 +70,8 @@ VECTOR_WIDTH_ENV = "MESHSPLAT_LANE_VECTOR_WIDTH"  # 0: LLVM's own choice; 4, 8, 
 def lane_vector_width() -> int:
     """The vector width (float32 elements) LLVM is told to use for the lane loops: 8 on an x86-64 host with AVX2
     and without AVX-512, where its cost model picks 4 (``xmm``) and 8 (``ymm``) measured 26% faster forward; 0
-    (LLVM's choice) elsewhere, including AVX-512 hosts, where it already picks 8. ``MESHSPLAT_LANE_VECTOR_WIDTH``
+    (LLVM's choice) elsewhere, including AVX-512 hosts, where it already picks 8, and where numba compiles for
+    another CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``). ``MESHSPLAT_LANE_VECTOR_WIDTH``
     overrides it (0, 4, 8 or 16; read when the kernels first compile in a process); the kernels are then compiled
     without numba's disk cache, whose entries do not record the width."""
     value = os.environ.get(VECTOR_WIDTH_ENV, "").strip()
@@ -78,8 +79,11 @@ def lane_vector_width() -> int:
         if value not in ("0", "4", "8", "16"):
             raise MeshsplatError(f"{VECTOR_WIDTH_ENV}={value!r} is not one of 0, 4, 8, 16 (or unset)")
         return int(value)
+    import numba
     from llvmlite import binding as llvm
 
+    if numba.config.CPU_NAME or numba.config.CPU_FEATURES:  # a target of the user's choosing: LLVM's width for it
+        return 0
     features = llvm.get_host_cpu_features()
     return 8 if features.get("avx2", False) and not features.get("avx512f", False) else 0
 
