@@ -82,7 +82,8 @@ def lane_vector_width() -> int:
     import numba
     from llvmlite import binding as llvm
 
-    if numba.config.CPU_NAME or numba.config.CPU_FEATURES:  # a target of the user's choosing: LLVM's width for it
+    config: Any = numba.config  # (its settings are set at import: no attributes for mypy)
+    if config.CPU_NAME or config.CPU_FEATURES:  # a target of the user's choosing: LLVM's width for it
         return 0
     features = llvm.get_host_cpu_features()
     return 8 if features.get("avx2", False) and not features.get("avx512f", False) else 0
