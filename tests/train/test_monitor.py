@@ -67,6 +67,29 @@ def test_tensorboard_shows_every_term_psnr_gaussians_learning_rates_and_previews
     assert [s for s, *_ in events["preview"]] == [3, 6]
 
 
+def test_a_session_resumed_within_the_second_of_the_last_one_still_purges_after_it(tmp_path):
+    """TensorBoard reads event files in name order (start second, host, pid, a per-process count): a resumed
+    session's file must sort after the one it continues, or its purge of the later steps is read first and the
+    old steps survive. An earlier file named to sort last within its second (and one second ahead of the clock)
+    is waited out."""
+    pytest.importorskip("tensorboard", reason="the [monitor] extra (tensorboard) is not installed")
+    import time
+
+    from meshsplat.train.monitor import TensorBoardMonitor
+
+    first = TensorBoardMonitor.open(tmp_path)
+    for step in (1, 2, 3, 4):
+        first.writer.add_scalar("loss/total", float(step), step)
+    first.close()
+    (old,) = (tmp_path / MONITOR_DIR).iterdir()
+    old.rename(old.with_name(f"events.out.tfevents.{int(time.time()) + 1}.zzzz.99999.9"))
+    resumed = TensorBoardMonitor.open(tmp_path, iteration=2)  # the checkpoint's iteration: steps 3, 4 again
+    for step in (3, 4, 5):
+        resumed.writer.add_scalar("loss/total", 10.0 * step, step)
+    resumed.close()
+    assert _events(tmp_path / MONITOR_DIR)["loss/total"] == [(1, 1.0), (2, 2.0), (3, 30.0), (4, 40.0), (5, 50.0)]
+
+
 def test_the_train_command_says_where_to_watch(tmp_path, capsys):
     pytest.importorskip("tensorboard", reason="the [monitor] extra (tensorboard) is not installed")
     from meshsplat.cli.main import main

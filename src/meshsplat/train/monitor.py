@@ -13,6 +13,7 @@ nothing is written and training is unchanged.
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -53,6 +54,26 @@ def learning_rates(optimizers: Mapping[str, Any]) -> dict[str, float]:
     return {name: float(opt.param_groups[0]["lr"]) for name, opt in optimizers.items() if opt.param_groups}
 
 
+EVENTS_PREFIX = "events.out.tfevents."  # then the writer's start time in whole seconds (10 digits), host, pid, count
+MAX_EVENTS_WAIT_S = 2.0
+
+
+def _wait_past_existing_events(log_dir: Path) -> None:
+    """TensorBoard reads a folder's event files in name order, and a resumed session's purge of the steps after
+    its checkpoint only works when its file comes last. Names start with the writer's start second, then host, pid
+    and a per-process count (``.9`` sorts after ``.10``): a session resumed within the second of the newest file
+    (a test, a notebook) waits for the next second, at most ``MAX_EVENTS_WAIT_S`` (a file from further in the
+    future, a clock set back, cannot be helped)."""
+    newest = 0
+    for f in log_dir.glob(EVENTS_PREFIX + "*"):
+        stamp = f.name[len(EVENTS_PREFIX) :].split(".", 1)[0]
+        if stamp.isdigit():
+            newest = max(newest, int(stamp))
+    wait = newest + 1 - time.time()
+    if 0 < wait <= MAX_EVENTS_WAIT_S:
+        time.sleep(wait)
+
+
 class TensorBoardMonitor:
     """Writes a run's scalars and previews as TensorBoard events in ``RUN/tensorboard/``."""
 
@@ -69,6 +90,8 @@ class TensorBoardMonitor:
         except ImportError:
             return None
         log_dir = Path(run_dir) / MONITOR_DIR
+        if iteration:
+            _wait_past_existing_events(log_dir)
         try:
             writer = SummaryWriter(log_dir=str(log_dir), purge_step=iteration + 1 if iteration else None)
         except OSError as exc:  # a monitor that cannot write never stops training
