@@ -125,7 +125,7 @@ def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
     compiled next gets LLVM's own (256-bit) choice again; numba compiling for another CPU gets LLVM's width; a
     width that is not 0/4/8/16 is refused in one line."""
     scene = random_scene(n=60, seed=1, dtype=torch.float32)
-    _, geo, bg = _geometry(scene)
+    _, geo, bg = _geometry(scene)  # (the kernels themselves compiled before the variable is set)
     monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "4")
     report = nl.vector_report(geo.args(bg))
     assert report["xmm"] >= 30 and report["ymm"] + report["zmm"] < report["xmm"] / 4, report
