@@ -74,11 +74,9 @@ def lane_vector_width() -> int:
     another CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``). ``MESHSPLAT_LANE_VECTOR_WIDTH``
     overrides it (0, 4, 8 or 16; read when the kernels first compile in a process); the kernels are then compiled
     without numba's disk cache, whose entries do not record the width."""
-    value = os.environ.get(VECTOR_WIDTH_ENV, "").strip()
-    if value:
-        if value not in ("0", "4", "8", "16"):
-            raise MeshsplatError(f"{VECTOR_WIDTH_ENV}={value!r} is not one of 0, 4, 8, 16 (or unset)")
-        return int(value)
+    override = _width_override()
+    if override is not None:
+        return override
     import numba
     from llvmlite import binding as llvm
 
@@ -87,6 +85,16 @@ def lane_vector_width() -> int:
         return 0
     features = llvm.get_host_cpu_features()
     return 8 if features.get("avx2", False) and not features.get("avx512f", False) else 0
+
+
+def _width_override() -> int | None:
+    """``MESHSPLAT_LANE_VECTOR_WIDTH`` as a width, ``None`` when unset; any other value than 0/4/8/16 is refused."""
+    value = os.environ.get(VECTOR_WIDTH_ENV, "").strip()
+    if not value:
+        return None
+    if value not in ("0", "4", "8", "16"):
+        raise MeshsplatError(f"{VECTOR_WIDTH_ENV}={value!r} is not one of 0, 4, 8, 16 (or unset)")
+    return int(value)
 
 
 @contextmanager
@@ -490,7 +498,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
         return lambda x: math.exp(-x)
 
     vector_width = lane_vector_width()
-    cache = not os.environ.get(VECTOR_WIDTH_ENV, "").strip()  # an override compiles afresh (see lane_vector_width)
+    cache = _width_override() is None  # an override compiles afresh (see lane_vector_width)
     helper = njit_serial(numba, cache=cache)
     _block, _lane, _block_grid = helper(_block_py), helper(_lane_py), helper(_block_grid_py)
     fwd, bwd = helper(_forward_lanes), helper(_backward_lanes)
