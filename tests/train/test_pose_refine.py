@@ -649,3 +649,25 @@ def test_a_polish_at_mid_run_fits_the_poses_and_the_avatar_trains_on_in_them(noi
     for k in a_at2:
         assert torch.equal(a_at2[k], b_at2[k]), k  # the avatar frozen during the polish
     assert any(not torch.equal(a.params[k].detach(), b.params[k].detach()) for k in a.params)  # then trained on
+
+
+def test_a_polish_makes_at_most_the_renders_it_declares(noisy_smpl, standin_model_dir, tmp_path):
+    """``extra_renders`` (what ``train --minutes`` plans for the polish) bounds the frame renders a polish makes:
+    at the end, and once more with ``polish_mid``; none once the run is polished."""
+    sets = [f"model_dir={standin_model_dir}", "pose_refine.lr=1e-2", "checkpoint_every=100"]
+    end_only = Trainer(
+        _short(noisy_smpl, tmp_path / "a", *sets, "pose_refine.polish_steps=3", "pose_refine.polish_mid=0")
+    )
+    comp = end_only.component("pose_refine")
+    assert comp.extra_renders() == 4 * len(end_only.train_ids)  # 3 steps and the last measure, every frame
+    calls = []
+    real = end_only.training_error
+    end_only.training_error = lambda idx: calls.append(idx) or real(idx)  # type: ignore[method-assign]
+    end_only.train()
+    assert 0 < len(calls) <= 4 * len(end_only.train_ids)
+    assert comp.extra_renders() == 0  # polished: nothing left
+    both = Trainer(
+        _short(noisy_smpl, tmp_path / "b", *sets, "pose_refine.polish_steps=3", "pose_refine.polish_mid=0.5")
+    )
+    assert both.component("pose_refine").extra_renders() == 2 * 4 * len(both.train_ids)
+    assert Trainer(_short(noisy_smpl, tmp_path / "c", *sets)).component("pose_refine").extra_renders() == 0

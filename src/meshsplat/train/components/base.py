@@ -10,6 +10,7 @@ hooks of the enabled components in ``COMPONENTS`` order (``meshsplat.train.compo
     parameters()                 the tensors it steps (data-parallel training all-reduces their gradients)
     after_step(it, rows)         after the avatar's Adam steps: its own step, projections, stages
     finish(render_error, on_step) after the last iteration: work left to do (``finishing``)
+    extra_renders()              how many frame renders beyond the iterations it makes (a time budget plans them)
     state_dict() / load_state_dict(state, checkpoint)   its part of a checkpoint
     on_checkpoint(folder)        files beside a checkpoint (readable without torch)
 
@@ -104,6 +105,11 @@ class Component:
 
     def finish(self, render_error: Callable[[int], torch.Tensor], on_step: Callable[[], None] | None = None) -> None:
         return None
+
+    def extra_renders(self) -> int:
+        """At most how many training-frame renders, each with its backward, this component makes beyond the
+        iterations (``finish``, or work at a set iteration): a time budget (``train --minutes``) plans them."""
+        return 0
 
     def state_dict(self) -> Any:
         return None

@@ -160,6 +160,12 @@ class PoseRefinement(Component):
     def finishing(self) -> bool:
         return self.cfg.polish_steps > 0 and not self.refiner.polished
 
+    def extra_renders(self) -> int:
+        """Each polish (at the end, and at ``polish_mid``) renders every training frame at most once per step and
+        once more to measure the last (``PoseRefiner.fit_guarded``)."""
+        polishes = int(self.finishing) + int(bool(self.cfg.polish_steps and self.cfg.polish_mid))
+        return polishes * (self.cfg.polish_steps + 1) * len(self.state.train_ids)
+
     def finish(self, render_error: Callable[[int], torch.Tensor], on_step: Callable[[], None] | None = None) -> None:
         self._polish(render_error, on_step)
         self.refiner.polished = True
