@@ -16,6 +16,12 @@ videos are not in the repository, bench/reports/track_bodies.md says where they 
    person matte and on the full image with the photograph composited by its matte, on white and on
    black (PSNR, SSIM; LPIPS when its weights are installed); eval's picture (photograph | render |
    error) is copied to bench/results/<name>-<clip>-<background>.png.
+4. where the error is, on black (``meshsplat.metrics.budget``): the share of the held-out frames' squared error
+   in the silhouette band (2 px either side of the mask's edge), the interior and outside; and the part of
+   the mask's weight on near-white pixels (every channel within 0.08 of 1): on a white studio background
+   that is background the person matte took in (between the legs, halos), elsewhere white clothes count too.
+
+``--reuse`` scores the capture and run already in ``--work`` (no tracking or training; times are not kept).
 
 Prints a table and writes bench/results/<name>-<host>.json.
 """
@@ -70,6 +76,40 @@ def evaluate(run: Path, background: str) -> dict:
     return {k: m.get(k) for k in ("n_frames", "psnr", "ssim", "lpips", "psnr_mask", "ssim_mask", "lpips_mask")}
 
 
+def where_the_error_is(capture: Path, run: Path) -> dict:
+    """The held-out frames (tracked poses) on black: the error's shares by region of the mask, and the mask's
+    weight on near-white pixels (all held-out and training frames)."""
+    import torch
+
+    from meshsplat.data import open_dataset
+    from meshsplat.metrics.budget import BUDGET_REGIONS, error_budget
+    from meshsplat.render.background import composite
+    from meshsplat.run_folder import load_run
+
+    loaded = load_run(run)
+    ds = loaded.open_dataset(capture)
+    black = torch.zeros(3)
+    sse = dict.fromkeys(BUDGET_REGIONS, 0.0)
+    for i in ds.split("test_frames"):
+        fr = ds[i]
+        with torch.no_grad():
+            img = loaded.avatar.render(fr.vertices, fr.camera, black).image.float().clamp(0, 1)
+        b = error_budget(img, composite(fr.image, fr.mask, black), fr.mask)
+        for r in BUDGET_REGIONS:
+            sse[r] += b[f"sse_{r}"]
+    total = sum(sse.values()) or 1.0
+    plain = open_dataset(capture)
+    white = [
+        float((fr.mask[..., 0] * ((1 - fr.image).abs().amax(-1) < 0.08)).sum() / fr.mask.sum().clamp_min(1e-6))
+        for fr in (plain[i] for i in range(len(plain)))
+    ]
+    return {
+        **{f"share_{r}": sse[r] / total for r in BUDGET_REGIONS},
+        "mask_on_near_white": float(np.mean(white)),
+        "mask_on_near_white_max": float(np.max(white)),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("videos", type=Path)
@@ -81,6 +121,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("runs/bench-track-bodies"))
     ap.add_argument("--clips", nargs="*", default=None)
     ap.add_argument("--name", default="track_bodies")
+    ap.add_argument("--reuse", action="store_true", help="score the captures and runs already in --work")
     args = ap.parse_args()
     videos = sorted(p for p in args.videos.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if args.clips:
@@ -89,44 +130,54 @@ def main() -> None:
     for video in videos:
         work = args.work / video.stem
         cap, run = work / "capture", work / "run"
-        settings = TrackSettings(size=args.size, fps=args.fps, max_frames=args.max_frames, overwrite=True)
-        t0 = time.perf_counter()
-        res = track_body(video, cap, settings)
-        t_track = time.perf_counter() - t0
+        if args.reuse:
+            splits = json.loads((cap / "manifest.json").read_text())["splits"]
+            n_train, n_test = len(splits["train"]), len(splits["test_frames"])
+            row: dict = {"clip": video.stem, "frames": n_train + n_test, "train": n_train, "test": n_test}
+        else:
+            settings = TrackSettings(size=args.size, fps=args.fps, max_frames=args.max_frames, overwrite=True)
+            t0 = time.perf_counter()
+            res = track_body(video, cap, settings)
+            t_track = time.perf_counter() - t0
+            t_train = train(cap, run, args.iters, args.threads)
+            n_train = res.train
+            row = {
+                "clip": video.stem,
+                "frames": res.frames,
+                "train": res.train,
+                "test": res.test,
+                "dropped": len(res.dropped),
+                "track_s": t_track,
+                "track_stages_s": res.seconds,
+                "train_s": t_train,
+                "notes": res.notes,
+            }
         fit = np.load(cap / "body_fit.npz")
         err = fit["error_px"]
-        t_train = train(cap, run, args.iters, args.threads)
-        row = {
-            "clip": video.stem,
-            "frames": res.frames,
-            "train": res.train,
-            "test": res.test,
-            "dropped": len(res.dropped),
-            "keypoint_px_train": float(err[: res.train].mean()),
-            "keypoint_px_test": float(err[res.train :].mean()),
-            "outside_body": float(fit["outside_body"].mean()),
-            "track_s": t_track,
-            "track_stages_s": res.seconds,
-            "train_s": t_train,
-            "notes": res.notes,
-        }
+        row["keypoint_px_train"] = float(err[:n_train].mean())
+        row["keypoint_px_test"] = float(err[n_train:].mean())
+        row["outside_body"] = float(fit["outside_body"].mean())
         for bg in ("white", "black"):
             row[bg] = evaluate(run, bg)
             sample = run / "eval" / "samples_test_frames.png"
             if sample.exists():
                 RESULTS.mkdir(exist_ok=True)
                 shutil.copy(sample, RESULTS / f"{args.name}-{video.stem}-{bg}.png")
+        row["error_black"] = where_the_error_is(cap, run)
         rows.append(row)
         print(json.dumps(row, indent=1))
     print(
-        f"{'clip':34s} {'frames':>6s} {'kp px tr/te':>12s} {'outside':>8s} {'PSNR w/b':>12s} {'mask w/b':>12s} {'track s':>8s} {'train s':>8s}"
+        f"{'clip':34s} {'frames':>6s} {'kp px tr/te':>12s} {'outside':>8s} {'PSNR w/b':>12s} {'mask w/b':>12s} "
+        f"{'band/int/out':>14s} {'white':>6s} {'track s':>8s} {'train s':>8s}"
     )
     for r in rows:
-        w, b = r["white"], r["black"]
+        w, b, e = r["white"], r["black"], r["error_black"]
+        shares = f"{e['share_band']:.2f}/{e['share_interior']:.2f}/{e['share_outside']:.2f}"
         print(
             f"{r['clip']:34s} {r['frames']:6d} {r['keypoint_px_train']:5.1f}/{r['keypoint_px_test']:5.1f} "
             f"{100 * r['outside_body']:7.1f}% {w['psnr']:5.2f}/{b['psnr']:5.2f} {w['psnr_mask']:5.2f}/{b['psnr_mask']:5.2f} "
-            f"{r['track_s']:8.1f} {r['train_s']:8.1f}"
+            f"{shares:>14s} {100 * e['mask_on_near_white']:5.1f}% {r.get('track_s', float('nan')):8.1f} "
+            f"{r.get('train_s', float('nan')):8.1f}"
         )
     out = results_path(args.name)
     out.write_text(

@@ -13,13 +13,14 @@ from meshsplat.cli.main import main
 from meshsplat.errors import MeshsplatError
 from meshsplat.train import TrainConfig
 from meshsplat.train.budget import (
-    GROWTH_FACTOR,
+    GROWTH_PER_ROUND,
     KEPT_KEYS,
     MIN_ITERATIONS,
     NOISE_MARGIN,
+    PROBE_GROWTH,
     SCALED_KEYS,
+    Growth,
     Measurement,
-    mean_gaussians,
     plan_budget,
     planned_seconds,
     scale_schedule,
@@ -51,27 +52,42 @@ def test_scaling_moves_the_schedule_positions_and_keeps_the_rates():
     assert tiny.strategy.refine_start_iter == 1 and tiny.preview_every == 1
 
 
-def test_the_mean_model_size_over_a_schedule_that_grows_it():
-    """n_init until refine_start, a linear growth to the planned size at refine_stop, that size after; the
-    same mean for the schedule scaled to any length."""
+def test_the_growth_planned_over_a_schedule():
+    """GROWTH_PER_ROUND per densification step between refine_start and refine_stop, at most max_gaussians; the
+    mean size: n_init until the start, linear growth to the final size at the stop, that size after. A shorter
+    schedule has fewer steps and grows less; densification off: no growth."""
     cfg = recipe_config("quality")
-    cfg.model.n_init, cfg.iterations = 100, 1000
-    cfg.strategy.refine_start_iter, cfg.strategy.refine_stop_iter = 100, 600
-    assert mean_gaussians(cfg, 500) == pytest.approx(100 * 0.1 + 300 * 0.5 + 500 * 0.4)  # 360
-    assert mean_gaussians(scale_schedule(cfg, 250)[0], 500) == pytest.approx(360)
-    assert mean_gaussians(cfg, 100) == pytest.approx(100)  # no growth
-    cfg.strategy.refine_stop_iter = 5000  # densifying to the end: half-way mean over the growth
-    assert mean_gaussians(cfg, 500) == pytest.approx(100 * 0.1 + 300 * 0.9)
+    cfg.model.n_init, cfg.iterations, cfg.strategy.max_gaussians = 100, 1000, 10_000
+    cfg.strategy.refine_start_iter, cfg.strategy.refine_stop_iter, cfg.strategy.refine_every = 100, 600, 50
+    g = Growth.of(cfg)
+    assert (g.gaussians, g.most, g.start, g.stop, g.every) == (100, 10_000, 0.1, 0.6, 50)
+    n1 = 100 * GROWTH_PER_ROUND**10  # 500 iterations of densification, a step every 50
+    assert g.size(1000) == pytest.approx(n1)
+    assert g.mean(1000) == pytest.approx(100 * 0.1 + 0.5 * (100 + n1) * 0.5 + n1 * 0.4)
+    assert g.size(500) == pytest.approx(100 * GROWTH_PER_ROUND**5)  # the schedule scaled: half the steps
+    assert g.size(10**6) == 10_000  # capped
+    assert Growth.of(scale_schedule(cfg, 500)[0]).size(500) == pytest.approx(g.size(500), rel=0.02)
+    cfg.strategy.enabled = False
+    assert Growth.of(cfg).size(1000) == 100
 
 
 def test_the_plan_counts_growth_and_extra_work():
-    """Planned seconds: setup, each frame read once, the iterations at their mean cost with the margin, the
-    components' extra renders; the initial cost alone where growth was not measured."""
-    m = Measurement(5.0, 0.1, 0.02, 10, 100, 500, 0.3, 0.2, 40, 0.05)
-    assert m.per_iteration_s == 0.2 and m.extra_s == pytest.approx(2.0)
-    assert planned_seconds(m, 1000) == pytest.approx(5.0 + 10 * 0.02 + 1000 * 0.2 * NOISE_MARGIN + 2.0)
+    """Planned seconds: setup, each frame read once, the iterations at their mean cost (linear in the
+    Gaussians between the two probes) with the margin, the extra renders scaled to the planned final size;
+    it grows with the iterations. Without the larger probe, the first cost alone."""
+    g = Growth(100, 10_000, 0.1, 0.6, 50)
+    m = Measurement(5.0, 0.1, 0.02, 10, g, 500, 0.3, 40, 0.05)
+    assert m.iteration_cost(100) == 0.1 and m.iteration_cost(500) == pytest.approx(0.3)
+    assert m.iteration_cost(300) == pytest.approx(0.2) and m.iteration_cost(50) == 0.1
+    mean = 0.1 + 0.2 / 400 * (g.mean(1000) - 100)
+    assert m.per_iteration_s(1000) == pytest.approx(mean)
+    extra = 40 * 0.05 * m.iteration_cost(g.size(1000)) / 0.3
+    assert m.extra_s(1000) == pytest.approx(extra)
+    assert planned_seconds(m, 1000) == pytest.approx(5.0 + 10 * 0.02 + 1000 * mean * NOISE_MARGIN + extra)
+    times = [planned_seconds(m, n) for n in range(0, 3000, 7)]
+    assert times == sorted(times)
     plain = Measurement(5.0, 0.1, 0.02, 10)
-    assert plain.per_iteration_s == 0.1 and planned_seconds(plain, 4) == pytest.approx(
+    assert plain.per_iteration_s(4) == 0.1 and planned_seconds(plain, 4) == pytest.approx(
         5.0 + 4 * 0.02 + 0.4 * NOISE_MARGIN
     )
 
@@ -83,19 +99,11 @@ def test_a_budget_is_measured_on_this_machine_and_fits_the_iterations(tmp_path):
     scaled, budget = plan_budget(cfg, 2.0)
     m = budget.measured
     assert m.iteration_s > 0 and m.frame_s > 0 and m.setup_s >= 0 and m.frames == 4  # 6 frames, 4 for training
-    # the growth densification is planned for, measured on a model of that size (the recipe caps at 150,000)
-    assert m.gaussians == 200 and m.grown_gaussians == round(GROWTH_FACTOR * 200) and m.grown_iteration_s > 0
-    assert (
-        m.iteration_s
-        <= m.per_iteration_s
-        == pytest.approx(
-            m.iteration_s
-            + max(m.grown_iteration_s - m.iteration_s, 0)
-            / (m.grown_gaussians - 200)
-            * (mean_gaussians(cfg, 1000) - 200)
-        )
-    )
-    assert m.extra_renders == 0 and m.extra_s == 0  # a mesh capture: no pose polish
+    # the larger probe: PROBE_GROWTH times n_init (the recipe caps at 150,000), the growth the schedule plans
+    assert m.growth == Growth.of(cfg) and m.probe_gaussians == round(PROBE_GROWTH * 200) and m.probe_iteration_s > 0
+    n = budget.iterations
+    assert m.iteration_s <= m.per_iteration_s(n) == pytest.approx(m.iteration_cost(m.growth.mean(n)))
+    assert m.extra_renders == 0 and m.extra_s(n) == 0  # a mesh capture: no pose polish
     assert budget.planned_s == planned_seconds(m, budget.iterations) <= 2.0 * 60
     assert planned_seconds(m, budget.iterations + 1) > 2.0 * 60  # the most that fit
     assert MIN_ITERATIONS <= budget.iterations < 30_000
@@ -103,13 +111,13 @@ def test_a_budget_is_measured_on_this_machine_and_fits_the_iterations(tmp_path):
     assert scaled.strategy.refine_stop_iter == round(15_000 * budget.factor)
     assert not (tmp_path / "run").exists()  # the probe trained in a temporary folder
     assert f"--iters {budget.iterations} --set strategy.refine_start_iter=" in budget.summary()
-    assert "at 1,000 Gaussians, the growth planned for" in budget.summary()
+    assert "at 1,000 Gaussians; planned to grow to " in budget.summary()
     capped = recipe_config("quality", data=str(root), out=str(tmp_path / "run"), device="cpu", progress=False)
-    capped.model.n_init, capped.strategy.max_gaussians, capped.strategy.enabled = 200, 300, True
-    assert plan_budget(capped, 2.0)[1].measured.grown_gaussians == 300  # at most max_gaussians
+    capped.model.n_init, capped.strategy.max_gaussians = 200, 300
+    assert plan_budget(capped, 2.0)[1].measured.probe_gaussians == 300  # at most max_gaussians
     capped.strategy.enabled = False  # no densification: no growth measured
     off = plan_budget(capped, 2.0)[1].measured
-    assert off.grown_gaussians == 200 and off.grown_iteration_s == 0 and off.per_iteration_s == off.iteration_s
+    assert off.growth is None and off.probe_iteration_s == 0 and off.per_iteration_s(1000) == off.iteration_s
     with pytest.raises(MeshsplatError, match=r"--minutes 0\.001: too short on this machine .* give more minutes"):
         plan_budget(cfg, 0.001)
 
