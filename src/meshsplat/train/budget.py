@@ -278,19 +278,19 @@ def plan_budget(cfg: TrainConfig, minutes: float) -> tuple[TrainConfig, Budget]:
         )
     m = measure_iteration(cfg)
     budget_s = minutes * 60.0
-    lo, hi = 0, cfg.iterations  # the most iterations that fit: planned_seconds grows with them
+    least = min(MIN_ITERATIONS, cfg.iterations)  # a shorter configured schedule is trained whole if it fits
+    if planned_seconds(m, least) > budget_s:
+        need = planned_seconds(m, least) / 60.0
+        raise MeshsplatError(
+            f"--minutes {minutes:g}: too short on this machine (setup {m.setup_s:.0f} s, {m.iteration_s:.3g} s "
+            f"an iteration); {least} iterations need about {need:.1f} min; give more minutes or lower "
+            "the image size (--downscale) or model.n_init"
+        )
+    lo, hi = least, cfg.iterations  # the most iterations that fit: planned_seconds grows with them
     while lo < hi:
         mid = (lo + hi + 1) // 2
         lo, hi = (mid, hi) if planned_seconds(m, mid) <= budget_s else (lo, mid - 1)
-    fits = lo
-    if fits < MIN_ITERATIONS:
-        need = planned_seconds(m, MIN_ITERATIONS) / 60.0
-        raise MeshsplatError(
-            f"--minutes {minutes:g}: too short on this machine (setup {m.setup_s:.0f} s, {m.iteration_s:.3g} s "
-            f"an iteration); {MIN_ITERATIONS} iterations need about {need:.1f} min; give more minutes or lower "
-            "the image size (--downscale) or model.n_init"
-        )
-    iterations = fits
+    iterations = lo
     scaled, pairs = scale_schedule(cfg, iterations)
     budget = Budget(minutes, m, iterations, iterations / cfg.iterations, pairs, planned_seconds(m, iterations))
     return scaled, budget
