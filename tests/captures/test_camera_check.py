@@ -311,3 +311,20 @@ def test_no_progress_still_says_which_rule_chose_the_splits(tmp_path, standin_mo
     assert main([*args, "--set", "model.n_init=100", "loss.lambda_lpips=0"]) == 0
     out = capsys.readouterr().out
     assert out.count("splits from no config.json: the last 20%") == 1
+
+
+def test_an_absurd_intrinsic_rasterizes_without_overflow():
+    """Hypothesis found it: a skew of 3.2e19 put triangle corners past int64; the silhouette's bounding boxes
+    overflowed into negative sample counts (a ValueError deep in numpy). Boxes are clipped to the grid first."""
+    from meshsplat.data.camera_check import _silhouette
+
+    verts = np.array([[-0.5, 0.2, 0.0], [0.5, 0.2, 0.0], [0.0, 0.8, 0.0]])  # y > 0: a huge skew moves every corner
+    faces = np.array([[0, 1, 2]])
+    vm = np.eye(4)
+    vm[2, 3] = 3.0  # the triangle 3 units in front of an OpenCV camera looking along +z
+    for skew in (0.0, 3.2125885782776046e19, 1e21, 1e300):
+        intr = np.array([[64.0, skew, 32.0], [0.0, 64.0, 32.0], [0.0, 0.0, 1.0]])
+        sil = _silhouette(vm, intr, 64, 64, verts, faces, (8, 8), 8)
+        assert sil.dtype == bool and sil.shape[0] >= 8
+        if skew == 0.0:
+            assert sil.any()

@@ -171,7 +171,12 @@ def test_ctrl_c_stops_batch_promptly_and_the_same_command_resumes(tmp_path):
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2] / "src"), env.get("PYTHONPATH", "")])
     cmd = [sys.executable, "-m", "meshsplat.cli.main", "batch", str(tmp_path / "jobs.json"), "--out"]
     cmd += [str(tmp_path / "out"), "--workers", "1", "--no-progress"]
-    driver = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C as a terminal gives it: the test's own process may ignore SIGINT (an xdist worker after some
+    # tests), and a child keeps an ignored SIGINT; the whole suite hung here without this
+    restore_sigint = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    driver = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=restore_sigint
+    )
     run = RunFolder(tmp_path / "out" / "cap" / "run")
     try:
         deadline = time.monotonic() + 240

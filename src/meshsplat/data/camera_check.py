@@ -172,8 +172,11 @@ def _silhouette(vm: np.ndarray, K, w, h, verts: np.ndarray, faces: np.ndarray, s
     out = np.zeros((gh * sub, gw * sub), bool)
     f = faces[front[faces].all(1)]
     tri = np.stack([u[f], v[f]], -1) / step - 0.5  # [F,3,2] in samples, sample centres on integers
-    lo = np.maximum(np.ceil(tri.min(1)), 0).astype(np.int64)
-    hi = np.minimum(np.floor(tri.max(1)), [gw * sub - 1, gh * sub - 1]).astype(np.int64)
+    tri = tri[np.isfinite(tri).all((1, 2))]
+    top = np.array([gw * sub - 1, gh * sub - 1])
+    # boxes clipped to just beyond the grid before the integer casts (an absurd intrinsic puts corners at 1e19)
+    lo = np.maximum(np.ceil(np.clip(tri.min(1), -1, top + 1)), 0).astype(np.int64)
+    hi = np.minimum(np.floor(np.clip(tri.max(1), -1, top + 1)), top).astype(np.int64)
     keep = (hi >= lo).all(1)
     tri, lo, hi = tri[keep], lo[keep], hi[keep]
     count = (hi[:, 0] - lo[:, 0] + 1) * (hi[:, 1] - lo[:, 1] + 1)
