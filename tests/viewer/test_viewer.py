@@ -431,6 +431,76 @@ console.log(JSON.stringify(out));
     )
 
 
+def _one_side(av, n_min=20):
+    """The avatar with only its Gaussians on faces whose centroid has x > 0.35 (a part of the mesh)."""
+    v, f = av.mesh.vertices, av.mesh.faces
+    keep = v[f].mean(1)[:, 0][av.params["face"]] > 0.35
+    assert int(keep.sum()) >= n_min
+    return Avatar(av.mesh, {k: t[keep] for k, t in av.params.items()}, av.scale_mode, av.clamp_to_face)
+
+
+@needs_node
+def test_draw_mesh_holds_every_face_around_the_gaussians(tmp_path):
+    """drawMesh (the GPU posing passes' mesh): the faces that carry Gaussians, with each of their corners'
+    faces in the bundle's order (a corner's normal and frame sum the same faces in the same order), and
+    the Gaussians' faces renumbered; the whole mesh when every face carries one."""
+    av = make_avatar(n=400)
+    part = _one_side(av)
+    for name, a in (("part", part), ("whole", av)):
+        write_viewer_bundle(a, _frames(a), tmp_path / name)
+    script = f"""
+import {{ decodeBundle, drawMesh, vertexFaces }} from {json.dumps((tmp_path / "part" / "viewer.js").as_uri())};
+import fs from "fs";
+const load = (d) => decodeBundle(JSON.parse(fs.readFileSync(d + "/avatar.json", "utf8")), fs.readFileSync(d + "/avatar.bin"));
+const out = {{}};
+for (const name of ["part", "whole"]) {{
+  const b = load({json.dumps(str(tmp_path))} + "/" + name), m = drawMesh(b);
+  const full = vertexFaces(b.faces, b.V), mine = vertexFaces(m.faces, m.V);
+  const vert = (i) => m.vertex ? m.vertex[i] : i, face = (k) => m.face ? m.face[k] : k;
+  const faceOf = Array.from(m.gaussianFace, (k, g) => [face(k) === b.face[g],
+    [0, 1, 2].every((j) => vert(m.faces[3 * k + j]) === b.faces[3 * b.face[g] + j])]);
+  const rings = []; // each Gaussian corner's faces: the draw mesh's (as bundle faces) and the bundle's
+  for (let g = 0; g < b.N; g++) for (let j = 0; j < 3; j++) {{
+    const i = m.faces[3 * m.gaussianFace[g] + j], v = vert(i);
+    rings.push([Array.from(mine.adj.subarray(mine.va[4 * i], mine.va[4 * i] + mine.va[4 * i + 1]), face),
+                Array.from(full.adj.subarray(full.va[4 * v], full.va[4 * v] + full.va[4 * v + 1]))]);
+  }}
+  out[name] = {{ V: m.V, F: m.F, bV: b.V, bF: b.F, whole: m.vertex === null && m.face === null, faceOf, rings }};
+}}
+console.log(JSON.stringify(out));
+"""
+    js = _node(script, tmp_path)
+    part_js, whole_js = js["part"], js["whole"]
+    assert not part_js["whole"] and part_js["F"] < part_js["bF"] and part_js["V"] < part_js["bV"]
+    assert all(a and b for a, b in part_js["faceOf"])
+    assert all(mine == full for mine, full in part_js["rings"]) and len(part_js["rings"]) == 3 * part.num_gaussians
+    assert whole_js["whole"] and (whole_js["V"], whole_js["F"]) == (whole_js["bV"], whole_js["bF"])
+
+
+@pytest.mark.slow
+def test_browser_draw_mesh_poses_as_the_whole_mesh(tmp_path):
+    """Gaussians on part of the mesh: the page posing only the faces around them (the default) draws the
+    image that posing the whole mesh (?mesh=all) draws, bit for bit, for vertex frames and a live
+    blend-shape rig, and both match avatar.render."""
+    av = _one_side(make_avatar(n=400))
+    write_viewer_bundle(av, _frames(av), tmp_path / "f", camera={"width": 256, "height": 256})
+    h, a = read_viewer_bundle(tmp_path / "f")
+    drawn = _shoot(tmp_path / "f", 1, 256, tmp_path / "f.png")
+    whole = _page_image((tmp_path / "f" / "index.html").as_uri() + "?frame=1&ui=0&mesh=all", 256, tmp_path / "fa.png")
+    assert np.array_equal(drawn, whole)
+    assert _psnr(drawn, _render_ref(av, a["vertices"][1], h["camera"])) > 40.0
+    assert (drawn < 250).any(axis=-1).mean() > 0.01  # the avatar is drawn
+    drv = _small_blendshapes(av)
+    write_viewer_bundle(av, None, tmp_path / "r", fps=10.0, rig=drv, camera={"width": 256, "height": 256})
+    cam = read_viewer_bundle(tmp_path / "r")[0]["camera"]
+    url = (tmp_path / "r" / "index.html").as_uri() + "?time=0.3&morph=0:1&ui=0"
+    drawn = _page_image(url, 256, tmp_path / "r.png")
+    assert np.array_equal(drawn, _page_image(url + "&mesh=all", 256, tmp_path / "ra.png"))
+    wts = drv.weights[3].clone()
+    wts[0] = 1.0
+    assert _psnr(drawn, _render_ref(av, drv.pose(wts, drv.rotations[3], drv.translations[3]), cam)) > 40.0
+
+
 # ---------------------------------------------------------------- CLI
 def test_view_cli_vertices_and_dataset(tmp_path, capsys):
     from _eval_kit import make_dataset

@@ -435,6 +435,55 @@ def test_browser_webcam_drives_the_head(tmp_path, head, model):
     assert shown[names.index("mouthSmile_R")] == pytest.approx(smile_l_raw, abs=0.15)
 
 
+@pytest.mark.slow
+def test_browser_webcam_rebuilds_shadows_at_most_every_250_ms(tmp_path, head, model):
+    """A key-lit head driven by a turning face: the shadow worker rebuilds the height maps at most every
+    WEBCAM_SHADOW_MS while the webcam drives the avatar (whose tiny mesh would let it rebuild for every
+    solution), and the shown pose still gets its maps."""
+    from test_viewer import key_shading
+
+    from meshsplat.gaussians import Avatar
+
+    chromium = _chromium()
+    landmarker = _installed_landmarker()
+    frames = [_head_image(head, {"jawOpen": 0.3}, [0.05, 0.25 * math.sin(2 * math.pi * i / 8), 0.0]) for i in range(8)]
+    clip = write_y4m(tmp_path / "face.y4m", frames, fps=20)
+    base_av = make_avatar(n=300)
+    av = Avatar(base_av.mesh, base_av.params, base_av.scale_mode, shading=key_shading((0.6, 0.3, 0.75), grid=32))
+    write_viewer_bundle(av, None, tmp_path / "v", rig=_small_blendshapes(av), webcam=model, landmarker=landmarker)
+    srv, base = serve(tmp_path / "v")
+    count = "window.meshsplatViewer.timings.key.length"
+    try:
+        with open_page(f"{base}/index.html?play=0", 640, 480, chromium, fake_camera=clip) as page:
+            page.wait_ready(60)
+            page.evaluate("document.getElementById('webcam').click()")
+            deadline = time.monotonic() + 60
+            while page.evaluate("(window.meshsplatViewer.webcam || {stats: {frames: 0}}).stats.frames") < 3:
+                assert time.monotonic() < deadline, page.evaluate("document.getElementById('camstatus').textContent")
+                time.sleep(0.1)
+            built0, frames0, t0 = (
+                page.evaluate(count),
+                page.evaluate("window.meshsplatViewer.webcam.stats.frames"),
+                time.monotonic(),
+            )
+            time.sleep(3.0)
+            built, solved, dt = (
+                page.evaluate(count) - built0,
+                page.evaluate("window.meshsplatViewer.webcam.stats.frames") - frames0,
+                time.monotonic() - t0,
+            )
+            page.evaluate("document.getElementById('camstop').click()")
+            time.sleep(0.5)
+            state = json.loads(page.evaluate("JSON.stringify(window.meshsplatViewer.state)"))
+    finally:
+        srv.shutdown()
+    print(f"webcam with a key light: {solved} solutions, {built} height-map builds in {dt:.1f} s")
+    assert solved >= 10, solved  # the face moved: every solution is a new pose
+    assert 1 <= built <= dt / 0.25 + 2, (built, dt)
+    assert built < solved
+    assert state["shadowKey"] == state["poseKey"]  # after "stop" the shown pose has its own maps
+
+
 def test_view_cli_webcam_needs_a_live_head(tmp_path, capsys):
     """`meshsplat view --webcam` on vertex frames says what it needs, in one line."""
     from _eval_kit import make_run

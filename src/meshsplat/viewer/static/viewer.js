@@ -1173,19 +1173,64 @@ export function vertexFaces(faces, V) {
 }
 
 /**
+ * The part of bundle `b`'s mesh that the GPU posing passes need: the faces that carry Gaussians, every face
+ * around their corners (a corner's normal and frame sum over all of its faces), and those faces' vertices,
+ * renumbered in their bundle order, so each corner sums the same faces in the same order as over the whole
+ * mesh (the same bits). A head's Gaussians lie on a fifth of its faces (none on the back of the head, inside
+ * the mouth or on the eyeballs); the posing passes shrink with it. Returns { V, F, faces [F*3] (its vertex
+ * numbers), vertex [V] (its vertex -> the bundle's), face [F] (its face -> the bundle's), gaussianFace [N]
+ * (each Gaussian's face, its number) }; vertex and face are null where it is the whole mesh.
+ */
+export function drawMesh(b) {
+  const V = b.V, F = b.F, faces = b.faces, corner = new Uint8Array(V), carries = new Uint8Array(F);
+  for (let g = 0; g < b.N; g++) carries[b.face[g]] = 1;
+  for (let k = 0; k < F; k++) if (carries[k]) for (let j = 0; j < 3; j++) corner[faces[3 * k + j]] = 1;
+  const faceNo = new Int32Array(F).fill(-1), vertNo = new Int32Array(V).fill(-1);
+  let nF = 0, nV = 0;
+  for (let k = 0; k < F; k++) {
+    if (corner[faces[3 * k]] || corner[faces[3 * k + 1]] || corner[faces[3 * k + 2]]) {
+      faceNo[k] = nF++;
+      for (let j = 0; j < 3; j++) vertNo[faces[3 * k + j]] = 0;
+    }
+  }
+  for (let v = 0; v < V; v++) if (vertNo[v] === 0) vertNo[v] = nV++;
+  if (b.N === 0 || (nF === F && nV === V)) return { V, F, faces, vertex: null, face: null, gaussianFace: b.face };
+  const vertex = new Uint32Array(nV), face = new Uint32Array(nF), out = new Uint32Array(3 * nF), gaussianFace = new Uint32Array(b.N);
+  for (let v = 0; v < V; v++) if (vertNo[v] >= 0) vertex[vertNo[v]] = v;
+  for (let k = 0; k < F; k++) {
+    const i = faceNo[k];
+    if (i < 0) continue;
+    face[i] = k;
+    for (let j = 0; j < 3; j++) out[3 * i + j] = vertNo[faces[3 * k + j]];
+  }
+  for (let g = 0; g < b.N; g++) gaussianFace[g] = faceNo[b.face[g]];
+  return { V: nV, F: nF, faces: out, vertex, face, gaussianFace };
+}
+
+/** Rows `rows` (an index array, or null: all) of `src`, each `width` values wide, as a new array of its type. */
+function gatherRows(src, width, rows) {
+  if (rows === null) return src;
+  const out = new src.constructor(rows.length * width);
+  for (let i = 0; i < rows.length; i++) for (let j = 0, o = rows[i] * width; j < width; j++) out[i * width + j] = src[o + j];
+  return out;
+}
+
+/**
  * Splat renderer on a WebGL2 canvas. Static textures: packed Gaussians (and their SH bands), faces, canonical face
  * frames, vertex->face adjacency (and the rig). Per pose: `setVertices(p)` (vertex frames) or
- * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU; per sort:
+ * `setRig(state)` (live glTF), then the face and vertex passes run on the GPU, over drawMesh(b) (the faces
+ * near the Gaussians); per sort:
  * `setOrder(order, n)`; `draw(viewmat, K, background)` runs pass C (each Gaussian projected and shaded once,
  * into three data textures), then issues one draw call of their quads into an RGBA16F target
  * (`floatTarget`; else straight into the canvas) and one full-screen pass that clamps it into the canvas.
  */
 export class SplatRenderer {
-  constructor(canvas, b, { floatTarget = true } = {}) {
+  constructor(canvas, b, { floatTarget = true, wholeMesh = false } = {}) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
     if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float textures (EXT_color_buffer_float)");
     this.gl = gl; this.b = b;
+    const m = this.mesh = wholeMesh ? { V: b.V, F: b.F, faces: b.faces, vertex: null, face: null, gaussianFace: b.face } : drawMesh(b);
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
     this.prep = program(gl, PASS_VERT, PREP_FRAG, ["count", "R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
@@ -1203,20 +1248,26 @@ export class SplatRenderer {
     this.blend8 = false; // this draw through the 8-bit path even with a float target (webcam mode on slow draws)
     this.floatTarget = floatTarget && this.resizeTarget(1, 1);
     if (floatTarget && !this.floatTarget) console.warn("meshsplat viewer: no RGBA16F render target; blending in 8 bits (colours above 1 clamped per splat)");
-    const ftex = new Uint32Array(4 * b.F);
-    for (let k = 0; k < b.F; k++) for (let j = 0; j < 3; j++) ftex[4 * k + j] = b.faces[3 * k + j];
-    const cf = new Float32Array(12 * b.F); // rows (t_i, b_i, n_i, area) of the canonical face frames
-    for (let k = 0; k < b.F; k++) {
-      for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) cf[12 * k + 4 * i + j] = b.canoFrames[9 * k + 3 * i + j];
-      cf[12 * k + 3] = b.canoAreas[k];
+    const ftex = new Uint32Array(4 * m.F);
+    for (let k = 0; k < m.F; k++) for (let j = 0; j < 3; j++) ftex[4 * k + j] = m.faces[3 * k + j];
+    const cf = new Float32Array(12 * m.F); // rows (t_i, b_i, n_i, area) of the canonical face frames
+    for (let k = 0; k < m.F; k++) {
+      const o = m.face ? m.face[k] : k;
+      for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) cf[12 * k + 4 * i + j] = b.canoFrames[9 * o + 3 * i + j];
+      cf[12 * k + 3] = b.canoAreas[o];
     }
-    const { va, adj } = vertexFaces(b.faces, b.V);
+    const { va, adj } = vertexFaces(m.faces, m.V);
+    let packed = b.packed;
+    if (m.face) { // each Gaussian's face word (bundle.py pack_gaussians: word 0 of 8) in the draw mesh's numbers
+      packed = Uint32Array.from(b.packed);
+      for (let g = 0; g < b.N; g++) packed[8 * g] = m.gaussianFace[g];
+    }
     this.t = {
-      g: dataTexture(gl, "u4", 2 * b.N, b.packed), f: dataTexture(gl, "u4", b.F, ftex),
+      g: dataTexture(gl, "u4", 2 * b.N, packed), f: dataTexture(gl, "u4", m.F, ftex),
       sh: b.shRest ? dataTexture(gl, "u4", b.shRest.length / 4, b.shRest) : dataTexture(gl, "u4", 1),
-      cf: dataTexture(gl, "f4", 3 * b.F, cf), va: dataTexture(gl, "u4", b.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
-      p: dataTexture(gl, "f4", b.V), n: dataTexture(gl, "f4", b.V), q: dataTexture(gl, "f4", b.V),
-      fq: dataTexture(gl, "f4", b.F), fc: dataTexture(gl, "f4", b.F), r: dataTexture(gl, "f4", b.F),
+      cf: dataTexture(gl, "f4", 3 * m.F, cf), va: dataTexture(gl, "u4", m.V, va), adj: dataTexture(gl, "u1", adj.length, adj),
+      p: dataTexture(gl, "f4", m.V), n: dataTexture(gl, "f4", m.V), q: dataTexture(gl, "f4", m.V),
+      fq: dataTexture(gl, "f4", m.F), fc: dataTexture(gl, "f4", m.F), r: dataTexture(gl, "f4", m.F),
       gPos: dataTexture(gl, "f4", b.N), gConic: dataTexture(gl, "f4", b.N), gCol: dataTexture(gl, "f4", b.N),
       order: dataTexture(gl, "u1", b.N),
     };
@@ -1232,14 +1283,15 @@ export class SplatRenderer {
     for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, kg, ks * kg, 0, gl.RED, gl.FLOAT, new Float32Array(ks * kg * kg));
     if (b.rig) {
-      const r = b.rig, base4 = new Float32Array(4 * b.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
-      for (let v = 0; v < b.V; v++) for (let j = 0; j < 3; j++) base4[4 * v + j] = r.base[3 * v + j];
+      const r = b.rig, base4 = new Float32Array(4 * m.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
+      for (let v = 0; v < m.V; v++) for (let j = 0, o = m.vertex ? m.vertex[v] : v; j < 3; j++) base4[4 * v + j] = r.base[3 * o + j];
       for (let i = 0; i < r.deltas.length / 3; i++) for (let j = 0; j < 3; j++) delta4[4 * i + j] = r.deltas[3 * i + j];
       this.skinPass = program(gl, PASS_VERT, SKIN_FRAG, ["count", "K", "baseTex", "deltaTex", "weightTex", "pairTex", "jwTex", "morphTex", "jiTex"]);
-      Object.assign(this.t, {
-        base: dataTexture(gl, "f4", b.V, base4), delta: dataTexture(gl, "f4", delta4.length / 4, delta4),
-        morph: dataTexture(gl, "u4", b.V, r.morphInfo), ji: dataTexture(gl, "u4", b.V * r.K / 4, r.pairIndex),
-        jw: dataTexture(gl, "f4", b.V * r.K / 4, r.pairWeight), pair: dataTexture(gl, "f4", 3 * r.P),
+      Object.assign(this.t, { // per vertex of the draw mesh: its morph rows and joint pairs (the deltas stay whole)
+        base: dataTexture(gl, "f4", m.V, base4), delta: dataTexture(gl, "f4", delta4.length / 4, delta4),
+        morph: dataTexture(gl, "u4", m.V, gatherRows(r.morphInfo, 4, m.vertex)),
+        ji: dataTexture(gl, "u4", m.V * r.K / 4, gatherRows(r.pairIndex, r.K, m.vertex)),
+        jw: dataTexture(gl, "f4", m.V * r.K / 4, gatherRows(r.pairWeight, r.K, m.vertex)), pair: dataTexture(gl, "f4", 3 * r.P),
         weight: dataTexture(gl, "f1", Math.max(1, r.defaultWeights.length)),
       });
       this.fbSkin = this.framebuffer([this.t.p]);
@@ -1323,8 +1375,11 @@ export class SplatRenderer {
 
   /** Posed vertex positions [V*3] (vertex-frame driver): upload, then the face and vertex passes. */
   setVertices(p) {
-    const V = this.b.V, p4 = this.p4 || (this.p4 = new Float32Array(4 * V));
-    for (let v = 0; v < V; v++) { p4[4 * v] = p[3 * v]; p4[4 * v + 1] = p[3 * v + 1]; p4[4 * v + 2] = p[3 * v + 2]; }
+    const m = this.mesh, V = m.V, p4 = this.p4 || (this.p4 = new Float32Array(4 * V));
+    for (let v = 0; v < V; v++) {
+      const o = 3 * (m.vertex ? m.vertex[v] : v);
+      p4[4 * v] = p[o]; p4[4 * v + 1] = p[o + 1]; p4[4 * v + 2] = p[o + 2];
+    }
     updateTexture(this.gl, this.t.p, p4);
     this.poseMeshPasses();
   }
@@ -1345,15 +1400,15 @@ export class SplatRenderer {
     pairs.set(state.pairs);
     updateTexture(gl, t.pair, pairs);
     if (state.weights.length) updateTexture(gl, t.weight, state.weights);
-    this.runPass(this.skinPass, this.fbSkin, this.b.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
+    this.runPass(this.skinPass, this.fbSkin, this.mesh.V, { baseTex: t.base, deltaTex: t.delta, weightTex: t.weight,
       pairTex: t.pair, jwTex: t.jw, morphTex: t.morph, jiTex: t.ji }, (loc) => gl.uniform1i(loc.K, this.b.rig.K));
     this.poseMeshPasses();
   }
 
   poseMeshPasses() {
     const t = this.t;
-    this.runPass(this.facePass, this.fbFace, this.b.F, { pTex: t.p, cfTex: t.cf, fTex: t.f });
-    this.runPass(this.vertPass, this.fbVert, this.b.V, { fqTex: t.fq, fcTex: t.fc, adjTex: t.adj, vaTex: t.va });
+    this.runPass(this.facePass, this.fbFace, this.mesh.F, { pTex: t.p, cfTex: t.cf, fTex: t.f });
+    this.runPass(this.vertPass, this.fbVert, this.mesh.V, { fqTex: t.fq, fcTex: t.fc, adjTex: t.adj, vaTex: t.va });
   }
 
   /** The sort's back-to-front Gaussian indices `order[0:n]`, uploaded in whole texture rows. */
@@ -1711,8 +1766,12 @@ export function drawingSize(cssW, cssH, deviceRatio, quality, budget, cap = 0) {
 /** Webcam mode re-sorts the Gaussians only when the head turned (quaternion angle, rad) or moved (its
  * translation, in the avatar's bounding radius) or a morph weight changed past these since the last sort. */
 export const WEBCAM_RESORT = { angle: 0.02, move: 0.01, weight: 0.05 };
-/** ... and a new order is drawn by itself only once no solution came for this long (ms). */
+/** ... and a new order (or new shadow maps) is drawn by itself only once no solution came for this long (ms). */
 export const WEBCAM_SETTLE_MS = 150;
+/** While the webcam drives the avatar, the key light's height maps are rebuilt at most this often (ms): a
+ * build costs a trained head's shadow worker about as much CPU as a draw, and the webcam's frames share the
+ * CPU with it (bench/reports/viewer.md, webcam mode). */
+export const WEBCAM_SHADOW_MS = 250;
 
 /** Whether webcam pose `p` ({weights, rotation: {rotation xyzw, translation} | null}) is within
  * WEBCAM_RESORT of `s` (the pose last sorted), `radius` the avatar's bounding radius. */
@@ -1945,7 +2004,7 @@ export function startViewer(doc) {
   if ($("loading")) $("loading").hidden = true;
   const params = new URLSearchParams(doc.location ? doc.location.search : "");
   const canvas = $("canvas");
-  const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0" });
+  const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0", wholeMesh: params.get("mesh") === "all" });
   const poser = new FramePoser(b);
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
@@ -1981,7 +2040,7 @@ export function startViewer(doc) {
     playing: !still && params.get("play") !== "0" && (live ? clips.length > 0 : b.T > 1),
     white: (params.get("bg") || header.background || "white") !== "black",
     poseKey: "", sortedKey: null, drawnKey: null, pendingKey: null, sortMs: 0, moved: Infinity, lastNow: null,
-    shadowKey: null, shadowPending: null, // the pose whose height maps are uploaded / being built (model.occlusion=key)
+    shadowKey: null, shadowPending: null, shadowAt: -Infinity, // the pose whose height maps are uploaded / being built (model.occlusion=key), when asked
     camSorted: null, camPoseKey: null, camPoseAt: 0, drawnBase: null, // webcam mode: the pose last sorted, the newest solution's key and time
   };
   for (const kv of (params.get("morph") || "").split(",").filter(Boolean)) { // ?morph=INDEX:WEIGHT,...
@@ -2310,8 +2369,10 @@ export function startViewer(doc) {
       }
       state.poseKey = poseKey;
     }
-    // the shadow worker builds the key light's height maps of the newest pose whenever it is free
-    if (mapper && poseKey !== state.shadowKey && state.shadowPending === null) {
+    // the shadow worker builds the key light's height maps of the newest pose whenever it is free (while the
+    // webcam drives the avatar, at most every WEBCAM_SHADOW_MS)
+    if (mapper && poseKey !== state.shadowKey && state.shadowPending === null && !(webcamOn && now - state.shadowAt < WEBCAM_SHADOW_MS)) {
+      state.shadowAt = now;
       state.shadowPending = poseKey; // before the request: without a worker the result comes back inside it
       if (!mapper.request(pose)) state.shadowPending = null;
     }
@@ -2327,10 +2388,11 @@ export function startViewer(doc) {
       if (webcamOn) state.camSorted = { pose: camPose, key: sortPoseKey };
       if (!sorter.request(pose, viewmat)) state.pendingKey = null;
     }
-    // draw when the pose, view, order, background or size changed (a still page stays idle); in webcam
-    // mode a new order alone waits for the next solution's draw while solutions keep coming (one draw each)
-    const drawBase = `${poseKey}|${key}|${state.shadowKey}|${state.white}|${w}x${h}|${renderer.blend8}`;
-    const drawKey = `${drawBase}|${state.sortedKey}`;
+    // draw when the pose, view, order, shadows, background or size changed (a still page stays idle); in webcam
+    // mode a new order or new height maps alone wait for the next solution's draw while solutions keep coming
+    // (one draw each)
+    const drawBase = `${poseKey}|${key}|${state.white}|${w}x${h}|${renderer.blend8}`;
+    const drawKey = `${drawBase}|${state.sortedKey}|${state.shadowKey}`;
     const orderOnly = webcamOn && state.drawnBase === drawBase && now - state.camPoseAt < WEBCAM_SETTLE_MS;
     if (drawKey !== state.drawnKey && !orderOnly && !(mapper && state.shadowKey === null)) { // not before the first height maps
       lastDraw = [viewmat, K, state.white ? [1, 1, 1] : [0, 0, 0]];
