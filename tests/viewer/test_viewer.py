@@ -383,12 +383,15 @@ console.log(JSON.stringify({{ keys: Array.from(keys), keys2: Array.from(keys2), 
 
 
 def _small_blendshapes(av, frames=6, seed=1):
-    """A BlendshapeDriver on the test avatar's mesh: 4 random expressions (float16 values), a sequence."""
+    """A BlendshapeDriver on the test avatar's mesh: 4 random expressions (float16 values), each moving
+    only half the vertices (as a face's expressions move a part of it), a sequence."""
     from meshsplat.drivers import BlendshapeDriver
 
     g = torch.Generator().manual_seed(seed)
     v = av.mesh.vertices
     deltas = (0.2 * torch.randn(4, *v.shape, generator=g)).half().float()
+    for e in range(4):
+        deltas[e, (v[:, e % 3] > 0) ^ (e == 3)] = 0.0
     return BlendshapeDriver(
         v,
         av.mesh.faces,
@@ -409,7 +412,12 @@ def test_js_blendshape_rig_matches_driver(tmp_path):
     write_viewer_bundle(av, None, tmp_path, fps=10.0, rig=drv)
     h = read_viewer_bundle(tmp_path)[0]
     g = h["driver"]["morph_groups"][0]
-    assert g["names"] == drv.names and h["driver"]["morph_encoding"] == "float16"
+    assert g["names"] == drv.names and h["driver"]["morph_encoding"] == "float16-sparse"
+    # only the deltas that move their vertex are stored, vertex by vertex
+    a = read_viewer_bundle(tmp_path)[1]
+    moves = (drv.deltas != 0).any(-1)  # [E, V]
+    assert a["morph_deltas"].shape == (int(moves.sum()), 2) and 0 < moves.float().mean() < 0.75
+    np.testing.assert_array_equal(a["morph_info"][:, 1], moves.sum(0).numpy())
     script = f"""
 import {{ decodeBundle, evalRig, skinVertices }} from {json.dumps((tmp_path / "viewer.js").as_uri())};
 import fs from "fs";
@@ -751,7 +759,9 @@ def test_view_cli_blendshapes_ict_head(tmp_path, assets, capsys):
     h, a = read_viewer_bundle(tmp_path / "v")
     d = h["driver"]
     assert d["kind"] == "gltf" and d["morph_groups"][0]["names"] == drv.names and "jawOpen" in drv.names
-    assert d["clips"][0]["duration"] == pytest.approx(9 / 25) and a["morph_deltas"].shape == (len(drv.names) * 26719, 2)
+    assert d["clips"][0]["duration"] == pytest.approx(9 / 25) and d["morph_encoding"] == "float16-sparse"
+    moves = int((drv.deltas.half() != 0).any(-1).sum())  # an expression moves part of the face: 43% of (shape, vertex)
+    assert a["morph_deltas"].shape == (moves, 2) and moves < 0.5 * len(drv.names) * 26719
     assert "live blendshapes" in capsys.readouterr().out
     small = make_run(make_avatar(n=20), tmp_path / "small", None)
     assert main(["view", str(small), "--out", str(tmp_path / "x"), "--animation", "blendshapes"]) == 2

@@ -127,18 +127,24 @@ function decodeRig(d, arr) {
     ...ch, times: arr.anim_times.subarray(ch.t_off, ch.t_off + ch.count),
     values: arr.anim_values.subarray(ch.v_off, ch.v_off + ch.count * ch.width * (ch.interp === "CUBICSPLINE" ? 3 : 1)),
   })) }));
-  let deltas = arr.morph_deltas;
-  if (d.morph_encoding === "float16") { // [D, 2] words: x|y, z|0 half floats
-    deltas = new Float32Array(1.5 * arr.morph_deltas.length);
+  // deltas [D*3]; sparse: each delta's target in its vertex's group [D] (its weight: weights[first weight + target]),
+  // else (dense groups) vertex v's m-th delta is target m, at first delta + m * group size
+  let deltas = arr.morph_deltas, deltaTarget = null;
+  const sparse = d.morph_encoding === "float16-sparse";
+  if (sparse || d.morph_encoding === "float16") { // [D, 2] words: x|y, z|0 half floats (sparse: z|target)
+    const D = arr.morph_deltas.length / 2;
+    deltas = new Float32Array(3 * D);
+    if (sparse) deltaTarget = new Uint16Array(D);
     for (let i = 0, o = 0; i < arr.morph_deltas.length; i += 2, o += 3) {
       const a = arr.morph_deltas[i], c = arr.morph_deltas[i + 1];
       deltas[o] = halfToFloat(a & 0xffff); deltas[o + 1] = halfToFloat(a >>> 16); deltas[o + 2] = halfToFloat(c & 0xffff);
+      if (sparse) deltaTarget[i >> 1] = c >>> 16;
     }
   }
   return { K: d.influences, P: d.num_pairs, nodes: d.num_nodes, base: arr.rig_base, pairIndex: arr.rig_pair_index,
            pairWeight: arr.rig_pair_weight, pairNode: arr.pair_node, pairIbm: arr.pair_ibm, parent: arr.node_parent,
            order: arr.node_order, rest: arr.node_rest, trs: arr.node_trs, matrixNodes: new Set(d.matrix_nodes),
-           morphInfo: arr.morph_info, deltas, defaultWeights: arr.morph_default_weights,
+           morphInfo: arr.morph_info, deltas, deltaTarget, defaultWeights: arr.morph_default_weights,
            groups: d.morph_groups, clips };
 }
 
@@ -256,13 +262,13 @@ export function evalRig(rig, clip, time, override, out, pose) {
 /** Posed vertices [V*3] of a rig state: linear blend skinning of the morphed base (CPU; the page does it on the GPU). */
 export function skinVertices(rig, state, V, out) {
   out = out || new Float32Array(3 * V);
-  const K = rig.K, P = state.pairs, W = state.weights, info = rig.morphInfo, D = rig.deltas;
+  const K = rig.K, P = state.pairs, W = state.weights, info = rig.morphInfo, D = rig.deltas, T = rig.deltaTarget;
   for (let v = 0; v < V; v++) {
     let x = rig.base[3 * v], y = rig.base[3 * v + 1], z = rig.base[3 * v + 2];
     const m0 = info[4 * v], M = info[4 * v + 1], n = info[4 * v + 2], wb = info[4 * v + 3];
     for (let m = 0; m < M; m++) {
-      const w = W[wb + m];
-      if (w !== 0) { const o = 3 * (m0 + m * n); x += w * D[o]; y += w * D[o + 1]; z += w * D[o + 2]; }
+      const i = m0 + m * n, w = W[wb + (T ? T[i] : m)];
+      if (w !== 0) { const o = 3 * i; x += w * D[o]; y += w * D[o + 1]; z += w * D[o + 2]; }
     }
     let ox = 0, oy = 0, oz = 0;
     for (let k = 0; k < K; k++) {
@@ -798,10 +804,11 @@ void main() {
   int v = here();
   if (v >= count) { o = vec4(0.0); return; }
   vec3 p = texelFetch(baseTex, at(v), 0).xyz;
-  uvec4 mi = texelFetch(morphTex, at(v), 0);
+  uvec4 mi = texelFetch(morphTex, at(v), 0);       // first delta, count, group size, first weight
   for (uint m = 0u; m < mi.y; m++) {
-    float w = texelFetch(weightTex, at(int(mi.w + m)), 0).x;
-    if (w != 0.0) p += w * texelFetch(deltaTex, at(int(mi.x + m * mi.z)), 0).xyz;
+    vec4 d = texelFetch(deltaTex, at(int(mi.x + m * mi.z)), 0);  // xyz, its target in the group (w)
+    float w = texelFetch(weightTex, at(int(mi.w) + int(d.w)), 0).x;
+    if (w != 0.0) p += w * d.xyz;
   }
   vec4 r0 = vec4(0.0), r1 = vec4(0.0), r2 = vec4(0.0);
   for (int t = 0; t < K / 4; t++) {
@@ -1285,7 +1292,14 @@ export class SplatRenderer {
     if (b.rig) {
       const r = b.rig, base4 = new Float32Array(4 * m.V), delta4 = new Float32Array(4 * Math.max(1, r.deltas.length / 3));
       for (let v = 0; v < m.V; v++) for (let j = 0, o = m.vertex ? m.vertex[v] : v; j < 3; j++) base4[4 * v + j] = r.base[3 * o + j];
-      for (let i = 0; i < r.deltas.length / 3; i++) for (let j = 0; j < 3; j++) delta4[4 * i + j] = r.deltas[3 * i + j];
+      for (let i = 0; i < r.deltas.length / 3; i++) {
+        for (let j = 0; j < 3; j++) delta4[4 * i + j] = r.deltas[3 * i + j];
+        if (r.deltaTarget) delta4[4 * i + 3] = r.deltaTarget[i];
+      }
+      if (!r.deltaTarget) { // dense groups: vertex v's m-th delta is target m
+        const info = r.morphInfo;
+        for (let v = 0; v < b.V; v++) for (let k = 0; k < info[4 * v + 1]; k++) delta4[4 * (info[4 * v] + k * info[4 * v + 2]) + 3] = k;
+      }
       this.skinPass = program(gl, PASS_VERT, SKIN_FRAG, ["count", "K", "baseTex", "deltaTex", "weightTex", "pairTex", "jwTex", "morphTex", "jiTex"]);
       Object.assign(this.t, { // per vertex of the draw mesh: its morph rows and joint pairs (the deltas stay whole)
         base: dataTexture(gl, "f4", m.V, base4), delta: dataTexture(gl, "f4", delta4.length / 4, delta4),
