@@ -28,7 +28,8 @@ median weights over the window. The load average goes with each run: the machine
 
 ``--avatar RUN``: a trained blend-shape head instead (e.g. a head from ``meshsplat track`` + ``train``), its
 page written by ``meshsplat view RUN --animation blendshapes --webcam`` (``before``: the same command with the
-old viewer.js). ``--motion turn``: the camera's head yaws +-0.25 rad once a second (a moving face costs the
+old viewer.js; with ``--before-src OTHER/src``, the command of that checkout, its writer and page both, for a
+change of the bundle's layout). ``--motion turn``: the camera's head yaws +-0.25 rad once a second (a moving face costs the
 landmarker more and re-sorts the avatar).
 
 Usage: python bench/viewer_webcam.py [--rounds 2] [--seconds 15] [--variants before,after]
@@ -43,6 +44,7 @@ import json
 import math
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -131,10 +133,18 @@ def head_clip(head, motion: str) -> list[np.ndarray]:
     return [head_frame(head, (ROT[0], ROT[1] + 0.25 * math.sin(2 * math.pi * i / FPS), ROT[2])) for i in range(FPS)]
 
 
-def write_bundle(out: Path, model, landmarker: Path, viewer_js: str | None, run: Path | None = None) -> None:
+def write_bundle(
+    out: Path, model, landmarker: Path, viewer_js: str | None, run: Path | None = None, src: Path | None = None
+) -> None:
     """The webcam bundle of the browser tests' small avatar, or with ``run`` of that trained head as a user
     makes it (``meshsplat view RUN --animation blendshapes --webcam``); ``viewer_js``: another page's code
-    (the baseline)."""
+    (the baseline); ``src``: write it with another checkout's ``src`` instead (its writer and its page)."""
+    if src is not None and run is not None:
+        argv = ["view", str(run), "--animation", "blendshapes", "--webcam", str(landmarker), "--out", str(out)]
+        code = f"from meshsplat.cli.main import main; raise SystemExit(main({argv!r}))"
+        env = dict(os.environ, PYTHONPATH=str(src))
+        subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
+        return
     with page_code(viewer_js):
         if run is None:
             av = make_avatar(n=300)
@@ -226,6 +236,12 @@ def main() -> None:
         "writes it); default the browser tests' small avatar (300 Gaussians)",
     )
     ap.add_argument("--motion", choices=("still", "turn"), default="still", help="the camera's face: still or turning")
+    ap.add_argument(
+        "--before-src",
+        type=Path,
+        default=None,
+        help="with --avatar: write the 'before' page with this checkout's src (its writer and page)",
+    )
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     chromium = find_chromium()
@@ -243,7 +259,7 @@ def main() -> None:
     if "renderedMs" not in old_js:
         assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
         old_js = old_js.replace(OLD_LATENCY, FENCED_LATENCY)
-    write_bundle(work / "before", model, landmarker, old_js, args.avatar)
+    write_bundle(work / "before", model, landmarker, old_js, args.avatar, args.before_src)
     write_bundle(work / "now", model, landmarker, None, args.avatar)
     gaussians = json.loads((work / "now" / "avatar.json").read_text())["num_gaussians"]
     srv, base = serve(work)
@@ -311,6 +327,7 @@ def main() -> None:
                     "gaussians": gaussians,
                 },
                 "before_rev": args.before_rev,
+                "before_src": bool(args.before_src),
                 "offline_expr": {n: round(float(offline[names.index(n)]), 3) for n in EXPR},
                 "runs": runs,
             },
