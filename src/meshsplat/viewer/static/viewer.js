@@ -1618,8 +1618,14 @@ export function solveFace(m, obs, width, height, prev = null, opts = {}) {
     t = [(mx - cx) * z0 / f - ax, -(my - cy) * z0 / f - ay, -z0 - az];
   }
   const p0 = prev ? { RT: [0, 3, 6, 1, 4, 7, 2, 5, 8].map((i) => prev.R[i]), t: prev.t, w: prev.w } : null;
-  const q = new Float64Array(3 * L), H = new Float64Array(n * n), g = new Float64Array(n), row = new Float64Array(n);
+  const q = new Float64Array(3 * L), H = new Float64Array(n * n), g = new Float64Array(n);
+  const rowU = new Float64Array(n), rowV = new Float64Array(n);
   const piv = m.pivot, D = m.deltas, N0 = m.neutral, LL = 3 * L;
+  if (!m.deltasByLandmark) { // [L][E][3]: a landmark's deltas side by side for the Jacobian rows (made once)
+    const DL = m.deltasByLandmark = new Float64Array(D.length);
+    for (let l = 0; l < L; l++) for (let e = 0; e < E; e++) for (let k = 0; k < 3; k++) DL[(l * E + e) * 3 + k] = D[e * LL + 3 * l + k];
+  }
+  const DL = m.deltasByLandmark;
   // cost (and, with `grad`, the Gauss-Newton normal equations) at R, t, w
   const evaluate = (R, t, w, grad) => {
     for (let i = 0; i < LL; i++) q[i] = N0[i];
@@ -1638,25 +1644,27 @@ export function solveFace(m, obs, width, height, prev = null, opts = {}) {
       const u = f * xc / zc + cx, v = f * yc / zc + cy;
       const ru = (u - obs[2 * l]) / unit, rv = (v - obs[2 * l + 1]) / unit;
       err += Math.hypot(u - obs[2 * l], v - obs[2 * l + 1]);
-      for (const [r, isU] of [[ru, true], [rv, false]]) {
-        const ar = Math.abs(r);
-        cost += ar <= delta ? 0.5 * r * r : delta * (ar - 0.5 * delta);
-        if (!grad) continue;
-        const om = ar <= delta ? 1 : delta / ar; // IRLS weight of the Huber loss
-        // d(residual)/d(world point), in residual units
-        const gx = isU ? f / zc / unit : 0, gy = isU ? 0 : -f / zc / unit, gz = (isU ? f * xc : f * yc) / (zc * zc) / unit;
-        // rotation (left increment): (R a) x grad; translation: grad; weights: (R^T grad) . delta_e,l
-        row[0] = r1 * gz - r2 * gy; row[1] = r2 * gx - r0 * gz; row[2] = r0 * gy - r1 * gx;
-        row[3] = gx; row[4] = gy; row[5] = gz;
-        const h0 = R[0] * gx + R[3] * gy + R[6] * gz, h1 = R[1] * gx + R[4] * gy + R[7] * gz, h2 = R[2] * gx + R[5] * gy + R[8] * gz;
-        for (let e = 0; e < E; e++) { const d = e * LL + o; row[6 + e] = h0 * D[d] + h1 * D[d + 1] + h2 * D[d + 2]; }
-        for (let i = 0; i < n; i++) {
-          const ri = om * row[i];
-          if (ri === 0) continue;
-          g[i] += ri * r;
-          const Hi = i * n;
-          for (let j = i; j < n; j++) H[Hi + j] += ri * row[j];
-        }
+      const aru = Math.abs(ru), arv = Math.abs(rv);
+      cost += aru <= delta ? 0.5 * ru * ru : delta * (aru - 0.5 * delta);
+      cost += arv <= delta ? 0.5 * rv * rv : delta * (arv - 0.5 * delta);
+      if (!grad) continue;
+      // each residual's row, times its IRLS weight of the Huber loss; d(residual)/d(world point) in residual
+      // units: u (gx, 0, gzu), v (0, gy, gzv); rotation (left increment): (R a) x grad; translation: grad;
+      // weights: (R^T grad) . delta_e,l
+      const omU = aru <= delta ? 1 : delta / aru, omV = arv <= delta ? 1 : delta / arv;
+      const gx = f / zc / unit, gy = -f / zc / unit, gzu = f * xc / (zc * zc) / unit, gzv = f * yc / (zc * zc) / unit;
+      rowU[0] = r1 * gzu; rowU[1] = r2 * gx - r0 * gzu; rowU[2] = -r1 * gx; rowU[3] = gx; rowU[4] = 0; rowU[5] = gzu;
+      rowV[0] = r1 * gzv - r2 * gy; rowV[1] = -r0 * gzv; rowV[2] = r0 * gy; rowV[3] = 0; rowV[4] = gy; rowV[5] = gzv;
+      const u0 = R[0] * gx + R[6] * gzu, u1 = R[1] * gx + R[7] * gzu, u2 = R[2] * gx + R[8] * gzu;
+      const v0 = R[3] * gy + R[6] * gzv, v1 = R[4] * gy + R[7] * gzv, v2 = R[5] * gy + R[8] * gzv;
+      for (let e = 0, d = l * E * 3; e < E; e++, d += 3) {
+        rowU[6 + e] = u0 * DL[d] + u1 * DL[d + 1] + u2 * DL[d + 2];
+        rowV[6 + e] = v0 * DL[d] + v1 * DL[d + 1] + v2 * DL[d + 2];
+      }
+      for (let i = 0; i < n; i++) { // the two rank-1 updates in one pass (the same sums in the same order)
+        const a = omU * rowU[i], b = omV * rowV[i], Hi = i * n;
+        g[i] = g[i] + a * ru + b * rv;
+        for (let j = i; j < n; j++) H[Hi + j] = H[Hi + j] + a * rowU[j] + b * rowV[j];
       }
     }
     for (let e = 0; e < E; e++) cost += 0.5 * w[e];
