@@ -1201,7 +1201,7 @@ export function drawMesh(b) {
     }
   }
   for (let v = 0; v < V; v++) if (vertNo[v] === 0) vertNo[v] = nV++;
-  if (b.N === 0 || (nF === F && nV === V)) return { V, F, faces, vertex: null, face: null, gaussianFace: b.face };
+  if (b.N === 0 || (nF === F && nV === V)) return wholeMesh(b);
   const vertex = new Uint32Array(nV), face = new Uint32Array(nF), out = new Uint32Array(3 * nF), gaussianFace = new Uint32Array(b.N);
   for (let v = 0; v < V; v++) if (vertNo[v] >= 0) vertex[vertNo[v]] = v;
   for (let k = 0; k < F; k++) {
@@ -1212,6 +1212,11 @@ export function drawMesh(b) {
   }
   for (let g = 0; g < b.N; g++) gaussianFace[g] = faceNo[b.face[g]];
   return { V: nV, F: nF, faces: out, vertex, face, gaussianFace };
+}
+
+/** drawMesh's answer for the whole mesh of bundle `b` (every face posed, nothing renumbered). */
+function wholeMesh(b) {
+  return { V: b.V, F: b.F, faces: b.faces, vertex: null, face: null, gaussianFace: b.face };
 }
 
 /** Rows `rows` (an index array, or null: all) of `src`, each `width` values wide, as a new array of its type. */
@@ -1232,12 +1237,12 @@ function gatherRows(src, width, rows) {
  * (`floatTarget`; else straight into the canvas) and one full-screen pass that clamps it into the canvas.
  */
 export class SplatRenderer {
-  constructor(canvas, b, { floatTarget = true, wholeMesh = false } = {}) {
+  constructor(canvas, b, { floatTarget = true, allFaces = false } = {}) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
     if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float textures (EXT_color_buffer_float)");
     this.gl = gl; this.b = b;
-    const m = this.mesh = wholeMesh ? { V: b.V, F: b.F, faces: b.faces, vertex: null, face: null, gaussianFace: b.face } : drawMesh(b);
+    const m = this.mesh = allFaces ? wholeMesh(b) : drawMesh(b); // allFaces: ?mesh=all, for comparisons
     const maxRows = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (texSize(2 * b.N) / TEX_WIDTH > maxRows) throw new Error(`${b.N} Gaussians exceed this GPU's texture size`);
     this.prep = program(gl, PASS_VERT, PREP_FRAG, ["count", "R", "tr", "K", "size", "gTex", "shTex", "fTex", "pTex", "nTex", "qTex", "rTex",
@@ -2026,7 +2031,7 @@ export function startViewer(doc) {
   if ($("loading")) $("loading").hidden = true;
   const params = new URLSearchParams(doc.location ? doc.location.search : "");
   const canvas = $("canvas");
-  const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0", wholeMesh: params.get("mesh") === "all" });
+  const renderer = new SplatRenderer(canvas, b, { floatTarget: params.get("float") !== "0", allFaces: params.get("mesh") === "all" });
   const poser = new FramePoser(b);
   const live = b.driver.kind === "gltf";
   const cam0 = header.camera;
