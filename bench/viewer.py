@@ -59,6 +59,16 @@ def page_code_at(rev: str) -> str:
     return subprocess.run(["git", "show", path], cwd=ROOT, capture_output=True, text=True, check=True).stdout
 
 
+def require_sparse_rigs(viewer_js: str, rev: str) -> None:
+    """Exit with a note when ``viewer_js`` (the page of ``rev``) cannot read the blend-shape rigs today's
+    writer stores (``float16-sparse``, since ca35bdb): such a baseline needs its own writer (``--before-src``)."""
+    if "float16-sparse" not in viewer_js:
+        raise SystemExit(
+            f"the page of {rev} reads no float16-sparse blend-shape rigs (today's bundle writer): give "
+            f"--before-src a checkout of {rev}'s src, or a --before-rev from ca35bdb on"
+        )
+
+
 @contextlib.contextmanager
 def page_code(viewer_js: str | None) -> Iterator[None]:
     """Within: bundles are written with ``viewer_js`` as their page code (another commit's viewer.js, a

@@ -29,7 +29,7 @@ import torch
 
 from _machine import machine_info, results_path
 from meshsplat.viewer import write_viewer_bundle
-from viewer import cesium, page_code, page_code_at, random_avatar
+from viewer import cesium, page_code, page_code_at, random_avatar, require_sparse_rigs
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver the browser tests use
@@ -58,6 +58,8 @@ def main() -> None:
         sys.exit("chromium is not installed")
     torch.set_num_threads(1)
     old_js = page_code_at(args.before_rev)
+    if args.avatar is not None:  # a blend-shape head, written by today's writer for both pages
+        require_sparse_rigs(old_js, args.before_rev)
     sizes = [tuple(int(x) for x in s.split("x")) for s in args.sizes.split(",")]
     work = Path(tempfile.mkdtemp(prefix="meshsplat-draw-bench-"))
     pages: dict[str, dict[str, Path]] = {}  # case -> {before, now} -> index.html

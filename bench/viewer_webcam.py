@@ -8,8 +8,10 @@ Variants, each in a fresh browser, interleaved over ``--rounds`` rounds so that 
 load falls on all of them alike:
 
 - ``before``: the page as it was at ``--before-rev`` (its viewer.js, inlined into the same bundle;
-  default 256bbc2, the landmarker on the CPU at 256 px, the avatar drawn at the full buffer; 2307bfb:
-  the attention model in WebGL on full camera frames, one landmark pass per frame callback);
+  default ca35bdb, the first page that reads the sparse blend-shape rigs today's writer stores; an older
+  page needs its own writer, ``--before-src``: 256bbc2, the landmarker on the CPU at 256 px, the avatar
+  drawn at the full buffer; 2307bfb: the attention model in WebGL on full camera frames, one landmark pass
+  per frame callback);
 - ``pipelined``, ``pipelined+cpu``, ``after-plain468``: the current page with the landmarker's options
   set by the URL (``camcpu``, ``camrefine``, ``camsize``) at the full drawing buffer, to tell those apart;
 - ``after-nocap``: the current page's draw rules (one draw per solution, re-sorted only when the pose
@@ -54,7 +56,7 @@ import numpy as np
 import torch
 
 from _machine import machine_info, results_path
-from viewer import page_code, page_code_at
+from viewer import page_code, page_code_at, require_sparse_rigs
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver and fixtures the browser tests use
@@ -227,7 +229,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--warmup", type=int, default=4, help="solved frames left out at the start")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--before-rev", default="256bbc2", help="the commit whose page is 'before' (2307bfb: older)")
+    ap.add_argument(
+        "--before-rev", default="ca35bdb", help="the commit whose page is 'before' (older: with --before-src)"
+    )
     ap.add_argument(
         "--avatar",
         type=Path,
@@ -259,6 +263,8 @@ def main() -> None:
     if "renderedMs" not in old_js:
         assert OLD_LATENCY in old_js, "the old page's latency timer moved: update OLD_LATENCY"
         old_js = old_js.replace(OLD_LATENCY, FENCED_LATENCY)
+    if args.before_src is None or args.avatar is None:  # the page of --before-rev with today's writer
+        require_sparse_rigs(old_js, args.before_rev)
     write_bundle(work / "before", model, landmarker, old_js, args.avatar, args.before_src)
     write_bundle(work / "now", model, landmarker, None, args.avatar)
     gaussians = json.loads((work / "now" / "avatar.json").read_text())["num_gaussians"]
