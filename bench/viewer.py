@@ -26,6 +26,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import shutil
 import statistics
 import subprocess
@@ -57,6 +58,14 @@ def page_code_at(rev: str) -> str:
     """The page code (viewer.js) of commit ``rev``."""
     path = f"{rev}:src/meshsplat/viewer/static/viewer.js"
     return subprocess.run(["git", "show", path], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+
+
+def meshsplat_with_src(argv: list[str], src: Path | None) -> None:
+    """Run ``meshsplat ARGV`` in a fresh process on another checkout's ``src`` (None: this one's), e.g. a
+    baseline page written by that checkout's bundle writer."""
+    code = f"from meshsplat.cli.main import main; raise SystemExit(main({argv!r}))"
+    env = dict(os.environ, PYTHONPATH=str(src or ROOT / "src"))
+    subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
 
 
 def require_sparse_rigs(viewer_js: str, rev: str) -> None:

@@ -46,7 +46,6 @@ import json
 import math
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -56,7 +55,7 @@ import numpy as np
 import torch
 
 from _machine import machine_info, results_path
-from viewer import page_code, page_code_at, require_sparse_rigs
+from viewer import meshsplat_with_src, page_code, page_code_at, require_sparse_rigs
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the headless-Chromium driver and fixtures the browser tests use
@@ -142,10 +141,9 @@ def write_bundle(
     makes it (``meshsplat view RUN --animation blendshapes --webcam``); ``viewer_js``: another page's code
     (the baseline); ``src``: write it with another checkout's ``src`` instead (its writer and its page)."""
     if src is not None and run is not None:
-        argv = ["view", str(run), "--animation", "blendshapes", "--webcam", str(landmarker), "--out", str(out)]
-        code = f"from meshsplat.cli.main import main; raise SystemExit(main({argv!r}))"
-        env = dict(os.environ, PYTHONPATH=str(src))
-        subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
+        meshsplat_with_src(
+            ["view", str(run), "--animation", "blendshapes", "--webcam", str(landmarker), "--out", str(out)], src
+        )
         return
     with page_code(viewer_js):
         if run is None:

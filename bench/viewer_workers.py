@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
 import subprocess
@@ -25,6 +24,7 @@ import tempfile
 from pathlib import Path
 
 from _machine import machine_info, results_path
+from viewer import meshsplat_with_src
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,10 +64,7 @@ console.log(JSON.stringify(out));
 
 
 def write_page(run: Path, out: Path, src: Path | None) -> dict:
-    argv = ["view", str(run), "--animation", "blendshapes", "--out", str(out)]
-    code = f"from meshsplat.cli.main import main; raise SystemExit(main({argv!r}))"
-    env = dict(os.environ, PYTHONPATH=str(src or ROOT / "src"))
-    subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
+    meshsplat_with_src(["view", str(run), "--animation", "blendshapes", "--out", str(out)], src)
     head = json.loads((out / "avatar.json").read_text())
     return {
         "page_mb": round((out / "index.html").stat().st_size / 2**20, 2),
