@@ -1542,11 +1542,13 @@ export class FramePoser {
 
 /** Landmark model of a bundle's `header.webcam` and its sections. */
 export function decodeWebcam(h, arr) {
-  const L = h.landmarks, E = h.names.length;
+  const L = h.landmarks, E = h.names.length, deltas = Float64Array.from(arr.webcam_deltas);
+  const deltasByLandmark = new Float64Array(deltas.length); // [L][E][3]: a landmark's deltas side by side (solveFace's rows)
+  for (let l = 0; l < L; l++) for (let e = 0; e < E; e++) for (let k = 0; k < 3; k++) deltasByLandmark[(l * E + e) * 3 + k] = deltas[(e * L + l) * 3 + k];
   return { L, E, names: h.names, used: Uint32Array.from(h.used), usedMax: Math.max(-1, ...h.used), pivot: Float64Array.from(h.pivot),
            headSize: h.head_size_cm || null,
            fovDiag: h.diagonal_fov_deg, neutral: Float64Array.from(arr.webcam_neutral),
-           deltas: Float64Array.from(arr.webcam_deltas), landmarker: h.landmarker };
+           deltas, deltasByLandmark, landmarker: h.landmarker };
 }
 
 /** The diagonal of the bounding box of points [N*3]. */
@@ -1626,11 +1628,7 @@ export function solveFace(m, obs, width, height, prev = null, opts = {}) {
   const q = new Float64Array(3 * L), H = new Float64Array(n * n), g = new Float64Array(n);
   const rowU = new Float64Array(n), rowV = new Float64Array(n);
   const piv = m.pivot, D = m.deltas, N0 = m.neutral, LL = 3 * L;
-  if (!m.deltasByLandmark) { // [L][E][3]: a landmark's deltas side by side for the Jacobian rows (made once)
-    const DL = m.deltasByLandmark = new Float64Array(D.length);
-    for (let l = 0; l < L; l++) for (let e = 0; e < E; e++) for (let k = 0; k < 3; k++) DL[(l * E + e) * 3 + k] = D[e * LL + 3 * l + k];
-  }
-  const DL = m.deltasByLandmark;
+  const DL = m.deltasByLandmark; // [L][E][3]
   // cost (and, with `grad`, the Gauss-Newton normal equations) at R, t, w
   const evaluate = (R, t, w, grad) => {
     for (let i = 0; i < LL; i++) q[i] = N0[i];
