@@ -1,12 +1,14 @@
-"""Device selection shared by training, evaluation and the CLI."""
+"""Device selection shared by training, evaluation and the CLI, and the CPU cores this process may use."""
 
 from __future__ import annotations
+
+import os
 
 import torch
 
 from meshsplat.errors import MeshsplatError
 
-__all__ = ["resolve_device"]
+__all__ = ["resolve_device", "usable_cores"]
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -20,3 +22,11 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise MeshsplatError(f"device: {str(device)!r} requested but CUDA is not available")
     return dev
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the system has one, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # macOS, Windows
+        return os.cpu_count() or 1

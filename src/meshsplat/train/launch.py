@@ -29,6 +29,7 @@ import threading
 import time
 from pathlib import Path
 
+from meshsplat._device import usable_cores
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.folder_lock import FolderLock
 from meshsplat.run_folder import RunFolder, check_training_target
@@ -48,14 +49,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def usable_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the system has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def _die_with_parent() -> None:  # runs in the child before exec (Linux: PR_SET_PDEATHSIG)
