@@ -29,6 +29,20 @@ except ImportError:  # pragma: no cover
     pass
 
 
+def pytest_sessionstart(session):
+    """Once per run, before any test (with pytest-xdist: in its controller, before the workers start): the CPU
+    kernels training calls, compiled into numba's disk cache by ``compile_ahead`` (one process per core), so the
+    workers load them instead of each compiling them itself. Nothing to do when they are cached."""
+    if hasattr(session.config, "workerinput"):
+        return
+    from meshsplat._numba import numba_available
+
+    if numba_available():
+        from meshsplat.train.cpu_kernels import compile_ahead
+
+        compile_ahead(2)
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

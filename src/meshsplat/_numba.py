@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from functools import lru_cache
-from typing import Any
+from typing import Any, NamedTuple
 
-__all__ = ["numba_available", "njit_serial", "njit_driver", "run_ranges", "NO_NUMBA_ENV"]
+__all__ = ["numba_available", "njit_serial", "njit_driver", "run_ranges", "NO_NUMBA_ENV", "Kernel", "kernel_named"]
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
 
@@ -38,22 +39,56 @@ def numba_available() -> bool:
     return _numba_importable()
 
 
-def njit_serial(numba: Any, inline: bool = False, cache: bool = True) -> Callable[[Callable[..., Any]], Any]:
+CompileContext = Callable[[], AbstractContextManager[Any]]
+
+
+class Kernel(NamedTuple):
+    """A function compiled by ``njit_serial``/``njit_driver``: its numba dispatcher, and what numba's compilations of
+    it must run inside (``None``: nothing), e.g. an LLVM option (``numba_lanes``)."""
+
+    dispatcher: Any
+    compile_context: CompileContext | None
+
+
+_KERNELS: dict[str, Kernel] = {}  # "module.qualname" of the Python function -> its kernel, as made in this process
+
+
+def kernel_named(name: str) -> Kernel | None:
+    """The kernel made from the Python function ``name`` (``"module.qualname"``) in this process, if it was made
+    (its module's loader has run); what ``_numba_ahead`` compiles by name."""
+    return _KERNELS.get(name)
+
+
+def _registered(decorator: Callable[[Callable[..., Any]], Any], context: CompileContext | None) -> Any:
+    def wrap(fn: Callable[..., Any]) -> Any:
+        dispatcher = decorator(fn)
+        _KERNELS[f"{fn.__module__}.{fn.__qualname__}"] = Kernel(dispatcher, context)
+        return dispatcher
+
+    return wrap
+
+
+def njit_serial(
+    numba: Any, inline: bool = False, cache: bool = True, compile_context: CompileContext | None = None
+) -> Callable[[Callable[..., Any]], Any]:
     """The decorator of serial kernels and their helpers: cached on disk (unless ``cache`` is false), no fastmath,
     GIL released, and numpy's error model (a division by zero gives inf or nan, as in numba's parallel loops,
     instead of raising: the checks would stop LLVM from vectorizing). ``inline``: inlined into the caller at
-    numba's IR level."""
+    numba's IR level. ``compile_context``: what compiling it ahead (``_numba_ahead``) must run inside, as its
+    first call does. Each function it compiles is known by name (:func:`kernel_named`)."""
     opts: dict[str, Any] = {"cache": cache, "fastmath": False, "nogil": True, "error_model": "numpy"}
     if inline:
         opts["inline"] = "always"
-    return numba.njit(**opts)
+    return _registered(numba.njit(**opts), compile_context)
 
 
-def njit_driver(numba: Any, cache: bool = True) -> Callable[[Callable[..., Any]], Any]:
+def njit_driver(
+    numba: Any, cache: bool = True, compile_context: CompileContext | None = None
+) -> Callable[[Callable[..., Any]], Any]:
     """The decorator of ``run_ranges``'s drivers: ``parallel=True``, cached on disk (unless ``cache`` is false), no
     fastmath, GIL released. A driver is a module-level function (numba caches no closure across processes) of the
     form ``for j in prange(bounds.shape[0] - 1): kernel(*args, bounds[j], bounds[j + 1])``."""
-    return numba.njit(parallel=True, cache=cache, fastmath=False, nogil=True)
+    return _registered(numba.njit(parallel=True, cache=cache, fastmath=False, nogil=True), compile_context)
 
 
 CHUNKS_PER_THREAD = 4  # ranges per thread: uneven items (tiles) still balance

@@ -13,6 +13,7 @@ PKG = Path(__file__).resolve().parents[2] / "src" / "meshsplat"
 LAYERS = [
     ("errors", "_mkl"),
     ("_checks", "_typing", "_device", "_numba", "paths", "plausible"),
+    ("_numba_ahead",),
     ("io", "metrics"),
     ("camera", "drivers"),
     ("mesh",),

@@ -39,7 +39,7 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import Any
 
 import numpy as np
@@ -499,11 +499,12 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
 
     vector_width = lane_vector_width()
     cache = _width_override() is None  # an override compiles afresh (see lane_vector_width)
-    helper = njit_serial(numba, cache=cache)
+    at_width = partial(_compiling_at, vector_width)  # what every compilation of these runs inside
+    helper = njit_serial(numba, cache=cache, compile_context=at_width)
     _block, _lane, _block_grid = helper(_block_py), helper(_lane_py), helper(_block_grid_py)
     fwd, bwd = helper(_forward_lanes), helper(_backward_lanes)
     _prange, _forward_serial, _backward_serial = numba.prange, fwd, bwd
-    par = njit_driver(numba, cache=cache)
+    par = njit_driver(numba, cache=cache, compile_context=at_width)
     fwd_par, bwd_par = par(_forward_ranges), par(_backward_ranges)
     # The first call of each kind compiles (or loads from the disk cache) at the lane width; the key is what makes
     # numba specialize: the float type, and serial or parallel (run_ranges). A specialization outside these

@@ -1,0 +1,58 @@
+"""The compiled CPU kernels training calls, compiled ahead on several cores after an install.
+
+``cpu_kernels.json`` (the manifest) lists the numba kernels CPU training calls from Python on two or more threads
+(mostly the kernels' parallel drivers) with the argument types of each call, as recorded from a real run by
+``tests/_kernel_manifest.py``. Before the first step, :func:`compile_ahead` compiles those missing from numba's disk
+cache in worker processes (``meshsplat._numba_ahead``), one per thread the job may use, so the first step loads
+them instead of compiling them one after the other. On one thread nothing changes (one process compiles as fast
+as one worker). When the manifest is stale (a kernel's arguments changed), the changed kernel compiles on its first
+call as before; a test fails until the manifest is rewritten.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from meshsplat._device import usable_cores
+from meshsplat._numba_ahead import AheadResult
+from meshsplat._numba_ahead import compile_ahead as _compile_ahead
+
+__all__ = ["MANIFEST", "FACTORIES", "manifest", "compile_ahead", "ahead_processes"]
+
+MANIFEST = Path(__file__).with_name("cpu_kernels.json")
+
+# the loaders of the kernels a training step may call (rasterizer, shadow maps, albedo prior); each makes its
+# kernels without compiling them
+FACTORIES = [
+    "meshsplat.render.backends.numba_cpu:_kernels",
+    "meshsplat.mesh._visibility_numba:_kernel",
+    "meshsplat.train._albedo_prior_numba:_kernels",
+]
+
+
+@lru_cache(maxsize=1)
+def manifest() -> dict[str, Any]:
+    """The shipped manifest: ``{"threads": 2, "entries": [entry, ...]}`` (``_numba_ahead``'s entries, recorded on
+    that many threads)."""
+    return json.loads(MANIFEST.read_text())
+
+
+def ahead_processes(threads: int) -> int:
+    """How many processes compile ahead for a job on ``threads`` threads: one per thread, no more than the usable
+    cores; 0 when that is one (a single process compiles as fast on the first step)."""
+    n = min(threads, usable_cores())
+    return n if n >= 2 else 0
+
+
+def compile_ahead(threads: int, announce: Callable[[int, int], None] | None = None) -> AheadResult:
+    """Compile what training on ``threads`` threads calls and numba's disk cache lacks, in
+    :func:`ahead_processes` processes (``announce(kernels, processes)`` first); returns at once when the cache has
+    it all, or when there is no second process to use."""
+    processes = ahead_processes(threads)
+    if not processes:
+        return AheadResult(compiled=[], processes=0, seconds=0.0, failed="")
+    return _compile_ahead(FACTORIES, manifest()["entries"], processes, announce)

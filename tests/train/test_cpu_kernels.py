@@ -1,0 +1,177 @@
+"""Compiling the CPU kernels ahead in several processes (``_numba_ahead``, ``train.cpu_kernels``): the manifest
+matches what training calls, and after ``compile_ahead`` into an empty numba cache a training job compiles
+nothing itself."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from meshsplat._numba import numba_available
+
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is a dependency; not importable here")
+
+TESTS = Path(__file__).resolve().parents[1]
+SRC = TESTS.parent / "src"
+
+
+def _python(code: str, *args: str, cache: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), str(TESTS)]))
+    if cache is not None:
+        env["NUMBA_CACHE_DIR"] = str(cache)
+    return subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, timeout=900)
+
+
+def test_types_round_trip_through_json():
+    import numba
+    from numba.core import types
+
+    from meshsplat._numba_ahead import type_from_json, type_to_json
+
+    samples = [
+        np.zeros((2, 3), np.float32),
+        np.zeros(4, np.int64)[::2],  # not contiguous: layout A
+        np.zeros((2, 2), np.float64, order="F"),
+        np.zeros(3, np.bool_),
+        np.int64(3),
+        1.5,
+        True,
+        (np.zeros(2), 1.0, 3, np.zeros((1, 1), np.int32)),  # a driver's *args
+        (np.zeros(2), np.zeros(2)),  # a UniTuple
+    ]
+    ro = np.zeros(2)
+    ro.flags.writeable = False
+    samples.append(ro)
+    for value in samples:
+        t = numba.typeof(value)
+        d = json.loads(json.dumps(type_to_json(t)))
+        assert type_from_json(d) == t, (value, d)
+    with pytest.raises(TypeError, match="no JSON form"):
+        type_to_json(types.unicode_type)
+
+
+def test_shares_balance_the_recorded_seconds():
+    from meshsplat._numba_ahead import _shares
+
+    entries = [
+        {"kernel": str(i), "seconds": s} for i, s in enumerate([7.4, 6.8, 5.9, 5.8, 2.2, 1.6, 1.4, 1.2, 1.0, 0.2])
+    ]
+    two = _shares(entries, 2, head_start=0.0)
+    loads = [sum(e["seconds"] for e in share) for share in two]
+    assert len(two) == 2 and abs(loads[1] - loads[0]) < 1.0
+    assert sorted(e["kernel"] for share in two for e in share) == sorted(e["kernel"] for e in entries)
+    late = _shares(entries, 2, head_start=3.0)  # the second share is a new process: it starts later
+    loads = [sum(e["seconds"] for e in share) for share in late]
+    assert abs(loads[0] - (loads[1] + 3.0)) < 1.0
+    assert len(_shares(entries[:1], 4)) == 1  # no empty share, no idle worker
+
+
+def test_manifest_names_only_kernels_the_loaders_make():
+    from meshsplat._numba import kernel_named
+    from meshsplat._numba_ahead import call_factories
+    from meshsplat.train.cpu_kernels import FACTORIES, manifest
+
+    call_factories(FACTORIES)
+    entries = manifest()["entries"]
+    assert manifest()["threads"] >= 2 and entries
+    for e in entries:
+        assert kernel_named(e["kernel"]) is not None, e["kernel"]
+        assert e["seconds"] >= 0
+    with pytest.raises(ValueError, match="not a meshsplat kernel loader"):
+        call_factories(["os:getcwd"])
+
+
+def test_a_failing_share_is_reported_not_raised():
+    """A share that cannot be compiled (here: signatures the kernel cannot take), in this process or in a
+    worker, is reported in ``failed``, in one line; the job goes on (its kernels compile on first call)."""
+    from meshsplat._numba_ahead import compile_ahead
+    from meshsplat.train.cpu_kernels import FACTORIES
+
+    name = "meshsplat.train._albedo_prior_numba._sum_kernel"
+    here = {"kernel": name, "args": ["bool"], "seconds": 5.0}  # the longest: compiled here
+    there = {"kernel": name, "args": ["int64"], "seconds": 0.1}  # -> the worker's share
+    done = compile_ahead(FACTORIES, [here, there], 2)
+    assert done["processes"] == 2 and done["compiled"] == [here, there]
+    assert done["failed"].startswith("TypingError: ") and "\n" not in done["failed"]
+    # the worker itself: exit status 1, the reason on its last stderr line
+    job = json.dumps({"factories": FACTORIES, "entries": [there]})
+    env = dict(os.environ, PYTHONPATH=str(SRC))
+    out = subprocess.run([sys.executable, "-m", "meshsplat._numba_ahead"], input=job, env=env,
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines()[-1].startswith("TypingError: ")
+
+
+@pytest.mark.slow
+def test_manifest_matches_what_training_calls():
+    """The shipped manifest lists exactly the kernels (and argument types) the tiny demo's training calls from
+    Python on 2 threads; if not, rewrite it: python tests/_kernel_manifest.py."""
+    code = (
+        "import json, sys, tempfile\nfrom pathlib import Path\n"
+        "from _kernel_manifest import record_training, tiny_data\n"
+        "print(json.dumps(record_training(tiny_data(Path(tempfile.mkdtemp())))))\n"
+    )
+    out = _python(code)
+    assert out.returncode == 0, out.stderr[-3000:]
+    recorded = json.loads(out.stdout.strip().splitlines()[-1])
+    from meshsplat.train.cpu_kernels import manifest
+
+    def key(e):
+        return e["kernel"], json.dumps(e["args"])
+
+    shipped = manifest()["entries"]
+    assert sorted(map(key, recorded)) == sorted(map(key, shipped)), "stale: python tests/_kernel_manifest.py"
+
+
+@pytest.mark.slow
+def test_after_compile_ahead_training_compiles_nothing(tmp_path):
+    """Into an empty numba cache: a training job on 2 threads announces the compile, compiles the manifest in 2
+    processes (itself and a worker), and then its steps compile nothing (every kernel is loaded)."""
+    from meshsplat._device import usable_cores
+    from meshsplat.train.cpu_kernels import manifest
+
+    if usable_cores() < 2:
+        pytest.skip("one core: nothing is compiled ahead (CI has two)")
+    code = r"""
+import json, sys, tempfile
+from pathlib import Path
+import torch
+from numba.core import event as ev
+from _kernel_manifest import tiny_data
+from meshsplat.demo import PRESETS, demo_train_config
+from meshsplat.train import Trainer
+
+torch.set_num_threads(2)
+compiled = []
+class Listener(ev.Listener):
+    def on_start(self, event):
+        compiled.append(event.data["dispatcher"].py_func.__qualname__)
+    def on_end(self, event):
+        pass
+data = tiny_data(Path(tempfile.mkdtemp()))
+cfg = demo_train_config(data, Path(tempfile.mkdtemp()) / "run", PRESETS["tiny"], [], progress=True)
+trainer = Trainer(cfg)
+step = trainer.step
+def listened_step():  # compiles from here on are the steps' own (compile_ahead compiles a share in this process)
+    if not listening:
+        ev.register("numba:compile", Listener())
+        listening.append(True)
+    return step()
+listening = []
+trainer.step = listened_step
+trainer.train(until=3)
+assert listening
+print(json.dumps(compiled))
+"""
+    out = _python(code, cache=tmp_path / "cache")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []
+    n = len(manifest()["entries"])
+    assert f"compiling the CPU kernels (once after an install): {n} in 2 processes" in out.stderr
+    assert "compiled in" in out.stderr and "the first step compiles the rest" not in out.stderr
