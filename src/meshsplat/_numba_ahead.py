@@ -3,14 +3,15 @@
 After an install every kernel compiles on its first call, one after the other, in the one process that calls it
 (numba compiles on one thread). A *manifest* names the kernels a job will call from Python and the argument types
 of each call (recorded from a real run: :func:`record`); :func:`compile_ahead` finds those not yet in the disk cache
-and compiles them in worker processes (``python -m meshsplat._numba_ahead``), each a share of them, so that the
-job's first calls load them from the cache. Same kernels, same cache entries as a first call makes: this only moves
-the work to more cores. Anything unexpected (a worker failing, numba internals changing) leaves the rest to the
-first calls, as before.
+and compiles them in shares, one in this process and the others in worker processes at the same time
+(``python -m meshsplat._numba_ahead``), so that the job's first calls load them. Same kernels, same cache entries
+as a first call makes: this only moves the work to more cores. Anything unexpected (a share failing, numba's
+internals changing) leaves the rest to the first calls, as before.
 
 A manifest entry: ``{"kernel": "module.qualname", "args": [type, ...], "seconds": s}``; a type is
 ``{"array": dtype, "ndim": n, "layout": "C", "readonly": false}``, a scalar's dtype name (``"int64"``,
-``"float32"``, ``"bool"``) or ``{"tuple": [type, ...]}`` (a driver's ``*args``, as numba passes them); ``seconds`` is what compiling it took when recorded (to share the work out).
+``"float32"``, ``"bool"``) or ``{"tuple": [type, ...]}`` (a driver's ``*args``, as numba passes them);
+``seconds`` is what compiling it took when recorded (to share the work out).
 """
 
 from __future__ import annotations
