@@ -175,3 +175,31 @@ print(json.dumps(compiled))
     n = len(manifest()["entries"])
     assert f"compiling the CPU kernels (once after an install): {n} in 2 processes" in out.stderr
     assert "compiled in" in out.stderr and "the first step compiles the rest" not in out.stderr
+
+
+@pytest.mark.slow
+def test_the_nproc_launcher_compiles_ahead_for_its_workers(tmp_path):
+    """``train --nproc 2`` into an empty numba cache: the launcher compiles the kernels once, in 2 processes,
+    before its workers start (instead of each worker compiling all of them in its first step)."""
+    from meshsplat._device import usable_cores
+    from meshsplat.train.cpu_kernels import manifest
+
+    if usable_cores() < 2:
+        pytest.skip("--nproc 2 needs two cores (CI has two)")
+    code = r"""
+import sys
+from pathlib import Path
+from _train_kit import make_tiny_dataset, small_config
+from meshsplat.train.launch import launch
+
+tmp = Path(sys.argv[1])
+cfg = small_config(make_tiny_dataset(tmp / "sphere"), tmp / "run", 2, ["backend=auto", "batch_size=2",
+                                                                        "loss.lambda_lpips=0"])
+cfg.progress = True
+launch(cfg, nproc=2)
+"""
+    out = _python(code, str(tmp_path), cache=tmp_path / "cache")
+    assert out.returncode == 0, out.stderr[-3000:]
+    n = len(manifest()["entries"])
+    assert f"compiling the CPU kernels (once after an install): {n} in 2 processes" in out.stderr
+    assert out.stderr.count("compiling the CPU kernels") == 1  # the launcher only, not each worker

@@ -12,6 +12,7 @@ call as before; a test fails until the manifest is rewritten.
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
@@ -21,7 +22,7 @@ from meshsplat._device import usable_cores
 from meshsplat._numba_ahead import AheadResult
 from meshsplat._numba_ahead import compile_ahead as _compile_ahead
 
-__all__ = ["MANIFEST", "FACTORIES", "manifest", "compile_ahead", "ahead_processes"]
+__all__ = ["MANIFEST", "FACTORIES", "manifest", "compile_ahead", "ahead_processes", "prepare_cpu_kernels"]
 
 MANIFEST = Path(__file__).with_name("cpu_kernels.json")
 
@@ -56,3 +57,29 @@ def compile_ahead(threads: int, announce: Callable[[int, int], None] | None = No
     if not processes:
         return AheadResult(compiled=[], processes=0, seconds=0.0, failed="")
     return _compile_ahead(FACTORIES, manifest()["entries"], processes, announce)
+
+
+def prepare_cpu_kernels(threads: int, progress: bool) -> None:
+    """What training does before its first step on the CPU (``Trainer.train``; the ``--nproc`` launcher for its
+    workers): :func:`compile_ahead`, saying so (when ``progress``) and how long it took; on one thread, a note that
+    the first step may compile. Never raises: this is only a head start, the first step compiles what is missing."""
+    if not ahead_processes(threads):
+        if progress:
+            print("first step: loading the compiled CPU kernels (after an install: compiling them, on one core, "
+                  "for up to a minute)", file=sys.stderr)  # fmt: skip
+        return
+
+    def announce(kernels: int, processes: int) -> None:
+        if progress:
+            print(f"compiling the CPU kernels (once after an install): {kernels} in {processes} processes",
+                  file=sys.stderr)  # fmt: skip
+
+    try:
+        done = compile_ahead(threads, announce)
+    except Exception as exc:  # noqa: BLE001 - only a head start (e.g. a broken install's manifest)
+        print(f"note: the CPU kernels could not be compiled ahead ({type(exc).__name__}: {exc}); the first step "
+              "compiles them", file=sys.stderr)  # fmt: skip
+        return
+    if progress and done["compiled"]:
+        note = f"; {done['failed']} (the first step compiles the rest)" if done["failed"] else ""
+        print(f"compiled in {done['seconds']:.0f} s{note}", file=sys.stderr)

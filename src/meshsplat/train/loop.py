@@ -22,7 +22,7 @@ from meshsplat.io.images import float_to_uint8
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.components import Component
 from meshsplat.train.config import TrainConfig
-from meshsplat.train.cpu_kernels import ahead_processes, compile_ahead
+from meshsplat.train.cpu_kernels import prepare_cpu_kernels
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.frames import FrameCache
 from meshsplat.train.monitor import PROGRESS_FORMAT, TensorBoardMonitor, learning_rates, progress_postfix
@@ -116,38 +116,13 @@ class TrainingLoop:
             print(f"watch it live: tensorboard --logdir {self.monitor.log_dir}", file=sys.stderr)
         return tqdm(total=end, initial=self.iteration, desc="train", dynamic_ncols=True, bar_format=PROGRESS_FORMAT)
 
-    def _compile_kernels_ahead(self) -> None:
-        """After an install: the compiled CPU kernels the steps will call, compiled at once in one process per
-        thread (``train.cpu_kernels``) instead of one after the other in the first step; nothing when cached."""
-        threads = torch.get_num_threads()
-        if not ahead_processes(threads):
-            if self.cfg.progress:
-                print("first step: loading the compiled CPU kernels (after an install: compiling them, on one core, "
-                      "for up to a minute)", file=sys.stderr)  # fmt: skip
-            return
-
-        def announce(kernels: int, processes: int) -> None:
-            if self.cfg.progress:
-                print(f"compiling the CPU kernels (once after an install): {kernels} in {processes} processes",
-                      file=sys.stderr)  # fmt: skip
-
-        try:
-            done = compile_ahead(threads, announce)
-        except Exception as exc:  # noqa: BLE001 - only a head start: the first step compiles what is missing
-            print(f"note: the CPU kernels could not be compiled ahead ({type(exc).__name__}: {exc}); the first step "
-                  "compiles them", file=sys.stderr)  # fmt: skip
-            return
-        if self.cfg.progress and done["compiled"]:
-            note = f"; {done['failed']} (the first step compiles the rest)" if done["failed"] else ""
-            print(f"compiled in {done['seconds']:.0f} s{note}", file=sys.stderr)
-
     def _train(self, end: int, main: bool) -> Path:
         cfg = self.cfg
         cpu_auto = self.device.type == "cpu" and cfg.backend in ("auto", "numba")
         if main and self.iteration < end and cpu_auto and not numba_available():
             print(NO_NUMBA_NOTE, file=sys.stderr)
-        if self.iteration < end and cpu_auto and numba_available() and self.dp.world == 1:
-            self._compile_kernels_ahead()
+        if self.iteration < end and cpu_auto and numba_available() and self.dp.world == 1:  # (--nproc: its launcher)
+            prepare_cpu_kernels(torch.get_num_threads(), cfg.progress)
         bar = self._progress_bar(end) if cfg.progress else None
         t0 = time.perf_counter() - self.elapsed
         last_ckpt = time.perf_counter()
