@@ -63,6 +63,7 @@ def test_wheel_carries_assets_viewer_and_licences(wheel):
         "assets/licenses/torchvision-BSD-3-Clause.txt",
         "viewer/static/index.html",
         "viewer/static/viewer.js",
+        "train/cpu_kernels.json",  # the kernels training compiles ahead (train.cpu_kernels)
         "py.typed",
         "docs/quality.md",  # the manual (setup.py copies docs/**/*.md): `meshsplat docs`
         "docs/own-video.md",
