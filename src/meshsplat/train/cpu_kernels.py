@@ -2,11 +2,12 @@
 
 ``cpu_kernels.json`` (the manifest) lists the numba kernels CPU training calls from Python on two or more threads
 (mostly the kernels' parallel drivers) with the argument types of each call, as recorded from a real run by
-``tests/_kernel_manifest.py``. Before the first step, :func:`compile_ahead` compiles those missing from numba's disk
-cache in worker processes (``meshsplat._numba_ahead``), one per thread the job may use, so the first step loads
-them instead of compiling them one after the other. On one thread nothing changes (one process compiles as fast
-as one worker). When the manifest is stale (a kernel's arguments changed), the changed kernel compiles on its first
-call as before; a test fails until the manifest is rewritten.
+``tests/_kernel_manifest.py``. Before the first step (``Trainer.train``; the ``train --nproc`` launcher, once for
+its workers), :func:`compile_ahead` compiles those missing from numba's disk cache in shares, one per thread the
+job may use, each in its own process (``meshsplat._numba_ahead``), so the first step loads them instead of
+compiling them one after the other. On one thread nothing changes (one process compiles as fast as one worker).
+When the manifest is stale (a kernel's arguments changed), the changed kernel compiles on its first call as
+before; a test fails until the manifest is rewritten.
 """
 
 from __future__ import annotations
