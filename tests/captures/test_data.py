@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -155,6 +156,14 @@ def test_nan_vertices(ds_root):
 def test_non_rotation_extrinsics(ds_root):
     _edit_manifest(ds_root, lambda m: m["cameras"]["c0"]["viewmat"][0].__setitem__(0, 2.0))
     _expect(ds_root, "camera 'c0'", "not a rotation matrix")
+
+
+def test_absurd_extrinsics_are_named_without_a_numpy_warning(ds_root):
+    """Entries too large to square (the fuzz test found 1e200): the same one line, no overflow warning beside it."""
+    _edit_manifest(ds_root, lambda m: m["cameras"]["c0"]["viewmat"][1].__setitem__(2, 1e200))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a RuntimeWarning would fail here
+        _expect(ds_root, "camera 'c0'", "not a rotation matrix")
 
 
 def test_reflection_extrinsics(ds_root):

@@ -216,7 +216,8 @@ def _check_camera(cid: str, cam: dict, problems: Problems) -> tuple[np.ndarray, 
     if not np.allclose(vm[3], [0, 0, 0, 1], atol=1e-6):
         problems.add(where, f"viewmat last row must be [0, 0, 0, 1], got {vm[3].tolist()}")
         ok = False
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+    # a rotation's entries lie in [-1, 1]: larger ones are refused before squaring them (1e200 would overflow)
+    if np.abs(R).max() > 1 + 1e-4 or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
         problems.add(where, "viewmat rotation is not a rotation matrix (R R^T != I or det(R) != +1)")
         ok = False
     return (K, vm) if ok else None
