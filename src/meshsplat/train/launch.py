@@ -104,9 +104,9 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
                 **{LAUNCHER_VAR: "nproc"},
             )
             env.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // nproc)))  # no oversubscription
-            # numba's own thread pool (not started by meshsplat's kernels since they run on Python threads; kept
-            # for parallel numba code elsewhere): its OpenMP layer, beside torch's OpenMP runtime and gloo's threads,
-            # made about one worker in six abort at exit ("terminate called without an active exception")
+            # numba's thread pool (the kernels' parallel drivers run on it when a worker has 2+ threads): its OpenMP
+            # layer, beside torch's OpenMP runtime and gloo's threads, made about one worker in six abort at exit
+            # ("terminate called without an active exception")
             env.setdefault("NUMBA_THREADING_LAYER", "workqueue")
             cmd = [sys.executable, "-m", "meshsplat.train.launch", str(cfg_path)] + (["--resume"] if resume else [])
             procs.append(subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent if os.name == "posix" else None))
