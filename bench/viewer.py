@@ -60,6 +60,14 @@ def page_code_at(rev: str) -> str:
     return subprocess.run(["git", "show", path], cwd=ROOT, capture_output=True, text=True, check=True).stdout
 
 
+def node_or_exit() -> str:
+    """The ``node`` executable (the player's code run outside a browser), or exit saying it is missing."""
+    node = shutil.which("node")
+    if node is None:
+        sys.exit("node is not installed")
+    return node
+
+
 def meshsplat_with_src(argv: list[str], src: Path | None) -> None:
     """Run ``meshsplat ARGV`` in a fresh process on another checkout's ``src`` (None: this one's), e.g. a
     baseline page written by that checkout's bundle writer."""

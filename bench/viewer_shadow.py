@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import statistics
 import subprocess
 import sys
@@ -39,7 +38,7 @@ from meshsplat.gaussians.shading import KEY_SOFT_SAMPLES, KEY_STAGES, Shading
 from meshsplat.mesh import TriMesh
 from meshsplat.paths import assets_dir
 from meshsplat.viewer import write_viewer_bundle
-from viewer import SIZE, cesium, live_rig, random_avatar
+from viewer import SIZE, cesium, live_rig, node_or_exit, random_avatar
 
 ROOT = Path(__file__).resolve().parents[1]
 VIEWER_JS = ROOT / "src" / "meshsplat" / "viewer" / "static" / "viewer.js"
@@ -151,8 +150,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if shutil.which("node") is None:
-        sys.exit("node is not installed")
+    node_or_exit()
     rows, browser = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name, mesh, frames in meshes(args.quick):

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from _machine import machine_info, results_path
-from viewer import page_code_at
+from viewer import node_or_exit, page_code_at
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests" / "viewer"), str(ROOT / "tests")]
@@ -62,9 +62,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=40)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
-    node = shutil.which("node")
-    if node is None:
-        sys.exit("node is not installed")
+    node = node_or_exit()
     head = load_ict_head()
     sections, header = webcam_model(head)
     lm = _synthetic_landmarks(head)[0].numpy()

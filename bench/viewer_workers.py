@@ -19,12 +19,11 @@ import json
 import shutil
 import statistics
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 from _machine import machine_info, results_path
-from viewer import meshsplat_with_src
+from viewer import meshsplat_with_src, node_or_exit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,9 +82,7 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=15)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
-    node = shutil.which("node")
-    if node is None:
-        sys.exit("node is not installed")
+    node = node_or_exit()
     work = Path(tempfile.mkdtemp(prefix="meshsplat-workers-"))
     try:
         pages = {"before": work / "before", "now": work / "now"}
