@@ -19,11 +19,21 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from meshsplat._device import usable_cores
 from meshsplat._numba_ahead import AheadResult
 from meshsplat._numba_ahead import compile_ahead as _compile_ahead
 
-__all__ = ["MANIFEST", "FACTORIES", "manifest", "compile_ahead", "ahead_processes", "prepare_cpu_kernels"]
+__all__ = [
+    "MANIFEST",
+    "FACTORIES",
+    "manifest",
+    "compile_ahead",
+    "ahead_processes",
+    "prepare_cpu_kernels",
+    "uses_cpu_kernels",
+]
 
 MANIFEST = Path(__file__).with_name("cpu_kernels.json")
 
@@ -41,6 +51,11 @@ def manifest() -> dict[str, Any]:
     """The shipped manifest: ``{"threads": 2, "entries": [entry, ...]}`` (``_numba_ahead``'s entries, recorded on
     that many threads)."""
     return json.loads(MANIFEST.read_text())
+
+
+def uses_cpu_kernels(device: torch.device, backend: str) -> bool:
+    """Whether training on ``device`` with render ``backend`` runs the compiled CPU kernels, numba permitting."""
+    return device.type == "cpu" and backend in ("auto", "numba")
 
 
 def ahead_processes(threads: int) -> int:

@@ -35,7 +35,7 @@ from meshsplat.errors import MeshsplatError
 from meshsplat.io.folder_lock import FolderLock
 from meshsplat.run_folder import RunFolder, check_training_target
 from meshsplat.train.config import TrainConfig
-from meshsplat.train.cpu_kernels import prepare_cpu_kernels
+from meshsplat.train.cpu_kernels import prepare_cpu_kernels, uses_cpu_kernels
 from meshsplat.train.distributed import LAUNCHER_VAR
 from meshsplat.train.resume import TrainingInterrupted, signal_name
 from meshsplat.train.trainer import Trainer
@@ -79,7 +79,7 @@ def launch(config: TrainConfig, nproc: int, resume: bool = False, poll_s: float 
             f"use --nproc {cores} or fewer"
         )
     check_training_target(config.out, config.data)
-    if resolve_device(config.device).type == "cpu" and config.backend in ("auto", "numba") and numba_available():
+    if uses_cpu_kernels(resolve_device(config.device), config.backend) and numba_available():
         # the workers' kernels, compiled once here on every core rather than by each worker in its first step (the
         # kernels of 2+ threads; compiling them caches the one-thread kernels they call as well)
         prepare_cpu_kernels(usable_cores(), config.progress)

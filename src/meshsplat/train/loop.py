@@ -22,7 +22,7 @@ from meshsplat.io.images import float_to_uint8
 from meshsplat.run_folder import RunFolder
 from meshsplat.train.components import Component
 from meshsplat.train.config import TrainConfig
-from meshsplat.train.cpu_kernels import prepare_cpu_kernels
+from meshsplat.train.cpu_kernels import prepare_cpu_kernels, uses_cpu_kernels
 from meshsplat.train.distributed import DataParallel
 from meshsplat.train.frames import FrameCache
 from meshsplat.train.monitor import PROGRESS_FORMAT, TensorBoardMonitor, learning_rates, progress_postfix
@@ -118,7 +118,7 @@ class TrainingLoop:
 
     def _train(self, end: int, main: bool) -> Path:
         cfg = self.cfg
-        cpu_auto = self.device.type == "cpu" and cfg.backend in ("auto", "numba")
+        cpu_auto = uses_cpu_kernels(self.device, cfg.backend)
         if main and self.iteration < end and cpu_auto and not numba_available():
             print(NO_NUMBA_NOTE, file=sys.stderr)
         if self.iteration < end and cpu_auto and numba_available() and self.dp.world == 1:  # (--nproc: its launcher)
