@@ -205,19 +205,21 @@ def test_the_nproc_launcher_compiles_ahead_for_its_workers(tmp_path):
 
     if usable_cores() < 2:
         pytest.skip("--nproc 2 needs two cores (CI has two)")
+    from _train_kit import make_tiny_dataset
+
+    data = make_tiny_dataset(tmp_path / "sphere")  # here: rendering it compiles kernels, not in the empty cache
     code = r"""
 import sys
 from pathlib import Path
-from _train_kit import make_tiny_dataset, small_config
+from _train_kit import small_config
 from meshsplat.train.launch import launch
 
 tmp = Path(sys.argv[1])
-cfg = small_config(make_tiny_dataset(tmp / "sphere"), tmp / "run", 2, ["backend=auto", "batch_size=2",
-                                                                        "loss.lambda_lpips=0"])
+cfg = small_config(Path(sys.argv[2]), tmp / "run", 2, ["backend=auto", "batch_size=2", "loss.lambda_lpips=0"])
 cfg.progress = True
 launch(cfg, nproc=2)
 """
-    out = _python(code, str(tmp_path), cache=tmp_path / "cache")
+    out = _python(code, str(tmp_path), str(data), cache=tmp_path / "cache")
     assert out.returncode == 0, out.stderr[-3000:]
     n = len(manifest()["entries"])
     assert f"compiling the CPU kernels (once after an install): {n} in 2 processes" in out.stderr

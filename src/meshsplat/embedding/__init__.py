@@ -7,7 +7,7 @@ from meshsplat.embedding.barycentric import (
     project_uv_to_triangle,
     surface_points,
 )
-from meshsplat.embedding.embedding import SCALE_MODES, embed, pose_frame
+from meshsplat.embedding.embedding import SCALE_MODES, check_embedded, embed, pose_frame
 from meshsplat.embedding.project import closest_point_on_triangles, project_to_surface
 from meshsplat.embedding.sampling import sample_surface
 from meshsplat.embedding.walk import WALK_MODES, WalkResult, walk_on_triangles
@@ -15,6 +15,7 @@ from meshsplat.embedding.walk import WALK_MODES, WalkResult, walk_on_triangles
 __all__ = [
     "embed",
     "pose_frame",
+    "check_embedded",
     "barycentric_weights",
     "interpolate",
     "surface_points",

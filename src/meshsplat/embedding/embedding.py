@@ -14,12 +14,14 @@ from meshsplat.mesh.geometry import safe_normalize
 from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import quat_normalize
 
-__all__ = ["embed", "pose_frame", "SCALE_MODES"]
+__all__ = ["embed", "pose_frame", "check_embedded", "SCALE_MODES"]
 
 SCALE_MODES = ("sqrt_area", "area", "none")
 
 
-def _check(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor) -> dict:
+def check_embedded(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor) -> dict:
+    """Check embedded points ``(face [N], uv [N,2])`` on ``pose`` (a ``MeshPose``): shapes, dtypes, faces in range.
+    Returns the dims (``N``)."""
     if not isinstance(pose, MeshPose):
         raise MeshsplatError(f"pose: expected a MeshPose, got {type(pose).__name__}")
     dims: dict[str, int] = {}
@@ -37,7 +39,7 @@ def embed(pose: MeshPose, face: torch.Tensor, uv: torch.Tensor, d: torch.Tensor)
 
     face [N] long, uv [N,2], d [N]. Differentiable w.r.t. uv, d and the pose vertices.
     """
-    dims = _check(pose, face, uv)
+    dims = check_embedded(pose, face, uv)
     check_tensor("d", d, "N", dims, dtype="float")
     w = barycentric_weights(uv)
     p = interpolate(pose.verts, pose.faces, face, w)
@@ -55,7 +57,7 @@ def pose_frame(
     scale_mode: "area" (factor = A_pose/A_cano, the paper), "sqrt_area" (its square root, a
     length scale) or "none" (1).
     """
-    _check(pose, face, uv)
+    check_embedded(pose, face, uv)
     if scale_mode not in SCALE_MODES:
         raise MeshsplatError(f"scale_mode: expected one of {SCALE_MODES}, got {scale_mode!r}")
     w = barycentric_weights(uv)

@@ -110,9 +110,11 @@ class Avatar:
         check_tensor("verts_posed", verts_posed, "V,3", {"V": self.mesh.num_vertices}, dtype="float", finite=True)
         return MeshPose.from_vertices(self.mesh, verts_posed.to(device=self.device, dtype=dtype))
 
-    def compose(self, verts_posed: torch.Tensor | MeshPose, campos: torch.Tensor | None = None) -> ComposedGaussians:
+    def compose(
+        self, verts_posed: torch.Tensor | MeshPose, campos: torch.Tensor | None = None, compiled: bool | None = None
+    ) -> ComposedGaussians:
         """Gaussians (means, quats, scales, opacities, colors) in the pose ``verts_posed [V,3]`` (or its
-        ``MeshPose``, see :meth:`pose`)."""
+        ``MeshPose``, see :meth:`pose`); ``compiled``: :func:`~meshsplat.gaussians.compose`'s."""
         return compose(
             self.params,
             self.pose(verts_posed),
@@ -121,6 +123,7 @@ class Avatar:
             clamp_to_face=self.clamp_to_face,
             shading=self.shading,
             sh_frame=self.sh_frame,
+            compiled=compiled,
         )
 
     def base_rgb(self, verts_posed: torch.Tensor | None = None) -> torch.Tensor:
@@ -144,7 +147,8 @@ class Avatar:
     ) -> AvatarRender:
         """Render the avatar posed by ``vertices [V,3]`` (or their ``MeshPose`` from :meth:`pose`, to share the
         posing between renders of one pose) as seen by ``camera`` (a :class:`Camera`: world->camera ``viewmat``,
-        ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``."""
+        ``K``, ``width``, ``height``; moved to the avatar's device and dtype) on ``background [3]``.
+        ``backend="torch"``: torch's operations throughout (the reference), the composition included."""
         if not isinstance(camera, Camera):
             raise MeshsplatError(
                 f"camera: expected a meshsplat.Camera, got {type(camera).__name__} (the signature is "
@@ -158,7 +162,7 @@ class Avatar:
         viewmat = camera.viewmat.to(device=dev, dtype=dt)
         K = camera.K.to(device=dev, dtype=dt)
         campos = torch.linalg.inv(viewmat)[:3, 3] if self.sh_degree > 0 else None
-        g = self.compose(vertices, campos=campos)
+        g = self.compose(vertices, campos=campos, compiled=False if backend == "torch" else None)
         bg = None
         if background is not None:
             check_tensor("background", background, "3", dtype="float")

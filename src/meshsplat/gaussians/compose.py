@@ -22,8 +22,10 @@ from dataclasses import dataclass
 
 import torch
 
-from meshsplat.embedding import SCALE_MODES, embed, pose_frame, project_uv_to_triangle, surface_points
+from meshsplat._numba import numba_available
+from meshsplat.embedding import SCALE_MODES, check_embedded, embed, pose_frame, project_uv_to_triangle, surface_points
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians._compose_numba import compose_geometry_compiled
 from meshsplat.gaussians.params import SH_C0, check_params
 from meshsplat.gaussians.shading import Shading
 from meshsplat.mesh import MeshPose
@@ -113,12 +115,15 @@ def compose(
     clamp_to_face: bool = False,
     shading: Shading | None = None,
     sh_frame: str = "world",
+    compiled: bool | None = None,
 ) -> ComposedGaussians:
     """Renderable Gaussians for one posed mesh (``pose``: a ``MeshPose``).
 
     campos [3]: camera centre for view-dependent colour (SH degree > 0); without it only the
     DC band is used. shading: a ``Shading`` (colour = SH colour * irradiance of the posed normal).
-    sh_frame: "world" | "triangle" (see the module docstring).
+    sh_frame: "world" | "triangle" (see the module docstring). compiled: the means, rotations and scales
+    by numba's kernels (``gaussians._compose_numba``, the same values to rounding) instead of torch's
+    operations, and the shading's irradiance likewise; default: on CPU when numba is available.
     """
     check_params(params)
     if scale_mode not in SCALE_MODES:
@@ -127,10 +132,20 @@ def compose(
     uv = effective_uv(params, clamp_to_face)
     if sh_frame not in SH_FRAMES:
         raise MeshsplatError(f"sh_frame: expected one of {SH_FRAMES}, got {sh_frame!r}")
-    means, normals = embed(pose, face, uv, params["d"])
-    delta_q, scale_factor = pose_frame(pose, face, uv, scale_mode=scale_mode)
-    quats = quat_normalize(quat_multiply(delta_q, quat_normalize(params["rotation"])))
-    scales = params["log_scale"].exp() * scale_factor.reshape(-1, 1)
+    if compiled is None:
+        compiled = uv.device.type == "cpu" and pose.verts.device.type == "cpu" and numba_available()
+    points = None  # the surface points (at uv + duv, before the offset d), for the shading's visibility
+    if compiled:
+        check_embedded(pose, face, uv)
+        means, normals, quats, scales, delta_q, points = compose_geometry_compiled(
+            pose.verts, pose.vertex_normals, pose.vertex_quats, pose.area_ratio, pose.faces,
+            face, uv, params["d"], params["rotation"], params["log_scale"], scale_mode,
+        )  # fmt: skip
+    else:
+        means, normals = embed(pose, face, uv, params["d"])
+        delta_q, scale_factor = pose_frame(pose, face, uv, scale_mode=scale_mode)
+        quats = quat_normalize(quat_multiply(delta_q, quat_normalize(params["rotation"])))
+        scales = params["log_scale"].exp() * scale_factor.reshape(-1, 1)
     opacities = torch.sigmoid(params["opacity_logit"])
     dirs = None
     if "shN" in params and campos is not None:
@@ -142,7 +157,8 @@ def compose(
         visible = None
         if shading.occlusion != "none":
             with torch.no_grad():
-                points = surface_points(pose.verts.detach(), pose.faces, face, uv.detach())
+                if points is None:
+                    points = surface_points(pose.verts.detach(), pose.faces, face, uv.detach())
                 visible = shading.visibility(pose, points, normals.detach())
-        colors = shading.shade(colors, normals, quats, scales, visible)
+        colors = shading.shade(colors, normals, quats, scales, visible, compiled)
     return ComposedGaussians(means, quats, scales, opacities, colors)

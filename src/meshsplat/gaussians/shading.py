@@ -64,8 +64,10 @@ from typing import Any
 
 import torch
 
+from meshsplat._numba import numba_available
 from meshsplat._typing import Device
 from meshsplat.errors import MeshsplatError
+from meshsplat.gaussians._shading_numba import irradiance_compiled
 from meshsplat.mesh.pose import MeshPose
 from meshsplat.mesh.quaternion import quat_to_matrix
 from meshsplat.mesh.visibility import sphere_directions
@@ -397,14 +399,26 @@ class Shading:
             return _disk(self.directions[0].double(), self.key_soft, KEY_SOFT_SAMPLES)
         return self.directions
 
-    def irradiance(self, normals: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
+    def irradiance(
+        self, normals: torch.Tensor, visible: torch.Tensor | None = None, compiled: bool | None = None
+    ) -> torch.Tensor:
         """``E(n) [N,3]`` (the SH2 part clamped at 0) for unit ``normals [N,3]``, plus the shadowed directional
-        light when ``visible [N,K]`` (from ``visibility``) is given."""
-        e = (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
-        if self.light is None or self.directions is None:
-            return e
-        if visible is None:
+        light when ``visible [N,K]`` (from ``visibility``) is given. ``compiled``: by numba's kernels
+        (``gaussians._shading_numba``, the same values to rounding); default: on CPU when numba is available."""
+        lights = self.light is not None and self.directions is not None
+        if lights and visible is None:
             raise MeshsplatError("shading with occlusion: the visibility of the posed mesh is needed")
+        if compiled is None:
+            compiled = normals.device.type == "cpu" and self.coeffs.device.type == "cpu" and numba_available()
+        if compiled:
+            if not lights:
+                return irradiance_compiled(normals, self.coeffs)
+            assert self.light is not None and self.directions is not None and visible is not None
+            return irradiance_compiled(normals, self.coeffs, self.directions, self.light, visible)
+        e = (sh9_basis(normals) @ self.coeffs.to(normals)).clamp_min(0.0)
+        if not lights:
+            return e
+        assert self.light is not None and self.directions is not None and visible is not None
         cos = (normals @ self.directions.to(normals).T).clamp_min(0.0)  # [N,K]
         return e + (visible.to(normals) * cos) @ self.light.to(normals).clamp_min(0.0)
 
@@ -415,11 +429,12 @@ class Shading:
         quats: torch.Tensor,
         scales: torch.Tensor,
         visible: torch.Tensor | None = None,
+        compiled: bool | None = None,
     ) -> torch.Tensor:
         """Displayed colour ``[N,3]`` = albedo * E(normal) (``visible [N,K]``: with occlusion), plus the
-        specular term SH9(normal) . specular when on."""
+        specular term SH9(normal) . specular when on. ``compiled``: :meth:`irradiance`'s."""
         n = shading_normals(self.normal, phong, quats, scales)
-        colour = albedo * self.irradiance(n, visible)
+        colour = albedo * self.irradiance(n, visible, compiled)
         if self.specular is None:
             return colour
         return colour + sh9_basis(n) @ self.specular.to(n)

@@ -37,12 +37,14 @@ __all__ = [
 
 MANIFEST = Path(__file__).with_name("cpu_kernels.json")
 
-# the loaders of the kernels a training step may call (rasterizer, shadow maps, albedo prior); each makes its
-# kernels without compiling them
+# the loaders of the kernels a training step may call (rasterizer, shadow maps, albedo prior, compose, irradiance);
+# each makes its kernels without compiling them
 FACTORIES = [
     "meshsplat.render.backends.numba_cpu:_kernels",
     "meshsplat.mesh._visibility_numba:_kernel",
     "meshsplat.train._albedo_prior_numba:_kernels",
+    "meshsplat.gaussians._compose_numba:_kernels",
+    "meshsplat.gaussians._shading_numba:_kernels",
 ]
 
 
