@@ -10,12 +10,18 @@ kernel gets a small parallel driver (compiled on first use, cached) that runs it
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-from contextlib import AbstractContextManager
+import re
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from functools import lru_cache
 from typing import Any, NamedTuple
 
-__all__ = ["numba_available", "njit_serial", "njit_driver", "run_ranges", "NO_NUMBA_ENV", "Kernel", "kernel_named"]
+__all__ = [
+    "numba_available", "njit_serial", "njit_driver", "run_ranges", "run_ranges_compiling_in", "llvm_options",
+    "LLVM_DEFAULTS", "NO_NUMBA_ENV", "Kernel", "kernel_named",
+]  # fmt: skip
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
 
@@ -118,3 +124,82 @@ def run_ranges(kernel: Callable[..., Any], driver: Callable[..., Any], n: int, *
     finally:  # numba's OpenMP layer shares the runtime with torch and would change its count
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
+
+
+def run_ranges_compiling_in(
+    context: CompileContext, seen: set[tuple[Any, ...]], key: tuple[Any, ...], kernel: Callable[..., Any],
+    driver: Callable[..., Any], n: int, *args: Any,
+) -> None:  # fmt: skip
+    """``run_ranges``, inside ``context`` the first time ``key`` (with serial or parallel added) is seen in this
+    process (``seen``: the caller's set): the call that compiles a kernel, or loads it from numba's cache, then runs
+    inside the LLVM options the kernel must compile with (``llvm_options``). ``key``: what makes numba specialize
+    (e.g. the float types); a specialization outside the keys compiles outside the options (same results)."""
+    import torch
+
+    key = (*key, n >= 2 and torch.get_num_threads() > 1)
+    if key in seen:
+        run_ranges(kernel, driver, n, *args)
+        return
+    with context():
+        run_ranges(kernel, driver, n, *args)
+    seen.add(key)
+
+
+# LLVM's defaults of the options the compiled kernels change while they compile (LLVM 20): ``force-vector-width``
+# (0: the cost model's), and the most run-time checks the loop vectorizer adds before it gives up on a loop
+# (``vectorize-scev-check-threshold``: assumptions about index arithmetic; ``runtime-memory-check-threshold``:
+# pairs of arrays that might overlap).
+LLVM_DEFAULTS = {"force-vector-width": 0, "vectorize-scev-check-threshold": 16, "runtime-memory-check-threshold": 8}
+
+
+@contextmanager
+def llvm_options(options: dict[str, int]) -> Iterator[None]:
+    """Numba compilations inside run with these LLVM options (names of ``LLVM_DEFAULTS``; empty: nothing changes).
+    The options are global to LLVM, so numba's compiler lock is held throughout and they are reset to LLVM's
+    defaults after; LLVM's remarks on the loops it leaves scalar are kept off stderr (``_llvm_remarks_dropped``)."""
+    if not options:
+        yield
+        return
+    unknown = set(options) - set(LLVM_DEFAULTS)
+    if unknown:
+        raise ValueError(f"llvm_options: no default known for {sorted(unknown)}")
+    from llvmlite import binding as llvm
+    from numba.core.compiler_lock import global_compiler_lock
+
+    with global_compiler_lock, _llvm_remarks_dropped():
+        for name, value in options.items():
+            llvm.set_option("", f"-{name}={value}")
+        try:
+            yield
+        finally:
+            for name in options:
+                llvm.set_option("", f"-{name}={LLVM_DEFAULTS[name]}")
+
+
+_REMARK = re.compile(r"remark: [^\n]*loop not vectorized[^\n]*\n?")
+
+
+@contextmanager
+def _llvm_remarks_dropped() -> Iterator[None]:
+    """At a forced width LLVM prints a remark for every loop it leaves scalar (31 lines for a first multi-thread
+    render), on the process's stderr (file descriptor 2, below Python). Inside, descriptor 2 goes to a temporary
+    file; what was written there, less those remarks, goes to stderr after (delayed, not lost)."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr (e.g. pythonw): nothing to keep clean
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = _REMARK.sub("", tmp.read().decode(errors="replace"))
+            if kept:
+                sys.stderr.write(kept)
+                sys.stderr.flush()

@@ -34,17 +34,13 @@ from __future__ import annotations
 
 import math
 import os
-import re
-import sys
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from functools import lru_cache, partial
 from typing import Any
 
 import numpy as np
 
-from meshsplat._numba import njit_driver, njit_serial, run_ranges
+from meshsplat._numba import llvm_options, njit_driver, njit_serial, run_ranges_compiling_in
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
@@ -97,52 +93,10 @@ def _width_override() -> int | None:
     return int(value)
 
 
-@contextmanager
-def _compiling_at(width: int) -> Iterator[None]:
-    """Numba compilations inside run with LLVM's ``-force-vector-width=width`` (0: nothing changes). The option is
-    global to LLVM, so numba's compiler lock is held throughout and the option is reset to LLVM's default (0)
-    after."""
-    if not width:
-        yield
-        return
-    from llvmlite import binding as llvm
-    from numba.core.compiler_lock import global_compiler_lock
-
-    with global_compiler_lock, _llvm_remarks_dropped():
-        llvm.set_option("", f"-force-vector-width={width}")
-        try:
-            yield
-        finally:
-            llvm.set_option("", "-force-vector-width=0")
-
-
-_REMARK = re.compile(r"remark: [^\n]*loop not vectorized[^\n]*\n?")
-
-
-@contextmanager
-def _llvm_remarks_dropped() -> Iterator[None]:
-    """At a forced width LLVM prints a remark for every loop it leaves scalar (31 lines for a first multi-thread
-    render), on the process's stderr (file descriptor 2, below Python). Inside, descriptor 2 goes to a temporary
-    file; what was written there, less those remarks, goes to stderr after (delayed, not lost)."""
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr (e.g. pythonw): nothing to keep clean
-        yield
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            kept = _REMARK.sub("", tmp.read().decode(errors="replace"))
-            if kept:
-                sys.stderr.write(kept)
-                sys.stderr.flush()
+def _compiling_at(width: int) -> AbstractContextManager[None]:
+    """Numba compilations inside run with LLVM's ``-force-vector-width=width`` (0: nothing changes; see
+    ``_numba.llvm_options``)."""
+    return llvm_options({"force-vector-width": width} if width else {})
 
 
 def _exp_neg(x):  # pragma: no cover - replaced by an overload when compiled
@@ -512,15 +466,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     seen: set[tuple[Any, ...]] = set()
 
     def _run(kernel, driver, n, key, *args):
-        import torch
-
-        key = (*key, n >= 2 and torch.get_num_threads() > 1)
-        if key in seen:
-            run_ranges(kernel, driver, n, *args)
-            return
-        with _compiling_at(vector_width):
-            run_ranges(kernel, driver, n, *args)
-        seen.add(key)
+        run_ranges_compiling_in(at_width, seen, key, kernel, driver, n, *args)
 
     def forward(tile_ptr, isect, rec, order, bg, xs, ys, consts, width, height, tile, tiles_x, tiles_y):
         out = _outputs(rec, bg, xs, width, height)

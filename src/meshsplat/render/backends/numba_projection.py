@@ -13,17 +13,24 @@ The backward takes ``J W Σ W^T`` from the forward's ``Σ u``, ``Σ v`` (not a 3
 Gaussians no camera sees: 500k @ 512² 72 -> 53 ms. The forward computes a Gaussian's covariance only for a camera
 that may see it: a bound on its radii from the scales alone (any rotation) culls those surely off screen first
 (the benchmark avatar's 37% outside the image: 500k @ 512² 50 -> 45 ms).
+
+One camera (every training render) takes other kernels, ``_project_one_kernel`` and its backward: the same
+operations in the same order with the cameras' loop, the scratch matrices and the branches gone, so that LLVM
+turns the loop over Gaussians into vector code, 4 float64 lanes (``projection_llvm_options``). The same bits as the
+general kernels; 500k @ 512², one thread, Zen 3: forward 44-47 -> 21-23 ms, backward 61-64 -> 24-30 ms
+(bench/reports/raster_cpu.md).
 """
 
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import Any
 
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_driver, njit_serial, run_ranges
+from meshsplat._numba import llvm_options, njit_driver, njit_serial, run_ranges, run_ranges_compiling_in
 from meshsplat.render._constants import ALPHA_THRESHOLD, EPS2D, FOV_CLAMP_MARGIN, MAX_EXTEND
 from meshsplat.render.projection import Projection
 
@@ -34,6 +41,8 @@ _BLOCK = 256  # Gaussians per block of the backward (scratch arrays allocated on
 _prange: Any = range
 _project_serial: Any = None
 _project_backward_serial: Any = None
+_project_one_serial: Any = None
+_project_one_backward_serial: Any = None
 
 
 def _project_kernel(
@@ -355,6 +364,276 @@ def _quat_backward_py(qw, qx, qy, qz, g, out):  # pragma: no cover - compiled
 _quat_backward: Any = _quat_backward_py
 
 
+# ---- one camera: vector code over Gaussians ----------------------------------------------------------------------
+# A training render has one camera. These kernels take the Gaussians in a plain loop with no inner loop, call or
+# scratch array: LLVM vectorizes it across Gaussians (4 float64 lanes, ``projection_llvm_options``), branches become
+# selects, and every lane runs the whole chain (the screen cull of the general kernel saves no work in vector code).
+# The same float64 operations in the same order as the general kernels: the same bits (tested). Arrays are flat
+# (``[N*3]`` for ``[N,3]``) and indexed by unsigned integers: LLVM then knows each access's stride and bounds (a
+# 2-D numba array's row stride is a run-time value, and a signed index carries numba's wraparound).
+_U1, _U2, _U3, _U4 = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4)
+_INT32_MAX = 2147483647.0
+
+
+def _camera_vector(viewmats: np.ndarray, ks: np.ndarray, width: float, height: float) -> np.ndarray:
+    """``[20]`` float64: camera 0's view matrix rows 0-2 (12), fx, fy, cx, cy and its ``_fov_limits`` (4)."""
+    k = ks[0]
+    return np.concatenate([viewmats[0, :3, :].reshape(-1), [k[0, 0], k[1, 1], k[0, 2], k[1, 2]],
+                           _fov_limits_py(ks[:1], width, height)[0]]).astype(np.float64)  # fmt: skip
+
+
+def _project_one_kernel(
+    means, quats, scales, opac, cam, width, height, near, far, m2, con, depth, radii, vis, lo, hi
+):  # pragma: no cover - compiled
+    """``_project_kernel`` for one camera (``cam``: ``_camera_vector``), flat arrays: means, scales ``[N*3]``, quats
+    ``[N*4]``, opac ``[N]``; into the zeroed means2d ``[N*2]``, conics ``[N*3]``, depths ``[N]``, radii ``[N*2]``,
+    visible ``[N]``."""
+    ext = np.empty(hi - lo, np.float64)  # the opacity's extent (a log: libm, not vector code), -1: culled
+    for i in range(lo, hi):
+        op = np.float64(opac[i])
+        e = min(math.sqrt(2.0 * math.log(max(op, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), MAX_EXTEND)
+        ext[i - lo] = -1.0 if op < ALPHA_THRESHOLD else e
+    w00, w01, w02, w03, w10, w11, w12, w13 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
+    w20, w21, w22, w23, fx, fy, cx, cy = cam[8], cam[9], cam[10], cam[11], cam[12], cam[13], cam[14], cam[15]
+    lim0, lim1, lim2, lim3 = cam[16], cam[17], cam[18], cam[19]
+    ulo = np.uint64(lo)
+    for i in range(ulo, np.uint64(hi)):
+        px, py, pz = np.float64(means[_U3 * i]), np.float64(means[_U3 * i + _U1]), np.float64(means[_U3 * i + _U2])
+        x = w03 + w00 * px + w01 * py + w02 * pz
+        y = w13 + w10 * px + w11 * py + w12 * pz
+        z = w23 + w20 * px + w21 * py + w22 * pz
+        tx = z * min(lim0, max(-lim1, x / z))  # _clamped_xy
+        ty = z * min(lim2, max(-lim3, y / z))
+        rz = 1.0 / z
+        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+        mx = fx * x * rz + cx
+        my = fy * y * rz + cy
+        R00, R01, R02, R10, R11, R12, R20, R21, R22 = _rotation_of(quats, i)
+        s0, s1, s2 = np.float64(scales[_U3 * i]), np.float64(scales[_U3 * i + _U1]), np.float64(scales[_U3 * i + _U2])
+        S00, S01, S02, S10, S11, S12, S20, S21, S22 = _covariance_of(
+            R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2
+        )
+        u0, u1, u2 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22  # _screen_cov
+        v0, v1, v2 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
+        su0, su1, su2 = S00 * u0 + S01 * u1 + S02 * u2, S10 * u0 + S11 * u1 + S12 * u2, S20 * u0 + S21 * u1 + S22 * u2
+        sv0, sv1, sv2 = S00 * v0 + S01 * v1 + S02 * v2, S10 * v0 + S11 * v1 + S12 * v2, S20 * v0 + S21 * v1 + S22 * v2
+        a = u0 * su0 + u1 * su1 + u2 * su2 + EPS2D
+        b = u0 * sv0 + u1 * sv1 + u2 * sv2
+        c = v0 * sv0 + v1 * sv1 + v2 * sv2 + EPS2D
+        det = a * c - b * b
+        e = ext[i - ulo]
+        rx = math.ceil(e * math.sqrt(max(a, 0.0)))
+        ry = math.ceil(e * math.sqrt(max(c, 0.0)))
+        ok = (near <= z) & (z <= far) & (det > 0.0) & ((rx > 0) | (ry > 0))
+        ok = ok and not ((mx + rx <= 0) | (mx - rx >= width) | (my + ry <= 0) | (my - ry >= height))
+        vis[i] = ok
+        radii[_U2 * i] = np.int32(min(rx, _INT32_MAX)) if ok else np.int32(0)
+        radii[_U2 * i + _U1] = np.int32(min(ry, _INT32_MAX)) if ok else np.int32(0)
+        m2[_U2 * i] = mx if ok else 0.0
+        m2[_U2 * i + _U1] = my if ok else 0.0
+        con[_U3 * i] = c / det if ok else 0.0
+        con[_U3 * i + _U1] = -b / det if ok else 0.0
+        con[_U3 * i + _U2] = a / det if ok else 0.0
+        depth[i] = z if ok else 0.0
+
+
+def _rotation_of_py(quats, i):  # pragma: no cover - compiled (inlined)
+    """The rotation matrix (9 float64, row by row) of quaternion ``i`` of the flat ``quats [N*4]``, as
+    ``_quat_rotation_py``."""
+    w, x = np.float64(quats[_U4 * i]), np.float64(quats[_U4 * i + _U1])
+    y, z = np.float64(quats[_U4 * i + _U2]), np.float64(quats[_U4 * i + _U3])
+    nrm = max(math.sqrt(w * w + x * x + y * y + z * z), 1e-12)
+    w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+    return (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )  # fmt: skip
+
+
+_rotation_of: Any = _rotation_of_py
+
+
+def _covariance_of_py(R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2):  # pragma: no cover - compiled
+    """``R S S^T R^T`` (9 float64, row by row) summed as the general kernels sum it."""
+    return (
+        0.0 + R00 * s0 * s0 * R00 + R01 * s1 * s1 * R01 + R02 * s2 * s2 * R02,
+        0.0 + R00 * s0 * s0 * R10 + R01 * s1 * s1 * R11 + R02 * s2 * s2 * R12,
+        0.0 + R00 * s0 * s0 * R20 + R01 * s1 * s1 * R21 + R02 * s2 * s2 * R22,
+        0.0 + R10 * s0 * s0 * R00 + R11 * s1 * s1 * R01 + R12 * s2 * s2 * R02,
+        0.0 + R10 * s0 * s0 * R10 + R11 * s1 * s1 * R11 + R12 * s2 * s2 * R12,
+        0.0 + R10 * s0 * s0 * R20 + R11 * s1 * s1 * R21 + R12 * s2 * s2 * R22,
+        0.0 + R20 * s0 * s0 * R00 + R21 * s1 * s1 * R01 + R22 * s2 * s2 * R02,
+        0.0 + R20 * s0 * s0 * R10 + R21 * s1 * s1 * R11 + R22 * s2 * s2 * R12,
+        0.0 + R20 * s0 * s0 * R20 + R21 * s1 * s1 * R21 + R22 * s2 * s2 * R22,
+    )
+
+
+_covariance_of: Any = _covariance_of_py
+
+
+def _project_one_backward_kernel(
+    means, quats, scales, cam, vis, v_m2, v_con, v_depth, g_means, g_quats, g_scales, lo, hi
+):  # pragma: no cover - compiled
+    """``_project_backward_kernel`` for one camera, flat arrays as ``_project_one_kernel``'s (the gradients ``v_m2
+    [N*2]``, ``v_con [N*3]``, ``v_depth [N]``; into ``g_means``, ``g_scales [N*3]``, ``g_quats [N*4]``). A Gaussian
+    the camera does not see, with finite quaternion and scales, keeps zero gradients (``_culled_py``)."""
+    w00, w01, w02, w03, w10, w11, w12, w13 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
+    w20, w21, w22, w23, fx, fy = cam[8], cam[9], cam[10], cam[11], cam[12], cam[13]
+    lim0, lim1, lim2, lim3 = cam[16], cam[17], cam[18], cam[19]
+    for i in range(np.uint64(lo), np.uint64(hi)):
+        seen = vis[i]
+        qw, qx = np.float64(quats[_U4 * i]), np.float64(quats[_U4 * i + _U1])
+        qy, qz = np.float64(quats[_U4 * i + _U2]), np.float64(quats[_U4 * i + _U3])
+        s0, s1, s2 = np.float64(scales[_U3 * i]), np.float64(scales[_U3 * i + _U1]), np.float64(scales[_U3 * i + _U2])
+        finite = math.isfinite(qw) & math.isfinite(qx) & math.isfinite(qy) & math.isfinite(qz)
+        keep = seen or not (finite & math.isfinite(s0) & math.isfinite(s1) & math.isfinite(s2))
+        R00, R01, R02, R10, R11, R12, R20, R21, R22 = _rotation_of(quats, i)
+        S00, S01, S02, S10, S11, S12, S20, S21, S22 = _covariance_of(
+            R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2
+        )
+        # the camera's part (_backward_one_py), kept where the camera sees the Gaussian
+        px, py, pz = np.float64(means[_U3 * i]), np.float64(means[_U3 * i + _U1]), np.float64(means[_U3 * i + _U2])
+        x = w03 + w00 * px + w01 * py + w02 * pz
+        y = w13 + w10 * px + w11 * py + w12 * pz
+        z = w23 + w20 * px + w21 * py + w22 * pz
+        ux = min(lim0, max(-lim1, x / z))
+        uy = min(lim2, max(-lim3, y / z))
+        tx, ty, clamp_x, clamp_y = z * ux, z * uy, ux != x / z, uy != y / z
+        rz = 1.0 / z
+        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+        t00, t01, t02 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22  # rows of J W: u, v
+        t10, t11, t12 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
+        su0, su1, su2 = (
+            S00 * t00 + S01 * t01 + S02 * t02,
+            S10 * t00 + S11 * t01 + S12 * t02,
+            S20 * t00 + S21 * t01 + S22 * t02,
+        )
+        sv0, sv1, sv2 = (
+            S00 * t10 + S01 * t11 + S02 * t12,
+            S10 * t10 + S11 * t11 + S12 * t12,
+            S20 * t10 + S21 * t11 + S22 * t12,
+        )
+        a = t00 * su0 + t01 * su1 + t02 * su2 + EPS2D
+        b = t00 * sv0 + t01 * sv1 + t02 * sv2
+        c = t10 * sv0 + t11 * sv1 + t12 * sv2 + EPS2D
+        det = a * c - b * b
+        va_c, vb_c, vc_c = (
+            np.float64(v_con[_U3 * i]),
+            np.float64(v_con[_U3 * i + _U1]),
+            np.float64(v_con[_U3 * i + _U2]),
+        )
+        d2 = det * det
+        ga = (-c * c * va_c + b * c * vb_c - b * b * vc_c) / d2
+        gb = (2.0 * b * c * va_c - (a * c + b * b) * vb_c + 2.0 * a * b * vc_c) / d2
+        gc = (-b * b * va_c + a * b * vb_c - a * a * vc_c) / d2
+        hb = 0.5 * gb
+        js00, js01, js02 = (
+            su0 * w00 + su1 * w01 + su2 * w02,
+            su0 * w10 + su1 * w11 + su2 * w12,
+            su0 * w20 + su1 * w21 + su2 * w22,
+        )
+        js10, js11, js12 = (
+            sv0 * w00 + sv1 * w01 + sv2 * w02,
+            sv0 * w10 + sv1 * w11 + sv2 * w12,
+            sv0 * w20 + sv1 * w21 + sv2 * w22,
+        )
+        v_j00 = 2.0 * (ga * js00 + hb * js10)
+        v_j02 = 2.0 * (ga * js02 + hb * js12)
+        v_j11 = 2.0 * (hb * js01 + gc * js11)
+        v_j12 = 2.0 * (hb * js02 + gc * js12)
+        vmx, vmy = np.float64(v_m2[_U2 * i]), np.float64(v_m2[_U2 * i + _U1])
+        v_rz = fx * v_j00 + fy * v_j11 - 2.0 * fx * tx * rz * v_j02 - 2.0 * fy * ty * rz * v_j12
+        v_rz += fx * x * vmx + fy * y * vmy
+        v_tx = -fx * rz * rz * v_j02
+        v_ty = -fy * rz * rz * v_j12
+        vx = fx * rz * vmx
+        vy = fy * rz * vmy
+        vz = -rz * rz * v_rz + np.float64(v_depth[i])
+        vz = vz + (tx / z) * v_tx if clamp_x else vz
+        vx = vx if clamp_x else vx + v_tx
+        vz = vz + (ty / z) * v_ty if clamp_y else vz
+        vy = vy if clamp_y else vy + v_ty
+        gm0 = 0.0 + (w00 * vx + w10 * vy + w20 * vz) if seen else 0.0
+        gm1 = 0.0 + (w01 * vx + w11 * vy + w21 * vz) if seen else 0.0
+        gm2 = 0.0 + (w02 * vx + w12 * vy + w22 * vz) if seen else 0.0
+        # g_sig (G, symmetric sums of the screen covariance's gradient) back to the scales and the rotation
+        G00 = 0.0 + (t00 * (ga * t00 + hb * t10) + t10 * (hb * t00 + gc * t10)) if seen else 0.0
+        G01 = 0.0 + (t00 * (ga * t01 + hb * t11) + t10 * (hb * t01 + gc * t11)) if seen else 0.0
+        G02 = 0.0 + (t00 * (ga * t02 + hb * t12) + t10 * (hb * t02 + gc * t12)) if seen else 0.0
+        G10 = 0.0 + (t01 * (ga * t00 + hb * t10) + t11 * (hb * t00 + gc * t10)) if seen else 0.0
+        G11 = 0.0 + (t01 * (ga * t01 + hb * t11) + t11 * (hb * t01 + gc * t11)) if seen else 0.0
+        G12 = 0.0 + (t01 * (ga * t02 + hb * t12) + t11 * (hb * t02 + gc * t12)) if seen else 0.0
+        G20 = 0.0 + (t02 * (ga * t00 + hb * t10) + t12 * (hb * t00 + gc * t10)) if seen else 0.0
+        G21 = 0.0 + (t02 * (ga * t01 + hb * t11) + t12 * (hb * t01 + gc * t11)) if seen else 0.0
+        G22 = 0.0 + (t02 * (ga * t02 + hb * t12) + t12 * (hb * t02 + gc * t12)) if seen else 0.0
+        m00 = 0.0 + (G00 + G00) * R00 * s0 + (G01 + G10) * R10 * s0 + (G02 + G20) * R20 * s0
+        m10 = 0.0 + (G10 + G01) * R00 * s0 + (G11 + G11) * R10 * s0 + (G12 + G21) * R20 * s0
+        m20 = 0.0 + (G20 + G02) * R00 * s0 + (G21 + G12) * R10 * s0 + (G22 + G22) * R20 * s0
+        m01 = 0.0 + (G00 + G00) * R01 * s1 + (G01 + G10) * R11 * s1 + (G02 + G20) * R21 * s1
+        m11 = 0.0 + (G10 + G01) * R01 * s1 + (G11 + G11) * R11 * s1 + (G12 + G21) * R21 * s1
+        m21 = 0.0 + (G20 + G02) * R01 * s1 + (G21 + G12) * R11 * s1 + (G22 + G22) * R21 * s1
+        m02 = 0.0 + (G00 + G00) * R02 * s2 + (G01 + G10) * R12 * s2 + (G02 + G20) * R22 * s2
+        m12 = 0.0 + (G10 + G01) * R02 * s2 + (G11 + G11) * R12 * s2 + (G12 + G21) * R22 * s2
+        m22 = 0.0 + (G20 + G02) * R02 * s2 + (G21 + G12) * R12 * s2 + (G22 + G22) * R22 * s2
+        gs0 = 0.0 + m00 * R00 + m10 * R10 + m20 * R20
+        gs1 = 0.0 + m01 * R01 + m11 * R11 + m21 * R21
+        gs2 = 0.0 + m02 * R02 + m12 * R12 + m22 * R22
+        h00, h01, h02 = m00 * s0, m01 * s1, m02 * s2
+        h10, h11, h12 = m10 * s0, m11 * s1, m12 * s2
+        h20, h21, h22 = m20 * s0, m21 * s1, m22 * s2
+        g_means[_U3 * i] = gm0 if keep else 0.0
+        g_means[_U3 * i + _U1] = gm1 if keep else 0.0
+        g_means[_U3 * i + _U2] = gm2 if keep else 0.0
+        g_scales[_U3 * i] = gs0 if keep else 0.0
+        g_scales[_U3 * i + _U1] = gs1 if keep else 0.0
+        g_scales[_U3 * i + _U2] = gs2 if keep else 0.0
+        # _quat_backward_py with g = (h)
+        raw = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        nrm = max(raw, 1e-12)
+        w, x, y, z = qw / nrm, qx / nrm, qy / nrm, qz / nrm
+        gw = 2.0 * (-z * h01 + y * h02 + z * h10 - x * h12 - y * h20 + x * h21)
+        gx = 2.0 * (y * h01 + z * h02 + y * h10 - 2.0 * x * h11 - w * h12)
+        gx += 2.0 * (z * h20 + w * h21 - 2.0 * x * h22)
+        gy = 2.0 * (-2.0 * y * h00 + x * h01 + w * h02 + x * h10 + z * h12)
+        gy += 2.0 * (-w * h20 + z * h21 - 2.0 * y * h22)
+        gz = 2.0 * (-2.0 * z * h00 - w * h01 + x * h02 + w * h10 - 2.0 * z * h11)
+        gz += 2.0 * (y * h12 + x * h20 + y * h21)
+        dot = w * gw + x * gx + y * gy + z * gz
+        small = raw < 1e-12  # below the clamp the normalisation is a fixed scale
+        g_quats[_U4 * i] = (gw / nrm if small else (gw - w * dot) / nrm) if keep else 0.0
+        g_quats[_U4 * i + _U1] = (gx / nrm if small else (gx - x * dot) / nrm) if keep else 0.0
+        g_quats[_U4 * i + _U2] = (gy / nrm if small else (gy - y * dot) / nrm) if keep else 0.0
+        g_quats[_U4 * i + _U3] = (gz / nrm if small else (gz - z * dot) / nrm) if keep else 0.0
+
+
+def projection_llvm_options() -> dict[str, int]:
+    """The LLVM options the one-camera kernels compile with (``_numba.llvm_options``): 4 float64 lanes on an x86-64
+    host (LLVM's cost model leaves the loop scalar on a Zen 3 host: 40 ms against 15 at 500k Gaussians), enough
+    run-time checks for the loop's 9 arrays and index assumptions; LLVM's own width elsewhere (arm64: not measured)
+    and where numba compiles for another CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``)."""
+    import platform
+
+    import numba
+
+    config: Any = numba.config
+    x86 = platform.machine().lower() in ("x86_64", "amd64")
+    width = 4 if x86 and not (config.CPU_NAME or config.CPU_FEATURES) else 0
+    return {"force-vector-width": width, "vectorize-scev-check-threshold": 512, "runtime-memory-check-threshold": 64}
+
+
+def _project_one_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_project_one_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _project_one_serial(*args, bounds[j], bounds[j + 1])
+
+
+def _project_one_backward_ranges(bounds, *args):  # pragma: no cover - compiled
+    """``_project_one_backward_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop."""
+    for j in _prange(bounds.shape[0] - 1):
+        _project_one_backward_serial(*args, bounds[j], bounds[j + 1])
+
+
 def _project_ranges(bounds, *args):  # pragma: no cover - compiled
     """``_project_kernel`` over the ranges ``bounds [R+1]`` in numba's parallel loop (``run_ranges``'s driver)."""
     for j in _prange(bounds.shape[0] - 1):
@@ -372,8 +651,8 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     (``njit_serial``) over ranges of Gaussians, run by ``run_ranges`` on torch's thread count; same arguments and
     results as before they took ranges."""
     global _quat_rotation, _clamped_xy, _fov_limits, _screen_cov, _quat_backward, _backward_one, _culled
-    global _row_norms, _off_screen
-    global _prange, _project_serial, _project_backward_serial
+    global _row_norms, _off_screen, _rotation_of, _covariance_of
+    global _prange, _project_serial, _project_backward_serial, _project_one_serial, _project_one_backward_serial
     helper = njit_serial(numba)
     _quat_rotation = helper(_quat_rotation_py)
     _clamped_xy = helper(_clamped_xy_py)
@@ -388,6 +667,16 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     _prange, _project_serial, _project_backward_serial = numba.prange, fwd, bwd
     par = njit_driver(numba)
     fwd_par, bwd_par = par(_project_ranges), par(_project_backward_ranges)
+    # one camera: vector code, compiled inside LLVM options (on the first call of each kind, or ahead)
+    in_options = partial(llvm_options, projection_llvm_options())
+    _rotation_of = njit_serial(numba, inline=True)(_rotation_of_py)
+    _covariance_of = njit_serial(numba, inline=True)(_covariance_of_py)
+    one = njit_serial(numba, compile_context=in_options)
+    fwd1, bwd1 = one(_project_one_kernel), one(_project_one_backward_kernel)
+    _project_one_serial, _project_one_backward_serial = fwd1, bwd1
+    par1 = njit_driver(numba, compile_context=in_options)
+    fwd1_par, bwd1_par = par1(_project_one_ranges), par1(_project_one_backward_ranges)
+    seen: set[tuple[Any, ...]] = set()
 
     def project(means, quats, scales, opac, viewmats, ks, width, height, near, far):
         """means2d [C,N,2], conics [C,N,3], depths [C,N] (the dtype of ``means``: float64 rounded once, on store),
@@ -395,6 +684,12 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
         c, n, dt = viewmats.shape[0], means.shape[0], means.dtype
         out = (np.zeros((c, n, 2), dt), np.zeros((c, n, 3), dt), np.zeros((c, n), dt), np.zeros((c, n, 2), np.int32),
                np.zeros((c, n), np.bool_))  # fmt: skip
+        if c == 1:
+            cam = _camera_vector(viewmats, ks, width, height)
+            flat = (means.reshape(-1), quats.reshape(-1), scales.reshape(-1), opac.reshape(-1), cam)
+            args = (*flat, width, height, near, far, *(o.reshape(-1) for o in out))
+            run_ranges_compiling_in(in_options, seen, ("fwd", dt, quats.dtype), fwd1, fwd1_par, n, *args)
+            return out
         run_ranges(fwd, fwd_par, n, means, quats, scales, opac, viewmats, ks, width, height, near, far, *out)
         return out
 
@@ -402,6 +697,13 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
         """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) in the dtype of ``means`` (float64 inside)."""
         n, dt = means.shape[0], means.dtype
         out = (np.zeros((n, 3), dt), np.zeros((n, 4), dt), np.zeros((n, 3), dt))
+        if vis.shape[0] == 1:
+            cam = _camera_vector(viewmats, ks, width, height)
+            grads = (vis, v_m2, v_con, v_depth)
+            args = (means.reshape(-1), quats.reshape(-1), scales.reshape(-1), cam, *(g.reshape(-1) for g in grads))
+            key = ("bwd", dt, quats.dtype, v_m2.dtype)
+            run_ranges_compiling_in(in_options, seen, key, bwd1, bwd1_par, n, *args, *(o.reshape(-1) for o in out))
+            return out
         args = (means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth, *out)
         run_ranges(bwd, bwd_par, (n + _BLOCK - 1) // _BLOCK, *args)
         return out
