@@ -167,3 +167,31 @@ def test_one_camera_kernels_compile_to_vector_code():
         asm = "\n".join(dispatcher.inspect_asm().values())
         packed = re.findall(r"^\s*v(?:add|sub|mul|div|min|max|sqrt)pd\s+([^\n]*)", asm, re.M)
         assert sum("%ymm" in ops or "%zmm" in ops for ops in packed) >= 50, len(packed)
+
+
+def test_one_camera_kernels_write_every_element():
+    """The one-camera wrappers hand the kernels uninitialised outputs (``np.empty``): run on outputs full of a
+    sentinel, the kernels give what the wrappers return, element for element."""
+    from meshsplat.render.backends import numba_projection as P
+
+    project, backward = _kernels()
+    s = _hard_scene(torch.float32, n=200)
+    arrs = _arrays(s)
+    vm, ks = _cams(s, [0])
+    w, h = float(s["width"]), float(s["height"])
+    expected = project(*arrs, vm, ks, w, h, NEAR, FAR)
+    n = arrs[0].shape[0]
+    cam = P._camera_vector(vm, ks, w, h)
+    flat = [a.reshape(-1) for a in arrs]
+    outs = [np.full(o.size, 7, o.dtype) for o in expected]
+    P._project_one_serial(*flat, cam, w, h, NEAR, FAR, *outs, 0, n)
+    for got, want in zip(outs, expected, strict=True):
+        np.testing.assert_array_equal(got, want.reshape(-1))
+    rng = np.random.default_rng(4)
+    grads = [rng.standard_normal(shape).astype(np.float32) for shape in ((1, n, 2), (1, n, 3), (1, n))]
+    want_g = backward(arrs[0], arrs[1], arrs[2], vm, ks, w, h, expected[4], *grads)
+    got_g = [np.full(g.size, 7, g.dtype) for g in want_g]
+    P._project_one_backward_serial(*flat[:3], cam, expected[4].reshape(-1), *(g.reshape(-1) for g in grads), *got_g,
+                                   0, n)  # fmt: skip
+    for got, want in zip(got_g, want_g, strict=True):
+        np.testing.assert_array_equal(got, want.reshape(-1))

@@ -682,8 +682,9 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
         """means2d [C,N,2], conics [C,N,3], depths [C,N] (the dtype of ``means``: float64 rounded once, on store),
         radii [C,N,2] int32, visible [C,N] bool."""
         c, n, dt = viewmats.shape[0], means.shape[0], means.dtype
-        out = (np.zeros((c, n, 2), dt), np.zeros((c, n, 3), dt), np.zeros((c, n), dt), np.zeros((c, n, 2), np.int32),
-               np.zeros((c, n), np.bool_))  # fmt: skip
+        make = np.empty if c == 1 else np.zeros  # the one-camera kernel writes every element
+        out = (make((c, n, 2), dt), make((c, n, 3), dt), make((c, n), dt), make((c, n, 2), np.int32),
+               make((c, n), np.bool_))  # fmt: skip
         if c == 1:
             cam = _camera_vector(viewmats, ks, width, height)
             flat = (means.reshape(-1), quats.reshape(-1), scales.reshape(-1), opac.reshape(-1), cam)
@@ -696,7 +697,8 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     def project_backward(means, quats, scales, viewmats, ks, width, height, vis, v_m2, v_con, v_depth):
         """d(loss)/d(means [N,3], quats [N,4], scales [N,3]) in the dtype of ``means`` (float64 inside)."""
         n, dt = means.shape[0], means.dtype
-        out = (np.zeros((n, 3), dt), np.zeros((n, 4), dt), np.zeros((n, 3), dt))
+        make = np.empty if vis.shape[0] == 1 else np.zeros  # the one-camera kernel writes every element
+        out = (make((n, 3), dt), make((n, 4), dt), make((n, 3), dt))
         if vis.shape[0] == 1:
             cam = _camera_vector(viewmats, ks, width, height)
             grads = (vis, v_m2, v_con, v_depth)
