@@ -44,6 +44,8 @@ def _hard_scene(dtype: torch.dtype, n: int = 300, seed: int = 3) -> dict:
     scales[20] = 50.0  # larger than the image
     means[21, 1] = float("nan")
     scales[22] = 1e-9  # a point: the dilation alone
+    means[23] = torch.tensor([0.0, 0.0, -2.985])  # just past camera 0's near plane, huge: radii past int32
+    scales[23] = 1e7
     s.update(means=means, quats=quats, scales=scales, opacities=opac)
     return s
 
@@ -71,6 +73,7 @@ def test_one_camera_gives_the_general_kernels_bits(dtype, cam):
     one = project(*arrs, vm1, k1, w, h, NEAR, FAR)
     two = project(*arrs, vm2, k2, w, h, NEAR, FAR)
     assert one[4].sum() > 20 and (~one[4]).sum() > 20  # both kinds present
+    assert cam != 0 or one[3][0, 23].max() == 2147483647  # capped, not wrapped
     for a, b in zip(one, two, strict=True):
         np.testing.assert_array_equal(a[0], b[0])
     n = arrs[0].shape[0]

@@ -36,6 +36,7 @@ from meshsplat.render.projection import Projection
 
 __all__ = ["project_numba"]
 
+_INT32_MAX = 2147483647.0  # radii are capped here: a larger one (a splat at the camera plane) would wrap
 _BLOCK = 256  # Gaussians per block of the backward (scratch arrays allocated once per block)
 # Plain Python until compile_kernels() rebinds them: numba's prange and the serial kernels the drivers call.
 _prange: Any = range
@@ -100,7 +101,7 @@ def _project_kernel(
             if not (rx > 0 or ry > 0) or mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
                 continue
             vis[cam, i] = True
-            radii[cam, i, 0], radii[cam, i, 1] = int(rx), int(ry)
+            radii[cam, i, 0], radii[cam, i, 1] = int(min(rx, _INT32_MAX)), int(min(ry, _INT32_MAX))  # no wrap
             m2[cam, i, 0], m2[cam, i, 1] = mx, my
             con[cam, i, 0], con[cam, i, 1], con[cam, i, 2] = c / det, -b / det, a / det
             depth[cam, i] = z
@@ -372,7 +373,6 @@ _quat_backward: Any = _quat_backward_py
 # (``[N*3]`` for ``[N,3]``) and indexed by unsigned integers: LLVM then knows each access's stride and bounds (a
 # 2-D numba array's row stride is a run-time value, and a signed index carries numba's wraparound).
 _U1, _U2, _U3, _U4 = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4)
-_INT32_MAX = 2147483647.0
 
 
 def _camera_vector(viewmats: np.ndarray, ks: np.ndarray, width: float, height: float) -> np.ndarray:
