@@ -393,33 +393,20 @@ def _project_one_kernel(
         op = np.float64(opac[i])
         e = min(math.sqrt(2.0 * math.log(max(op, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), MAX_EXTEND)
         ext[i - lo] = -1.0 if op < ALPHA_THRESHOLD else e
-    w00, w01, w02, w03, w10, w11, w12, w13 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
-    w20, w21, w22, w23, fx, fy, cx, cy = cam[8], cam[9], cam[10], cam[11], cam[12], cam[13], cam[14], cam[15]
-    lim0, lim1, lim2, lim3 = cam[16], cam[17], cam[18], cam[19]
+    cv = _camera_values(cam)
+    fx, fy, cx, cy = cv[12], cv[13], cv[14], cv[15]
     ulo = np.uint64(lo)
     for i in range(ulo, np.uint64(hi)):
-        px, py, pz = np.float64(means[_U3 * i]), np.float64(means[_U3 * i + _U1]), np.float64(means[_U3 * i + _U2])
-        x = w03 + w00 * px + w01 * py + w02 * pz
-        y = w13 + w10 * px + w11 * py + w12 * pz
-        z = w23 + w20 * px + w21 * py + w22 * pz
-        tx = z * min(lim0, max(-lim1, x / z))  # _clamped_xy
-        ty = z * min(lim2, max(-lim3, y / z))
-        rz = 1.0 / z
-        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+        x, y, z, _, _, _, _, rz, j00, j02, j11, j12 = _view_of(cv, means, i)
         mx = fx * x * rz + cx
         my = fy * y * rz + cy
         R00, R01, R02, R10, R11, R12, R20, R21, R22 = _rotation_of(quats, i)
-        s0, s1, s2 = np.float64(scales[_U3 * i]), np.float64(scales[_U3 * i + _U1]), np.float64(scales[_U3 * i + _U2])
+        s0, s1, s2 = _scales_of(scales, i)
         S00, S01, S02, S10, S11, S12, S20, S21, S22 = _covariance_of(
             R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2
         )
-        u0, u1, u2 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22  # _screen_cov
-        v0, v1, v2 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
-        su0, su1, su2 = S00 * u0 + S01 * u1 + S02 * u2, S10 * u0 + S11 * u1 + S12 * u2, S20 * u0 + S21 * u1 + S22 * u2
-        sv0, sv1, sv2 = S00 * v0 + S01 * v1 + S02 * v2, S10 * v0 + S11 * v1 + S12 * v2, S20 * v0 + S21 * v1 + S22 * v2
-        a = u0 * su0 + u1 * su1 + u2 * su2 + EPS2D
-        b = u0 * sv0 + u1 * sv1 + u2 * sv2
-        c = v0 * sv0 + v1 * sv1 + v2 * sv2 + EPS2D
+        a, b, c, _, _, _, _, _, _, _, _, _, _, _, _ = _screen_of(cv, j00, j02, j11, j12, S00, S01, S02, S10, S11,
+                                                                S12, S20, S21, S22)  # fmt: skip
         det = a * c - b * b
         e = ext[i - ulo]
         rx = math.ceil(e * math.sqrt(max(a, 0.0)))
@@ -472,20 +459,86 @@ def _covariance_of_py(R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2): 
 _covariance_of: Any = _covariance_of_py
 
 
+def _camera_values_py(cam):  # pragma: no cover - compiled (inlined)
+    """``cam`` (``_camera_vector``) as a tuple of 20 float64, read once before a kernel's loop: values the helpers
+    below index at constant positions (reading the array inside the loop stops LLVM from vectorizing it)."""
+    return (
+        cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7], cam[8], cam[9],
+        cam[10], cam[11], cam[12], cam[13], cam[14], cam[15], cam[16], cam[17], cam[18], cam[19],
+    )  # fmt: skip
+
+
+_camera_values: Any = _camera_values_py
+
+
+def _scales_of_py(scales, i):  # pragma: no cover - compiled (inlined)
+    """Gaussian ``i``'s scales (3 float64) from the flat ``scales [N*3]``."""
+    return np.float64(scales[_U3 * i]), np.float64(scales[_U3 * i + _U1]), np.float64(scales[_U3 * i + _U2])
+
+
+_scales_of: Any = _scales_of_py
+
+
+def _view_of_py(cv, means, i):  # pragma: no cover - compiled (inlined)
+    """Gaussian ``i``'s mean in the camera ``cv`` (``_camera_values``): ``x, y, z``, the field-of-view-clamped ``tx =
+    z clamp(x / z)``, ``ty``, whether each is clamped, ``rz = 1 / z`` and the Jacobian's ``j00, j02, j11, j12``
+    (``_clamped_xy_py`` and the general kernels' lines, in their order)."""
+    px, py, pz = np.float64(means[_U3 * i]), np.float64(means[_U3 * i + _U1]), np.float64(means[_U3 * i + _U2])
+    x = cv[3] + cv[0] * px + cv[1] * py + cv[2] * pz
+    y = cv[7] + cv[4] * px + cv[5] * py + cv[6] * pz
+    z = cv[11] + cv[8] * px + cv[9] * py + cv[10] * pz
+    ux = min(cv[16], max(-cv[17], x / z))
+    uy = min(cv[18], max(-cv[19], y / z))
+    rz = 1.0 / z
+    tx, ty = z * ux, z * uy
+    fx, fy = cv[12], cv[13]
+    return x, y, z, tx, ty, ux != x / z, uy != y / z, rz, fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+
+
+_view_of: Any = _view_of_py
+
+
+def _screen_of_py(cv, j00, j02, j11, j12, S00, S01, S02, S10, S11, S12, S20, S21, S22):  # pragma: no cover
+    """``_screen_cov_py`` for the camera ``cv`` with the dilation: ``a, b, c`` of ``J W Σ W^T J^T + EPS2D``, the rows
+    ``u, v`` of ``J W`` and ``Σ u``, ``Σ v``."""
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = (
+        cv[0],
+        cv[1],
+        cv[2],
+        cv[4],
+        cv[5],
+        cv[6],
+        cv[8],
+        cv[9],
+        cv[10],
+    )
+    u0, u1, u2 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22
+    v0, v1, v2 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
+    su0, su1, su2 = S00 * u0 + S01 * u1 + S02 * u2, S10 * u0 + S11 * u1 + S12 * u2, S20 * u0 + S21 * u1 + S22 * u2
+    sv0, sv1, sv2 = S00 * v0 + S01 * v1 + S02 * v2, S10 * v0 + S11 * v1 + S12 * v2, S20 * v0 + S21 * v1 + S22 * v2
+    a = u0 * su0 + u1 * su1 + u2 * su2 + EPS2D
+    b = u0 * sv0 + u1 * sv1 + u2 * sv2
+    c = v0 * sv0 + v1 * sv1 + v2 * sv2 + EPS2D
+    return a, b, c, u0, u1, u2, v0, v1, v2, su0, su1, su2, sv0, sv1, sv2
+
+
+_screen_of: Any = _screen_of_py
+
+
 def _project_one_backward_kernel(
     means, quats, scales, cam, vis, v_m2, v_con, v_depth, g_means, g_quats, g_scales, lo, hi
 ):  # pragma: no cover - compiled
     """``_project_backward_kernel`` for one camera, flat arrays as ``_project_one_kernel``'s (the gradients ``v_m2
     [N*2]``, ``v_con [N*3]``, ``v_depth [N]``; into ``g_means``, ``g_scales [N*3]``, ``g_quats [N*4]``). A Gaussian
     the camera does not see, with finite quaternion and scales, keeps zero gradients (``_culled_py``)."""
-    w00, w01, w02, w03, w10, w11, w12, w13 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
-    w20, w21, w22, w23, fx, fy = cam[8], cam[9], cam[10], cam[11], cam[12], cam[13]
-    lim0, lim1, lim2, lim3 = cam[16], cam[17], cam[18], cam[19]
+    cv = _camera_values(cam)
+    w00, w01, w02, w10, w11, w12 = cv[0], cv[1], cv[2], cv[4], cv[5], cv[6]
+    w20, w21, w22, fx, fy = cv[8], cv[9], cv[10], cv[12], cv[13]
     for i in range(np.uint64(lo), np.uint64(hi)):
         seen = vis[i]
         qw, qx = np.float64(quats[_U4 * i]), np.float64(quats[_U4 * i + _U1])
         qy, qz = np.float64(quats[_U4 * i + _U2]), np.float64(quats[_U4 * i + _U3])
-        s0, s1, s2 = np.float64(scales[_U3 * i]), np.float64(scales[_U3 * i + _U1]), np.float64(scales[_U3 * i + _U2])
+        s0, s1, s2 = _scales_of(scales, i)
         finite = math.isfinite(qw) & math.isfinite(qx) & math.isfinite(qy) & math.isfinite(qz)
         keep = seen or not (finite & math.isfinite(s0) & math.isfinite(s1) & math.isfinite(s2))
         R00, R01, R02, R10, R11, R12, R20, R21, R22 = _rotation_of(quats, i)
@@ -493,30 +546,10 @@ def _project_one_backward_kernel(
             R00, R01, R02, R10, R11, R12, R20, R21, R22, s0, s1, s2
         )
         # the camera's part (_backward_one_py), kept where the camera sees the Gaussian
-        px, py, pz = np.float64(means[_U3 * i]), np.float64(means[_U3 * i + _U1]), np.float64(means[_U3 * i + _U2])
-        x = w03 + w00 * px + w01 * py + w02 * pz
-        y = w13 + w10 * px + w11 * py + w12 * pz
-        z = w23 + w20 * px + w21 * py + w22 * pz
-        ux = min(lim0, max(-lim1, x / z))
-        uy = min(lim2, max(-lim3, y / z))
-        tx, ty, clamp_x, clamp_y = z * ux, z * uy, ux != x / z, uy != y / z
-        rz = 1.0 / z
-        j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
-        t00, t01, t02 = j00 * w00 + j02 * w20, j00 * w01 + j02 * w21, j00 * w02 + j02 * w22  # rows of J W: u, v
-        t10, t11, t12 = j11 * w10 + j12 * w20, j11 * w11 + j12 * w21, j11 * w12 + j12 * w22
-        su0, su1, su2 = (
-            S00 * t00 + S01 * t01 + S02 * t02,
-            S10 * t00 + S11 * t01 + S12 * t02,
-            S20 * t00 + S21 * t01 + S22 * t02,
+        x, y, z, tx, ty, clamp_x, clamp_y, rz, j00, j02, j11, j12 = _view_of(cv, means, i)
+        a, b, c, t00, t01, t02, t10, t11, t12, su0, su1, su2, sv0, sv1, sv2 = _screen_of(
+            cv, j00, j02, j11, j12, S00, S01, S02, S10, S11, S12, S20, S21, S22
         )
-        sv0, sv1, sv2 = (
-            S00 * t10 + S01 * t11 + S02 * t12,
-            S10 * t10 + S11 * t11 + S12 * t12,
-            S20 * t10 + S21 * t11 + S22 * t12,
-        )
-        a = t00 * su0 + t01 * su1 + t02 * su2 + EPS2D
-        b = t00 * sv0 + t01 * sv1 + t02 * sv2
-        c = t10 * sv0 + t11 * sv1 + t12 * sv2 + EPS2D
         det = a * c - b * b
         va_c, vb_c, vc_c = (
             np.float64(v_con[_U3 * i]),
@@ -651,7 +684,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     (``njit_serial``) over ranges of Gaussians, run by ``run_ranges`` on torch's thread count; same arguments and
     results as before they took ranges."""
     global _quat_rotation, _clamped_xy, _fov_limits, _screen_cov, _quat_backward, _backward_one, _culled
-    global _row_norms, _off_screen, _rotation_of, _covariance_of
+    global _row_norms, _off_screen, _rotation_of, _covariance_of, _scales_of, _view_of, _screen_of, _camera_values
     global _prange, _project_serial, _project_backward_serial, _project_one_serial, _project_one_backward_serial
     helper = njit_serial(numba)
     _quat_rotation = helper(_quat_rotation_py)
@@ -671,6 +704,10 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     in_options = partial(llvm_options, projection_llvm_options())
     _rotation_of = njit_serial(numba, inline=True)(_rotation_of_py)
     _covariance_of = njit_serial(numba, inline=True)(_covariance_of_py)
+    _scales_of = njit_serial(numba, inline=True)(_scales_of_py)
+    _view_of = njit_serial(numba, inline=True)(_view_of_py)
+    _camera_values = njit_serial(numba, inline=True)(_camera_values_py)
+    _screen_of = njit_serial(numba, inline=True)(_screen_of_py)
     one = njit_serial(numba, compile_context=in_options)
     fwd1, bwd1 = one(_project_one_kernel), one(_project_one_backward_kernel)
     _project_one_serial, _project_one_backward_serial = fwd1, bwd1
