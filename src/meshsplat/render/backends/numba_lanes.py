@@ -119,6 +119,10 @@ def _forward_lanes(
     nf = _F_ACC + d_pad
     n_pix_cam = width * height
     per_cam = tiles_x * tiles_y
+    st = np.empty(LANES * nf * LANES, xs.dtype)  # per tile: [block, field, lane]
+    last = np.empty(LANES * LANES, np.int32)  # [block, lane]
+    pxb, pyb = np.empty(4 * LANES, xs.dtype), np.empty(4 * LANES, xs.dtype)
+    col = np.zeros(d_pad, xs.dtype)
     for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
@@ -126,19 +130,27 @@ def _forward_lanes(
         ty0 = ((t % per_cam) // tiles_x) * LANES
         tw = min(width, tx0 + LANES) - tx0
         th = min(height, ty0 + LANES) - ty0
-        st = np.zeros(LANES * nf * LANES, xs.dtype)  # [block, field, lane]
-        last = np.zeros(LANES * LANES, np.int32)  # [block, lane]
-        pxb, pyb = _block_grid(tx0, ty0, xs)
-        col = np.zeros(d_pad, xs.dtype)
+        if tile_ptr[t] == tile_ptr[t + 1]:  # no entry: the background (as below with nothing composited)
+            for r in range(th):
+                for x in range(tw):
+                    p = c * n_pix_cam + (ty0 + r) * width + tx0 + x
+                    for d in range(d_out):
+                        out[p, d] = zero + one * bg[c, d]
+                    t_final[p] = 1.0
+                    n_contrib[p] = 0
+                    alphas[p] = zero
+            continue
+        st[:] = zero
+        last[:] = 0
+        _block_grid(tx0, ty0, pxb, pyb)
         for q in range(LANES):
             for lane in range(LANES):  # pixels past the image start done
                 inside = 4 * (q & 3) + (lane & 3) < tw and 4 * (q >> 2) + (lane >> 2) < th
                 st[(q * nf + _F_T) * LANES + lane] = one if inside else -one
-        n_done = 0
         s0 = tile_ptr[t]
         unf = np.uint64(nf)
         for k in range(s0, tile_ptr[t + 1]):
-            if n_done == tw * th:
+            if (k - s0) & 15 == 15 and _tile_done(st, nf):  # every 16th entry (a count per block cost 10%)
                 break
             e = isect[k]
             ra, rb, y_lo, y_hi, xa, xb, mxe, mye, ca, cb, cc, ope = _entry(rec, e, tx0, ty0, tw, th, col, d_out, xs)
@@ -151,7 +163,6 @@ def _forward_lanes(
                     uq = np.uint64(by * 4 + bx)
                     b = uq * unf * _ULANES  # the block's T; its other fields at constant distances
                     bl = uq * _ULANES
-                    n_stop = 0
                     for lane in range(_ULANES):  # vectorized: one pixel per lane
                         dx = mxe - pxb[pxo + lane]
                         py = pyb[pyo + lane]
@@ -171,13 +182,11 @@ def _forward_lanes(
                         st[b + np.uint64((_F_ACC + 1) * LANES) + lane] += wv * c1
                         st[b + np.uint64((_F_ACC + 2) * LANES) + lane] += wv * c2
                         last[bl + lane] = step if hit else last[bl + lane]
-                        n_stop += np.int32(stop)
                     for d in range(3, d_out):
                         cd = col[d]
                         bd = b + np.uint64((_F_ACC + d) * LANES)
                         for lane in range(_ULANES):
                             st[bd + lane] += st[b + np.uint64(_F_W * LANES) + lane] * cd
-                    n_done += n_stop
         for r in range(th):
             for x in range(tw):
                 p = c * n_pix_cam + (ty0 + r) * width + tx0 + x
@@ -224,6 +233,13 @@ def _backward_lanes(
     n_pix_cam = width * height
     per_cam = tiles_x * tiles_y
     n_g = 6 + d_out
+    st = np.empty(LANES * nf * LANES, xs.dtype)  # per tile: [block, field, lane]
+    last = np.empty(LANES * LANES, np.int32)  # [block, lane]; 0 past the image: no lane there is ever live
+    pxb, pyb = np.empty(4 * LANES, xs.dtype), np.empty(4 * LANES, xs.dtype)
+    col = np.zeros(d_pad, xs.dtype)
+    # an entry's sums per lane: v dx, v dy, v dx dx, v dx dy, v dy dy (v: dL/dsigma), dL/dopacity, colours
+    gl = np.empty((6 + d_pad) * LANES, xs.dtype)
+    sums = np.empty(6 + d_pad, np.float64)
     for i in range(lo, hi):
         t = order[i]
         c = t // per_cam
@@ -231,13 +247,11 @@ def _backward_lanes(
         ty0 = ((t % per_cam) // tiles_x) * LANES
         tw = min(width, tx0 + LANES) - tx0
         th = min(height, ty0 + LANES) - ty0
-        st = np.zeros(LANES * nf * LANES, xs.dtype)  # [block, field, lane]
-        last = np.zeros(LANES * LANES, np.int32)  # [block, lane]; 0 past the image: no lane there is ever live
-        pxb, pyb = _block_grid(tx0, ty0, xs)
-        col = np.zeros(d_pad, xs.dtype)
-        # the entry's sums per lane: v dx, v dy, v dx dx, v dx dy, v dy dy (v: dL/dsigma), dL/dopacity, colours
-        gl = np.empty((6 + d_pad) * LANES, xs.dtype)
-        sums = np.empty(6 + d_pad, np.float64)
+        if tile_ptr[t] == tile_ptr[t + 1]:  # no entry: nothing to take back
+            continue
+        st[:] = zero
+        last[:] = 0
+        _block_grid(tx0, ty0, pxb, pyb)
         max_last = 0
         for r in range(th):
             for x in range(tw):
@@ -327,6 +341,15 @@ def _backward_lanes(
                 grad[k, j] = sums[j]
 
 
+def _tile_done_py(st, nf):  # pragma: no cover - compiled
+    """Whether every pixel of a tile's forward state is done (its T negative)."""
+    m = st[_F_T * LANES]
+    for q in range(LANES):
+        for lane in range(LANES):
+            m = max(m, st[(q * nf + _F_T) * LANES + lane])
+    return m <= 0
+
+
 def _block_py(r, x):  # pragma: no cover - compiled
     """The block ``[16]`` of a tile's pixel (row r, column x): 4x4 blocks of 4x4 pixels, row-major."""
     return (r >> 2) * 4 + (x >> 2)
@@ -337,17 +360,14 @@ def _lane_py(r, x):  # pragma: no cover - compiled
     return (r & 3) * 4 + (x & 3)
 
 
-def _block_grid_py(tx0, ty0, xs):  # pragma: no cover - compiled
-    """Pixel centres x ``[4*16]`` and y ``[4*16]`` per block column / row of the tile at (tx0, ty0), 16 lanes each, in
-    the input dtype (``xs``), as the scalar kernels' ``xs``/``ys`` (``arange + 0.5``; rows past the image go on)."""
-    to_dt = xs.dtype.type
-    pxb = np.empty(4 * LANES, xs.dtype)
-    pyb = np.empty(4 * LANES, xs.dtype)
+def _block_grid_py(tx0, ty0, pxb, pyb):  # pragma: no cover - compiled
+    """Into ``pxb``/``pyb`` ``[4*16]``: the pixel centres x and y per block column / row of the tile at (tx0, ty0), 16
+    lanes each, in their dtype, as the scalar kernels' ``xs``/``ys`` (``arange + 0.5``; rows past the image go on)."""
+    to_dt = pxb.dtype.type
     for bb in range(4):
         for lane in range(LANES):
             pxb[bb * LANES + lane] = to_dt(tx0 + 4 * bb + (lane & 3)) + to_dt(PIXEL_CENTER)
             pyb[bb * LANES + lane] = to_dt(ty0 + 4 * bb + (lane >> 2)) + to_dt(PIXEL_CENTER)
-    return pxb, pyb
 
 
 def _entry_py(rec, e, tx0, ty0, tw, th, col, d_out, xs):  # pragma: no cover - compiled
@@ -366,6 +386,7 @@ def _entry_py(rec, e, tx0, ty0, tw, th, col, d_out, xs):  # pragma: no cover - c
 
 
 _block: Any = _block_py
+_tile_done: Any = _tile_done_py
 _lane: Any = _lane_py
 _block_grid: Any = _block_grid_py
 _entry: Any = _entry_py
@@ -429,7 +450,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     """The forward and backward: serial lane kernels (``njit_serial``, cached on disk) over ranges of tiles, run
     by ``run_ranges`` on torch's thread count, with the arguments and results of ``numba_cpu``'s scalar kernels;
     registers the float32 ``exp`` once."""
-    global _f32_from_bits, _prange, _forward_serial, _backward_serial, _block, _lane, _block_grid, _entry
+    global _tile_done, _f32_from_bits, _prange, _forward_serial, _backward_serial, _block, _lane, _block_grid, _entry
     from llvmlite import ir
     from numba.core import types
     from numba.extending import intrinsic, overload
@@ -456,6 +477,7 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     at_width = partial(_compiling_at, vector_width)  # what every compilation of these runs inside
     helper = njit_serial(numba, cache=cache, compile_context=at_width)
     _block, _lane, _block_grid = helper(_block_py), helper(_lane_py), helper(_block_grid_py)
+    _tile_done = helper(_tile_done_py)
     fwd, bwd = helper(_forward_lanes), helper(_backward_lanes)
     _prange, _forward_serial, _backward_serial = numba.prange, fwd, bwd
     par = njit_driver(numba, cache=cache, compile_context=at_width)
