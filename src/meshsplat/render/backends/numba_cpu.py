@@ -488,6 +488,18 @@ def _scatter_kernel(isect, grad, slot, vis, m, shared_colors, n_gauss, n_cams, l
     return g_m2, g_con, g_op, g_col
 
 
+def _background_grad_kernel(t_final, g_out, n_cams):  # pragma: no cover - compiled
+    """dL/dbackground ``[C, D]`` float64: per camera, its pixels' final T ``[P]`` (float64) times dL/dcolour ``[P, D]``,
+    summed in pixel order (serial: deterministic)."""
+    n_pix_cam = t_final.shape[0] // n_cams
+    out = np.zeros((n_cams, g_out.shape[1]), np.float64)
+    for c in range(n_cams):
+        for p in range(c * n_pix_cam, (c + 1) * n_pix_cam):
+            for d in range(g_out.shape[1]):
+                out[c, d] += t_final[p] * np.float64(g_out[p, d])
+    return out
+
+
 # Plain Python until _kernels() rebinds them: numba's prange and the serial kernels the parallel drivers call.
 _prange: Any = range
 _forward_serial: Any = None
@@ -516,6 +528,7 @@ class _Kernels(NamedTuple):
     forward_lanes: Any
     backward_lanes: Any
     depth_order: Any
+    background_grad: Any
 
 
 @lru_cache(maxsize=1)
@@ -552,7 +565,7 @@ def _kernels() -> _Kernels:
 
     return _Kernels(
         ser(_bin_kernel), forward, backward, ser(_scatter_kernel), proj, proj_bwd, fwd_lanes, bwd_lanes,
-        ser(_depth_order_kernel),
+        ser(_depth_order_kernel), ser(_background_grad_kernel),
     )  # fmt: skip
 
 
@@ -655,20 +668,16 @@ class _Composite(torch.autograd.Function):
         g_alpha = torch.zeros(n_pix, dtype=dtype) if g_alpha is None else g_alpha.reshape(n_pix)
         bgv = _bg_array(bg, C, D, dtype)
         k = _kernels()
+        g_out_np = g_out.detach().contiguous().numpy()
         rows = (k.backward_lanes if geo.kernel == "lanes" else k.backward)(
-            *geo.args(bgv),
-            g_out.detach().contiguous().numpy(),
-            g_alpha.detach().contiguous().numpy(),
-            geo.t_final,
-            geo.n_contrib,
+            *geo.args(bgv), g_out_np, g_alpha.detach().contiguous().numpy(), geo.t_final, geo.n_contrib
         )
         g_m2, g_con, g_op, g_col = k.scatter(
             geo.isect, rows, geo.slot, geo.visible, geo.flat.shape[0], len(ctx.col_shape) == 2, geo.n_gauss, C, geo.xs
         )  # means2d, conics in the input dtype
         grad_bg = None
         if bg is not None and ctx.needs_input_grad[4]:
-            t_final = torch.from_numpy(geo.t_final).reshape(C, H * W, 1)
-            grad_bg = (t_final * g_out.reshape(C, H * W, D).double()).sum(1).to(dtype)
+            grad_bg = torch.from_numpy(k.background_grad(geo.t_final, g_out_np, C)).to(dtype)
         n = geo.n_gauss
         return (
             torch.from_numpy(g_m2).reshape(C, n, 2),
