@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -159,6 +160,18 @@ def test_embedding_json_without_shn_and_errors(tmp_path):
     (tmp_path / "d.json").write_text(json.dumps(doc))
     with pytest.raises(MeshsplatError, match="uv"):
         read_embedding_json(tmp_path / "d.json")
+
+
+def test_embedding_json_number_beyond_float32_is_one_error(tmp_path):
+    """A list-encoded number beyond float32's range is refused by name, with no numpy warning on the way."""
+    path = write_embedding_json(tmp_path / "e.json", _params(n=3), encoding="list")
+    doc = json.loads(path.read_text())
+    doc["arrays"]["d"]["data"][1] = 1e300
+    path.write_text(json.dumps(doc))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MeshsplatError, match=r"\bd: contains 1 NaN/Inf"):
+            read_embedding_json(path)
 
 
 def test_obj_round_trip(tmp_path):

@@ -64,11 +64,12 @@ def _decode(name: str, entry, encoding: str, path: Path) -> np.ndarray:
         if dtype.kind not in "fiu":
             raise ValueError(f"dtype {entry['dtype']!r} is not a number type")
         shape = tuple(int(s) for s in entry["shape"])
-        if encoding == "base64":
-            arr = np.frombuffer(base64.b64decode(entry["data"], validate=True), dtype=dtype)
-        else:
-            arr = np.asarray(entry["data"], dtype=dtype)
-        return arr.reshape(shape).astype(dtype.newbyteorder("="))
+        with np.errstate(over="ignore", invalid="ignore"):  # a number beyond the dtype: inf, refused by the caller
+            if encoding == "base64":
+                arr = np.frombuffer(base64.b64decode(entry["data"], validate=True), dtype=dtype)
+            else:
+                arr = np.asarray(entry["data"], dtype=dtype)
+            return arr.reshape(shape).astype(dtype.newbyteorder("="))
     except (KeyError, TypeError, ValueError, OverflowError, IndexError) as exc:
         raise MeshsplatError(f"{str(path)!r}: array {name!r} is malformed ({exc})") from None
 
