@@ -127,6 +127,26 @@ def test_the_compiled_prior_equals_the_torch_path(dtype):
     torch.testing.assert_close(out[1][1], out[0][1], rtol=tol, atol=tol * float(out[0][1].abs().max()))
 
 
+@needs_numba
+def test_the_compiled_weights_exp_is_libms_to_two_ulps():
+    """The pair weights' polynomial ``exp`` against ``math.exp``: within 5e-16 relative down to -708, exactly 1 at
+    0, 0 where libm's underflows to 0 (below -745), and exp(-708) in between (where libm's are subnormals)."""
+    import math
+
+    import numpy as np
+
+    from meshsplat.train import _albedo_prior_numba as compiled_prior
+
+    compiled_prior._kernels()
+    exp = compiled_prior._exp
+    xs = np.concatenate([-np.geomspace(1e-12, 708.0, 4000), -np.linspace(0.0, 1.0, 1001)])
+    got = np.array([exp(float(x)) for x in xs])
+    ref = np.array([math.exp(float(x)) for x in xs])
+    assert float(np.max(np.abs(got - ref) / ref)) < 5e-16
+    assert exp(0.0) == 1.0 and exp(-746.0) == 0.0 and exp(-1e300) == 0.0 and exp(-float("inf")) == 0.0
+    assert exp(-720.0) == exp(-708.0) and abs(exp(-708.0) / math.exp(-708.0) - 1.0) < 5e-16
+
+
 @pytest.mark.parametrize("compiled", PATHS)
 def test_neighbours_out_of_range_are_refused_in_one_line(compiled):
     sh0 = rgb_to_sh0(torch.rand(5, 3))

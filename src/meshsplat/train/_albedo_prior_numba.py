@@ -2,11 +2,14 @@
 pairs, without the ``[N,k,3]`` temporaries of the torch path. float64 inside. Serial kernels over ranges of
 Gaussians (``_numba.run_ranges`` on torch's thread count): each Gaussian's row is summed by one range, and the
 rows, and the gradient's scatter to the neighbours, in a fixed serial order, so the result does not depend on the
-thread count (training stays bit-reproducible)."""
+thread count (training stays bit-reproducible).
+
+The pair weights' ``exp`` is a polynomial (:func:`_exp_nonpositive`, within 5e-16 relative of libm's), in a loop
+of its own over a Gaussian's neighbours that LLVM turns into vector code: a call to libm kept the loop scalar,
+and the forward took 5.9 ms against 3.5 at 19k Gaussians x 16 neighbours (1 thread, Zen 3)."""
 
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 from typing import Any
 
@@ -24,19 +27,56 @@ def _chroma_kernel(a, chroma):  # pragma: no cover - compiled
         chroma[i, 0], chroma[i, 1], chroma[i, 2] = c0 / s, c1 / s, c2 / s
 
 
+def _exp_nonpositive(x):  # pragma: no cover - compiled
+    """``exp(x)`` for ``x <= 0`` in float64 without a call (vectorizable): ``x = n ln2 + r`` (ln 2 in two parts),
+    ``exp(r)`` by its Taylor polynomial to ``r^12`` (``|r| <= ln2 / 2``), ``2^n`` put into the exponent bits; 0 below
+    -745 (where libm's underflows to 0), ``exp(-708)`` from -745 to -708 (libm: subnormals)."""
+    xc = max(x, -708.0)
+    n = np.floor(xc * 1.4426950408889634 + 0.5)
+    r = xc - n * 0.6931471803691238 - n * 1.9082149292705877e-10
+    p = 1.0 / 479001600.0
+    p = p * r + 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    y = p * _f64_from_bits((np.int64(n) + np.int64(1023)) << np.int64(52))
+    return y if x >= -745.0 else 0.0
+
+
+def _f64_from_bits_py(i):  # pragma: no cover - replaced by an intrinsic when compiled
+    return np.array([i], np.int64).view(np.float64)[0]
+
+
+_f64_from_bits: Any = _f64_from_bits_py
+_exp: Any = _exp_nonpositive  # compiled, inlined, by _kernels()
+
+
 def _rows_kernel(a, nb, chroma, inv_sigma2, w, rows, lo, hi):  # pragma: no cover - compiled
     """For the Gaussians ``lo..hi-1``: ``rows [N]``, the sum over their neighbours ``nb [N,k]`` of ``w |a_i - a_j|``,
-    and the weights ``w [N,k]``."""
+    and the weights ``w [N,k]``. Per Gaussian: the gathers first, then the weights (vector code), then the sum in
+    neighbour order."""
     k = nb.shape[1]
+    d2 = np.empty(k, np.float64)
+    dist = np.empty(k, np.float64)
     for i in range(lo, hi):
-        acc = 0.0
         for q in range(k):
             j = nb[i, q]
-            d2 = (chroma[i, 0] - chroma[j, 0]) ** 2 + (chroma[i, 1] - chroma[j, 1]) ** 2
-            d2 += (chroma[i, 2] - chroma[j, 2]) ** 2
-            wq = math.exp(-d2 * inv_sigma2)
-            w[i, q] = wq
-            acc += wq * (abs(a[i, 0] - a[j, 0]) + abs(a[i, 1] - a[j, 1]) + abs(a[i, 2] - a[j, 2]))
+            e2 = (chroma[i, 0] - chroma[j, 0]) ** 2 + (chroma[i, 1] - chroma[j, 1]) ** 2
+            d2[q] = e2 + (chroma[i, 2] - chroma[j, 2]) ** 2
+            dist[q] = abs(a[i, 0] - a[j, 0]) + abs(a[i, 1] - a[j, 1]) + abs(a[i, 2] - a[j, 2])
+        for q in range(k):
+            w[i, q] = _exp(-d2[q] * inv_sigma2)
+        acc = 0.0
+        for q in range(k):
+            acc += w[i, q] * dist[q]
         rows[i] = acc
 
 
@@ -93,9 +133,21 @@ def _terms_ranges(bounds, *args):  # pragma: no cover - compiled
 @lru_cache(maxsize=1)
 def _kernels() -> Any:
     """(chroma, rows, sum, terms, to_neighbours, rows driver, terms driver)."""
-    global _prange, _rows_serial, _terms_serial
+    global _prange, _rows_serial, _terms_serial, _f64_from_bits, _exp
     import numba
+    from llvmlite import ir
+    from numba.core import types
+    from numba.extending import intrinsic
 
+    @intrinsic
+    def f64_from_bits(typingctx, i):  # the int64's bits as a float64 (an LLVM bitcast)
+        def codegen(context, builder, signature, args):
+            return builder.bitcast(args[0], ir.DoubleType())
+
+        return types.float64(types.int64), codegen
+
+    _f64_from_bits = f64_from_bits
+    _exp = njit_serial(numba, inline=True)(_exp_nonpositive)
     ser = njit_serial(numba)
     chroma, rows, total, terms, to_nb = (
         ser(f) for f in (_chroma_kernel, _rows_kernel, _sum_kernel, _terms_kernel, _to_neighbours_kernel)
