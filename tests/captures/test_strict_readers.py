@@ -374,3 +374,29 @@ def test_insta_without_canonical_obj_refuses_a_first_mesh_from_outside(captures,
     with pytest.raises(MeshsplatError, match=f"mesh '../other/meshes/00000.obj' lies {OUTSIDE}"):
         _open(root, "insta", model_dir)
     assert len(_open(root, "insta", model_dir, allow_outside=True)) == 4
+
+
+@pytest.mark.parametrize(
+    ("layout", "name", "key"),
+    [
+        ("insta", "transforms.json", "mesh_path"),
+        ("insta", "transforms.json", "file_path"),
+        ("vhap", "transforms.json", "fg_mask_path"),
+        ("vhap", "transforms.json", "flame_param_path"),
+        ("vhap", "transforms.json", "file_path"),
+        ("meshseq", "cameras.json", "image"),
+        ("meshseq", "cameras.json", "mask"),
+    ],
+)
+@pytest.mark.parametrize("value", [True, 5, ["a.png"], {"path": "a.png"}], ids=["bool", "int", "list", "object"])
+def test_a_path_field_that_is_not_a_string_is_refused_in_one_line(
+    captures, model_dir, tmp_path, layout, name, key, value
+):
+    """A frame's path field holding a bool, a number, a list or an object is one clear line (the fuzz test found
+    ``mesh_path: true`` failing deep inside the INSTA reader)."""
+    root = _copy_with(captures, layout, tmp_path, name, key, lambda r, v: value)
+    with pytest.raises(MeshsplatError) as err:
+        _open(root, layout, model_dir)
+    msg = str(err.value)  # a capture's problems come as one list: "invalid dataset ... (N problems): ..."
+    assert msg.startswith("invalid dataset") or "\n" not in msg, msg
+    assert "Traceback" not in msg and key in msg.splitlines()[0], msg

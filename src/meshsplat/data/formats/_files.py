@@ -251,6 +251,16 @@ def alpha_frames(root: Path, images: list[str], problems: Problems, required: bo
     return bool(with_a) and (not without or required)
 
 
+def not_a_path(frame: dict, keys: tuple[str, ...]) -> str | None:
+    """What is wrong with the first of a frame's optional path fields ``keys`` that holds something other than a
+    string (absent or null is fine), or None."""
+    for key in keys:
+        value = frame.get(key)
+        if value is not None and not isinstance(value, str):
+            return f"{key!r} must be a path (a string), got {value!r:.40}"
+    return None
+
+
 def find_file(root: Path, rel: str, exts=IMAGE_EXTS) -> str | None:
     """``rel`` (relative to ``root``, POSIX) if it exists, else ``rel`` + one of ``exts``; None if absent."""
     rel = rel.replace("\\", "/")

@@ -24,6 +24,7 @@ from meshsplat.data.formats._files import (
     mask_choice,
     merge_transform_frames,
     natural_key,
+    not_a_path,
     obj_vertices,
     prepare_out,
     save_png,
@@ -146,6 +147,10 @@ def read(
             problems.add(where, "needs 'file_path'")
             continue
         where = f"frame {i} ({fr['file_path']!r})"
+        bad = not_a_path(fr, ("mesh_path", "mask_path", "fg_mask_path"))
+        if bad:
+            problems.add(where, bad)
+            continue
         try:
             K, vm, w, h = _camera(fr, top, convention)
         except (KeyError, TypeError, ValueError, MeshsplatError, np.linalg.LinAlgError) as exc:

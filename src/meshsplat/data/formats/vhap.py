@@ -25,6 +25,7 @@ from meshsplat.data.formats._files import (
     frame_pixels,
     mask_choice,
     merge_transform_frames,
+    not_a_path,
     npz_or_problem,
     prepare_out,
     save_png,
@@ -172,6 +173,10 @@ def read(
             problems.add(where, "needs 'file_path'")
             continue
         where = f"frame {i} ({fr['file_path']!r})"
+        bad = not_a_path(fr, ("fg_mask_path", "flame_param_path"))
+        if bad:
+            problems.add(where, bad)
+            continue
         try:
             t, c = int(fr["timestep_index"]), int(fr.get("camera_index", 0))
             K, w, h = _intrinsics(fr, top)
