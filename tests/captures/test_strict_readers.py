@@ -400,3 +400,38 @@ def test_a_path_field_that_is_not_a_string_is_refused_in_one_line(
     msg = str(err.value)  # a capture's problems come as one list: "invalid dataset ... (N problems): ..."
     assert msg.startswith("invalid dataset") or "\n" not in msg, msg
     assert "Traceback" not in msg and key in msg.splitlines()[0], msg
+
+
+@pytest.mark.parametrize(
+    ("layout", "key", "value"),
+    [
+        ("insta", "w", 640.7),
+        ("insta", "h", True),
+        ("vhap", "timestep_index", 1.5),
+        ("vhap", "timestep_index", True),
+        ("vhap", "camera_index", "0"),
+        ("vhap", "w", False),
+    ],
+)
+def test_a_count_that_is_not_a_whole_number_is_refused(captures, model_dir, tmp_path, layout, key, value):
+    """An image size or a timestep that is a fraction, a bool or a string is named, not rounded (``int(640.7)``
+    is 640, ``int(True)`` is 1); a whole float (``512.0``, as some writers give) reads."""
+    root = tmp_path / "cap"
+    shutil.copytree(captures[layout], root)
+    first = json.loads((root / "transforms.json").read_text())
+    image, good = first["frames"][0]["file_path"], first["frames"][0].get(key, first.get(key))
+
+    def set_everywhere(v) -> None:  # frame 0 as every transforms file lists it
+        for path in root.glob("transforms*.json"):
+            doc = json.loads(path.read_text())
+            for fr in doc.get("frames") or []:
+                if fr.get("file_path") == image:
+                    fr[key] = v
+            path.write_text(json.dumps(doc))
+
+    set_everywhere(float(good))  # a whole float reads
+    assert len(_open(root, layout, model_dir)) > 0
+    set_everywhere(value)
+    with pytest.raises(MeshsplatError) as err:
+        _open(root, layout, model_dir)
+    assert f"{key} must be a whole number, got {value!r}" in str(err.value), str(err.value)

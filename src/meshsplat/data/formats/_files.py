@@ -251,6 +251,16 @@ def alpha_frames(root: Path, images: list[str], problems: Problems, required: bo
     return bool(with_a) and (not without or required)
 
 
+def whole_number(value: object, name: str) -> int:
+    """A JSON field that counts (an image size, a timestep): an int, or a float without a fraction; else a
+    ``ValueError`` naming it (``int()`` would turn ``640.7`` into 640 and ``true`` into 1)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    raise ValueError(f"{name} must be a whole number, got {value!r:.40}")
+
+
 def not_a_path(frame: dict, keys: tuple[str, ...]) -> str | None:
     """What is wrong with the first of a frame's optional path fields ``keys`` that holds something other than a
     string (absent or null is fine), or None."""

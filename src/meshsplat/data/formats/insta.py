@@ -30,6 +30,7 @@ from meshsplat.data.formats._files import (
     save_png,
     tail_split,
     transforms_files,
+    whole_number,
     write_json,
 )
 from meshsplat.data.formats._flame import check_in_front
@@ -75,7 +76,7 @@ def _camera(fr: dict, top: dict, convention: str):
 
     fx = float(get("fl_x") if has("fl_x") else get("fl_y"))
     fy = float(get("fl_y") if has("fl_y") else fx)
-    w, h = int(get("w")), int(get("h"))
+    w, h = whole_number(get("w"), "w"), whole_number(get("h"), "h")
     K = K_from_focal(fx, fy, float(get("cx")) if has("cx") else w / 2, float(get("cy")) if has("cy") else h / 2)
     c2w = np.asarray(fr["transform_matrix"], np.float64)
     if c2w.shape == (3, 4):

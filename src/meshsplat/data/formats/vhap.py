@@ -30,6 +30,7 @@ from meshsplat.data.formats._files import (
     prepare_out,
     save_png,
     transforms_files,
+    whole_number,
     write_json,
 )
 from meshsplat.data.formats._flame import (
@@ -81,7 +82,7 @@ def _intrinsics(fr: dict, top: dict):
 
     fx = float(get("fl_x") if ("fl_x" in fr or "fl_x" in top) else get("fl_y"))
     fy = float(get("fl_y") if ("fl_y" in fr or "fl_y" in top) else fx)
-    w, h = int(get("w")), int(get("h"))
+    w, h = whole_number(get("w"), "w"), whole_number(get("h"), "h")
     cx = float(get("cx")) if ("cx" in fr or "cx" in top) else w / 2
     cy = float(get("cy")) if ("cy" in fr or "cy" in top) else h / 2
     return K_from_focal(fx, fy, cx, cy), w, h
@@ -178,7 +179,8 @@ def read(
             problems.add(where, bad)
             continue
         try:
-            t, c = int(fr["timestep_index"]), int(fr.get("camera_index", 0))
+            t = whole_number(fr["timestep_index"], "timestep_index")
+            c = whole_number(fr.get("camera_index", 0), "camera_index")
             K, w, h = _intrinsics(fr, top)
             vm = viewmat_from_opengl_c2w(fr["transform_matrix"])
         except (KeyError, TypeError, ValueError, MeshsplatError, np.linalg.LinAlgError) as exc:
