@@ -3,6 +3,7 @@ anim_nerf precedence, default splits, and synth -> write -> read parity."""
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 import warnings
@@ -335,3 +336,9 @@ def test_config_problems(tmp_path, standin_model_dir):
     (root / "config.json").write_text("{not json")
     with pytest.raises(MeshsplatError, match=r"config.json: invalid JSON"):
         ps.read(root, model_dir=standin_model_dir)
+    for spec in ({"start": 0.5, "end": 3}, {"start": True, "end": 3}, {"start": 0, "end": 3, "skip": 1.5}):
+        (root / "config.json").write_text(json.dumps({"gender": "male", "train": spec}))
+        with pytest.raises(MeshsplatError, match=r"'train' needs integer start, end"):  # not rounded
+            ps.read(root, model_dir=standin_model_dir)
+    (root / "config.json").write_text(json.dumps({"gender": "male", "train": {"start": 0.0, "end": 3.0}}))
+    assert len(ps.read(root, model_dir=standin_model_dir)) == 4  # whole floats read

@@ -435,3 +435,19 @@ def test_a_count_that_is_not_a_whole_number_is_refused(captures, model_dir, tmp_
     with pytest.raises(MeshsplatError) as err:
         _open(root, layout, model_dir)
     assert f"{key} must be a whole number, got {value!r}" in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("value", [640.7, True, "640"])
+def test_a_mesh_sequence_camera_size_that_is_not_a_whole_number_is_refused(captures, model_dir, tmp_path, value):
+    root = tmp_path / "meshseq"
+    shutil.copytree(captures["meshseq"], root)
+    doc = json.loads((root / "cameras.json").read_text())
+    cid = next(iter(doc["cameras"]))
+    doc["cameras"][cid]["width"] = float(doc["cameras"][cid]["width"])  # a whole float reads
+    (root / "cameras.json").write_text(json.dumps(doc))
+    assert len(_open(root, "meshseq", model_dir)) > 0
+    doc["cameras"][cid]["width"] = value
+    (root / "cameras.json").write_text(json.dumps(doc))
+    with pytest.raises(MeshsplatError) as err:
+        _open(root, "meshseq", model_dir)
+    assert f"width must be a whole number, got {value!r}" in str(err.value), str(err.value)

@@ -26,7 +26,7 @@ import numpy as np
 
 from meshsplat.camera import viewmat_from_opengl_c2w
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats._files import IMAGE_EXTS, find_file, read_json
+from meshsplat.data.formats._files import IMAGE_EXTS, find_file, read_json, whole_number
 from meshsplat.data.manifest import Problems, build_dataset, inside_capture
 from meshsplat.drivers.gltf import GltfDriver
 from meshsplat.drivers.mesh_sequence import FRAMES_LAYOUT, NPZ_LAYOUT, read_mesh_sequence
@@ -69,8 +69,8 @@ def _camera(cid: str, cam, problems: Problems):
         return {
             "K": np.asarray(cam["K"], np.float64).tolist(),
             "viewmat": np.asarray(vm).tolist(),
-            "width": int(cam["width"]),
-            "height": int(cam["height"]),
+            "width": whole_number(cam["width"], "width"),
+            "height": whole_number(cam["height"], "height"),
         }
     except (ValueError, TypeError, MeshsplatError) as exc:
         problems.add(f"cameras.json camera {cid!r}", f"malformed ({exc})")

@@ -28,7 +28,7 @@ import torch
 
 from meshsplat.camera import K_from_integer_centers, K_to_integer_centers
 from meshsplat.data.dataset import AvatarDataset
-from meshsplat.data.formats._files import npz_or_problem
+from meshsplat.data.formats._files import npz_or_problem, whole_number
 from meshsplat.data.manifest import Problems, build_dataset
 from meshsplat.drivers.body_models import GENDERS, BodyModel, driver_record, join_smpl_thetas, split_smpl_thetas
 from meshsplat.errors import MeshsplatError, MeshsplatWarning
@@ -272,7 +272,8 @@ def _read_config(root: Path, problems: Problems) -> tuple[str | None, dict[str, 
         if spec is None:
             continue
         try:
-            start, end, skip = int(spec["start"]), int(spec["end"]), int(spec.get("skip", 1))
+            start, end = whole_number(spec["start"], "start"), whole_number(spec["end"], "end")
+            skip = whole_number(spec.get("skip", 1), "skip")
         except (KeyError, TypeError, ValueError):
             problems.add("config.json", f"{s!r} needs integer start, end (inclusive) and skip, got {spec!r}")
             continue
