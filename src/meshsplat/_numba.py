@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 
 __all__ = [
     "numba_available", "njit_serial", "njit_driver", "run_ranges", "run_ranges_compiling_in", "llvm_options",
-    "LLVM_DEFAULTS", "NO_NUMBA_ENV", "Kernel", "kernel_named",
+    "LLVM_DEFAULTS", "NO_NUMBA_ENV", "Kernel", "kernel_named", "float_from_bits",
 ]  # fmt: skip
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
@@ -174,6 +174,28 @@ def llvm_options(options: dict[str, int]) -> Iterator[None]:
         finally:
             for name in options:
                 llvm.set_option("", f"-{name}={LLVM_DEFAULTS[name]}")
+
+
+@lru_cache(maxsize=1)
+def float_from_bits() -> tuple[Any, Any]:
+    """Two numba intrinsics, ``(f32, f64)``: an int32's bits as a float32, an int64's as a float64 (an LLVM bitcast).
+    The vectorizable ``exp`` polynomials put ``2^n`` into the exponent bits with them (``numba_lanes``, the albedo
+    prior). Imports numba."""
+    from llvmlite import ir
+    from numba.core import types
+    from numba.extending import intrinsic
+
+    def bitcast(int_type: Any, float_type: Any, ir_type: Any) -> Any:
+        @intrinsic
+        def from_bits(typingctx, i):
+            def codegen(context, builder, signature, args):
+                return builder.bitcast(args[0], ir_type)
+
+            return float_type(int_type), codegen
+
+        return from_bits
+
+    return bitcast(types.int32, types.float32, ir.FloatType()), bitcast(types.int64, types.float64, ir.DoubleType())
 
 
 _REMARK = re.compile(r"remark: [^\n]*loop not vectorized[^\n]*\n?")

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import njit_driver, njit_serial, run_ranges
+from meshsplat._numba import float_from_bits, njit_driver, njit_serial, run_ranges
 
 
 def _chroma_kernel(a, chroma):  # pragma: no cover - compiled
@@ -135,18 +135,8 @@ def _kernels() -> Any:
     """(chroma, rows, sum, terms, to_neighbours, rows driver, terms driver)."""
     global _prange, _rows_serial, _terms_serial, _f64_from_bits, _exp
     import numba
-    from llvmlite import ir
-    from numba.core import types
-    from numba.extending import intrinsic
 
-    @intrinsic
-    def f64_from_bits(typingctx, i):  # the int64's bits as a float64 (an LLVM bitcast)
-        def codegen(context, builder, signature, args):
-            return builder.bitcast(args[0], ir.DoubleType())
-
-        return types.float64(types.int64), codegen
-
-    _f64_from_bits = f64_from_bits
+    _f64_from_bits = float_from_bits()[1]
     _exp = njit_serial(numba, inline=True)(_exp_nonpositive)
     ser = njit_serial(numba)
     chroma, rows, total, terms, to_nb = (

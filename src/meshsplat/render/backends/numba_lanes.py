@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from meshsplat._numba import llvm_options, njit_driver, njit_serial, run_ranges_compiling_in
+from meshsplat._numba import float_from_bits, llvm_options, njit_driver, njit_serial, run_ranges_compiling_in
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
@@ -455,18 +455,10 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     by ``run_ranges`` on torch's thread count, with the arguments and results of ``numba_cpu``'s scalar kernels;
     registers the float32 ``exp`` once."""
     global _tile_done, _f32_from_bits, _prange, _forward_serial, _backward_serial, _block, _lane, _block_grid, _entry
-    from llvmlite import ir
     from numba.core import types
-    from numba.extending import intrinsic, overload
+    from numba.extending import overload
 
-    @intrinsic
-    def f32_from_bits(typingctx, i):  # the int32's bits as a float32 (an LLVM bitcast)
-        def codegen(context, builder, signature, args):
-            return builder.bitcast(args[0], ir.FloatType())
-
-        return types.float32(types.int32), codegen
-
-    _f32_from_bits = f32_from_bits
+    _f32_from_bits = float_from_bits()[0]
     exp_f32 = numba.njit(inline="always")(_exp_neg_f32)
     _entry = numba.njit(inline="always")(_entry_py)  # per entry, beside the lane loops: no call
 
