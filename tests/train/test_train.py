@@ -57,6 +57,26 @@ def test_kill_and_resume_is_bit_exact(tiny_dataset, tmp_path, extra):
     assert [r["loss"] for r in full.history[10:]] == [r["loss"] for r in res.history]
 
 
+def test_resume_keeps_this_machines_fused_adam_choice(tiny_dataset, tmp_path):
+    """A checkpoint's optimizer groups carry the saving run's ``fused`` flag (an older meshsplat's: none): the
+    resumed optimizers keep the choice this machine made when it built them."""
+    from meshsplat.io.checkpoint import load_checkpoint, save_checkpoint
+
+    run = Trainer(small_config(tiny_dataset, tmp_path / "run", 2))
+    built = {k: o.param_groups[0]["fused"] for k, o in run.optimizers.items()}
+    run.train()
+    path = sorted((tmp_path / "run" / "checkpoints").glob("ckpt_*.pt"))[-1]
+    st = load_checkpoint(path)
+    for opt in st["optimizers"].values():
+        for g in opt["param_groups"]:
+            g["fused"] = None
+    save_checkpoint(path, st)
+    res = Trainer(small_config(tiny_dataset, tmp_path / "run", 3), resume=True)
+    assert {k: o.param_groups[0]["fused"] for k, o in res.optimizers.items()} == built
+    res.train()
+    assert res.iteration == 3
+
+
 def test_resume_on_another_thread_count_says_it_is_not_bit_exact(tiny_dataset, tmp_path):
     """The checkpoint records torch's thread count: a resume on another count (sums split differently) says
     so among the changes on resume, and the same count says nothing."""

@@ -78,7 +78,10 @@ class TrainerCheckpoints:
                 f"({sorted(st['optimizers'])} vs {sorted(self.optimizers)})"
             )
         for k, opt in self.optimizers.items():
+            fused = [g.get("fused") for g in opt.param_groups]  # this machine's choice, not the saving one's
             opt.load_state_dict(st["optimizers"][k])
+            for g, f in zip(opt.param_groups, fused, strict=True):
+                g["fused"] = f
         self.strategy_state = {
             k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in st["strategy_state"].items()
         }
