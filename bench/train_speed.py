@@ -13,7 +13,9 @@ sizes, same seed): ``before`` = ``backend=torch``, ``loss.crop_to_subject=false`
 and the LPIPS cadence), ``numba_crop`` = the defaults but LPIPS on every iteration (the default before the cadence),
 ``now`` = the defaults (``backend=auto``: numba on CPU when installed; LPIPS on the subject's box, every
 second iteration), ``now_lpips_bf16`` = ``now`` with LPIPS's backbone in bfloat16 (``loss.lpips_precision=bfloat16``),
-``now_lpips<k>`` = ``now`` with ``loss.lpips_every=k`` for each k of
+``now_adam_default`` = ``now`` with torch's default Adam instead of its fused kernel (the default before
+issue 47's eighth round; switched on the built trainer's optimizers), ``now_lpips<k>`` = ``now`` with
+``loss.lpips_every=k`` for each k of
 ``--lpips-every`` (default none). (A variant ``now_torch_maps`` timed the key light's shadow maps in pure
 torch against the compiled ones; since the trainer keeps each training frame's maps, they are built once per
 frame and that variant was dropped.) Per thread count, every trainer is warmed up, then timed in
@@ -47,9 +49,19 @@ VARIANTS = {
     "numba_crop": ["loss.lpips_every=1"],
     "now": [],
     "now_lpips_bf16": ["loss.lpips_precision=bfloat16"],  # LPIPS's backbone in bfloat16 (opt-in, issue 47)
+    "now_adam_default": [],  # torch's default Adam (unfused), see AFTER_BUILD
 }
 TORCH_MAPS = {"before"}  # variants whose shadow maps are built by the torch path
-CADENCES = {"before": 1, "numba_crop": 1, "now": 2, "now_lpips_bf16": 2}  # loss.lpips_every of each variant
+CADENCES = {"before": 1, "numba_crop": 1, "now": 2, "now_lpips_bf16": 2, "now_adam_default": 2}  # loss.lpips_every
+
+
+def _adam_unfused(trainer: Trainer) -> None:
+    for opt in trainer.optimizers.values():
+        for group in opt.param_groups:
+            group["fused"] = None
+
+
+AFTER_BUILD = {"now_adam_default": _adam_unfused}  # what a variant changes on the built trainer
 
 
 def main() -> None:
@@ -85,6 +97,7 @@ def main() -> None:
         for name, extra in variants.items():
             cfg = demo_train_config(data, tmp / f"{name}{threads}", PRESETS["default"], extra, progress=False)
             trainers[name] = Trainer(cfg)
+            AFTER_BUILD.get(name, lambda tr: None)(trainers[name])
             use_torch_maps(name in TORCH_MAPS)
             for _ in range(args.warmup):
                 trainers[name].step()
