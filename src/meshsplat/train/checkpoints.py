@@ -78,10 +78,12 @@ class TrainerCheckpoints:
                 f"({sorted(st['optimizers'])} vs {sorted(self.optimizers)})"
             )
         for k, opt in self.optimizers.items():
-            fused = [g.get("fused") for g in opt.param_groups]  # this machine's choice, not the saving one's
-            opt.load_state_dict(st["optimizers"][k])
-            for g, f in zip(opt.param_groups, fused, strict=True):
-                g["fused"] = f
+            # this machine's fused-Adam choice, not the saving run's, set before loading: torch places the step
+            # counts (on the parameters' device for the fused kernel, else on the CPU) by the loaded groups' flag
+            saved = st["optimizers"][k]
+            mine = [g.get("fused") for g in opt.param_groups]
+            groups = [{**g, "fused": f} for g, f in zip(saved["param_groups"], mine, strict=False)]  # torch: counts
+            opt.load_state_dict({**saved, "param_groups": groups})
         self.strategy_state = {
             k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in st["strategy_state"].items()
         }
