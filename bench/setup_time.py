@@ -69,8 +69,12 @@ def main() -> None:
     ap.add_argument("--keep-caches", action="store_true", help="use the user's pip and uv caches")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True, check=True)
-    trees = {"this": head.stdout.strip()} | ({"against": args.against} if args.against else {})
+
+    def commit(rev: str) -> str:
+        out = subprocess.run(["git", "-C", str(REPO), "rev-parse", rev], capture_output=True, text=True, check=True)
+        return out.stdout.strip()
+
+    trees = {"this": commit("HEAD")} | ({"against": commit(args.against)} if args.against else {})
     rows = []
     for rnd in range(args.rounds):
         for name, rev in trees.items():
