@@ -19,6 +19,7 @@ import os
 import re
 import resource
 import shutil
+import statistics
 import subprocess
 import tempfile
 import time
@@ -35,17 +36,18 @@ def _clone(rev: str, where: Path) -> Path:
     return where
 
 
-def _timed(cmd: list[str], cwd: Path, env: dict, log: Path) -> tuple[float, float, str]:
-    """(wall s, CPU s of the children, output) of ``cmd``; raises with the log's tail when it fails."""
+def _timed(cmd: list[str], cwd: Path, env: dict) -> tuple[float, float, str]:
+    """(wall s, CPU s of the children, output) of ``cmd``; stops with the output's tail when it fails (the clone
+    and its logs are removed afterwards)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     out = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     text = (out.stdout + out.stderr).replace("\r", "\n")
-    log.write_text(text)
     if out.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed in {cwd} (exit {out.returncode}); its output: {log}")
+        tail = "\n".join(text.splitlines()[-20:])
+        raise SystemExit(f"{' '.join(cmd)} failed (exit {out.returncode}); the end of its output:\n{tail}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, cpu, text
 
@@ -84,10 +86,10 @@ def main() -> None:
                 env = dict(os.environ)
                 if not args.keep_caches:
                     env |= {"PIP_CACHE_DIR": str(tmp / "pip-cache"), "UV_CACHE_DIR": str(tmp / "uv-cache")}
-                wall, cpu, _ = _timed(["make", ".venv/.installed-demo"], clone, env, tmp / "venv.log")
+                wall, cpu, _ = _timed(["make", ".venv/.installed-demo"], clone, env)
                 row = {"tree": name, "rev": rev, "round": rnd, "venv_wall_s": wall, "venv_cpu_s": cpu}
                 if args.demo:
-                    dwall, dcpu, text = _timed(["make", "demo"], clone, env, tmp / "demo.log")
+                    dwall, dcpu, text = _timed(["make", "demo"], clone, env)
                     row |= {"demo_wall_s": dwall, "demo_cpu_s": dcpu, **_demo_summary(text)}
                 rows.append(row)
                 demo = f", demo {row['demo_wall_s']:.1f} s" if args.demo else ""
@@ -99,8 +101,7 @@ def main() -> None:
         mine = [r for r in rows if r["tree"] == name]
 
         def med(key: str, mine: list = mine) -> float:
-            vals = sorted(r[key] for r in mine if key in r)
-            return vals[len(vals) // 2] if len(vals) % 2 else sum(vals[len(vals) // 2 - 1 : len(vals) // 2 + 1]) / 2
+            return statistics.median(r[key] for r in mine)
 
         total = f"{med('venv_wall_s') + med('demo_wall_s'):12.1f}" if args.demo else f"{'-':>12}"
         print(f"{name:>7} {med('venv_wall_s'):16.1f} {med('venv_cpu_s'):7.1f} {total}")
