@@ -22,20 +22,31 @@ NODE_PACKAGES := @playcanvas/splat-transform@3.10.2 gltf-validator@2.0.0-dev.3.1
 
 venv: $(STAMP)
 
-# PyTorch goes in with pip, which reads this machine's pip configuration (the local CPU wheel above, a mirror).
-# Everything else goes in with uv (from PyPI, into the venv) when it can be installed and its install succeeds:
-# the same packages as pip, compiled to bytecode as pip does, in about a fifth of pip's time; otherwise with pip,
-# as before (uv reads no pip configuration: a machine that reaches its packages only through one gets pip's way).
+# Where PyTorch comes from is pip's choice: pip reads this machine's pip configuration (the local CPU wheel above,
+# a mirror, an index) and names the wheel files it would install (a dry run, `--report`); uv then installs those
+# very files with everything else (from PyPI, into the venv; the same packages as pip, compiled to bytecode as pip
+# does, in about a fifth of pip's time). uv reads no pip configuration, so it is never left to choose PyPI's
+# PyTorch (a multi-GB CUDA build on Linux): when pip cannot name the files, pip installs PyTorch first. When uv
+# cannot be installed or its install fails, pip installs everything, as before.
 UV := $(VENV)/bin/uv
 DEMO_EXTRAS := monitor,video
 TEST_EXTRAS := dev,$(DEMO_EXTRAS)
 INSTALL = { $(PIP) install -q uv >/dev/null 2>&1 && $(UV) pip install -q --compile-bytecode --python $(PY) $(1); } \
 	|| { $(PIP) install -q --upgrade pip setuptools wheel && $(PIP) install -q $(1); }
 
+# pip's `--report` (JSON on stdin) -> one `name@url` per file to install; nothing when all is installed already
+define PIP_REPORT_FILES
+import json, sys
+for item in json.load(sys.stdin)["install"]:
+    print(item["metadata"]["name"] + "@" + item["download_info"]["url"])
+endef
+export PIP_REPORT_FILES
+
 $(DEMO_STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PIP) install -q "$(TORCH_SPEC)"
-	$(call INSTALL,-e ".[$(DEMO_EXTRAS)]")
+	torch=$$($(PIP) install -q --dry-run --no-deps --report - "$(TORCH_SPEC)" 2>/dev/null | $(PY) -c "$$PIP_REPORT_FILES") \
+	  || { torch= && $(PIP) install -q "$(TORCH_SPEC)"; } && \
+	$(call INSTALL,$$torch -e ".[$(DEMO_EXTRAS)]")
 	touch $(DEMO_STAMP)
 
 $(STAMP): $(DEMO_STAMP)
