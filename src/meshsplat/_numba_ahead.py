@@ -3,15 +3,16 @@
 After an install every kernel compiles on its first call, one after the other, in the one process that calls it
 (numba compiles on one thread). A *manifest* names the kernels a job will call from Python and the argument types
 of each call (recorded from a real run: :func:`record`); :func:`compile_ahead` finds those not yet in the disk cache
-and compiles them in shares, one in this process and the others in worker processes at the same time
-(``python -m meshsplat._numba_ahead``), so that the job's first calls load them. Same kernels, same cache entries
-as a first call makes: this only moves the work to more cores. Anything unexpected (a share failing, numba's
-internals changing) leaves the rest to the first calls, as before.
+and compiles them in this process and in worker processes at the same time (``python -m meshsplat._numba_ahead``),
+each process taking the next kernel from one queue (:class:`AheadSession`), so that the job's first calls load
+them. Same kernels, same cache entries as a first call makes: this only moves the work to more cores, or earlier
+(a session's workers may start before the job). Anything unexpected (a worker failing, numba's internals changing)
+leaves the rest to the first calls, as before.
 
 A manifest entry: ``{"kernel": "module.qualname", "args": [type, ...], "seconds": s}``; a type is
 ``{"array": dtype, "ndim": n, "layout": "C", "readonly": false}``, a scalar's dtype name (``"int64"``,
 ``"float32"``, ``"bool"``) or ``{"tuple": [type, ...]}`` (a driver's ``*args``, as numba passes them);
-``seconds`` is what compiling it took when recorded (to share the work out).
+``seconds`` is what compiling it took when recorded (the longest are handed out first).
 """
 
 from __future__ import annotations
@@ -22,14 +23,17 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterable
-from contextlib import ExitStack, nullcontext
+from contextlib import ExitStack, nullcontext, suppress
 from typing import Any
 
 from meshsplat._numba import kernel_named
 
-__all__ = ["type_to_json", "type_from_json", "record", "missing", "compile_here", "compile_ahead", "AheadResult"]
+__all__ = [
+    "type_to_json", "type_from_json", "record", "missing", "compile_here", "compile_ahead", "AheadSession", "AheadResult",
+]  # fmt: skip
 
 Entry = dict[str, Any]
 
@@ -152,24 +156,119 @@ def compile_here(entries: Iterable[Entry]) -> None:
             kernel.dispatcher.compile(_signature(e))
 
 
-WORKER_START_S = 3.0  # a worker's start (python, torch, numba, the kernel loaders) on the 2-core test VM
-
-
-def _shares(entries: list[Entry], n: int, head_start: float = WORKER_START_S) -> list[list[Entry]]:
-    """``entries`` in ``n`` shares of about equal recorded seconds (longest first, each to the lightest share);
-    the first is compiled here, and the others start ``head_start`` seconds late (a new process)."""
-    shares: list[list[Entry]] = [[] for _ in range(n)]
-    load = [0.0] + [head_start] * (n - 1)
-    for e in sorted(entries, key=lambda e: -float(e.get("seconds", 1.0))):
-        i = load.index(min(load))
-        shares[i].append(e)
-        load[i] += float(e.get("seconds", 1.0))
-    return [s for s in shares if s]
-
-
 class AheadResult(dict):
-    """What :func:`compile_ahead` did: ``compiled`` (entries), ``processes``, ``seconds`` (wall clock),
-    ``failed`` (a worker's last error line, or ``""``)."""
+    """What :func:`compile_ahead` (or :meth:`AheadSession.finish`) did: ``compiled`` (entries), ``processes``,
+    ``seconds`` (wall clock), ``failed`` (a worker's last error line, or ``""``)."""
+
+
+class AheadSession:
+    """Compiling ahead from one queue: the missing entries, longest recorded first, each taken by the next process
+    that is free (this one, in :meth:`finish`, and the worker processes of :meth:`add_workers`), so no process
+    waits on a share fixed beforehand. Workers can start early, before the job that needs the kernels (the demo
+    starts one while its capture renders); :meth:`finish` then compiles what is left with them. Close (or
+    ``finish``) a session: :meth:`close` stops its workers."""
+
+    def __init__(self, factories: list[str], entries: Iterable[Entry]) -> None:
+        call_factories(factories)
+        self.factories = factories
+        self.todo = sorted(missing(entries), key=lambda e: -float(e.get("seconds", 1.0)))
+        self._queue = list(reversed(self.todo))  # pop() takes the longest left
+        self._lock = threading.Lock()
+        self._workers: list[tuple[subprocess.Popen, threading.Thread, Any]] = []
+        self._busy: set[int] = set()  # the workers compiling an entry now
+        self._ending = False  # the queue is empty for good: a worker that exits now is not a failure
+        self._stack = ExitStack()
+        self.failed = ""
+
+    @property
+    def processes(self) -> int:
+        """The worker processes started so far, and this one."""
+        return len(self._workers) + 1
+
+    def _take(self, worker: int | None = None) -> Entry | None:
+        with self._lock:
+            if not self._queue:
+                return None
+            if worker is not None:
+                self._busy.add(worker)
+            return self._queue.pop()
+
+    def _fail(self, why: str) -> None:
+        with self._lock:
+            self.failed = self.failed or why
+
+    def add_workers(self, n: int) -> None:
+        """Start ``n`` more worker processes (no more than there are entries left), each fed from the queue."""
+        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
+        with self._lock:
+            n = min(n, len(self._queue))
+        for _ in range(max(0, n)):
+            # its stderr (a pipe may fill), closed with the session
+            log = self._stack.enter_context(tempfile.TemporaryFile(mode="w+"))  # noqa: SIM115
+            proc = _start_worker(log, env)
+            feeder = threading.Thread(target=self._feed, args=(len(self._workers), proc, log), daemon=True,
+                                      name="numba-ahead-feeder")  # fmt: skip
+            self._workers.append((proc, feeder, log))
+            feeder.start()
+
+    def _feed(self, worker: int, proc: subprocess.Popen, log: Any) -> None:
+        """One worker's entries, one at a time, as long as the queue has any (run on a thread of this process)."""
+        assert proc.stdin is not None and proc.stdout is not None
+        try:
+            proc.stdin.write(json.dumps({"factories": self.factories}) + "\n")
+            proc.stdin.flush()
+            if proc.stdout.readline().strip() != "ready":  # its loaders ran: only now take an entry for it
+                raise EOFError
+            while (entry := self._take(worker)) is not None:
+                proc.stdin.write(json.dumps(entry) + "\n")
+                proc.stdin.flush()
+                if proc.stdout.readline().strip() != "ok":
+                    raise EOFError
+                with self._lock:
+                    self._busy.discard(worker)
+        except (EOFError, OSError, ValueError):  # the worker failed (its reason on stderr) or was stopped
+            proc.wait()
+            with self._lock:
+                if self._ending and worker not in self._busy:  # stopped idle, with nothing left to give it
+                    return
+            log.seek(0)
+            lines = [ln for ln in log.read().splitlines() if ln.strip()]
+            self._fail(lines[-1] if lines else f"a worker exited with status {proc.returncode}")
+        finally:
+            with suppress(OSError):
+                proc.stdin.close()  # end of input: the worker exits
+
+    def finish(self) -> AheadResult:
+        """Compile the entries left in this process while the workers take theirs; wait for the workers. The
+        kernels of an entry that failed compile on their first call, as without this."""
+        t0 = time.perf_counter()
+        try:
+            while (entry := self._take()) is not None:
+                try:
+                    compile_here([entry])
+                except Exception as exc:  # noqa: BLE001 - as a worker's failure: the first call compiles it
+                    self._fail(_one_line(exc))
+            with self._lock:  # nothing left: a worker still starting up, or between entries, is not waited for
+                self._ending = True
+                idle = [proc for i, (proc, _, _) in enumerate(self._workers) if i not in self._busy]
+            _stop(idle)
+            for proc, feeder, _ in self._workers:
+                feeder.join()
+                proc.wait()
+        finally:
+            self.close()
+        return AheadResult(compiled=self.todo, processes=self.processes if self.todo else 0,
+                           seconds=time.perf_counter() - t0, failed=self.failed)  # fmt: skip
+
+    def close(self) -> None:
+        """Stop the workers still running (interrupted, or a session not finished) and drop their logs."""
+        with self._lock:
+            self._queue.clear()
+            self._ending = True
+        _stop([proc for proc, _, _ in self._workers])
+        for _, feeder, _ in self._workers:
+            feeder.join()  # (it sees its worker's end at once)
+        self._stack.close()
 
 
 def compile_ahead(
@@ -179,45 +278,26 @@ def compile_ahead(
     announce: Callable[[int, int], None] | None = None,
 ) -> AheadResult:
     """Compile the ``entries`` (made by the ``factories``, kernel loaders run here first) that are not in numba's
-    disk cache, in up to ``processes`` processes at once (this one and ``processes - 1`` workers, the workers'
-    shares smaller by what starting one costs); returns at once when none is missing.
-    ``announce(kernels, processes)`` is called before the work starts. A failed worker is reported in ``failed``
-    (its last error line); its kernels then compile on their first call, as without this."""
-    call_factories(factories)
-    todo = missing(entries)
-    if not todo:
+    disk cache, in up to ``processes`` processes at once (this one and ``processes - 1`` workers, an
+    :class:`AheadSession`); returns at once when none is missing. ``announce(kernels, processes)`` is called before
+    the work starts. A failed worker is reported in ``failed`` (its last error line); its kernels then compile on
+    their first call, as without this."""
+    session = AheadSession(factories, entries)
+    if not session.todo:
         return AheadResult(compiled=[], processes=0, seconds=0.0, failed="")
-    shares = _shares(todo, max(1, min(processes, len(todo))))
-    if announce is not None:
-        announce(len(todo), len(shares))
-    t0 = time.perf_counter()
-    # one thread each: numba compiles on one, and torch's pool would only take cores from the other workers
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    with ExitStack() as stack:
-        logs = [stack.enter_context(tempfile.TemporaryFile(mode="w+")) for _ in shares[1:]]  # (a pipe may fill)
-        workers: list[subprocess.Popen] = []
-        stack.callback(_stop, workers)  # interrupted (Ctrl-C) or failed to start: no worker outlives the job
-        workers.extend(_start_worker(log, env) for log in logs)
-        for proc, share in zip(workers, shares[1:], strict=True):
-            assert proc.stdin is not None
-            proc.stdin.write(json.dumps({"factories": factories, "entries": share}))
-            proc.stdin.close()
-        failed = ""
-        try:  # the first share here, while the workers start up
-            compile_here(shares[0])
-        except Exception as exc:  # noqa: BLE001 - as a worker's failure: the first call compiles it instead
-            failed = _one_line(exc)
-        for proc, log in zip(workers, logs, strict=True):
-            if proc.wait() != 0 and not failed:
-                log.seek(0)
-                lines = [ln for ln in log.read().splitlines() if ln.strip()]
-                failed = lines[-1] if lines else f"a worker exited with status {proc.returncode}"
-    return AheadResult(compiled=todo, processes=len(shares), seconds=time.perf_counter() - t0, failed=failed)
+    try:
+        session.add_workers(max(1, processes) - 1)
+        if announce is not None:
+            announce(len(session.todo), session.processes)
+    except BaseException:
+        session.close()
+        raise
+    return session.finish()
 
 
 def _start_worker(log: Any, env: dict[str, str]) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "meshsplat._numba_ahead"]
-    return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log, env=env, text=True)
+    return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, env=env, text=True)
 
 
 def _stop(workers: list[subprocess.Popen]) -> None:
@@ -234,12 +314,15 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _worker() -> int:
-    """A worker: a JSON ``{"factories": [...], "entries": [...]}`` on stdin; compiles them into the disk cache.
-    On failure the last line on stderr says why (:func:`_one_line`) and the exit status is 1."""
+    """A worker: on stdin a JSON line ``{"factories": [...]}``, then one entry per line, each compiled into the disk
+    cache; on stdout ``ready`` once the loaders ran, then ``ok`` per entry; it exits at the end of its input. On
+    failure the last line on stderr says why (:func:`_one_line`) and the exit status is 1."""
     try:
-        job = json.loads(sys.stdin.read())
-        call_factories(job["factories"])
-        compile_here(job["entries"])
+        call_factories(json.loads(sys.stdin.readline())["factories"])
+        print("ready", flush=True)
+        for line in sys.stdin:
+            compile_here([json.loads(line)])
+            print("ok", flush=True)
     except Exception as exc:  # noqa: BLE001 - reported to the parent in one line
         print(_one_line(exc), file=sys.stderr)
         return 1

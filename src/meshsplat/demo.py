@@ -25,7 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
+from meshsplat._device import resolve_device
+from meshsplat._numba import numba_available
 from meshsplat.animate import render_animation
 from meshsplat.camera import orbit_cameras
 from meshsplat.data import AvatarDataset, open_dataset
@@ -36,6 +39,7 @@ from meshsplat.paths import asset
 from meshsplat.run_folder import RunFolder, load_avatar
 from meshsplat.synth import contact_sheet, synthesize
 from meshsplat.train import DEFAULT_RECIPE, TrainConfig, Trainer, apply_overrides, recipe_config
+from meshsplat.train.cpu_kernels import start_compiling_early, stop_compiling_early, uses_cpu_kernels
 
 __all__ = ["DemoPreset", "PRESETS", "run_demo", "demo_train_config", "continuous_frames"]
 
@@ -151,6 +155,16 @@ def _generate(data_dir: Path, preset: DemoPreset, progress: bool) -> Path:
     return data_dir
 
 
+def _compile_while_rendering(cfg: TrainConfig, data_dir: Path) -> bool:
+    """Start compiling the training's CPU kernels in one worker process while the capture renders on one thread
+    (when training will run them on two or more threads and the dataset is still to make)."""
+    if (data_dir / "manifest.json").exists() or not numba_available():
+        return False
+    if not uses_cpu_kernels(resolve_device(cfg.device), cfg.backend):
+        return False
+    return start_compiling_early(torch.get_num_threads())
+
+
 def run_demo(
     out_dir: str | Path = "runs/demo", preset: str = "default", progress: bool = True, iterations: int | None = None
 ) -> dict[str, Any]:
@@ -170,16 +184,21 @@ def run_demo(
             print(f"[demo] {name}", flush=True)
         return time.perf_counter()
 
-    t = stage(f"1/5 generating a CesiumMan dataset ({p.frames} frames, {p.resolution}px) in {out / 'data'}")
-    data = _generate(out / "data", p, progress)
-    timings["synth_s"] = time.perf_counter() - t
-
     run = RunFolder(out / "run")
-    t = stage(f"2/5 training {p.iterations} iterations on {run.root}")
-    cfg = demo_train_config(data, run.root, p, progress=progress)
-    trainer = Trainer(cfg, resume=True)
-    trainer.train()
-    timings["train_s"] = time.perf_counter() - t
+    cfg = demo_train_config(out / "data", run.root, p, progress=progress)
+    t = stage(f"1/5 generating a CesiumMan dataset ({p.frames} frames, {p.resolution}px) in {out / 'data'}")
+    try:
+        if _compile_while_rendering(cfg, out / "data") and progress:
+            print("compiling the CPU kernels in another process meanwhile (once after an install)", flush=True)
+        data = _generate(out / "data", p, progress)
+        timings["synth_s"] = time.perf_counter() - t
+
+        t = stage(f"2/5 training {p.iterations} iterations on {run.root}")
+        trainer = Trainer(cfg, resume=True)
+        trainer.train()
+        timings["train_s"] = time.perf_counter() - t
+    finally:
+        stop_compiling_early()  # (taken by the training unless it never started)
 
     t = stage("3/5 evaluating held-out frames and novel views")
     metrics = evaluate_run(run.root)

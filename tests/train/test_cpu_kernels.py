@@ -56,22 +56,6 @@ def test_types_round_trip_through_json():
         type_to_json(types.unicode_type)
 
 
-def test_shares_balance_the_recorded_seconds():
-    from meshsplat._numba_ahead import _shares
-
-    entries = [
-        {"kernel": str(i), "seconds": s} for i, s in enumerate([7.4, 6.8, 5.9, 5.8, 2.2, 1.6, 1.4, 1.2, 1.0, 0.2])
-    ]
-    two = _shares(entries, 2, head_start=0.0)
-    loads = [sum(e["seconds"] for e in share) for share in two]
-    assert len(two) == 2 and abs(loads[1] - loads[0]) < 1.0
-    assert sorted(e["kernel"] for share in two for e in share) == sorted(e["kernel"] for e in entries)
-    late = _shares(entries, 2, head_start=3.0)  # the second share is a new process: it starts later
-    loads = [sum(e["seconds"] for e in share) for share in late]
-    assert abs(loads[0] - (loads[1] + 3.0)) < 1.0
-    assert len(_shares(entries[:1], 4)) == 1  # no empty share, no idle worker
-
-
 def test_manifest_names_only_kernels_the_loaders_make():
     from meshsplat._numba import kernel_named
     from meshsplat._numba_ahead import call_factories
@@ -87,24 +71,53 @@ def test_manifest_names_only_kernels_the_loaders_make():
         call_factories(["os:getcwd"])
 
 
-def test_a_failing_share_is_reported_not_raised():
-    """A share that cannot be compiled (here: signatures the kernel cannot take), in this process or in a
-    worker, is reported in ``failed``, in one line; the job goes on (its kernels compile on first call)."""
-    from meshsplat._numba_ahead import compile_ahead
+_SUM = "meshsplat.train._albedo_prior_numba._sum_kernel"
+_VECTOR = {"array": "float64", "ndim": 1, "layout": "C", "readonly": False}
+
+
+def test_the_queue_compiles_each_entry_and_reports_a_failure_in_one_line(tmp_path):
+    """Into an empty cache, this process and a worker take the entries from one queue, longest recorded first:
+    afterwards none is missing from the cache, and one that cannot compile (here: a type the kernel cannot take)
+    is reported in ``failed``, in one line, not raised. A session closed before its end stops its worker."""
+    code = f"""
+import json
+from meshsplat._numba_ahead import AheadSession, missing
+from meshsplat.train.cpu_kernels import FACTORIES
+ok64 = {{"kernel": "{_SUM}", "args": [{_VECTOR!r}], "seconds": 0.2}}
+ok32 = {{"kernel": "{_SUM}", "args": [dict({_VECTOR!r}, array="float32")], "seconds": 0.1}}
+bad = {{"kernel": "{_SUM}", "args": ["bool"], "seconds": 5.0}}
+session = AheadSession(FACTORIES, [ok32, bad, ok64])
+order = [e["seconds"] for e in session.todo]
+session.add_workers(1)
+done = session.finish()
+unfinished = AheadSession(FACTORIES, [dict(ok64, args=[dict({_VECTOR!r}, array="int64")])])
+unfinished.add_workers(1)
+unfinished.close()
+print(json.dumps({{"order": order, "done": done, "missing": missing([ok64, ok32]),
+                  "stopped": [p.poll() is not None for p, _, _ in unfinished._workers]}}))
+"""
+    out = _python(code, cache=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["order"] == [5.0, 0.2, 0.1]
+    assert got["done"]["processes"] == 2 and len(got["done"]["compiled"]) == 3
+    assert got["done"]["failed"].startswith("TypingError: ") and "\n" not in got["done"]["failed"]
+    assert got["missing"] == [] and got["stopped"] == [True]
+
+
+def test_a_worker_says_ready_then_ok_per_entry_and_why_it_failed():
+    """The worker's protocol: ``ready`` after its loaders ran, ``ok`` per compiled entry; on a failure exit
+    status 1, the reason on its last stderr line."""
     from meshsplat.train.cpu_kernels import FACTORIES
 
-    name = "meshsplat.train._albedo_prior_numba._sum_kernel"
-    here = {"kernel": name, "args": ["bool"], "seconds": 5.0}  # the longest: compiled here
-    there = {"kernel": name, "args": ["int64"], "seconds": 0.1}  # -> the worker's share
-    done = compile_ahead(FACTORIES, [here, there], 2)
-    assert done["processes"] == 2 and done["compiled"] == [here, there]
-    assert done["failed"].startswith("TypingError: ") and "\n" not in done["failed"]
-    # the worker itself: exit status 1, the reason on its last stderr line
-    job = json.dumps({"factories": FACTORIES, "entries": [there]})
     env = dict(os.environ, PYTHONPATH=str(SRC))
-    out = subprocess.run([sys.executable, "-m", "meshsplat._numba_ahead"], input=job, env=env,
+    ok = {"kernel": _SUM, "args": [_VECTOR], "seconds": 0.2}
+    bad = {"kernel": _SUM, "args": ["bool"], "seconds": 0.1}
+    lines = [json.dumps({"factories": FACTORIES}), json.dumps(ok), json.dumps(bad), json.dumps(ok)]
+    out = subprocess.run([sys.executable, "-m", "meshsplat._numba_ahead"], input="\n".join(lines) + "\n", env=env,
                          capture_output=True, text=True, timeout=300)  # fmt: skip
     assert out.returncode == 1
+    assert out.stdout.split() == ["ready", "ok"]
     assert out.stderr.strip().splitlines()[-1].startswith("TypingError: ")
 
 
