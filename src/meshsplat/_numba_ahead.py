@@ -185,6 +185,12 @@ class AheadSession:
         """The worker processes started so far, and this one."""
         return len(self._workers) + 1
 
+    @property
+    def left(self) -> int:
+        """The entries not compiled yet: still queued, or being compiled by a worker."""
+        with self._lock:
+            return len(self._queue) + len(self._busy)
+
     def _take(self, worker: int | None = None) -> Entry | None:
         with self._lock:
             if not self._queue:

@@ -105,6 +105,43 @@ print(json.dumps({{"order": order, "done": done, "missing": missing([ok64, ok32]
     assert got["missing"] == [] and got["stopped"] == [True]
 
 
+def test_a_worker_started_early_is_taken_over_by_the_training(tmp_path):
+    """``start_compiling_early`` (the demo, while it renders) starts one worker on the manifest; the training's
+    ``compile_ahead`` goes on with it and announces only what is left; afterwards nothing is missing. An early
+    worker that training never takes is stopped by ``stop_compiling_early``; on one thread none starts."""
+    from meshsplat._device import usable_cores
+
+    if usable_cores() < 2:
+        pytest.skip("one core: nothing is compiled ahead (CI has two)")
+    code = f"""
+import json
+import meshsplat.train.cpu_kernels as ck
+from meshsplat._numba_ahead import missing
+entries = [{{"kernel": "{_SUM}", "args": [dict({_VECTOR!r}, array=t)], "seconds": 0.1}}
+           for t in ("float64", "float32", "int64", "int32")]
+ck.manifest = lambda: {{"threads": 2, "entries": entries}}
+one_thread = ck.start_compiling_early(1)
+started = ck.start_compiling_early(2)
+early = ck._EARLY[0]
+said = []
+done = ck.compile_ahead(2, lambda kernels, processes: said.append([kernels, processes]))
+after = missing(entries)
+entries = [dict(entries[0], args=[dict({_VECTOR!r}, array="int16")])]
+again = ck.start_compiling_early(2)
+worker = ck._EARLY[0]._workers[0][0]
+ck.stop_compiling_early()
+print(json.dumps({{"one_thread": one_thread, "started": started, "said": said, "after": after, "again": again,
+                  "stopped": worker.poll() is not None, "left": ck._EARLY, "failed": done["failed"]}}))
+"""
+    out = _python(code, cache=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["one_thread"] is False and got["started"] is True and got["again"] is True
+    assert all(k <= 4 and p == 2 for k, p in got["said"])  # what was left, in 2 processes (or all done: nothing)
+    assert got["after"] == [] and got["failed"] == ""
+    assert got["stopped"] is True and got["left"] == []
+
+
 def test_a_worker_says_ready_then_ok_per_entry_and_why_it_failed():
     """The worker's protocol: ``ready`` after its loaders ran, ``ok`` per compiled entry; on a failure exit
     status 1, the reason on its last stderr line."""

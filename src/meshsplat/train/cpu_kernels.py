@@ -109,9 +109,10 @@ def compile_ahead(threads: int, announce: Callable[[int, int], None] | None = No
     if early is None:
         return _compile_ahead(FACTORIES, manifest()["entries"], processes, announce)
     try:
-        early.add_workers(processes - early.processes)
-        if announce is not None:
-            announce(len(early.todo), early.processes)
+        if early.left:  # (else the early worker did it all)
+            early.add_workers(processes - early.processes)
+            if announce is not None:
+                announce(early.left, early.processes)  # what the early worker has not done yet
     except BaseException:
         early.close()
         raise
@@ -129,7 +130,10 @@ def prepare_cpu_kernels(threads: int, progress: bool) -> None:
                   "for up to a minute)", file=sys.stderr)  # fmt: skip
         return
 
+    announced = []
+
     def announce(kernels: int, processes: int) -> None:
+        announced.append(kernels)
         if progress:
             print(f"compiling the CPU kernels (once after an install): {kernels} in {processes} processes",
                   file=sys.stderr)  # fmt: skip
@@ -140,6 +144,6 @@ def prepare_cpu_kernels(threads: int, progress: bool) -> None:
         print(f"note: the CPU kernels could not be compiled ahead ({type(exc).__name__}: {exc}); the first step "
               "compiles them", file=sys.stderr)  # fmt: skip
         return
-    if progress and done["compiled"]:
+    if progress and announced:
         note = f"; {done['failed']} (the first step compiles the rest)" if done["failed"] else ""
         print(f"compiled in {done['seconds']:.0f} s{note}", file=sys.stderr)
