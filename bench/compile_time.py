@@ -1,6 +1,6 @@
 """What the first training step after an install waits for: numba compiling the CPU kernels, in CPU seconds.
 
-    python bench/compile_time.py [--threads 1 2] [--repeats 2] [--src OTHER_CHECKOUT/src] [--ahead]
+    python bench/compile_time.py [--threads 1 2] [--repeats 2] [--src OTHER_CHECKOUT/src] [--ahead [--only-ahead]]
 
 Each measurement is a fresh process with an empty numba cache (``NUMBA_CACHE_DIR`` in a new temporary folder):
 it builds the trainer of the tiny demo capture (generated once into a temporary folder) with the default recipe,
@@ -8,9 +8,9 @@ then times, in CPU time of the process, the trainer's construction, its first st
 is compiled there) and 30 more steps; numba's compile events give each kernel's share. Then the same with the
 cache the first process left (what every later process pays). ``--src`` measures another checkout's ``src``
 folder instead (e.g. the commit before a change, from ``git worktree add``), interleaved with this one.
-``--ahead`` adds, for this tree on more than one thread, what ``meshsplat train`` does: the kernels compiled
+``--ahead`` adds, for each tree on more than one thread, what ``meshsplat train`` does: the kernels compiled
 ahead in one process per thread (``train.cpu_kernels.compile_ahead``), then the first step; its CPU time counts
-the worker processes too, and its wall clock is the figure a user waits.
+the worker processes too, and its wall clock is the figure a user waits. ``--only-ahead`` measures only that.
 Saves bench/results/compile_time-<host>.json.
 """
 
@@ -89,6 +89,7 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--src", type=Path, default=None, help="another checkout's src folder, measured beside this one")
     ap.add_argument("--ahead", action="store_true", help="also this tree with the kernels compiled ahead (threads > 1)")
+    ap.add_argument("--only-ahead", action="store_true", help="with --ahead: leave out the first-step measurements")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     sys.path.insert(0, str(SRC))
@@ -100,7 +101,7 @@ def main() -> int:
     rows, ahead_rows = [], []
     for threads in args.threads:
         for rep in range(args.repeats):
-            for name, src in trees.items():
+            for name, src in trees.items() if not args.only_ahead else []:
                 cache = tmp / f"cache-{name}-{threads}-{rep}"
                 cold = _measure(src, data, threads, cache)
                 warm = _measure(src, data, threads, cache)
@@ -111,37 +112,46 @@ def main() -> int:
                     f"a later step {warm['step_s'] * 1e3:5.1f} ms",
                     flush=True,
                 )
-            if args.ahead and threads > 1:
-                cache = tmp / f"cache-ahead-{threads}-{rep}"
-                cold = _measure(SRC, data, threads, cache, "ahead")
-                warm = _measure(SRC, data, threads, cache, "ahead")
-                ahead_rows.append({"threads": threads, "repeat": rep, "cold": cold, "warm": warm})
+            for name, src in trees.items() if args.ahead and threads > 1 else []:
+                cache = tmp / f"cache-ahead-{name}-{threads}-{rep}"
+                cold = _measure(src, data, threads, cache, "ahead")
+                warm = _measure(src, data, threads, cache, "ahead")
+                ahead_rows.append({"tree": name, "threads": threads, "repeat": rep, "cold": cold, "warm": warm})
                 a = cold["ahead"]
                 print(
-                    f"ahead threads {threads}: compiled {a['kernels']} kernels in {a['processes']} processes, "
+                    f"{name:>5} ahead threads {threads}: compiled {a['kernels']} kernels in {a['processes']} processes, "
                     f"{a['wall_s']:5.1f} s wall, {a['workers_cpu_s'] + a['parent_cpu_s']:5.1f} s CPU; then the first "
                     f"step {cold['first_step_s']:4.1f} s CPU; next process: ahead {warm['ahead']['wall_s']:4.2f} s, "
                     f"first step {warm['first_step_s']:4.1f} s",
                     flush=True,
                 )
-    print(f"\n{'tree':>5} {'threads':>7} {'cold first step s':>18} {'cached s':>9}  largest kernels (s, first repeat)")
+    if rows:
+        print(
+            f"\n{'tree':>5} {'threads':>7} {'cold first step s':>18} {'cached s':>9}  largest kernels (s, first repeat)"
+        )
     for name in trees:
         for threads in args.threads:
             mine = [r for r in rows if r["tree"] == name and r["threads"] == threads]
+            if not mine:
+                continue
             cold = statistics.median(r["cold"]["first_step_s"] for r in mine)
             warm = statistics.median(r["warm"]["first_step_s"] for r in mine)
             top = sorted(mine[0]["cold"]["kernels"].items(), key=lambda kv: -kv[1])[:5]
             print(f"{name:>5} {threads:>7} {cold:18.1f} {warm:9.1f}  " + ", ".join(f"{k} {v:.1f}" for k, v in top))
     path = args.out or results_path("compile_time")
     trees_out = {k: "src" if v == SRC else f"<{v.parent.name}>/src" for k, v in trees.items()}  # no local paths
-    for threads in sorted({r["threads"] for r in ahead_rows}):
-        mine = [r for r in ahead_rows if r["threads"] == threads]
+    for name, threads in sorted({(r["tree"], r["threads"]) for r in ahead_rows}):
+        mine = [r for r in ahead_rows if r["tree"] == name and r["threads"] == threads]
+        wait = statistics.median(r["cold"]["ahead"]["wall_s"] for r in mine)
         wall = statistics.median(r["cold"]["ahead"]["wall_s"] + r["cold"]["first_step_wall_s"] for r in mine)
         cpu = statistics.median(
             r["cold"]["ahead"]["workers_cpu_s"] + r["cold"]["ahead"]["parent_cpu_s"] + r["cold"]["first_step_s"]
             for r in mine
         )
-        print(f"ahead {threads:>7}: compiled ahead + first step, cold: {wall:.1f} s wall, {cpu:.1f} s CPU")
+        print(
+            f"{name:>5} ahead {threads:>7}: compiled ahead {wait:.1f} s wall; + first step, cold: {wall:.1f} s wall, "
+            f"{cpu:.1f} s CPU"
+        )
     out = {"machine": machine_info(), "trees": trees_out, "rows": rows, "ahead": ahead_rows}
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"saved {path}")
