@@ -35,6 +35,7 @@ INSTALL = { $(PIP) install -q uv >/dev/null 2>&1 && $(UV) pip install -q --compi
 	|| { $(PIP) install -q --upgrade pip setuptools wheel && $(PIP) install -q $(1); }
 
 # pip's `--report` (JSON on stdin) -> one `name@url` per file to install; nothing when all is installed already
+# (split into words unquoted, so the recipe turns off the shell's globbing: `set -f`)
 define PIP_REPORT_FILES
 import json, sys
 for item in json.load(sys.stdin)["install"]:
@@ -44,7 +45,7 @@ export PIP_REPORT_FILES
 
 $(DEMO_STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	torch=$$($(PIP) install -q --dry-run --no-deps --report - "$(TORCH_SPEC)" 2>/dev/null | $(PY) -c "$$PIP_REPORT_FILES") \
+	set -f; torch=$$($(PIP) install -q --dry-run --no-deps --report - "$(TORCH_SPEC)" 2>/dev/null | $(PY) -c "$$PIP_REPORT_FILES") \
 	  || { torch= && $(PIP) install -q "$(TORCH_SPEC)"; } && \
 	$(call INSTALL,$$torch -e ".[$(DEMO_EXTRAS)]")
 	touch $(DEMO_STAMP)
