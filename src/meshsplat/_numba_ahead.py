@@ -282,19 +282,20 @@ def compile_ahead(
     entries: list[Entry],
     processes: int,
     announce: Callable[[int, int], None] | None = None,
+    session: AheadSession | None = None,
 ) -> AheadResult:
     """Compile the ``entries`` (made by the ``factories``, kernel loaders run here first) that are not in numba's
-    disk cache, in up to ``processes`` processes at once (this one and ``processes - 1`` workers, an
-    :class:`AheadSession`); returns at once when none is missing. ``announce(kernels, processes)`` is called before
-    the work starts. A failed worker is reported in ``failed`` (its last error line); its kernels then compile on
-    their first call, as without this."""
-    session = AheadSession(factories, entries)
-    if not session.todo:
-        return AheadResult(compiled=[], processes=0, seconds=0.0, failed="")
+    disk cache, in up to ``processes`` processes at once (this one and workers, an :class:`AheadSession`; or
+    ``session``, one already started, with the workers it has); returns at once when none is left.
+    ``announce(kernels left, processes)`` is called before the work starts. A failed worker is reported in
+    ``failed`` (its last error line); its kernels then compile on their first call, as without this."""
+    if session is None:
+        session = AheadSession(factories, entries)
     try:
-        session.add_workers(max(1, processes) - 1)
-        if announce is not None:
-            announce(len(session.todo), session.processes)
+        if session.left:
+            session.add_workers(max(1, processes) - session.processes)
+            if announce is not None:
+                announce(session.left, session.processes)
     except BaseException:
         session.close()
         raise

@@ -106,17 +106,7 @@ def compile_ahead(threads: int, announce: Callable[[int, int], None] | None = No
         if early is not None:
             early.close()
         return AheadResult(compiled=[], processes=0, seconds=0.0, failed="")
-    if early is None:
-        return _compile_ahead(FACTORIES, manifest()["entries"], processes, announce)
-    try:
-        if early.left:  # (else the early worker did it all)
-            early.add_workers(processes - early.processes)
-            if announce is not None:
-                announce(early.left, early.processes)  # what the early worker has not done yet
-    except BaseException:
-        early.close()
-        raise
-    return early.finish()
+    return _compile_ahead(FACTORIES, manifest()["entries"], processes, announce, session=early)
 
 
 def prepare_cpu_kernels(threads: int, progress: bool) -> None:
