@@ -235,8 +235,10 @@ class AheadSession:
         except (EOFError, OSError, ValueError):  # the worker failed (its reason on stderr) or was stopped
             proc.wait()
             with self._lock:
-                if self._ending and worker not in self._busy:  # stopped idle, with nothing left to give it
-                    return
+                stopped_idle = self._ending and worker not in self._busy  # with nothing left to give it
+                self._busy.discard(worker)  # (its entry, if any, is left to the first call)
+            if stopped_idle:
+                return
             log.seek(0)
             lines = [ln for ln in log.read().splitlines() if ln.strip()]
             self._fail(lines[-1] if lines else f"a worker exited with status {proc.returncode}")

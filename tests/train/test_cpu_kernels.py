@@ -78,9 +78,10 @@ _VECTOR = {"array": "float64", "ndim": 1, "layout": "C", "readonly": False}
 def test_the_queue_compiles_each_entry_and_reports_a_failure_in_one_line(tmp_path):
     """Into an empty cache, this process and a worker take the entries from one queue, longest recorded first:
     afterwards none is missing from the cache, and one that cannot compile (here: a type the kernel cannot take)
-    is reported in ``failed``, in one line, not raised. A session closed before its end stops its worker."""
+    is reported in ``failed``, in one line, not raised, and is no longer counted as left, also when a worker took
+    it. A session closed before its end stops its worker."""
     code = f"""
-import json
+import json, time
 from meshsplat._numba_ahead import AheadSession, missing
 from meshsplat.train.cpu_kernels import FACTORIES
 ok64 = {{"kernel": "{_SUM}", "args": [{_VECTOR!r}], "seconds": 0.2}}
@@ -93,8 +94,16 @@ done = session.finish()
 unfinished = AheadSession(FACTORIES, [dict(ok64, args=[dict({_VECTOR!r}, array="int64")])])
 unfinished.add_workers(1)
 unfinished.close()
+lone = AheadSession(FACTORIES, [bad])  # only a worker takes it, and fails: nothing is left, the failure is told
+lone.add_workers(1)
+deadline = time.time() + 300
+while lone.left and time.time() < deadline:
+    time.sleep(0.05)
+lone_left = lone.left
+lone.close()
 print(json.dumps({{"order": order, "done": done, "missing": missing([ok64, ok32]),
-                  "stopped": [p.poll() is not None for p, _, _ in unfinished._workers]}}))
+                  "stopped": [p.poll() is not None for p, _, _ in unfinished._workers],
+                  "lone": [lone_left, lone.failed]}}))
 """
     out = _python(code, cache=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -103,6 +112,7 @@ print(json.dumps({{"order": order, "done": done, "missing": missing([ok64, ok32]
     assert got["done"]["processes"] == 2 and len(got["done"]["compiled"]) == 3
     assert got["done"]["failed"].startswith("TypingError: ") and "\n" not in got["done"]["failed"]
     assert got["missing"] == [] and got["stopped"] == [True]
+    assert got["lone"][0] == 0 and got["lone"][1].startswith("TypingError: ")
 
 
 def test_a_worker_started_early_is_taken_over_by_the_training(tmp_path):
