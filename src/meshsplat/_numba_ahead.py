@@ -204,14 +204,20 @@ class AheadSession:
             self.failed = self.failed or why
 
     def add_workers(self, n: int) -> None:
-        """Start ``n`` more worker processes (no more than there are entries left), each fed from the queue."""
+        """Start ``n`` more worker processes (no more than there are entries left), each fed from the queue. When a
+        process cannot start, no more are tried and ``failed`` says why; this process still compiles the queue."""
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
         with self._lock:
             n = min(n, len(self._queue))
         for _ in range(max(0, n)):
             # its stderr (a pipe may fill), closed with the session
             log = self._stack.enter_context(tempfile.TemporaryFile(mode="w+"))  # noqa: SIM115
-            proc = _start_worker(log, env)
+            try:
+                proc = _start_worker(log, env)
+            except OSError as exc:  # no process to start here (a sandbox, a process limit, an interpreter that
+                # cannot be run again): this process compiles the queue, as with no second core
+                self._fail(f"no worker process could start ({_one_line(exc)})")
+                return
             feeder = threading.Thread(target=self._feed, args=(len(self._workers), proc, log), daemon=True,
                                       name="numba-ahead-feeder")  # fmt: skip
             self._workers.append((proc, feeder, log))

@@ -152,6 +152,37 @@ print(json.dumps({{"one_thread": one_thread, "started": started, "said": said, "
     assert got["stopped"] is True and got["left"] == []
 
 
+def test_no_worker_process_can_start_and_this_process_compiles_the_queue(tmp_path):
+    """Where no process can be started (here the interpreter is a path that does not exist: a sandbox, a process
+    limit or an embedded Python look the same), the session says so in one line and this process compiles every
+    entry; the demo's early start reports that nothing started and keeps no session."""
+    from meshsplat._device import usable_cores
+
+    if usable_cores() < 2:
+        pytest.skip("one core: nothing is compiled ahead (CI has two)")
+    code = f"""
+import json, sys
+import meshsplat.train.cpu_kernels as ck
+from meshsplat._numba_ahead import AheadSession, missing
+from meshsplat.train.cpu_kernels import FACTORIES
+sys.executable = {str(tmp_path / "no-such-python")!r}
+entries = [{{"kernel": "{_SUM}", "args": [dict({_VECTOR!r}, array=t)], "seconds": 0.1}} for t in ("float64", "int64")]
+session = AheadSession(FACTORIES, entries)
+session.add_workers(1)
+done = session.finish()
+ck.manifest = lambda: {{"threads": 2, "entries": [dict(entries[0], args=[dict({_VECTOR!r}, array="int32")])]}}
+early = ck.start_compiling_early(2)
+print(json.dumps({{"done": done, "missing": missing(entries), "early": early, "kept": len(ck._EARLY)}}))
+"""
+    out = _python(code, cache=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["done"]["processes"] == 1 and len(got["done"]["compiled"]) == 2 and got["missing"] == []
+    assert got["done"]["failed"].startswith("no worker process could start (FileNotFoundError: ")
+    assert "\n" not in got["done"]["failed"]
+    assert got["early"] is False and got["kept"] == 0
+
+
 def test_a_worker_says_ready_then_ok_per_entry_and_why_it_failed():
     """The worker's protocol: ``ready`` after its loaders ran, ``ok`` per compiled entry; on a failure exit
     status 1, the reason on its last stderr line."""

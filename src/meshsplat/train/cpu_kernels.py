@@ -85,6 +85,9 @@ def start_compiling_early(threads: int) -> bool:
     if not session.todo:
         return False
     session.add_workers(1)
+    if session.processes < 2:  # no worker could start: nothing runs beside this process
+        session.close()
+        return False
     _EARLY.append(session)
     return True
 
