@@ -119,6 +119,34 @@ def test_lane_loops_compile_to_vector_code(monkeypatch):
     assert report["ymm"] + report["zmm"] >= 30, report
 
 
+def test_arm64_compiles_the_lane_loops_four_wide(monkeypatch):
+    """The width rule on arm64 (checked on any host): 4 lanes, one NEON register, whatever numba's target CPU; an
+    explicit ``MESHSPLAT_LANE_VECTOR_WIDTH`` still wins."""
+    monkeypatch.delenv(nl.VECTOR_WIDTH_ENV, raising=False)
+    for machine in ("arm64", "aarch64"):
+        monkeypatch.setattr(platform, "machine", lambda m=machine: m)
+        assert nl.lane_vector_width() == 4
+    monkeypatch.setenv(nl.VECTOR_WIDTH_ENV, "8")
+    assert nl.lane_vector_width() == 8
+
+
+@pytest.mark.skipif(platform.machine() not in ("aarch64", "arm64"), reason="checks arm64 vector registers")
+def test_lane_loops_compile_to_neon_on_arm64(monkeypatch):
+    """On arm64 (Apple silicon, Graviton) the lane loops are compiled 4 lanes wide (NEON's 128 bits; LLVM's own
+    choice leaves the forward's scalar) and are packed NEON (``v0.4s``) or SVE code, forward and backward. Run
+    under qemu-aarch64 (bench/raster_cpu_lanes.md, arm64); no arm64 machine runs the suite."""
+    monkeypatch.delenv(nl.VECTOR_WIDTH_ENV, raising=False)
+    assert nl.lane_vector_width() == 4
+    scene = random_scene(n=60, seed=1, dtype=torch.float32)
+    k, geo, bg = _geometry(scene)
+    out, t_final, n_contrib, _ = k.forward_lanes(*geo.args(bg))
+    g_col, g_alpha = np.ones_like(out), np.ones(t_final.shape[0], out.dtype)
+    forward = nl.vector_report(geo.args(bg))
+    backward = nl.vector_report((*geo.args(bg), g_col, g_alpha, t_final, n_contrib), backward=True)
+    assert forward["neon"] + forward["sve"] >= 30, forward
+    assert backward["neon"] + backward["sve"] >= 30, backward
+
+
 @x86_avx2
 def test_the_forced_width_holds_only_while_the_lane_loops_compile(monkeypatch):
     """``MESHSPLAT_LANE_VECTOR_WIDTH=4`` compiles the lane loops on xmm; LLVM's option is reset after, so a loop

@@ -30,14 +30,18 @@ exp), fully unrolled, with the aliasing checks hoisted out of the block loop; LL
 CPU and numba exposes no per-function switch to 512. On a host with AVX2 but no AVX-512 (a Zen 3 host, the same
 versions) LLVM's cost model vectorizes the same loops 4 lanes wide, on 128-bit ``xmm`` registers; there the lane
 kernels are compiled with LLVM's ``-force-vector-width=8`` (:func:`lane_vector_width`), set only while they
-compile and reset after (``ymm``; bench/raster_cpu_lanes.md). The scalar kernels' pixel loops have no packed
-arithmetic.
+compile and reset after (``ymm``; bench/raster_cpu_lanes.md). On arm64 (numba 0.68.1 / LLVM 20, the code
+compiled under qemu-aarch64 for Apple M1, Neoverse V1 and a generic target) LLVM vectorizes the backward's lane
+loops on NEON but leaves the forward's scalar (2-5 packed instructions); forced to 4 lanes (one 128-bit ``v``
+register) the forward has 61 and the backward 143 (bench/raster_cpu_lanes.md, arm64). The scalar kernels' pixel
+loops have no packed arithmetic.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import platform
 from contextlib import AbstractContextManager
 from functools import lru_cache, partial
 from typing import Any
@@ -69,14 +73,19 @@ VECTOR_WIDTH_ENV = "MESHSPLAT_LANE_VECTOR_WIDTH"  # 0: LLVM's own choice; 4, 8, 
 
 def lane_vector_width() -> int:
     """The vector width (float32 elements) LLVM is told to use for the lane loops: 8 on an x86-64 host with AVX2
-    and without AVX-512, where its cost model picks 4 (``xmm``) and 8 (``ymm``) measured 26% faster forward; 0
-    (LLVM's choice) elsewhere, including AVX-512 hosts, where it already picks 8, and where numba compiles for
-    another CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``). ``MESHSPLAT_LANE_VECTOR_WIDTH``
-    overrides it (0, 4, 8 or 16; read when the kernels first compile in a process); the kernels are then compiled
-    without numba's disk cache, whose entries do not record the width."""
+    and without AVX-512, where its cost model picks 4 (``xmm``) and 8 (``ymm``) measured 26% faster forward; 4 on
+    arm64 (NEON's 128 bits, on every arm64 CPU), where its cost model leaves the forward's lane loops scalar (code
+    seen under qemu-aarch64 for Apple M1, Neoverse V1 and generic targets; on x86-64 the same loops unvectorized
+    ran 3.4x slower than at 4 lanes); 0 (LLVM's choice) elsewhere, including AVX-512 hosts, where it already
+    picks 8, and where numba compiles for another x86-64 CPU than the host (``NUMBA_CPU_NAME``/
+    ``NUMBA_CPU_FEATURES``). ``MESHSPLAT_LANE_VECTOR_WIDTH`` overrides it (0, 4, 8 or 16; read when the kernels
+    first compile in a process); the kernels are then compiled without numba's disk cache, whose entries do not
+    record the width."""
     override = _width_override()
     if override is not None:
         return override
+    if platform.machine().lower() in ("arm64", "aarch64"):
+        return 4
     import numba
     from llvmlite import binding as llvm
 
@@ -500,12 +509,14 @@ def compile_kernels(numba: Any) -> tuple[Any, Any]:
     return forward, backward
 
 
-def vector_report(args: tuple[Any, ...], backward: bool = False) -> dict[str, int]:
+def vector_report(args: tuple[Any, ...], backward: bool = False, width: int | None = None) -> dict[str, int]:
     """How wide LLVM made the lane loops on this host: an uncached copy of the forward (or backward) kernel is
     compiled for ``args`` (as the forward and backward of :func:`compile_kernels` take them) and run once over
-    every tile, and its generated code (``inspect_asm``) searched for packed arithmetic (``v...ps``/``v...pd``),
-    counted by register width: ``zmm`` 512-bit, ``ymm`` 256-bit, ``xmm`` 128-bit (scalar ``ss``/``sd`` code uses
-    ``xmm`` too, but is not counted). Imports numba; takes seconds."""
+    every tile, and its generated code (``inspect_asm``) searched for packed floating-point arithmetic, counted by
+    register: on x86-64 (``v...ps``/``v...pd``) ``zmm`` 512-bit, ``ymm`` 256-bit, ``xmm`` 128-bit (scalar
+    ``ss``/``sd`` code uses ``xmm`` too, but is not counted); on arm64 ``neon`` (``f...`` on ``v0.4s``/``v0.2d``:
+    128-bit) and ``sve`` (on ``z0.s``/``z0.d``). ``width``: LLVM's vector width to compile at (1: no vector code;
+    default :func:`lane_vector_width`). Imports numba; takes seconds."""
     import re
 
     import numba
@@ -516,10 +527,13 @@ def vector_report(args: tuple[Any, ...], backward: bool = False) -> dict[str, in
         outs: tuple[np.ndarray, ...] = (grad_rows(args[1], args[2]),)
     else:
         outs = _outputs(args[2], args[4], args[5], args[8], args[9])
-    with _compiling_at(lane_vector_width()):
+    with _compiling_at(lane_vector_width() if width is None else width):
         fn(*args, *outs, 0, args[3].shape[0])
     asm = "\n".join(fn.inspect_asm().values())
     packed = re.findall(
         r"^\s*v(?:add|sub|mul|div|min|max|cmp[a-z]*|rndscale|round|blendm|fmadd[0-9]*)p[sd]\s+([^\n]*)", asm, re.M
     )
-    return {reg: sum(f"%{reg}" in ops for ops in packed) for reg in ("zmm", "ymm", "xmm")}
+    report = {reg: sum(f"%{reg}" in ops for ops in packed) for reg in ("zmm", "ymm", "xmm")}
+    arm = re.findall(r"^\s*(?:f[a-z]+|[su]cvtf)\s+(?:(v)\d+\.(?:4s|2d)|(z)\d+\.[sd])", asm, re.M)
+    report.update(neon=sum(v == "v" for v, _ in arm), sve=sum(z == "z" for _, z in arm))
+    return report
