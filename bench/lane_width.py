@@ -1,0 +1,114 @@
+"""What the lane kernels' vector code is worth, and what LLVM makes of them on this host (issue 47, arm64).
+
+For each vector width (LLVM's ``-force-vector-width``; 1 = no vector code, ``host`` = meshsplat's rule,
+``numba_lanes.lane_vector_width``): the packed floating-point instructions of the forward and backward lane
+kernels (``numba_lanes.vector_report``) and, unless ``--codegen-only``, their CPU time on one thread (median of
+``--repeats`` calls, fresh outputs each call) on the ``avatar_scene`` at the demo's size (20k @ 256²) and the
+issue's (50k @ 512²). The contribution lists of every width are checked against the host's kernels.
+
+Under an emulator (``qemu-aarch64``) only the code means anything: run it with ``--codegen-only`` (and
+``NUMBA_CPU_NAME=apple-m1`` etc. for a target CPU). Prints a table, saves JSON.
+
+Usage: python bench/lane_width.py [--widths 1,4,8,host] [--repeats 15] [--codegen-only] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _machine import machine_info, results_path
+from _raster_scenes import avatar_scene
+
+CASES = ((20_000, 256), (50_000, 512))
+
+
+def _geometry(scene, nc):
+    k = nc._kernels()
+    s = scene
+    proj = nc.project_numba(
+        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
+        s["viewmats"], s["Ks"], s["width"], s["height"], 0.01, 1e10,
+    )  # fmt: skip
+    geo = nc._Geometry(proj, s["means"].shape[0], s["colors"].dim() == 2, s["width"], s["height"], nc.TILE_SIZE)
+    geo.bin(s["opacities"], s["colors"])
+    return geo, s["backgrounds"].contiguous().numpy()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--widths", default="1,4,8,host")
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--codegen-only", action="store_true", help="count the packed instructions, time nothing")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    import numba
+
+    from meshsplat._numba import llvm_options
+    from meshsplat.render.backends import numba_cpu as nc
+    from meshsplat.render.backends import numba_lanes as nl
+
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    nl.compile_kernels(numba)
+    host = nl.lane_vector_width()
+    widths = [host if w == "host" else int(w) for w in args.widths.split(",")]
+    rows = []
+    for n, size in CASES[:1] if args.codegen_only else CASES:
+        geo, bg = _geometry(avatar_scene(n, size, seed=0), nc)
+        fargs = geo.args(bg)
+        ntile = fargs[3].shape[0]
+        out, t_final, n_contrib, _ = nc._kernels().forward_lanes(*fargs)  # the host's kernels: the reference
+        bargs = (*fargs, np.ones_like(out), np.ones(t_final.shape[0], out.dtype), t_final, n_contrib)
+        for width in dict.fromkeys(widths):  # each width once
+            o = nl._outputs(fargs[2], fargs[4], fargs[5], fargs[8], fargs[9])
+            code = {"forward": nl.vector_report(fargs, width=width),
+                    "backward": nl.vector_report(bargs, backward=True, width=width)}  # fmt: skip
+            row = {"case": f"{n // 1000}k @ {size}²", "width": width, "host_rule": width == host, "code": code}
+            if not args.codegen_only:
+                njit = numba.njit(cache=False, nogil=True, error_model="numpy")
+                fw, bw = njit(nl._forward_lanes), njit(nl._backward_lanes)
+                with llvm_options({"force-vector-width": width} if width else {}):
+                    fw(*fargs, *o, 0, ntile)
+                    bw(*bargs, nl.grad_rows(fargs[1], fargs[2]), 0, ntile)
+                row["same_lists"] = bool(np.array_equal(o[2], n_contrib))
+                tf, tb = [], []
+                for _ in range(args.repeats):
+                    o = nl._outputs(fargs[2], fargs[4], fargs[5], fargs[8], fargs[9])
+                    t = time.process_time()
+                    fw(*fargs, *o, 0, ntile)
+                    tf.append(time.process_time() - t)
+                    g = nl.grad_rows(fargs[1], fargs[2])
+                    t = time.process_time()
+                    bw(*bargs, g, 0, ntile)
+                    tb.append(time.process_time() - t)
+                row.update(forward_ms=1e3 * float(np.median(tf)), backward_ms=1e3 * float(np.median(tb)))
+            rows.append(row)
+            packed = {pass_: {reg: c for reg, c in v.items() if c} for pass_, v in code.items()}
+            timing = (
+                ""
+                if args.codegen_only
+                else (
+                    f"forward {row['forward_ms']:7.2f} ms  backward {row['backward_ms']:7.2f} ms  "
+                    f"same lists {row['same_lists']}  "
+                )
+            )
+            host_mark = " (host)" if width == host else "       "
+            print(f"{row['case']:>11}  width {width:2d}{host_mark}  {timing}packed {packed}", flush=True)
+
+    out = args.out or results_path("lane_width")
+    out.write_text(json.dumps({"machine": {**machine_info(), "arch": platform.machine(), "numba": numba.__version__,
+                                           "numba_cpu_name": numba.config.CPU_NAME or None},
+                               "host_width": host, "codegen_only": args.codegen_only, "rows": rows}, indent=1))  # fmt: skip
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
