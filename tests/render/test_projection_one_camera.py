@@ -172,6 +172,45 @@ def test_one_camera_kernels_compile_to_vector_code():
         assert sum("%ymm" in ops or "%zmm" in ops for ops in packed) >= 50, len(packed)
 
 
+def test_arm64_compiles_the_projection_two_float64_wide(monkeypatch):
+    """The width rule on arm64 (checked on any host): 2 float64 lanes, one NEON register, whatever numba's target
+    CPU (LLVM leaves the loop scalar there by itself)."""
+    from meshsplat.render.backends import numba_projection as P
+
+    for machine in ("arm64", "aarch64"):
+        monkeypatch.setattr(platform, "machine", lambda m=machine: m)
+        assert P.projection_llvm_options()["force-vector-width"] == 2
+
+
+@pytest.mark.skipif(platform.machine() not in ("aarch64", "arm64"), reason="checks arm64 vector registers")
+def test_one_camera_kernels_compile_to_neon_on_arm64():
+    """On arm64 the Gaussians' loop is packed float64 NEON code (``f...`` on ``v0.2d``), forward and backward. Run
+    under qemu-aarch64 (bench/raster_cpu_lanes.md, arm64); no arm64 machine runs the suite."""
+    import numba
+
+    from meshsplat._numba import llvm_options
+    from meshsplat.render.backends import numba_projection as P
+
+    _kernels()  # the helpers bound
+    s = _hard_scene(torch.float32, n=40)
+    flat = [a.reshape(-1) for a in _arrays(s)]
+    vm, ks = _cams(s, [0])
+    n = flat[3].shape[0]
+    cam = P._camera_vector(vm, ks, 61.0, 47.0)
+    outs = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32),
+            np.zeros(2 * n, np.int32), np.zeros(n, np.bool_))  # fmt: skip
+    grads = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32))
+    g_out = (np.zeros(3 * n, np.float32), np.zeros(4 * n, np.float32), np.zeros(3 * n, np.float32))
+    with llvm_options(P.projection_llvm_options()):  # uncached copies: their code can be inspected
+        fwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_kernel)
+        bwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_backward_kernel)
+        fwd(*flat, cam, 61.0, 47.0, NEAR, FAR, *outs, 0, n)
+        bwd(*flat[:3], cam, outs[4], *grads, *g_out, 0, n)
+    for dispatcher in (fwd, bwd):
+        asm = "\n".join(dispatcher.inspect_asm().values())
+        assert len(re.findall(r"^\s*f[a-z]+\s+v\d+\.2d", asm, re.M)) >= 50
+
+
 def test_one_camera_kernels_write_every_element():
     """The one-camera wrappers hand the kernels uninitialised outputs (``np.empty``): run on outputs full of a
     sentinel, the kernels give what the wrappers return, element for element."""

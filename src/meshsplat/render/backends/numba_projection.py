@@ -642,16 +642,20 @@ def _project_one_backward_kernel(
 
 def projection_llvm_options() -> dict[str, int]:
     """The LLVM options the one-camera kernels compile with (``_numba.llvm_options``): 4 float64 lanes on an x86-64
-    host (LLVM's cost model leaves the loop scalar on a Zen 3 host: 40 ms against 15 at 500k Gaussians), enough
-    run-time checks for the loop's 9 arrays and index assumptions; LLVM's own width elsewhere (arm64: not measured)
-    and where numba compiles for another CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``)."""
+    host (LLVM's cost model leaves the loop scalar on a Zen 3 host: 40 ms against 15 at 500k Gaussians), 2 on arm64
+    (one NEON register; LLVM leaves the loop scalar there too: code seen under qemu-aarch64, speed not measured),
+    enough run-time checks for the loop's 9 arrays and index assumptions; LLVM's own width elsewhere and where
+    numba compiles for another x86-64 CPU than the host (``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``)."""
     import platform
 
     import numba
 
     config: Any = numba.config
-    x86 = platform.machine().lower() in ("x86_64", "amd64")
-    width = 4 if x86 and not (config.CPU_NAME or config.CPU_FEATURES) else 0
+    machine = platform.machine().lower()
+    if machine in ("arm64", "aarch64"):
+        width = 2
+    else:
+        width = 4 if machine in ("x86_64", "amd64") and not (config.CPU_NAME or config.CPU_FEATURES) else 0
     return {"force-vector-width": width, "vectorize-scev-check-threshold": 512, "runtime-memory-check-threshold": 64}
 
 
