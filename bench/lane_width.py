@@ -25,6 +25,7 @@ import argparse
 import json
 import platform
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -90,29 +91,13 @@ def main() -> None:
                     fw(*fargs, *o, 0, ntile)
                     bw(*bargs, nl.grad_rows(fargs[1], fargs[2]), 0, ntile)
                 row["same_lists"] = bool(np.array_equal(o[2], n_contrib))
-                tf, tb = [], []
-                for _ in range(args.repeats):
-                    o = nl._outputs(fargs[2], fargs[4], fargs[5], fargs[8], fargs[9])
-                    t = time.process_time()
-                    fw(*fargs, *o, 0, ntile)
-                    tf.append(time.process_time() - t)
-                    g = nl.grad_rows(fargs[1], fargs[2])
-                    t = time.process_time()
-                    bw(*bargs, g, 0, ntile)
-                    tb.append(time.process_time() - t)
-                row.update(forward_ms=1e3 * float(np.median(tf)), backward_ms=1e3 * float(np.median(tb)))
+                row.update(_timed(
+                    args.repeats,
+                    (fw, fargs, partial(nl._outputs, fargs[2], fargs[4], fargs[5], fargs[8], fargs[9]), (0, ntile)),
+                    (bw, bargs, partial(_one, nl.grad_rows, fargs[1], fargs[2]), (0, ntile)),
+                ))  # fmt: skip
             rows.append(row)
-            packed = {pass_: {reg: c for reg, c in v.items() if c} for pass_, v in code.items()}
-            timing = (
-                ""
-                if args.codegen_only
-                else (
-                    f"forward {row['forward_ms']:7.2f} ms  backward {row['backward_ms']:7.2f} ms  "
-                    f"same lists {row['same_lists']}  "
-                )
-            )
-            host_mark = " (host)" if width == host else "       "
-            print(f"lanes {row['case']:>11}  width {width:2d}{host_mark}  {timing}packed {packed}", flush=True)
+            _print_row(row, host, f"same lists {row.get('same_lists')}")
     if "projection" in kernels:
         rows += _projection(args, numba)
 
@@ -121,6 +106,34 @@ def main() -> None:
                                            "numba_cpu_name": numba.config.CPU_NAME or None},
                                "host_width": host, "codegen_only": args.codegen_only, "rows": rows}, indent=1))  # fmt: skip
     print(f"wrote {out}")
+
+
+def _one(make, *args) -> tuple:
+    """``(make(*args),)``: one output array as the tuple ``_timed`` spreads."""
+    return (make(*args),)
+
+
+def _timed(repeats: int, forward: tuple, backward: tuple) -> dict[str, float]:
+    """Median CPU milliseconds of each ``(kernel, head, outputs, tail)``: ``kernel(*head, *outputs(), *tail)``, fresh
+    outputs each call."""
+    times: dict[str, list[float]] = {"forward_ms": [], "backward_ms": []}
+    for _ in range(repeats):
+        for key, (kernel, head, outputs, tail) in zip(times, (forward, backward), strict=True):
+            o = outputs()
+            t = time.process_time()
+            kernel(*head, *o, *tail)
+            times[key].append(time.process_time() - t)
+    return {key: 1e3 * float(np.median(v)) for key, v in times.items()}
+
+
+def _print_row(row: dict, host: int, check: str) -> None:
+    packed = {pass_: {reg: c for reg, c in v.items() if c} for pass_, v in row["code"].items()}
+    timing = (
+        f"forward {row['forward_ms']:7.2f} ms  backward {row['backward_ms']:7.2f} ms  " if "forward_ms" in row else ""
+    )
+    host_mark = " (host)" if row["width"] == host else "       "
+    print(f"{row['kernels']} {row['case']:>11}  width {row['width']:2d}{host_mark}  {timing}{check}  packed {packed}",
+          flush=True)  # fmt: skip
 
 
 PROJECTION_CASES = ((50_000, 512), (500_000, 512))
@@ -180,27 +193,13 @@ def _projection(args, numba) -> list[dict]:
                    "host_rule": width == host, "code": code,
                    "same_bits": all(np.array_equal(a, b) for a, b in zip(outs, reference, strict=True))}  # fmt: skip
             if not args.codegen_only:
-                tf, tb = [], []
-                for _ in range(args.repeats):
-                    o = outputs()
-                    t = time.process_time()
-                    fwd(*flat, cam, float(size), float(size), NEAR, FAR, *o, 0, n)
-                    tf.append(time.process_time() - t)
-                    g = g_outputs()
-                    t = time.process_time()
-                    bwd(*flat[:3], cam, o[4], *grads, *g, 0, n)
-                    tb.append(time.process_time() - t)
-                row.update(forward_ms=1e3 * float(np.median(tf)), backward_ms=1e3 * float(np.median(tb)))
+                row.update(_timed(
+                    args.repeats,
+                    (fwd, (*flat, cam, float(size), float(size), NEAR, FAR), outputs, (0, n)),
+                    (bwd, (*flat[:3], cam, outs[4], *grads), g_outputs, (0, n)),
+                ))  # fmt: skip
             rows.append(row)
-            packed = {pass_: {reg: c for reg, c in v.items() if c} for pass_, v in code.items()}
-            timing = (
-                ""
-                if args.codegen_only
-                else (f"forward {row['forward_ms']:7.2f} ms  backward {row['backward_ms']:7.2f} ms  ")
-            )
-            host_mark = " (host)" if width == host else "       "
-            print(f"projection {row['case']:>11}  width {width:2d}{host_mark}  {timing}same bits {row['same_bits']}  "
-                  f"packed {packed}", flush=True)  # fmt: skip
+            _print_row(row, host, f"same bits {row['same_bits']}")
     return rows
 
 

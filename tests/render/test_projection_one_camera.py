@@ -138,13 +138,9 @@ def _host_features() -> str:
     return ll.get_host_cpu_features().flatten()
 
 
-@pytest.mark.skipif(
-    platform.machine() not in ("x86_64", "AMD64") or "+avx2" not in _host_features(),
-    reason="checks x86-64 vector registers on a host with AVX2",
-)
-def test_one_camera_kernels_compile_to_vector_code():
-    """The Gaussians' loop is packed 256-bit float64 code (``v...pd`` on ``ymm``), forward and backward; LLVM's
-    cost model alone leaves it scalar on a Zen 3 host, so this fails if the options are lost."""
+def _one_camera_asm() -> list[str]:
+    """The generated code of uncached copies of the one-camera forward and backward, compiled with the options the
+    kernels get on this host (``projection_llvm_options``) and run once on a small scene."""
     import numba
 
     from meshsplat._numba import llvm_options
@@ -152,22 +148,30 @@ def test_one_camera_kernels_compile_to_vector_code():
 
     _kernels()  # the helpers bound
     s = _hard_scene(torch.float32, n=40)
-    arrs = _arrays(s)
+    flat = [a.reshape(-1) for a in _arrays(s)]
     vm, ks = _cams(s, [0])
-    n = arrs[0].shape[0]
+    n = flat[3].shape[0]
     cam = P._camera_vector(vm, ks, 61.0, 47.0)
     outs = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32),
             np.zeros(2 * n, np.int32), np.zeros(n, np.bool_))  # fmt: skip
-    flat = [a.reshape(-1) for a in arrs]
     grads = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32))
     g_out = (np.zeros(3 * n, np.float32), np.zeros(4 * n, np.float32), np.zeros(3 * n, np.float32))
-    with llvm_options(P.projection_llvm_options()):  # uncached copies: their code can be inspected
+    with llvm_options(P.projection_llvm_options()):
         fwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_kernel)
         bwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_backward_kernel)
         fwd(*flat, cam, 61.0, 47.0, NEAR, FAR, *outs, 0, n)
         bwd(*flat[:3], cam, outs[4], *grads, *g_out, 0, n)
-    for dispatcher in (fwd, bwd):
-        asm = "\n".join(dispatcher.inspect_asm().values())
+    return ["\n".join(dispatcher.inspect_asm().values()) for dispatcher in (fwd, bwd)]
+
+
+@pytest.mark.skipif(
+    platform.machine() not in ("x86_64", "AMD64") or "+avx2" not in _host_features(),
+    reason="checks x86-64 vector registers on a host with AVX2",
+)
+def test_one_camera_kernels_compile_to_vector_code():
+    """The Gaussians' loop is packed 256-bit float64 code (``v...pd`` on ``ymm``), forward and backward; LLVM's
+    cost model alone leaves it scalar on a Zen 3 host, so this fails if the options are lost."""
+    for asm in _one_camera_asm():
         packed = re.findall(r"^\s*v(?:add|sub|mul|div|min|max|sqrt)pd\s+([^\n]*)", asm, re.M)
         assert sum("%ymm" in ops or "%zmm" in ops for ops in packed) >= 50, len(packed)
 
@@ -186,28 +190,7 @@ def test_arm64_compiles_the_projection_two_float64_wide(monkeypatch):
 def test_one_camera_kernels_compile_to_neon_on_arm64():
     """On arm64 the Gaussians' loop is packed float64 NEON code (``f...`` on ``v0.2d``), forward and backward. Run
     under qemu-aarch64 (bench/raster_cpu_lanes.md, arm64); no arm64 machine runs the suite."""
-    import numba
-
-    from meshsplat._numba import llvm_options
-    from meshsplat.render.backends import numba_projection as P
-
-    _kernels()  # the helpers bound
-    s = _hard_scene(torch.float32, n=40)
-    flat = [a.reshape(-1) for a in _arrays(s)]
-    vm, ks = _cams(s, [0])
-    n = flat[3].shape[0]
-    cam = P._camera_vector(vm, ks, 61.0, 47.0)
-    outs = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32),
-            np.zeros(2 * n, np.int32), np.zeros(n, np.bool_))  # fmt: skip
-    grads = (np.zeros(2 * n, np.float32), np.zeros(3 * n, np.float32), np.zeros(n, np.float32))
-    g_out = (np.zeros(3 * n, np.float32), np.zeros(4 * n, np.float32), np.zeros(3 * n, np.float32))
-    with llvm_options(P.projection_llvm_options()):  # uncached copies: their code can be inspected
-        fwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_kernel)
-        bwd = numba.njit(cache=False, nogil=True, error_model="numpy")(P._project_one_backward_kernel)
-        fwd(*flat, cam, 61.0, 47.0, NEAR, FAR, *outs, 0, n)
-        bwd(*flat[:3], cam, outs[4], *grads, *g_out, 0, n)
-    for dispatcher in (fwd, bwd):
-        asm = "\n".join(dispatcher.inspect_asm().values())
+    for asm in _one_camera_asm():
         assert len(re.findall(r"^\s*f[a-z]+\s+v\d+\.2d", asm, re.M)) >= 50
 
 
