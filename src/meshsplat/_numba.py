@@ -10,6 +10,7 @@ kernel gets a small parallel driver (compiled on first use, cached) that runs it
 from __future__ import annotations
 
 import os
+import platform
 import re
 import sys
 import tempfile
@@ -20,7 +21,7 @@ from typing import Any, NamedTuple
 
 __all__ = [
     "numba_available", "njit_serial", "njit_driver", "run_ranges", "run_ranges_compiling_in", "llvm_options",
-    "LLVM_DEFAULTS", "NO_NUMBA_ENV", "Kernel", "kernel_named", "float_from_bits",
+    "LLVM_DEFAULTS", "NO_NUMBA_ENV", "Kernel", "kernel_named", "float_from_bits", "host_is_arm64",
 ]  # fmt: skip
 
 NO_NUMBA_ENV = "MESHSPLAT_NO_NUMBA"  # set to 1: behave as if numba were not installed
@@ -150,6 +151,12 @@ def run_ranges_compiling_in(
 # (``vectorize-scev-check-threshold``: assumptions about index arithmetic; ``runtime-memory-check-threshold``:
 # pairs of arrays that might overlap).
 LLVM_DEFAULTS = {"force-vector-width": 0, "vectorize-scev-check-threshold": 16, "runtime-memory-check-threshold": 8}
+
+
+def host_is_arm64() -> bool:
+    """Whether this is an arm64 host (Apple silicon, Graviton): SIMD is NEON's 128 bits on every such CPU, where
+    LLVM's cost model leaves some of the kernels' loops scalar (the lane and projection kernels force a width)."""
+    return platform.machine().lower() in ("arm64", "aarch64")
 
 
 @contextmanager

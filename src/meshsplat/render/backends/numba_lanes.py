@@ -41,14 +41,20 @@ from __future__ import annotations
 
 import math
 import os
-import platform
 from contextlib import AbstractContextManager
 from functools import lru_cache, partial
 from typing import Any
 
 import numpy as np
 
-from meshsplat._numba import float_from_bits, llvm_options, njit_driver, njit_serial, run_ranges_compiling_in
+from meshsplat._numba import (
+    float_from_bits,
+    host_is_arm64,
+    llvm_options,
+    njit_driver,
+    njit_serial,
+    run_ranges_compiling_in,
+)
 from meshsplat.errors import MeshsplatError
 from meshsplat.render._constants import PIXEL_CENTER, TRANSMITTANCE_MIN
 
@@ -84,7 +90,7 @@ def lane_vector_width() -> int:
     override = _width_override()
     if override is not None:
         return override
-    if platform.machine().lower() in ("arm64", "aarch64"):
+    if host_is_arm64():
         return 4
     import numba
     from llvmlite import binding as llvm

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from meshsplat._numba import llvm_options, njit_driver, njit_serial, run_ranges, run_ranges_compiling_in
+from meshsplat._numba import host_is_arm64, llvm_options, njit_driver, njit_serial, run_ranges, run_ranges_compiling_in
 from meshsplat.render._constants import ALPHA_THRESHOLD, EPS2D, FOV_CLAMP_MARGIN, MAX_EXTEND
 from meshsplat.render.projection import Projection
 
@@ -651,11 +651,11 @@ def projection_llvm_options() -> dict[str, int]:
     import numba
 
     config: Any = numba.config
-    machine = platform.machine().lower()
-    if machine in ("arm64", "aarch64"):
+    if host_is_arm64():
         width = 2
     else:
-        width = 4 if machine in ("x86_64", "amd64") and not (config.CPU_NAME or config.CPU_FEATURES) else 0
+        x86 = platform.machine().lower() in ("x86_64", "amd64")
+        width = 4 if x86 and not (config.CPU_NAME or config.CPU_FEATURES) else 0
     return {"force-vector-width": width, "vectorize-scev-check-threshold": 512, "runtime-memory-check-threshold": 64}
 
 
