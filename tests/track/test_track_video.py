@@ -9,7 +9,7 @@ import pytest
 
 from meshsplat.errors import MeshsplatError
 from meshsplat.io.video import probe_video, read_video_frames, write_mp4
-from meshsplat.track.head_region import Crop, crop_frame, crop_inside
+from meshsplat.track.head_region import Crop, crop_frame, crop_inside, regions_touching
 
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
 
@@ -111,3 +111,21 @@ def test_crop_inside_marks_the_frame():
     inside = crop_inside(300, 400, Crop(x0=-50.0, y0=250.0, side=100.0, size=50))
     assert inside[:, :24].max() == 0 and inside[:24, 26:].min() == 1  # left of the frame; inside it
     assert inside[26:].max() == 0  # below the frame's last row (y >= 300)
+
+
+def test_matte_keeps_only_the_regions_touching_the_head():
+    """A bottle the segmentation took for the person, apart from the head, leaves the matte; the head's region
+    keeps its values and the soft edge beside it; a frame whose matte misses the head keeps its matte."""
+    ys, xs = np.mgrid[0:64, 0:64] + 0.5
+    head = np.clip(12.5 - np.hypot(xs - 24, ys - 30), 0, 1).astype(np.float32)  # soft disc, radius ~12
+    bottle = np.clip(4.5 - np.hypot(xs - 52, ys - 20), 0, 1).astype(np.float32)  # a separate blob
+    edge_only = np.zeros((64, 64), np.float32)
+    edge_only[5, 5] = 0.3  # a faint pixel far from the head: not the head's edge
+    matte = np.maximum(np.maximum(head, bottle), edge_only)
+    seed = np.hypot(xs - 24, ys - 30) < 6
+    kept = regions_touching(matte, seed)
+    assert kept.dtype == matte.dtype
+    assert np.array_equal(kept[head > 0], matte[head > 0])  # the head, soft edge included
+    assert kept[bottle > 0].max() == 0 and kept[5, 5] == 0
+    assert np.array_equal(regions_touching(matte, np.zeros((64, 64), bool)), matte)  # nothing touches: as it is
+    assert np.array_equal(regions_touching(head, seed), head)  # one region: nothing to drop

@@ -32,7 +32,14 @@ from meshsplat.synth.driving import weld
 from meshsplat.track.clip import MIN_FRAMES, Clip, TrackResult, TrackSettings, open_clip
 from meshsplat.track.face_track import FaceTrack, track_faces
 from meshsplat.track.head_fit import HeadFit, fit_head
-from meshsplat.track.head_region import clip_crops, crop_frame, crop_inside, hair_region, mesh_silhouette
+from meshsplat.track.head_region import (
+    clip_crops,
+    crop_frame,
+    crop_inside,
+    hair_region,
+    mesh_silhouette,
+    regions_touching,
+)
 from meshsplat.track.head_render import visible_faces
 from meshsplat.track.ict_head import IctHead
 from meshsplat.track.mediapipe_models import FaceMesh, PersonSegmenter
@@ -179,10 +186,12 @@ def _write_capture(
             lm_crop = lm[j].copy()
             lm_crop[:, :2] = crop.to_crop(lm_crop[:, :2])
             Kc = crop.K(fit.K.numpy())
-            matte = (
+            silhouette = _silhouette(verts[j][index], faces, Kc, s.size)
+            matte = regions_touching(
                 person
                 * crop_inside(frame.shape[0], frame.shape[1], crop)
-                * np.maximum(hair_region(lm_crop, s.size, s.size), _silhouette(verts[j][index], faces, Kc, s.size))
+                * np.maximum(hair_region(lm_crop, s.size, s.size), silhouette),
+                silhouette >= 0.5,
             )
             cid = writer.add_camera(f"{j:06d}", Kc, viewmat, s.size, s.size)
             writer.add_frame(

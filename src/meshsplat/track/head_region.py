@@ -6,7 +6,9 @@ Both are built from the face's forehead-chin axis (so a tilted head gets a tilte
 between forehead and chin, the same side in every frame of a clip. The region is the fitted head mesh's
 silhouette (face, ears, neck down to where the mesh ends: :func:`mesh_silhouette`) joined with an
 ellipse around skull and hair (``HAIR_*``, feathered: :func:`hair_region`); the person matte outside it
-(shoulders, a ponytail below the neck) is left out of the capture's mask.
+(shoulders, a ponytail below the neck) is left out of the capture's mask, and so are the parts of the
+matte inside it that do not touch the head (a bottle or a lamp the segmentation took for the person:
+:func:`regions_touching`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,19 @@ import numpy as np
 
 from meshsplat.track.face_track import CHIN, FOREHEAD
 
-__all__ = ["Crop", "clip_crops", "hair_region", "mesh_silhouette", "crop_frame", "crop_inside", "CROP_SIDE"]
+__all__ = [
+    "Crop",
+    "clip_crops",
+    "hair_region",
+    "mesh_silhouette",
+    "regions_touching",
+    "crop_frame",
+    "crop_inside",
+    "CROP_SIDE",
+    "MATTE_HALO",
+]
+
+MATTE_HALO = 2  # pixels of a kept region's soft edge (matte below 0.5) that stay in the mask
 
 CROP_SIDE = 2.6  # crop side in face sizes: hair above the forehead and the neck below the chin fit in
 HAIR_UP, HAIR_ALONG, HAIR_ACROSS = 0.25, 0.95, 0.95  # ellipse centre shift (up) and semi-axes, face sizes
@@ -127,3 +141,22 @@ def mesh_silhouette(points: np.ndarray, size: int, radius: float) -> np.ndarray:
     disc = xx**2 + yy**2 <= radius**2 + 0.5
     img = ndimage.binary_closing(ndimage.binary_dilation(img, disc), disc, iterations=2, border_value=0)
     return ndimage.gaussian_filter(ndimage.binary_fill_holes(img).astype(np.float32), 0.7)
+
+
+def regions_touching(matte: np.ndarray, seed: np.ndarray, halo: int = MATTE_HALO) -> np.ndarray:
+    """``matte [H,W]`` in [0, 1] without its regions that do not touch ``seed [H,W]`` (bool).
+
+    A region is an 8-connected set of matte >= 0.5; the soft edge below 0.5 stays within ``halo`` pixels
+    of a kept region and goes with the others. When no region touches the seed (the segmentation missed
+    the head in this frame) the matte is returned as it is.
+    """
+    from scipy import ndimage
+
+    solid = matte >= 0.5
+    labels, n = ndimage.label(solid, structure=np.ones((3, 3), bool))
+    touching = np.unique(labels[seed & solid])
+    if n == 0 or touching.size == 0 or touching.size == n:
+        return matte
+    kept = np.isin(labels, touching)
+    near = ndimage.binary_dilation(kept, iterations=halo) if halo > 0 else kept
+    return (matte * (near & (kept | ~solid))).astype(matte.dtype, copy=False)
