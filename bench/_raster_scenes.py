@@ -8,7 +8,7 @@ import torch
 
 from meshsplat.mesh.quaternion import matrix_to_quat
 
-__all__ = ["avatar_scene", "look_at", "ring_scene"]
+__all__ = ["avatar_scene", "binned_geometry", "look_at", "ring_scene"]
 
 # (centre, radii) of ellipsoids roughly shaped like a standing person, metres, y up.
 _BODY = [
@@ -118,3 +118,19 @@ def ring_scene(size: int = 256, n: int = 10, dtype=torch.float32):
         "height": size,
         "backgrounds": torch.full((1, 3), 0.08, dtype=dtype),
     }
+
+
+def binned_geometry(scene):
+    """A scene's one camera projected and binned by the numba backend: its ``_Geometry`` (no-grad state), as the
+    compositing kernels take it."""
+    from meshsplat.render.backends import numba_cpu as nc
+
+    k = nc._kernels()
+    s = scene
+    proj = nc.project_numba(
+        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
+        s["viewmats"], s["Ks"], s["width"], s["height"], 0.01, 1e10,
+    )  # fmt: skip
+    geo = nc._Geometry(proj, s["means"].shape[0], s["colors"].dim() == 2, s["width"], s["height"], nc.TILE_SIZE)
+    geo.bin(s["opacities"], s["colors"])
+    return geo

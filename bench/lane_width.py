@@ -32,21 +32,9 @@ import numpy as np
 import torch
 
 from _machine import machine_info, results_path
-from _raster_scenes import avatar_scene
+from _raster_scenes import avatar_scene, binned_geometry
 
 CASES = ((20_000, 256), (50_000, 512))
-
-
-def _geometry(scene, nc):
-    k = nc._kernels()
-    s = scene
-    proj = nc.project_numba(
-        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
-        s["viewmats"], s["Ks"], s["width"], s["height"], 0.01, 1e10,
-    )  # fmt: skip
-    geo = nc._Geometry(proj, s["means"].shape[0], s["colors"].dim() == 2, s["width"], s["height"], nc.TILE_SIZE)
-    geo.bin(s["opacities"], s["colors"])
-    return geo, s["backgrounds"].contiguous().numpy()
 
 
 def main() -> None:
@@ -73,7 +61,8 @@ def main() -> None:
     rows = []
     kernels = args.kernels.split(",")
     for n, size in (CASES[:1] if args.codegen_only else CASES) if "lanes" in kernels else ():
-        geo, bg = _geometry(avatar_scene(n, size, seed=0), nc)
+        scene = avatar_scene(n, size, seed=0)
+        geo, bg = binned_geometry(scene), scene["backgrounds"].contiguous().numpy()
         fargs = geo.args(bg)
         ntile = fargs[3].shape[0]
         out, t_final, n_contrib, _ = nc._kernels().forward_lanes(*fargs)  # the host's kernels: the reference

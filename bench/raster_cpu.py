@@ -55,20 +55,13 @@ def _pixel_visits(scene: dict) -> int:
     """Footprint pixels the scalar forward walks (``raster_cpu_stages._count_visits``) for a scene's one camera."""
     import numba
 
+    from _raster_scenes import binned_geometry
     from meshsplat.render.backends import numba_cpu as nc
     from raster_cpu_stages import _count_visits
 
-    k = nc._kernels()
-    s = scene
-    size = s["width"]
-    proj = nc.project_numba(
-        (k.project, k.project_backward), s["means"], s["quats"], s["scales"], s["opacities"],
-        s["viewmats"], s["Ks"], size, s["height"], 0.01, 1e10,
-    )  # fmt: skip
-    geo = nc._Geometry(proj, s["means"].shape[0], True, size, s["height"], nc.TILE_SIZE)
-    geo.bin(s["opacities"], s["colors"])
+    geo = binned_geometry(scene)
     counts = numba.njit(_count_visits)(
-        geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, size, s["height"], nc.TILE_SIZE, geo.tiles_x
+        geo.tile_ptr, geo.isect, geo.rec, geo.xs, geo.ys, scene["width"], scene["height"], nc.TILE_SIZE, geo.tiles_x
     )
     return int(counts[0])
 
